@@ -1,0 +1,29 @@
+# mabdi: the two set-up commands of the README.
+#   make run    install into .venv and simulate the default scene (SCENE=...)
+#   make test   install into .venv (with the test extras) and run the tests
+PYTHON ?= python3
+VENV ?= .venv
+BIN := $(VENV)/bin
+SCENE ?= scenes/bunnies.toml
+
+.PHONY: run test install bench clean
+
+$(VENV)/.installed: pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --upgrade pip
+	$(BIN)/python -m pip install --quiet -e ".[test]"
+	touch $@
+
+install: $(VENV)/.installed
+
+run: install
+	$(BIN)/mabdi run $(SCENE)
+
+test: install
+	$(BIN)/python -m pytest
+
+bench: install
+	$(BIN)/python benchmarks/bench_depth_image.py
+
+clean:
+	rm -rf $(VENV) runs .pytest_cache

@@ -1,0 +1,43 @@
+"""mabdi: a triangle-mesh map of the world from a moving depth sensor (MABDI, VTK pipeline filters).
+
+Importing mabdi selects VTK's EGL render window (``VTK_DEFAULT_OPENGL_WINDOW``)
+unless the user chose another one, so off-screen rendering never tries an X
+server. This must happen before VTK is imported, hence first.
+"""
+
+import os as _os
+
+_os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
+
+from mabdi.algorithm import MabdiAlgorithm, raise_pipeline_errors  # noqa: E402
+from mabdi.camera import Intrinsics, backproject, check_pose, look_at, project  # noqa: E402
+from mabdi.config import RunConfig, load_run_config  # noqa: E402
+from mabdi.depth import DepthFrame, depth_image  # noqa: E402
+from mabdi.errors import AssetNotFoundError, ConfigError, MabdiError, PoseError  # noqa: E402
+from mabdi.filters import FilterDepthImage, SensorNoise  # noqa: E402
+from mabdi.simulate import helical_path  # noqa: E402
+from mabdi.sources import SourceScene  # noqa: E402
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "AssetNotFoundError",
+    "ConfigError",
+    "DepthFrame",
+    "FilterDepthImage",
+    "Intrinsics",
+    "MabdiAlgorithm",
+    "MabdiError",
+    "PoseError",
+    "RunConfig",
+    "SensorNoise",
+    "SourceScene",
+    "backproject",
+    "check_pose",
+    "depth_image",
+    "helical_path",
+    "load_run_config",
+    "look_at",
+    "project",
+    "raise_pipeline_errors",
+]

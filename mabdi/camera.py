@@ -1,0 +1,309 @@
+"""Pinhole intrinsics, poses and the conversions between them and VTK.
+
+Conventions (design.md):
+
+* World frame: metres, z up.
+* Camera frame: OpenCV (x right, y down, z forward along the optical axis).
+* A pose is a 4x4 float64 ``world_from_camera`` matrix: it maps camera-frame
+  points to world-frame points.
+* Pixel (u, v) covers [u, u+1) x [v, v+1) with v = 0 the top row; its centre
+  is (u + 0.5, v + 0.5) and its ray is ((u + 0.5 - cx)/fx, (v + 0.5 - cy)/fy, 1).
+  Continuous pixel coordinates returned by :func:`project` follow the same
+  convention, so ``floor(u), floor(v)`` is the pixel a point falls in.
+  (Libraries with integer pixel centres, Open3D among them, need cx - 0.5,
+  cy - 0.5.)
+* Depth is z-depth along the optical axis in metres, not range along the ray.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from mabdi.errors import ConfigError, PoseError
+
+#: Tolerance for rigidity checks of a pose's rotation block.
+RIGID_TOLERANCE = 1e-6
+
+
+@dataclass(frozen=True)
+class Intrinsics:
+    """Pinhole camera intrinsics and depth range.
+
+    Focal lengths and principal point are in pixels, ``near`` and ``far`` in
+    metres. The defaults are Kinect-v1-like: 640x480, f = 525 px, principal
+    point at the image centre, range 0.5-4.0 m.
+    """
+
+    fx: float = 525.0
+    fy: float = 525.0
+    cx: float = 320.0
+    cy: float = 240.0
+    width: int = 640
+    height: int = 480
+    near: float = 0.5
+    far: float = 4.0
+
+    def __post_init__(self) -> None:
+        for name in ("fx", "fy"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                raise ConfigError(f"intrinsics: focal length {name} must be positive and finite, got {value!r}")
+        for name in ("cx", "cy"):
+            if not math.isfinite(getattr(self, name)):
+                raise ConfigError(f"intrinsics: principal point {name} must be finite, got {getattr(self, name)!r}")
+        for name in ("width", "height"):
+            value = getattr(self, name)
+            if isinstance(value, float) and value.is_integer():
+                object.__setattr__(self, name, int(value))
+                value = int(value)
+            if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value <= 0:
+                raise ConfigError(f"intrinsics: {name} must be a positive integer (pixels), got {value!r}")
+        if not (math.isfinite(self.near) and math.isfinite(self.far) and 0 < self.near < self.far):
+            raise ConfigError(f"intrinsics: need 0 < near < far (metres), got near={self.near!r}, far={self.far!r}")
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """Image shape as numpy sees it: (height, width)."""
+        return (self.height, self.width)
+
+    def to_array(self) -> np.ndarray:
+        """float64[8]: fx, fy, cx, cy, width, height, near, far (the field-data layout)."""
+        return np.array(
+            [self.fx, self.fy, self.cx, self.cy, self.width, self.height, self.near, self.far], dtype=np.float64
+        )
+
+    @classmethod
+    def from_array(cls, values) -> Intrinsics:
+        """Inverse of :meth:`to_array`."""
+        a = np.asarray(values, dtype=np.float64).ravel()
+        if a.shape != (8,):
+            raise ConfigError(f"intrinsics array must have 8 values (fx, fy, cx, cy, width, height, near, far), got shape {a.shape}")
+        return cls(float(a[0]), float(a[1]), float(a[2]), float(a[3]), int(round(a[4])), int(round(a[5])), float(a[6]), float(a[7]))
+
+    def matrix(self) -> np.ndarray:
+        """The 3x3 camera matrix K (pixel centres at +0.5, see the module docs)."""
+        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+    def rays(self) -> np.ndarray:
+        """(H, W, 3) camera-frame rays through pixel centres, with z = 1."""
+        u = (np.arange(self.width) + 0.5 - self.cx) / self.fx
+        v = (np.arange(self.height) + 0.5 - self.cy) / self.fy
+        rays = np.empty((self.height, self.width, 3))
+        rays[..., 0] = u[None, :]
+        rays[..., 1] = v[:, None]
+        rays[..., 2] = 1.0
+        return rays
+
+    @property
+    def vertical_view_angle(self) -> float:
+        """Full vertical field of view in degrees (what ``vtkCamera.SetViewAngle`` takes)."""
+        return math.degrees(2.0 * math.atan(0.5 * self.height / self.fy))
+
+
+# ---------------------------------------------------------------------------
+# Poses
+
+
+def check_pose(pose, name: str = "pose") -> np.ndarray:
+    """Return ``pose`` as a float64 4x4 array, or raise :class:`PoseError`.
+
+    A pose must be 4x4, finite, with last row (0, 0, 0, 1) and an orthonormal,
+    right-handed rotation block (tolerance :data:`RIGID_TOLERANCE`).
+    """
+    try:
+        m = np.array(pose, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise PoseError(f"{name} must be a 4x4 numeric matrix: {exc}") from None
+    if m.shape != (4, 4):
+        raise PoseError(f"{name} must be a 4x4 world_from_camera matrix, got shape {m.shape}")
+    if not np.all(np.isfinite(m)):
+        raise PoseError(f"{name} has non-finite entries")
+    if not np.allclose(m[3], [0.0, 0.0, 0.0, 1.0], atol=RIGID_TOLERANCE):
+        raise PoseError(f"{name} last row must be (0, 0, 0, 1), got {m[3].tolist()}")
+    r = m[:3, :3]
+    error = np.abs(r.T @ r - np.eye(3)).max()
+    if error > RIGID_TOLERANCE:
+        raise PoseError(f"{name} is not rigid: rotation block is not orthonormal (max |R^T R - I| = {error:.3g})")
+    if np.linalg.det(r) < 0:
+        raise PoseError(f"{name} is not rigid: rotation block is a reflection (det < 0)")
+    return m
+
+
+def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
+    """``world_from_camera`` of a camera at ``eye`` whose optical axis points at ``target``.
+
+    The image's up direction (-y of the camera) is as close to ``up`` (world)
+    as possible. Raises :class:`PoseError` when eye == target or the view
+    direction is parallel to ``up``.
+    """
+    eye = np.asarray(eye, dtype=np.float64)
+    target = np.asarray(target, dtype=np.float64)
+    up = np.asarray(up, dtype=np.float64)
+    z = target - eye
+    norm = np.linalg.norm(z)
+    if norm < 1e-12:
+        raise PoseError(f"look_at: eye and target coincide at {eye.tolist()}")
+    z /= norm
+    x = np.cross(z, up)
+    nx = np.linalg.norm(x)
+    if nx < 1e-9:
+        raise PoseError(f"look_at: view direction {z.tolist()} is parallel to up {up.tolist()}")
+    x /= nx
+    y = np.cross(z, x)
+    pose = np.eye(4)
+    pose[:3, 0], pose[:3, 1], pose[:3, 2], pose[:3, 3] = x, y, z, eye
+    return pose
+
+
+# ---------------------------------------------------------------------------
+# Z-buffer <-> metric depth (OpenGL perspective projection, depth range [0, 1])
+
+
+def zbuffer_to_depth(zbuffer, near: float, far: float) -> np.ndarray:
+    """Metric z-depth (m) from normalised z-buffer values d in [0, 1].
+
+    z = f n / (f - d (f - n)). Values d >= 1 (the cleared background, or
+    anything at or beyond the far plane) become NaN: no return.
+    """
+    d = np.asarray(zbuffer, dtype=np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        z = (far * near) / (far - d * (far - near))
+    return np.where(d < 1.0, z, np.nan)
+
+
+def depth_to_zbuffer(depth, near: float, far: float) -> np.ndarray:
+    """Inverse of :func:`zbuffer_to_depth`: d = f (z - n) / (z (f - n)); NaN stays NaN."""
+    z = np.asarray(depth, dtype=np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return far * (z - near) / (z * (far - near))
+
+
+def zbuffer_depth_derivative(depth, near: float, far: float) -> np.ndarray:
+    """|dz/dd| at metric depth z: (f - n) z^2 / (f n), metres per unit of d."""
+    z = np.asarray(depth, dtype=np.float64)
+    return (far - near) * z * z / (far * near)
+
+
+# ---------------------------------------------------------------------------
+# Back-projection and projection
+
+
+def backproject(depth, intrinsics: Intrinsics, world_from_camera, keep_invalid: bool = False) -> np.ndarray:
+    """World points (m) of a (H, W) metric depth image.
+
+    Returns (N, 3) points of the valid (finite) pixels in row-major order, or
+    with ``keep_invalid=True`` an (H, W, 3) array with NaN at invalid pixels.
+    """
+    depth = np.asarray(depth, dtype=np.float64)
+    if depth.shape != intrinsics.shape:
+        raise ValueError(f"depth image shape {depth.shape} does not match intrinsics (height, width) {intrinsics.shape}")
+    pose = check_pose(world_from_camera, "world_from_camera")
+    camera_points = intrinsics.rays() * depth[..., None]
+    world = camera_points @ pose[:3, :3].T + pose[:3, 3]
+    if keep_invalid:
+        return world
+    return world[np.isfinite(depth)]
+
+
+def project(points, intrinsics: Intrinsics, world_from_camera) -> tuple[np.ndarray, np.ndarray]:
+    """Project world points to continuous pixel coordinates.
+
+    Returns ``(uv, z)``: (N, 2) pixel coordinates (u right, v down; the pixel
+    is ``floor(uv)``) and (N,) z-depth in the camera frame (m). Points behind
+    the camera get z <= 0 and meaningless uv; callers filter on z.
+    """
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    pose = check_pose(world_from_camera, "world_from_camera")
+    r, t = pose[:3, :3], pose[:3, 3]
+    cam = (pts - t) @ r
+    z = cam[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = intrinsics.fx * cam[:, 0] / z + intrinsics.cx
+        v = intrinsics.fy * cam[:, 1] / z + intrinsics.cy
+    return np.stack([u, v], axis=1), z
+
+
+def in_view(points, intrinsics: Intrinsics, world_from_camera) -> np.ndarray:
+    """Boolean mask: which world points lie inside the image and the depth range."""
+    uv, z = project(points, intrinsics, world_from_camera)
+    return (
+        (z >= intrinsics.near)
+        & (z <= intrinsics.far)
+        & (uv[:, 0] >= 0)
+        & (uv[:, 0] <= intrinsics.width)
+        & (uv[:, 1] >= 0)
+        & (uv[:, 1] <= intrinsics.height)
+    )
+
+
+# ---------------------------------------------------------------------------
+# VTK camera
+
+
+def configure_vtk_camera(camera, intrinsics: Intrinsics, world_from_camera) -> None:
+    """Set a ``vtkCamera`` so a render of size (width, height) matches the pinhole model exactly.
+
+    * position / focal point / view up from the pose (VTK looks along -z with
+      +y up; the OpenCV camera looks along +z with +y down);
+    * vertical view angle 2 atan(H / (2 fy));
+    * explicit aspect (W fy) / (H fx), so fx != fy works;
+    * window centre (1 - 2 cx / W, 2 cy / H - 1) for an off-centre principal point;
+    * clipping range (near, far).
+    """
+    pose = check_pose(world_from_camera, "world_from_camera")
+    position = pose[:3, 3]
+    forward = pose[:3, 2]
+    down = pose[:3, 1]
+    camera.SetPosition(*position)
+    camera.SetFocalPoint(*(position + forward))
+    camera.SetViewUp(*(-down))
+    camera.SetViewAngle(intrinsics.vertical_view_angle)
+    camera.SetUseHorizontalViewAngle(False)
+    camera.SetExplicitAspectRatio((intrinsics.width * intrinsics.fy) / (intrinsics.height * intrinsics.fx))
+    camera.SetUseExplicitAspectRatio(True)
+    camera.SetWindowCenter(1.0 - 2.0 * intrinsics.cx / intrinsics.width, 2.0 * intrinsics.cy / intrinsics.height - 1.0)
+    camera.SetClippingRange(intrinsics.near, intrinsics.far)
+
+
+def intrinsics_from_vtk_camera(camera, width: int, height: int) -> Intrinsics:
+    """Inverse of :func:`configure_vtk_camera` for a window of ``width`` x ``height`` pixels.
+
+    Without an explicit aspect ratio VTK assumes square pixels (fx = fy).
+    """
+    if camera.GetUseHorizontalViewAngle():
+        fx = 0.5 * width / math.tan(math.radians(camera.GetViewAngle()) / 2.0)
+        aspect = camera.GetExplicitAspectRatio() if camera.GetUseExplicitAspectRatio() else width / height
+        fy = fx * aspect * height / width
+    else:
+        fy = 0.5 * height / math.tan(math.radians(camera.GetViewAngle()) / 2.0)
+        aspect = camera.GetExplicitAspectRatio() if camera.GetUseExplicitAspectRatio() else width / height
+        fx = fy * width / (height * aspect)
+    wcx, wcy = camera.GetWindowCenter()
+    near, far = camera.GetClippingRange()
+    return Intrinsics(
+        fx=fx,
+        fy=fy,
+        cx=(1.0 - wcx) * width / 2.0,
+        cy=(1.0 + wcy) * height / 2.0,
+        width=int(width),
+        height=int(height),
+        near=near,
+        far=far,
+    )
+
+
+def pose_from_vtk_camera(camera) -> np.ndarray:
+    """``world_from_camera`` (OpenCV camera frame) of a ``vtkCamera``."""
+    position = np.array(camera.GetPosition())
+    forward = np.array(camera.GetDirectionOfProjection())
+    up = np.array(camera.GetViewUp())
+    z = forward / np.linalg.norm(forward)
+    y = -(up - np.dot(up, z) * z)
+    y /= np.linalg.norm(y)
+    x = np.cross(y, z)
+    pose = np.eye(4)
+    pose[:3, 0], pose[:3, 1], pose[:3, 2], pose[:3, 3] = x, y, z, position
+    return pose

@@ -1,0 +1,25 @@
+"""Exceptions raised by mabdi.
+
+Every error a user can cause (a bad config, a bad pose, a missing file) is
+raised as one of these, with a message that names the file, key, shape or
+value at fault. They subclass the matching built-in exception so callers can
+also catch ``ValueError`` / ``FileNotFoundError`` as usual.
+"""
+
+from __future__ import annotations
+
+
+class MabdiError(Exception):
+    """Base class of every error mabdi raises on purpose."""
+
+
+class ConfigError(MabdiError, ValueError):
+    """A run config (TOML) or a config value is invalid."""
+
+
+class PoseError(MabdiError, ValueError):
+    """A pose is not a rigid 4x4 ``world_from_camera`` matrix."""
+
+
+class AssetNotFoundError(MabdiError, FileNotFoundError):
+    """A mesh file or built-in asset (the bunny) could not be found."""

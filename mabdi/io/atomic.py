@@ -1,0 +1,50 @@
+"""Atomic file output: write to a temporary file beside the target, then rename.
+
+A crash, a full disk or an exception while writing never leaves a
+half-written file where a good one was: the old file stays until the new one
+is complete, and the temporary file is removed on failure.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import tempfile
+from pathlib import Path
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+@contextlib.contextmanager
+def atomic_output(path):
+    """Yield a temporary path to write; on success it replaces ``path`` atomically.
+
+    The parent folder must exist (a clear ``FileNotFoundError`` otherwise).
+    The temporary name keeps the suffix, for writers that look at it.
+    """
+    path = Path(path)
+    parent = path.parent if str(path.parent) else Path(".")
+    if not parent.is_dir():
+        raise FileNotFoundError(f"cannot write {path}: folder {parent} does not exist")
+    handle, temporary = tempfile.mkstemp(prefix=f".{path.name}.", suffix=f".tmp{path.suffix}", dir=parent)
+    os.close(handle)
+    temporary = Path(temporary)
+    try:
+        yield temporary
+        with open(temporary, "rb+") as stream:
+            os.fsync(stream.fileno())
+        os.chmod(temporary, 0o666 & ~_umask())  # mkstemp makes it 0600; give it a normal file's mode
+        os.replace(temporary, path)
+    finally:
+        if temporary.exists():
+            temporary.unlink()
+
+
+def write_text(path, text: str) -> None:
+    """Write a text file atomically."""
+    with atomic_output(path) as temporary:
+        Path(temporary).write_text(text)

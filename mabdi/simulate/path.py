@@ -1,0 +1,78 @@
+"""The helical sensor path of seed 001 §4.1.
+
+The sensor circles the scene ``turns`` times (twice by default) on an
+ellipse with radii ``radius_x``, ``radius_y`` (m) about ``center`` (x, y),
+rising linearly from height ``z0`` to ``z1``, and looks at a point that moves
+linearly from ``look_from`` to ``look_to``: each pass sees the scene from a
+slightly different place, and the second pass returns to parts already
+mapped. Frame i of N sits at t = i / (N - 1) along the whole path, so N
+frames always span the same helix; more frames are finer steps.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from mabdi.camera import look_at
+from mabdi.config import PathConfig
+from mabdi.errors import ConfigError
+
+
+def helical_path(
+    frames: int,
+    center=(0.0, 0.0),
+    radius_x: float = 2.5,
+    radius_y: float = 2.5,
+    z0: float = 1.2,
+    z1: float = 1.8,
+    look_from=(0.0, 0.0, 0.5),
+    look_to=(0.0, 0.0, 0.8),
+    turns: float = 2.0,
+    start_angle: float = -90.0,
+) -> np.ndarray:
+    """(frames, 4, 4) ``world_from_camera`` poses along the helix (metres; ``start_angle`` in degrees).
+
+    The angle runs counter-clockwise seen from above, starting at
+    ``start_angle`` (-90 degrees = on the -y side of the centre).
+    """
+    if isinstance(frames, bool) or not isinstance(frames, (int, np.integer)) or frames < 1:
+        raise ConfigError(f"helical_path: frames must be a positive integer, got {frames!r}")
+    t = np.linspace(0.0, 1.0, frames) if frames > 1 else np.zeros(1)
+    angle = math.radians(start_angle) + 2.0 * math.pi * turns * t
+    eye = np.stack(
+        [
+            center[0] + radius_x * np.cos(angle),
+            center[1] + radius_y * np.sin(angle),
+            z0 + (z1 - z0) * t,
+        ],
+        axis=1,
+    )
+    look_from = np.asarray(look_from, dtype=np.float64)
+    look_to = np.asarray(look_to, dtype=np.float64)
+    targets = look_from + t[:, None] * (look_to - look_from)
+    return np.stack([look_at(e, g) for e, g in zip(eye, targets)])
+
+
+def path_targets(frames: int, config: PathConfig) -> np.ndarray:
+    """(frames, 3) look-at points of :func:`path_from_config` (where each pose looks)."""
+    t = np.linspace(0.0, 1.0, frames) if frames > 1 else np.zeros(1)
+    a, b = np.asarray(config.look_from), np.asarray(config.look_to)
+    return a + t[:, None] * (b - a)
+
+
+def path_from_config(frames: int, config: PathConfig) -> np.ndarray:
+    """:func:`helical_path` with the parameters of a ``[path]`` config section."""
+    return helical_path(
+        frames,
+        center=config.center,
+        radius_x=config.radius_x,
+        radius_y=config.radius_y,
+        z0=config.z0,
+        z1=config.z1,
+        look_from=config.look_from,
+        look_to=config.look_to,
+        turns=config.turns,
+        start_angle=config.start_angle,
+    )
