@@ -22,11 +22,12 @@ Setters call ``Modified()`` only when the value changes (:meth:`_set`).
 
 from __future__ import annotations
 
+import sys
 from typing import Any
 
 import numpy as np
 from vtkmodules.util.vtkAlgorithm import VTKPythonAlgorithmBase
-from vtkmodules.vtkCommonCore import vtkOutputWindow, vtkStringOutputWindow
+from vtkmodules.vtkCommonCore import vtkLogger, vtkOutputWindow, vtkStringOutputWindow
 
 
 class MabdiAlgorithm(VTKPythonAlgorithmBase):
@@ -52,18 +53,22 @@ class MabdiAlgorithm(VTKPythonAlgorithmBase):
         for algorithm in (*upstream_algorithms(self), self):
             if isinstance(algorithm, MabdiAlgorithm):
                 algorithm._pending_error = None
+        # Hold VTK's own messages back while updating: when a request of ours failed, the
+        # Python exception says what went wrong; otherwise they are printed afterwards.
         previous = vtkOutputWindow.GetInstance()
         captured = vtkStringOutputWindow()
         vtkOutputWindow.SetInstance(captured)
+        verbosity = vtkLogger.GetCurrentVerbosityCutoff()  # no getter for stderr alone
+        vtkLogger.SetStderrVerbosity(vtkLogger.VERBOSITY_OFF)
         try:
             result = super().Update(*args)
         finally:
+            vtkLogger.SetStderrVerbosity(verbosity)
             vtkOutputWindow.SetInstance(previous)
         raise_pipeline_errors(*upstream_algorithms(self), self)
         text = captured.GetOutput()
         if text:
-            # Not our failure: pass VTK's own messages on unchanged.
-            previous.DisplayText(text)
+            sys.stderr.write(text)
         return result
 
     def GetOutput(self, port: int = 0):  # noqa: N802 (VTK API)

@@ -265,7 +265,7 @@ class FilterDepthImage(MabdiAlgorithm):
         if not isinstance(data, (vtkPolyData, vtkCompositeDataSet)):
             raise TypeError(
                 "FilterDepthImage: input must be a vtkPolyData or a composite dataset of polydata, "
-                f"got {type(data).__name__}"
+                f"got {data.GetClassName() if data is not None else None}"
             )
         if self._pose is None:
             raise ValueError("FilterDepthImage: pose is not set (assign a 4x4 world_from_camera to .pose)")
