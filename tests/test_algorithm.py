@@ -1,0 +1,67 @@
+"""MabdiAlgorithm: errors in pipeline requests reach the caller."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from vtkmodules.vtkCommonDataModel import vtkPolyData
+from vtkmodules.vtkFiltersCore import vtkTriangleFilter
+
+from mabdi.algorithm import MabdiAlgorithm, raise_pipeline_errors
+from mabdi.filters.depth_image import FilterDepthImage
+
+
+class FailingSource(MabdiAlgorithm):
+    def __init__(self, fail=True):
+        super().__init__(nInputPorts=0, nOutputPorts=1, outputType="vtkPolyData")
+        self.fail = fail
+
+    def RequestData(self, request, inInfo, outInfo):
+        if self.fail:
+            raise KeyError("the source could not find 'widget'")
+        vtkPolyData.GetData(outInfo).Initialize()
+        return 1
+
+
+def test_error_in_request_data_is_raised_by_update(capfd):
+    source = FailingSource()
+    with pytest.raises(KeyError, match="widget"):
+        source.Update()
+    assert "returned failure" not in capfd.readouterr().err  # VTK's dump is held back
+
+
+def test_filter_retries_after_a_failure():
+    source = FailingSource()
+    with pytest.raises(KeyError):
+        source.Update()
+    source.fail = False
+    assert source.Update()
+
+
+def test_error_upstream_is_raised_by_a_mabdi_filter_downstream():
+    source = FailingSource()
+    sensor = FilterDepthImage()
+    sensor.SetInputConnection(source.GetOutputPort())
+    sensor.pose = np.eye(4)
+    with pytest.raises(KeyError, match="widget"):
+        sensor.Update()
+
+
+def test_error_pulled_through_a_plain_vtk_filter_surfaces_on_check():
+    source = FailingSource()
+    plain = vtkTriangleFilter()
+    plain.SetInputConnection(source.GetOutputPort())
+    plain.Update()  # VTK itself reports nothing to Python here
+    with pytest.raises(KeyError, match="widget"):
+        raise_pipeline_errors(source)
+    raise_pipeline_errors(source)  # the error was cleared once raised
+
+
+def test_setter_helper_modifies_only_on_change():
+    source = FailingSource()
+    source._set("_value", np.eye(2))
+    before = source.GetMTime()
+    source._set("_value", np.eye(2))
+    assert source.GetMTime() == before
+    source._set("_value", np.zeros((2, 2)))
+    assert source.GetMTime() > before

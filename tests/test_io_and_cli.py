@@ -1,0 +1,106 @@
+"""Atomic writes, the `mabdi run` command and its outputs."""
+
+from __future__ import annotations
+
+import tomllib
+
+import numpy as np
+import pytest
+from vtkmodules.vtkIOXML import vtkXMLImageDataReader, vtkXMLPolyDataReader
+
+from mabdi.cli import main
+from mabdi.config import load_run_config, run_config_from_dict
+from mabdi.depth import DepthFrame
+from mabdi.io.atomic import atomic_output, write_text
+
+
+def test_failed_write_keeps_the_old_file(tmp_path):
+    target = tmp_path / "map.txt"
+    target.write_text("good map")
+    with pytest.raises(RuntimeError):
+        with atomic_output(target) as temporary:
+            temporary.write_text("half a m")
+            raise RuntimeError("disk full")
+    assert target.read_text() == "good map"
+    assert list(tmp_path.iterdir()) == [target]  # no temporary left behind
+
+
+def test_write_into_a_missing_folder_is_a_clear_error(tmp_path):
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    with pytest.raises(FileNotFoundError, match="does not exist"):
+        write_text(blocker / "sub" / "out.txt", "data")
+
+
+def test_run_writes_depth_images_and_resolved_config(tmp_path, scenes_dir, capsys):
+    out = tmp_path / "run"
+    status = main(["run", str(scenes_dir / "table.toml"), "--frames", "3", "--noise", "kinect", "--out", str(out), "--quiet"])
+    assert status == 0
+    assert "3 frames rendered" in capsys.readouterr().out
+    images = sorted((out / "depth").glob("*.vti"))
+    assert [p.name for p in images] == ["000000.vti", "000001.vti", "000002.vti"]
+    poses = np.load(out / "poses.npy")
+    assert poses.shape == (3, 4, 4)
+    reader = vtkXMLImageDataReader()
+    reader.SetFileName(str(images[1]))
+    reader.Update()
+    frame = DepthFrame.from_image(reader.GetOutput())
+    assert frame.frame == 1
+    np.testing.assert_allclose(frame.world_from_camera, poses[1])
+    assert 0.5 <= np.nanmin(frame.depth) and np.nanmax(frame.depth) <= 4.2
+    resolved = run_config_from_dict(tomllib.loads((out / "config.toml").read_text()))
+    original = load_run_config(scenes_dir / "table.toml")
+    assert resolved.run.frames == 3 and resolved.sensor.noise == "kinect"
+    assert resolved.scene == original.scene
+    scene_reader = vtkXMLPolyDataReader()
+    scene_reader.SetFileName(str(out / "scene.vtp"))
+    scene_reader.Update()
+    assert scene_reader.GetOutput().GetCellData().GetArray("object_id") is not None
+
+
+def test_run_with_a_bad_config_prints_one_line_and_exits_2(tmp_path, capsys):
+    config = tmp_path / "bad.toml"
+    config.write_text("[path]\nradius = 2.0\n")
+    status = main(["run", str(config), "--out", str(tmp_path / "out")])
+    err = capsys.readouterr().err
+    assert status == 2
+    assert "unknown key 'radius'" in err and str(config) in err
+    assert "Traceback" not in err
+
+
+def test_run_with_a_bad_override_is_named(tmp_path, scenes_dir, capsys):
+    status = main(["run", str(scenes_dir / "table.toml"), "--noise", "speckle", "--out", str(tmp_path / "o")])
+    assert status == 2
+    assert "sensor.noise" in capsys.readouterr().err
+
+
+def test_importing_mabdi_selects_egl_unless_the_user_chose():
+    import subprocess
+    import sys
+
+    code = "import os, mabdi, vtkmodules.vtkRenderingOpenGL2; print(os.environ['VTK_DEFAULT_OPENGL_WINDOW'])"
+    env = {k: v for k, v in __import__("os").environ.items() if k != "VTK_DEFAULT_OPENGL_WINDOW"}
+    chosen = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+    assert chosen.stdout.strip() == "vtkEGLRenderWindow"
+    env["VTK_DEFAULT_OPENGL_WINDOW"] = "vtkOSOpenGLRenderWindow"
+    kept = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+    assert kept.stdout.strip() == "vtkOSOpenGLRenderWindow"
+
+
+def test_console_script_runs(tmp_path, scenes_dir):
+    import shutil
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    script = Path(sys.executable).parent / "mabdi"
+    script = str(script) if script.exists() else shutil.which("mabdi")
+    assert script, "the mabdi console script is not installed"
+    result = subprocess.run(
+        [script, "run", str(scenes_dir / "table.toml"), "--frames", "2", "--out", str(tmp_path / "r"), "--quiet"],
+        capture_output=True,
+        text=True,
+        env={k: v for k, v in __import__("os").environ.items() if k != "DISPLAY"},
+    )
+    assert result.returncode == 0, result.stderr
+    assert len(list((tmp_path / "r" / "depth").glob("*.vti"))) == 2
