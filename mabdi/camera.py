@@ -119,9 +119,9 @@ def check_pose(pose, name: str = "pose") -> np.ndarray:
         raise PoseError(f"{name} must be a 4x4 numeric matrix: {exc}") from None
     if m.shape != (4, 4):
         raise PoseError(f"{name} must be a 4x4 world_from_camera matrix, got shape {m.shape}")
-    if not np.all(np.isfinite(m)):
+    if not np.isfinite(m).all():
         raise PoseError(f"{name} has non-finite entries")
-    if not np.allclose(m[3], [0.0, 0.0, 0.0, 1.0], atol=RIGID_TOLERANCE):
+    if np.abs(m[3] - (0.0, 0.0, 0.0, 1.0)).max() > RIGID_TOLERANCE:
         raise PoseError(f"{name} last row must be (0, 0, 0, 1), got {m[3].tolist()}")
     r = m[:3, :3]
     error = np.abs(r.T @ r - np.eye(3)).max()
@@ -166,12 +166,19 @@ def zbuffer_to_depth(zbuffer, near: float, far: float) -> np.ndarray:
     """Metric z-depth (m) from normalised z-buffer values d in [0, 1].
 
     z = f n / (f - d (f - n)). Values d >= 1 (the cleared background, or
-    anything at or beyond the far plane) become NaN: no return.
+    anything at or beyond the far plane) become NaN: no return. Computed in
+    the input's floating type (float32 for a read-back z-buffer, whose 24-bit
+    resolution it exceeds) or float64 otherwise.
     """
-    d = np.asarray(zbuffer, dtype=np.float64)
+    d = np.asarray(zbuffer)
+    if d.dtype != np.float32:
+        d = d.astype(np.float64)
+    z = d * d.dtype.type(-(far - near))
+    z += d.dtype.type(far)
     with np.errstate(divide="ignore", invalid="ignore"):
-        z = (far * near) / (far - d * (far - near))
-    return np.where(d < 1.0, z, np.nan)
+        np.divide(d.dtype.type(far * near), z, out=z)
+    np.copyto(z, np.nan, where=~(d < 1.0))
+    return z
 
 
 def depth_to_zbuffer(depth, near: float, far: float) -> np.ndarray:

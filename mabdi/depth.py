@@ -58,8 +58,8 @@ class DepthFrame:
 
 
 def depth_image(depth, intrinsics: Intrinsics, world_from_camera, frame: int = -1) -> vtkImageData:
-    """Build a depth-image vtkImageData from a (H, W) array of metres (v = 0 the top row)."""
-    depth = np.ascontiguousarray(depth, dtype=np.float32)
+    """Build a depth-image vtkImageData from a (H, W) array of metres (v = 0 the top row); copies ``depth``."""
+    depth = np.array(depth, dtype=np.float32, order="C", copy=True)
     if depth.shape != intrinsics.shape:
         raise ValueError(
             f"depth image has shape {depth.shape}, but intrinsics say (height, width) = {intrinsics.shape}"
@@ -70,12 +70,16 @@ def depth_image(depth, intrinsics: Intrinsics, world_from_camera, frame: int = -
 
 
 def fill_depth_image(image: vtkImageData, depth: np.ndarray, intrinsics: Intrinsics, pose: np.ndarray, frame: int) -> None:
-    """Fill an existing vtkImageData (a filter's output) with a depth image. Inputs are trusted."""
+    """Fill an existing vtkImageData (a filter's output) with a depth image. Inputs are trusted.
+
+    The image shares ``depth``'s memory: hand over an array nobody else writes to.
+    """
     height, width = depth.shape
     image.SetExtent(0, width - 1, 0, height - 1, 0, 0)
     image.SetOrigin(0.0, 0.0, 0.0)
     image.SetSpacing(1.0, 1.0, 1.0)
-    array = numpy_to_vtk(np.ascontiguousarray(depth, dtype=np.float32).ravel(), deep=True)
+    # Shallow: the VTK array keeps a reference to the numpy buffer (callers hand over a fresh array).
+    array = numpy_to_vtk(np.ascontiguousarray(depth, dtype=np.float32).ravel(), deep=False)
     array.SetName(DEPTH_ARRAY)
     point_data = image.GetPointData()
     point_data.Initialize()

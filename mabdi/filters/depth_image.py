@@ -78,18 +78,23 @@ class SensorNoise:
         return np.zeros_like(z)
 
     def depth_from_zbuffer(self, zbuffer: np.ndarray, near: float, far: float, rng: np.random.Generator | None) -> np.ndarray:
-        """Metric depth (float32, NaN = no return) from a z-buffer, with this model's noise drawn from ``rng``."""
-        d = np.asarray(zbuffer, dtype=np.float64)
-        valid = d < 1.0
+        """Metric depth (float32, NaN = no return) from a z-buffer, with this model's noise drawn from ``rng``.
+
+        Works in float32: the z-buffer holds 24 bits, and float32 metres
+        resolve 0.5 um at 4 m.
+        """
+        d = np.asarray(zbuffer, dtype=np.float32)
         if self.model == "zbuffer" and rng is not None:
+            valid = d < 1.0
             dv = d[valid]
             d = d.copy()
-            d[valid] = dv + dv * (self.zbuffer_sigma * rng.standard_normal(dv.size))
+            d[valid] = dv + dv * (np.float32(self.zbuffer_sigma) * rng.standard_normal(dv.size, dtype=np.float32))
         depth = zbuffer_to_depth(d, near, far)
         if self.model == "kinect" and rng is not None:
+            valid = np.isfinite(depth)
             zv = depth[valid]
-            depth[valid] = zv + self.kinect_coefficient * zv * zv * rng.standard_normal(zv.size)
-        return depth.astype(np.float32)
+            depth[valid] = zv + np.float32(self.kinect_coefficient) * zv * zv * rng.standard_normal(zv.size, dtype=np.float32)
+        return depth
 
 
 def noise_rng(seed: int, frame: int) -> np.random.Generator:
