@@ -1,10 +1,10 @@
 # mabdi: the two set-up commands of the README.
-#   make run    install into .venv and simulate the default scene (SCENE=...)
+#   make run    install into .venv and run the MABDI loop on the table scene (SCENE=...)
 #   make test   install into .venv (with the test extras) and run the tests
 PYTHON ?= python3
 VENV ?= .venv
 BIN := $(VENV)/bin
-SCENE ?= scenes/bunnies.toml
+SCENE ?= scenes/table.toml
 
 .PHONY: run test install bench clean
 

@@ -14,8 +14,15 @@ from mabdi.camera import Intrinsics, backproject, check_pose, look_at, project  
 from mabdi.config import RunConfig, load_run_config  # noqa: E402
 from mabdi.depth import DepthFrame, depth_image  # noqa: E402
 from mabdi.errors import AssetNotFoundError, ConfigError, MabdiError, PoseError  # noqa: E402
-from mabdi.filters import FilterDepthImage, SensorNoise  # noqa: E402
-from mabdi.simulate import helical_path  # noqa: E402
+from mabdi.filters import (  # noqa: E402
+    ClassifierParameters,
+    FilterClassifier,
+    FilterDepthImage,
+    FilterDepthImageToSurface,
+    FilterWorldMesh,
+    SensorNoise,
+)
+from mabdi.simulate import Simulation, helical_path  # noqa: E402
 from mabdi.sources import SourceScene  # noqa: E402
 
 __version__ = "0.1.0"
@@ -24,13 +31,18 @@ __all__ = [
     "AssetNotFoundError",
     "ConfigError",
     "DepthFrame",
+    "ClassifierParameters",
+    "FilterClassifier",
     "FilterDepthImage",
+    "FilterDepthImageToSurface",
+    "FilterWorldMesh",
     "Intrinsics",
     "MabdiAlgorithm",
     "MabdiError",
     "PoseError",
     "RunConfig",
     "SensorNoise",
+    "Simulation",
     "SourceScene",
     "backproject",
     "check_pose",

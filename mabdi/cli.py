@@ -1,6 +1,8 @@
 """The ``mabdi`` command line.
 
-    mabdi run scenes/bunnies.toml [--frames N] [--out DIR] [--noise MODEL] [--seed S] [--backend B]
+    mabdi run CONFIG [--frames N] [--out DIR] [--noise MODEL] [--seed N] [--surface NAME]
+                     [--no-classifier] [--backend B] [--quiet]
+    mabdi export IN OUT          convert a saved map between VTP, PLY, OBJ and STL
 
 Options override the config file; the resolved config is written with the
 outputs. Errors a user can cause (a bad config, a missing mesh) print one
@@ -22,14 +24,22 @@ def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="mabdi", description="Mesh maps from a moving depth sensor (MABDI).")
     commands = parser.add_subparsers(dest="command", required=True)
 
-    run = commands.add_parser("run", help="simulate a run config: render the sensor's depth images along its path")
+    run = commands.add_parser("run", help="run the MABDI loop on a run config (scenes/*.toml) and write the map")
     run.add_argument("config", type=Path, help="run config (TOML), e.g. scenes/bunnies.toml")
     run.add_argument("--frames", type=int, help="number of frames (overrides run.frames)")
     run.add_argument("--out", type=Path, help="output folder (default: runs/<config name>)")
     run.add_argument("--noise", help="noise model: none, zbuffer or kinect (overrides sensor.noise)")
     run.add_argument("--seed", type=int, help="noise seed (overrides run.seed)")
+    run.add_argument("--surface", help="surface filter: pixel_grid (overrides surface.method)")
+    run.add_argument(
+        "--no-classifier", action="store_true", help="black box: mesh every valid pixel every frame (classifier.enabled = false)"
+    )
     run.add_argument("--backend", help="render backend: egl or osmesa (overrides sensor.backend)")
-    run.add_argument("--quiet", action="store_true", help="no progress output")
+    run.add_argument("--quiet", action="store_true", help="no progress bar")
+
+    export = commands.add_parser("export", help="convert a saved map between VTP, PLY, OBJ and STL")
+    export.add_argument("source", type=Path, help="map file to read (.vtp, .ply, .obj, .stl)")
+    export.add_argument("target", type=Path, help="file to write; the format follows the suffix")
     return parser
 
 
@@ -44,7 +54,33 @@ def _apply_overrides(config, args) -> None:
         config.run.seed = args.seed
     if args.backend is not None:
         config.sensor.backend = args.backend
+    if args.surface is not None:
+        config.surface.method = args.surface
+    if args.no_classifier:
+        config.classifier.enabled = False
+    if args.out is not None:
+        config.output.dir = str(args.out)
     validate_run_config(config, where="command line")
+
+
+class ProgressBar:
+    """A one-line progress bar on stderr (only when stderr is a terminal)."""
+
+    def __init__(self, total: int, enabled: bool) -> None:
+        self.total = total
+        self.enabled = enabled and sys.stderr.isatty()
+
+    def __call__(self, record) -> None:
+        if not self.enabled:
+            return
+        done = record.frame + 1
+        width = 30
+        filled = int(width * done / self.total)
+        bar = "#" * filled + "." * (width - filled)
+        sys.stderr.write(f"\r[{bar}] frame {done}/{self.total}  map {record.cells_total:,} triangles ")
+        sys.stderr.flush()
+        if done == self.total:
+            sys.stderr.write("\n")
 
 
 def cmd_run(args) -> int:
@@ -53,18 +89,30 @@ def cmd_run(args) -> int:
 
     config = load_run_config(args.config)
     _apply_overrides(config, args)
-    out_dir = args.out if args.out is not None else Path("runs") / (config.run.name or args.config.stem)
+    out_dir = Path(config.output.dir) if config.output.dir else Path("runs") / (config.run.name or args.config.stem)
     simulation = Simulation(config)
+    result = simulation.run(out_dir, progress=ProgressBar(config.run.frames, not args.quiet))
+    summary = result.summary()
+    mode = "classifier on" if summary["classifier"] else "black box (classifier off)"
+    print(
+        f"{summary['frames']} frames in {summary['seconds']:.1f} s ({summary['frames_per_second']:.1f} frames/s), "
+        f"{mode}, surface {summary['surface']}"
+    )
+    print(f"map: {summary['cells']:,} triangles, {summary['points']:,} points, {summary['map_bytes'] / 2**20:.1f} MB")
+    print(f"results in {out_dir}/ (world_mesh.vtp, world_mesh.ply, metrics.csv, summary.json, elements.png)")
+    return 0
 
-    def progress(i, image):
-        if not args.quiet:
-            print(f"\rframe {i + 1}/{config.run.frames}", end="", flush=True)
 
-    summary = simulation.run(out_dir, progress=progress)
-    if not args.quiet:
-        print()
-    per_frame = 1000.0 * summary.seconds["render"] / max(summary.frames, 1)
-    print(f"{summary.frames} frames rendered ({per_frame:.1f} ms per frame); outputs in {out_dir}")
+def cmd_export(args) -> int:
+    from mabdi.io.vtk_files import read_mesh_file, write_mesh_file
+
+    if args.source.resolve() == args.target.resolve():
+        from mabdi.errors import ConfigError
+
+        raise ConfigError(f"export: source and target are the same file ({args.source})")
+    mesh = read_mesh_file(args.source)
+    write_mesh_file(mesh, args.target)
+    print(f"wrote {args.target} ({mesh.GetNumberOfPoints():,} points, {mesh.GetNumberOfCells():,} cells)")
     return 0
 
 
@@ -73,7 +121,7 @@ def main(argv=None) -> int:
     from mabdi.errors import MabdiError
 
     try:
-        return {"run": cmd_run}[args.command](args)
+        return {"run": cmd_run, "export": cmd_export}[args.command](args)
     except (MabdiError, FileNotFoundError) as exc:
         print(f"mabdi: error: {exc}", file=sys.stderr)
         return 2

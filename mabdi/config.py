@@ -1,8 +1,9 @@
 """Typed run configs, loaded from TOML.
 
 A file in ``scenes/`` is a whole run config: ``[run]`` (frames, seed),
-``[scene]`` (the objects), ``[sensor]`` (intrinsics, noise, backend) and
-``[path]`` (the helix). Every section and key has a default, so a config
+``[scene]`` (the objects), ``[sensor]`` (intrinsics, noise, backend),
+``[path]`` (the helix), ``[classifier]`` (on/off and thresholds),
+``[surface]`` (which surface filter) and ``[output]`` (what is written). Every section and key has a default, so a config
 states only what differs. An unknown or misspelt key, a value of the wrong
 type, or a value out of range is a :class:`ConfigError` that names the file
 and the key.
@@ -30,6 +31,8 @@ OBJECT_TYPES = (*PRIMITIVES, "mesh")
 ANCHORS = ("bottom", "center", "origin")
 AXES = ("x", "y", "z", "-x", "-y", "-z", "+x", "+y", "+z")
 NOISE_MODELS = ("none", "zbuffer", "kinect")
+#: Surface filters by config name; quadtree and voxel_planes join when they exist.
+SURFACES = ("pixel_grid",)
 BACKENDS = ("egl", "osmesa")
 
 
@@ -121,6 +124,46 @@ class PathConfig:
 
 
 @dataclass
+class ClassifierConfig:
+    """FilterClassifier's switch and thresholds (see :mod:`mabdi.filters.classifier`).
+
+    ``enabled = false`` is the "black box": every valid pixel is meshed every frame.
+    """
+
+    enabled: bool = True
+    tau_min: float = 0.01
+    k_sigma: float = 3.0
+    min_width: int = 3
+    min_region: int = 32
+    rim: int = 1
+
+
+@dataclass
+class SurfaceConfig:
+    """The surface filter that meshes novel pixels: ``method`` is one of :data:`SURFACES`.
+
+    ``max_jump`` (pixel_grid): largest depth spread in a triangle as a fraction of its depth.
+    """
+
+    method: str = "pixel_grid"
+    max_jump: float = 0.05
+
+
+@dataclass
+class OutputConfig:
+    """What a run writes. ``dir`` defaults to ``runs/<run.name>`` (relative to the working folder).
+
+    ``depth_images``: also write D, E and the labels of every frame as VTI
+    (about 1 MB per frame each).
+    """
+
+    dir: str = ""
+    vtp: bool = True
+    ply: bool = True
+    depth_images: bool = False
+
+
+@dataclass
 class RunSection:
     """Run-wide settings: a name, the number of frames (iterations) and the noise seed."""
 
@@ -137,6 +180,9 @@ class RunConfig:
     scene: SceneConfig = field(default_factory=SceneConfig)
     sensor: SensorConfig = field(default_factory=SensorConfig)
     path: PathConfig = field(default_factory=PathConfig)
+    classifier: ClassifierConfig = field(default_factory=ClassifierConfig)
+    surface: SurfaceConfig = field(default_factory=SurfaceConfig)
+    output: OutputConfig = field(default_factory=OutputConfig)
     #: The file this config was read from (not a TOML key).
     source: Path | None = field(default=None, compare=False, repr=False, metadata={"toml": False})
 
@@ -316,6 +362,14 @@ def validate_run_config(config: RunConfig, where: str = "<config>") -> None:
         raise ConfigError(f"{where}: keys 'path.radius_x' and 'path.radius_y' must be positive")
     if path.turns <= 0:
         raise ConfigError(f"{where}: key 'path.turns' must be positive, got {path.turns}")
+    classifier = config.classifier
+    if classifier.tau_min <= 0 or classifier.k_sigma < 0:
+        raise ConfigError(f"{where}: need 'classifier.tau_min' > 0 and 'classifier.k_sigma' >= 0")
+    if classifier.min_width < 1 or classifier.min_region < 0 or classifier.rim < 0:
+        raise ConfigError(f"{where}: need 'classifier.min_width' >= 1, 'classifier.min_region' >= 0, 'classifier.rim' >= 0")
+    _check_choice(config.surface.method, SURFACES, where, "surface.method")
+    if config.surface.max_jump <= 0:
+        raise ConfigError(f"{where}: key 'surface.max_jump' must be > 0, got {config.surface.max_jump}")
 
 
 # ---------------------------------------------------------------------------

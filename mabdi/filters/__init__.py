@@ -1,5 +1,16 @@
 """Filters: one module per VTK algorithm of the MABDI pipeline."""
 
+from mabdi.filters.classifier import ClassifierParameters, FilterClassifier
 from mabdi.filters.depth_image import DepthRenderer, FilterDepthImage, SensorNoise
+from mabdi.filters.depth_to_surface import FilterDepthImageToSurface
+from mabdi.filters.world_mesh import FilterWorldMesh
 
-__all__ = ["DepthRenderer", "FilterDepthImage", "SensorNoise"]
+__all__ = [
+    "ClassifierParameters",
+    "DepthRenderer",
+    "FilterClassifier",
+    "FilterDepthImage",
+    "FilterDepthImageToSurface",
+    "FilterWorldMesh",
+    "SensorNoise",
+]

@@ -33,7 +33,13 @@ from dataclasses import dataclass
 import numpy as np
 from vtkmodules.util.numpy_support import vtk_to_numpy
 from vtkmodules.vtkCommonCore import vtkFloatArray
-from vtkmodules.vtkCommonDataModel import vtkCompositeDataSet, vtkDataObject, vtkImageData, vtkPolyData
+from vtkmodules.vtkCommonDataModel import (
+    vtkCompositeDataSet,
+    vtkDataObject,
+    vtkDataObjectTreeIterator,
+    vtkImageData,
+    vtkPolyData,
+)
 from vtkmodules.vtkCommonExecutionModel import vtkStreamingDemandDrivenPipeline
 from vtkmodules.vtkRenderingCore import vtkActor, vtkMapper, vtkPolyDataMapper, vtkRenderer
 
@@ -44,10 +50,6 @@ from mabdi.config import BACKENDS, NOISE_MODELS
 from mabdi.depth import fill_depth_image
 from mabdi.errors import ConfigError
 
-try:  # VTK >= 9.3 name; older wheels call it vtkCompositePolyDataMapper2
-    from vtkmodules.vtkRenderingCore import vtkCompositePolyDataMapper
-except ImportError:  # pragma: no cover - depends on the VTK version
-    from vtkmodules.vtkRenderingOpenGL2 import vtkCompositePolyDataMapper2 as vtkCompositePolyDataMapper
 
 
 @dataclass(frozen=True)
@@ -112,11 +114,39 @@ def _check_backend_library(backend: str) -> None:
         )
 
 
+def polydata_leaves(data) -> list[vtkPolyData]:
+    """The vtkPolyData of ``data``: itself, or the non-empty leaves of a composite dataset."""
+    if isinstance(data, vtkPolyData):
+        return [data]
+    if not isinstance(data, vtkCompositeDataSet):
+        raise TypeError(
+            "expected a vtkPolyData or a composite dataset of polydata, "
+            f"got {data.GetClassName() if data is not None else None}"
+        )
+    leaves = []
+    iterator = vtkDataObjectTreeIterator()
+    iterator.SetDataSet(data)
+    iterator.SkipEmptyNodesOn()
+    iterator.VisitOnlyLeavesOn()
+    iterator.InitTraversal()
+    while not iterator.IsDoneWithTraversal():
+        leaf = iterator.GetCurrentDataObject()
+        if not isinstance(leaf, vtkPolyData):
+            raise TypeError(f"composite dataset has a {leaf.GetClassName()} block; only vtkPolyData can be rendered")
+        leaves.append(leaf)
+        iterator.GoToNextItem()
+    return leaves
+
+
 class DepthRenderer:
     """One reusable off-screen render window that renders z-buffers of a mesh.
 
     ``render_zbuffer(data, intrinsics, pose)`` returns the (H, W) float32
-    z-buffer, top row first, values in [0, 1] (1 = background).
+    z-buffer, top row first, values in [0, 1] (1 = background). ``data`` is a
+    vtkPolyData or a composite dataset of them (the map's blocks). Each
+    polydata gets its own mapper and actor, kept for as long as the polydata
+    is part of the input: a mapper uploads its geometry when it first draws it
+    or when it changes, so a map that grows by new blocks uploads only those.
     """
 
     def __init__(self, backend: str = "egl") -> None:
@@ -126,14 +156,28 @@ class DepthRenderer:
         self._window = None
         self._size: tuple[int, int] | None = None
         self._renderer = vtkRenderer()
-        self._actor = vtkActor()
-        self._actor.GetProperty().LightingOff()
-        self._renderer.AddActor(self._actor)
-        self._polydata_mapper = vtkPolyDataMapper()
-        self._composite_mapper = vtkCompositePolyDataMapper()
-        for mapper in (self._polydata_mapper, self._composite_mapper):
-            mapper.ScalarVisibilityOff()
+        self._actors: dict[int, tuple[vtkPolyData, vtkActor]] = {}
         self._zbuffer = vtkFloatArray()
+
+    def _sync_actors(self, data) -> None:
+        """One actor per polydata of ``data``; actors of polydata no longer there are dropped."""
+        current: dict[int, tuple[vtkPolyData, vtkActor]] = {}
+        for leaf in polydata_leaves(data):
+            entry = self._actors.get(id(leaf))
+            if entry is None:
+                mapper = vtkPolyDataMapper()
+                mapper.SetInputData(leaf)
+                mapper.ScalarVisibilityOff()
+                actor = vtkActor()
+                actor.SetMapper(mapper)
+                actor.GetProperty().LightingOff()
+                self._renderer.AddActor(actor)
+                entry = (leaf, actor)
+            current[id(leaf)] = entry
+        for key, (_, actor) in self._actors.items():
+            if key not in current:
+                self._renderer.RemoveActor(actor)
+        self._actors = current
 
     def _make_window(self, width: int, height: int):
         _check_backend_library(self.backend)
@@ -162,11 +206,7 @@ class DepthRenderer:
                 self._window.Finalize()
             self._window = self._make_window(*size)
             self._size = size
-        mapper = self._composite_mapper if isinstance(data, vtkCompositeDataSet) else self._polydata_mapper
-        if mapper.GetInputDataObject(0, 0) is not data:
-            mapper.SetInputDataObject(data)
-        if self._actor.GetMapper() is not mapper:
-            self._actor.SetMapper(mapper)
+        self._sync_actors(data)
         configure_vtk_camera(self._renderer.GetActiveCamera(), intrinsics, world_from_camera)
         # Polygon offsets would bias depth; the setting is global in VTK, so restore it after.
         coincident = vtkMapper.GetResolveCoincidentTopology()

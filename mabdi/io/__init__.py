@@ -1,6 +1,6 @@
-"""Files: atomic writes and VTK exports."""
+"""Files: atomic writes, VTK mesh and image files, plots."""
 
 from mabdi.io.atomic import atomic_output
-from mabdi.io.vtk_files import write_image, write_polydata
+from mabdi.io.vtk_files import read_mesh_file, write_image, write_mesh_file, write_polydata
 
-__all__ = ["atomic_output", "write_image", "write_polydata"]
+__all__ = ["atomic_output", "read_mesh_file", "write_image", "write_mesh_file", "write_polydata"]

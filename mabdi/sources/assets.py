@@ -19,25 +19,15 @@ from pathlib import Path
 from vtkmodules.vtkCommonDataModel import vtkPolyData
 from vtkmodules.vtkFiltersCore import vtkCleanPolyData, vtkTriangleFilter
 from vtkmodules.vtkFiltersGeometry import vtkDataSetSurfaceFilter
-from vtkmodules.vtkIOGeometry import vtkOBJReader, vtkSTLReader
-from vtkmodules.vtkIOPLY import vtkPLYReader
-from vtkmodules.vtkIOXML import vtkXMLPolyDataReader
 
 from mabdi.errors import AssetNotFoundError, ConfigError
+from mabdi.io.vtk_files import read_mesh_file
 
 BUNNY_HELP = (
     "the Stanford bunny was not found: install the optional extra that ships it offline, "
     '`pip install "mabdi[bunny]"` (the pymeshlab wheel), or allow pyvista to download it once '
     "(pyvista.examples.download_bunny), or give a mesh file path instead of \"bunny\""
 )
-
-MESH_READERS = {
-    ".ply": vtkPLYReader,
-    ".obj": vtkOBJReader,
-    ".stl": vtkSTLReader,
-    ".vtp": vtkXMLPolyDataReader,
-}
-
 
 def bunny_path() -> Path:
     """Path of a Stanford bunny mesh file (y-up), or :class:`AssetNotFoundError`."""
@@ -81,15 +71,8 @@ def read_mesh(path) -> vtkPolyData:
     :class:`ConfigError` for an unknown format or a file with no triangles.
     """
     path = Path(path)
-    if not path.is_file():
-        raise AssetNotFoundError(f"mesh file not found: {path}")
-    reader_class = MESH_READERS.get(path.suffix.lower())
-    if reader_class is None:
-        raise ConfigError(f"{path}: unknown mesh format '{path.suffix}' (known: {', '.join(MESH_READERS)})")
-    reader = reader_class()
-    reader.SetFileName(str(path))
     surface = vtkDataSetSurfaceFilter()
-    surface.SetInputConnection(reader.GetOutputPort())
+    surface.SetInputData(read_mesh_file(path))
     triangles = vtkTriangleFilter()
     triangles.SetInputConnection(surface.GetOutputPort())
     triangles.PassLinesOff()

@@ -1,0 +1,197 @@
+"""FilterClassifier: which pixels of the measured image D are novel, given the expected image E.
+
+Port 0 is D (what the sensor measured), port 1 is E (what the map predicts
+from the same pose, rendered without noise). Both are depth images
+(:mod:`mabdi.depth`) of the same size, intrinsics and pose.
+
+Per pixel, with tau(z) = max(tau_min, k_sigma * sigma(z)) metres at the
+measured depth z = D and sigma the active noise model's standard deviation
+(:meth:`mabdi.filters.depth_image.SensorNoise.sigma`):
+
+====  ============  ====================================================
+label  name          rule
+====  ============  ====================================================
+0     no return     D is NaN
+1     known         |D - E| <= tau
+2     novel         E is NaN (the map has no surface there), or D < E - tau
+3     contradicted  D > E + tau: the sensor sees through a surface of the map
+                    (kept for object removal later; not meshed)
+====  ============  ====================================================
+
+Specks: rendering and edge effects leave thin slivers and small blobs of
+"novel" pixels along the map's silhouettes. The novel mask is opened with a
+``min_width`` x ``min_width`` square (anything thinner goes) and connected
+regions (8-neighbours) of fewer than ``min_region`` pixels are dropped; those
+pixels get label 1 (explained by the map). ``min_width = 1`` and
+``min_region = 0`` turn this off.
+
+Output: a depth image whose ``depth`` is D on the novel pixels and on a rim
+of ``rim`` pixels around them (NaN elsewhere), plus the uint8 point array
+``label``. The rim makes a new patch overlap the map by one pixel square
+instead of leaving a crack one pixel wide between them (the pixel-grid mesher
+needs four valid corners). Field data (intrinsics, pose, frame) is D's.
+
+Defaults: tau_min = 0.01 m, k_sigma = 3, min_width = 3 px, min_region = 32 px,
+rim = 1 px.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage
+from vtkmodules.util.numpy_support import numpy_to_vtk
+from vtkmodules.vtkCommonDataModel import vtkImageData
+from vtkmodules.vtkCommonExecutionModel import vtkStreamingDemandDrivenPipeline
+
+from mabdi.algorithm import MabdiAlgorithm
+from mabdi.depth import depth_array, fill_depth_image, image_frame, image_intrinsics, image_pose
+from mabdi.errors import ConfigError
+from mabdi.filters.depth_image import SensorNoise
+
+NO_RETURN, KNOWN, NOVEL, CONTRADICTED = 0, 1, 2, 3
+LABEL_ARRAY = "label"
+
+_EIGHT_NEIGHBOURS = np.ones((3, 3), dtype=bool)
+
+
+@dataclass(frozen=True)
+class ClassifierParameters:
+    """Thresholds of :class:`FilterClassifier` (metres and pixels; see the module docs)."""
+
+    tau_min: float = 0.01
+    k_sigma: float = 3.0
+    min_width: int = 3
+    min_region: int = 32
+    rim: int = 1
+
+    def __post_init__(self) -> None:
+        if not self.tau_min > 0:
+            raise ConfigError(f"classifier: tau_min must be > 0 metres, got {self.tau_min}")
+        if self.k_sigma < 0:
+            raise ConfigError(f"classifier: k_sigma must be >= 0, got {self.k_sigma}")
+        if self.min_width < 1 or self.min_region < 0 or self.rim < 0:
+            raise ConfigError("classifier: min_width must be >= 1, min_region and rim >= 0")
+
+
+def classify(measured: np.ndarray, expected: np.ndarray, tau: np.ndarray) -> np.ndarray:
+    """uint8 labels (0-3, see the module docs) from D, E and the per-pixel threshold tau (all (H, W), metres)."""
+    labels = np.full(measured.shape, KNOWN, dtype=np.uint8)
+    d_valid = np.isfinite(measured)
+    e_valid = np.isfinite(expected)
+    with np.errstate(invalid="ignore"):
+        difference = measured - expected
+        labels[difference < -tau] = NOVEL
+        labels[difference > tau] = CONTRADICTED
+    labels[d_valid & ~e_valid] = NOVEL
+    labels[~d_valid] = NO_RETURN
+    return labels
+
+
+def remove_specks(novel: np.ndarray, min_width: int, min_region: int) -> np.ndarray:
+    """The novel mask without regions thinner than ``min_width`` or smaller than ``min_region`` pixels."""
+    mask = novel
+    if min_width > 1 and mask.any():
+        mask = ndimage.binary_opening(mask, structure=np.ones((min_width, min_width), dtype=bool))
+    if min_region > 0 and mask.any():
+        regions, count = ndimage.label(mask, structure=_EIGHT_NEIGHBOURS)
+        sizes = np.bincount(regions.ravel(), minlength=count + 1)
+        keep = sizes >= min_region
+        keep[0] = False
+        mask = keep[regions]
+    return mask
+
+
+class FilterClassifier(MabdiAlgorithm):
+    """Label D's pixels against E and pass on the novel ones (2 depth images -> depth image)."""
+
+    def __init__(self, parameters: ClassifierParameters | None = None, noise: SensorNoise | str = "none") -> None:
+        super().__init__(nInputPorts=2, inputType="vtkImageData", nOutputPorts=1, outputType="vtkImageData")
+        self._parameters = parameters if parameters is not None else ClassifierParameters()
+        self._noise = noise if isinstance(noise, SensorNoise) else SensorNoise(noise)
+        #: Pixel counts of the last update: valid (D has a return), novel (after speck removal), specks.
+        self.counts: dict[str, int] = {}
+
+    @property
+    def parameters(self) -> ClassifierParameters:
+        return self._parameters
+
+    @parameters.setter
+    def parameters(self, value: ClassifierParameters) -> None:
+        self._set("_parameters", value)
+
+    @property
+    def noise(self) -> SensorNoise:
+        """The noise model whose sigma(z) sets the threshold (the sensor's)."""
+        return self._noise
+
+    @noise.setter
+    def noise(self, value: SensorNoise | str) -> None:
+        self._set("_noise", value if isinstance(value, SensorNoise) else SensorNoise(value))
+
+    def threshold(self, depth: np.ndarray, near: float, far: float) -> np.ndarray:
+        """tau(z) = max(tau_min, k_sigma sigma(z)) in metres."""
+        sigma = self._noise.sigma(depth, near, far)
+        return np.maximum(self._parameters.tau_min, self._parameters.k_sigma * sigma)
+
+    def RequestInformation(self, request, inInfo, outInfo):  # noqa: N802 (VTK API)
+        source = inInfo[0].GetInformationObject(0)
+        extent = source.Get(vtkStreamingDemandDrivenPipeline.WHOLE_EXTENT())
+        if extent is not None:
+            outInfo.GetInformationObject(0).Set(vtkStreamingDemandDrivenPipeline.WHOLE_EXTENT(), extent, 6)
+        return 1
+
+    def RequestUpdateExtent(self, request, inInfo, outInfo):  # noqa: N802 (VTK API)
+        # Always ask both inputs for their whole image, whatever sizes they claim:
+        # a size mismatch is reported in RequestData, not by VTK's extent checks.
+        for port in (0, 1):
+            info = inInfo[port].GetInformationObject(0)
+            whole = info.Get(vtkStreamingDemandDrivenPipeline.WHOLE_EXTENT())
+            if whole is not None:
+                info.Set(vtkStreamingDemandDrivenPipeline.UPDATE_EXTENT(), whole, 6)
+        return 1
+
+    def RequestData(self, request, inInfo, outInfo):  # noqa: N802 (VTK API)
+        measured_image = vtkImageData.GetData(inInfo[0])
+        expected_image = vtkImageData.GetData(inInfo[1])
+        intrinsics = image_intrinsics(measured_image)
+        expected_intrinsics = image_intrinsics(expected_image)
+        if intrinsics != expected_intrinsics:
+            raise ValueError(
+                "FilterClassifier: D (port 0) and E (port 1) must share size and intrinsics; "
+                f"D has {intrinsics}, E has {expected_intrinsics}"
+            )
+        pose = image_pose(measured_image)
+        expected_pose = image_pose(expected_image)
+        if np.abs(pose - expected_pose).max() > 1e-9:
+            raise ValueError(
+                "FilterClassifier: D (port 0) and E (port 1) must be taken from the same pose "
+                f"(largest difference {np.abs(pose - expected_pose).max():.3g})"
+            )
+        measured = depth_array(measured_image)
+        expected = depth_array(expected_image)
+        tau = self.threshold(measured, intrinsics.near, intrinsics.far)
+        labels = classify(measured, expected, tau)
+        p = self._parameters
+        raw_novel = labels == NOVEL
+        novel = remove_specks(raw_novel, p.min_width, p.min_region)
+        specks = raw_novel & ~novel
+        labels[specks] = KNOWN
+        meshed = novel
+        if p.rim > 0 and novel.any():
+            meshed = ndimage.binary_dilation(novel, structure=_EIGHT_NEIGHBOURS, iterations=p.rim)
+            meshed &= np.isfinite(measured)
+        depth = np.where(meshed, measured, np.float32(np.nan)).astype(np.float32)
+        output = vtkImageData.GetData(outInfo)
+        fill_depth_image(output, depth, intrinsics, pose, image_frame(measured_image))
+        label_array = numpy_to_vtk(labels.ravel(), deep=False)
+        label_array.SetName(LABEL_ARRAY)
+        output.GetPointData().AddArray(label_array)
+        self.counts = {
+            "valid": int(np.count_nonzero(labels != NO_RETURN)),
+            "novel": int(np.count_nonzero(novel)),
+            "specks": int(np.count_nonzero(specks)),
+            "contradicted": int(np.count_nonzero(labels == CONTRADICTED)),
+        }
+        return 1

@@ -1,0 +1,120 @@
+"""FilterDepthImageToSurface: the seed's pixel-grid surface (``pixel_grid`` in configs).
+
+Depth image in, triangle mesh in world coordinates out. The topology lives in
+the image: every 2x2 square of pixels (u, v), (u+1, v), (u, v+1), (u+1, v+1)
+gives two triangles, (a, c, b) and (b, c, d) with a the top-left and d the
+bottom-right corner, each kept when its three corners are valid (finite
+depth) and do not straddle a depth discontinuity:
+
+    max(z) - min(z) <= max_jump * min(z)        (max_jump = 0.05: 5% of the depth)
+
+Triangles are wound so their normals face the sensor. Vertex positions are
+the pixel-centre rays scaled by the depth and moved into the world by the
+image's pose.
+
+Vectorised: the corner tests are slices of the (H, W) arrays, the vertex ids
+of a square follow from its top-left pixel id p (a = p, b = p + 1, c = p + W,
+d = p + W + 1), and the rays for an image size are computed once and cached.
+The output keeps the input's field data (intrinsics, pose, frame).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from vtkmodules.util.numpy_support import numpy_to_vtk, numpy_to_vtkIdTypeArray
+from vtkmodules.vtkCommonCore import vtkPoints
+from vtkmodules.vtkCommonDataModel import vtkCellArray, vtkImageData, vtkPolyData
+
+from mabdi.algorithm import MabdiAlgorithm
+from mabdi.camera import Intrinsics
+from mabdi.depth import depth_array, image_intrinsics, image_pose
+from mabdi.errors import ConfigError
+
+
+def pixel_grid_triangles(depth: np.ndarray, max_jump: float) -> np.ndarray:
+    """(M, 3) int64 pixel ids (v * W + u) of the kept triangles of a (H, W) depth image."""
+    height, width = depth.shape
+    z = np.asarray(depth, dtype=np.float32)
+    a, b = z[:-1, :-1], z[:-1, 1:]
+    c, d = z[1:, :-1], z[1:, 1:]
+    ratio = np.float32(1.0 + max_jump)
+
+    def keep(p, q, r):
+        # NaN compares false, so invalid corners drop out; max <= (1 + jump) * min.
+        with np.errstate(invalid="ignore"):
+            low = np.minimum(np.minimum(p, q), r)
+            high = np.maximum(np.maximum(p, q), r)
+            return high <= ratio * low
+
+    first = np.flatnonzero(keep(a, c, b))
+    second = np.flatnonzero(keep(b, c, d))
+    # square index s = v * (W - 1) + u  ->  top-left pixel id p = v * W + u
+    p1 = first + first // (width - 1)
+    p2 = second + second // (width - 1)
+    triangles = np.empty((len(p1) + len(p2), 3), dtype=np.int64)
+    triangles[: len(p1), 0] = p1
+    triangles[: len(p1), 1] = p1 + width
+    triangles[: len(p1), 2] = p1 + 1
+    triangles[len(p1) :, 0] = p2 + 1
+    triangles[len(p1) :, 1] = p2 + width
+    triangles[len(p1) :, 2] = p2 + width + 1
+    return triangles
+
+
+def triangle_mesh(points: np.ndarray, triangles: np.ndarray) -> vtkPolyData:
+    """A vtkPolyData of triangles; points stored as float32 (map coordinates in metres)."""
+    mesh = vtkPolyData()
+    vtk_points = vtkPoints()
+    vtk_points.SetData(numpy_to_vtk(np.ascontiguousarray(points, dtype=np.float32), deep=True))
+    mesh.SetPoints(vtk_points)
+    cells = vtkCellArray()
+    offsets = np.arange(0, 3 * len(triangles) + 1, 3, dtype=np.int64)
+    cells.SetData(
+        numpy_to_vtkIdTypeArray(offsets, deep=True),
+        numpy_to_vtkIdTypeArray(np.ascontiguousarray(triangles, dtype=np.int64).ravel(), deep=True),
+    )
+    mesh.SetPolys(cells)
+    return mesh
+
+
+class FilterDepthImageToSurface(MabdiAlgorithm):
+    """Mesh a depth image's valid pixels as a pixel grid in world coordinates (depth image -> vtkPolyData)."""
+
+    def __init__(self, max_jump: float = 0.05) -> None:
+        super().__init__(nInputPorts=1, inputType="vtkImageData", nOutputPorts=1, outputType="vtkPolyData")
+        self.max_jump = max_jump
+        self._rays: tuple[Intrinsics, np.ndarray] | None = None
+
+    @property
+    def max_jump(self) -> float:
+        """Largest depth spread within a triangle, as a fraction of its nearest corner's depth."""
+        return self._max_jump
+
+    @max_jump.setter
+    def max_jump(self, value: float) -> None:
+        if not value > 0:
+            raise ConfigError(f"FilterDepthImageToSurface: max_jump must be > 0, got {value}")
+        self._set("_max_jump", float(value))
+
+    def _cached_rays(self, intrinsics: Intrinsics) -> np.ndarray:
+        if self._rays is None or self._rays[0] != intrinsics:
+            self._rays = (intrinsics, intrinsics.rays().reshape(-1, 3))
+        return self._rays[1]
+
+    def RequestData(self, request, inInfo, outInfo):  # noqa: N802 (VTK API)
+        image = vtkImageData.GetData(inInfo[0])
+        intrinsics = image_intrinsics(image)
+        pose = image_pose(image)
+        depth = depth_array(image)
+        triangles = pixel_grid_triangles(depth, self._max_jump)
+        # Keep only the pixels the triangles use, renumbered in order.
+        used = np.zeros(depth.size, dtype=bool)
+        used[triangles.ravel()] = True
+        pixel_ids = np.flatnonzero(used)
+        renumber = np.cumsum(used) - 1
+        camera_points = self._cached_rays(intrinsics)[pixel_ids] * depth.ravel()[pixel_ids, None]
+        world_points = camera_points @ pose[:3, :3].T + pose[:3, 3]
+        output = vtkPolyData.GetData(outInfo)
+        output.ShallowCopy(triangle_mesh(world_points, renumber[triangles]))
+        output.GetFieldData().ShallowCopy(image.GetFieldData())
+        return 1

@@ -1,0 +1,34 @@
+"""Figures written to files (PNG), drawn off-screen with pyvista's VTK charts."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from mabdi.io.atomic import atomic_output
+
+#: Line colours for up to eight series (matplotlib's tab10 order).
+COLOURS = ("tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple", "tab:brown", "tab:pink", "tab:gray")
+
+
+def write_elements_plot(series: dict[str, tuple[np.ndarray, np.ndarray]], path, title: str = "") -> Path:
+    """Plot the number of mesh elements per frame, one line per series (seed 001 Fig. 7).
+
+    ``series`` maps a label to ``(frames, elements)``. Written atomically as PNG (800x500).
+    """
+    import pyvista as pv
+
+    chart = pv.Chart2D(x_label="frame", y_label="triangles in the map")
+    for (label, (frames, counts)), colour in zip(series.items(), COLOURS * 4):
+        chart.line(np.asarray(frames, dtype=float), np.asarray(counts, dtype=float), color=colour, width=2.0, label=label)
+    chart.title = title
+    chart.legend_visible = len(series) > 1
+    plotter = pv.Plotter(off_screen=True, window_size=(800, 500))
+    try:
+        plotter.add_chart(chart)
+        with atomic_output(path) as temporary:
+            plotter.screenshot(str(temporary))
+    finally:
+        plotter.close()
+    return Path(path)

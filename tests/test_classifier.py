@@ -1,0 +1,113 @@
+"""FilterClassifier: labels against known answers, metric thresholds, speck removal, errors."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from vtkmodules.util.numpy_support import vtk_to_numpy
+
+from mabdi.camera import Intrinsics, look_at
+from mabdi.depth import DepthFrame, depth_image
+from mabdi.filters.classifier import (
+    CONTRADICTED,
+    KNOWN,
+    NO_RETURN,
+    NOVEL,
+    ClassifierParameters,
+    FilterClassifier,
+    classify,
+    remove_specks,
+)
+
+SMALL = Intrinsics(fx=52.5, fy=52.5, cx=32.0, cy=24.0, width=64, height=48)
+POSE = look_at([0, -3, 1], [0, 0, 1])
+
+
+def run_classifier(measured, expected, parameters=None, noise="none", pose_e=POSE, intrinsics_e=SMALL):
+    classifier = FilterClassifier(parameters or ClassifierParameters(min_width=1, min_region=0, rim=0), noise=noise)
+    classifier.SetInputDataObject(0, depth_image(measured, SMALL, POSE, frame=4))
+    classifier.SetInputDataObject(1, depth_image(expected, intrinsics_e, pose_e, frame=4))
+    classifier.Update()
+    output = classifier.GetOutput()
+    labels = vtk_to_numpy(output.GetPointData().GetArray("label")).reshape(intrinsics_e.shape)
+    return DepthFrame.from_image(output), labels, classifier
+
+
+def test_labels_on_known_cases():
+    measured = np.full(SMALL.shape, 2.0, np.float32)
+    expected = np.full(SMALL.shape, 2.0, np.float32)
+    measured[:10] = np.nan  # no return
+    expected[10:20] = np.nan  # map has nothing there: novel
+    measured[20:30] = 1.9  # nearer than the map by 10 cm: novel
+    measured[30:40] = 2.1  # farther than the map by 10 cm: contradicted
+    measured[40:] = 2.005  # within tau = 1 cm: known
+    frame, labels, classifier = run_classifier(measured, expected)
+    assert (labels[:10] == NO_RETURN).all()
+    assert (labels[10:20] == NOVEL).all()
+    assert (labels[20:30] == NOVEL).all()
+    assert (labels[30:40] == CONTRADICTED).all()
+    assert (labels[40:] == KNOWN).all()
+    novel = (labels == NOVEL)
+    np.testing.assert_array_equal(np.isfinite(frame.depth), novel)
+    np.testing.assert_array_equal(frame.depth[novel], measured[novel])
+    assert frame.frame == 4
+    assert classifier.counts["novel"] == novel.sum()
+    assert classifier.counts["valid"] == (labels != NO_RETURN).sum()
+
+
+def test_threshold_grows_with_range_for_the_kinect_model():
+    classifier = FilterClassifier(ClassifierParameters(tau_min=0.01, k_sigma=3.0), noise="kinect")
+    tau = classifier.threshold(np.array([0.5, 2.0, 3.0]), 0.5, 4.0)
+    np.testing.assert_allclose(tau, [0.01, 3 * 1.425e-3 * 4, 3 * 1.425e-3 * 9])
+    # 2 cm nearer is novel at 1 m but within the noise at 3 m
+    labels = classify(np.array([0.98, 2.98]), np.array([1.0, 3.0]), classifier.threshold(np.array([0.98, 2.98]), 0.5, 4.0))
+    assert labels.tolist() == [NOVEL, KNOWN]
+
+
+def test_specks_thin_lines_and_small_blobs_are_not_novel():
+    novel = np.zeros((60, 80), bool)
+    novel[5, 5:70] = True  # a 1-px sliver
+    novel[10:12, 5:70] = True  # a 2-px sliver
+    novel[20:24, 20:24] = True  # 16 px blob
+    novel[30:50, 30:60] = True  # a real region
+    kept = remove_specks(novel, min_width=3, min_region=32)
+    assert not kept[:25].any()
+    assert kept[30:50, 30:60].all()
+    assert remove_specks(novel, 1, 0).sum() == novel.sum()
+
+
+def test_rim_grows_the_meshed_pixels_by_one():
+    measured = np.full(SMALL.shape, 2.0, np.float32)
+    expected = np.full(SMALL.shape, 2.0, np.float32)
+    expected[10:30, 10:40] = np.nan
+    frame, labels, _ = run_classifier(measured, expected, ClassifierParameters(min_width=3, min_region=32, rim=1))
+    assert (labels[10:30, 10:40] == NOVEL).all()
+    meshed = np.isfinite(frame.depth)
+    assert meshed[9:31, 9:41].all() and meshed.sum() == 22 * 32
+
+
+def test_all_nan_measurement_gives_nothing_and_does_not_fail():
+    measured = np.full(SMALL.shape, np.nan, np.float32)
+    expected = np.full(SMALL.shape, 2.0, np.float32)
+    frame, labels, classifier = run_classifier(measured, expected, ClassifierParameters())
+    assert (labels == NO_RETURN).all()
+    assert np.isnan(frame.depth).all()
+    assert classifier.counts["valid"] == 0
+
+
+def test_mismatched_sizes_are_a_clear_error():
+    other = Intrinsics(fx=52.5, fy=52.5, cx=40.0, cy=24.0, width=80, height=48)
+    with pytest.raises(ValueError, match="share size and intrinsics"):
+        run_classifier(np.ones(SMALL.shape), np.ones(other.shape), intrinsics_e=other)
+
+
+def test_mismatched_poses_are_a_clear_error():
+    with pytest.raises(ValueError, match="same pose"):
+        run_classifier(np.ones(SMALL.shape), np.ones(SMALL.shape), pose_e=look_at([0, -3, 1.1], [0, 0, 1]))
+
+
+def test_bad_parameters():
+    from mabdi.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="tau_min"):
+        ClassifierParameters(tau_min=0.0)

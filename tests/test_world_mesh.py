@@ -1,0 +1,129 @@
+"""FilterWorldMesh: appending patches, keyed replacement, the merged mesh; per-block rendering of the map."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from vtkmodules.util.numpy_support import numpy_to_vtk, vtk_to_numpy
+
+from conftest import plane_mesh
+from mabdi.camera import Intrinsics, look_at
+from mabdi.depth import DepthFrame
+from mabdi.filters.depth_image import FilterDepthImage
+from mabdi.filters.world_mesh import FilterWorldMesh
+
+
+def with_frame(mesh, frame):
+    array = numpy_to_vtk(np.array([frame], dtype=np.int64), deep=True)
+    array.SetName("frame")
+    mesh.GetFieldData().AddArray(array)
+    return mesh
+
+
+def append(world, mesh):
+    world.SetInputDataObject(mesh)
+    world.Update()
+    return world.cells_added
+
+
+def test_appends_patches_and_stamps_frames():
+    world = FilterWorldMesh()
+    assert append(world, with_frame(plane_mesh([0, 0, 0], [0, 0, 1], subdivisions=2), 0)) == 8
+    first_block = world.map.GetBlock(0)
+    assert append(world, with_frame(plane_mesh([0, 0, 1], [0, 0, 1], subdivisions=3), 5)) == 18
+    assert world.map.GetBlock(0) is first_block  # old patches are never rebuilt
+    assert world.number_of_cells == 26 and world.patch_keys == ["frame_0", "frame_5"]
+    merged = world.mesh()
+    frames = vtk_to_numpy(merged.GetCellData().GetArray("frame"))
+    assert sorted(set(frames.tolist())) == [0, 5] and (frames == 5).sum() == 18
+
+
+def test_re_execution_for_the_same_frame_appends_nothing():
+    world = FilterWorldMesh()
+    mesh = with_frame(plane_mesh([0, 0, 0], [0, 0, 1]), 3)
+    append(world, mesh)
+    world.Modified()
+    world.Update()
+    assert world.number_of_cells == 2
+
+
+def test_keyed_patches_replace_instead_of_stacking():
+    world = FilterWorldMesh()
+    mesh = with_frame(plane_mesh([0, 0, 0], [0, 0, 1], subdivisions=2), 0)  # 8 cells
+    keys = numpy_to_vtk(np.array([7, 7, 7, 7, 9, 9, 9, 9], dtype=np.int64), deep=True)
+    keys.SetName("patch_key")
+    mesh.GetCellData().AddArray(keys)
+    assert append(world, mesh) == 8
+    assert world.patch_keys == ["patch_7", "patch_9"]
+    again = with_frame(plane_mesh([0, 0, 0.1], [0, 0, 1], subdivisions=1), 1)  # 2 cells replace patch 7
+    keys = numpy_to_vtk(np.array([7, 7], dtype=np.int64), deep=True)
+    keys.SetName("patch_key")
+    again.GetCellData().AddArray(keys)
+    removed = numpy_to_vtk(np.array([9], dtype=np.int64), deep=True)
+    removed.SetName("removed_patch_keys")
+    again.GetFieldData().AddArray(removed)
+    assert append(world, again) == 2 - 8  # net change: 4 -> 2 for key 7, key 9 removed
+    assert world.patch_keys == ["patch_7"] and world.number_of_cells == 2
+    merged = world.mesh()
+    z = vtk_to_numpy(merged.GetPoints().GetData())[:, 2]
+    np.testing.assert_allclose(z, 0.1, atol=1e-6)
+    assert merged.GetCellData().GetArray("patch_key") is None
+
+
+def test_reset_empties_the_map():
+    world = FilterWorldMesh()
+    append(world, with_frame(plane_mesh([0, 0, 0], [0, 0, 1]), 0))
+    world.reset()
+    assert world.number_of_cells == 0 and world.map.GetNumberOfBlocks() == 0
+    assert world.mesh().GetNumberOfCells() == 0
+
+
+def test_expected_image_from_blocks_equals_the_merged_mesh_and_keeps_block_actors():
+    world = FilterWorldMesh()
+    append(world, with_frame(plane_mesh([0, 0, 0], [0, 0, 1], size=3.0), 0))
+    pose = look_at([0, -2.5, 1.5], [0, 0, 0.3])
+    expected = FilterDepthImage(intrinsics=Intrinsics(width=160, height=120, fx=131.25, fy=131.25, cx=80, cy=60))
+    expected.SetInputDataObject(world.map)
+    expected.pose = pose
+    expected.Update()
+    actors_before = dict(expected.renderer._actors)
+    append(world, with_frame(plane_mesh([0, 0.5, 0.5], [0, -1, 0], size=0.6), 1))
+    expected.Update()
+    from_blocks = DepthFrame.from_image(expected.GetOutput()).depth
+    for key, entry in actors_before.items():
+        assert expected.renderer._actors[key][1] is entry[1]  # the first block's actor (and upload) is reused
+    assert len(expected.renderer._actors) == 2
+    merged = FilterDepthImage(intrinsics=expected.intrinsics)
+    merged.SetInputDataObject(world.mesh())
+    merged.pose = pose
+    merged.Update()
+    np.testing.assert_allclose(from_blocks, DepthFrame.from_image(merged.GetOutput()).depth, atol=1e-5, equal_nan=True)
+    assert np.isfinite(from_blocks).mean() > 0.5
+
+
+def test_removed_blocks_lose_their_actors():
+    world = FilterWorldMesh()
+    world.add_patch("a", plane_mesh([0, 0, 0], [0, 0, 1]), 0)
+    world.add_patch("b", plane_mesh([0, 0, 1], [0, 0, 1]), 0)
+    expected = FilterDepthImage()
+    expected.SetInputDataObject(world.map)
+    expected.pose = look_at([0, -3, 2], [0, 0, 0])
+    expected.Update()
+    assert len(expected.renderer._actors) == 2
+    assert world.remove_patch("a") == -2
+    expected.Update()
+    assert len(expected.renderer._actors) == 1
+
+
+def test_non_polydata_block_is_an_error():
+    from vtkmodules.vtkCommonDataModel import vtkImageData, vtkMultiBlockDataSet
+
+    blocks = vtkMultiBlockDataSet()
+    image = vtkImageData()
+    image.SetDimensions(2, 2, 1)
+    blocks.SetBlock(0, image)
+    expected = FilterDepthImage()
+    expected.SetInputDataObject(blocks)
+    expected.pose = np.eye(4)
+    with pytest.raises(TypeError, match="only vtkPolyData"):
+        expected.Update()
