@@ -1,7 +1,7 @@
 """The ``mabdi`` command line.
 
     mabdi run CONFIG [--frames N] [--out DIR] [--noise MODEL] [--seed N] [--surface NAME]
-                     [--no-classifier] [--backend B] [--quiet]
+                     [--no-classifier] [--depth-images] [--backend B] [--quiet]
     mabdi export IN OUT          convert a saved map between VTP, PLY, OBJ and STL
 
 Options override the config file; the resolved config is written with the
@@ -34,6 +34,7 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument(
         "--no-classifier", action="store_true", help="black box: mesh every valid pixel every frame (classifier.enabled = false)"
     )
+    run.add_argument("--depth-images", action="store_true", help="also write D, E and labels of every frame as VTI")
     run.add_argument("--backend", help="render backend: egl or osmesa (overrides sensor.backend)")
     run.add_argument("--quiet", action="store_true", help="no progress bar")
 
@@ -60,6 +61,8 @@ def _apply_overrides(config, args) -> None:
         config.classifier.enabled = False
     if args.out is not None:
         config.output.dir = str(args.out)
+    if args.depth_images:
+        config.output.depth_images = True
     validate_run_config(config, where="command line")
 
 

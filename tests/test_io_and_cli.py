@@ -32,13 +32,20 @@ def test_write_into_a_missing_folder_is_a_clear_error(tmp_path):
         write_text(blocker / "sub" / "out.txt", "data")
 
 
-def test_run_writes_depth_images_and_resolved_config(tmp_path, scenes_dir, capsys):
+def test_run_writes_depth_images_labels_and_resolved_config(tmp_path, scenes_dir, capsys):
     out = tmp_path / "run"
-    status = main(["run", str(scenes_dir / "table.toml"), "--frames", "3", "--noise", "kinect", "--out", str(out), "--quiet"])
+    status = main(
+        ["run", str(scenes_dir / "table.toml"), "--frames", "3", "--noise", "kinect", "--out", str(out), "--quiet", "--depth-images"]
+    )
     assert status == 0
-    assert "3 frames rendered" in capsys.readouterr().out
-    images = sorted((out / "depth").glob("*.vti"))
-    assert [p.name for p in images] == ["000000.vti", "000001.vti", "000002.vti"]
+    assert "3 frames in" in capsys.readouterr().out
+    images = sorted((out / "depth").glob("D_*.vti"))
+    assert [p.name for p in images] == ["D_000000.vti", "D_000001.vti", "D_000002.vti"]
+    assert len(list((out / "depth").glob("E_*.vti"))) == 3
+    labels_reader = vtkXMLImageDataReader()
+    labels_reader.SetFileName(str(out / "depth" / "labels_000001.vti"))
+    labels_reader.Update()
+    assert labels_reader.GetOutput().GetPointData().GetArray("label") is not None
     poses = np.load(out / "poses.npy")
     assert poses.shape == (3, 4, 4)
     reader = vtkXMLImageDataReader()
@@ -103,4 +110,5 @@ def test_console_script_runs(tmp_path, scenes_dir):
         env={k: v for k, v in __import__("os").environ.items() if k != "DISPLAY"},
     )
     assert result.returncode == 0, result.stderr
-    assert len(list((tmp_path / "r" / "depth").glob("*.vti"))) == 2
+    assert (tmp_path / "r" / "world_mesh.ply").is_file()
+    assert "2 frames in" in result.stdout
