@@ -80,7 +80,7 @@ def machine() -> dict:
     probe.SetSize(8, 8)
     probe.Render()
     caps = probe.ReportCapabilities()
-    renderer = next((l.split(":", 1)[1].strip() for l in caps.splitlines() if "renderer string" in l), "?")
+    renderer = next((line.split(":", 1)[1].strip() for line in caps.splitlines() if "renderer string" in line), "?")
     probe.Finalize()
     return {"cpu": cpu, "cores": os.cpu_count(), "gl_renderer": renderer, "vtk": vtk.vtkVersion.GetVTKVersion()}
 

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import mabdi  # noqa: F401  (sets VTK_DEFAULT_OPENGL_WINDOW before VTK loads)
-from mabdi.sources.scene import triangles_polydata
+from mabdi.polydata import triangles_polydata
 
 REPO = Path(__file__).resolve().parents[1]
 SCENES = REPO / "scenes"

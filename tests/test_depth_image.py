@@ -17,10 +17,10 @@ from mabdi.filters.depth_image import FilterDepthImage, SensorNoise
 from mabdi.sources.scene import SourceScene
 
 
-def render(mesh, pose=np.eye(4), **kwargs) -> DepthFrame:
+def render(mesh, pose=None, **kwargs) -> DepthFrame:
     sensor = FilterDepthImage(**kwargs)
     sensor.SetInputDataObject(mesh)
-    sensor.pose = pose
+    sensor.pose = np.eye(4) if pose is None else pose
     sensor.Update()
     return DepthFrame.from_image(sensor.GetOutput())
 

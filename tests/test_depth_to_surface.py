@@ -12,9 +12,9 @@ from mabdi.filters.depth_to_surface import FilterDepthImageToSurface, pixel_grid
 SMALL = Intrinsics(fx=52.5, fy=52.5, cx=32.0, cy=24.0, width=64, height=48)
 
 
-def surface_of(depth, pose=np.eye(4), max_jump=0.05):
+def surface_of(depth, pose=None, max_jump=0.05):
     surface = FilterDepthImageToSurface(max_jump=max_jump)
-    surface.SetInputDataObject(depth_image(depth, SMALL, pose, frame=2))
+    surface.SetInputDataObject(depth_image(depth, SMALL, np.eye(4) if pose is None else pose, frame=2))
     surface.Update()
     mesh = surface.GetOutput()
     points = vtk_to_numpy(mesh.GetPoints().GetData()).astype(np.float64) if mesh.GetNumberOfPoints() else np.zeros((0, 3))

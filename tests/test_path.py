@@ -18,7 +18,7 @@ def test_poses_are_rigid_and_look_at_their_targets(scenes_dir):
     targets = path_targets(50, config.path)
     intrinsics = config.sensor.intrinsics()
     assert poses.shape == (50, 4, 4)
-    for pose, target in zip(poses, targets):
+    for pose, target in zip(poses, targets, strict=True):
         check_pose(pose)
         uv, z = project(target, intrinsics, pose)
         assert z[0] > 0

@@ -19,7 +19,7 @@ from mabdi.evaluate import distances_to_mesh
 from mabdi.filters.depth_image import FilterDepthImage
 from mabdi.simulate import Simulation
 from mabdi.simulate.runner import METRICS_COLUMNS, OutputError
-from mabdi.sources.scene import triangles_polydata
+from mabdi.polydata import triangles_polydata
 
 
 def run(name, **changes):

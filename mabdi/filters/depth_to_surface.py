@@ -21,14 +21,13 @@ The output keeps the input's field data (intrinsics, pose, frame).
 from __future__ import annotations
 
 import numpy as np
-from vtkmodules.util.numpy_support import numpy_to_vtk, numpy_to_vtkIdTypeArray
-from vtkmodules.vtkCommonCore import vtkPoints
-from vtkmodules.vtkCommonDataModel import vtkCellArray, vtkImageData, vtkPolyData
+from vtkmodules.vtkCommonDataModel import vtkImageData, vtkPolyData
 
 from mabdi.algorithm import MabdiAlgorithm
 from mabdi.camera import Intrinsics
 from mabdi.depth import depth_array, image_intrinsics, image_pose
 from mabdi.errors import ConfigError
+from mabdi.polydata import triangles_polydata
 
 
 def pixel_grid_triangles(depth: np.ndarray, max_jump: float) -> np.ndarray:
@@ -59,22 +58,6 @@ def pixel_grid_triangles(depth: np.ndarray, max_jump: float) -> np.ndarray:
     triangles[len(p1) :, 1] = p2 + width
     triangles[len(p1) :, 2] = p2 + width + 1
     return triangles
-
-
-def triangle_mesh(points: np.ndarray, triangles: np.ndarray) -> vtkPolyData:
-    """A vtkPolyData of triangles; points stored as float32 (map coordinates in metres)."""
-    mesh = vtkPolyData()
-    vtk_points = vtkPoints()
-    vtk_points.SetData(numpy_to_vtk(np.ascontiguousarray(points, dtype=np.float32), deep=True))
-    mesh.SetPoints(vtk_points)
-    cells = vtkCellArray()
-    offsets = np.arange(0, 3 * len(triangles) + 1, 3, dtype=np.int64)
-    cells.SetData(
-        numpy_to_vtkIdTypeArray(offsets, deep=True),
-        numpy_to_vtkIdTypeArray(np.ascontiguousarray(triangles, dtype=np.int64).ravel(), deep=True),
-    )
-    mesh.SetPolys(cells)
-    return mesh
 
 
 class FilterDepthImageToSurface(MabdiAlgorithm):
@@ -115,6 +98,6 @@ class FilterDepthImageToSurface(MabdiAlgorithm):
         camera_points = self._cached_rays(intrinsics)[pixel_ids] * depth.ravel()[pixel_ids, None]
         world_points = camera_points @ pose[:3, :3].T + pose[:3, 3]
         output = vtkPolyData.GetData(outInfo)
-        output.ShallowCopy(triangle_mesh(world_points, renumber[triangles]))
+        output.ShallowCopy(triangles_polydata(world_points, renumber[triangles], dtype=np.float32))
         output.GetFieldData().ShallowCopy(image.GetFieldData())
         return 1

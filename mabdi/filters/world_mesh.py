@@ -23,13 +23,13 @@ patches. :meth:`add_patch` / :meth:`remove_patch` do the same from Python.
 from __future__ import annotations
 
 import numpy as np
-from vtkmodules.util.numpy_support import numpy_to_vtk, numpy_to_vtkIdTypeArray, vtk_to_numpy
-from vtkmodules.vtkCommonCore import vtkPoints
-from vtkmodules.vtkCommonDataModel import vtkCellArray, vtkCompositeDataSet, vtkMultiBlockDataSet, vtkPolyData
+from vtkmodules.util.numpy_support import numpy_to_vtk, vtk_to_numpy
+from vtkmodules.vtkCommonDataModel import vtkCompositeDataSet, vtkMultiBlockDataSet, vtkPolyData
 from vtkmodules.vtkFiltersCore import vtkAppendPolyData
 
 from mabdi.algorithm import MabdiAlgorithm
 from mabdi.depth import FRAME_ARRAY
+from mabdi.polydata import extract_polys
 
 FRAME_CELL_ARRAY = "frame"
 PATCH_KEY_ARRAY = "patch_key"
@@ -41,42 +41,6 @@ def _input_frame(surface: vtkPolyData) -> int | None:
     if array is None or array.GetNumberOfTuples() == 0:
         return None
     return int(array.GetTuple1(0))
-
-
-def extract_polys(surface: vtkPolyData, cell_ids: np.ndarray) -> vtkPolyData:
-    """A new vtkPolyData with the polygons ``cell_ids`` of ``surface`` (polygons only), its
-    points compacted and its point and cell arrays carried over."""
-    polys = surface.GetPolys()
-    offsets = vtk_to_numpy(polys.GetOffsetsArray()).astype(np.int64)
-    connectivity = vtk_to_numpy(polys.GetConnectivityArray()).astype(np.int64)
-    cell_ids = np.asarray(cell_ids, dtype=np.int64)
-    sizes = offsets[cell_ids + 1] - offsets[cell_ids]
-    new_offsets = np.concatenate([[0], np.cumsum(sizes)])
-    gather = np.repeat(offsets[cell_ids] - new_offsets[:-1], sizes) + np.arange(new_offsets[-1])
-    old_points = connectivity[gather]
-    used = np.zeros(surface.GetNumberOfPoints(), dtype=bool)
-    used[old_points] = True
-    point_ids = np.flatnonzero(used)
-    renumber = np.cumsum(used) - 1
-    patch = vtkPolyData()
-    points = vtkPoints()
-    points.SetData(numpy_to_vtk(vtk_to_numpy(surface.GetPoints().GetData())[point_ids], deep=True))
-    patch.SetPoints(points)
-    cells = vtkCellArray()
-    cells.SetData(numpy_to_vtkIdTypeArray(new_offsets, deep=True), numpy_to_vtkIdTypeArray(renumber[old_points], deep=True))
-    patch.SetPolys(cells)
-    for source, target, ids in (
-        (surface.GetPointData(), patch.GetPointData(), point_ids),
-        (surface.GetCellData(), patch.GetCellData(), cell_ids),
-    ):
-        for i in range(source.GetNumberOfArrays()):
-            array = source.GetArray(i)
-            if array is None:
-                continue
-            values = numpy_to_vtk(np.ascontiguousarray(vtk_to_numpy(array)[ids]), deep=True)
-            values.SetName(array.GetName())
-            target.AddArray(values)
-    return patch
 
 
 class FilterWorldMesh(MabdiAlgorithm):

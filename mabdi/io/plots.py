@@ -20,7 +20,7 @@ def write_elements_plot(series: dict[str, tuple[np.ndarray, np.ndarray]], path, 
     import pyvista as pv
 
     chart = pv.Chart2D(x_label="frame", y_label="triangles in the map")
-    for (label, (frames, counts)), colour in zip(series.items(), COLOURS * 4):
+    for (label, (frames, counts)), colour in zip(series.items(), COLOURS * 4, strict=False):
         chart.line(np.asarray(frames, dtype=float), np.asarray(counts, dtype=float), color=colour, width=2.0, label=label)
     chart.title = title
     chart.legend_visible = len(series) > 1

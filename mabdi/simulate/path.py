@@ -52,7 +52,7 @@ def helical_path(
     look_from = np.asarray(look_from, dtype=np.float64)
     look_to = np.asarray(look_to, dtype=np.float64)
     targets = look_from + t[:, None] * (look_to - look_from)
-    return np.stack([look_at(e, g) for e, g in zip(eye, targets)])
+    return np.stack([look_at(e, g) for e, g in zip(eye, targets, strict=True)])
 
 
 def path_targets(frames: int, config: PathConfig) -> np.ndarray:

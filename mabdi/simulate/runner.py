@@ -36,9 +36,7 @@ from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 
 import numpy as np
-from vtkmodules.util.numpy_support import numpy_to_vtk, numpy_to_vtkIdTypeArray
-from vtkmodules.vtkCommonCore import vtkPoints
-from vtkmodules.vtkCommonDataModel import vtkCellArray, vtkPolyData
+from vtkmodules.vtkCommonDataModel import vtkPolyData
 
 from mabdi.algorithm import raise_pipeline_errors
 from mabdi.config import RunConfig, dump_toml
@@ -50,6 +48,7 @@ from mabdi.filters.world_mesh import FilterWorldMesh
 from mabdi.io.atomic import atomic_output, write_text
 from mabdi.io.plots import write_elements_plot
 from mabdi.io.vtk_files import write_image, write_mesh_file, write_polydata
+from mabdi.polydata import polyline
 from mabdi.simulate.path import path_from_config
 from mabdi.sources.scene import SourceScene
 
@@ -70,23 +69,6 @@ METRICS_COLUMNS = (
 
 class OutputError(MabdiError, OSError):
     """A run's output folder or file cannot be written."""
-
-
-def polyline(points: np.ndarray) -> vtkPolyData:
-    """A vtkPolyData with one polyline through ``points`` (N, 3)."""
-    points = np.ascontiguousarray(points, dtype=np.float64)
-    mesh = vtkPolyData()
-    vtk_points = vtkPoints()
-    vtk_points.SetData(numpy_to_vtk(points, deep=True))
-    mesh.SetPoints(vtk_points)
-    lines = vtkCellArray()
-    n = len(points)
-    lines.SetData(
-        numpy_to_vtkIdTypeArray(np.array([0, n], dtype=np.int64), deep=True),
-        numpy_to_vtkIdTypeArray(np.arange(n, dtype=np.int64), deep=True),
-    )
-    mesh.SetLines(lines)
-    return mesh
 
 
 @dataclass

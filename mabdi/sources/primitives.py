@@ -7,30 +7,10 @@ places and concatenates them with numpy.
 from __future__ import annotations
 
 import numpy as np
-from vtkmodules.util.numpy_support import vtk_to_numpy
 from vtkmodules.vtkFiltersCore import vtkTriangleFilter
 from vtkmodules.vtkFiltersSources import vtkCubeSource, vtkCylinderSource, vtkSphereSource
-from vtkmodules.vtkCommonDataModel import vtkPolyData
 
-
-def polydata_arrays(mesh: vtkPolyData) -> tuple[np.ndarray, np.ndarray]:
-    """(points, triangles) of a triangle-only vtkPolyData (triangulated first if needed)."""
-    if (
-        mesh.GetNumberOfStrips()
-        or mesh.GetNumberOfLines()
-        or mesh.GetNumberOfVerts()
-        or mesh.GetPolys().GetMaxCellSize() != 3
-    ):
-        tri = vtkTriangleFilter()
-        tri.SetInputData(mesh)
-        tri.PassLinesOff()
-        tri.PassVertsOff()
-        tri.Update()
-        mesh = tri.GetOutput()
-    points = vtk_to_numpy(mesh.GetPoints().GetData()).astype(np.float64)
-    polys = mesh.GetPolys()
-    connectivity = vtk_to_numpy(polys.GetConnectivityArray()).astype(np.int64)
-    return points, connectivity.reshape(-1, 3)
+from mabdi.polydata import polydata_arrays
 
 
 def _from_source(source) -> tuple[np.ndarray, np.ndarray]:

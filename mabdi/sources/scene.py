@@ -15,13 +15,13 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from vtkmodules.util.numpy_support import numpy_to_vtk, numpy_to_vtkIdTypeArray
-from vtkmodules.vtkCommonCore import vtkPoints
-from vtkmodules.vtkCommonDataModel import vtkCellArray, vtkPolyData
+from vtkmodules.util.numpy_support import numpy_to_vtk
+from vtkmodules.vtkCommonDataModel import vtkPolyData
 
 from mabdi.algorithm import MabdiAlgorithm
 from mabdi.config import ObjectConfig, SceneConfig, load_run_config
 from mabdi.sources import primitives
+from mabdi.polydata import polydata_arrays, triangles_polydata
 from mabdi.sources.assets import read_mesh, resolve_mesh
 
 OBJECT_ID_ARRAY = "object_id"
@@ -83,7 +83,7 @@ def object_geometry(obj: ObjectConfig, base_dir: Path | None = None) -> tuple[np
         return primitives.sphere(obj.radius, obj.resolution)
     if obj.type == "cylinder":
         return primitives.cylinder(obj.radius, obj.height, obj.resolution)
-    return primitives.polydata_arrays(read_mesh(resolve_mesh(obj.mesh, base_dir)))
+    return polydata_arrays(read_mesh(resolve_mesh(obj.mesh, base_dir)))
 
 
 def place(points: np.ndarray, obj: ObjectConfig) -> np.ndarray:
@@ -120,20 +120,6 @@ def build_objects(scene: SceneConfig, frames: int, base_dir: Path | None = None)
             )
         )
     return objects
-
-
-def triangles_polydata(points: np.ndarray, triangles: np.ndarray) -> vtkPolyData:
-    """A vtkPolyData of triangles from (N, 3) points and (M, 3) vertex indices."""
-    mesh = vtkPolyData()
-    vtk_points = vtkPoints()
-    vtk_points.SetData(numpy_to_vtk(np.ascontiguousarray(points, dtype=np.float64), deep=True))
-    mesh.SetPoints(vtk_points)
-    cells = vtkCellArray()
-    triangles = np.ascontiguousarray(triangles, dtype=np.int64)
-    offsets = np.arange(0, 3 * len(triangles) + 1, 3, dtype=np.int64)
-    cells.SetData(numpy_to_vtkIdTypeArray(offsets, deep=True), numpy_to_vtkIdTypeArray(triangles.ravel(), deep=True))
-    mesh.SetPolys(cells)
-    return mesh
 
 
 class SourceScene(MabdiAlgorithm):
@@ -187,9 +173,9 @@ class SourceScene(MabdiAlgorithm):
         else:
             offsets = np.cumsum([0] + [len(o.points) for o in chosen[:-1]])
             points = np.concatenate([o.points for o in chosen])
-            triangles = np.concatenate([o.triangles + off for o, off in zip(chosen, offsets)])
+            triangles = np.concatenate([o.triangles + off for o, off in zip(chosen, offsets, strict=True)])
             object_id = np.concatenate(
-                [np.full(len(o.triangles), i, dtype=np.int32) for o, i in zip(chosen, ids)]
+                [np.full(len(o.triangles), i, dtype=np.int32) for o, i in zip(chosen, ids, strict=True)]
             )
         mesh = triangles_polydata(points, triangles)
         array = numpy_to_vtk(object_id, deep=True)

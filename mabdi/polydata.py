@@ -1,0 +1,93 @@
+"""vtkPolyData <-> numpy helpers shared by the sources, filters and runner."""
+
+from __future__ import annotations
+
+import numpy as np
+from vtkmodules.util.numpy_support import numpy_to_vtk, numpy_to_vtkIdTypeArray, vtk_to_numpy
+from vtkmodules.vtkCommonCore import vtkPoints
+from vtkmodules.vtkCommonDataModel import vtkCellArray, vtkPolyData
+from vtkmodules.vtkFiltersCore import vtkTriangleFilter
+
+
+def _cell_array(offsets: np.ndarray, connectivity: np.ndarray) -> vtkCellArray:
+    cells = vtkCellArray()
+    cells.SetData(
+        numpy_to_vtkIdTypeArray(np.ascontiguousarray(offsets, dtype=np.int64), deep=True),
+        numpy_to_vtkIdTypeArray(np.ascontiguousarray(connectivity, dtype=np.int64).ravel(), deep=True),
+    )
+    return cells
+
+
+def triangles_polydata(points: np.ndarray, triangles: np.ndarray, dtype=np.float64) -> vtkPolyData:
+    """A vtkPolyData of triangles from (N, 3) points (stored as ``dtype``) and (M, 3) vertex indices."""
+    mesh = vtkPolyData()
+    vtk_points = vtkPoints()
+    vtk_points.SetData(numpy_to_vtk(np.ascontiguousarray(points, dtype=dtype).reshape(-1, 3), deep=True))
+    mesh.SetPoints(vtk_points)
+    triangles = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
+    mesh.SetPolys(_cell_array(np.arange(0, 3 * len(triangles) + 1, 3), triangles))
+    return mesh
+
+
+def polyline(points: np.ndarray) -> vtkPolyData:
+    """A vtkPolyData with one polyline through ``points`` (N, 3)."""
+    mesh = vtkPolyData()
+    vtk_points = vtkPoints()
+    vtk_points.SetData(numpy_to_vtk(np.ascontiguousarray(points, dtype=np.float64), deep=True))
+    mesh.SetPoints(vtk_points)
+    n = len(points)
+    mesh.SetLines(_cell_array(np.array([0, n]), np.arange(n)))
+    return mesh
+
+
+def polydata_arrays(mesh: vtkPolyData) -> tuple[np.ndarray, np.ndarray]:
+    """(points float64 (N, 3), triangles int64 (M, 3)) of a mesh, triangulated first if needed."""
+    if (
+        mesh.GetNumberOfStrips()
+        or mesh.GetNumberOfLines()
+        or mesh.GetNumberOfVerts()
+        or mesh.GetPolys().GetMaxCellSize() != 3
+    ):
+        tri = vtkTriangleFilter()
+        tri.SetInputData(mesh)
+        tri.PassLinesOff()
+        tri.PassVertsOff()
+        tri.Update()
+        mesh = tri.GetOutput()
+    points = vtk_to_numpy(mesh.GetPoints().GetData()).astype(np.float64)
+    connectivity = vtk_to_numpy(mesh.GetPolys().GetConnectivityArray()).astype(np.int64)
+    return points, connectivity.reshape(-1, 3)
+
+
+def extract_polys(surface: vtkPolyData, cell_ids: np.ndarray) -> vtkPolyData:
+    """A new vtkPolyData with the polygons ``cell_ids`` of ``surface`` (polygons only), its
+    points compacted and its point and cell arrays carried over."""
+    polys = surface.GetPolys()
+    offsets = vtk_to_numpy(polys.GetOffsetsArray()).astype(np.int64)
+    connectivity = vtk_to_numpy(polys.GetConnectivityArray()).astype(np.int64)
+    cell_ids = np.asarray(cell_ids, dtype=np.int64)
+    sizes = offsets[cell_ids + 1] - offsets[cell_ids]
+    new_offsets = np.concatenate([[0], np.cumsum(sizes)])
+    gather = np.repeat(offsets[cell_ids] - new_offsets[:-1], sizes) + np.arange(new_offsets[-1])
+    old_points = connectivity[gather]
+    used = np.zeros(surface.GetNumberOfPoints(), dtype=bool)
+    used[old_points] = True
+    point_ids = np.flatnonzero(used)
+    renumber = np.cumsum(used) - 1
+    patch = vtkPolyData()
+    points = vtkPoints()
+    points.SetData(numpy_to_vtk(vtk_to_numpy(surface.GetPoints().GetData())[point_ids], deep=True))
+    patch.SetPoints(points)
+    patch.SetPolys(_cell_array(new_offsets, renumber[old_points]))
+    for source, target, ids in (
+        (surface.GetPointData(), patch.GetPointData(), point_ids),
+        (surface.GetCellData(), patch.GetCellData(), cell_ids),
+    ):
+        for i in range(source.GetNumberOfArrays()):
+            array = source.GetArray(i)
+            if array is None:
+                continue
+            values = numpy_to_vtk(np.ascontiguousarray(vtk_to_numpy(array)[ids]), deep=True)
+            values.SetName(array.GetName())
+            target.AddArray(values)
+    return patch
