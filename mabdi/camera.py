@@ -189,8 +189,10 @@ def depth_to_zbuffer(depth, near: float, far: float) -> np.ndarray:
 
 
 def zbuffer_depth_derivative(depth, near: float, far: float) -> np.ndarray:
-    """|dz/dd| at metric depth z: (f - n) z^2 / (f n), metres per unit of d."""
-    z = np.asarray(depth, dtype=np.float64)
+    """|dz/dd| at metric depth z: (f - n) z^2 / (f n), metres per unit of d (float32 stays float32)."""
+    z = np.asarray(depth)
+    if z.dtype != np.float32:
+        z = z.astype(np.float64)
     return (far - near) * z * z / (far * near)
 
 

@@ -111,3 +111,15 @@ def test_bad_parameters():
 
     with pytest.raises(ConfigError, match="tau_min"):
         ClassifierParameters(tau_min=0.0)
+
+
+@pytest.mark.parametrize("radius", [1, 2])
+def test_slice_morphology_matches_scipy(radius):
+    from scipy import ndimage
+
+    from mabdi.filters.classifier import dilate, erode
+
+    mask = np.random.default_rng(radius).random((50, 70)) > 0.3
+    square = np.ones((2 * radius + 1, 2 * radius + 1), bool)
+    np.testing.assert_array_equal(erode(mask, radius), ndimage.binary_erosion(mask, structure=square))
+    np.testing.assert_array_equal(dilate(mask, radius), ndimage.binary_dilation(mask, structure=square))

@@ -89,11 +89,41 @@ def classify(measured: np.ndarray, expected: np.ndarray, tau: np.ndarray) -> np.
     return labels
 
 
+def _shifted_3x3(mask: np.ndarray, combine) -> np.ndarray:
+    """Combine (np.logical_and / np.logical_or) each pixel's 3x3 neighbourhood; outside the image is False."""
+    padded = np.pad(mask, 1, constant_values=False)
+    rows = combine(combine(padded[:, :-2], padded[:, 1:-1]), padded[:, 2:])
+    return combine(combine(rows[:-2], rows[1:-1]), rows[2:])
+
+
+def erode(mask: np.ndarray, radius: int) -> np.ndarray:
+    """Binary erosion by a (2 radius + 1) square, as ``radius`` 3x3 steps of array slices."""
+    for _ in range(radius):
+        mask = _shifted_3x3(mask, np.logical_and)
+    return mask
+
+
+def dilate(mask: np.ndarray, radius: int) -> np.ndarray:
+    """Binary dilation by a (2 radius + 1) square, as ``radius`` 3x3 steps of array slices."""
+    for _ in range(radius):
+        mask = _shifted_3x3(mask, np.logical_or)
+    return mask
+
+
 def remove_specks(novel: np.ndarray, min_width: int, min_region: int) -> np.ndarray:
-    """The novel mask without regions thinner than ``min_width`` or smaller than ``min_region`` pixels."""
+    """The novel mask without regions thinner than ``min_width`` or smaller than ``min_region`` pixels.
+
+    Thin parts go by a binary opening with a ``min_width`` square (odd widths
+    by array slices; even widths through scipy.ndimage), small regions by
+    counting the pixels of each 8-connected region.
+    """
     mask = novel
     if min_width > 1 and mask.any():
-        mask = ndimage.binary_opening(mask, structure=np.ones((min_width, min_width), dtype=bool))
+        if min_width % 2:
+            radius = min_width // 2
+            mask = dilate(erode(mask, radius), radius)
+        else:
+            mask = ndimage.binary_opening(mask, structure=np.ones((min_width, min_width), dtype=bool))
     if min_region > 0 and mask.any():
         regions, count = ndimage.label(mask, structure=_EIGHT_NEIGHBOURS)
         sizes = np.bincount(regions.ravel(), minlength=count + 1)
@@ -133,7 +163,7 @@ class FilterClassifier(MabdiAlgorithm):
     def threshold(self, depth: np.ndarray, near: float, far: float) -> np.ndarray:
         """tau(z) = max(tau_min, k_sigma sigma(z)) in metres."""
         sigma = self._noise.sigma(depth, near, far)
-        return np.maximum(self._parameters.tau_min, self._parameters.k_sigma * sigma)
+        return np.maximum(sigma.dtype.type(self._parameters.tau_min), sigma.dtype.type(self._parameters.k_sigma) * sigma)
 
     def RequestInformation(self, request, inInfo, outInfo):  # noqa: N802 (VTK API)
         source = inInfo[0].GetInformationObject(0)
@@ -180,8 +210,7 @@ class FilterClassifier(MabdiAlgorithm):
         labels[specks] = KNOWN
         meshed = novel
         if p.rim > 0 and novel.any():
-            meshed = ndimage.binary_dilation(novel, structure=_EIGHT_NEIGHBOURS, iterations=p.rim)
-            meshed &= np.isfinite(measured)
+            meshed = dilate(novel, p.rim) & np.isfinite(measured)
         depth = np.where(meshed, measured, np.float32(np.nan)).astype(np.float32)
         output = vtkImageData.GetData(outInfo)
         fill_depth_image(output, depth, intrinsics, pose, image_frame(measured_image))

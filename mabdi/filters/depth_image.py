@@ -70,8 +70,11 @@ class SensorNoise:
         """Expected standard deviation (m) of a measurement at metric depth ``depth``.
 
         ``zbuffer``: sigma d |dz/dd| (first order); ``kinect``: c z^2; ``none``: 0.
+        Computed in float32 for float32 input, float64 otherwise.
         """
-        z = np.asarray(depth, dtype=np.float64)
+        z = np.asarray(depth)
+        if z.dtype != np.float32:
+            z = z.astype(np.float64)
         if self.model == "zbuffer":
             d = far * (z - near) / (z * (far - near))
             return self.zbuffer_sigma * d * zbuffer_depth_derivative(z, near, far)
