@@ -1,0 +1,109 @@
+"""Redundancy: how much of a map is stacked layers of the same surface (what MABDI exists to avoid).
+
+For each area-weighted sample of the map, a segment is cast along its
+triangle's normal both ways, p - delta n .. p + delta n; the sample is
+redundant when the segment crosses a triangle created at a *different* frame
+(cell data ``frame``). The redundancy is the share of samples that are.
+delta = max(1 cm, 3 sigma(z)) with z the sample's depth from the pose of the
+frame that created it and sigma the run's noise model (1 cm when unknown).
+
+Neighbouring patches that only meet at a seam do not count: a segment along
+the normal of one patch does not cross a coplanar patch beside it.
+
+Vectorised: the triangles of each frame get a KD-tree of their centroids;
+every sample of another frame that lies in or next to a voxel holding one of
+that frame's triangles (voxels of max(delta, 5 cm)) takes the
+``CANDIDATES`` nearest of them, and the segment-triangle
+test (Moller-Trumbore) runs on all pairs at once, in chunks. Samples found
+redundant are not tested again.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+from vtkmodules.util.numpy_support import vtk_to_numpy
+from vtkmodules.vtkCommonDataModel import vtkPolyData
+
+from mabdi.evaluate.sampling import SurfaceSamples
+from mabdi.polydata import polydata_arrays
+
+#: Smallest delta (m) of the overlap test.
+DELTA_MIN = 0.01
+#: Nearest triangle centroids of one frame tested per sample.
+CANDIDATES = 8
+_CHUNK = 8192
+
+
+def segment_hits(
+    origins: np.ndarray, directions: np.ndarray, reach: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray
+) -> np.ndarray:
+    """Whether the segments o + t d, |t| <= reach, cross triangles (a, b, c); shapes (N, K, 3) / (N, K).
+
+    Moller-Trumbore with the barycentric test strict on the edges (a point
+    exactly on a shared edge of abutting triangles is not a crossing).
+    """
+    e1 = b - a
+    e2 = c - a
+    p = np.cross(directions, e2)
+    det = np.einsum("...i,...i->...", e1, p)
+    parallel = np.abs(det) < 1e-12
+    inv = np.where(parallel, 0.0, 1.0 / np.where(parallel, 1.0, det))
+    s = origins - a
+    u = np.einsum("...i,...i->...", s, p) * inv
+    q = np.cross(s, e1)
+    v = np.einsum("...i,...i->...", directions, q) * inv
+    t = np.einsum("...i,...i->...", e2, q) * inv
+    eps = 1e-9
+    return ~parallel & (u > eps) & (v > eps) & (u + v < 1.0 - eps) & (np.abs(t) <= reach)
+
+
+def _voxel_keys(cells: np.ndarray) -> np.ndarray:
+    """One int64 key per integer voxel coordinate (21 bits per axis)."""
+    cells = cells + (1 << 20)
+    return (cells[:, 0] << 42) | (cells[:, 1] << 21) | cells[:, 2]
+
+
+def redundancy(mesh: vtkPolyData, samples: SurfaceSamples, delta) -> float:
+    """Share of ``samples`` (taken on ``mesh``) whose normal segment of half-length ``delta`` (m;
+    scalar or per sample) crosses a triangle of another frame. 0 for a mesh without cell data ``frame``."""
+    frames_array = mesh.GetCellData().GetArray("frame")
+    if frames_array is None or len(samples) == 0:
+        return 0.0
+    points, triangles = polydata_arrays(mesh)
+    if len(triangles) != mesh.GetNumberOfCells():
+        raise ValueError("redundancy needs a triangle mesh (one cell per triangle, frame per cell)")
+    frames = vtk_to_numpy(frames_array).astype(np.int64)
+    if np.unique(frames).size < 2:
+        return 0.0
+    corners = points[triangles]  # (M, 3, 3)
+    centroids = corners.mean(axis=1)
+    reach = np.broadcast_to(np.asarray(delta, dtype=np.float64), (len(samples),))
+    sample_frames = frames[samples.faces]
+    redundant = np.zeros(len(samples), dtype=bool)
+    order = np.argsort(frames, kind="stable")
+    bounds = np.flatnonzero(np.diff(frames[order])) + 1
+    voxel = max(float(reach.max()), 0.05) + float(np.linalg.norm(corners - centroids[:, None], axis=2).max())
+    sample_voxels = _voxel_keys(np.floor(samples.points / voxel).astype(np.int64))
+    face_voxels = np.floor(centroids / voxel).astype(np.int64)
+    neighbourhood = np.stack(np.meshgrid([-1, 0, 1], [-1, 0, 1], [-1, 0, 1], indexing="ij"), -1).reshape(-1, 3)
+    for faces in np.split(order, bounds):
+        frame = frames[faces[0]]
+        occupied = np.unique(face_voxels[faces], axis=0)
+        near_voxels = _voxel_keys((occupied[:, None, :] + neighbourhood[None]).reshape(-1, 3))
+        near = ~redundant & (sample_frames != frame) & np.isin(sample_voxels, near_voxels)
+        todo = np.flatnonzero(near)
+        if len(todo) == 0:
+            continue
+        tree = cKDTree(centroids[faces])
+        k = min(CANDIDATES, len(faces))
+        for start in range(0, len(todo), _CHUNK):
+            chunk = todo[start : start + _CHUNK]
+            _, nearest = tree.query(samples.points[chunk], k=k)
+            candidates = faces[nearest.reshape(len(chunk), k)]
+            a, b, c = (corners[candidates, j] for j in range(3))
+            hits = segment_hits(
+                samples.points[chunk, None, :], samples.normals[chunk, None, :], reach[chunk, None], a, b, c
+            )
+            redundant[chunk] |= hits.any(axis=1)
+    return float(redundant.mean())
