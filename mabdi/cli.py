@@ -3,6 +3,7 @@
     mabdi run CONFIG [--frames N] [--out DIR] [--noise MODEL] [--seed N] [--surface NAME]
                      [--no-classifier] [--depth-images] [--backend B] [--quiet]
     mabdi export IN OUT          convert a saved map between VTP, PLY, OBJ and STL
+    mabdi bench [--scene NAME|CONFIG] [--methods M ...] [--frames N] [--out DIR]
 
 Options override the config file; the resolved config is written with the
 outputs. Errors a user can cause (a bad config, a missing mesh) print one
@@ -37,11 +38,38 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument("--depth-images", action="store_true", help="also write D, E and labels of every frame as VTI")
     run.add_argument("--backend", help="render backend: egl or osmesa (overrides sensor.backend)")
     run.add_argument("--quiet", action="store_true", help="no progress bar")
+    run.add_argument("--no-eval", action="store_true", help="skip the evaluation against the ground truth")
 
     export = commands.add_parser("export", help="convert a saved map between VTP, PLY, OBJ and STL")
     export.add_argument("source", type=Path, help="map file to read (.vtp, .ply, .obj, .stl)")
     export.add_argument("target", type=Path, help="file to write; the format follows the suffix")
+
+    bench = commands.add_parser("bench", help="every method on the same frames, scored against the ground truth")
+    bench.add_argument("--scene", default="table", help="scene name in scenes/ or a run config path (default: table)")
+    bench.add_argument(
+        "--methods", nargs="+", default=None, help="mabdi, black_box, tsdf_1cm, tsdf_2cm (default: all)"
+    )
+    bench.add_argument("--frames", type=int, help="number of frames (overrides run.frames)")
+    bench.add_argument("--noise", help="noise model (overrides sensor.noise)")
+    bench.add_argument("--out", type=Path, help="output folder (default: runs/bench_<scene>)")
     return parser
+
+
+def _find_config(scene: str) -> Path:
+    """A run config from a path or a scene name in ./scenes."""
+    path = Path(scene)
+    if path.is_file():
+        return path
+    candidate = Path("scenes") / f"{scene}.toml"
+    if candidate.is_file():
+        return candidate
+    from mabdi.errors import ConfigError
+
+    known = sorted(p.stem for p in Path("scenes").glob("*.toml")) if Path("scenes").is_dir() else []
+    raise ConfigError(
+        f"scene {scene!r}: no such config file, and no scenes/{scene}.toml here"
+        + (f" (scenes here: {', '.join(known)})" if known else "")
+    )
 
 
 def _apply_overrides(config, args) -> None:
@@ -51,17 +79,17 @@ def _apply_overrides(config, args) -> None:
         config.run.frames = args.frames
     if args.noise is not None:
         config.sensor.noise = args.noise
-    if args.seed is not None:
+    if getattr(args, "seed", None) is not None:
         config.run.seed = args.seed
-    if args.backend is not None:
+    if getattr(args, "backend", None) is not None:
         config.sensor.backend = args.backend
-    if args.surface is not None:
+    if getattr(args, "surface", None) is not None:
         config.surface.method = args.surface
-    if args.no_classifier:
+    if getattr(args, "no_classifier", False):
         config.classifier.enabled = False
-    if args.out is not None:
+    if args.command == "run" and args.out is not None:
         config.output.dir = str(args.out)
-    if args.depth_images:
+    if getattr(args, "depth_images", False):
         config.output.depth_images = True
     validate_run_config(config, where="command line")
 
@@ -102,7 +130,40 @@ def cmd_run(args) -> int:
         f"{mode}, surface {summary['surface']}"
     )
     print(f"map: {summary['cells']:,} triangles, {summary['points']:,} points, {summary['map_bytes'] / 2**20:.1f} MB")
+    if not args.no_eval and config.scene.objects:
+        import json
+
+        from mabdi.evaluate import evaluate_run
+        from mabdi.io.atomic import write_text
+
+        metrics = evaluate_run(simulation, result)
+        summary["metrics"] = metrics.as_dict()
+        write_text(out_dir / "summary.json", json.dumps(summary, indent=2) + "\n")
+        growth = metrics.growth_per_circle
+        second = f", 2nd circle adds {100.0 * growth[1] / growth[0]:.1f}% of the 1st" if len(growth) > 1 and growth[0] else ""
+        print(
+            f"vs ground truth: F@1cm {metrics.fscore_1cm:.3f}, F@2cm {metrics.fscore_2cm:.3f}, "
+            f"accuracy median {metrics.accuracy_median_mm:.2f} mm, redundancy {100.0 * (metrics.redundancy or 0.0):.1f}%{second}"
+        )
     print(f"results in {out_dir}/ (world_mesh.vtp, world_mesh.ply, metrics.csv, summary.json, elements.png)")
+    return 0
+
+
+def cmd_bench(args) -> int:
+    from mabdi.config import load_run_config
+    from mabdi.evaluate.bench import METHODS, markdown_table, run_bench
+
+    path = _find_config(args.scene)
+    config = load_run_config(path)
+    _apply_overrides(config, args)
+    out_dir = args.out if args.out is not None else Path("runs") / f"bench_{config.run.name or path.stem}"
+    command = "mabdi " + " ".join(sys.argv[1:]) if sys.argv[1:2] == ["bench"] else None
+    bench = run_bench(config, args.methods or METHODS, out_dir, progress=lambda line: print(line, flush=True), command=command)
+    print()
+    print(markdown_table(bench))
+    for note in bench["notes"]:
+        print(f"note: {note}")
+    print(f"results in {out_dir}/ (bench.json, bench.md, elements.png)")
     return 0
 
 
@@ -124,7 +185,7 @@ def main(argv=None) -> int:
     from mabdi.errors import MabdiError
 
     try:
-        return {"run": cmd_run, "export": cmd_export}[args.command](args)
+        return {"run": cmd_run, "export": cmd_export, "bench": cmd_bench}[args.command](args)
     except (MabdiError, FileNotFoundError) as exc:
         print(f"mabdi: error: {exc}", file=sys.stderr)
         return 2

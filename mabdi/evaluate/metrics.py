@@ -12,7 +12,8 @@ Definitions (distances in metres, reported in mm where named so):
 * **F-score at tau**: 2 P R / (P + R) (Tanks and Temples).
 * **redundancy**: share of the map's area stacked over a surface made at
   another frame (:mod:`mabdi.evaluate.redundancy`), from the first 50,000
-  map samples.
+  map samples; None for a map without cell data ``frame`` (a fused TSDF
+  surface).
 * **size**: triangles, points, bytes in memory (VTK's actual size of the
   merged mesh) and as binary PLY (written to a temporary file and measured).
 * **growth**: net triangles added in each circle of the helical path.
@@ -58,7 +59,7 @@ class MapMetrics:
     precision_2cm: float
     recall_2cm: float
     fscore_2cm: float
-    redundancy: float
+    redundancy: float | None
     triangles: int
     points: int
     memory_bytes: int

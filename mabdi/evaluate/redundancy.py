@@ -64,11 +64,17 @@ def _voxel_keys(cells: np.ndarray) -> np.ndarray:
     return (cells[:, 0] << 42) | (cells[:, 1] << 21) | cells[:, 2]
 
 
-def redundancy(mesh: vtkPolyData, samples: SurfaceSamples, delta) -> float:
+def redundancy(mesh: vtkPolyData, samples: SurfaceSamples, delta) -> float | None:
     """Share of ``samples`` (taken on ``mesh``) whose normal segment of half-length ``delta`` (m;
-    scalar or per sample) crosses a triangle of another frame. 0 for a mesh without cell data ``frame``."""
+    scalar or per sample) crosses a triangle of another frame.
+
+    None for a mesh without cell data ``frame`` (a fused surface such as a
+    TSDF's, where the question does not arise); 0 for an empty sample set.
+    """
     frames_array = mesh.GetCellData().GetArray("frame")
-    if frames_array is None or len(samples) == 0:
+    if frames_array is None:
+        return None
+    if len(samples) == 0:
         return 0.0
     points, triangles = polydata_arrays(mesh)
     if len(triangles) != mesh.GetNumberOfCells():

@@ -1,0 +1,244 @@
+"""The benchmark harness behind ``mabdi bench``: every method on the same frames, one table.
+
+Methods (all fed the same depth images D: same scene, poses and noise seed):
+
+* ``mabdi``: the MABDI loop with the config's surface filter and classifier;
+* ``black_box``: the same runner with the classifier off;
+* ``tsdf_1cm``, ``tsdf_2cm``: Open3D's VoxelBlockGrid TSDF (optional; see
+  :mod:`mabdi.evaluate.tsdf`), skipped with a note when Open3D is missing.
+
+Each map is scored against the same observed ground-truth samples
+(:mod:`mabdi.evaluate.metrics`). The harness writes ``bench.json`` (all
+numbers, the machine, the command), ``bench.md`` (the table) and
+``elements.png`` (triangles per frame for every method).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import vtkmodules
+
+from mabdi.config import RunConfig
+from mabdi.evaluate.metrics import SAMPLES, evaluate_map, evaluate_run, observed_ground_truth, scenes_per_pose
+from mabdi.evaluate.tsdf import alignment_error, open3d_status, run_tsdf
+from mabdi.io.atomic import write_text
+from mabdi.io.plots import write_elements_plot
+from mabdi.simulate.runner import Simulation, prepare_output_dir, render_backend
+
+METHODS = ("mabdi", "black_box", "tsdf_1cm", "tsdf_2cm")
+TSDF_VOXELS = {"tsdf_1cm": 0.01, "tsdf_2cm": 0.02}
+
+
+def machine_info(simulation: Simulation | None = None) -> dict:
+    """CPU, cores, GPU (nvidia-smi, if any), VTK render backend and versions."""
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in open("/proc/cpuinfo"):
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    gpu = "none"
+    if shutil.which("nvidia-smi"):
+        try:
+            gpu = subprocess.run(
+                ["nvidia-smi", "--query-gpu=name", "--format=csv,noheader"], capture_output=True, text=True, timeout=10
+            ).stdout.strip() or "none"
+        except (OSError, subprocess.SubprocessError):
+            pass
+    info = {
+        "cpu": cpu,
+        "cores": os.cpu_count(),
+        "gpu": gpu,
+        "python": sys.version.split()[0],
+        "vtk": vtkmodules.__version__,
+        "numpy": np.__version__,
+    }
+    usable, _ = open3d_status()
+    if usable:
+        import open3d
+
+        info["open3d"] = open3d.__version__
+    if simulation is not None:
+        info["render"] = render_backend(simulation.sensor)
+    return info
+
+
+def _mabdi_row(name: str, simulation: Simulation, result, observed) -> dict:
+    metrics = evaluate_run(simulation, result, observed=observed)
+    summary = result.summary()
+    return {
+        "method": name,
+        "metrics": metrics.as_dict(),
+        "ms_per_frame": summary["mean_ms"],
+        "seconds": summary["seconds"],
+        "triangles_per_frame": [int(c) for c in result.cells],
+    }
+
+
+def run_bench(
+    config: RunConfig, methods=METHODS, out_dir=None, samples: int = SAMPLES, progress=print, command: str | None = None
+) -> dict:
+    """Run ``methods`` on the run ``config`` describes; return (and with ``out_dir`` write) the results.
+
+    ``command`` (the command line that asked for it) is recorded with the numbers.
+    """
+    unknown = [m for m in methods if m not in METHODS]
+    if unknown:
+        from mabdi.errors import ConfigError
+
+        raise ConfigError(f"unknown bench method {unknown[0]!r} (known: {', '.join(METHODS)})")
+    out = prepare_output_dir(out_dir) if out_dir is not None else None
+    frames = config.run.frames
+    rows, notes = [], []
+    observed = None
+    reference = None
+    for method in methods:
+        if method in ("mabdi", "black_box"):
+            config.classifier.enabled = method == "mabdi"
+            progress(f"{method}: running {frames} frames")
+            simulation = Simulation(config)
+            result = simulation.run()
+            if observed is None:
+                reference = simulation
+                observed = observed_ground_truth(
+                    simulation.scene.mesh_at(frames - 1),
+                    scenes_per_pose(simulation.scene, frames),
+                    simulation.poses,
+                    config.sensor.intrinsics(),
+                    samples,
+                    config.sensor.backend,
+                )
+            progress(f"{method}: evaluating {result.mesh.GetNumberOfCells():,} triangles")
+            rows.append(_mabdi_row(method, simulation, result, observed))
+        else:
+            usable, reason = open3d_status()
+            if not usable:
+                note = f"{method} skipped: {reason}"
+                progress(note)
+                notes.append(note)
+                continue
+            voxel = TSDF_VOXELS[method]
+            progress(f"{method}: integrating {frames} frames")
+            run = run_tsdf(config, voxel)
+            if observed is None:
+                reference = Simulation(config)
+                observed = observed_ground_truth(
+                    reference.scene.mesh_at(frames - 1),
+                    scenes_per_pose(reference.scene, frames),
+                    reference.poses,
+                    config.sensor.intrinsics(),
+                    samples,
+                    config.sensor.backend,
+                )
+            metrics = evaluate_map(run.mesh, reference.scene.mesh_at(frames - 1), observed, samples=samples)
+            metrics.growth_per_circle = run.growth_per_circle(frames, config.path.turns)
+            extract_ms = float(np.mean([ms for _, _, ms in run.extractions])) if run.extractions else 0.0
+            rows.append(
+                {
+                    "method": method,
+                    "metrics": metrics.as_dict(),
+                    "ms_per_frame": {
+                        "t_depth_ms": float(np.mean(run.t_depth_ms)),
+                        "t_integrate_ms": float(np.mean(run.t_integrate_ms)),
+                        "t_extract_ms": extract_ms,
+                        "t_total_ms": float(np.mean(np.add(run.t_depth_ms, run.t_integrate_ms))),
+                        "t_total_with_mesh_ms": float(np.mean(np.add(run.t_depth_ms, run.t_integrate_ms)) + extract_ms),
+                    },
+                    "seconds": run.seconds,
+                    "volume_bytes": run.volume_bytes,
+                    "triangles_at": [[frame, triangles] for frame, triangles, _ in run.extractions],
+                }
+            )
+    bench = {
+        "scene": config.run.name,
+        "frames": frames,
+        "noise": config.sensor.noise,
+        "seed": config.run.seed,
+        "surface": config.surface.method,
+        "samples": samples,
+        "command": command,
+        "machine": machine_info(reference),
+        "methods": rows,
+        "notes": notes,
+    }
+    if any(r["method"].startswith("tsdf") for r in rows):
+        bench["tsdf_alignment_mm"] = 1000.0 * alignment_error(config)
+    if out is not None:
+        write_bench_outputs(bench, out)
+    return bench
+
+
+def markdown_table(bench: dict) -> str:
+    """The bench as a markdown table (one row per method)."""
+    lines = [
+        "| method | F@1cm | F@2cm | P@1cm | R@1cm | accuracy median / p95 (mm) | redundancy | triangles | MB in memory "
+        "| PLY MB | ms/frame | 2nd circle / 1st | total s |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+    ]
+    for row in bench["methods"]:
+        m = row["metrics"]
+        ms = row["ms_per_frame"]
+        growth = m["growth_per_circle"]
+        second = f"{100.0 * growth[1] / growth[0]:.1f}%" if len(growth) > 1 and growth[0] else "-"
+        redundancy = "-" if m["redundancy"] is None else f"{100.0 * m['redundancy']:.1f}%"
+        if "t_integrate_ms" in ms:
+            memory = row.get("volume_bytes", m["memory_bytes"])
+            timing = f"{ms['t_total_ms']:.1f} (+{ms['t_extract_ms']:.0f} mesh)"
+        else:
+            memory = m["memory_bytes"]
+            timing = f"{ms['t_total_ms']:.1f}"
+        lines.append(
+            f"| {row['method']} | {m['fscore_1cm']:.3f} | {m['fscore_2cm']:.3f} | {m['precision_1cm']:.3f} "
+            f"| {m['recall_1cm']:.3f} | {m['accuracy_median_mm']:.2f} / {m['accuracy_p95_mm']:.2f} "
+            f"| {redundancy} | {m['triangles']:,} | {memory / 2**20:.1f} | {m['ply_bytes'] / 2**20:.1f} "
+            f"| {timing} | {second} | {row['seconds']:.1f} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def stage_table(bench: dict) -> str:
+    """Milliseconds per frame by stage, one row per method."""
+    lines = ["| method | stage ms per frame |", "|---|---|"]
+    for row in bench["methods"]:
+        stages = ", ".join(f"{k[2:-3]} {v:.1f}" for k, v in row["ms_per_frame"].items())
+        lines.append(f"| {row['method']} | {stages} |")
+    return "\n".join(lines) + "\n"
+
+
+def write_bench_outputs(bench: dict, out: Path) -> None:
+    """bench.json, bench.md and elements.png in ``out`` (each written atomically)."""
+    write_text(out / "bench.json", json.dumps(bench, indent=2) + "\n")
+    machine = bench["machine"]
+    render = machine.get("render", {})
+    header = (
+        f"# mabdi bench: {bench['scene']}, {bench['frames']} frames, noise {bench['noise']}\n\n"
+        + (f"Command: `{bench['command']}`\n\n" if bench.get("command") else "")
+        +
+        f"Machine: {machine['cpu']}, {machine['cores']} cores, GPU {machine['gpu']}; "
+        f"render {render.get('window', '?')} ({render.get('gl_renderer', '?')}); VTK {machine['vtk']}"
+        + (f", Open3D {machine['open3d']}" if "open3d" in machine else "")
+        + "\n\n"
+    )
+    notes = "".join(f"- {note}\n" for note in bench["notes"])
+    if "tsdf_alignment_mm" in bench:
+        notes += f"- TSDF alignment check (noise-free first frame, 1 cm voxels): median {bench['tsdf_alignment_mm']:.2f} mm\n"
+    write_text(out / "bench.md", header + markdown_table(bench) + "\n" + stage_table(bench) + ("\n" + notes if notes else ""))
+    series = {}
+    for row in bench["methods"]:
+        if "triangles_per_frame" in row:
+            counts = row["triangles_per_frame"]
+            series[row["method"]] = (np.arange(len(counts)), np.array(counts))
+        else:
+            at = np.array(row["triangles_at"]).reshape(-1, 2)
+            series[row["method"]] = (at[:, 0], at[:, 1])
+    write_elements_plot(series, out / "elements.png", title=f"{bench['scene']}: triangles in the map")
