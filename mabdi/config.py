@@ -32,7 +32,7 @@ ANCHORS = ("bottom", "center", "origin")
 AXES = ("x", "y", "z", "-x", "-y", "-z", "+x", "+y", "+z")
 NOISE_MODELS = ("none", "zbuffer", "kinect")
 #: Surface filters by config name; quadtree and voxel_planes join when they exist.
-SURFACES = ("pixel_grid",)
+SURFACES = ("pixel_grid", "quadtree")
 BACKENDS = ("egl", "osmesa")
 
 
@@ -142,11 +142,18 @@ class ClassifierConfig:
 class SurfaceConfig:
     """The surface filter that meshes novel pixels: ``method`` is one of :data:`SURFACES`.
 
-    ``max_jump`` (pixel_grid): largest depth spread in a triangle as a fraction of its depth.
+    ``max_jump``: largest depth jump (fraction of the depth) inside a face
+    (pixel_grid) or between vertices that are merged (quadtree).
+    ``n_t``, ``d_t`` (m), ``reduction``: the quad-tree's merge thresholds and
+    block reduction (:mod:`mabdi.filters.quadtree`); in the loop the quad-tree
+    outputs triangles, so the map's counts are triangles.
     """
 
     method: str = "pixel_grid"
     max_jump: float = 0.05
+    n_t: float = 0.1
+    d_t: float = 0.02
+    reduction: int = 3
 
 
 @dataclass
@@ -370,6 +377,8 @@ def validate_run_config(config: RunConfig, where: str = "<config>") -> None:
     _check_choice(config.surface.method, SURFACES, where, "surface.method")
     if config.surface.max_jump <= 0:
         raise ConfigError(f"{where}: key 'surface.max_jump' must be > 0, got {config.surface.max_jump}")
+    if config.surface.n_t < 0 or config.surface.d_t <= 0 or config.surface.reduction < 1:
+        raise ConfigError(f"{where}: need 'surface.n_t' >= 0, 'surface.d_t' > 0 and 'surface.reduction' >= 1")
 
 
 # ---------------------------------------------------------------------------

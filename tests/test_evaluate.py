@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from vtkmodules.util.numpy_support import numpy_to_vtk
 
-from conftest import REPO, plane_mesh
+from conftest import REPO
 from mabdi.camera import Intrinsics, look_at
 from mabdi.evaluate.distance import distances_to_mesh, distances_within
 from mabdi.evaluate.metrics import evaluate_map, growth_per_circle, observed_ground_truth, ply_size

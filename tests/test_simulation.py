@@ -166,7 +166,7 @@ def test_frames_with_no_return_add_nothing(tmp_path):
 def test_unknown_surface_name_is_a_config_error(tmp_path):
     path = tmp_path / "run.toml"
     path.write_text('[surface]\nmethod = "marching_cubes"\n')
-    with pytest.raises(ConfigError, match="surface.method' = 'marching_cubes' is not one of: pixel_grid"):
+    with pytest.raises(ConfigError, match="surface.method' = 'marching_cubes' is not one of: pixel_grid, quadtree"):
         load_run_config(path)
 
 
@@ -250,6 +250,6 @@ def test_export_round_trip(tmp_path, capsys):
 
 
 def test_cli_unknown_surface_is_named(tmp_path, capsys):
-    status = main(["run", str(REPO / "scenes" / "table.toml"), "--surface", "quadtree", "--out", str(tmp_path / "o")])
+    status = main(["run", str(REPO / "scenes" / "table.toml"), "--surface", "voxel_planes", "--out", str(tmp_path / "o")])
     assert status == 2
     assert "surface.method" in capsys.readouterr().err

@@ -44,6 +44,7 @@ from mabdi.errors import MabdiError
 from mabdi.filters.classifier import ClassifierParameters, FilterClassifier
 from mabdi.filters.depth_image import FilterDepthImage, SensorNoise
 from mabdi.filters.depth_to_surface import FilterDepthImageToSurface
+from mabdi.filters.quadtree import FilterQuadTree, QuadTreeParameters
 from mabdi.filters.world_mesh import FilterWorldMesh
 from mabdi.io.atomic import atomic_output, write_text
 from mabdi.io.plots import write_elements_plot
@@ -259,10 +260,16 @@ class Simulation:
 
 def make_surface_filter(config: RunConfig):
     """The surface filter named by ``config.surface.method``."""
-    method = config.surface.method
-    if method == "pixel_grid":
-        return FilterDepthImageToSurface(max_jump=config.surface.max_jump)
-    raise MabdiError(f"unknown surface filter {method!r} (known: pixel_grid)")
+    surface = config.surface
+    if surface.method == "pixel_grid":
+        return FilterDepthImageToSurface(max_jump=surface.max_jump)
+    if surface.method == "quadtree":
+        return FilterQuadTree(
+            QuadTreeParameters(
+                n_t=surface.n_t, d_t=surface.d_t, reduction=surface.reduction, max_jump=surface.max_jump, triangles=True
+            )
+        )
+    raise MabdiError(f"unknown surface filter {surface.method!r} (known: pixel_grid, quadtree)")
 
 
 def prepare_output_dir(out_dir) -> Path:

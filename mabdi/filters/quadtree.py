@@ -1,0 +1,467 @@
+"""FilterQuadTree: quad-tree meshing of a depth image (seed 002), closed and without bridges.
+
+Depth image in (D, or the classifier's output: only its valid pixels are
+meshed), mesh in world coordinates out. The stages of seed 002:
+
+1. **Filter and reduce**: the NaN-aware median of each ``reduction`` x
+   ``reduction`` block (3 by default, the seed's 3x3 median then reduce by 3;
+   1 = off). A block needs a valid majority. The intrinsics scale with it
+   (fx / r, cx / r: block k covers input pixels [rk, rk + r)).
+2. **Transform**: every block to a camera-frame point with the exact pinhole
+   model, through the centre of the pixel that holds the median (so a block
+   straddling an edge gives a point on one of the surfaces, not between).
+3. **Convert**: per-pixel normals from differences of the point map (seed
+   eqs. 4-6): central where both neighbours exist, one-sided at the border
+   and beside invalid pixels or a depth jump (``max_jump``); no normal only
+   where a direction has no neighbour at all. Normals face the sensor.
+4. **Build**: a mip-map pyramid, bottom up (image padded with invalid pixels
+   to a power of two). Each node holds the averaged normal and point of its
+   four children and its region count (the seed's invariant). Four children
+   merge when each is a single region, every child's normal deviates from
+   their average by less than ``n_t`` per component (eq. 14), and every
+   child's centroid lies within ``d_t`` of the averaged plane,
+   |n_avg . (p_i - p_avg)| < d_t (a distance from the plane, so oblique planes
+   still merge). Defaults n_t = 0.1, d_t = 0.02 m.
+5. **Locate**: the leaves (single regions whose parent is not one), level by
+   level with array masks.
+6. **Project**: each leaf is a quad over its pixel block; its corners are the
+   intersections of the rays through the block's pixel corners with the
+   leaf's plane (averaged normal through the averaged point). A corner that
+   lands further from the leaf's depth than a surface can turn within the
+   leaf (``max_jump`` per pixel: a plane seen at a grazing angle) is put at
+   the leaf's depth instead, and so are the corners of single-pixel leaves
+   (a lone pixel's normal is no plane to extrapolate; shared corners average
+   the pixels around them).
+
+Beyond the seed (its own "future work"):
+
+* **No bridges**: leaves never span invalid pixels or a depth jump (d_t);
+  corners of neighbouring leaves are merged into one vertex only when their
+  depths agree within ``max_jump`` (5%) and their normals within 45 degrees,
+  so a step keeps two separate edges and a crease is not rounded off.
+* **No cracks**: where a smaller leaf meets a bigger one, the small leaves'
+  corners on the big leaf's edge are moved onto that edge and become extra
+  vertices (T-vertices) of the big face, so the mesh is closed along it.
+* **Planar faces**: a quad whose corners are not coplanar within
+  ``planarity`` (max(1 mm, 0.2% of the depth)) is split into two triangles;
+  a face with T-vertices that is not planar becomes a fan around its centre.
+  ``triangles=True`` triangulates every face (the MABDI loop counts
+  triangles).
+
+Output: vtkPolyData of polygons (quads, or polygons with T-vertices) or
+triangles, cell data ``level`` (the face's size in input pixels) and
+``Normals`` (world frame), field data as the input (intrinsics, pose, frame).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from vtkmodules.util.numpy_support import numpy_to_vtk, numpy_to_vtkIdTypeArray
+from vtkmodules.vtkCommonCore import vtkPoints
+from vtkmodules.vtkCommonDataModel import vtkCellArray, vtkImageData, vtkPolyData
+
+from mabdi.algorithm import MabdiAlgorithm
+from mabdi.camera import Intrinsics
+from mabdi.depth import depth_array, image_intrinsics, image_pose
+from mabdi.errors import ConfigError
+
+
+#: Corners of leaves whose normals differ by more than 45 degrees are not merged (a crease).
+CREASE_COSINE = float(np.cos(np.radians(45.0)))
+
+
+@dataclass(frozen=True)
+class QuadTreeParameters:
+    """Parameters of :class:`FilterQuadTree` (see the module docs); lengths in metres."""
+
+    n_t: float = 0.1
+    d_t: float = 0.02
+    reduction: int = 3
+    max_jump: float = 0.05
+    planarity: float = 0.002
+    triangles: bool = False
+
+    def __post_init__(self) -> None:
+        if self.n_t < 0 or self.d_t <= 0:
+            raise ConfigError(f"quadtree: need n_t >= 0 and d_t > 0, got n_t={self.n_t}, d_t={self.d_t}")
+        if not isinstance(self.reduction, (int, np.integer)) or self.reduction < 1:
+            raise ConfigError(f"quadtree: reduction must be an integer >= 1, got {self.reduction!r}")
+        if self.max_jump <= 0 or self.planarity <= 0:
+            raise ConfigError("quadtree: max_jump and planarity must be > 0")
+
+
+# ---------------------------------------------------------------------------
+# 1-3: filter and reduce, transform, convert
+
+
+def reduce_points(depth: np.ndarray, intrinsics: Intrinsics, reduction: int) -> tuple[np.ndarray, Intrinsics]:
+    """Camera-frame points of the ``reduction``-square blocks (NaN-aware median), and the reduced intrinsics.
+
+    Each block's point is the pixel holding the block's (lower) median depth,
+    back-projected through that pixel's own centre: noise-free surfaces stay
+    exactly on the surface, even in blocks that straddle an edge (a block
+    centre ray at a median depth would float between the two surfaces). A
+    block needs a valid majority.
+    """
+    depth = np.asarray(depth, dtype=np.float64)
+    r = reduction
+    rays = intrinsics.rays()
+    if r == 1:
+        return rays * depth[..., None], intrinsics
+    h, w = depth.shape[0] // r, depth.shape[1] // r
+
+    def blocks(a):
+        a = a[: h * r, : w * r]
+        return a.reshape(h, r, w, r, *a.shape[2:]).swapaxes(1, 2).reshape(h, w, r * r, *a.shape[2:])
+
+    values = blocks(depth)
+    count = np.isfinite(values).sum(axis=-1)
+    order = np.argsort(np.where(np.isfinite(values), values, np.inf), axis=-1)  # NaN sorted last
+    median_slot = np.take_along_axis(order, np.clip((count - 1) // 2, 0, r * r - 1)[..., None], axis=-1)
+    median_depth = np.take_along_axis(values, median_slot, axis=-1)[..., 0]
+    median_ray = np.take_along_axis(blocks(rays), median_slot[..., None], axis=2)[:, :, 0, :]
+    points = median_ray * median_depth[..., None]
+    points[count * 2 <= r * r] = np.nan
+    k = intrinsics
+    return points, Intrinsics(k.fx / r, k.fy / r, k.cx / r, k.cy / r, w, h, k.near, k.far)
+
+
+def point_normals(points: np.ndarray, max_jump: float = 0.05) -> np.ndarray:
+    """(H, W, 3) unit normals of a camera-frame point map (NaN where invalid), facing the camera.
+
+    A neighbour across a depth jump (more than ``max_jump`` of the depth) counts as missing, so
+    pixels beside a discontinuity take the one-sided difference on their own surface.
+    """
+    valid = np.isfinite(points[..., 2])
+    z = points[..., 2]
+
+    def difference(axis: int) -> np.ndarray:
+        forward = np.full_like(points, np.nan)
+        backward = np.full_like(points, np.nan)
+        if axis == 1:
+            forward[:, :-1] = points[:, 1:]
+            backward[:, 1:] = points[:, :-1]
+        else:
+            forward[:-1] = points[1:]
+            backward[1:] = points[:-1]
+        with np.errstate(invalid="ignore"):
+            has_forward = np.abs(forward[..., 2] - z) <= max_jump * z
+            has_backward = np.abs(backward[..., 2] - z) <= max_jump * z
+        central = forward - backward
+        one_sided = np.where(has_forward[..., None], forward - points, points - backward)
+        return np.where((has_forward & has_backward)[..., None], central, one_sided)
+
+    du, dv = difference(1), difference(0)
+    normals = -np.cross(du, dv)
+    length = np.linalg.norm(normals, axis=-1, keepdims=True)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        normals = normals / length
+    facing = np.einsum("...i,...i->...", normals, points) > 0
+    normals[facing] *= -1.0
+    normals[~valid | ~np.isfinite(length[..., 0]) | (length[..., 0] == 0)] = np.nan
+    return normals
+
+
+# ---------------------------------------------------------------------------
+# 4-5: build and locate
+
+
+@dataclass
+class Leaves:
+    """The leaf regions: pyramid level, row and column of the block (in blocks of 2**level), plane."""
+
+    level: np.ndarray
+    row: np.ndarray
+    col: np.ndarray
+    normal: np.ndarray
+    point: np.ndarray
+
+    @property
+    def size(self) -> np.ndarray:
+        return 1 << self.level
+
+
+def build_leaves(points: np.ndarray, normals: np.ndarray, n_t: float, d_t: float) -> tuple[Leaves, int]:
+    """Merge bottom-up (seed invariant 1, eq. 14 and the plane-distance test); return leaves and the root's region count."""
+    h, w = points.shape[:2]
+    size = 1 << int(np.ceil(np.log2(max(h, w, 1))))
+    valid = np.zeros((size, size), dtype=bool)
+    valid[:h, :w] = np.isfinite(normals[..., 0]) & np.isfinite(points[..., 2])
+    n = np.zeros((size, size, 3))
+    p = np.zeros((size, size, 3))
+    n[:h, :w][valid[:h, :w]] = normals[valid[:h, :w]]
+    p[:h, :w][valid[:h, :w]] = points[valid[:h, :w]]
+    single = [valid]
+    count = [valid.astype(np.int64)]
+    ns, ps = [n], [p]
+    while single[-1].shape[0] > 1:
+        s, c, nn, pp = single[-1], count[-1], ns[-1], ps[-1]
+        children = (slice(0, None, 2), slice(0, None, 2)), (slice(0, None, 2), slice(1, None, 2)), (slice(1, None, 2), slice(0, None, 2)), (slice(1, None, 2), slice(1, None, 2))
+        all_single = np.logical_and.reduce([s[k] for k in children])
+        n_avg = sum(nn[k] for k in children) / 4.0
+        p_avg = sum(pp[k] for k in children) / 4.0
+        length = np.linalg.norm(n_avg, axis=-1, keepdims=True)
+        unit = np.divide(n_avg, length, out=np.zeros_like(n_avg), where=length > 0)
+        normal_ok = np.logical_and.reduce([np.all(np.abs(n_avg - nn[k]) < n_t, axis=-1) for k in children])
+        plane_ok = np.logical_and.reduce(
+            [np.abs(np.einsum("...i,...i->...", unit, pp[k] - p_avg)) < d_t for k in children]
+        )
+        merged = all_single & normal_ok & plane_ok
+        single.append(merged)
+        count.append(np.where(merged, 1, sum(c[k] for k in children)))
+        ns.append(np.where(merged[..., None], n_avg, 0.0))
+        ps.append(np.where(merged[..., None], p_avg, 0.0))
+    levels, rows, cols, normal_list, point_list = [], [], [], [], []
+    for level, s in enumerate(single):
+        if level + 1 < len(single):
+            parent = np.repeat(np.repeat(single[level + 1], 2, axis=0), 2, axis=1)
+            leaf = s & ~parent
+        else:
+            leaf = s
+        r, c = np.nonzero(leaf)
+        if len(r) == 0:
+            continue
+        nv = ns[level][r, c]
+        normal_list.append(nv / np.linalg.norm(nv, axis=1, keepdims=True))
+        point_list.append(ps[level][r, c])
+        levels.append(np.full(len(r), level))
+        rows.append(r)
+        cols.append(c)
+    if not levels:
+        empty = np.zeros(0, dtype=np.int64)
+        return Leaves(empty, empty, empty, np.zeros((0, 3)), np.zeros((0, 3))), 0
+    leaves = Leaves(
+        np.concatenate(levels), np.concatenate(rows), np.concatenate(cols), np.concatenate(normal_list), np.concatenate(point_list)
+    )
+    return leaves, int(count[-1][0, 0])
+
+
+# ---------------------------------------------------------------------------
+# 6: project, with shared vertices, T-vertices and planarity
+
+
+def _ray(u: np.ndarray, v: np.ndarray, k: Intrinsics) -> np.ndarray:
+    """Rays (z = 1) through continuous pixel coordinates (pixel corners at integers)."""
+    return np.stack([(u - k.cx) / k.fx, (v - k.cy) / k.fy, np.ones_like(u, dtype=np.float64)], axis=-1)
+
+
+def _on_plane(rays: np.ndarray, normal: np.ndarray, point: np.ndarray) -> np.ndarray:
+    """Where the rays meet the planes (normal, point), row by row; the point's depth where the ray grazes."""
+    denominator = np.einsum("...i,...i->...", normal, rays)
+    numerator = np.einsum("...i,...i->...", normal, point)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = numerator / denominator
+    fallback = np.broadcast_to(point[..., 2], t.shape)
+    t = np.where(np.isfinite(t) & (t > 0), t, fallback)
+    return rays * t[..., None]
+
+
+def quad_mesh(leaves: Leaves, k: Intrinsics, p: QuadTreeParameters) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Faces of the leaves: (vertices (V, 3) camera frame, offsets, connectivity, face leaf index, face normals)."""
+    count = len(leaves.level)
+    size = leaves.size
+    u0, v0 = leaves.col * size, leaves.row * size
+    corner_u = np.stack([u0, u0, u0 + size, u0 + size], axis=1)  # TL, BL, BR, TR (faces the sensor)
+    corner_v = np.stack([v0, v0 + size, v0 + size, v0], axis=1)
+    corner_rays = _ray(corner_u.astype(float), corner_v.astype(float), k)
+    corners = _on_plane(corner_rays, leaves.normal[:, None, :], leaves.point[:, None, :])
+    # A single pixel's normal (one-sided beside an edge, noisy) is no plane to extrapolate: its
+    # corners sit at its own depth, and shared corners average the pixels around them. A bigger
+    # leaf's plane seen at a grazing angle can still put a corner far away; a surface changes
+    # depth by at most max_jump per pixel, so a corner further than max_jump * z * 0.71 * size
+    # (its distance from the centre in pixels) from the leaf's depth falls back the same way.
+    centre_depth = leaves.point[:, 2][:, None]
+    allowed = p.max_jump * centre_depth * (0.71 * size)[:, None]
+    wild = (np.abs(corners[..., 2] - centre_depth) > allowed) | (size == 1)[:, None]
+    corners[wild] = corner_rays[wild] * np.broadcast_to(centre_depth, wild.shape)[wild][:, None]
+    # one vertex per lattice point and depth cluster
+    stride = int(max(k.width, k.height)) * 2 + 4
+    keys = (corner_v * stride + corner_u).ravel()
+    depth = corners[..., 2].ravel()
+    corner_normal = np.repeat(leaves.normal, 4, axis=0)
+    order = np.lexsort((depth, keys))
+    sorted_keys, sorted_depth, sorted_normal = keys[order], depth[order], corner_normal[order]
+    new = np.ones(len(order), dtype=bool)
+    # a new vertex where the lattice point changes, the depth jumps, or the surface folds (a crease)
+    new[1:] = (
+        (sorted_keys[1:] != sorted_keys[:-1])
+        | (sorted_depth[1:] > sorted_depth[:-1] * (1.0 + p.max_jump))
+        | (np.einsum("ij,ij->i", sorted_normal[1:], sorted_normal[:-1]) < CREASE_COSINE)
+    )
+    vertex_of_sorted = np.cumsum(new) - 1
+    corner_vertex = np.empty(len(order), dtype=np.int64)
+    corner_vertex[order] = vertex_of_sorted
+    corner_vertex = corner_vertex.reshape(count, 4)
+    n_vertices = int(vertex_of_sorted[-1]) + 1 if len(order) else 0
+    sums = np.zeros((n_vertices, 3))
+    np.add.at(sums, corner_vertex.ravel(), corners.reshape(-1, 3))
+    vertices = sums / np.bincount(corner_vertex.ravel(), minlength=n_vertices)[:, None]
+    vertex_key = sorted_keys[new]
+    vertex_depth = np.zeros(n_vertices)
+    np.maximum.at(vertex_depth, corner_vertex.ravel(), depth)
+    vertex_normal = sorted_normal[new]
+
+    # T-vertices: lattice points inside the edges of bigger leaves, snapped onto them (big leaves first)
+    extra_leaf, extra_param, extra_vertex = [], [], []
+    for level in sorted(set(leaves.level.tolist()), reverse=True):
+        if level == 0:
+            continue
+        hosts = np.flatnonzero(leaves.level == level)
+        s = 1 << level
+        steps = np.arange(1, s)
+        # edges in perimeter order: left (TL->BL), bottom (BL->BR), right (BR->TR), top (TR->TL)
+        for edge, (start, end) in enumerate(((0, 1), (1, 2), (2, 3), (3, 0))):
+            su, sv = corner_u[hosts, start][:, None], corner_v[hosts, start][:, None]
+            eu, ev = corner_u[hosts, end][:, None], corner_v[hosts, end][:, None]
+            pu = su + (eu - su) // s * steps
+            pv = sv + (ev - sv) // s * steps
+            key = (pv * stride + pu).ravel()
+            lo = np.searchsorted(vertex_key, key, side="left")
+            hi = np.searchsorted(vertex_key, key, side="right")
+            host = np.repeat(hosts, s - 1)
+            fraction = np.tile(steps / s, len(hosts))
+            expected = _on_plane(_ray(pu.ravel().astype(float), pv.ravel().astype(float), k), leaves.normal[host], leaves.point[host])[:, 2]
+            chosen = np.full(len(key), -1)
+            for m in range(int((hi - lo).max()) if len(key) else 0):
+                candidate = lo + m
+                ok = (candidate < hi) & (chosen < 0)
+                candidate = np.where(ok, candidate, 0)
+                close = (np.abs(vertex_depth[candidate] - expected) <= p.max_jump * expected) & (
+                    np.einsum("ij,ij->i", vertex_normal[candidate], leaves.normal[host]) >= CREASE_COSINE
+                )
+                chosen = np.where(ok & close, candidate, chosen)
+            found = chosen >= 0
+            if not found.any():
+                continue
+            a = vertices[corner_vertex[host[found], start]]
+            b = vertices[corner_vertex[host[found], end]]
+            f = fraction[found][:, None]
+            vertices[chosen[found]] = a + (b - a) * f
+            extra_leaf.append(host[found])
+            extra_param.append(edge * 4096.0 + fraction[found])
+            extra_vertex.append(chosen[found])
+
+    # polygons: corners at perimeter positions 0, 1, 2, 3 (x 4096) plus the T-vertices between them
+    leaf_ids = np.concatenate([np.repeat(np.arange(count), 4), *extra_leaf])
+    params = np.concatenate([np.tile(np.arange(4) * 4096.0, count), *extra_param])
+    members = np.concatenate([corner_vertex.ravel(), *extra_vertex])
+    order = np.lexsort((params, leaf_ids))
+    leaf_ids, members = leaf_ids[order], members[order]
+    sizes = np.bincount(leaf_ids, minlength=count)
+    starts = np.concatenate([[0], np.cumsum(sizes)])
+    return vertices, starts, members, np.arange(count), sizes
+
+
+def _faces(vertices, starts, members, sizes, leaves: Leaves, k: Intrinsics, p: QuadTreeParameters):
+    """Polygons, split where not planar (or always with ``triangles``): (offsets, connectivity, leaf per face, vertices)."""
+    count = len(sizes)
+    # planarity: largest distance of a face's vertices from its leaf's plane
+    owner = np.repeat(np.arange(count), sizes)
+    offset_from_plane = np.abs(np.einsum("ij,ij->i", vertices[members] - leaves.point[owner], leaves.normal[owner]))
+    worst = np.zeros(count)
+    np.maximum.at(worst, owner, offset_from_plane)
+    tolerance = np.maximum(0.001, p.planarity * leaves.point[:, 2])
+    planar = worst <= tolerance
+    keep = planar & ~p.triangles
+    quad = (sizes == 4) & ~keep
+    fan = (sizes > 4) & ~keep
+    out_offsets, out_members, out_leaf = [], [], []
+    kept = np.flatnonzero(keep)
+    if len(kept):
+        out_members.append(_gather(members, starts, kept))
+        out_offsets.append(sizes[kept])
+        out_leaf.append(kept)
+    quads = np.flatnonzero(quad)
+    if len(quads):
+        q = members[starts[quads][:, None] + np.arange(4)]
+        d02 = np.linalg.norm(vertices[q[:, 0]] - vertices[q[:, 2]], axis=1)
+        d13 = np.linalg.norm(vertices[q[:, 1]] - vertices[q[:, 3]], axis=1)
+        short02 = d02 <= d13
+        first = np.where(short02[:, None], q[:, [0, 1, 2]], q[:, [0, 1, 3]])
+        second = np.where(short02[:, None], q[:, [0, 2, 3]], q[:, [1, 2, 3]])
+        out_members.append(np.stack([first, second], axis=1).ravel())
+        out_offsets.append(np.full(2 * len(quads), 3))
+        out_leaf.append(np.repeat(quads, 2))
+    fans = np.flatnonzero(fan)
+    if len(fans):
+        centre_u = (leaves.col[fans] + 0.5) * leaves.size[fans]
+        centre_v = (leaves.row[fans] + 0.5) * leaves.size[fans]
+        centres = _on_plane(_ray(centre_u, centre_v, k), leaves.normal[fans], leaves.point[fans])
+        centre_ids = len(vertices) + np.arange(len(fans))
+        vertices = np.concatenate([vertices, centres])
+        ring_sizes = sizes[fans]
+        ring = _gather(members, starts, fans)
+        ring_owner = np.repeat(np.arange(len(fans)), ring_sizes)
+        ring_start = np.concatenate([[0], np.cumsum(ring_sizes)])[:-1]
+        position = np.arange(len(ring)) - ring_start[ring_owner]
+        following = ring[ring_start[ring_owner] + (position + 1) % ring_sizes[ring_owner]]
+        out_members.append(np.stack([centre_ids[ring_owner], ring, following], axis=1).ravel())
+        out_offsets.append(np.full(len(ring), 3))
+        out_leaf.append(fans[ring_owner])
+    if not out_members:
+        return np.zeros(1, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), vertices
+    sizes_out = np.concatenate(out_offsets)
+    return (
+        np.concatenate([[0], np.cumsum(sizes_out)]),
+        np.concatenate(out_members),
+        np.concatenate(out_leaf),
+        vertices,
+    )
+
+
+def _gather(members: np.ndarray, starts: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """The members of ``faces`` (ranges of ``members``), concatenated in order."""
+    sizes = starts[faces + 1] - starts[faces]
+    first = np.concatenate([[0], np.cumsum(sizes)])[:-1]
+    index = np.repeat(starts[faces] - first, sizes) + np.arange(sizes.sum())
+    return members[index]
+
+
+class FilterQuadTree(MabdiAlgorithm):
+    """Quad-tree mesh of a depth image's valid pixels (depth image -> vtkPolyData), see the module docs."""
+
+    def __init__(self, parameters: QuadTreeParameters | None = None) -> None:
+        super().__init__(nInputPorts=1, inputType="vtkImageData", nOutputPorts=1, outputType="vtkPolyData")
+        self._parameters = parameters if parameters is not None else QuadTreeParameters()
+        #: Region count of the last image (the pyramid root's, seed invariant 1).
+        self.regions = 0
+
+    @property
+    def parameters(self) -> QuadTreeParameters:
+        return self._parameters
+
+    @parameters.setter
+    def parameters(self, value: QuadTreeParameters) -> None:
+        self._set("_parameters", value)
+
+    def RequestData(self, request, inInfo, outInfo):  # noqa: N802 (VTK API)
+        image = vtkImageData.GetData(inInfo[0])
+        intrinsics = image_intrinsics(image)
+        pose = image_pose(image)
+        p = self._parameters
+        points, reduced = reduce_points(depth_array(image), intrinsics, p.reduction)
+        normals = point_normals(points, p.max_jump)
+        leaves, self.regions = build_leaves(points, normals, p.n_t, p.d_t)
+        output = vtkPolyData.GetData(outInfo)
+        mesh = vtkPolyData()
+        if len(leaves.level):
+            vertices, starts, members, _, sizes = quad_mesh(leaves, reduced, p)
+            offsets, connectivity, face_leaf, vertices = _faces(vertices, starts, members, sizes, leaves, reduced, p)
+            world = vertices @ pose[:3, :3].T + pose[:3, 3]
+            vtk_points = vtkPoints()
+            vtk_points.SetData(numpy_to_vtk(np.ascontiguousarray(world, dtype=np.float32), deep=True))
+            mesh.SetPoints(vtk_points)
+            cells = vtkCellArray()
+            cells.SetData(numpy_to_vtkIdTypeArray(offsets.astype(np.int64), deep=True), numpy_to_vtkIdTypeArray(connectivity.astype(np.int64), deep=True))
+            mesh.SetPolys(cells)
+            level = numpy_to_vtk((leaves.size[face_leaf] * p.reduction).astype(np.int32), deep=True)
+            level.SetName("level")
+            mesh.GetCellData().AddArray(level)
+            normals_world = numpy_to_vtk(np.ascontiguousarray(leaves.normal[face_leaf] @ pose[:3, :3].T, dtype=np.float32), deep=True)
+            normals_world.SetName("Normals")
+            mesh.GetCellData().SetNormals(normals_world)
+        output.ShallowCopy(mesh)
+        output.GetFieldData().ShallowCopy(image.GetFieldData())
+        return 1

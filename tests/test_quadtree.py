@@ -1,0 +1,115 @@
+"""FilterQuadTree: merging against known answers, no bridges, no cracks, and in the MABDI loop."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from vtkmodules.util.numpy_support import vtk_to_numpy
+from vtkmodules.vtkFiltersCore import vtkFeatureEdges
+
+from conftest import REPO
+from mabdi.camera import Intrinsics, project
+from mabdi.depth import depth_image
+from mabdi.filters.quadtree import FilterQuadTree, QuadTreeParameters
+
+K = Intrinsics(fx=200.0, fy=200.0, cx=128.0, cy=128.0, width=256, height=256, near=0.3, far=6.0)
+
+
+def mesh_of(depth, **parameters):
+    quadtree = FilterQuadTree(QuadTreeParameters(**parameters))
+    quadtree.SetInputDataObject(depth_image(depth, K, np.eye(4)))
+    quadtree.Update()
+    return quadtree.GetOutput()
+
+
+def oblique_plane():
+    normal = np.array([0.0, -np.sin(0.6), -np.cos(0.6)])
+    return (normal @ [0.0, 0.0, 2.0]) / (K.rays() @ normal)
+
+
+def smooth_surface():
+    v, u = np.mgrid[0:256, 0:256]
+    return 2.0 + 0.3 * np.sin(u / 40.0) * np.cos(v / 50.0)
+
+
+def test_fronto_parallel_plane_is_one_quad():
+    mesh = mesh_of(np.full((256, 256), 2.0), reduction=1)
+    assert mesh.GetNumberOfCells() == 1 and mesh.GetCell(0).GetNumberOfPoints() == 4
+    np.testing.assert_allclose(vtk_to_numpy(mesh.GetPoints().GetData())[:, 2], 2.0, atol=1e-6)
+
+
+def test_oblique_plane_is_few_quads_and_n_t_zero_is_one_per_pixel():
+    assert mesh_of(oblique_plane(), reduction=1).GetNumberOfCells() <= 4
+    assert mesh_of(oblique_plane(), reduction=1, n_t=0.0).GetNumberOfCells() == 256 * 256
+
+
+def test_face_count_falls_as_n_t_grows():
+    counts = [mesh_of(smooth_surface(), reduction=1, n_t=n_t).GetNumberOfCells() for n_t in (0.005, 0.01, 0.02, 0.05, 0.1, 0.2)]
+    assert all(a >= b for a, b in zip(counts, counts[1:], strict=False)), counts
+    assert counts[0] > 4 * counts[-1]
+
+
+def test_a_step_is_never_bridged():
+    depth = np.full((256, 256), 1.0)
+    depth[:, 128:] = 2.0
+    mesh = mesh_of(depth, reduction=1)
+    z = vtk_to_numpy(mesh.GetPoints().GetData())[:, 2]
+    for i in range(mesh.GetNumberOfCells()):
+        ids = [mesh.GetCell(i).GetPointId(j) for j in range(mesh.GetCell(i).GetNumberOfPoints())]
+        near = z[ids] < 1.5
+        assert near.all() or (~near).all()
+
+
+@pytest.mark.parametrize("reduction", [1, 3])
+def test_smooth_surface_with_mixed_quad_sizes_is_closed(reduction):
+    mesh = mesh_of(smooth_surface(), reduction=reduction, n_t=0.02)
+    levels = vtk_to_numpy(mesh.GetCellData().GetArray("level"))
+    assert len(set(levels.tolist())) >= 2  # quads of mixed sizes meet (T-vertices)
+    assert any(mesh.GetCell(i).GetNumberOfPoints() > 4 for i in range(mesh.GetNumberOfCells()))
+    edges = vtkFeatureEdges()
+    edges.SetInputData(mesh)
+    edges.BoundaryEdgesOn()
+    edges.NonManifoldEdgesOn()
+    edges.FeatureEdgesOff()
+    edges.ManifoldEdgesOff()
+    edges.Update()
+    points = vtk_to_numpy(edges.GetOutput().GetPoints().GetData()).astype(np.float64)
+    uv, _ = project(points, K, np.eye(4))
+    size = 256 // reduction * reduction
+    on_border = (np.abs(uv[:, 0]) < 1e-2) | (np.abs(uv[:, 1]) < 1e-2) | (np.abs(uv[:, 0] - size) < 1e-2) | (np.abs(uv[:, 1] - size) < 1e-2)
+    assert on_border.all(), f"{(~on_border).sum()} open-edge points inside the image"
+
+
+def test_only_valid_pixels_are_meshed():
+    depth = np.full((256, 256), 2.0)
+    depth[64:192, 64:192] = np.nan
+    mesh = mesh_of(depth, reduction=1)
+    uv, _ = project(vtk_to_numpy(mesh.GetPoints().GetData()).astype(np.float64), K, np.eye(4))
+    centres = np.array([np.mean(uv[[mesh.GetCell(i).GetPointId(j) for j in range(4)]], axis=0) for i in range(mesh.GetNumberOfCells())])
+    inside_hole = (centres > 64.5).all(axis=1) & (centres < 191.5).all(axis=1)
+    assert not inside_hole.any()
+
+
+def test_bad_parameters():
+    from mabdi.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="reduction"):
+        QuadTreeParameters(reduction=0)
+
+
+@pytest.mark.slow
+def test_quadtree_in_the_loop_on_the_table():
+    from mabdi.config import load_run_config
+    from mabdi.evaluate import distances_to_mesh
+    from mabdi.simulate import Simulation
+
+    config = load_run_config(REPO / "scenes" / "table.toml")
+    config.surface.method = "quadtree"
+    simulation = Simulation(config)
+    result = simulation.run()
+    pixel_grid_cells = 825_799  # the pixel-grid map of the same run (tests/test_simulation.py measures it)
+    assert result.mesh.GetNumberOfCells() * 10 <= pixel_grid_cells
+    vertices = vtk_to_numpy(result.mesh.GetPoints().GetData())
+    assert np.median(distances_to_mesh(vertices, simulation.scene.mesh_at(29))) < 5e-3
+    added = np.array([r.cells_added for r in result.records])
+    assert added[15:].sum() <= 0.15 * added[:15].sum()
