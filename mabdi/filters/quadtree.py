@@ -30,8 +30,8 @@ meshed), mesh in world coordinates out. The stages of seed 002:
    lands further from the leaf's depth than a surface can turn within the
    leaf (``max_jump`` per pixel: a plane seen at a grazing angle) is put at
    the leaf's depth instead, and so are the corners of single-pixel leaves
-   (a lone pixel's normal is no plane to extrapolate; shared corners average
-   the pixels around them).
+   whose normal is one-sided (beside an edge or a hole: no plane to
+   extrapolate; shared corners average the pixels around them).
 
 Beyond the seed (its own "future work"):
 
@@ -107,29 +107,36 @@ def reduce_points(depth: np.ndarray, intrinsics: Intrinsics, reduction: int) -> 
     """
     depth = np.asarray(depth, dtype=np.float64)
     r = reduction
-    rays = intrinsics.rays()
-    if r == 1:
-        return rays * depth[..., None], intrinsics
-    h, w = depth.shape[0] // r, depth.shape[1] // r
-
-    def blocks(a):
-        a = a[: h * r, : w * r]
-        return a.reshape(h, r, w, r, *a.shape[2:]).swapaxes(1, 2).reshape(h, w, r * r, *a.shape[2:])
-
-    values = blocks(depth)
-    count = np.isfinite(values).sum(axis=-1)
-    order = np.argsort(np.where(np.isfinite(values), values, np.inf), axis=-1)  # NaN sorted last
-    median_slot = np.take_along_axis(order, np.clip((count - 1) // 2, 0, r * r - 1)[..., None], axis=-1)
-    median_depth = np.take_along_axis(values, median_slot, axis=-1)[..., 0]
-    median_ray = np.take_along_axis(blocks(rays), median_slot[..., None], axis=2)[:, :, 0, :]
-    points = median_ray * median_depth[..., None]
-    points[count * 2 <= r * r] = np.nan
     k = intrinsics
+    if r == 1:
+        return k.rays() * depth[..., None], k
+    h, w = depth.shape[0] // r, depth.shape[1] // r
+    values = depth[: h * r, : w * r].reshape(h, r, w, r).swapaxes(1, 2).reshape(h, w, r * r)
+    finite = np.isfinite(values)
+    count = finite.sum(axis=-1)
+    keyed = np.where(finite, values, np.inf)  # NaN sorts last
+    full = count == r * r
+    middle = (r * r - 1) // 2
+    slot = np.empty((h, w), dtype=np.int64)
+    # full blocks (almost all): one partition at the fixed middle; the others: a sort each
+    slot[full] = np.argpartition(keyed[full], middle, axis=-1)[:, middle]
+    partial = ~full & (count * 2 > r * r)
+    if partial.any():
+        order = np.argsort(keyed[partial], axis=-1)
+        slot[partial] = np.take_along_axis(order, ((count[partial] - 1) // 2)[:, None], axis=-1)[:, 0]
+    slot[~full & ~partial] = 0
+    median_depth = np.take_along_axis(values, slot[..., None], axis=-1)[..., 0]
+    rows, cols = np.mgrid[0:h, 0:w]
+    u = cols * r + slot % r + 0.5
+    v = rows * r + slot // r + 0.5
+    points = np.stack([(u - k.cx) / k.fx * median_depth, (v - k.cy) / k.fy * median_depth, median_depth], axis=-1)
+    points[~(full | partial)] = np.nan
     return points, Intrinsics(k.fx / r, k.fy / r, k.cx / r, k.cy / r, w, h, k.near, k.far)
 
 
-def point_normals(points: np.ndarray, max_jump: float = 0.05) -> np.ndarray:
-    """(H, W, 3) unit normals of a camera-frame point map (NaN where invalid), facing the camera.
+def point_normals(points: np.ndarray, max_jump: float = 0.05) -> tuple[np.ndarray, np.ndarray]:
+    """(H, W, 3) unit normals of a camera-frame point map (NaN where invalid), facing the camera,
+    and the (H, W) mask of pixels whose normal used central differences both ways.
 
     A neighbour across a depth jump (more than ``max_jump`` of the depth) counts as missing, so
     pixels beside a discontinuity take the one-sided difference on their own surface.
@@ -151,9 +158,9 @@ def point_normals(points: np.ndarray, max_jump: float = 0.05) -> np.ndarray:
             has_backward = np.abs(backward[..., 2] - z) <= max_jump * z
         central = forward - backward
         one_sided = np.where(has_forward[..., None], forward - points, points - backward)
-        return np.where((has_forward & has_backward)[..., None], central, one_sided)
+        return np.where((has_forward & has_backward)[..., None], central, one_sided), has_forward & has_backward
 
-    du, dv = difference(1), difference(0)
+    (du, central_u), (dv, central_v) = difference(1), difference(0)
     normals = -np.cross(du, dv)
     length = np.linalg.norm(normals, axis=-1, keepdims=True)
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -161,7 +168,7 @@ def point_normals(points: np.ndarray, max_jump: float = 0.05) -> np.ndarray:
     facing = np.einsum("...i,...i->...", normals, points) > 0
     normals[facing] *= -1.0
     normals[~valid | ~np.isfinite(length[..., 0]) | (length[..., 0] == 0)] = np.nan
-    return normals
+    return normals, central_u & central_v
 
 
 # ---------------------------------------------------------------------------
@@ -177,13 +184,15 @@ class Leaves:
     col: np.ndarray
     normal: np.ndarray
     point: np.ndarray
+    #: whether the leaf's plane can be trusted: merged leaves, and single pixels with central differences
+    reliable: np.ndarray
 
     @property
     def size(self) -> np.ndarray:
         return 1 << self.level
 
 
-def build_leaves(points: np.ndarray, normals: np.ndarray, n_t: float, d_t: float) -> tuple[Leaves, int]:
+def build_leaves(points: np.ndarray, normals: np.ndarray, n_t: float, d_t: float, central=None) -> tuple[Leaves, int]:
     """Merge bottom-up (seed invariant 1, eq. 14 and the plane-distance test); return leaves and the root's region count."""
     h, w = points.shape[:2]
     size = 1 << int(np.ceil(np.log2(max(h, w, 1))))
@@ -209,11 +218,23 @@ def build_leaves(points: np.ndarray, normals: np.ndarray, n_t: float, d_t: float
             [np.abs(np.einsum("...i,...i->...", unit, pp[k] - p_avg)) < d_t for k in children]
         )
         merged = all_single & normal_ok & plane_ok
+        if not merged.any():
+            # nothing merges here, so nothing can above: the regions are the children's
+            single.append(merged)
+            count.append(np.full(merged.shape, 0))
+            count[-1].flat[0] = int(c.sum())
+            ns.append(n_avg)
+            ps.append(p_avg)
+            break
         single.append(merged)
         count.append(np.where(merged, 1, sum(c[k] for k in children)))
         ns.append(np.where(merged[..., None], n_avg, 0.0))
         ps.append(np.where(merged[..., None], p_avg, 0.0))
-    levels, rows, cols, normal_list, point_list = [], [], [], [], []
+    levels, rows, cols, normal_list, point_list, reliable_list = [], [], [], [], [], []
+    if central is None:
+        central = np.ones((h, w), dtype=bool)
+    central_padded = np.zeros((size, size), dtype=bool)
+    central_padded[:h, :w] = central
     for level, s in enumerate(single):
         if level + 1 < len(single):
             parent = np.repeat(np.repeat(single[level + 1], 2, axis=0), 2, axis=1)
@@ -227,15 +248,21 @@ def build_leaves(points: np.ndarray, normals: np.ndarray, n_t: float, d_t: float
         normal_list.append(nv / np.linalg.norm(nv, axis=1, keepdims=True))
         point_list.append(ps[level][r, c])
         levels.append(np.full(len(r), level))
+        reliable_list.append(central_padded[r, c] if level == 0 else np.ones(len(r), dtype=bool))
         rows.append(r)
         cols.append(c)
     if not levels:
         empty = np.zeros(0, dtype=np.int64)
-        return Leaves(empty, empty, empty, np.zeros((0, 3)), np.zeros((0, 3))), 0
+        return Leaves(empty, empty, empty, np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, dtype=bool)), 0
     leaves = Leaves(
-        np.concatenate(levels), np.concatenate(rows), np.concatenate(cols), np.concatenate(normal_list), np.concatenate(point_list)
+        np.concatenate(levels),
+        np.concatenate(rows),
+        np.concatenate(cols),
+        np.concatenate(normal_list),
+        np.concatenate(point_list),
+        np.concatenate(reliable_list),
     )
-    return leaves, int(count[-1][0, 0])
+    return leaves, int(count[-1].sum())
 
 
 # ---------------------------------------------------------------------------
@@ -267,14 +294,14 @@ def quad_mesh(leaves: Leaves, k: Intrinsics, p: QuadTreeParameters) -> tuple[np.
     corner_v = np.stack([v0, v0 + size, v0 + size, v0], axis=1)
     corner_rays = _ray(corner_u.astype(float), corner_v.astype(float), k)
     corners = _on_plane(corner_rays, leaves.normal[:, None, :], leaves.point[:, None, :])
-    # A single pixel's normal (one-sided beside an edge, noisy) is no plane to extrapolate: its
-    # corners sit at its own depth, and shared corners average the pixels around them. A bigger
-    # leaf's plane seen at a grazing angle can still put a corner far away; a surface changes
-    # depth by at most max_jump per pixel, so a corner further than max_jump * z * 0.71 * size
-    # (its distance from the centre in pixels) from the leaf's depth falls back the same way.
+    # A single pixel's one-sided normal (beside an edge or a hole) is no plane to extrapolate: its
+    # corners sit at its own depth, and shared corners average the pixels around them. Any
+    # plane seen at a grazing angle can still put a corner far away; a surface changes depth by
+    # at most max_jump per pixel, so a corner further than max_jump * z * 0.71 * size (its
+    # distance from the centre in pixels) from the leaf's depth falls back the same way.
     centre_depth = leaves.point[:, 2][:, None]
     allowed = p.max_jump * centre_depth * (0.71 * size)[:, None]
-    wild = (np.abs(corners[..., 2] - centre_depth) > allowed) | (size == 1)[:, None]
+    wild = (np.abs(corners[..., 2] - centre_depth) > allowed) | ~leaves.reliable[:, None]
     corners[wild] = corner_rays[wild] * np.broadcast_to(centre_depth, wild.shape)[wild][:, None]
     # one vertex per lattice point and depth cluster
     stride = int(max(k.width, k.height)) * 2 + 4
@@ -442,8 +469,8 @@ class FilterQuadTree(MabdiAlgorithm):
         pose = image_pose(image)
         p = self._parameters
         points, reduced = reduce_points(depth_array(image), intrinsics, p.reduction)
-        normals = point_normals(points, p.max_jump)
-        leaves, self.regions = build_leaves(points, normals, p.n_t, p.d_t)
+        normals, central = point_normals(points, p.max_jump)
+        leaves, self.regions = build_leaves(points, normals, p.n_t, p.d_t, central)
         output = vtkPolyData.GetData(outInfo)
         mesh = vtkPolyData()
         if len(leaves.level):
