@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import platform
 import statistics
 import time
 from pathlib import Path
@@ -33,6 +32,7 @@ from vtkmodules.vtkRenderingOpenGL2 import vtkEGLRenderWindow  # noqa: E402
 
 import mabdi  # noqa: E402
 from mabdi.camera import configure_vtk_camera, look_at  # noqa: E402
+from mabdi.evaluate.bench import machine_info  # noqa: E402
 from mabdi.filters.depth_image import FilterDepthImage, SensorNoise, noise_rng  # noqa: E402
 from mabdi.simulate.path import path_from_config  # noqa: E402
 
@@ -67,22 +67,16 @@ class BareRender:
 
 
 def machine() -> dict:
-    cpu = platform.processor()
-    try:
-        for line in open("/proc/cpuinfo"):
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
+    """The machine (mabdi.evaluate.bench.machine_info) and the OpenGL renderer of an EGL window."""
+    info = machine_info()
     probe = vtkEGLRenderWindow()
     probe.SetOffScreenRendering(1)
     probe.SetSize(8, 8)
     probe.Render()
     caps = probe.ReportCapabilities()
-    renderer = next((line.split(":", 1)[1].strip() for line in caps.splitlines() if "renderer string" in line), "?")
+    info["gl_renderer"] = next((line.split(":", 1)[1].strip() for line in caps.splitlines() if "renderer string" in line), "?")
     probe.Finalize()
-    return {"cpu": cpu, "cores": os.cpu_count(), "gl_renderer": renderer, "vtk": vtk.vtkVersion.GetVTKVersion()}
+    return info
 
 
 def scene_case(name: str, frames: int):
@@ -154,7 +148,7 @@ def main():
     parser.add_argument("--repeats", type=int, default=3)
     args = parser.parse_args()
     info = machine()
-    print(f"machine: {info['cpu']}, {info['cores']} cores; OpenGL: {info['gl_renderer']}; VTK {info['vtk']}")
+    print(f"machine: {info['cpu']}, {info['cores']} cores, GPU {info['gpu']}; OpenGL: {info['gl_renderer']}; VTK {info['vtk']}")
     print()
     print("| mesh | triangles | bare VTK render + z-buffer read (ms) | FilterDepthImage (ms) | ratio |")
     print("|---|---:|---:|---:|---:|")

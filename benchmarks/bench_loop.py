@@ -22,8 +22,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import platform
-import sys
 import time
 from pathlib import Path
 
@@ -32,19 +30,10 @@ os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
 import numpy as np  # noqa: E402
 
 import mabdi  # noqa: E402
+from mabdi.evaluate.bench import machine_info  # noqa: E402
 from mabdi.simulate.runner import Simulation  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
-
-
-def cpu_name() -> str:
-    try:
-        for line in open("/proc/cpuinfo"):
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor()
 
 
 class MergedMapSimulation(Simulation):
@@ -83,7 +72,8 @@ def main():
     parser.add_argument("--frames", type=int, default=None, help="frames per run (default: the config's)")
     parser.add_argument("--runs", nargs="+", default=["table", "bunnies", "bunnies_dynamic"])
     args = parser.parse_args()
-    print(f"machine: {cpu_name()}, {os.cpu_count()} cores; Python {sys.version.split()[0]}")
+    info = machine_info()
+    print(f"machine: {info['cpu']}, {info['cores']} cores, GPU {info['gpu']}; Python {info['python']}")
     print()
     print(
         "| run | method | D ms | E ms | classify ms | surface ms | append ms | total ms | frames/s "

@@ -85,6 +85,20 @@ def _mabdi_row(name: str, simulation: Simulation, result, observed) -> dict:
     }
 
 
+def _observed_samples(simulation: Simulation, samples: int):
+    """The ground-truth samples that the run's poses saw (shared by every method of a bench)."""
+    config = simulation.config
+    frames = len(simulation.poses)
+    return observed_ground_truth(
+        simulation.scene.mesh_at(frames - 1),
+        scenes_per_pose(simulation.scene, frames),
+        simulation.poses,
+        config.sensor.intrinsics(),
+        samples,
+        config.sensor.backend,
+    )
+
+
 def run_bench(
     config: RunConfig, methods=METHODS, out_dir=None, samples: int = SAMPLES, progress=print, command: str | None = None
 ) -> dict:
@@ -102,6 +116,7 @@ def run_bench(
     rows, notes = [], []
     observed = None
     reference = None
+    classifier_enabled = config.classifier.enabled  # restored below: the caller's config is not changed
     for method in methods:
         if method in ("mabdi", "black_box"):
             config.classifier.enabled = method == "mabdi"
@@ -110,14 +125,7 @@ def run_bench(
             result = simulation.run()
             if observed is None:
                 reference = simulation
-                observed = observed_ground_truth(
-                    simulation.scene.mesh_at(frames - 1),
-                    scenes_per_pose(simulation.scene, frames),
-                    simulation.poses,
-                    config.sensor.intrinsics(),
-                    samples,
-                    config.sensor.backend,
-                )
+                observed = _observed_samples(simulation, samples)
             progress(f"{method}: evaluating {result.mesh.GetNumberOfCells():,} triangles")
             rows.append(_mabdi_row(method, simulation, result, observed))
         else:
@@ -132,14 +140,7 @@ def run_bench(
             run = run_tsdf(config, voxel)
             if observed is None:
                 reference = Simulation(config)
-                observed = observed_ground_truth(
-                    reference.scene.mesh_at(frames - 1),
-                    scenes_per_pose(reference.scene, frames),
-                    reference.poses,
-                    config.sensor.intrinsics(),
-                    samples,
-                    config.sensor.backend,
-                )
+                observed = _observed_samples(reference, samples)
             metrics = evaluate_map(run.mesh, reference.scene.mesh_at(frames - 1), observed, samples=samples)
             metrics.growth_per_circle = run.growth_per_circle(frames, config.path.turns)
             extract_ms = float(np.mean([ms for _, _, ms in run.extractions])) if run.extractions else 0.0
@@ -159,6 +160,7 @@ def run_bench(
                     "triangles_at": [[frame, triangles] for frame, triangles, _ in run.extractions],
                 }
             )
+    config.classifier.enabled = classifier_enabled
     bench = {
         "scene": config.run.name,
         "frames": frames,
