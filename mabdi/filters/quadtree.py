@@ -68,6 +68,9 @@ from mabdi.depth import depth_array, image_intrinsics, image_pose
 from mabdi.errors import ConfigError
 
 
+#: A single-pixel leaf whose plane misses a same-surface neighbour by more than this many pixel
+#: footprints gets no face (it sits on a crease or a corner, where no plane fits).
+RESIDUAL_FOOTPRINTS = 0.5
 #: Corners of leaves whose normals differ by more than 45 degrees are not merged (a crease).
 CREASE_COSINE = float(np.cos(np.radians(45.0)))
 
@@ -248,7 +251,7 @@ def build_leaves(points: np.ndarray, normals: np.ndarray, n_t: float, d_t: float
         normal_list.append(nv / np.linalg.norm(nv, axis=1, keepdims=True))
         point_list.append(ps[level][r, c])
         levels.append(np.full(len(r), level))
-        reliable_list.append(central_padded[r, c] if level == 0 else np.ones(len(r), dtype=bool))
+        reliable_list.append(np.ones(len(r), dtype=bool))
         rows.append(r)
         cols.append(c)
     if not levels:
@@ -283,6 +286,33 @@ def _on_plane(rays: np.ndarray, normal: np.ndarray, point: np.ndarray) -> np.nda
     fallback = np.broadcast_to(point[..., 2], t.shape)
     t = np.where(np.isfinite(t) & (t > 0), t, fallback)
     return rays * t[..., None]
+
+
+def plane_residual(points: np.ndarray, leaves: Leaves, max_jump: float) -> np.ndarray:
+    """For single-pixel leaves: the largest distance (m) of a same-surface 8-neighbour's point from
+    the leaf's plane (0 for bigger leaves, whose plane was fitted over their pixels)."""
+    residual = np.zeros(len(leaves.level))
+    single = np.flatnonzero(leaves.level == 0)
+    h, w = points.shape[:2]
+    row, col = leaves.row[single], leaves.col[single]
+    own = leaves.point[single]
+    for dr in (-1, 0, 1):
+        for dc in (-1, 0, 1):
+            if dr == 0 and dc == 0:
+                continue
+            r, c = row + dr, col + dc
+            inside = (r >= 0) & (r < h) & (c >= 0) & (c < w)
+            neighbour = points[np.clip(r, 0, h - 1), np.clip(c, 0, w - 1)]
+            with np.errstate(invalid="ignore"):
+                same = inside & (np.abs(neighbour[:, 2] - own[:, 2]) <= max_jump * own[:, 2])
+                distance = np.abs(np.einsum("ij,ij->i", neighbour - own, leaves.normal[single]))
+            residual[single] = np.maximum(residual[single], np.where(same, distance, 0.0))
+    return residual
+
+
+def select(leaves: Leaves, keep: np.ndarray) -> Leaves:
+    """The leaves where ``keep`` is true."""
+    return Leaves(*(getattr(leaves, name)[keep] for name in ("level", "row", "col", "normal", "point", "reliable")))
 
 
 def quad_mesh(leaves: Leaves, k: Intrinsics, p: QuadTreeParameters) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -471,6 +501,9 @@ class FilterQuadTree(MabdiAlgorithm):
         points, reduced = reduce_points(depth_array(image), intrinsics, p.reduction)
         normals, central = point_normals(points, p.max_jump)
         leaves, self.regions = build_leaves(points, normals, p.n_t, p.d_t, central)
+        # a single pixel whose plane misses its own neighbours (a crease, a corner) gets no face
+        footprint = leaves.point[:, 2] / reduced.fx
+        leaves = select(leaves, plane_residual(points, leaves, p.max_jump) <= RESIDUAL_FOOTPRINTS * footprint)
         output = vtkPolyData.GetData(outInfo)
         mesh = vtkPolyData()
         if len(leaves.level):
