@@ -42,6 +42,9 @@ Beyond the seed (its own "future work"):
 * **No cracks**: where a smaller leaf meets a bigger one, the small leaves'
   corners on the big leaf's edge are moved onto that edge and become extra
   vertices (T-vertices) of the big face, so the mesh is closed along it.
+* **Silhouettes**: a corner whose surrounding pixels are not all on the
+  leaf's surface moves half a pixel in, to the border pixels' centres, so a
+  face does not hang past the edge of a surface seen at a grazing angle.
 * **Planar faces**: a quad whose corners are not coplanar within
   ``planarity`` (max(1 mm, 0.2% of the depth)) is split into two triangles;
   a face with T-vertices that is not planar becomes a fan around its centre.
@@ -66,11 +69,13 @@ from mabdi.algorithm import MabdiAlgorithm
 from mabdi.camera import Intrinsics
 from mabdi.depth import depth_array, image_intrinsics, image_pose
 from mabdi.errors import ConfigError
+from mabdi.filters.depth_image import SensorNoise
 
 
-#: A single-pixel leaf whose plane misses a same-surface neighbour by more than this many pixel
-#: footprints gets no face (it sits on a crease or a corner, where no plane fits).
-RESIDUAL_FOOTPRINTS = 0.5
+#: A leaf of one or two pixels a side whose plane misses one of its own or its neighbouring
+#: same-surface pixels by more than this many pixel footprints gets no face (it sits on a crease
+#: or a corner, where no plane fits).
+RESIDUAL_FOOTPRINTS = 0.4
 #: Corners of leaves whose normals differ by more than 45 degrees are not merged (a crease).
 CREASE_COSINE = float(np.cos(np.radians(45.0)))
 
@@ -288,25 +293,27 @@ def _on_plane(rays: np.ndarray, normal: np.ndarray, point: np.ndarray) -> np.nda
     return rays * t[..., None]
 
 
-def plane_residual(points: np.ndarray, leaves: Leaves, max_jump: float) -> np.ndarray:
-    """For single-pixel leaves: the largest distance (m) of a same-surface 8-neighbour's point from
-    the leaf's plane (0 for bigger leaves, whose plane was fitted over their pixels)."""
+def plane_residual(points: np.ndarray, leaves: Leaves, max_jump: float, largest: int = 2) -> np.ndarray:
+    """For leaves of up to ``largest`` pixels a side: the largest distance (m) of a same-surface pixel
+    of the leaf or its one-pixel ring from the leaf's plane (0 for bigger leaves, whose planes rest on
+    enough pixels)."""
     residual = np.zeros(len(leaves.level))
-    single = np.flatnonzero(leaves.level == 0)
     h, w = points.shape[:2]
-    row, col = leaves.row[single], leaves.col[single]
-    own = leaves.point[single]
-    for dr in (-1, 0, 1):
-        for dc in (-1, 0, 1):
-            if dr == 0 and dc == 0:
-                continue
-            r, c = row + dr, col + dc
-            inside = (r >= 0) & (r < h) & (c >= 0) & (c < w)
-            neighbour = points[np.clip(r, 0, h - 1), np.clip(c, 0, w - 1)]
-            with np.errstate(invalid="ignore"):
-                same = inside & (np.abs(neighbour[:, 2] - own[:, 2]) <= max_jump * own[:, 2])
-                distance = np.abs(np.einsum("ij,ij->i", neighbour - own, leaves.normal[single]))
-            residual[single] = np.maximum(residual[single], np.where(same, distance, 0.0))
+    for side in (s for s in (1, 2, 4, 8) if s <= largest):
+        small = np.flatnonzero(leaves.size == side)
+        if len(small) == 0:
+            continue
+        top, left = leaves.row[small] * side, leaves.col[small] * side
+        own = leaves.point[small]
+        for dr in range(-1, side + 1):
+            for dc in range(-1, side + 1):
+                r, c = top + dr, left + dc
+                inside = (r >= 0) & (r < h) & (c >= 0) & (c < w)
+                neighbour = points[np.clip(r, 0, h - 1), np.clip(c, 0, w - 1)]
+                with np.errstate(invalid="ignore"):
+                    same = inside & (np.abs(neighbour[:, 2] - own[:, 2]) <= max_jump * own[:, 2])
+                    distance = np.abs(np.einsum("ij,ij->i", neighbour - own, leaves.normal[small]))
+                residual[small] = np.maximum(residual[small], np.where(same, distance, 0.0))
     return residual
 
 
@@ -315,14 +322,40 @@ def select(leaves: Leaves, keep: np.ndarray) -> Leaves:
     return Leaves(*(getattr(leaves, name)[keep] for name in ("level", "row", "col", "normal", "point", "reliable")))
 
 
-def quad_mesh(leaves: Leaves, k: Intrinsics, p: QuadTreeParameters) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def _on_silhouette(points: np.ndarray, corner_u: np.ndarray, corner_v: np.ndarray, depth: np.ndarray, max_jump: float) -> np.ndarray:
+    """Whether a corner's four surrounding pixels are not all on the leaf's surface (valid, within max_jump)."""
+    h, w = points.shape[:2]
+    outside = np.zeros(corner_u.shape, dtype=bool)
+    for dv in (-1, 0):
+        for du in (-1, 0):
+            row, col = corner_v + dv, corner_u + du
+            inside = (row >= 0) & (row < h) & (col >= 0) & (col < w)
+            z = points[np.clip(row, 0, h - 1), np.clip(col, 0, w - 1), 2]
+            with np.errstate(invalid="ignore"):
+                same = inside & (np.abs(z - depth) <= max_jump * depth)
+            outside |= ~same
+    return outside
+
+
+def quad_mesh(
+    leaves: Leaves, k: Intrinsics, p: QuadTreeParameters, points: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Faces of the leaves: (vertices (V, 3) camera frame, offsets, connectivity, face leaf index, face normals)."""
     count = len(leaves.level)
     size = leaves.size
     u0, v0 = leaves.col * size, leaves.row * size
     corner_u = np.stack([u0, u0, u0 + size, u0 + size], axis=1)  # TL, BL, BR, TR (faces the sensor)
     corner_v = np.stack([v0, v0 + size, v0 + size, v0], axis=1)
-    corner_rays = _ray(corner_u.astype(float), corner_v.astype(float), k)
+    ray_u, ray_v = corner_u.astype(float), corner_v.astype(float)
+    if points is not None:
+        # On a silhouette the surface ends inside the border pixel: the corner moves half a pixel
+        # in, to the border pixels' centres (where the samples are), instead of hanging past it.
+        rim = _on_silhouette(points, corner_u, corner_v, leaves.point[:, 2][:, None], p.max_jump)
+        centre_u = ((leaves.col + 0.5) * size)[:, None]
+        centre_v = ((leaves.row + 0.5) * size)[:, None]
+        ray_u = np.where(rim, ray_u + 0.5 * np.sign(centre_u - ray_u), ray_u)
+        ray_v = np.where(rim, ray_v + 0.5 * np.sign(centre_v - ray_v), ray_v)
+    corner_rays = _ray(ray_u, ray_v, k)
     corners = _on_plane(corner_rays, leaves.normal[:, None, :], leaves.point[:, None, :])
     # A single pixel's one-sided normal (beside an edge or a hole) is no plane to extrapolate: its
     # corners sit at its own depth, and shared corners average the pixels around them. Any
@@ -477,11 +510,15 @@ def _gather(members: np.ndarray, starts: np.ndarray, faces: np.ndarray) -> np.nd
 
 
 class FilterQuadTree(MabdiAlgorithm):
-    """Quad-tree mesh of a depth image's valid pixels (depth image -> vtkPolyData), see the module docs."""
+    """Quad-tree mesh of a depth image's valid pixels (depth image -> vtkPolyData), see the module docs.
 
-    def __init__(self, parameters: QuadTreeParameters | None = None) -> None:
+    ``noise``: the sensor's noise model; the small-leaf plane test allows 3 sigma(z) of it.
+    """
+
+    def __init__(self, parameters: QuadTreeParameters | None = None, noise: SensorNoise | str = "none") -> None:
         super().__init__(nInputPorts=1, inputType="vtkImageData", nOutputPorts=1, outputType="vtkPolyData")
         self._parameters = parameters if parameters is not None else QuadTreeParameters()
+        self._noise = noise if isinstance(noise, SensorNoise) else SensorNoise(noise)
         #: Region count of the last image (the pyramid root's, seed invariant 1).
         self.regions = 0
 
@@ -501,13 +538,14 @@ class FilterQuadTree(MabdiAlgorithm):
         points, reduced = reduce_points(depth_array(image), intrinsics, p.reduction)
         normals, central = point_normals(points, p.max_jump)
         leaves, self.regions = build_leaves(points, normals, p.n_t, p.d_t, central)
-        # a single pixel whose plane misses its own neighbours (a crease, a corner) gets no face
-        footprint = leaves.point[:, 2] / reduced.fx
-        leaves = select(leaves, plane_residual(points, leaves, p.max_jump) <= RESIDUAL_FOOTPRINTS * footprint)
+        # a small leaf whose plane misses its own pixels or neighbours (a crease, a corner) gets no face
+        depth = leaves.point[:, 2]
+        allowed = np.maximum(RESIDUAL_FOOTPRINTS * depth / reduced.fx, 3.0 * self._noise.sigma(depth, reduced.near, reduced.far))
+        leaves = select(leaves, plane_residual(points, leaves, p.max_jump) <= allowed)
         output = vtkPolyData.GetData(outInfo)
         mesh = vtkPolyData()
         if len(leaves.level):
-            vertices, starts, members, _, sizes = quad_mesh(leaves, reduced, p)
+            vertices, starts, members, _, sizes = quad_mesh(leaves, reduced, p, points)
             offsets, connectivity, face_leaf, vertices = _faces(vertices, starts, members, sizes, leaves, reduced, p)
             world = vertices @ pose[:3, :3].T + pose[:3, 3]
             vtk_points = vtkPoints()

@@ -158,7 +158,7 @@ class Simulation:
         self.classifier.SetInputConnection(0, self.sensor.GetOutputPort())
         self.classifier.SetInputConnection(1, self.expected.GetOutputPort())
 
-        self.surface = make_surface_filter(config)
+        self.surface = make_surface_filter(config, noise)
         source = self.classifier if c.enabled else self.sensor
         self.surface.SetInputConnection(source.GetOutputPort())
         self.world.SetInputConnection(self.surface.GetOutputPort())
@@ -258,8 +258,8 @@ class Simulation:
             write_image(self.classifier.GetOutput(), folder / f"labels_{i:06d}.vti")
 
 
-def make_surface_filter(config: RunConfig):
-    """The surface filter named by ``config.surface.method``."""
+def make_surface_filter(config: RunConfig, noise: SensorNoise | None = None):
+    """The surface filter named by ``config.surface.method`` (``noise``: the sensor's, for thresholds)."""
     surface = config.surface
     if surface.method == "pixel_grid":
         return FilterDepthImageToSurface(max_jump=surface.max_jump)
@@ -267,7 +267,8 @@ def make_surface_filter(config: RunConfig):
         return FilterQuadTree(
             QuadTreeParameters(
                 n_t=surface.n_t, d_t=surface.d_t, reduction=surface.reduction, max_jump=surface.max_jump, triangles=True
-            )
+            ),
+            noise=noise or "none",
         )
     raise MabdiError(f"unknown surface filter {surface.method!r} (known: pixel_grid, quadtree)")
 
