@@ -51,6 +51,7 @@ def _parser() -> argparse.ArgumentParser:
     )
     bench.add_argument("--frames", type=int, help="number of frames (overrides run.frames)")
     bench.add_argument("--noise", help="noise model (overrides sensor.noise)")
+    bench.add_argument("--surface", help="surface filter of the mabdi and black_box methods (overrides surface.method)")
     bench.add_argument("--out", type=Path, help="output folder (default: runs/bench_<scene>)")
     return parser
 

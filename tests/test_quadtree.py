@@ -119,9 +119,7 @@ def test_quadtree_in_the_loop_on_the_table():
 
 @pytest.mark.slow
 def test_faces_lie_on_the_noise_free_table():
-    """Face centres against the scene over ten poses of Run 1. (The issue asks for every face within
-    1 cm; today a handful of quads hanging past silhouettes of grazing surfaces miss it, so this
-    guards the present state: at least 99.9% within 1 cm and none beyond 2.5 cm.)"""
+    """Every face (its centre) within 1 cm of the scene, over ten poses of Run 1 (noise-free)."""
     from mabdi.config import load_run_config
     from mabdi.evaluate import distances_to_mesh
     from mabdi.filters.depth_image import FilterDepthImage
@@ -144,5 +142,4 @@ def test_faces_lie_on_the_noise_free_table():
         distances.append(distances_to_mesh(points[triangles].mean(axis=1), scene.mesh_at(0)))
     distances = np.concatenate(distances)
     assert len(distances) > 40_000
-    assert (distances <= 0.01).mean() >= 0.999
-    assert distances.max() < 0.025
+    assert distances.max() <= 0.01, f"{(distances > 0.01).sum()} faces beyond 1 cm, worst {distances.max() * 1000:.1f} mm"

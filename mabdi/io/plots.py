@@ -17,9 +17,14 @@ def write_elements_plot(series: dict[str, tuple[np.ndarray, np.ndarray]], path, 
 
     ``series`` maps a label to ``(frames, elements)``. Written atomically as PNG (800x500).
     """
+    return write_line_plot(series, path, x_label="frame", y_label="triangles in the map", title=title)
+
+
+def write_line_plot(series: dict[str, tuple[np.ndarray, np.ndarray]], path, x_label: str, y_label: str, title: str = "") -> Path:
+    """Lines ``label -> (x, y)`` on one chart, written atomically as PNG (800x500)."""
     import pyvista as pv
 
-    chart = pv.Chart2D(x_label="frame", y_label="triangles in the map")
+    chart = pv.Chart2D(x_label=x_label, y_label=y_label)
     for (label, (frames, counts)), colour in zip(series.items(), COLOURS * 4, strict=False):
         chart.line(np.asarray(frames, dtype=float), np.asarray(counts, dtype=float), color=colour, width=2.0, label=label)
     chart.title = title
