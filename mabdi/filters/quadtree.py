@@ -142,9 +142,8 @@ def reduce_points(depth: np.ndarray, intrinsics: Intrinsics, reduction: int) -> 
     return points, Intrinsics(k.fx / r, k.fy / r, k.cx / r, k.cy / r, w, h, k.near, k.far)
 
 
-def point_normals(points: np.ndarray, max_jump: float = 0.05) -> tuple[np.ndarray, np.ndarray]:
-    """(H, W, 3) unit normals of a camera-frame point map (NaN where invalid), facing the camera,
-    and the (H, W) mask of pixels whose normal used central differences both ways.
+def point_normals(points: np.ndarray, max_jump: float = 0.05) -> np.ndarray:
+    """(H, W, 3) unit normals of a camera-frame point map (NaN where invalid), facing the camera.
 
     A neighbour across a depth jump (more than ``max_jump`` of the depth) counts as missing, so
     pixels beside a discontinuity take the one-sided difference on their own surface.
@@ -166,9 +165,9 @@ def point_normals(points: np.ndarray, max_jump: float = 0.05) -> tuple[np.ndarra
             has_backward = np.abs(backward[..., 2] - z) <= max_jump * z
         central = forward - backward
         one_sided = np.where(has_forward[..., None], forward - points, points - backward)
-        return np.where((has_forward & has_backward)[..., None], central, one_sided), has_forward & has_backward
+        return np.where((has_forward & has_backward)[..., None], central, one_sided)
 
-    (du, central_u), (dv, central_v) = difference(1), difference(0)
+    du, dv = difference(1), difference(0)
     normals = -np.cross(du, dv)
     length = np.linalg.norm(normals, axis=-1, keepdims=True)
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -176,7 +175,7 @@ def point_normals(points: np.ndarray, max_jump: float = 0.05) -> tuple[np.ndarra
     facing = np.einsum("...i,...i->...", normals, points) > 0
     normals[facing] *= -1.0
     normals[~valid | ~np.isfinite(length[..., 0]) | (length[..., 0] == 0)] = np.nan
-    return normals, central_u & central_v
+    return normals
 
 
 # ---------------------------------------------------------------------------
@@ -192,83 +191,84 @@ class Leaves:
     col: np.ndarray
     normal: np.ndarray
     point: np.ndarray
-    #: whether the leaf's plane can be trusted: merged leaves, and single pixels with central differences
-    reliable: np.ndarray
 
     @property
     def size(self) -> np.ndarray:
         return 1 << self.level
 
 
-def build_leaves(points: np.ndarray, normals: np.ndarray, n_t: float, d_t: float, central=None) -> tuple[Leaves, int]:
-    """Merge bottom-up (seed invariant 1, eq. 14 and the plane-distance test); return leaves and the root's region count."""
-    h, w = points.shape[:2]
-    size = 1 << int(np.ceil(np.log2(max(h, w, 1))))
-    valid = np.zeros((size, size), dtype=bool)
-    valid[:h, :w] = np.isfinite(normals[..., 0]) & np.isfinite(points[..., 2])
-    n = np.zeros((size, size, 3))
-    p = np.zeros((size, size, 3))
-    n[:h, :w][valid[:h, :w]] = normals[valid[:h, :w]]
-    p[:h, :w][valid[:h, :w]] = points[valid[:h, :w]]
+def _pad_even(array: np.ndarray, fill) -> np.ndarray:
+    """``array`` padded with ``fill`` at the bottom and right to even height and width."""
+    h, w = array.shape[:2]
+    if h % 2 == 0 and w % 2 == 0:
+        return array
+    padded = np.full((h + h % 2, w + w % 2, *array.shape[2:]), fill, dtype=array.dtype)
+    padded[:h, :w] = array
+    return padded
+
+
+def build_leaves(points: np.ndarray, normals: np.ndarray, n_t: float, d_t: float) -> tuple[Leaves, int]:
+    """Merge bottom-up (seed invariant 1, eq. 14 and the plane-distance test); return leaves and the root's region count.
+
+    Each level is padded with invalid pixels to even sides before its parents are
+    formed (the same as padding the image to a power of two, without the work).
+    """
+    valid = np.isfinite(normals[..., 0]) & np.isfinite(points[..., 2])
     single = [valid]
     count = [valid.astype(np.int64)]
-    ns, ps = [n], [p]
-    while single[-1].shape[0] > 1:
-        s, c, nn, pp = single[-1], count[-1], ns[-1], ps[-1]
-        children = (slice(0, None, 2), slice(0, None, 2)), (slice(0, None, 2), slice(1, None, 2)), (slice(1, None, 2), slice(0, None, 2)), (slice(1, None, 2), slice(1, None, 2))
-        all_single = np.logical_and.reduce([s[k] for k in children])
-        n_avg = sum(nn[k] for k in children) / 4.0
-        p_avg = sum(pp[k] for k in children) / 4.0
+    ns = [np.where(valid[..., None], normals, 0.0).astype(np.float32)]
+    ps = [np.where(valid[..., None], points, 0.0).astype(np.float32)]
+    while single[-1].size > 1:
+        s, c = _pad_even(single[-1], False), _pad_even(count[-1], 0)
+        nn, pp = _pad_even(ns[-1], 0.0), _pad_even(ps[-1], 0.0)
+        children = ((slice(0, None, 2), slice(0, None, 2)), (slice(0, None, 2), slice(1, None, 2)),
+                    (slice(1, None, 2), slice(0, None, 2)), (slice(1, None, 2), slice(1, None, 2)))
+        all_single = s[children[0]] & s[children[1]] & s[children[2]] & s[children[3]]
+        n_avg = (nn[children[0]] + nn[children[1]] + nn[children[2]] + nn[children[3]]) * np.float32(0.25)
+        p_avg = (pp[children[0]] + pp[children[1]] + pp[children[2]] + pp[children[3]]) * np.float32(0.25)
         length = np.linalg.norm(n_avg, axis=-1, keepdims=True)
         unit = np.divide(n_avg, length, out=np.zeros_like(n_avg), where=length > 0)
-        normal_ok = np.logical_and.reduce([np.all(np.abs(n_avg - nn[k]) < n_t, axis=-1) for k in children])
-        plane_ok = np.logical_and.reduce(
-            [np.abs(np.einsum("...i,...i->...", unit, pp[k] - p_avg)) < d_t for k in children]
-        )
-        merged = all_single & normal_ok & plane_ok
+        merged = all_single.copy()
+        for k in children:
+            merged &= np.abs(n_avg - nn[k]).max(axis=-1) < n_t
+            merged &= np.abs(np.einsum("...i,...i->...", unit, pp[k] - p_avg)) < d_t
+        single.append(merged)
         if not merged.any():
             # nothing merges here, so nothing can above: the regions are the children's
-            single.append(merged)
-            count.append(np.full(merged.shape, 0))
-            count[-1].flat[0] = int(c.sum())
+            total = np.zeros(merged.shape, dtype=np.int64)
+            total.flat[0] = int(c.sum())
+            count.append(total)
             ns.append(n_avg)
             ps.append(p_avg)
             break
-        single.append(merged)
-        count.append(np.where(merged, 1, sum(c[k] for k in children)))
-        ns.append(np.where(merged[..., None], n_avg, 0.0))
-        ps.append(np.where(merged[..., None], p_avg, 0.0))
-    levels, rows, cols, normal_list, point_list, reliable_list = [], [], [], [], [], []
-    if central is None:
-        central = np.ones((h, w), dtype=bool)
-    central_padded = np.zeros((size, size), dtype=bool)
-    central_padded[:h, :w] = central
+        count.append(np.where(merged, 1, c[children[0]] + c[children[1]] + c[children[2]] + c[children[3]]))
+        ns.append(np.where(merged[..., None], n_avg, np.float32(0.0)))
+        ps.append(np.where(merged[..., None], p_avg, np.float32(0.0)))
+    levels, rows, cols, normal_list, point_list = [], [], [], [], []
     for level, s in enumerate(single):
         if level + 1 < len(single):
-            parent = np.repeat(np.repeat(single[level + 1], 2, axis=0), 2, axis=1)
+            parent = np.repeat(np.repeat(single[level + 1], 2, axis=0), 2, axis=1)[: s.shape[0], : s.shape[1]]
             leaf = s & ~parent
         else:
             leaf = s
         r, c = np.nonzero(leaf)
         if len(r) == 0:
             continue
-        nv = ns[level][r, c]
+        nv = ns[level][r, c].astype(np.float64)
         normal_list.append(nv / np.linalg.norm(nv, axis=1, keepdims=True))
-        point_list.append(ps[level][r, c])
+        point_list.append(ps[level][r, c].astype(np.float64))
         levels.append(np.full(len(r), level))
-        reliable_list.append(np.ones(len(r), dtype=bool))
         rows.append(r)
         cols.append(c)
     if not levels:
         empty = np.zeros(0, dtype=np.int64)
-        return Leaves(empty, empty, empty, np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, dtype=bool)), 0
+        return Leaves(empty, empty, empty, np.zeros((0, 3)), np.zeros((0, 3))), 0
     leaves = Leaves(
         np.concatenate(levels),
         np.concatenate(rows),
         np.concatenate(cols),
         np.concatenate(normal_list),
         np.concatenate(point_list),
-        np.concatenate(reliable_list),
     )
     return leaves, int(count[-1].sum())
 
@@ -319,7 +319,7 @@ def plane_residual(points: np.ndarray, leaves: Leaves, max_jump: float, largest:
 
 def select(leaves: Leaves, keep: np.ndarray) -> Leaves:
     """The leaves where ``keep`` is true."""
-    return Leaves(*(getattr(leaves, name)[keep] for name in ("level", "row", "col", "normal", "point", "reliable")))
+    return Leaves(*(getattr(leaves, name)[keep] for name in ("level", "row", "col", "normal", "point")))
 
 
 def _on_silhouette(points: np.ndarray, corner_u: np.ndarray, corner_v: np.ndarray, depth: np.ndarray, max_jump: float) -> np.ndarray:
@@ -364,7 +364,7 @@ def quad_mesh(
     # distance from the centre in pixels) from the leaf's depth falls back the same way.
     centre_depth = leaves.point[:, 2][:, None]
     allowed = p.max_jump * centre_depth * (0.71 * size)[:, None]
-    wild = (np.abs(corners[..., 2] - centre_depth) > allowed) | ~leaves.reliable[:, None]
+    wild = np.abs(corners[..., 2] - centre_depth) > allowed
     corners[wild] = corner_rays[wild] * np.broadcast_to(centre_depth, wild.shape)[wild][:, None]
     # one vertex per lattice point and depth cluster
     stride = int(max(k.width, k.height)) * 2 + 4
@@ -385,12 +385,14 @@ def quad_mesh(
     corner_vertex[order] = vertex_of_sorted
     corner_vertex = corner_vertex.reshape(count, 4)
     n_vertices = int(vertex_of_sorted[-1]) + 1 if len(order) else 0
-    sums = np.zeros((n_vertices, 3))
-    np.add.at(sums, corner_vertex.ravel(), corners.reshape(-1, 3))
-    vertices = sums / np.bincount(corner_vertex.ravel(), minlength=n_vertices)[:, None]
+    flat_vertex = corner_vertex.ravel()
+    flat_corners = corners.reshape(-1, 3)
+    uses = np.bincount(flat_vertex, minlength=n_vertices)
+    vertices = np.stack([np.bincount(flat_vertex, flat_corners[:, a], minlength=n_vertices) for a in range(3)], axis=1)
+    vertices /= uses[:, None]
     vertex_key = sorted_keys[new]
-    vertex_depth = np.zeros(n_vertices)
-    np.maximum.at(vertex_depth, corner_vertex.ravel(), depth)
+    # entries are sorted by vertex, depth ascending: a vertex's deepest entry is its last
+    vertex_depth = sorted_depth[np.flatnonzero(np.append(new[1:], True))]
     vertex_normal = sorted_normal[new]
 
     # T-vertices: lattice points inside the edges of bigger leaves, snapped onto them (big leaves first)
@@ -536,8 +538,8 @@ class FilterQuadTree(MabdiAlgorithm):
         pose = image_pose(image)
         p = self._parameters
         points, reduced = reduce_points(depth_array(image), intrinsics, p.reduction)
-        normals, central = point_normals(points, p.max_jump)
-        leaves, self.regions = build_leaves(points, normals, p.n_t, p.d_t, central)
+        normals = point_normals(points, p.max_jump)
+        leaves, self.regions = build_leaves(points, normals, p.n_t, p.d_t)
         # a small leaf whose plane misses its own pixels or neighbours (a crease, a corner) gets no face
         depth = leaves.point[:, 2]
         allowed = np.maximum(RESIDUAL_FOOTPRINTS * depth / reduced.fx, 3.0 * self._noise.sigma(depth, reduced.near, reduced.far))
