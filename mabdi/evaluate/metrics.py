@@ -38,6 +38,7 @@ from mabdi.evaluate.sampling import SurfaceSamples, sample_surface
 from mabdi.evaluate.visibility import observed_mask
 from mabdi.filters.depth_image import SensorNoise
 from mabdi.io.vtk_files import write_mesh_file
+from mabdi.simulate.path import circle_index
 
 TAUS = (0.01, 0.02)
 RECALL_CAP = 0.05
@@ -117,12 +118,8 @@ def ply_size(mesh: vtkPolyData) -> int:
 def growth_per_circle(cells_added, turns: float) -> list[int]:
     """Net triangles added in each circle of a helix of ``turns`` circles (frame i at t = i / (N - 1))."""
     added = np.asarray(cells_added, dtype=np.int64)
-    n = len(added)
     circles = max(1, int(round(turns)))
-    if n == 0:
-        return [0] * circles
-    t = np.arange(n) / max(n - 1, 1)
-    index = np.minimum((t * turns).astype(int), circles - 1)
+    index = circle_index(len(added), turns)
     return [int(added[index == k].sum()) for k in range(circles)]
 
 
@@ -197,7 +194,7 @@ def evaluate_run(simulation, result, samples: int = SAMPLES, observed: SurfaceSa
         observed = observed_ground_truth(
             ground_truth, scenes_per_pose(simulation.scene, frames), simulation.poses, intrinsics, samples, config.sensor.backend
         )
-    noise = SensorNoise(config.sensor.noise, config.sensor.zbuffer_sigma, config.sensor.kinect_coefficient)
+    noise = SensorNoise.from_config(config.sensor)
 
     def delta(map_samples):
         return redundancy_delta(map_samples, result.mesh, simulation.poses, noise, intrinsics)

@@ -36,10 +36,10 @@ from vtkmodules.vtkCommonDataModel import vtkPolyData
 from mabdi.camera import Intrinsics
 from mabdi.config import RunConfig
 from mabdi.depth import depth_array
-from mabdi.filters.depth_image import FilterDepthImage, SensorNoise
+from mabdi.filters.depth_image import FilterDepthImage
 from mabdi.polydata import triangles_polydata
-from mabdi.simulate.path import path_from_config
-from mabdi.sources.scene import SourceScene
+from mabdi.simulate.path import circle_index
+from mabdi.simulate.runner import Simulation
 
 OPEN3D_HELP = (
     'Open3D is not available: pip install "mabdi[compare]" '
@@ -131,37 +131,26 @@ class TsdfRun:
 
     def growth_per_circle(self, frames: int, turns: float) -> list[int]:
         """Net triangles added in each circle, from the extractions at the circles' ends."""
-        circles = max(1, int(round(turns)))
-        t = np.arange(frames) / max(frames - 1, 1)
-        index = np.minimum((t * turns).astype(int), circles - 1)
-        ends = [int(np.flatnonzero(index == c).max()) for c in range(circles) if (index == c).any()]
+        index = circle_index(frames, turns)
+        ends = [int(np.flatnonzero(index == c).max()) for c in np.unique(index)]
         at = {frame: triangles for frame, triangles, _ in self.extractions}
         counts = [at.get(end, 0) for end in ends]
         return [counts[0]] + [counts[i] - counts[i - 1] for i in range(1, len(counts))]
 
 
 def run_tsdf(config: RunConfig, voxel_size: float, mesh_every: int = 5) -> TsdfRun:
-    """Integrate every depth image of the run ``config`` describes (the same D as MABDI's) into a TSDF."""
-    frames = config.run.frames
-    base_dir = config.source.parent if config.source is not None else None
-    scene = SourceScene(config.scene, frames=frames, base_dir=base_dir)
-    sensor_config = config.sensor
-    intrinsics = sensor_config.intrinsics()
-    sensor = FilterDepthImage(
-        intrinsics=intrinsics,
-        noise=SensorNoise(sensor_config.noise, sensor_config.zbuffer_sigma, sensor_config.kinect_coefficient),
-        seed=config.run.seed,
-        backend=sensor_config.backend,
-    )
-    sensor.SetInputConnection(scene.GetOutputPort())
-    poses = path_from_config(frames, config.path)
-    mapper = TsdfMapper(voxel_size, intrinsics)
-    turns = config.path.turns
-    circles = max(1, int(round(turns)))
-    t = np.arange(frames) / max(frames - 1, 1)
-    circle = np.minimum((t * turns).astype(int), circles - 1)
+    """Integrate every depth image of the run ``config`` describes into a TSDF.
+
+    The depth images come from a :class:`mabdi.simulate.Simulation`'s own scene
+    and sensor, so they are MABDI's D, frame for frame.
+    """
+    simulation = Simulation(config)
+    scene, sensor, poses = simulation.scene, simulation.sensor, simulation.poses
+    frames = len(poses)
+    mapper = TsdfMapper(voxel_size, sensor.intrinsics)
+    circle = circle_index(frames, config.path.turns)
     extract_at = {i for i in range(frames) if (i + 1) % mesh_every == 0 or i == frames - 1}
-    extract_at |= {int(np.flatnonzero(circle == c).max()) for c in range(circles) if (circle == c).any()}
+    extract_at |= {int(np.flatnonzero(circle == c).max()) for c in np.unique(circle)}
     run = TsdfRun(voxel_size, vtkPolyData(), [], [])
     start = time.perf_counter()
     for i, pose in enumerate(poses):
@@ -191,19 +180,18 @@ def alignment_error(config: RunConfig, voxel_size: float = 0.01) -> float:
     A few millimetres means intrinsics and poses reach Open3D as intended; a
     half-pixel or frame mix-up shows as centimetres.
     """
-    from mabdi.evaluate.distance import distances_to_mesh
-
-    scene = SourceScene(config.scene, frames=config.run.frames, base_dir=config.source.parent if config.source else None)
-    intrinsics = config.sensor.intrinsics()
-    sensor = FilterDepthImage(intrinsics=intrinsics, backend=config.sensor.backend)
-    sensor.SetInputConnection(scene.GetOutputPort())
-    pose = path_from_config(config.run.frames, config.path)[0]
-    sensor.pose = pose
-    sensor.Update()
-    mapper = TsdfMapper(voxel_size, intrinsics)
-    mapper.integrate(depth_array(sensor.GetOutput()), pose)
-    mesh = mapper.extract()
     from vtkmodules.util.numpy_support import vtk_to_numpy
 
-    vertices = vtk_to_numpy(mesh.GetPoints().GetData())
-    return float(np.median(distances_to_mesh(vertices[:: max(1, len(vertices) // 50000)], scene.mesh_at(0))))
+    from mabdi.evaluate.distance import distances_to_mesh
+
+    simulation = Simulation(config)
+    sensor = FilterDepthImage(intrinsics=simulation.sensor.intrinsics, backend=config.sensor.backend)  # no noise
+    sensor.SetInputConnection(simulation.scene.GetOutputPort())
+    pose = simulation.poses[0]
+    sensor.pose = pose
+    sensor.Update()
+    mapper = TsdfMapper(voxel_size, sensor.intrinsics)
+    mapper.integrate(depth_array(sensor.GetOutput()), pose)
+    vertices = vtk_to_numpy(mapper.extract().GetPoints().GetData())
+    ground_truth = simulation.scene.mesh_at(0)
+    return float(np.median(distances_to_mesh(vertices[:: max(1, len(vertices) // 50000)], ground_truth)))

@@ -139,7 +139,7 @@ class FilterClassifier(MabdiAlgorithm):
     def __init__(self, parameters: ClassifierParameters | None = None, noise: SensorNoise | str = "none") -> None:
         super().__init__(nInputPorts=2, inputType="vtkImageData", nOutputPorts=1, outputType="vtkImageData")
         self._parameters = parameters if parameters is not None else ClassifierParameters()
-        self._noise = noise if isinstance(noise, SensorNoise) else SensorNoise(noise)
+        self._noise = SensorNoise.of(noise)
         #: Pixel counts of the last update: valid (D has a return), novel (after speck removal), specks.
         self.counts: dict[str, int] = {}
 
@@ -158,7 +158,7 @@ class FilterClassifier(MabdiAlgorithm):
 
     @noise.setter
     def noise(self, value: SensorNoise | str) -> None:
-        self._set("_noise", value if isinstance(value, SensorNoise) else SensorNoise(value))
+        self._set("_noise", SensorNoise.of(value))
 
     def threshold(self, depth: np.ndarray, near: float, far: float) -> np.ndarray:
         """tau(z) = max(tau_min, k_sigma sigma(z)) in metres."""

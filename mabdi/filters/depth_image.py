@@ -66,6 +66,16 @@ class SensorNoise:
         if not (self.zbuffer_sigma >= 0 and self.kinect_coefficient >= 0):
             raise ConfigError("noise parameters zbuffer_sigma and kinect_coefficient must be >= 0")
 
+    @classmethod
+    def of(cls, value: SensorNoise | str) -> SensorNoise:
+        """``value`` itself if it is a SensorNoise, else the model of that name with default parameters."""
+        return value if isinstance(value, SensorNoise) else cls(value)
+
+    @classmethod
+    def from_config(cls, sensor) -> SensorNoise:
+        """The noise of a ``[sensor]`` config section (:class:`mabdi.config.SensorConfig`)."""
+        return cls(sensor.noise, sensor.zbuffer_sigma, sensor.kinect_coefficient)
+
     def sigma(self, depth, near: float, far: float) -> np.ndarray:
         """Expected standard deviation (m) of a measurement at metric depth ``depth``.
 
@@ -248,7 +258,7 @@ class FilterDepthImage(MabdiAlgorithm):
     ) -> None:
         super().__init__(nInputPorts=1, inputType="vtkDataObject", nOutputPorts=1, outputType="vtkImageData")
         self._intrinsics = intrinsics if intrinsics is not None else Intrinsics()
-        self._noise = noise if isinstance(noise, SensorNoise) else SensorNoise(noise)
+        self._noise = SensorNoise.of(noise)
         self._seed = int(seed)
         self._frame = 0
         self._pose: np.ndarray | None = None
@@ -279,7 +289,7 @@ class FilterDepthImage(MabdiAlgorithm):
 
     @noise.setter
     def noise(self, value: SensorNoise | str) -> None:
-        self._set("_noise", value if isinstance(value, SensorNoise) else SensorNoise(value))
+        self._set("_noise", SensorNoise.of(value))
 
     @property
     def seed(self) -> int:

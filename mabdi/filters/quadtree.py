@@ -520,7 +520,7 @@ class FilterQuadTree(MabdiAlgorithm):
     def __init__(self, parameters: QuadTreeParameters | None = None, noise: SensorNoise | str = "none") -> None:
         super().__init__(nInputPorts=1, inputType="vtkImageData", nOutputPorts=1, outputType="vtkPolyData")
         self._parameters = parameters if parameters is not None else QuadTreeParameters()
-        self._noise = noise if isinstance(noise, SensorNoise) else SensorNoise(noise)
+        self._noise = SensorNoise.of(noise)
         #: Region count of the last image (the pyramid root's, seed invariant 1).
         self.regions = 0
 

@@ -55,6 +55,14 @@ def helical_path(
     return np.stack([look_at(e, g) for e, g in zip(eye, targets, strict=True)])
 
 
+def circle_index(frames: int, turns: float) -> np.ndarray:
+    """(frames,) which circle of the helix each frame is in (frame i at t = i / (N - 1); the last
+    frame counts to the last circle)."""
+    circles = max(1, int(round(turns)))
+    t = np.arange(frames) / max(frames - 1, 1)
+    return np.minimum((t * turns).astype(int), circles - 1)
+
+
 def path_targets(frames: int, config: PathConfig) -> np.ndarray:
     """(frames, 3) look-at points of :func:`path_from_config` (where each pose looks)."""
     t = np.linspace(0.0, 1.0, frames) if frames > 1 else np.zeros(1)

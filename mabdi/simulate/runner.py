@@ -140,7 +140,7 @@ class Simulation:
         base_dir = config.source.parent if config.source is not None else None
         frames = config.run.frames
         sensor = config.sensor
-        noise = SensorNoise(sensor.noise, sensor.zbuffer_sigma, sensor.kinect_coefficient)
+        noise = SensorNoise.from_config(sensor)
         intrinsics = sensor.intrinsics()
 
         self.scene = SourceScene(config.scene, frames=frames, base_dir=base_dir)
