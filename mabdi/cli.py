@@ -31,7 +31,7 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument("--out", type=Path, help="output folder (default: runs/<config name>)")
     run.add_argument("--noise", help="noise model: none, zbuffer or kinect (overrides sensor.noise)")
     run.add_argument("--seed", type=int, help="noise seed (overrides run.seed)")
-    run.add_argument("--surface", help="surface filter: pixel_grid or quadtree (overrides surface.method)")
+    run.add_argument("--surface", help="surface filter: pixel_grid, quadtree or voxel_planes (overrides surface.method)")
     run.add_argument(
         "--no-classifier", action="store_true", help="black box: mesh every valid pixel every frame (classifier.enabled = false)"
     )

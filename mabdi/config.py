@@ -32,7 +32,7 @@ ANCHORS = ("bottom", "center", "origin")
 AXES = ("x", "y", "z", "-x", "-y", "-z", "+x", "+y", "+z")
 NOISE_MODELS = ("none", "zbuffer", "kinect")
 #: Surface filters by config name; quadtree and voxel_planes join when they exist.
-SURFACES = ("pixel_grid", "quadtree")
+SURFACES = ("pixel_grid", "quadtree", "voxel_planes")
 BACKENDS = ("egl", "osmesa")
 
 
@@ -147,6 +147,10 @@ class SurfaceConfig:
     ``n_t``, ``d_t`` (m), ``reduction``: the quad-tree's merge thresholds and
     block reduction (:mod:`mabdi.filters.quadtree`); in the loop the quad-tree
     outputs triangles, so the map's counts are triangles.
+    ``voxel_size`` (m), ``epsilon`` (m, the anticipated point noise),
+    ``window`` (voxels a side), ``min_points``: voxel planes
+    (:mod:`mabdi.filters.voxel_planes`), which re-meshes the blocks new points
+    fall in and replaces them in the map.
     """
 
     method: str = "pixel_grid"
@@ -154,6 +158,10 @@ class SurfaceConfig:
     n_t: float = 0.1
     d_t: float = 0.02
     reduction: int = 3
+    voxel_size: float = 0.05
+    epsilon: float = 0.02
+    window: int = 2
+    min_points: int = 10
 
 
 @dataclass
@@ -379,6 +387,10 @@ def validate_run_config(config: RunConfig, where: str = "<config>") -> None:
         raise ConfigError(f"{where}: key 'surface.max_jump' must be > 0, got {config.surface.max_jump}")
     if config.surface.n_t < 0 or config.surface.d_t <= 0 or config.surface.reduction < 1:
         raise ConfigError(f"{where}: need 'surface.n_t' >= 0, 'surface.d_t' > 0 and 'surface.reduction' >= 1")
+    if not (config.surface.voxel_size > 0 and config.surface.epsilon > 0):
+        raise ConfigError(f"{where}: need 'surface.voxel_size' > 0 and 'surface.epsilon' > 0 (metres)")
+    if not 1 <= config.surface.window <= 6 or config.surface.min_points < 3:
+        raise ConfigError(f"{where}: need 1 <= 'surface.window' <= 6 and 'surface.min_points' >= 3")
 
 
 # ---------------------------------------------------------------------------

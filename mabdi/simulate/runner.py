@@ -39,12 +39,13 @@ import numpy as np
 from vtkmodules.vtkCommonDataModel import vtkPolyData
 
 from mabdi.algorithm import raise_pipeline_errors
-from mabdi.config import RunConfig, dump_toml
+from mabdi.config import SURFACES, RunConfig, dump_toml
 from mabdi.errors import MabdiError
 from mabdi.filters.classifier import ClassifierParameters, FilterClassifier
 from mabdi.filters.depth_image import FilterDepthImage, SensorNoise
 from mabdi.filters.depth_to_surface import FilterDepthImageToSurface
 from mabdi.filters.quadtree import FilterQuadTree, QuadTreeParameters
+from mabdi.filters.voxel_planes import FilterVoxelPlanes, VoxelPlanesParameters
 from mabdi.filters.world_mesh import FilterWorldMesh
 from mabdi.io.atomic import atomic_output, write_text
 from mabdi.io.plots import write_elements_plot
@@ -270,7 +271,16 @@ def make_surface_filter(config: RunConfig, noise: SensorNoise | None = None):
             ),
             noise=noise or "none",
         )
-    raise MabdiError(f"unknown surface filter {surface.method!r} (known: pixel_grid, quadtree)")
+    if surface.method == "voxel_planes":
+        return FilterVoxelPlanes(
+            VoxelPlanesParameters(
+                voxel_size=surface.voxel_size,
+                epsilon=surface.epsilon,
+                window=surface.window,
+                min_points=surface.min_points,
+            )
+        )
+    raise MabdiError(f"unknown surface filter {surface.method!r} (known: {', '.join(SURFACES)})")
 
 
 def prepare_output_dir(out_dir) -> Path:

@@ -1,0 +1,289 @@
+"""VoxelMap: per-voxel sufficient statistics in a semi-sparse blockwise grid (seed 000, §IV-A, §IV-C).
+
+Space is cut into voxels of ``voxel_size`` metres; voxel (i, j, k) (int64
+indices, negative fine) covers [i s, (i + 1) s) x [j s, ...) x [k s, ...)
+in the world frame. Voxels are grouped into cubic blocks of ``block_size``
+metres (B = block_size / voxel_size voxels a side; 1 m / 0.05 m = 20 by
+default). A block is allocated, dense, the first time a point falls in it and
+never before, so memory grows with the occupied blocks, not with the
+bounding box: the seed's "dense coarse grid of pointers to fine grids",
+with the coarse grid replaced by a sorted table of block keys so it has no
+bounds at all.
+
+Per voxel the map keeps the sufficient statistics of its points, in float64:
+
+    n,  S1 = sum(q),  S2 = sum(q q^T)   (6 unique entries)
+
+with q = p - (voxel's lower corner), so the sums stay small numbers and the
+covariance does not cancel catastrophically far from the origin. The
+centroid is corner + S1 / n and the covariance S2 / n - (S1 / n)(S1 / n)^T.
+Adding points only adds to these sums, so the map is incremental and the
+order of the points does not matter (up to float64 rounding).
+
+Neighbourhoods (the seed's sliding window, eqs. 2-3) combine the statistics
+of ``window``^3 voxels. Eqs. (2)-(3) mix Gaussians weighted by p_i = N_i / N;
+in raw moments that is exactly the sum of the shifted sums, which is what
+:meth:`VoxelMap.neighbourhood_moments` computes.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from mabdi.errors import ConfigError
+
+#: Statistics per voxel: n, S1 (x, y, z), S2 (xx, xy, xz, yy, yz, zz).
+STATS = 10
+_PACK_BITS = 21
+_PACK_OFFSET = 1 << (_PACK_BITS - 1)
+
+
+def pack_keys(indices: np.ndarray) -> np.ndarray:
+    """int64 keys of (M, 3) integer indices in [-2^20, 2^20) (block or voxel coordinates)."""
+    shifted = np.asarray(indices, dtype=np.int64) + _PACK_OFFSET
+    return (shifted[:, 0] << (2 * _PACK_BITS)) | (shifted[:, 1] << _PACK_BITS) | shifted[:, 2]
+
+
+def unpack_keys(keys: np.ndarray) -> np.ndarray:
+    """(M, 3) int64 indices of keys made by :func:`pack_keys`."""
+    keys = np.asarray(keys, dtype=np.int64)
+    mask = (1 << _PACK_BITS) - 1
+    return np.stack([(keys >> (2 * _PACK_BITS)) & mask, (keys >> _PACK_BITS) & mask, keys & mask], axis=1) - _PACK_OFFSET
+
+
+def _sums(points: np.ndarray) -> np.ndarray:
+    """(M, 9) first and second moments (x, y, z, xx, xy, xz, yy, yz, zz) of (M, 3) points."""
+    x, y, z = points[:, 0], points[:, 1], points[:, 2]
+    return np.stack([x, y, z, x * x, x * y, x * z, y * y, y * z, z * z], axis=1)
+
+
+def moments_to_gaussian(moments: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Counts (M,), means (M, 3) and covariances (M, 3, 3) of (M, 10) moments (relative frame).
+
+    Rows with n = 0 give NaN means and covariances.
+    """
+    n = moments[:, 0]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = moments[:, 1:4] / n[:, None]
+        second = moments[:, 4:] / n[:, None]
+    xx, xy, xz, yy, yz, zz = second.T
+    cov = np.empty((len(n), 3, 3))
+    cov[:, 0, 0] = xx - mean[:, 0] * mean[:, 0]
+    cov[:, 0, 1] = cov[:, 1, 0] = xy - mean[:, 0] * mean[:, 1]
+    cov[:, 0, 2] = cov[:, 2, 0] = xz - mean[:, 0] * mean[:, 2]
+    cov[:, 1, 1] = yy - mean[:, 1] * mean[:, 1]
+    cov[:, 1, 2] = cov[:, 2, 1] = yz - mean[:, 1] * mean[:, 2]
+    cov[:, 2, 2] = zz - mean[:, 2] * mean[:, 2]
+    return n, mean, cov
+
+
+def shift_moments(moments: np.ndarray, offset: np.ndarray) -> np.ndarray:
+    """Moments of the same points seen from a frame whose origin is ``-offset`` away: q -> q + offset.
+
+    ``offset`` is one 3-vector or one per row.
+    """
+    n = moments[:, 0:1]
+    s1 = moments[:, 1:4]
+    d = np.broadcast_to(np.asarray(offset, dtype=np.float64), s1.shape)
+    out = moments.copy()
+    out[:, 1:4] = s1 + n * d
+    # S2' = S2 + d S1^T + S1 d^T + n d d^T, unique entries in the order xx, xy, xz, yy, yz, zz
+    for column, (a, b) in enumerate(((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))):
+        out[:, 4 + column] += d[:, a] * s1[:, b] + s1[:, a] * d[:, b] + n[:, 0] * d[:, a] * d[:, b]
+    return out
+
+
+class VoxelMap:
+    """Sufficient statistics of points per voxel, stored blockwise (see the module docs).
+
+    ``voxel_size`` and ``block_size`` in metres; ``block_size`` must be a whole
+    number of voxels. Attributes after :meth:`add_points`: ``last_changed``,
+    the (M, 3) voxel indices whose statistics changed.
+    """
+
+    def __init__(self, voxel_size: float = 0.05, block_size: float = 1.0) -> None:
+        if not voxel_size > 0:
+            raise ConfigError(f"VoxelMap: voxel_size must be > 0 m, got {voxel_size}")
+        ratio = block_size / voxel_size
+        if not block_size > 0 or abs(ratio - round(ratio)) > 1e-6 or round(ratio) < 1:
+            raise ConfigError(
+                f"VoxelMap: block_size ({block_size} m) must be a whole number of voxels of {voxel_size} m"
+            )
+        self.voxel_size = float(voxel_size)
+        self.block_voxels = int(round(ratio))
+        self.block_size = self.block_voxels * self.voxel_size
+        self.reset()
+
+    # -- storage -----------------------------------------------------------
+    def reset(self) -> None:
+        """Forget every point."""
+        b3 = self.block_voxels**3
+        self._keys = np.zeros(0, dtype=np.int64)  # sorted block keys
+        self._slots = np.zeros(0, dtype=np.int64)  # slot of each key in _stats
+        self._stats = np.zeros((0, b3, STATS), dtype=np.float64)
+        self._used = 0
+        self.last_changed = np.zeros((0, 3), dtype=np.int64)
+
+    @property
+    def number_of_blocks(self) -> int:
+        return int(len(self._keys))
+
+    @property
+    def number_of_points(self) -> int:
+        return int(round(self._stats[: self._used, :, 0].sum()))
+
+    def memory_bytes(self) -> int:
+        """Bytes held by the allocated blocks (statistics and the block table)."""
+        per_block = self._stats[0].nbytes if len(self._stats) else self.block_voxels**3 * STATS * 8
+        return int(self._used * per_block + self._keys.nbytes + self._slots.nbytes)
+
+    def block_slots(self, block_keys: np.ndarray) -> np.ndarray:
+        """Slot of each block key in the statistics store, -1 for blocks never allocated."""
+        block_keys = np.asarray(block_keys, dtype=np.int64)
+        if len(self._keys) == 0:
+            return np.full(block_keys.shape, -1, dtype=np.int64)
+        where = np.searchsorted(self._keys, block_keys)
+        where = np.minimum(where, len(self._keys) - 1)
+        return np.where(self._keys[where] == block_keys, self._slots[where], -1)
+
+    def _allocate(self, block_keys: np.ndarray) -> None:
+        """Allocate zeroed blocks for the (unique) keys that have none yet."""
+        new = block_keys[self.block_slots(block_keys) < 0]
+        if len(new) == 0:
+            return
+        needed = self._used + len(new)
+        if needed > len(self._stats):
+            capacity = max(needed, 2 * len(self._stats), 8)
+            grown = np.zeros((capacity,) + self._stats.shape[1:], dtype=np.float64)
+            grown[: self._used] = self._stats[: self._used]
+            self._stats = grown
+        slots = np.arange(self._used, needed, dtype=np.int64)
+        self._used = needed
+        keys = np.concatenate([self._keys, new])
+        order = np.argsort(keys, kind="stable")
+        self._keys = keys[order]
+        self._slots = np.concatenate([self._slots, slots])[order]
+
+    # -- indexing ----------------------------------------------------------
+    def voxel_indices(self, points: np.ndarray) -> np.ndarray:
+        """(M, 3) int64 index of the voxel holding each world point."""
+        return np.floor(np.asarray(points, dtype=np.float64) / self.voxel_size).astype(np.int64)
+
+    def _locate(self, voxels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Block key and local flat index (within its block) of (M, 3) voxel indices."""
+        b = self.block_voxels
+        blocks = np.floor_divide(voxels, b)
+        local = voxels - blocks * b
+        return pack_keys(blocks), (local[:, 0] * b + local[:, 1]) * b + local[:, 2]
+
+    # -- updates -----------------------------------------------------------
+    def add_points(self, points: np.ndarray) -> np.ndarray:
+        """Add (M, 3) world points (metres); returns the (K, 3) indices of the voxels that changed.
+
+        Non-finite points are an error (drop invalid pixels before).
+        """
+        points = np.asarray(points, dtype=np.float64)
+        if points.ndim != 2 or points.shape[1] != 3:
+            raise ValueError(f"VoxelMap.add_points: points must have shape (M, 3), got {points.shape}")
+        if len(points) == 0:
+            self.last_changed = np.zeros((0, 3), dtype=np.int64)
+            return self.last_changed
+        if not np.isfinite(points).all():
+            raise ValueError("VoxelMap.add_points: points contain NaN or infinite coordinates")
+        b = self.block_voxels
+        s = self.voxel_size
+        # per axis, contiguous: column arithmetic on (M, 3) arrays is strided and several times slower
+        columns = [np.ascontiguousarray(points[:, axis]) for axis in range(3)]
+        voxel = [np.floor(c / s).astype(np.int64) for c in columns]
+        block = [v // b for v in voxel]
+        low = np.array([c.min() for c in block])
+        high = np.array([c.max() for c in block])
+        if max(np.abs(low).max(), np.abs(high).max()) >= _PACK_OFFSET:
+            raise ValueError("VoxelMap.add_points: points lie outside the +-1000 km the block keys can address")
+        local_flat = ((voxel[0] - block[0] * b) * b + (voxel[1] - block[1] * b)) * b + (voxel[2] - block[2] * b)
+        box = high - low + 1
+        if int(np.prod(box)) <= 1 << 20:
+            # the frame's blocks fit a small dense box: find the touched ones without sorting
+            box_flat = ((block[0] - low[0]) * box[1] + (block[1] - low[1])) * box[2] + (block[2] - low[2])
+            present = np.flatnonzero(np.bincount(box_flat, minlength=int(np.prod(box))))
+            compact_of_box = np.empty(int(np.prod(box)), dtype=np.int64)
+            compact_of_box[present] = np.arange(len(present))
+            compact = compact_of_box[box_flat]
+            coords = np.stack([present // (box[1] * box[2]), (present // box[2]) % box[1], present % box[2]], axis=1)
+            touched = pack_keys(coords + low)
+        else:
+            touched, compact = np.unique(pack_keys(np.stack(block, axis=1)), return_inverse=True)
+            compact = compact.ravel()
+        self._allocate(np.sort(touched))
+        slots = self.block_slots(touched)
+        b3 = b**3
+        flat = compact * b3 + local_flat
+        size = len(touched) * b3
+        x, y, z = (c - v * s for c, v in zip(columns, voxel))
+        sums = np.empty((STATS, size))
+        sums[0] = np.bincount(flat, minlength=size)
+        for column, values in enumerate((x, y, z, x * x, x * y, x * z, y * y, y * z, z * z), start=1):
+            sums[column] = np.bincount(flat, weights=values, minlength=size)
+        sums = sums.reshape(STATS, len(touched), b3).transpose(1, 2, 0)
+        self._stats[slots] += sums
+        changed = np.flatnonzero(sums[:, :, 0].ravel() > 0)
+        self.last_changed = self._voxels_of(touched[changed // b3], changed % b3)
+        return self.last_changed
+
+    def _voxels_of(self, block_keys: np.ndarray, local_flat: np.ndarray) -> np.ndarray:
+        b = self.block_voxels
+        local = np.stack([local_flat // (b * b), (local_flat // b) % b, local_flat % b], axis=1)
+        return unpack_keys(block_keys) * b + local
+
+    # -- queries -----------------------------------------------------------
+    def moments(self, voxels: np.ndarray) -> np.ndarray:
+        """(M, 10) statistics of (M, 3) voxel indices (zeros for empty voxels), relative to each voxel's corner."""
+        voxels = np.asarray(voxels, dtype=np.int64).reshape(-1, 3)
+        block_keys, local = self._locate(voxels)
+        slots = self.block_slots(block_keys)
+        out = np.zeros((len(voxels), STATS))
+        found = slots >= 0
+        out[found] = self._stats[slots[found], local[found]]
+        return out
+
+    def counts(self, voxels: np.ndarray) -> np.ndarray:
+        """Number of points in each of the (M, 3) voxels."""
+        return self.moments(voxels)[:, 0].astype(np.int64)
+
+    def gaussians(self, voxels: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Counts, world centroids (M, 3) and covariances (M, 3, 3) of voxels (NaN where empty)."""
+        voxels = np.asarray(voxels, dtype=np.int64).reshape(-1, 3)
+        n, mean, cov = moments_to_gaussian(self.moments(voxels))
+        return n, mean + voxels * self.voxel_size, cov
+
+    def occupied_voxels(self, block_keys: np.ndarray | None = None) -> np.ndarray:
+        """(M, 3) indices of the voxels holding points (of the given blocks, or all)."""
+        keys = self._keys if block_keys is None else np.asarray(block_keys, dtype=np.int64)
+        slots = self.block_slots(keys)
+        keys, slots = keys[slots >= 0], slots[slots >= 0]
+        if len(keys) == 0:
+            return np.zeros((0, 3), dtype=np.int64)
+        block, local = np.nonzero(self._stats[slots, :, 0] > 0)
+        return self._voxels_of(keys[block], local)
+
+    def block_keys(self) -> np.ndarray:
+        """Sorted keys of the allocated blocks."""
+        return self._keys.copy()
+
+    def block_of(self, voxels: np.ndarray) -> np.ndarray:
+        """Block key of each of the (M, 3) voxel (or vertex) indices."""
+        return pack_keys(np.floor_divide(np.asarray(voxels, dtype=np.int64), self.block_voxels))
+
+    def neighbourhood_moments(self, corners: np.ndarray, window: int) -> np.ndarray:
+        """(M, 10) combined statistics of the ``window``^3 voxels from each (M, 3) lowest voxel index.
+
+        Moments are relative to the lowest voxel's corner (corners * voxel_size), eqs. (2)-(3) in
+        raw-moment form.
+        """
+        corners = np.asarray(corners, dtype=np.int64).reshape(-1, 3)
+        total = np.zeros((len(corners), STATS))
+        for offset in np.ndindex(window, window, window):
+            step = np.array(offset, dtype=np.int64)
+            moments = self.moments(corners + step)
+            total += shift_moments(moments, step * self.voxel_size)
+        return total

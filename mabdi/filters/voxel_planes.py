@@ -1,0 +1,411 @@
+"""FilterVoxelPlanes: incremental voxel-plane meshing of points (seed 000), ``voxel_planes`` in configs.
+
+Points in (a depth image's valid pixels, back-projected with its pose: the
+classifier's output gives only the novel ones; or a vtkPolyData of world
+points), a mesh of small planar polygons out. The filter keeps a
+:class:`~mabdi.filters.voxel_map.VoxelMap` across updates.
+
+1. **Statistics**: every point is added to its voxel's count, sum and sum of
+   outer products (:class:`VoxelMap`, a semi-sparse blockwise grid).
+2. **Sliding window** (§IV-A): every grid vertex V with points around it is
+   the centre of a ``window`` x ``window`` x ``window`` neighbourhood (2 x 2 x 2
+   by default: the eight voxels that share V). Their Gaussians combine by
+   eqs. (2)-(3); a batched eigen-decomposition gives eigenvalues
+   l0 >= l1 >= l2. The neighbourhood is **planar** when it holds at least
+   ``min_points`` points (default 10: a plane through fewer is mostly noise)
+   and
+
+       l1 > lambda_large   and   l2 < lambda_t = epsilon^2,
+
+   epsilon the anticipated point noise (default 0.02 m, the seed's). The
+   seed uses lambda_t for both tests; but a plane that fills the whole
+   window has in-plane variance (window * s)^2 / 12, which falls below
+   epsilon^2 at fine voxels (at 0.02 m voxels and the default epsilon no
+   plane could pass at all). So lambda_large = min(epsilon^2,
+   (window * s)^2 / 24), half a full window's variance: at the defaults
+   (2 x 0.05 m windows, 8.3e-4 m^2 full) it is the seed's 4e-4 m^2. A
+   lower bound matters: a thin sliver of a plane across a window fits a
+   plane tilted by the noise (10 degrees at sigma = 5 mm, measured). With an odd window (1: the seed's
+   per-voxel PCA, Fig. 2 centre) the neighbourhood is centred on a voxel.
+3. **Meshing** (§IV-B): the plane (normal = eigenvector of l2, through the
+   neighbourhood's centroid) is cut with the voxel-sized cube centred on V
+   (for odd windows: the centre voxel). Eq. (4) gives each of the 12 edges'
+   parameter t, kept for 0 <= t <= 1; intersections at a cube corner are
+   found on up to three edges and de-duplicated; 3-6 points make a convex
+   polygon, ordered by angle around the normal and triangulated as a fan.
+   The cubes of neighbouring vertices tile space, so neighbouring patches
+   meet along the cubes' shared faces.
+4. **Incremental**: after new points, only the blocks (``block_size``, 1 m)
+   holding a vertex whose neighbourhood changed are re-meshed. The mesh is
+   kept per block; the output is either the blocks re-meshed by this update
+   (``output="changed"``, the default, which is what the MABDI loop feeds to
+   :class:`~mabdi.filters.world_mesh.FilterWorldMesh`) or the whole map
+   (``output="full"``). Every cell carries the int64 cell array ``patch_key``
+   (its block's key), and field data ``removed_patch_keys`` lists blocks that
+   lost all their faces, so the world mesh replaces a re-meshed block
+   instead of stacking a layer on it.
+
+Output cell data: ``Normals`` (unit, oriented by eq. 5 with n_z >= 0: the
+points do not say which side is out), ``rgb`` (uint8, seed 000 eqs. 5-7,
+:func:`mabdi.maps.colours.colours_by_normal`) and ``patch_key``. Field data
+of a depth-image input (intrinsics, pose, frame) is passed on.
+"""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass
+
+import numpy as np
+from vtkmodules.util.numpy_support import numpy_to_vtk
+from vtkmodules.vtkCommonDataModel import vtkDataObject, vtkImageData, vtkPointSet, vtkPolyData
+
+from mabdi.algorithm import MabdiAlgorithm
+from mabdi.camera import backproject
+from mabdi.depth import FRAME_ARRAY, depth_array, image_intrinsics, image_pose
+from mabdi.errors import ConfigError
+from mabdi.filters.voxel_map import VoxelMap, moments_to_gaussian, pack_keys, unpack_keys
+from mabdi.filters.world_mesh import PATCH_KEY_ARRAY, REMOVED_KEYS_ARRAY
+from mabdi.maps.colours import colours_by_normal
+from mabdi.polydata import triangles_polydata
+
+OUTPUTS = ("changed", "full")
+
+# The cube's 8 corners (unit offsets in {-1, 1}) and its 12 edges as corner pairs.
+_CORNERS = np.array(list(itertools.product((-1.0, 1.0), repeat=3)))
+_EDGES = np.array(
+    [(a, b) for a in range(8) for b in range(a + 1, 8) if np.abs(_CORNERS[a] - _CORNERS[b]).sum() == 2]
+)
+
+
+@dataclass(frozen=True)
+class VoxelPlanesParameters:
+    """Parameters of :class:`FilterVoxelPlanes` (see the module docs); lengths in metres."""
+
+    voxel_size: float = 0.05
+    epsilon: float = 0.02
+    window: int = 2
+    min_points: int = 10
+    block_size: float = 1.0
+
+    def __post_init__(self) -> None:
+        if not self.voxel_size > 0 or not self.epsilon > 0:
+            raise ConfigError(
+                f"voxel_planes: need voxel_size > 0 and epsilon > 0, got voxel_size={self.voxel_size}, epsilon={self.epsilon}"
+            )
+        if not isinstance(self.window, (int, np.integer)) or not 1 <= self.window <= 6:
+            raise ConfigError(f"voxel_planes: window must be an integer from 1 to 6, got {self.window!r}")
+        if not isinstance(self.min_points, (int, np.integer)) or self.min_points < 3:
+            raise ConfigError(f"voxel_planes: min_points must be an integer >= 3, got {self.min_points!r}")
+
+    @property
+    def lambda_small(self) -> float:
+        """Largest variance across the plane (m^2): epsilon^2, the seed's lambda_t."""
+        return self.epsilon**2
+
+    @property
+    def lambda_large(self) -> float:
+        """Smallest variance along the plane (m^2): min(epsilon^2, (window * voxel_size)^2 / 24)."""
+        return min(self.epsilon**2, (self.window * self.voxel_size) ** 2 / 24.0)
+
+
+@dataclass
+class PlanePatches:
+    """Planar neighbourhoods: anchor index (vertex, or centre voxel for odd windows), plane and cube."""
+
+    anchors: np.ndarray  # (M, 3) int64
+    normals: np.ndarray  # (M, 3) unit, n_z >= 0
+    centroids: np.ndarray  # (M, 3) world
+    centres: np.ndarray  # (M, 3) world centre of each neighbourhood's cube
+    counts: np.ndarray  # (M,) points in the neighbourhood
+
+
+def anchor_range(window: int) -> int:
+    """Offset of a neighbourhood's lowest voxel from its anchor: -(window // 2)."""
+    return -(window // 2)
+
+
+def plane_patches(voxels: VoxelMap, anchors: np.ndarray, parameters: VoxelPlanesParameters) -> PlanePatches:
+    """The planar neighbourhoods among ``anchors`` (eqs. 2-3, batched PCA, the eigenvalue test)."""
+    w = parameters.window
+    s = voxels.voxel_size
+    anchors = np.asarray(anchors, dtype=np.int64).reshape(-1, 3)
+    lowest = anchors + anchor_range(w)
+    n, mean, cov = moments_to_gaussian(voxels.neighbourhood_moments(lowest, w))
+    enough = n >= parameters.min_points
+    values, vectors = np.linalg.eigh(cov[enough]) if enough.any() else (np.zeros((0, 3)), np.zeros((0, 3, 3)))
+    # eigh sorts ascending: values[:, 0] = l2 (smallest), values[:, 1] = l1
+    planar = (values[:, 0] < parameters.lambda_small) & (values[:, 1] > parameters.lambda_large)
+    keep = np.flatnonzero(enough)[planar]
+    normals = vectors[planar, :, 0]
+    normals = np.where(normals[:, 2:3] < 0, -normals, normals)
+    centroids = mean[keep] + lowest[keep] * s
+    centres = (anchors[keep] + 0.5 * (w % 2)) * s
+    return PlanePatches(anchors[keep], normals, centroids, centres, n[keep].astype(np.int64))
+
+
+def cube_polygons(normals: np.ndarray, points: np.ndarray, centres: np.ndarray, half: float):
+    """Convex polygons where planes cut axis-aligned cubes (seed 000 eq. 4).
+
+    Plane i has unit normal ``normals[i]`` and passes through ``points[i]``; cube i is centred on
+    ``centres[i]`` with half side ``half``. Returns ``(vertices, sizes, owner)``: the polygons'
+    vertices (K, 3) in order (counter-clockwise seen from the normal's side), the vertex count of
+    each polygon (3-6) and the index of the plane each polygon comes from. Planes that miss their
+    cube or only touch it (fewer than 3 distinct points) give no polygon.
+    """
+    normals = np.asarray(normals, dtype=np.float64)
+    m = len(normals)
+    corners = centres[:, None, :] + half * _CORNERS[None]  # (M, 8, 3)
+    p1 = corners[:, _EDGES[:, 0]]  # (M, 12, 3)
+    p2 = corners[:, _EDGES[:, 1]]
+    denominator = np.einsum("mk,mek->me", normals, p2 - p1)
+    numerator = np.einsum("mk,mek->me", normals, points[:, None, :] - p1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        t = numerator / denominator  # eq. (4)
+    hit = (np.abs(denominator) > 1e-12 * half) & (t >= 0.0) & (t <= 1.0)
+    crossings = p1 + np.where(hit, t, 0.0)[..., None] * (p2 - p1)
+    # a plane through a cube corner crosses up to three edges there: keep the first of each cluster
+    gap = np.linalg.norm(crossings[:, :, None, :] - crossings[:, None, :, :], axis=-1)
+    earlier = np.tril(np.ones((12, 12), dtype=bool), k=-1)
+    duplicate = ((gap <= 1e-9 * half) & earlier[None] & hit[:, None, :]).any(axis=2)
+    hit &= ~duplicate
+    sizes = hit.sum(axis=1)
+    polygon = (sizes >= 3) & (sizes <= 6)
+    hit, crossings, sizes = hit[polygon], crossings[polygon], sizes[polygon]
+    owner = np.flatnonzero(polygon)
+    n = normals[owner]
+    centre = (crossings * hit[..., None]).sum(axis=1) / np.maximum(sizes, 1)[:, None]
+    # in-plane basis (u, v = n x u) so increasing angle runs counter-clockwise seen from +n
+    helper = np.where(np.abs(n[:, 0:1]) < 0.9, np.array([1.0, 0.0, 0.0]), np.array([0.0, 1.0, 0.0]))
+    u = np.cross(n, helper)
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    v = np.cross(n, u)
+    offset = crossings - centre[:, None, :]
+    angle = np.arctan2(np.einsum("mek,mk->me", offset, v), np.einsum("mek,mk->me", offset, u))
+    angle = np.where(hit, angle, np.inf)
+    order = np.argsort(angle, axis=1)
+    ordered = np.take_along_axis(crossings, order[..., None], axis=1)
+    keep = np.arange(12)[None, :] < sizes[:, None]
+    return ordered[keep], sizes, owner if m else np.zeros(0, dtype=np.int64)
+
+
+def fan_triangles(sizes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Triangles (T, 3) fanning polygons stored one after another, and each triangle's polygon."""
+    sizes = np.asarray(sizes, dtype=np.int64)
+    starts = np.concatenate([[0], np.cumsum(sizes)[:-1]]) if len(sizes) else np.zeros(0, dtype=np.int64)
+    per = np.maximum(sizes - 2, 0)
+    polygon = np.repeat(np.arange(len(sizes)), per)
+    k = np.arange(per.sum()) - np.repeat(np.cumsum(per) - per, per) + 1
+    base = starts[polygon]
+    return np.stack([base, base + k, base + k + 1], axis=1), polygon
+
+
+@dataclass
+class BlockMesh:
+    """The triangles of one block: vertices (K, 3) and triangles (T, 3) into them, per-triangle normals."""
+
+    vertices: np.ndarray
+    triangles: np.ndarray
+    normals: np.ndarray
+
+
+def _block_offsets() -> np.ndarray:
+    return np.array(list(itertools.product((-1, 0, 1), repeat=3)), dtype=np.int64)
+
+
+class FilterVoxelPlanes(MabdiAlgorithm):
+    """Incremental voxel-plane mesh (depth image or points -> vtkPolyData), see the module docs.
+
+    Python use without a pipeline: :meth:`add_points` then :meth:`mesh` or :meth:`changed_mesh`.
+    """
+
+    def __init__(self, parameters: VoxelPlanesParameters | None = None, output: str = "changed") -> None:
+        super().__init__(nInputPorts=1, inputType="vtkDataObject", nOutputPorts=1, outputType="vtkPolyData")
+        self._parameters = parameters if parameters is not None else VoxelPlanesParameters()
+        self._output = self._check_output(output)
+        self.map = VoxelMap(self._parameters.voxel_size, self._parameters.block_size)
+        self._blocks: dict[int, BlockMesh] = {}
+        self._changed = np.zeros(0, dtype=np.int64)
+        self._last_input: tuple[int, int] | None = None
+        self._meshed_with = self._parameters
+
+    # -- parameters --------------------------------------------------------
+    @staticmethod
+    def _check_output(output: str) -> str:
+        if output not in OUTPUTS:
+            raise ConfigError(f"FilterVoxelPlanes: output must be one of {OUTPUTS}, got {output!r}")
+        return output
+
+    @property
+    def parameters(self) -> VoxelPlanesParameters:
+        return self._parameters
+
+    @parameters.setter
+    def parameters(self, value: VoxelPlanesParameters) -> None:
+        """New parameters; a new voxel or block size empties the map (its statistics are per voxel)."""
+        if (value.voxel_size, value.block_size) != (self._parameters.voxel_size, self._parameters.block_size):
+            self._parameters = value
+            self.reset()
+            return
+        self._set("_parameters", value)
+
+    @property
+    def output(self) -> str:
+        """``"changed"``: the blocks re-meshed by the last update; ``"full"``: the whole mesh."""
+        return self._output
+
+    @output.setter
+    def output(self, value: str) -> None:
+        self._set("_output", self._check_output(value))
+
+    def reset(self) -> None:
+        """Forget every point and face."""
+        self.map = VoxelMap(self._parameters.voxel_size, self._parameters.block_size)
+        self._blocks.clear()
+        self._changed = np.zeros(0, dtype=np.int64)
+        self._last_input = None
+        self._meshed_with = self._parameters
+        self.Modified()
+
+    # -- the map -----------------------------------------------------------
+    @property
+    def number_of_triangles(self) -> int:
+        return sum(len(b.triangles) for b in self._blocks.values())
+
+    @property
+    def changed_blocks(self) -> np.ndarray:
+        """Keys of the blocks re-meshed by the last update."""
+        return self._changed.copy()
+
+    def add_points(self, points: np.ndarray) -> np.ndarray:
+        """Add (M, 3) world points and re-mesh the blocks they touch; returns the re-meshed block keys."""
+        changed = self.map.add_points(points)
+        window = self._parameters.window
+        low = anchor_range(window)
+        # voxel v lies in the neighbourhoods of anchors v - low - (window - 1) ... v - low
+        steps = np.array(list(itertools.product(range(-low - window + 1, -low + 1), repeat=3)), dtype=np.int64)
+        anchors = (changed[:, None, :] + steps[None]).reshape(-1, 3)
+        blocks = np.unique(self.map.block_of(anchors))
+        self._remesh(blocks)
+        self.Modified()
+        return blocks
+
+    def remesh_all(self) -> None:
+        """Re-mesh every block (after a change of epsilon, window or min_points)."""
+        self._remesh(self.map.block_keys())
+        self._meshed_with = self._parameters
+
+    def candidate_anchors(self, blocks: np.ndarray) -> np.ndarray:
+        """(M, 3) anchors in ``blocks`` (sorted keys) whose neighbourhood holds any point."""
+        blocks = np.asarray(blocks, dtype=np.int64)
+        if len(blocks) == 0:
+            return np.zeros((0, 3), dtype=np.int64)
+        coords = unpack_keys(blocks)
+        around = np.unique(pack_keys((coords[:, None, :] + _block_offsets()[None]).reshape(-1, 3)))
+        occupied = self.map.occupied_voxels(around)
+        window = self._parameters.window
+        low = anchor_range(window)
+        steps = np.array(list(itertools.product(range(-low - window + 1, -low + 1), repeat=3)), dtype=np.int64)
+        anchors = (occupied[:, None, :] + steps[None]).reshape(-1, 3)
+        b = self.map.block_voxels
+        anchor_blocks = np.floor_divide(anchors, b)
+        where = np.minimum(np.searchsorted(blocks, pack_keys(anchor_blocks)), len(blocks) - 1)
+        inside = blocks[where] == pack_keys(anchor_blocks)
+        local = anchors[inside] - anchor_blocks[inside] * b
+        flat = where[inside] * b**3 + (local[:, 0] * b + local[:, 1]) * b + local[:, 2]
+        mask = np.zeros(len(blocks) * b**3, dtype=bool)
+        mask[flat] = True
+        flat = np.flatnonzero(mask)
+        block, rest = flat // b**3, flat % b**3
+        local = np.stack([rest // (b * b), (rest // b) % b, rest % b], axis=1)
+        return coords[block] * b + local
+
+    def _remesh(self, blocks: np.ndarray) -> None:
+        blocks = np.unique(np.asarray(blocks, dtype=np.int64))
+        p = self._parameters
+        anchors = self.candidate_anchors(blocks)
+        patches = plane_patches(self.map, anchors, p)
+        vertices, sizes, owner = cube_polygons(patches.normals, patches.centroids, patches.centres, 0.5 * p.voxel_size)
+        triangles, polygon = fan_triangles(sizes)
+        plane = owner[polygon]
+        triangle_block = self.map.block_of(patches.anchors[plane])
+        vertex_polygon = np.repeat(np.arange(len(sizes)), sizes)
+        vertex_block = self.map.block_of(patches.anchors[owner[vertex_polygon]])
+        for key in blocks.tolist():
+            self._blocks.pop(key, None)
+        order = np.argsort(triangle_block, kind="stable")
+        bounds = np.flatnonzero(np.diff(triangle_block[order])) + 1
+        for group in np.split(order, bounds) if len(order) else []:
+            key = int(triangle_block[group[0]])
+            used = np.flatnonzero(vertex_block == key)
+            renumber = np.full(len(vertices), -1, dtype=np.int64)
+            renumber[used] = np.arange(len(used))
+            self._blocks[key] = BlockMesh(vertices[used], renumber[triangles[group]], patches.normals[plane[group]])
+        self._changed = blocks
+
+    # -- output ------------------------------------------------------------
+    def _polydata(self, keys) -> vtkPolyData:
+        meshes = [(key, self._blocks[key]) for key in keys if key in self._blocks]
+        if not meshes:
+            return vtkPolyData()
+        base = np.cumsum([0] + [len(m.vertices) for _, m in meshes])
+        vertices = np.concatenate([m.vertices for _, m in meshes])
+        triangles = np.concatenate([m.triangles + base[i] for i, (_, m) in enumerate(meshes)])
+        normals = np.concatenate([m.normals for _, m in meshes])
+        patch = np.concatenate([np.full(len(m.triangles), key, dtype=np.int64) for key, m in meshes])
+        mesh = triangles_polydata(vertices, triangles, dtype=np.float32)
+        normal_array = numpy_to_vtk(np.ascontiguousarray(normals, dtype=np.float32), deep=True)
+        normal_array.SetName("Normals")
+        mesh.GetCellData().SetNormals(normal_array)
+        rgb = numpy_to_vtk(colours_by_normal(normals), deep=True)
+        rgb.SetName("rgb")
+        mesh.GetCellData().AddArray(rgb)
+        keys_array = numpy_to_vtk(patch, deep=True)
+        keys_array.SetName(PATCH_KEY_ARRAY)
+        mesh.GetCellData().AddArray(keys_array)
+        return mesh
+
+    def mesh(self) -> vtkPolyData:
+        """The whole voxel-plane mesh."""
+        return self._polydata(sorted(self._blocks))
+
+    def changed_mesh(self) -> vtkPolyData:
+        """The blocks re-meshed by the last update (``removed_patch_keys``: those now empty)."""
+        mesh = self._polydata(self._changed.tolist())
+        removed = np.array([k for k in self._changed.tolist() if k not in self._blocks], dtype=np.int64)
+        array = numpy_to_vtk(removed, deep=True)
+        array.SetName(REMOVED_KEYS_ARRAY)
+        mesh.GetFieldData().AddArray(array)
+        return mesh
+
+    # -- pipeline ----------------------------------------------------------
+    def RequestData(self, request, inInfo, outInfo):  # noqa: N802 (VTK API)
+        data = vtkDataObject.GetData(inInfo[0])
+        stamp = (id(data), data.GetMTime())
+        if stamp != self._last_input:  # a re-execution with the same input adds no points twice
+            self._last_input = stamp
+            self.add_points(self._input_points(data))
+        elif self._meshed_with != self._parameters:
+            self.remesh_all()
+        output = vtkPolyData.GetData(outInfo)
+        output.ShallowCopy(self.mesh() if self._output == "full" else self.changed_mesh())
+        if isinstance(data, vtkImageData):
+            for name in ("intrinsics", "world_from_camera", FRAME_ARRAY):
+                array = data.GetFieldData().GetArray(name)
+                if array is not None:
+                    output.GetFieldData().AddArray(array)
+        return 1
+
+    @staticmethod
+    def _input_points(data) -> np.ndarray:
+        if isinstance(data, vtkImageData):
+            return backproject(depth_array(data), image_intrinsics(data), image_pose(data))
+        if isinstance(data, vtkPointSet):
+            if data.GetNumberOfPoints() == 0:
+                return np.zeros((0, 3))
+            from vtkmodules.util.numpy_support import vtk_to_numpy
+
+            return vtk_to_numpy(data.GetPoints().GetData()).astype(np.float64)
+        raise TypeError(
+            f"FilterVoxelPlanes: input must be a depth image (vtkImageData) or points (vtkPolyData), got {data.GetClassName()}"
+        )
