@@ -47,6 +47,24 @@ def test_re_execution_for_the_same_frame_appends_nothing():
     assert world.number_of_cells == 2
 
 
+def test_re_execution_behind_a_vtk_filter_appends_nothing():
+    """The input is recognised by its VTK object, not by a Python wrapper that may be new each time."""
+    from vtkmodules.vtkFiltersCore import vtkTriangleFilter
+    from vtkmodules.vtkFiltersSources import vtkPlaneSource
+
+    source = vtkPlaneSource()
+    source.SetResolution(3, 3)
+    triangles = vtkTriangleFilter()
+    triangles.SetInputConnection(source.GetOutputPort())
+    world = FilterWorldMesh()
+    world.SetInputConnection(triangles.GetOutputPort())
+    world.Update()
+    for _ in range(3):
+        world.Modified()
+        world.Update()
+    assert world.number_of_cells == 18 and len(world.patch_keys) == 1
+
+
 def test_keyed_patches_replace_instead_of_stacking():
     world = FilterWorldMesh()
     mesh = with_frame(plane_mesh([0, 0, 0], [0, 0, 1], subdivisions=2), 0)  # 8 cells

@@ -219,7 +219,7 @@ class VoxelMap:
         b3 = b**3
         flat = compact * b3 + local_flat
         size = len(touched) * b3
-        x, y, z = (c - v * s for c, v in zip(columns, voxel))
+        x, y, z = (c - v * s for c, v in zip(columns, voxel, strict=True))
         sums = np.empty((STATS, size))
         sums[0] = np.bincount(flat, minlength=size)
         for column, values in enumerate((x, y, z, x * x, x * y, x * z, y * y, y * z, z * z), start=1):

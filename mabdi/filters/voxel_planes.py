@@ -226,7 +226,7 @@ class FilterVoxelPlanes(MabdiAlgorithm):
         self.map = VoxelMap(self._parameters.voxel_size, self._parameters.block_size)
         self._blocks: dict[int, BlockMesh] = {}
         self._changed = np.zeros(0, dtype=np.int64)
-        self._last_input: tuple[int, int] | None = None
+        self._last_input: tuple[str, int] | None = None
         self._meshed_with = self._parameters
 
     # -- parameters --------------------------------------------------------
@@ -381,7 +381,7 @@ class FilterVoxelPlanes(MabdiAlgorithm):
     # -- pipeline ----------------------------------------------------------
     def RequestData(self, request, inInfo, outInfo):  # noqa: N802 (VTK API)
         data = vtkDataObject.GetData(inInfo[0])
-        stamp = (id(data), data.GetMTime())
+        stamp = (data.GetAddressAsString("vtkObject"), data.GetMTime())
         if stamp != self._last_input:  # a re-execution with the same input adds no points twice
             self._last_input = stamp
             self.add_points(self._input_points(data))

@@ -52,7 +52,7 @@ class FilterWorldMesh(MabdiAlgorithm):
         self._patches: dict[str, vtkPolyData] = {}
         self._cells = 0
         self._merged: vtkPolyData | None = None
-        self._last_input: tuple[int, int] | None = None
+        self._last_input: tuple[str, int] | None = None
         self._next_frame = 0
         #: Net change in the number of cells made by the last update (replacements count net).
         self.cells_added = 0
@@ -156,7 +156,7 @@ class FilterWorldMesh(MabdiAlgorithm):
     # -- pipeline ----------------------------------------------------------
     def RequestData(self, request, inInfo, outInfo):  # noqa: N802 (VTK API)
         surface = vtkPolyData.GetData(inInfo[0])
-        stamp = (id(surface), surface.GetMTime())
+        stamp = (surface.GetAddressAsString("vtkObject"), surface.GetMTime())
         if stamp != self._last_input:  # a re-execution with the same input appends nothing
             self._last_input = stamp
             frame = _input_frame(surface)

@@ -1,0 +1,299 @@
+"""FilterVoxelPlanes and VoxelMap (seed 000): statistics, sliding window, polygons, increments, colours, the loop."""
+
+import itertools
+
+import numpy as np
+import pytest
+from vtkmodules.util.numpy_support import vtk_to_numpy
+
+from conftest import REPO
+from mabdi.errors import ConfigError
+from mabdi.filters.voxel_map import VoxelMap, moments_to_gaussian
+from mabdi.filters.voxel_planes import (
+    FilterVoxelPlanes,
+    VoxelPlanesParameters,
+    cube_polygons,
+    fan_triangles,
+    plane_patches,
+)
+from mabdi.maps.colours import colours_by_normal, normal_colours_float
+from mabdi.polydata import polydata_arrays
+
+S = 0.05
+
+
+def plane_points(normal, origin, half, count, sigma, seed=0):
+    """``count`` points on a square of side 2 * half in the plane, with Gaussian noise along the normal."""
+    rng = np.random.default_rng(seed)
+    n = np.asarray(normal, dtype=float) / np.linalg.norm(normal)
+    u = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0])
+    u /= np.linalg.norm(u)
+    v = np.cross(n, u)
+    uv = rng.uniform(-half, half, (count, 2))
+    offset = sigma * rng.standard_normal(count)
+    return uv[:, :1] * u + uv[:, 1:] * v + offset[:, None] * n + np.asarray(origin), n
+
+
+def all_patches(filter_: FilterVoxelPlanes):
+    anchors = filter_.candidate_anchors(filter_.map.block_keys())
+    return plane_patches(filter_.map, anchors, filter_.parameters)
+
+
+def test_statistics_match_the_points_far_from_the_origin():
+    rng = np.random.default_rng(3)
+    points = rng.normal([1000.02, -500.01, 3.0], 0.01, (5000, 3))
+    voxels = VoxelMap()
+    voxels.add_points(points)
+    index = voxels.voxel_indices(points)
+    first = np.all(index == index[0], axis=1)
+    n, centroid, cov = voxels.gaussians(index[:1])
+    assert n[0] == first.sum()
+    np.testing.assert_allclose(centroid[0], points[first].mean(axis=0), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(cov[0], np.cov(points[first].T, bias=True), rtol=1e-9, atol=1e-15)
+    assert voxels.number_of_points == 5000
+
+
+def test_noisy_plane_gives_planar_convex_polygons_on_the_plane():
+    # a tilted 1 m square with sigma = 5 mm noise, at Kinect-like density (300k points per m^2)
+    origin = np.array([0.3, -2.1, 0.7])
+    points, normal = plane_points([0.2, -0.3, 1.0], origin, 0.5, 300_000, 0.005)
+    surface = FilterVoxelPlanes()
+    surface.add_points(points)
+    patches = all_patches(surface)
+    vertices, sizes, owner = cube_polygons(patches.normals, patches.centroids, patches.centres, S / 2)
+    assert len(sizes) > 300
+    assert sizes.min() >= 3 and sizes.max() <= 6
+    angles = np.degrees(np.arccos(np.clip(np.abs(patches.normals[owner] @ normal), 0, 1)))
+    # windows wholly inside the square: within 2 degrees; at the square's edge the cube faces cut
+    # the noisy slab on one side only, which tilts the fit a little more (measured 2.0-3.1 degrees)
+    u = np.cross(normal, [1.0, 0.0, 0.0])
+    u /= np.linalg.norm(u)
+    v = np.cross(normal, u)
+    offset = patches.centroids[owner] - origin
+    interior = np.maximum(np.abs(offset @ u), np.abs(offset @ v)) < 0.5 - 2 * S
+    assert interior.mean() > 0.5
+    assert angles[interior].max() < 2.0
+    assert angles.max() < 3.5
+    assert np.abs((vertices - origin) @ normal).max() < 5e-3
+    # each polygon: its vertices on its own plane, and every turn the same way round its normal
+    starts = np.concatenate([[0], np.cumsum(sizes)[:-1]])
+    for k in range(len(sizes)):
+        ring = vertices[starts[k] : starts[k] + sizes[k]]
+        n = patches.normals[owner[k]]
+        assert np.abs((ring - patches.centroids[owner[k]]) @ n).max() < 1e-9
+        edges = np.roll(ring, -1, axis=0) - ring
+        turns = np.cross(edges, np.roll(edges, -1, axis=0)) @ n
+        assert (turns > 0).all(), f"polygon {k} is not convex counter-clockwise"
+    # the output mesh carries normals (n_z >= 0), colours and patch keys
+    mesh = surface.mesh()
+    cells = mesh.GetNumberOfCells()
+    assert cells == (sizes - 2).sum()
+    assert (vtk_to_numpy(mesh.GetCellData().GetArray("Normals"))[:, 2] >= 0).all()
+    assert vtk_to_numpy(mesh.GetCellData().GetArray("rgb")).shape == (cells, 3)
+    assert vtk_to_numpy(mesh.GetCellData().GetArray("patch_key")).shape == (cells,)
+
+
+def test_sliding_window_meshes_a_plane_that_clips_a_voxel_corner():
+    """Seed Fig. 3: the plane x + y + z = 2 cm only clips the corner of voxel (0, 0, 0)."""
+    from mabdi.evaluate import distances_to_mesh
+
+    points, normal = plane_points([1.0, 1.0, 1.0], [0.02 / 3] * 3, 0.2, 200_000, 0.0)
+    clip = np.array([0.02, 0.02, 0.02]) / 3  # centre of the corner triangle inside voxel (0, 0, 0)
+
+    def clip_distance(window):
+        surface = FilterVoxelPlanes(VoxelPlanesParameters(window=window))
+        surface.add_points(points)
+        return surface, distances_to_mesh(clip[None], surface.mesh())[0]
+
+    per_voxel, missed = clip_distance(1)
+    sliding, met = clip_distance(2)
+    assert per_voxel.map.counts(np.zeros((1, 3), dtype=np.int64))[0] > 0  # the corner has points ...
+    assert missed > 3e-3  # ... but on its own it is not planar, so nothing covers it
+    assert met < 1e-6
+
+
+def test_incremental_equals_batch():
+    rng = np.random.default_rng(5)
+    points, _ = plane_points([0.1, 0.4, 1.0], [-1.3, 0.2, 0.4], 0.6, 120_000, 0.004)
+    points = points[rng.permutation(len(points))]
+    batch, halves = FilterVoxelPlanes(), FilterVoxelPlanes()
+    batch.add_points(points)
+    halves.add_points(points[:60_000])
+    halves.add_points(points[60_000:])
+    voxels = batch.map.occupied_voxels()
+    np.testing.assert_array_equal(voxels, halves.map.occupied_voxels())
+    np.testing.assert_allclose(halves.map.moments(voxels), batch.map.moments(voxels), rtol=1e-9, atol=1e-12)
+    a, b = batch.mesh(), halves.mesh()
+    va, ta = polydata_arrays(a)
+    vb, tb = polydata_arrays(b)
+    np.testing.assert_array_equal(ta, tb)
+    np.testing.assert_allclose(va, vb, atol=1e-6)
+
+
+def points_polydata(points):
+    from vtkmodules.util.numpy_support import numpy_to_vtk
+    from vtkmodules.vtkCommonCore import vtkPoints
+    from vtkmodules.vtkCommonDataModel import vtkPolyData
+
+    data = vtkPolyData()
+    vtk_points = vtkPoints()
+    vtk_points.SetData(numpy_to_vtk(points, deep=True))
+    data.SetPoints(vtk_points)
+    return data
+
+
+def test_only_touched_blocks_are_remeshed_and_replaced_in_the_world_mesh():
+    from mabdi.filters.world_mesh import FilterWorldMesh
+
+    left, _ = plane_points([0, 0, 1], [0.5, 0.5, 0.2], 0.4, 50_000, 0.0, seed=1)
+    right, _ = plane_points([0, 0, 1], [3.5, 0.5, 0.2], 0.4, 50_000, 0.0, seed=2)
+    surface = FilterVoxelPlanes()
+    world = FilterWorldMesh()
+    world.SetInputConnection(surface.GetOutputPort())
+    changed = []
+    for batch in (left, left, right):  # the same points twice: re-meshed, not stacked
+        surface.SetInputDataObject(points_polydata(batch))
+        world.Update()
+        changed.append(set(surface.changed_blocks.tolist()))
+        assert world.number_of_cells == surface.mesh().GetNumberOfCells()
+    assert changed[0] == changed[1]
+    assert not changed[2] & changed[0]  # new points far away leave the old blocks alone
+    assert sorted(world.patch_keys) == sorted(f"patch_{k}" for k in changed[0] | changed[2])
+
+
+def test_sphere_is_accurate_and_patches_meet():
+    rng = np.random.default_rng(11)
+    directions = rng.standard_normal((400_000, 3))
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    centre = np.array([0.31, -0.12, 0.9])
+    points = centre + directions * (0.5 + 0.005 * rng.standard_normal((len(directions), 1)))
+    surface = FilterVoxelPlanes()
+    surface.add_points(points)
+    patches = all_patches(surface)
+    vertices, sizes, owner = cube_polygons(patches.normals, patches.centroids, patches.centres, S / 2)
+    radial = np.abs(np.linalg.norm(vertices - centre, axis=1) - 0.5)
+    assert radial.mean() < 5e-3
+    # patches meet: every polygon edge on a cube face whose neighbour across it has a patch too
+    # (not the surface's border) lies within 5 mm of the neighbouring patches
+    from trimesh.triangles import closest_point
+
+    starts = np.concatenate([[0], np.cumsum(sizes)[:-1]])
+    anchors = patches.anchors[owner]
+    index = {tuple(a): k for k, a in enumerate(anchors)}
+    triangles, triangle_polygon = fan_triangles(sizes)
+    triangles_of = {}
+    for t, k in enumerate(triangle_polygon):
+        triangles_of.setdefault(k, []).append(t)
+    around = [np.array(o) for o in itertools.product((-1, 0, 1), repeat=3) if any(o)]
+    samples, candidates = [], []
+    for k in range(len(sizes)):
+        ring = vertices[starts[k] : starts[k] + sizes[k]]
+        centre = patches.centres[owner[k]]
+        neighbours = [index.get(tuple(anchors[k] + o)) for o in around]
+        near = [t for m in neighbours if m is not None for t in triangles_of[m]]
+        for a, b in zip(ring, np.roll(ring, -1, axis=0), strict=True):
+            on_face = (np.abs(np.abs(a - centre) - S / 2) < 1e-9) & (np.abs(np.abs(b - centre) - S / 2) < 1e-9)
+            on_face &= np.sign(a - centre) == np.sign(b - centre)
+            if not on_face.any():
+                continue
+            axis = int(np.flatnonzero(on_face)[0])
+            across = anchors[k].copy()
+            across[axis] += int(np.sign(a[axis] - centre[axis]))
+            if tuple(across) not in index:
+                continue
+            for t in np.linspace(0, 1, 5):
+                samples.append(a + t * (b - a))
+                candidates.append(near)
+    counts = np.array([len(c) for c in candidates])
+    pairs_point = np.repeat(np.array(samples), counts, axis=0)
+    pairs_triangle = vertices[triangles[np.concatenate(candidates)]]
+    distance = np.linalg.norm(closest_point(pairs_triangle, pairs_point) - pairs_point, axis=1)
+    gaps = np.minimum.reduceat(distance, np.concatenate([[0], np.cumsum(counts)[:-1]]))
+    assert len(gaps) > 5000
+    assert gaps.max() < 5e-3
+
+
+def test_memory_grows_with_occupied_blocks_not_the_bounding_box():
+    cluster, _ = plane_points([0, 0, 1], [0.5, 0.5, 0.5], 0.3, 20_000, 0.002)
+    near, far = VoxelMap(), VoxelMap()
+    near.add_points(np.concatenate([cluster, cluster + [1.0, 0, 0]]))
+    far.add_points(np.concatenate([cluster, cluster + [100.0, 0, 0]]))
+    assert near.number_of_blocks == far.number_of_blocks == 2
+    assert far.memory_bytes() <= 1.01 * near.memory_bytes()
+    dense = (101 / S) * (1 / S) * (1 / S) * 10 * 8  # a dense fine grid over the far pair's bounding box
+    assert far.memory_bytes() < dense / 20
+    # negative coordinates are just more blocks
+    far.add_points(-cluster)
+    assert far.number_of_blocks == 3
+
+
+def test_colours_by_normal_follow_eqs_5_to_7():
+    s = np.sqrt(0.5)
+    normals = np.array([[0, 0, 1], [1, 0, 0], [s, 0, s], [0, s, s], [-s, 0, s], [0, -s, s]])
+    expected = np.array(
+        [[0.5, 0.5, 1.0], [0.5, 0.5, 0.0], [1.0, 0.5, 0.5], [0.5, 1.0, 0.5], [0.0, 0.5, 0.5], [0.5, 0.0, 0.5]]
+    )
+    np.testing.assert_allclose(normal_colours_float(normals), expected, atol=1e-12)
+    rng = np.random.default_rng(0)
+    random = rng.standard_normal((1000, 3))
+    np.testing.assert_array_equal(colours_by_normal(random), colours_by_normal(-random))
+    # continuous where n_x changes sign (phi through +-90 deg and through +-180 deg)
+    for base in ([0.0, 0.6, 0.8], [-0.6, 0.0, 0.8], [0.6, 0.0, 0.0]):
+        a = np.array(base) + [1e-6, 1e-6, 0]
+        b = np.array(base) - [1e-6, 1e-6, 0]
+        assert np.abs(normal_colours_float(a[None]) - normal_colours_float(b[None])).max() < 1e-5
+
+
+def test_bad_parameters_and_inputs():
+    with pytest.raises(ConfigError, match="window"):
+        VoxelPlanesParameters(window=0)
+    with pytest.raises(ConfigError, match="epsilon"):
+        VoxelPlanesParameters(epsilon=0)
+    with pytest.raises(ConfigError, match="whole number of voxels"):
+        VoxelMap(0.05, 0.33)
+    with pytest.raises(ValueError, match="shape"):
+        VoxelMap().add_points(np.zeros((4, 2)))
+    with pytest.raises(ValueError, match="NaN"):
+        VoxelMap().add_points(np.array([[0.0, np.nan, 1.0]]))
+
+
+def test_filter_meshes_a_depth_image_and_does_not_add_it_twice():
+    from conftest import plane_mesh
+    from mabdi.filters.depth_image import FilterDepthImage
+
+    sensor = FilterDepthImage()
+    sensor.SetInputDataObject(plane_mesh([0, 0, 2.0], [0, 0, 1]))
+    sensor.pose = np.eye(4)
+    surface = FilterVoxelPlanes(output="full")
+    surface.SetInputConnection(sensor.GetOutputPort())
+    surface.Update()
+    cells = surface.GetOutput().GetNumberOfCells()
+    points = surface.map.number_of_points
+    assert cells > 0 and points > 100_000
+    vertices, _ = polydata_arrays(surface.GetOutput())
+    np.testing.assert_allclose(vertices[:, 2], 2.0, atol=1e-4)  # the plane at 2 m
+    surface.output = "changed"  # a re-execution with the same image adds nothing
+    surface.Update()
+    assert surface.map.number_of_points == points
+    n, _, _ = moments_to_gaussian(surface.map.moments(surface.map.occupied_voxels()))
+    assert n.sum() == points
+
+
+@pytest.mark.slow
+def test_voxel_planes_in_the_loop_on_the_table():
+    from mabdi.config import load_run_config
+    from mabdi.evaluate import distances_to_mesh
+    from mabdi.evaluate.metrics import evaluate_run
+    from mabdi.simulate import Simulation
+
+    config = load_run_config(REPO / "scenes" / "table.toml")
+    config.surface.method = "voxel_planes"
+    simulation = Simulation(config)
+    result = simulation.run()
+    pixel_grid_cells = 825_799  # the pixel-grid map of the same run (tests/test_simulation.py measures it)
+    assert result.mesh.GetNumberOfCells() * 10 <= pixel_grid_cells
+    vertices = vtk_to_numpy(result.mesh.GetPoints().GetData())
+    assert np.median(distances_to_mesh(vertices, simulation.scene.mesh_at(29))) < 1e-2
+    added = np.array([r.cells_added for r in result.records])
+    assert added[15:].sum() <= 0.15 * added[:15].sum()
+    assert evaluate_run(simulation, result, samples=30_000).redundancy <= 0.05
