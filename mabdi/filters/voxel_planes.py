@@ -164,11 +164,12 @@ def cube_polygons(normals: np.ndarray, points: np.ndarray, centres: np.ndarray, 
         t = numerator / denominator  # eq. (4)
     hit = (np.abs(denominator) > 1e-12 * half) & (t >= 0.0) & (t <= 1.0)
     crossings = p1 + np.where(hit, t, 0.0)[..., None] * (p2 - p1)
-    # a plane through a cube corner crosses up to three edges there: keep the first of each cluster
-    gap = np.linalg.norm(crossings[:, :, None, :] - crossings[:, None, :, :], axis=-1)
-    earlier = np.tril(np.ones((12, 12), dtype=bool), k=-1)
-    duplicate = ((gap <= 1e-9 * half) & earlier[None] & hit[:, None, :]).any(axis=2)
-    hit &= ~duplicate
+    # a plane through a cube corner crosses up to three edges there (t = 0 or 1): keep the first
+    tolerance = 1e-9
+    corner = np.where(t <= tolerance, _EDGES[:, 0], np.where(t >= 1 - tolerance, _EDGES[:, 1], -1))
+    corner = np.where(hit, corner, -1)
+    at_corner = corner[:, :, None] == np.arange(8)[None, None, :]  # (M, 12, 8)
+    hit &= ~((np.cumsum(at_corner, axis=1) > 1) & at_corner).any(axis=2)
     sizes = hit.sum(axis=1)
     polygon = (sizes >= 3) & (sizes <= 6)
     hit, crossings, sizes = hit[polygon], crossings[polygon], sizes[polygon]
