@@ -2,7 +2,9 @@
 
     mabdi run CONFIG [--frames N] [--out DIR] [--noise MODEL] [--seed N] [--surface NAME]
                      [--no-classifier] [--depth-images] [--backend B] [--quiet]
-    mabdi export IN OUT          convert a saved map between VTP, PLY, OBJ and STL
+    mabdi export IN OUT [--layout mesh_tools|lvr2]   convert a map between VTP, PLY, OBJ, STL and HDF5
+    mabdi info MAP               counts, bounds, layers, labels and cluster sets of a map
+    mabdi plan MAP --start x,y,z --goal x,y,z [--planner dijkstra|fmm] [--out path.vtp]
     mabdi bench [--scene NAME|CONFIG] [--methods M ...] [--frames N] [--out DIR]
 
 Options override the config file; the resolved config is written with the
@@ -36,13 +38,25 @@ def _parser() -> argparse.ArgumentParser:
         "--no-classifier", action="store_true", help="black box: mesh every valid pixel every frame (classifier.enabled = false)"
     )
     run.add_argument("--depth-images", action="store_true", help="also write D, E and labels of every frame as VTI")
+    run.add_argument("--h5", action="store_true", help="also write world_mesh.h5 with cost layers, labels, poses (output.h5)")
     run.add_argument("--backend", help="render backend: egl or osmesa (overrides sensor.backend)")
     run.add_argument("--quiet", action="store_true", help="no progress bar")
     run.add_argument("--no-eval", action="store_true", help="skip the evaluation against the ground truth")
 
-    export = commands.add_parser("export", help="convert a saved map between VTP, PLY, OBJ and STL")
-    export.add_argument("source", type=Path, help="map file to read (.vtp, .ply, .obj, .stl)")
+    export = commands.add_parser("export", help="convert a saved map between VTP, PLY, OBJ, STL and HDF5 (.h5)")
+    export.add_argument("source", type=Path, help="map file to read (.vtp, .ply, .obj, .stl, .h5)")
     export.add_argument("target", type=Path, help="file to write; the format follows the suffix")
+    export.add_argument("--layout", default="mesh_tools", help="HDF5 layout: mesh_tools (default) or lvr2")
+
+    info = commands.add_parser("info", help="counts, bounds, layers, labels and cluster sets of a map file")
+    info.add_argument("map", type=Path, help="map file (.h5, .vtp, .ply, .obj, .stl)")
+
+    plan = commands.add_parser("plan", help="plan a path on a map (Dijkstra or fast marching)")
+    plan.add_argument("map", type=Path, help="map file (.h5, .vtp, .ply, .obj, .stl)")
+    plan.add_argument("--start", required=True, help="start point x,y,z (m)")
+    plan.add_argument("--goal", required=True, help="goal point x,y,z (m)")
+    plan.add_argument("--planner", default="fmm", help="fmm (default) or dijkstra")
+    plan.add_argument("--out", type=Path, help="write the path as a polyline (.vtp)")
 
     bench = commands.add_parser("bench", help="every method on the same frames, scored against the ground truth")
     bench.add_argument("--scene", default="table", help="scene name in scenes/ or a run config path (default: table)")
@@ -92,6 +106,8 @@ def _apply_overrides(config, args) -> None:
         config.output.dir = str(args.out)
     if getattr(args, "depth_images", False):
         config.output.depth_images = True
+    if getattr(args, "h5", False):
+        config.output.h5 = True
     validate_run_config(config, where="command line")
 
 
@@ -169,15 +185,93 @@ def cmd_bench(args) -> int:
 
 
 def cmd_export(args) -> int:
+    from mabdi.errors import ConfigError
+    from mabdi.io.map_files import is_hdf5, load_map, save_map
     from mabdi.io.vtk_files import read_mesh_file, write_mesh_file
 
     if args.source.resolve() == args.target.resolve():
-        from mabdi.errors import ConfigError
-
         raise ConfigError(f"export: source and target are the same file ({args.source})")
+    if is_hdf5(args.source) or is_hdf5(args.target):
+        mesh_map = load_map(args.source)
+        save_map(mesh_map, args.target, layout=args.layout)
+        print(f"wrote {args.target} ({mesh_map.number_of_vertices:,} vertices, {mesh_map.number_of_faces:,} triangles)")
+        return 0
     mesh = read_mesh_file(args.source)
     write_mesh_file(mesh, args.target)
     print(f"wrote {args.target} ({mesh.GetNumberOfPoints():,} points, {mesh.GetNumberOfCells():,} cells)")
+    return 0
+
+
+def _layer_line(name: str, values) -> str:
+    import numpy as np
+
+    values = np.asarray(values)
+    shape = "" if values.ndim == 1 else f" x{int(np.prod(values.shape[1:]))}"
+    finite = values[np.isfinite(values)] if values.dtype.kind == "f" else values
+    span = f"{finite.min():.4g} .. {finite.max():.4g}" if finite.size else "no finite values"
+    return f"    {name} ({values.dtype}{shape}): {span}"
+
+
+def cmd_info(args) -> int:
+    from mabdi.io.hdf5 import map_layout
+    from mabdi.io.map_files import is_hdf5, load_map
+
+    mesh_map = load_map(args.map)
+    low, high = mesh_map.bounds()
+    layout = f" ({map_layout(args.map)} layout)" if is_hdf5(args.map) else ""
+    print(f"{args.map}{layout}")
+    print(f"  {mesh_map.number_of_vertices:,} vertices, {mesh_map.number_of_faces:,} triangles")
+    print(f"  bounds: x {low[0]:.3f} .. {high[0]:.3f}, y {low[1]:.3f} .. {high[1]:.3f}, z {low[2]:.3f} .. {high[2]:.3f} m")
+    for kind, layers in (("vertex", mesh_map.vertex_layers), ("face", mesh_map.face_layers)):
+        print(f"  {kind} layers: {len(layers)}")
+        for name, values in layers.items():
+            print(_layer_line(name, values))
+    print(f"  labels: {len(mesh_map.labels)}")
+    for name, ids in mesh_map.labels.items():
+        print(f"    {name}: {len(ids):,} faces")
+    print(f"  cluster sets: {len(mesh_map.clustersets)}")
+    for name, clusters in mesh_map.clustersets.items():
+        sizes = sorted((len(ids) for ids in clusters.values()), reverse=True)
+        print(f"    {name}: {len(clusters)} clusters (largest {', '.join(f'{s:,}' for s in sizes[:5])} faces)")
+    if mesh_map.poses is not None:
+        print(f"  source: {len(mesh_map.poses)} poses" + (", intrinsics" if mesh_map.intrinsics is not None else ""))
+    return 0
+
+
+def _point(text: str, what: str):
+    import numpy as np
+
+    from mabdi.errors import ConfigError
+
+    try:
+        values = [float(v) for v in text.split(",")]
+    except ValueError:
+        values = []
+    if len(values) != 3 or not np.all(np.isfinite(values)):
+        raise ConfigError(f"plan: --{what} must be three numbers x,y,z in metres, got {text!r}")
+    return np.array(values)
+
+
+def cmd_plan(args) -> int:
+    from mabdi.io.map_files import load_map
+    from mabdi.io.vtk_files import write_polydata
+    from mabdi.maps.layers import add_cost_layers
+    from mabdi.maps.planning import plan
+    from mabdi.polydata import polyline
+
+    start, goal = _point(args.start, "start"), _point(args.goal, "goal")
+    mesh_map = load_map(args.map)
+    if "lethal" not in mesh_map.vertex_layers:
+        print("map has no cost layers: computing them (mabdi.maps.layers defaults)")
+        add_cost_layers(mesh_map, faces=False)
+    result = plan(mesh_map, start, goal, planner=args.planner)
+    if not result.reachable:
+        print(f"goal unreachable: no free path from vertex {result.start_vertex} to vertex {result.goal_vertex} ({args.planner})")
+        return 1
+    print(f"{args.planner}: path of {len(result.path)} points, length {result.length:.3f} m, cost {result.cost:.3f}")
+    if args.out is not None:
+        write_polydata(polyline(result.path), args.out)
+        print(f"wrote {args.out}")
     return 0
 
 
@@ -186,7 +280,8 @@ def main(argv=None) -> int:
     from mabdi.errors import MabdiError
 
     try:
-        return {"run": cmd_run, "export": cmd_export, "bench": cmd_bench}[args.command](args)
+        commands = {"run": cmd_run, "export": cmd_export, "info": cmd_info, "plan": cmd_plan, "bench": cmd_bench}
+        return commands[args.command](args)
     except (MabdiError, FileNotFoundError) as exc:
         print(f"mabdi: error: {exc}", file=sys.stderr)
         return 2

@@ -169,12 +169,16 @@ class OutputConfig:
     """What a run writes. ``dir`` defaults to ``runs/<run.name>`` (relative to the working folder).
 
     ``depth_images``: also write D, E and the labels of every frame as VTI
-    (about 1 MB per frame each).
+    (about 1 MB per frame each). ``h5``: also write ``world_mesh.h5`` (Mesh
+    Tools layout, :mod:`mabdi.io.hdf5`) with its cost layers, colours by
+    normal, the creation frame of each face, a ``floor`` label, planar
+    clusters, and the run's poses and intrinsics.
     """
 
     dir: str = ""
     vtp: bool = True
     ply: bool = True
+    h5: bool = False
     depth_images: bool = False
 
 

@@ -112,3 +112,40 @@ def test_console_script_runs(tmp_path, scenes_dir):
     assert result.returncode == 0, result.stderr
     assert (tmp_path / "r" / "world_mesh.ply").is_file()
     assert "2 frames in" in result.stdout
+
+
+def test_run_h5_then_info_export_and_plan(tmp_path, scenes_dir, capsys):
+    out = tmp_path / "run"
+    status = main(
+        ["run", str(scenes_dir / "table.toml"), "--frames", "12", "--surface", "voxel_planes", "--out", str(out), "--quiet", "--no-eval", "--h5"]
+    )
+    assert status == 0
+    capsys.readouterr()
+    assert main(["info", str(out / "world_mesh.h5")]) == 0
+    info = capsys.readouterr().out
+    assert "mesh_tools layout" in info and "floor:" in info and "12 poses, intrinsics" in info
+    for layer in ("roughness", "height_difference", "cost", "lethal", "rgb_colors", "frame"):
+        assert f"    {layer} (" in info
+    assert main(["export", str(out / "world_mesh.h5"), str(tmp_path / "lvr2.h5"), "--layout", "lvr2"]) == 0
+    assert main(["export", str(tmp_path / "lvr2.h5"), str(tmp_path / "map.ply")]) == 0
+    assert main(["info", str(tmp_path / "lvr2.h5")]) == 0
+    assert "lvr2 layout" in capsys.readouterr().out
+    path = tmp_path / "path.vtp"
+    assert main(["plan", str(out / "world_mesh.h5"), "--start=-2,-1.5,0", "--goal=2,1.5,0", "--out", str(path)]) == 0
+    printed = capsys.readouterr().out
+    assert "fmm: path of" in printed and path.is_file()
+    length = float(printed.split("length ")[1].split(" m")[0])
+    reader = vtkXMLPolyDataReader()
+    reader.SetFileName(str(path))
+    reader.Update()
+    points = np.array([reader.GetOutput().GetPoint(i) for i in range(reader.GetOutput().GetNumberOfPoints())])
+    straight = np.linalg.norm(points[-1] - points[0])  # between the free vertices nearest start and goal
+    assert straight > 2.0 and straight - 1e-6 <= length <= 1.15 * straight
+    assert np.abs(points[:, 2]).max() < 0.05  # on the floor
+    # the table top is a lethal island for a floor robot: unreachable, exit status 1
+    assert main(["plan", str(out / "world_mesh.h5"), "--start=-2,-1.5,0", "--goal=0,0,1", "--planner", "dijkstra"]) == 1
+    assert "goal unreachable" in capsys.readouterr().out
+    assert main(["plan", str(out / "world_mesh.h5"), "--start=-2,-1.5,0", "--goal=0,0,3"]) == 2
+    assert "from the nearest free vertex" in capsys.readouterr().err
+    assert main(["plan", str(out / "world_mesh.h5"), "--start=1,2", "--goal=0,0,0"]) == 2
+    assert "--start must be three numbers" in capsys.readouterr().err

@@ -75,14 +75,14 @@ def _h5py():
     return h5py
 
 
-def _dataset(group, name: str, values: np.ndarray, **attributes) -> None:
+def _dataset(group, dataset_name: str, values: np.ndarray, **attributes) -> None:
     values = np.ascontiguousarray(values)
     options = {}
     if values.size:
         chunks = list(values.shape)
         chunks[0] = max(1, min(values.shape[0], CHUNK_ELEMENTS // max(1, int(np.prod(values.shape[1:])))))
         options = {"compression": "gzip", "compression_opts": GZIP_LEVEL, "chunks": tuple(chunks)}
-    dataset = group.create_dataset(name, data=values, **options)
+    dataset = group.create_dataset(dataset_name, data=values, **options)
     for key, value in attributes.items():
         dataset.attrs[key] = value
 

@@ -4,12 +4,17 @@ All vectorised over the vertices (numpy, a scipy KD-tree); z is up (metres).
 
 * ``normals``: area-weighted average of the faces' normals around each vertex.
 * **Neighbourhoods**: the vertices within ``radius`` of a vertex (at most the
-  ``max_neighbours`` nearest, 32 by default, the vertex itself included), from
-  one KD-tree query shared by the layers below.
-* ``roughness``: the local normal variation, the mean over the neighbourhood
-  of 1 - |n_v . n_u| (0 on a plane, up to 1 for normals at right angles).
-* ``height_difference``: the largest height difference within the
-  neighbourhood, max z - min z (m).
+  ``max_neighbours`` nearest, 32 by default, the vertex itself included), by
+  a KD-tree query.
+* ``roughness``: the local normal variation, the mean over the vertex's 3-D
+  neighbourhood of 1 - |n_v . n_u| (0 on a plane, up to 1 for normals at
+  right angles).
+* ``height_difference``: the largest height difference, max z - min z (m),
+  among the vertices within ``radius`` horizontally (the robot's footprint)
+  and ``height_window`` (0.5 m) vertically: an ellipsoid, found as a sphere
+  after scaling z by radius / height_window. A sphere of the footprint's
+  radius would never see the top of a step taller than the radius; an
+  unbounded column would mix levels (the floor under a table with its top).
 * ``slope``: the angle of the normal from the vertical (radians, unoriented).
 * ``lethal``: 1 where a robot must not go: slope above ``max_slope``,
   height difference above ``max_step`` or roughness above ``max_roughness``.
@@ -44,6 +49,7 @@ class CostParameters:
     """Thresholds (m, radians) and weights of the cost layers; see the module docs."""
 
     radius: float = 0.1
+    height_window: float = 0.5
     max_neighbours: int = 32
     max_slope: float = float(np.radians(30.0))
     max_step: float = 0.1
@@ -55,7 +61,7 @@ class CostParameters:
     w_inflation: float = 2.0
 
     def __post_init__(self) -> None:
-        for name in ("radius", "max_slope", "max_step", "max_roughness"):
+        for name in ("radius", "height_window", "max_slope", "max_step", "max_roughness"):
             if not getattr(self, name) > 0:
                 raise ConfigError(f"cost layers: {name} must be > 0, got {getattr(self, name)}")
         if self.inflation_radius < 0 or self.max_neighbours < 2:
@@ -86,7 +92,9 @@ def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
 
 
 def neighbourhoods(vertices: np.ndarray, radius: float, max_neighbours: int) -> np.ndarray:
-    """(N, K) indices of the vertices within ``radius`` (nearest first, the vertex itself first), N where none."""
+    """(N, K) indices of the vertices within ``radius`` (nearest first, the vertex itself first), N where none.
+
+    """
     points = np.asarray(vertices, dtype=np.float64)
     tree = cKDTree(points)
     k = min(max_neighbours, len(points))
@@ -140,9 +148,9 @@ def cost_layers(mesh_map: MeshMap, parameters: CostParameters | None = None) -> 
     p = parameters or CostParameters()
     vertices, faces = mesh_map.vertices, mesh_map.faces
     normals = vertex_normals(vertices, faces)
-    index = neighbourhoods(vertices, p.radius, p.max_neighbours)
-    rough = roughness(normals, index)
-    height = height_difference(vertices, index)
+    rough = roughness(normals, neighbourhoods(vertices, p.radius, p.max_neighbours))
+    squashed = np.asarray(vertices, dtype=np.float64) * [1.0, 1.0, p.radius / p.height_window]
+    height = height_difference(vertices, neighbourhoods(squashed, p.radius, p.max_neighbours))
     slope = np.arccos(np.clip(np.abs(normals[:, 2]), 0.0, 1.0))
     lethal = (slope > p.max_slope) | (height > p.max_step) | (rough > p.max_roughness)
     inflated = inflation(vertices, lethal, p.inflation_radius)

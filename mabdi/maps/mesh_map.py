@@ -24,6 +24,10 @@ from vtkmodules.vtkCommonDataModel import vtkPolyData
 from mabdi.errors import MabdiError
 
 LABEL_ARRAY_PREFIX = "label:"
+#: Vertices closer than this (m) count as one for connectivity (labels, clusters, planning): a mabdi
+#: map is a set of patches (frames, voxel-plane polygons) whose borders meet within millimetres
+#: but share no vertices.
+WELD = 0.005
 
 
 class MeshMapError(MabdiError, ValueError):
@@ -141,6 +145,51 @@ class MeshMap:
         if self.number_of_vertices == 0:
             return np.zeros(3), np.zeros(3)
         return self.vertices.min(axis=0).astype(np.float64), self.vertices.max(axis=0).astype(np.float64)
+
+
+def welded_vertices(vertices: np.ndarray, tolerance: float = WELD) -> np.ndarray:
+    """(N,) group id of each vertex: vertices closer than ``tolerance`` (m), transitively, share one (0..G-1)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    n = len(vertices)
+    if tolerance <= 0 or n == 0:
+        return np.arange(n)
+    pairs = cKDTree(np.asarray(vertices, dtype=np.float64)).query_pairs(tolerance, output_type="ndarray")
+    if len(pairs) == 0:
+        return np.arange(n)
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+    return connected_components(graph, directed=False)[1]
+
+
+def welded_map(mesh_map: MeshMap, tolerance: float = WELD) -> tuple[MeshMap, np.ndarray]:
+    """The map with vertices closer than ``tolerance`` merged (their mean position), and each old vertex's new id.
+
+    Faces that collapse (two corners merged) are dropped; vertex layers are averaged over each
+    group, except ``lethal``, which takes the maximum (a merged vertex is lethal if any was).
+    Labels, face layers and cluster sets are not carried over (face ids change).
+    """
+    groups = welded_vertices(mesh_map.vertices, tolerance)
+    count = int(groups.max()) + 1 if len(groups) else 0
+    sizes = np.bincount(groups, minlength=count).astype(np.float64)
+    vertices = np.stack(
+        [np.bincount(groups, weights=mesh_map.vertices[:, k].astype(np.float64), minlength=count) / sizes for k in range(3)],
+        axis=1,
+    )
+    faces = groups[mesh_map.faces]
+    keep = (faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 2] != faces[:, 0])
+    layers = {}
+    for name, values in mesh_map.vertex_layers.items():
+        values = np.asarray(values, dtype=np.float64)
+        flat = values.reshape(len(values), -1)
+        if name == "lethal":
+            merged = np.zeros((count, flat.shape[1]))
+            np.maximum.at(merged, groups, flat)
+        else:
+            merged = np.stack([np.bincount(groups, weights=flat[:, k], minlength=count) / sizes for k in range(flat.shape[1])], axis=1)
+        layers[name] = merged.reshape((count,) + values.shape[1:]).astype(np.float32)
+    return MeshMap(vertices, faces[keep], layers), groups
 
 
 def _arrays(data) -> dict[str, np.ndarray]:

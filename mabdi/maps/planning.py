@@ -41,7 +41,7 @@ from scipy.sparse.csgraph import dijkstra
 from scipy.spatial import cKDTree
 
 from mabdi.errors import MabdiError
-from mabdi.maps.mesh_map import MeshMap
+from mabdi.maps.mesh_map import WELD, MeshMap, welded_map
 
 PLANNERS = ("dijkstra", "fmm")
 
@@ -72,12 +72,17 @@ def _slowness(mesh_map: MeshMap, cost_weight: float) -> tuple[np.ndarray, np.nda
     return slowness, blocked
 
 
-def _nearest_free(mesh_map: MeshMap, point, blocked: np.ndarray, what: str) -> int:
+def _nearest_free(mesh_map: MeshMap, point, blocked: np.ndarray, what: str, max_snap: float) -> int:
     free = np.flatnonzero(~blocked)
     if len(free) == 0:
         raise PlanningError("every vertex of the map is lethal")
     point = np.asarray(point, dtype=np.float64).reshape(3)
-    _, index = cKDTree(mesh_map.vertices[free]).query(point)
+    distance, index = cKDTree(mesh_map.vertices[free]).query(point)
+    if distance > max_snap:
+        raise PlanningError(
+            f"the {what} {tuple(round(float(v), 3) for v in point)} is {distance:.2f} m from the nearest free "
+            f"vertex of the map (more than {max_snap} m): not on the map, or on a lethal part of it"
+        )
     return int(free[index])
 
 
@@ -88,18 +93,39 @@ def edges(faces: np.ndarray) -> np.ndarray:
     return np.unique(pairs, axis=0)
 
 
-def plan(mesh_map: MeshMap, start, goal, planner: str = "fmm", cost_weight: float = 4.0) -> PlanResult:
-    """Plan from the free vertex nearest ``start`` to the one nearest ``goal`` (points in metres)."""
+def plan(
+    mesh_map: MeshMap,
+    start,
+    goal,
+    planner: str = "fmm",
+    cost_weight: float = 4.0,
+    weld: float = WELD,
+    max_snap: float = 0.25,
+) -> PlanResult:
+    """Plan from the free vertex nearest ``start`` to the one nearest ``goal`` (points in metres).
+
+    A start or goal farther than ``max_snap`` (m) from every free vertex is a :class:`PlanningError`.
+
+    The map is first welded (vertices closer than ``weld`` merged, :func:`welded_map`), so the
+    patches of a mabdi map connect; vertex ids in the result refer to the welded map, and with
+    ``fmm`` the arrival times are stored on ``mesh_map`` as the vertex layer ``arrival_time``.
+    """
     if planner not in PLANNERS:
         raise PlanningError(f"unknown planner {planner!r} (known: {', '.join(PLANNERS)})")
     if mesh_map.number_of_faces == 0:
         raise PlanningError("the map has no faces to plan on")
+    original = mesh_map
+    if weld > 0:
+        mesh_map, groups = welded_map(mesh_map, weld)
     slowness, blocked = _slowness(mesh_map, cost_weight)
-    s = _nearest_free(mesh_map, start, blocked, "start")
-    g = _nearest_free(mesh_map, goal, blocked, "goal")
+    s = _nearest_free(mesh_map, start, blocked, "start", max_snap)
+    g = _nearest_free(mesh_map, goal, blocked, "goal", max_snap)
     if planner == "dijkstra":
         return _plan_dijkstra(mesh_map, s, g, slowness, blocked)
-    return _plan_fmm(mesh_map, s, g, slowness, blocked)
+    result = _plan_fmm(mesh_map, s, g, slowness, blocked)
+    if weld > 0:
+        original.vertex_layers["arrival_time"] = mesh_map.vertex_layers["arrival_time"][groups]
+    return result
 
 
 def _result(planner, path, slowness_at, s, g) -> PlanResult:

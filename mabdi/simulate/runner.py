@@ -48,8 +48,13 @@ from mabdi.filters.quadtree import FilterQuadTree, QuadTreeParameters
 from mabdi.filters.voxel_planes import FilterVoxelPlanes, VoxelPlanesParameters
 from mabdi.filters.world_mesh import FilterWorldMesh
 from mabdi.io.atomic import atomic_output, write_text
+from mabdi.io.hdf5 import write_map
 from mabdi.io.plots import write_elements_plot
 from mabdi.io.vtk_files import write_image, write_mesh_file, write_polydata
+from mabdi.maps.colours import colours_by_normal
+from mabdi.maps.labels import label_floor, planar_clusters
+from mabdi.maps.layers import add_cost_layers
+from mabdi.maps.mesh_map import MeshMap
 from mabdi.polydata import polyline
 from mabdi.simulate.path import path_from_config
 from mabdi.sources.scene import SourceScene
@@ -328,6 +333,21 @@ def metrics_csv(records: list[FrameRecord]) -> str:
     return buffer.getvalue()
 
 
+def annotated_map(mesh: vtkPolyData, poses: np.ndarray, intrinsics) -> MeshMap:
+    """The run's map as a MeshMap with cost layers, colours by normal, a floor label and planar clusters."""
+    mesh_map = MeshMap.from_polydata(mesh)
+    mesh_map.vertex_layers = {}  # the merged mesh's point data is not a map layer
+    mesh_map.face_layers = {k: v for k, v in mesh_map.face_layers.items() if k == "frame"}
+    if mesh_map.number_of_faces:
+        add_cost_layers(mesh_map)
+        mesh_map.vertex_layers["rgb_colors"] = colours_by_normal(mesh_map.vertex_layers["normals"])
+        label_floor(mesh_map)
+        planar_clusters(mesh_map, min_faces=10)
+    mesh_map.poses = np.asarray(poses, dtype=np.float64)
+    mesh_map.intrinsics = intrinsics.to_array()
+    return mesh_map
+
+
 def write_run_outputs(result: RunResult, simulation: Simulation) -> None:
     """Write a finished run's files into ``result.out_dir`` (each atomically)."""
     out = result.out_dir
@@ -336,6 +356,8 @@ def write_run_outputs(result: RunResult, simulation: Simulation) -> None:
         write_mesh_file(result.mesh, out / "world_mesh.vtp")
     if config.output.ply:
         write_mesh_file(result.mesh, out / "world_mesh.ply")
+    if config.output.h5:
+        write_map(annotated_map(result.mesh, simulation.poses, config.sensor.intrinsics()), out / "world_mesh.h5")
     write_text(out / "metrics.csv", metrics_csv(result.records))
     write_text(out / "summary.json", json.dumps(result.summary(), indent=2) + "\n")
     frames = np.array([r.frame for r in result.records])
