@@ -53,7 +53,6 @@ from mabdi.camera import backproject  # noqa: E402
 from mabdi.evaluate import distances_to_mesh  # noqa: E402
 from mabdi.evaluate.bench import machine_info  # noqa: E402
 from mabdi.filters.voxel_planes import FilterVoxelPlanes, VoxelPlanesParameters  # noqa: E402
-from mabdi.polydata import polydata_arrays  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 FIGURES = REPO / "docs" / "figures"

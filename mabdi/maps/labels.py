@@ -26,7 +26,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from mabdi.maps.layers import face_normals
-from mabdi.maps.mesh_map import WELD, MeshMap, MeshMapError, welded_vertices
+from mabdi.maps.mesh_map import WELD, MeshMap, MeshMapError, unique_pairs, welded_vertices
 
 
 def face_adjacency(faces: np.ndarray, vertex_ids: np.ndarray | None = None, max_fan: int = 16) -> np.ndarray:
@@ -51,7 +51,7 @@ def face_adjacency(faces: np.ndarray, vertex_ids: np.ndarray | None = None, max_
     pairs = np.concatenate(pairs)
     pairs = pairs[pairs[:, 0] != pairs[:, 1]]
     pairs.sort(axis=1)
-    return np.unique(pairs, axis=0)
+    return unique_pairs(pairs)
 
 
 def _components(count: int, pairs: np.ndarray) -> np.ndarray:

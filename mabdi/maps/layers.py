@@ -3,18 +3,18 @@
 All vectorised over the vertices (numpy, a scipy KD-tree); z is up (metres).
 
 * ``normals``: area-weighted average of the faces' normals around each vertex.
-* **Neighbourhoods**: the vertices within ``radius`` of a vertex (at most the
-  ``max_neighbours`` nearest, 32 by default, the vertex itself included), by
-  a KD-tree query.
-* ``roughness``: the local normal variation, the mean over the vertex's 3-D
+* **Neighbourhood** of a vertex: the vertices within ``radius`` horizontally
+  (the robot's footprint) and ``height_window`` (0.5 m) vertically, an
+  ellipsoid, found by one KD-tree query as a sphere after scaling z by
+  radius / height_window; at most the ``max_neighbours`` nearest (24), the
+  vertex itself included. A sphere of the footprint's radius would never
+  see the top of a step taller than the radius; an unbounded column would
+  mix levels (the floor under a table with its top).
+* ``roughness``: the local normal variation, the mean over the
   neighbourhood of 1 - |n_v . n_u| (0 on a plane, up to 1 for normals at
   right angles).
-* ``height_difference``: the largest height difference, max z - min z (m),
-  among the vertices within ``radius`` horizontally (the robot's footprint)
-  and ``height_window`` (0.5 m) vertically: an ellipsoid, found as a sphere
-  after scaling z by radius / height_window. A sphere of the footprint's
-  radius would never see the top of a step taller than the radius; an
-  unbounded column would mix levels (the floor under a table with its top).
+* ``height_difference``: the largest height difference in the
+  neighbourhood, max z - min z (m).
 * ``slope``: the angle of the normal from the vertical (radians, unoriented).
 * ``lethal``: 1 where a robot must not go: slope above ``max_slope``,
   height difference above ``max_step`` or roughness above ``max_roughness``.
@@ -50,7 +50,7 @@ class CostParameters:
 
     radius: float = 0.1
     height_window: float = 0.5
-    max_neighbours: int = 32
+    max_neighbours: int = 24
     max_slope: float = float(np.radians(30.0))
     max_step: float = 0.1
     max_roughness: float = 0.3
@@ -105,29 +105,28 @@ def neighbourhoods(vertices: np.ndarray, radius: float, max_neighbours: int) -> 
     return out
 
 
-def _gather(values: np.ndarray, index: np.ndarray, fill: float) -> np.ndarray:
-    padded = np.concatenate([values, np.full((1,) + values.shape[1:], fill, dtype=values.dtype)])
-    return padded[index]
+def _padded(values: np.ndarray, fill: float) -> np.ndarray:
+    """``values`` with one more row of ``fill``: the KD-tree's "no neighbour" index N points there."""
+    return np.concatenate([values, np.full((1,) + values.shape[1:], fill, dtype=values.dtype)])
 
 
 def roughness(normals: np.ndarray, index: np.ndarray) -> np.ndarray:
     """Mean of 1 - |n_v . n_u| over each vertex's neighbourhood (``index`` from :func:`neighbourhoods`)."""
-    valid = index < len(normals)
+    normals = np.asarray(normals, dtype=np.float32)
+    padded = _padded(normals, 0.0)
     out = np.empty(len(normals))
     for start in range(0, len(normals), CHUNK):
         block = slice(start, start + CHUNK)
-        around = _gather(normals, index[block], 0.0)
-        dots = np.abs(np.einsum("nkc,nc->nk", around, normals[block]))
-        out[block] = np.where(valid[block], 1.0 - dots, 0.0).sum(axis=1) / valid[block].sum(axis=1)
+        valid = index[block] < len(normals)
+        dots = np.abs(np.einsum("nkc,nc->nk", padded[index[block]], normals[block]))
+        out[block] = np.where(valid, 1.0 - dots, 0.0).sum(axis=1) / valid.sum(axis=1)
     return out
 
 
 def height_difference(vertices: np.ndarray, index: np.ndarray) -> np.ndarray:
     """max z - min z over each vertex's neighbourhood (m)."""
     z = np.asarray(vertices, dtype=np.float64)[:, 2]
-    high = _gather(z, index, -np.inf).max(axis=1)
-    low = _gather(z, index, np.inf).min(axis=1)
-    return high - low
+    return _padded(z, -np.inf)[index].max(axis=1) - _padded(z, np.inf)[index].min(axis=1)
 
 
 def inflation(vertices: np.ndarray, lethal: np.ndarray, radius: float) -> np.ndarray:
@@ -148,9 +147,10 @@ def cost_layers(mesh_map: MeshMap, parameters: CostParameters | None = None) -> 
     p = parameters or CostParameters()
     vertices, faces = mesh_map.vertices, mesh_map.faces
     normals = vertex_normals(vertices, faces)
-    rough = roughness(normals, neighbourhoods(vertices, p.radius, p.max_neighbours))
     squashed = np.asarray(vertices, dtype=np.float64) * [1.0, 1.0, p.radius / p.height_window]
-    height = height_difference(vertices, neighbourhoods(squashed, p.radius, p.max_neighbours))
+    index = neighbourhoods(squashed, p.radius, p.max_neighbours)
+    rough = roughness(normals, index)
+    height = height_difference(vertices, index)
     slope = np.arccos(np.clip(np.abs(normals[:, 2]), 0.0, 1.0))
     lethal = (slope > p.max_slope) | (height > p.max_step) | (rough > p.max_roughness)
     inflated = inflation(vertices, lethal, p.inflation_radius)

@@ -147,6 +147,18 @@ class MeshMap:
         return self.vertices.min(axis=0).astype(np.float64), self.vertices.max(axis=0).astype(np.float64)
 
 
+def unique_pairs(pairs: np.ndarray) -> np.ndarray:
+    """Unique rows of (E, 2) non-negative int pairs, sorted; by one int64 key and a sort (numpy's
+    unique(axis=0) and its hash-based unique are many times slower on millions of rows)."""
+    pairs = np.asarray(pairs, dtype=np.int64)
+    if len(pairs) == 0:
+        return pairs.reshape(0, 2)
+    base = int(pairs.max()) + 1
+    keys = np.sort(pairs[:, 0] * base + pairs[:, 1])
+    keys = keys[np.concatenate([[True], keys[1:] != keys[:-1]])]
+    return np.stack([keys // base, keys % base], axis=1)
+
+
 def welded_vertices(vertices: np.ndarray, tolerance: float = WELD) -> np.ndarray:
     """(N,) group id of each vertex: vertices closer than ``tolerance`` (m), transitively, share one (0..G-1)."""
     from scipy.sparse import coo_matrix

@@ -44,6 +44,7 @@ class MapPicker:
         self._locator.BuildLocator()
         self._normals, _ = face_normals(mesh_map.vertices, mesh_map.faces)
         low, high = mesh_map.bounds()
+        self._low = low
         self._reach = 2.0 * float(np.linalg.norm(high - low)) + 1.0
         self._cell = vtkGenericCell()
 
@@ -55,7 +56,7 @@ class MapPicker:
         if origin.shape != (3,) or direction.shape != (3,) or not length > 0:
             raise ValueError("pick: origin and direction must be 3-vectors, the direction non-zero")
         direction = direction / length
-        reach = self._reach + float(np.linalg.norm(origin - self._map.bounds()[0])) if max_distance is None else max_distance
+        reach = self._reach + float(np.linalg.norm(origin - self._low)) if max_distance is None else max_distance
         end = origin + reach * direction
         t, x, pcoords = reference(0.0), [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]
         sub_id, cell_id = reference(0), reference(-1)

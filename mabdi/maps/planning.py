@@ -18,11 +18,13 @@ triangle (A, B, C) with A and B reached, the time of the planar front that
 passes A at T_A and B at T_B, used only when the front comes from inside the
 triangle (its direction at C lies between CA and CB, and T_C >= T_A, T_B);
 otherwise, as for obtuse triangles where that fails, the triangle gives the
-edge updates T_A + |CA| s and T_B + |CB| s. The front is advanced by the
-fast iterative method (a band of active vertices, updated all at once with
-numpy, until no time improves by more than 1e-9 of the domain size) rather
-than by a heap one vertex at a time: the same update and the same
-solution, vectorised. T is stored as the vertex layer ``arrival_time``. The path follows
+edge updates T_A + |CA| s and T_B + |CB| s. The front advances one vertex
+at a time from a heap (Sethian's fast marching, compiled with numba:
+:mod:`mabdi.maps.fast_marching`); without numba, by the fast iterative
+method (a band of active vertices updated all at once with numpy until no
+time improves by more than 1e-9 of the domain size), the same update and
+solution, much slower on big maps. T is stored as the vertex layer
+``arrival_time``. The path follows
 -grad T from the goal back to the start, in steps of half the mean edge
 length, each step projected back onto the mesh; it cuts across triangles,
 so its length approaches the true geodesic's.
@@ -41,7 +43,8 @@ from scipy.sparse.csgraph import dijkstra
 from scipy.spatial import cKDTree
 
 from mabdi.errors import MabdiError
-from mabdi.maps.mesh_map import WELD, MeshMap, welded_map
+from mabdi.maps.fast_marching import fast_marching, fast_marching_available
+from mabdi.maps.mesh_map import WELD, MeshMap, unique_pairs, welded_map
 
 PLANNERS = ("dijkstra", "fmm")
 
@@ -72,25 +75,36 @@ def _slowness(mesh_map: MeshMap, cost_weight: float) -> tuple[np.ndarray, np.nda
     return slowness, blocked
 
 
-def _nearest_free(mesh_map: MeshMap, point, blocked: np.ndarray, what: str, max_snap: float) -> int:
+def _nearest_free(mesh_map: MeshMap, points, blocked: np.ndarray, max_snap: float) -> list[int]:
     free = np.flatnonzero(~blocked)
     if len(free) == 0:
         raise PlanningError("every vertex of the map is lethal")
-    point = np.asarray(point, dtype=np.float64).reshape(3)
-    distance, index = cKDTree(mesh_map.vertices[free]).query(point)
+    # a tree over the free vertices near the requests only: building one over a million costs 0.3 s
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    candidates = free[np.linalg.norm(mesh_map.vertices[free, None, :] - points[None].astype(np.float32), axis=2).min(axis=1) <= max_snap]
+    if len(candidates) == 0:
+        candidates = free
+    distances, indices = cKDTree(mesh_map.vertices[candidates]).query(points)
+    out = []
+    for what, point, distance, index in zip(("start", "goal"), points, distances, indices, strict=True):
+        out.append(_snapped(what, point, float(distance), int(candidates[index]), max_snap))
+    return out
+
+
+def _snapped(what: str, point: np.ndarray, distance: float, vertex: int, max_snap: float) -> int:
     if distance > max_snap:
         raise PlanningError(
             f"the {what} {tuple(round(float(v), 3) for v in point)} is {distance:.2f} m from the nearest free "
             f"vertex of the map (more than {max_snap} m): not on the map, or on a lethal part of it"
         )
-    return int(free[index])
+    return vertex
 
 
 def edges(faces: np.ndarray) -> np.ndarray:
     """(E, 2) unique undirected vertex pairs of the triangles."""
-    pairs = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    pairs = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]).astype(np.int64)
     pairs.sort(axis=1)
-    return np.unique(pairs, axis=0)
+    return unique_pairs(pairs)
 
 
 def plan(
@@ -118,8 +132,7 @@ def plan(
     if weld > 0:
         mesh_map, groups = welded_map(mesh_map, weld)
     slowness, blocked = _slowness(mesh_map, cost_weight)
-    s = _nearest_free(mesh_map, start, blocked, "start", max_snap)
-    g = _nearest_free(mesh_map, goal, blocked, "goal", max_snap)
+    s, g = _nearest_free(mesh_map, [start, goal], blocked, max_snap)
     if planner == "dijkstra":
         return _plan_dijkstra(mesh_map, s, g, slowness, blocked)
     result = _plan_fmm(mesh_map, s, g, slowness, blocked)
@@ -198,12 +211,20 @@ def _triangle_update(c, a, b, t_a, t_b, s):
     return out
 
 
-def arrival_times(mesh_map: MeshMap, source: int, slowness: np.ndarray, blocked: np.ndarray) -> np.ndarray:
-    """Arrival time T (N,) of the wave front from vertex ``source`` (inf where it never arrives)."""
+def arrival_times(
+    mesh_map: MeshMap, source: int, slowness: np.ndarray, blocked: np.ndarray, method: str = "auto"
+) -> np.ndarray:
+    """Arrival time T (N,) of the wave front from vertex ``source`` (inf where it never arrives).
+
+    ``method``: ``"heap"`` (fast marching compiled with numba, :mod:`mabdi.maps.fast_marching`),
+    ``"iterative"`` (the vectorised fast iterative method), or ``"auto"`` (heap when numba is there).
+    """
     vertices = mesh_map.vertices.astype(np.float64)
     faces = mesh_map.faces
     n = len(vertices)
     starts, incident = _vertex_faces(faces, n)
+    if method == "heap" or (method == "auto" and fast_marching_available()):
+        return fast_marching(vertices, faces, starts, incident, slowness, blocked, source)
     times = np.full(n, np.inf)
     times[source] = 0.0
     active = np.array([source])
@@ -234,18 +255,14 @@ def _plan_fmm(mesh_map: MeshMap, s: int, g: int, slowness: np.ndarray, blocked: 
     mesh_map.vertex_layers["arrival_time"] = times.astype(np.float32)
     if not np.isfinite(times[g]):
         return PlanResult("fmm", False, np.zeros((0, 3)), float("inf"), float("inf"), s, g)
-    path = _descend(mesh_map, times, s, g)
-    middle = np.interp(np.arange(len(path) - 1) + 0.5, np.arange(len(path)), _path_slowness(mesh_map, path, slowness))
-    return _result("fmm", path, middle, s, g)
+    path, faces = _descend(mesh_map, times, s, g)
+    # the slowness of a step: the mean over the corners of the face it ends in
+    step_slowness = slowness[mesh_map.faces[faces]].mean(axis=1) if len(faces) else np.zeros(0)
+    return _result("fmm", path, step_slowness, s, g)
 
 
-def _path_slowness(mesh_map: MeshMap, path: np.ndarray, slowness: np.ndarray) -> np.ndarray:
-    _, nearest = cKDTree(mesh_map.vertices).query(path)
-    return slowness[nearest]
-
-
-def _descend(mesh_map: MeshMap, times: np.ndarray, s: int, g: int) -> np.ndarray:
-    """Follow -grad T from vertex g to vertex s; returns the path points (start first)."""
+def _descend(mesh_map: MeshMap, times: np.ndarray, s: int, g: int) -> tuple[np.ndarray, np.ndarray]:
+    """Follow -grad T from vertex g to vertex s; the path points (start first) and the face of each step."""
     from vtkmodules.vtkCommonCore import reference
     from vtkmodules.vtkCommonDataModel import vtkGenericCell, vtkStaticCellLocator
 
@@ -253,7 +270,6 @@ def _descend(mesh_map: MeshMap, times: np.ndarray, s: int, g: int) -> np.ndarray
     faces = mesh_map.faces
     edge_lengths = np.linalg.norm(vertices[faces[:, 0]] - vertices[faces[:, 1]], axis=1)
     step = 0.5 * float(np.mean(edge_lengths))
-    gradients = _face_gradients(vertices, faces, times)
     locator = vtkStaticCellLocator()
     mesh = mesh_map.to_polydata()
     locator.SetDataSet(mesh)
@@ -265,12 +281,13 @@ def _descend(mesh_map: MeshMap, times: np.ndarray, s: int, g: int) -> np.ndarray
     limit = int(4 * times[g] / step) + 1000  # T >= path length, so a descent needs about T / step steps
     closest, cell_id, sub_id, distance = [0.0, 0.0, 0.0], reference(-1), reference(0), reference(0.0)
     face = -1
+    step_faces = []
     for _ in range(limit):
         if np.linalg.norm(point - target) <= 1.5 * step:
             break
         locator.FindClosestPoint(point, closest, cell, cell_id, sub_id, distance)
         face = int(cell_id.get())
-        gradient = gradients[face]
+        gradient = _face_gradients(vertices, faces[face : face + 1], times)[0]
         if not np.all(np.isfinite(gradient)) or np.linalg.norm(gradient) < 1e-12:
             # beside an unreached (lethal) vertex: go to the face's earliest-reached corner
             corner = faces[face][np.argmin(times[faces[face]])]
@@ -284,8 +301,10 @@ def _descend(mesh_map: MeshMap, times: np.ndarray, s: int, g: int) -> np.ndarray
         locator.FindClosestPoint(point, closest, cell, cell_id, sub_id, distance)
         point = np.array(closest)
         path.append(point.copy())
+        step_faces.append(face)
     path.append(target.copy())
-    return np.array(path[::-1])
+    step_faces.append(face if face >= 0 else int(np.flatnonzero((faces == s).any(axis=1))[0]))
+    return np.array(path[::-1]), np.array(step_faces[::-1], dtype=np.int64)
 
 
 def _face_gradients(vertices: np.ndarray, faces: np.ndarray, times: np.ndarray) -> np.ndarray:
