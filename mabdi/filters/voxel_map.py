@@ -220,13 +220,24 @@ class VoxelMap:
         flat = compact * b3 + local_flat
         size = len(touched) * b3
         x, y, z = (c - v * s for c, v in zip(columns, voxel, strict=True))
-        sums = np.empty((STATS, size))
-        sums[0] = np.bincount(flat, minlength=size)
-        for column, values in enumerate((x, y, z, x * x, x * y, x * z, y * y, y * z, z * z), start=1):
-            sums[column] = np.bincount(flat, weights=values, minlength=size)
-        sums = sums.reshape(STATS, len(touched), b3).transpose(1, 2, 0)
-        self._stats[slots] += sums
-        changed = np.flatnonzero(sums[:, :, 0].ravel() > 0)
+        weights = (x, y, z, x * x, x * y, x * z, y * y, y * z, z * z)
+        if 8 * len(points) >= size:
+            # many points: dense sums over the touched blocks, no sorting
+            sums = np.empty((STATS, size))
+            sums[0] = np.bincount(flat, minlength=size)
+            for column, values in enumerate(weights, start=1):
+                sums[column] = np.bincount(flat, weights=values, minlength=size)
+            sums = sums.reshape(STATS, len(touched), b3).transpose(1, 2, 0)
+            self._stats[slots] += sums
+            changed = np.flatnonzero(sums[:, :, 0].ravel() > 0)
+        else:
+            # few points in big blocks (the novel pixels of a frame): sums over the touched voxels only
+            changed, inverse = np.unique(flat, return_inverse=True)
+            sums = np.empty((len(changed), STATS))
+            sums[:, 0] = np.bincount(inverse, minlength=len(changed))
+            for column, values in enumerate(weights, start=1):
+                sums[:, column] = np.bincount(inverse, weights=values, minlength=len(changed))
+            self._stats[slots[changed // b3], changed % b3] += sums
         self.last_changed = self._voxels_of(touched[changed // b3], changed % b3)
         return self.last_changed
 

@@ -61,7 +61,6 @@ from vtkmodules.util.numpy_support import numpy_to_vtk
 from vtkmodules.vtkCommonDataModel import vtkDataObject, vtkImageData, vtkPointSet, vtkPolyData
 
 from mabdi.algorithm import MabdiAlgorithm
-from mabdi.camera import backproject
 from mabdi.depth import FRAME_ARRAY, depth_array, image_intrinsics, image_pose
 from mabdi.errors import ConfigError
 from mabdi.filters.voxel_map import VoxelMap, moments_to_gaussian, pack_keys, unpack_keys
@@ -202,12 +201,45 @@ def fan_triangles(sizes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 @dataclass
-class BlockMesh:
-    """The triangles of one block: vertices (K, 3) and triangles (T, 3) into them, per-triangle normals."""
+class BlockPolygons:
+    """The polygons of one block, sorted by anchor key: one per planar neighbourhood anchored in it.
 
+    ``anchors`` (P,) packed anchor keys, ``sizes`` (P,) vertex counts, ``vertices`` (sum sizes, 3)
+    the rings one after another, ``normals`` (P, 3).
+    """
+
+    anchors: np.ndarray
+    sizes: np.ndarray
     vertices: np.ndarray
-    triangles: np.ndarray
     normals: np.ndarray
+
+    @property
+    def number_of_triangles(self) -> int:
+        return int((self.sizes - 2).sum())
+
+    def without(self, anchor_keys: np.ndarray) -> BlockPolygons:
+        """The polygons whose anchors are not in ``anchor_keys``."""
+        keep = ~np.isin(self.anchors, anchor_keys)
+        return BlockPolygons(self.anchors[keep], self.sizes[keep], self.vertices[np.repeat(keep, self.sizes)], self.normals[keep])
+
+    @staticmethod
+    def merged(*parts: BlockPolygons) -> BlockPolygons:
+        """The polygons of all ``parts``, sorted by anchor key (so the result does not depend on the order of updates)."""
+        anchors = np.concatenate([part.anchors for part in parts])
+        sizes = np.concatenate([part.sizes for part in parts])
+        vertices = np.concatenate([part.vertices for part in parts])
+        normals = np.concatenate([part.normals for part in parts])
+        order = np.argsort(anchors, kind="stable")
+        return BlockPolygons(anchors[order], sizes[order], vertices[ring_indices(sizes, order)], normals[order])
+
+
+def ring_indices(sizes: np.ndarray, selected: np.ndarray) -> np.ndarray:
+    """Indices of the vertices of the ``selected`` polygons (in that order) among rings stored one after another."""
+    sizes = np.asarray(sizes, dtype=np.int64)
+    starts = np.concatenate([[0], np.cumsum(sizes)[:-1]])
+    chosen = sizes[selected]
+    offsets = np.concatenate([[0], np.cumsum(chosen)[:-1]])
+    return np.repeat(starts[selected] - offsets, chosen) + np.arange(chosen.sum())
 
 
 def _block_offsets() -> np.ndarray:
@@ -225,7 +257,7 @@ class FilterVoxelPlanes(MabdiAlgorithm):
         self._parameters = parameters if parameters is not None else VoxelPlanesParameters()
         self._output = self._check_output(output)
         self.map = VoxelMap(self._parameters.voxel_size, self._parameters.block_size)
-        self._blocks: dict[int, BlockMesh] = {}
+        self._blocks: dict[int, BlockPolygons] = {}
         self._changed = np.zeros(0, dtype=np.int64)
         self._last_input: tuple[str, int] | None = None
         self._meshed_with = self._parameters
@@ -271,7 +303,7 @@ class FilterVoxelPlanes(MabdiAlgorithm):
     # -- the map -----------------------------------------------------------
     @property
     def number_of_triangles(self) -> int:
-        return sum(len(b.triangles) for b in self._blocks.values())
+        return sum(b.number_of_triangles for b in self._blocks.values())
 
     @property
     def changed_blocks(self) -> np.ndarray:
@@ -285,15 +317,15 @@ class FilterVoxelPlanes(MabdiAlgorithm):
         low = anchor_range(window)
         # voxel v lies in the neighbourhoods of anchors v - low - (window - 1) ... v - low
         steps = np.array(list(itertools.product(range(-low - window + 1, -low + 1), repeat=3)), dtype=np.int64)
-        anchors = (changed[:, None, :] + steps[None]).reshape(-1, 3)
-        blocks = np.unique(self.map.block_of(anchors))
-        self._remesh(blocks)
+        anchors = unpack_keys(np.unique(pack_keys((changed[:, None, :] + steps[None]).reshape(-1, 3))))
+        self._remesh_anchors(anchors)
         self.Modified()
-        return blocks
+        return self._changed.copy()
 
     def remesh_all(self) -> None:
         """Re-mesh every block (after a change of epsilon, window or min_points)."""
-        self._remesh(self.map.block_keys())
+        self._blocks.clear()
+        self._remesh_anchors(self.candidate_anchors(self.map.block_keys()))
         self._meshed_with = self._parameters
 
     def candidate_anchors(self, blocks: np.ndarray) -> np.ndarray:
@@ -321,27 +353,30 @@ class FilterVoxelPlanes(MabdiAlgorithm):
         local = np.stack([rest // (b * b), (rest // b) % b, rest % b], axis=1)
         return coords[block] * b + local
 
-    def _remesh(self, blocks: np.ndarray) -> None:
-        blocks = np.unique(np.asarray(blocks, dtype=np.int64))
+    def _remesh_anchors(self, anchors: np.ndarray) -> None:
+        """Recompute the polygons of ``anchors`` (M, 3) (their neighbourhoods changed) in their blocks."""
         p = self._parameters
-        anchors = self.candidate_anchors(blocks)
+        anchors = np.asarray(anchors, dtype=np.int64).reshape(-1, 3)
         patches = plane_patches(self.map, anchors, p)
         vertices, sizes, owner = cube_polygons(patches.normals, patches.centroids, patches.centres, 0.5 * p.voxel_size)
-        triangles, polygon = fan_triangles(sizes)
-        plane = owner[polygon]
-        triangle_block = self.map.block_of(patches.anchors[plane])
-        vertex_polygon = np.repeat(np.arange(len(sizes)), sizes)
-        vertex_block = self.map.block_of(patches.anchors[owner[vertex_polygon]])
+        polygon_anchor = patches.anchors[owner]
+        polygon_block = self.map.block_of(polygon_anchor)
+        polygon_key = pack_keys(polygon_anchor)
+        anchor_block = self.map.block_of(anchors)
+        anchor_key = pack_keys(anchors)
+        blocks = np.unique(anchor_block)
         for key in blocks.tolist():
-            self._blocks.pop(key, None)
-        order = np.argsort(triangle_block, kind="stable")
-        bounds = np.flatnonzero(np.diff(triangle_block[order])) + 1
-        for group in np.split(order, bounds) if len(order) else []:
-            key = int(triangle_block[group[0]])
-            used = np.flatnonzero(vertex_block == key)
-            renumber = np.full(len(vertices), -1, dtype=np.int64)
-            renumber[used] = np.arange(len(used))
-            self._blocks[key] = BlockMesh(vertices[used], renumber[triangles[group]], patches.normals[plane[group]])
+            mine = np.flatnonzero(polygon_block == key)
+            fresh = BlockPolygons(polygon_key[mine], sizes[mine], vertices[ring_indices(sizes, mine)], patches.normals[owner[mine]])
+            old = self._blocks.get(key)
+            if old is not None:
+                fresh = BlockPolygons.merged(old.without(np.sort(anchor_key[anchor_block == key])), fresh)
+            else:
+                fresh = BlockPolygons.merged(fresh)
+            if len(fresh.anchors):
+                self._blocks[key] = fresh
+            else:
+                self._blocks.pop(key, None)
         self._changed = blocks
 
     # -- output ------------------------------------------------------------
@@ -349,11 +384,11 @@ class FilterVoxelPlanes(MabdiAlgorithm):
         meshes = [(key, self._blocks[key]) for key in keys if key in self._blocks]
         if not meshes:
             return vtkPolyData()
-        base = np.cumsum([0] + [len(m.vertices) for _, m in meshes])
+        sizes = np.concatenate([m.sizes for _, m in meshes])
         vertices = np.concatenate([m.vertices for _, m in meshes])
-        triangles = np.concatenate([m.triangles + base[i] for i, (_, m) in enumerate(meshes)])
-        normals = np.concatenate([m.normals for _, m in meshes])
-        patch = np.concatenate([np.full(len(m.triangles), key, dtype=np.int64) for key, m in meshes])
+        triangles, polygon = fan_triangles(sizes)
+        normals = np.concatenate([m.normals for _, m in meshes])[polygon]
+        patch = np.concatenate([np.full(len(m.sizes), key, dtype=np.int64) for key, m in meshes])[polygon]
         mesh = triangles_polydata(vertices, triangles, dtype=np.float32)
         normal_array = numpy_to_vtk(np.ascontiguousarray(normals, dtype=np.float32), deep=True)
         normal_array.SetName("Normals")
@@ -400,7 +435,13 @@ class FilterVoxelPlanes(MabdiAlgorithm):
     @staticmethod
     def _input_points(data) -> np.ndarray:
         if isinstance(data, vtkImageData):
-            return backproject(depth_array(data), image_intrinsics(data), image_pose(data))
+            depth = depth_array(data)
+            k = image_intrinsics(data)
+            pose = image_pose(data)
+            v, u = np.nonzero(np.isfinite(depth))  # only the valid (novel) pixels: often a few percent
+            z = depth[v, u].astype(np.float64)
+            camera = np.stack([(u + 0.5 - k.cx) / k.fx * z, (v + 0.5 - k.cy) / k.fy * z, z], axis=1)
+            return camera @ pose[:3, :3].T + pose[:3, 3]
         if isinstance(data, vtkPointSet):
             if data.GetNumberOfPoints() == 0:
                 return np.zeros((0, 3))
