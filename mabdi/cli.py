@@ -4,6 +4,7 @@
                      [--no-classifier] [--depth-images] [--backend B] [--quiet]
     mabdi export IN OUT [--layout mesh_tools|lvr2]   convert a map between VTP, PLY, OBJ, STL and HDF5
     mabdi info MAP               counts, bounds, layers, labels and cluster sets of a map
+    mabdi view PATH [--colour frame|normal|LAYER] [--out PNG]   look at a map or a run folder
     mabdi plan MAP --start x,y,z --goal x,y,z [--planner dijkstra|fmm] [--out path.vtp]
     mabdi bench [--scene NAME|CONFIG] [--methods M ...] [--frames N] [--out DIR]
 
@@ -39,6 +40,7 @@ def _parser() -> argparse.ArgumentParser:
     )
     run.add_argument("--depth-images", action="store_true", help="also write D, E and labels of every frame as VTI")
     run.add_argument("--h5", action="store_true", help="also write world_mesh.h5 with cost layers, labels, poses (output.h5)")
+    run.add_argument("--movie", action="store_true", help="also write movie.mp4 of the dashboard and PNG snapshots (output.movie)")
     run.add_argument("--backend", help="render backend: egl or osmesa (overrides sensor.backend)")
     run.add_argument("--quiet", action="store_true", help="no progress bar")
     run.add_argument("--no-eval", action="store_true", help="skip the evaluation against the ground truth")
@@ -50,6 +52,11 @@ def _parser() -> argparse.ArgumentParser:
 
     info = commands.add_parser("info", help="counts, bounds, layers, labels and cluster sets of a map file")
     info.add_argument("map", type=Path, help="map file (.h5, .vtp, .ply, .obj, .stl)")
+
+    view = commands.add_parser("view", help="show a map or a run folder (a PNG when there is no display)")
+    view.add_argument("path", type=Path, help="map file (.vtp, .ply, .h5, ...) or run folder")
+    view.add_argument("--colour", "--color", default="frame", help="frame (default), normal, or a layer name (cost, ...)")
+    view.add_argument("--out", type=Path, help="write a PNG here instead of opening a window")
 
     plan = commands.add_parser("plan", help="plan a path on a map (Dijkstra or fast marching)")
     plan.add_argument("map", type=Path, help="map file (.h5, .vtp, .ply, .obj, .stl)")
@@ -108,6 +115,8 @@ def _apply_overrides(config, args) -> None:
         config.output.depth_images = True
     if getattr(args, "h5", False):
         config.output.h5 = True
+    if getattr(args, "movie", False):
+        config.output.movie = True
     validate_run_config(config, where="command line")
 
 
@@ -139,7 +148,14 @@ def cmd_run(args) -> int:
     _apply_overrides(config, args)
     out_dir = Path(config.output.dir) if config.output.dir else Path("runs") / (config.run.name or args.config.stem)
     simulation = Simulation(config)
-    result = simulation.run(out_dir, progress=ProgressBar(config.run.frames, not args.quiet))
+    progress = ProgressBar(config.run.frames, not args.quiet)
+    movie = None
+    if config.output.movie:
+        from mabdi.viz.record import run_with_movie
+
+        result, movie, dashboard_ms = run_with_movie(simulation, out_dir, config.output.snapshots or None, progress=progress)
+    else:
+        result = simulation.run(out_dir, progress=progress)
     summary = result.summary()
     mode = "classifier on" if summary["classifier"] else "black box (classifier off)"
     print(
@@ -162,7 +178,18 @@ def cmd_run(args) -> int:
             f"vs ground truth: F@1cm {metrics.fscore_1cm:.3f}, F@2cm {metrics.fscore_2cm:.3f}, "
             f"accuracy median {metrics.accuracy_median_mm:.2f} mm, redundancy {100.0 * (metrics.redundancy or 0.0):.1f}%{second}"
         )
+    if movie is not None:
+        print(f"movie: {movie} ({config.run.frames} frames, dashboard {dashboard_ms:.0f} ms per frame)")
     print(f"results in {out_dir}/ (world_mesh.vtp, world_mesh.ply, metrics.csv, summary.json, elements.png)")
+    return 0
+
+
+def cmd_view(args) -> int:
+    from mabdi.viz.viewer import view
+
+    written = view(args.path, colour=args.colour, screenshot=args.out)
+    if written is not None:
+        print(f"no display: wrote {written}" if args.out is None else f"wrote {written}")
     return 0
 
 
@@ -280,7 +307,14 @@ def main(argv=None) -> int:
     from mabdi.errors import MabdiError
 
     try:
-        commands = {"run": cmd_run, "export": cmd_export, "info": cmd_info, "plan": cmd_plan, "bench": cmd_bench}
+        commands = {
+            "run": cmd_run,
+            "export": cmd_export,
+            "info": cmd_info,
+            "view": cmd_view,
+            "plan": cmd_plan,
+            "bench": cmd_bench,
+        }
         return commands[args.command](args)
     except (MabdiError, FileNotFoundError) as exc:
         print(f"mabdi: error: {exc}", file=sys.stderr)

@@ -172,7 +172,10 @@ class OutputConfig:
     (about 1 MB per frame each). ``h5``: also write ``world_mesh.h5`` (Mesh
     Tools layout, :mod:`mabdi.io.hdf5`) with its cost layers, colours by
     normal, the creation frame of each face, a ``floor`` label, planar
-    clusters, and the run's poses and intrinsics.
+    clusters, and the run's poses and intrinsics. ``movie``: ``mabdi run``
+    also writes ``movie.mp4``, the six-panel dashboard of every frame
+    (:mod:`mabdi.viz`), and ``dashboard_<frame>.png`` for the frames in
+    ``snapshots`` (empty: the first, middle and last).
     """
 
     dir: str = ""
@@ -180,6 +183,8 @@ class OutputConfig:
     ply: bool = True
     h5: bool = False
     depth_images: bool = False
+    movie: bool = False
+    snapshots: list[int] = field(default_factory=list)
 
 
 @dataclass
