@@ -19,9 +19,12 @@ from mabdi.filters import (  # noqa: E402
     FilterClassifier,
     FilterDepthImage,
     FilterDepthImageToSurface,
+    FilterQuadTree,
+    FilterVoxelPlanes,
     FilterWorldMesh,
     SensorNoise,
 )
+from mabdi.maps import MeshMap  # noqa: E402
 from mabdi.simulate import Simulation, helical_path  # noqa: E402
 from mabdi.sources import SourceScene  # noqa: E402
 
@@ -35,7 +38,10 @@ __all__ = [
     "FilterClassifier",
     "FilterDepthImage",
     "FilterDepthImageToSurface",
+    "FilterQuadTree",
+    "FilterVoxelPlanes",
     "FilterWorldMesh",
+    "MeshMap",
     "Intrinsics",
     "MabdiAlgorithm",
     "MabdiError",

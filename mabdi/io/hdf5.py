@@ -17,7 +17,9 @@ without them)::
                                 attributes element = "vertex" | "face" and components = k
     /clustersets/<set>/<cluster> uint32 face ids
     /textures/                  (empty: mabdi maps have no textures)
-    /labels/<group>/<label>     uint32 face ids (label "tree_1" is group "tree", label "1")
+    /labels/<group>/<label>     uint32 face ids (label "tree_1" is group "tree", label "1"; a name
+                                without "_", such as "floor", is group "floor", label "0"); the
+                                dataset's attribute name keeps the full name for our reader
 
 **``lvr2``**: the newer layout of lvr2's ``hdf5features::MeshIO`` (uos/lvr2,
 read at commit 199968bc), through which mesh_navigation's ``mesh_map``
