@@ -36,3 +36,29 @@ def plane_mesh(point, normal, size: float = 40.0, subdivisions: int = 1):
 @pytest.fixture(scope="session")
 def scenes_dir() -> Path:
     return SCENES
+
+
+#: Triangles of the pixel-grid map of Run 1 (docs/benchmarks.md, `mabdi bench --scene table`).
+PIXEL_GRID_TABLE_CELLS = 825_799
+
+
+def check_table_loop(surface: str, median_limit: float):
+    """Run 1 with ``surface``; assert the loop's must-shows (10x fewer triangles than the pixel grid,
+    median vertex distance to the scene below ``median_limit`` m, second-circle growth <= 15% of
+    the first's) and return (simulation, result) for more."""
+    from vtkmodules.util.numpy_support import vtk_to_numpy
+
+    from mabdi.config import load_run_config
+    from mabdi.evaluate import distances_to_mesh
+    from mabdi.simulate import Simulation
+
+    config = load_run_config(REPO / "scenes" / "table.toml")
+    config.surface.method = surface
+    simulation = Simulation(config)
+    result = simulation.run()
+    assert result.mesh.GetNumberOfCells() * 10 <= PIXEL_GRID_TABLE_CELLS
+    vertices = vtk_to_numpy(result.mesh.GetPoints().GetData())
+    assert np.median(distances_to_mesh(vertices, simulation.scene.mesh_at(29))) < median_limit
+    added = np.array([r.cells_added for r in result.records])
+    assert added[15:].sum() <= 0.15 * added[:15].sum()
+    return simulation, result

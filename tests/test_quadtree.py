@@ -7,7 +7,7 @@ import pytest
 from vtkmodules.util.numpy_support import vtk_to_numpy
 from vtkmodules.vtkFiltersCore import vtkFeatureEdges
 
-from conftest import REPO
+from conftest import REPO, check_table_loop
 from mabdi.camera import Intrinsics, project
 from mabdi.depth import depth_image
 from mabdi.filters.quadtree import FilterQuadTree, QuadTreeParameters
@@ -101,20 +101,7 @@ def test_bad_parameters():
 
 @pytest.mark.slow
 def test_quadtree_in_the_loop_on_the_table():
-    from mabdi.config import load_run_config
-    from mabdi.evaluate import distances_to_mesh
-    from mabdi.simulate import Simulation
-
-    config = load_run_config(REPO / "scenes" / "table.toml")
-    config.surface.method = "quadtree"
-    simulation = Simulation(config)
-    result = simulation.run()
-    pixel_grid_cells = 825_799  # the pixel-grid map of the same run (tests/test_simulation.py measures it)
-    assert result.mesh.GetNumberOfCells() * 10 <= pixel_grid_cells
-    vertices = vtk_to_numpy(result.mesh.GetPoints().GetData())
-    assert np.median(distances_to_mesh(vertices, simulation.scene.mesh_at(29))) < 5e-3
-    added = np.array([r.cells_added for r in result.records])
-    assert added[15:].sum() <= 0.15 * added[:15].sum()
+    check_table_loop("quadtree", median_limit=5e-3)
 
 
 @pytest.mark.slow

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from vtkmodules.util.numpy_support import vtk_to_numpy
 
-from conftest import REPO
+from conftest import check_table_loop
 from mabdi.errors import ConfigError
 from mabdi.filters.voxel_map import VoxelMap, moments_to_gaussian
 from mabdi.filters.voxel_planes import (
@@ -281,19 +281,7 @@ def test_filter_meshes_a_depth_image_and_does_not_add_it_twice():
 
 @pytest.mark.slow
 def test_voxel_planes_in_the_loop_on_the_table():
-    from mabdi.config import load_run_config
-    from mabdi.evaluate import distances_to_mesh
     from mabdi.evaluate.metrics import evaluate_run
-    from mabdi.simulate import Simulation
 
-    config = load_run_config(REPO / "scenes" / "table.toml")
-    config.surface.method = "voxel_planes"
-    simulation = Simulation(config)
-    result = simulation.run()
-    pixel_grid_cells = 825_799  # the pixel-grid map of the same run (tests/test_simulation.py measures it)
-    assert result.mesh.GetNumberOfCells() * 10 <= pixel_grid_cells
-    vertices = vtk_to_numpy(result.mesh.GetPoints().GetData())
-    assert np.median(distances_to_mesh(vertices, simulation.scene.mesh_at(29))) < 1e-2
-    added = np.array([r.cells_added for r in result.records])
-    assert added[15:].sum() <= 0.15 * added[:15].sum()
+    simulation, result = check_table_loop("voxel_planes", median_limit=1e-2)
     assert evaluate_run(simulation, result, samples=30_000).redundancy <= 0.05
