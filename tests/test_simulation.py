@@ -250,6 +250,6 @@ def test_export_round_trip(tmp_path, capsys):
 
 
 def test_cli_unknown_surface_is_named(tmp_path, capsys):
-    status = main(["run", str(REPO / "scenes" / "table.toml"), "--surface", "voxel_planes", "--out", str(tmp_path / "o")])
+    status = main(["run", str(REPO / "scenes" / "table.toml"), "--surface", "marching_cubes", "--out", str(tmp_path / "o")])
     assert status == 2
     assert "surface.method" in capsys.readouterr().err
