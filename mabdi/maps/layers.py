@@ -5,9 +5,10 @@ All vectorised over the vertices (numpy, a scipy KD-tree); z is up (metres).
 * ``normals``: area-weighted average of the faces' normals around each vertex.
 * **Neighbourhood** of a vertex: the vertices within ``radius`` horizontally
   (the robot's footprint) and ``height_window`` (0.5 m) vertically, an
-  ellipsoid, found by one KD-tree query as a sphere after scaling z by
-  radius / height_window; at most the ``max_neighbours`` nearest (24), the
-  vertex itself included. A sphere of the footprint's radius would never
+  ellipsoid, found as a sphere after scaling z by radius / height_window,
+  the vertex itself included; all of them, by a grid hash compiled with
+  numba (:mod:`mabdi.maps.neighbourhood`), or without numba the
+  ``max_neighbours`` nearest (24) by a KD-tree. A sphere of the footprint's radius would never
   see the top of a step taller than the radius; an unbounded column would
   mix levels (the floor under a table with its top).
 * ``roughness``: the local normal variation, the mean over the
@@ -41,6 +42,15 @@ from scipy.spatial import cKDTree
 from mabdi.errors import ConfigError
 from mabdi.maps.mesh_map import MeshMap
 
+try:
+    from mabdi.maps.neighbourhood import radius_statistics
+except ImportError:  # pragma: no cover - numba is a dependency
+    radius_statistics = None
+
+
+def fast_neighbourhoods_available() -> bool:
+    return radius_statistics is not None
+
 CHUNK = 1 << 17
 
 
@@ -50,7 +60,7 @@ class CostParameters:
 
     radius: float = 0.1
     height_window: float = 0.5
-    max_neighbours: int = 24
+    max_neighbours: int = 24  # only without numba (the KD-tree fallback)
     max_slope: float = float(np.radians(30.0))
     max_step: float = 0.1
     max_roughness: float = 0.3
@@ -148,9 +158,13 @@ def cost_layers(mesh_map: MeshMap, parameters: CostParameters | None = None) -> 
     vertices, faces = mesh_map.vertices, mesh_map.faces
     normals = vertex_normals(vertices, faces)
     squashed = np.asarray(vertices, dtype=np.float64) * [1.0, 1.0, p.radius / p.height_window]
-    index = neighbourhoods(squashed, p.radius, p.max_neighbours)
-    rough = roughness(normals, index)
-    height = height_difference(vertices, index)
+    if fast_neighbourhoods_available():
+        rough, top, bottom = radius_statistics(squashed, normals, vertices[:, 2], p.radius)
+        height = top - bottom
+    else:  # without numba: the nearest max_neighbours within the radius, by a KD-tree
+        index = neighbourhoods(squashed, p.radius, p.max_neighbours)
+        rough = roughness(normals, index)
+        height = height_difference(vertices, index)
     slope = np.arccos(np.clip(np.abs(normals[:, 2]), 0.0, 1.0))
     lethal = (slope > p.max_slope) | (height > p.max_step) | (rough > p.max_roughness)
     inflated = inflation(vertices, lethal, p.inflation_radius)
