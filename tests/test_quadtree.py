@@ -130,3 +130,38 @@ def test_faces_lie_on_the_noise_free_table():
     distances = np.concatenate(distances)
     assert len(distances) > 40_000
     assert distances.max() <= 0.01, f"{(distances > 0.01).sum()} faces beyond 1 cm, worst {distances.max() * 1000:.1f} mm"
+
+
+@pytest.mark.parametrize("noise", ["none", "kinect"])
+def test_compiled_stages_give_the_numpy_leaves(noise):
+    """The numba kernels (reduce, normals, pyramid, plane test) against the numpy reference, on Run 1."""
+    from mabdi.config import load_run_config
+    from mabdi.depth import depth_array
+    from mabdi.filters.depth_image import FilterDepthImage, SensorNoise
+    from mabdi.filters.quadtree import kernels, leaves_of_image
+    from mabdi.simulate.path import path_from_config
+    from mabdi.sources.scene import SourceScene
+
+    if kernels is None:
+        pytest.skip("numba is not installed")
+    config = load_run_config(REPO / "scenes" / "table.toml")
+    scene = SourceScene(config.scene, frames=config.run.frames)
+    sensor = FilterDepthImage(noise=noise, seed=3)
+    sensor.SetInputConnection(scene.GetOutputPort())
+    parameters = QuadTreeParameters(triangles=True)
+    for pose in path_from_config(config.run.frames, config.path)[::10]:
+        sensor.pose = pose
+        sensor.Update()
+        depth = depth_array(sensor.GetOutput())
+        fast = leaves_of_image(depth, sensor.intrinsics, parameters, SensorNoise(noise), compiled=True)
+        slow = leaves_of_image(depth, sensor.intrinsics, parameters, SensorNoise(noise), compiled=False)
+        # block medians: the same depth (a tie may pick another pixel of that depth)
+        np.testing.assert_array_equal(np.isfinite(fast[0][..., 2]), np.isfinite(slow[0][..., 2]))
+        np.testing.assert_array_equal(fast[0][..., 2], slow[0][..., 2])
+        a, b = fast[2], slow[2]
+        assert a.regions == b.regions > 0
+        np.testing.assert_array_equal(np.lexsort((a.col, a.row, a.level)), np.lexsort((b.col, b.row, b.level)))
+        for name in ("level", "row", "col"):
+            np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+        np.testing.assert_allclose(a.point, b.point, atol=2e-2)
+        np.testing.assert_allclose(a.normal, b.normal, atol=1e-6)

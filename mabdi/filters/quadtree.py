@@ -51,6 +51,12 @@ Beyond the seed (its own "future work"):
   ``triangles=True`` triangulates every face (the MABDI loop counts
   triangles).
 
+Speed: stages 1-5 and the small-leaf plane test run as numba kernels
+(:mod:`mabdi.filters.quadtree_kernels`, one pass per pixel or node) when
+numba is installed; the numpy functions here are the reference and the
+fallback (``FilterQuadTree.compiled = False``), and a test checks that both
+give the same leaves.
+
 Output: vtkPolyData of polygons (quads, or polygons with T-vertices) or
 triangles, cell data ``level`` (the face's size in input pixels) and
 ``Normals`` (world frame), field data as the input (intrinsics, pose, frame).
@@ -70,6 +76,11 @@ from mabdi.camera import Intrinsics
 from mabdi.depth import depth_array, image_intrinsics, image_pose
 from mabdi.errors import ConfigError
 from mabdi.filters.depth_image import SensorNoise
+
+try:
+    from mabdi.filters import quadtree_kernels as kernels
+except ImportError:  # pragma: no cover - numba is a dependency; the numpy stages below work without it
+    kernels = None
 
 
 #: A leaf of one or two pixels a side whose plane misses one of its own or its neighbouring
@@ -107,8 +118,8 @@ class QuadTreeParameters:
 def reduce_points(depth: np.ndarray, intrinsics: Intrinsics, reduction: int) -> tuple[np.ndarray, Intrinsics]:
     """Camera-frame points of the ``reduction``-square blocks (NaN-aware median), and the reduced intrinsics.
 
-    Each block's point is the pixel holding the block's (lower) median depth,
-    back-projected through that pixel's own centre: noise-free surfaces stay
+    Each block's point is the pixel holding the block's (lower) median depth
+    (among equal depths, in pixel order), back-projected through that pixel's own centre: noise-free surfaces stay
     exactly on the surface, even in blocks that straddle an edge (a block
     centre ray at a median depth would float between the two surfaces). A
     block needs a valid majority.
@@ -124,14 +135,10 @@ def reduce_points(depth: np.ndarray, intrinsics: Intrinsics, reduction: int) -> 
     count = finite.sum(axis=-1)
     keyed = np.where(finite, values, np.inf)  # NaN sorts last
     full = count == r * r
-    middle = (r * r - 1) // 2
-    slot = np.empty((h, w), dtype=np.int64)
-    # full blocks (almost all): one partition at the fixed middle; the others: a sort each
-    slot[full] = np.argpartition(keyed[full], middle, axis=-1)[:, middle]
     partial = ~full & (count * 2 > r * r)
-    if partial.any():
-        order = np.argsort(keyed[partial], axis=-1)
-        slot[partial] = np.take_along_axis(order, ((count[partial] - 1) // 2)[:, None], axis=-1)[:, 0]
+    # a stable sort: among equal depths the median is taken in pixel order (as the compiled kernel does)
+    order = np.argsort(keyed, axis=-1, kind="stable")
+    slot = np.take_along_axis(order, np.maximum((count - 1) // 2, 0)[..., None], axis=-1)[..., 0]
     slot[~full & ~partial] = 0
     median_depth = np.take_along_axis(values, slot[..., None], axis=-1)[..., 0]
     rows, cols = np.mgrid[0:h, 0:w]
@@ -191,6 +198,7 @@ class Leaves:
     col: np.ndarray
     normal: np.ndarray
     point: np.ndarray
+    regions: int = 0
 
     @property
     def size(self) -> np.ndarray:
@@ -511,6 +519,43 @@ def _gather(members: np.ndarray, starts: np.ndarray, faces: np.ndarray) -> np.nd
     return members[index]
 
 
+def leaves_of_image(
+    depth: np.ndarray, intrinsics: Intrinsics, p: QuadTreeParameters, noise: SensorNoise, compiled: bool = True
+) -> tuple[np.ndarray, Intrinsics, Leaves]:
+    """Stages 1-5 and the small-leaf plane test: (reduced points, reduced intrinsics, kept leaves).
+
+    ``compiled``: the numba kernels of :mod:`mabdi.filters.quadtree_kernels` (when installed)
+    instead of the numpy functions above; both compute the same leaves. The leaves carry
+    ``regions``, the pyramid root's region count.
+    """
+    fast = compiled and kernels is not None
+    if fast and p.reduction > 1:
+        k = intrinsics
+        r = p.reduction
+        points = kernels.reduce_points_kernel(np.ascontiguousarray(depth, dtype=np.float64), r, k.fx, k.fy, k.cx, k.cy)
+        h, w = points.shape[:2]
+        reduced = Intrinsics(k.fx / r, k.fy / r, k.cx / r, k.cy / r, w, h, k.near, k.far)
+    else:
+        points, reduced = reduce_points(depth, intrinsics, p.reduction)
+    if fast:
+        normals = kernels.point_normals_kernel(np.ascontiguousarray(points), p.max_jump)
+        level, row, col, normal, point, regions = kernels.pyramid_kernel(points, normals, p.n_t, p.d_t)
+        leaves = Leaves(level, row, col, normal, point)
+        residual = kernels.plane_residual_kernel(points, level, row, col, normal, point, p.max_jump, 2)
+    else:
+        normals = point_normals(points, p.max_jump)
+        leaves, regions = build_leaves(points, normals, p.n_t, p.d_t)
+        residual = plane_residual(points, leaves, p.max_jump)
+    # a small leaf whose plane misses its own pixels or neighbours (a crease, a corner) gets no face
+    depth_of_leaf = leaves.point[:, 2]
+    allowed = np.maximum(
+        RESIDUAL_FOOTPRINTS * depth_of_leaf / reduced.fx, 3.0 * noise.sigma(depth_of_leaf, reduced.near, reduced.far)
+    )
+    leaves = select(leaves, residual <= allowed)
+    leaves.regions = regions
+    return points, reduced, leaves
+
+
 class FilterQuadTree(MabdiAlgorithm):
     """Quad-tree mesh of a depth image's valid pixels (depth image -> vtkPolyData), see the module docs.
 
@@ -523,6 +568,8 @@ class FilterQuadTree(MabdiAlgorithm):
         self._noise = SensorNoise.of(noise)
         #: Region count of the last image (the pyramid root's, seed invariant 1).
         self.regions = 0
+        #: Run the per-pixel stages compiled (numba) when available; False: the numpy reference.
+        self.compiled = kernels is not None
 
     @property
     def parameters(self) -> QuadTreeParameters:
@@ -537,13 +584,8 @@ class FilterQuadTree(MabdiAlgorithm):
         intrinsics = image_intrinsics(image)
         pose = image_pose(image)
         p = self._parameters
-        points, reduced = reduce_points(depth_array(image), intrinsics, p.reduction)
-        normals = point_normals(points, p.max_jump)
-        leaves, self.regions = build_leaves(points, normals, p.n_t, p.d_t)
-        # a small leaf whose plane misses its own pixels or neighbours (a crease, a corner) gets no face
-        depth = leaves.point[:, 2]
-        allowed = np.maximum(RESIDUAL_FOOTPRINTS * depth / reduced.fx, 3.0 * self._noise.sigma(depth, reduced.near, reduced.far))
-        leaves = select(leaves, plane_residual(points, leaves, p.max_jump) <= allowed)
+        points, reduced, leaves = leaves_of_image(depth_array(image), intrinsics, p, self._noise, compiled=self.compiled)
+        self.regions = leaves.regions
         output = vtkPolyData.GetData(outInfo)
         mesh = vtkPolyData()
         if len(leaves.level):

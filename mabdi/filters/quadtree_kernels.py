@@ -1,0 +1,251 @@
+"""Compiled (numba) versions of FilterQuadTree's per-pixel stages: reduce, normals, pyramid, residual.
+
+Each function computes what its numpy twin in :mod:`mabdi.filters.quadtree`
+computes (same rules, same float32 pyramid), one pixel or node at a time
+instead of whole-array passes: the numpy versions spend most of their time
+allocating and re-reading 640x480 temporaries. The numpy versions stay as
+the reference (a test compares the two) and as the fallback without numba.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+
+@njit(cache=True)
+def reduce_points_kernel(depth, r, fx, fy, cx, cy):
+    """(h, w, 3) camera points of r x r blocks: the block's lower median pixel, back-projected (NaN: no majority)."""
+    height, width = depth.shape
+    h, w = height // r, width // r
+    out = np.full((h, w, 3), np.nan)
+    values = np.empty(r * r)
+    slots = np.empty(r * r, dtype=np.int64)
+    for row in range(h):
+        for col in range(w):
+            count = 0
+            for a in range(r):
+                for b in range(r):
+                    z = depth[row * r + a, col * r + b]
+                    if np.isfinite(z):
+                        # insertion sort by depth, then slot (stable)
+                        k = count
+                        while k > 0 and values[k - 1] > z:
+                            values[k] = values[k - 1]
+                            slots[k] = slots[k - 1]
+                            k -= 1
+                        values[k] = z
+                        slots[k] = a * r + b
+                        count += 1
+            if 2 * count <= r * r:
+                continue
+            middle = (count - 1) // 2
+            z = values[middle]
+            slot = slots[middle]
+            u = col * r + slot % r + 0.5
+            v = row * r + slot // r + 0.5
+            out[row, col, 0] = (u - cx) / fx * z
+            out[row, col, 1] = (v - cy) / fy * z
+            out[row, col, 2] = z
+    return out
+
+
+@njit(cache=True)
+def point_normals_kernel(points, max_jump):
+    """(H, W, 3) unit normals facing the camera, as :func:`mabdi.filters.quadtree.point_normals`."""
+    height, width = points.shape[0], points.shape[1]
+    normals = np.full((height, width, 3), np.nan)
+    du = np.empty(3)
+    dv = np.empty(3)
+    for i in range(height):
+        for j in range(width):
+            z = points[i, j, 2]
+            if not np.isfinite(z):
+                continue
+            for axis in range(2):
+                d = du if axis == 0 else dv
+                fi, fj = (i, j + 1) if axis == 0 else (i + 1, j)
+                bi, bj = (i, j - 1) if axis == 0 else (i - 1, j)
+                forward_ok = fi < height and fj < width
+                backward_ok = bi >= 0 and bj >= 0
+                has_forward = forward_ok and abs(points[fi, fj, 2] - z) <= max_jump * z
+                has_backward = backward_ok and abs(points[bi, bj, 2] - z) <= max_jump * z
+                for c in range(3):
+                    forward = points[fi, fj, c] if forward_ok else np.nan
+                    backward = points[bi, bj, c] if backward_ok else np.nan
+                    if has_forward and has_backward:
+                        d[c] = forward - backward
+                    elif has_forward:
+                        d[c] = forward - points[i, j, c]
+                    else:
+                        d[c] = points[i, j, c] - backward
+            nx = -(du[1] * dv[2] - du[2] * dv[1])
+            ny = -(du[2] * dv[0] - du[0] * dv[2])
+            nz = -(du[0] * dv[1] - du[1] * dv[0])
+            length = np.sqrt(nx * nx + ny * ny + nz * nz)
+            if not np.isfinite(length) or length == 0.0:
+                continue
+            nx, ny, nz = nx / length, ny / length, nz / length
+            if nx * points[i, j, 0] + ny * points[i, j, 1] + nz * z > 0:
+                nx, ny, nz = -nx, -ny, -nz
+            normals[i, j, 0] = nx
+            normals[i, j, 1] = ny
+            normals[i, j, 2] = nz
+    return normals
+
+
+@njit(cache=True)
+def pyramid_kernel(points, normals, n_t, d_t):
+    """Leaves of the merge pyramid, as :func:`mabdi.filters.quadtree.build_leaves`.
+
+    Returns (level, row, col, normal (float64, unit), point, root region count).
+    """
+    height, width = points.shape[0], points.shape[1]
+    n_t32 = np.float32(n_t)
+    d_t32 = np.float32(d_t)
+    quarter = np.float32(0.25)
+    # level 0
+    single = np.zeros((height, width), dtype=np.bool_)
+    count = np.zeros((height, width), dtype=np.int64)
+    ns = np.zeros((height, width, 3), dtype=np.float32)
+    ps = np.zeros((height, width, 3), dtype=np.float32)
+    for i in range(height):
+        for j in range(width):
+            if np.isfinite(normals[i, j, 0]) and np.isfinite(points[i, j, 2]):
+                single[i, j] = True
+                count[i, j] = 1
+                for c in range(3):
+                    ns[i, j, c] = np.float32(normals[i, j, c])
+                    ps[i, j, c] = np.float32(points[i, j, c])
+    singles = [single]
+    normal_levels = [ns]
+    point_levels = [ps]
+    regions = 0
+    while singles[-1].size > 1:
+        below = singles[-1]
+        nb = normal_levels[-1]
+        pb = point_levels[-1]
+        h, w = below.shape
+        ph, pw = (h + 1) // 2, (w + 1) // 2
+        above = np.zeros((ph, pw), dtype=np.bool_)
+        count_above = np.zeros((ph, pw), dtype=np.int64)
+        n_above = np.zeros((ph, pw, 3), dtype=np.float32)
+        p_above = np.zeros((ph, pw, 3), dtype=np.float32)
+        any_merged = False
+        n_avg = np.zeros(3, dtype=np.float32)
+        p_avg = np.zeros(3, dtype=np.float32)
+        for i in range(ph):
+            for j in range(pw):
+                all_single = True
+                total = 0
+                for c in range(3):
+                    n_avg[c] = np.float32(0.0)
+                    p_avg[c] = np.float32(0.0)
+                for a in range(2):
+                    for b in range(2):
+                        ci, cj = 2 * i + a, 2 * j + b
+                        if ci < h and cj < w:
+                            all_single = all_single and below[ci, cj]
+                            total += count[ci, cj]
+                            for c in range(3):
+                                n_avg[c] += nb[ci, cj, c]
+                                p_avg[c] += pb[ci, cj, c]
+                        else:
+                            all_single = False
+                for c in range(3):
+                    n_avg[c] *= quarter
+                    p_avg[c] *= quarter
+                merged = all_single
+                if merged:
+                    length = np.sqrt(n_avg[0] * n_avg[0] + n_avg[1] * n_avg[1] + n_avg[2] * n_avg[2])
+                    for a in range(2):
+                        for b in range(2):
+                            ci, cj = 2 * i + a, 2 * j + b
+                            deviation = np.float32(0.0)
+                            distance = np.float32(0.0)
+                            for c in range(3):
+                                deviation = max(deviation, abs(n_avg[c] - nb[ci, cj, c]))
+                                if length > 0:
+                                    distance += (n_avg[c] / length) * (pb[ci, cj, c] - p_avg[c])
+                            if not (deviation < n_t32 and abs(distance) < d_t32):
+                                merged = False
+                if merged:
+                    any_merged = True
+                    above[i, j] = True
+                    count_above[i, j] = 1
+                    for c in range(3):
+                        n_above[i, j, c] = n_avg[c]
+                        p_above[i, j, c] = p_avg[c]
+                else:
+                    count_above[i, j] = total
+        singles.append(above)
+        normal_levels.append(n_above)
+        point_levels.append(p_above)
+        count = count_above
+        if not any_merged:
+            break
+    regions = 0
+    for i in range(count.shape[0]):
+        for j in range(count.shape[1]):
+            regions += count[i, j]
+    # leaves: single nodes whose parent is not single
+    total_leaves = 0
+    for level in range(len(singles)):
+        s = singles[level]
+        for i in range(s.shape[0]):
+            for j in range(s.shape[1]):
+                if s[i, j] and (level + 1 == len(singles) or not singles[level + 1][i // 2, j // 2]):
+                    total_leaves += 1
+    levels = np.empty(total_leaves, dtype=np.int64)
+    rows = np.empty(total_leaves, dtype=np.int64)
+    cols = np.empty(total_leaves, dtype=np.int64)
+    leaf_normals = np.empty((total_leaves, 3))
+    leaf_points = np.empty((total_leaves, 3))
+    k = 0
+    for level in range(len(singles)):
+        s = singles[level]
+        for i in range(s.shape[0]):
+            for j in range(s.shape[1]):
+                if s[i, j] and (level + 1 == len(singles) or not singles[level + 1][i // 2, j // 2]):
+                    levels[k] = level
+                    rows[k] = i
+                    cols[k] = j
+                    nv = normal_levels[level][i, j]
+                    length = np.sqrt(np.float64(nv[0]) ** 2 + np.float64(nv[1]) ** 2 + np.float64(nv[2]) ** 2)
+                    for c in range(3):
+                        leaf_normals[k, c] = np.float64(nv[c]) / length
+                        leaf_points[k, c] = np.float64(point_levels[level][i, j, c])
+                    k += 1
+    return levels, rows, cols, leaf_normals, leaf_points, regions
+
+
+@njit(cache=True)
+def plane_residual_kernel(points, level, row, col, normal, point, max_jump, largest):
+    """As :func:`mabdi.filters.quadtree.plane_residual`: for leaves up to ``largest`` pixels a side, the
+    largest distance of a same-surface pixel of the leaf or its ring from the leaf's plane."""
+    height, width = points.shape[0], points.shape[1]
+    residual = np.zeros(level.shape[0])
+    for k in range(level.shape[0]):
+        side = 1 << level[k]
+        if side > largest:
+            continue
+        top, left = row[k] * side, col[k] * side
+        z0 = point[k, 2]
+        worst = 0.0
+        for dr in range(-1, side + 1):
+            for dc in range(-1, side + 1):
+                r, c = top + dr, left + dc
+                if r < 0 or r >= height or c < 0 or c >= width:
+                    continue
+                z = points[r, c, 2]
+                if not (abs(z - z0) <= max_jump * z0):
+                    continue
+                distance = abs(
+                    (points[r, c, 0] - point[k, 0]) * normal[k, 0]
+                    + (points[r, c, 1] - point[k, 1]) * normal[k, 1]
+                    + (z - z0) * normal[k, 2]
+                )
+                if distance > worst:
+                    worst = distance
+        residual[k] = worst
+    return residual
