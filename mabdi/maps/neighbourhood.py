@@ -11,8 +11,15 @@ in memory.
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
-from numba import njit, prange
+from numba import config, njit, prange
+
+if "NUMBA_THREADING_LAYER" not in os.environ:
+    # numba's own thread pool: always there, and no warning about an old TBB that another package
+    # (Open3D) may have installed; a user's NUMBA_THREADING_LAYER wins
+    config.THREADING_LAYER = "workqueue"
 
 
 @njit(cache=True, parallel=True)
