@@ -53,6 +53,24 @@ def test_statistics_match_the_points_far_from_the_origin():
     assert voxels.number_of_points == 5000
 
 
+def test_compiled_and_numpy_statistics_agree(monkeypatch):
+    import mabdi.filters.voxel_map as voxel_map
+
+    rng = np.random.default_rng(8)
+    points = rng.normal([-3.0, 0.4, 1.2], 0.8, (50_000, 3))  # negative coordinates, many blocks
+    compiled = VoxelMap()
+    compiled.add_points(points[:20_000])
+    changed = compiled.add_points(points[20_000:])
+    monkeypatch.setattr(voxel_map, "njit", None)
+    reference = VoxelMap()
+    reference.add_points(points[:20_000])
+    expected = reference.add_points(points[20_000:])
+    np.testing.assert_array_equal(changed[np.lexsort(changed.T)], expected[np.lexsort(expected.T)])
+    voxels = reference.occupied_voxels()
+    np.testing.assert_array_equal(compiled.occupied_voxels(), voxels)
+    np.testing.assert_allclose(compiled.moments(voxels), reference.moments(voxels), rtol=1e-9, atol=1e-12)
+
+
 def test_noisy_plane_gives_planar_convex_polygons_on_the_plane():
     # a tilted 1 m square with sigma = 5 mm noise, at Kinect-like density (300k points per m^2)
     origin = np.array([0.3, -2.1, 0.7])

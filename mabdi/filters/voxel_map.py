@@ -18,7 +18,10 @@ with q = p - (voxel's lower corner), so the sums stay small numbers and the
 covariance does not cancel catastrophically far from the origin. The
 centroid is corner + S1 / n and the covariance S2 / n - (S1 / n)(S1 / n)^T.
 Adding points only adds to these sums, so the map is incremental and the
-order of the points does not matter (up to float64 rounding).
+order of the points does not matter (up to float64 rounding). The sums are
+accumulated by three compiled passes over the points (numba) when the
+touched blocks fit a dense box of a million blocks, else (and without
+numba) by numpy bincounts.
 
 Neighbourhoods (the seed's sliding window, eqs. 2-3) combine the statistics
 of ``window``^3 voxels. Eqs. (2)-(3) mix Gaussians weighted by p_i = N_i / N;
@@ -31,6 +34,11 @@ from __future__ import annotations
 import numpy as np
 
 from mabdi.errors import ConfigError
+
+try:
+    from numba import njit
+except ImportError:  # pragma: no cover - numba is a dependency; add_points has a numpy path
+    njit = None
 
 #: Statistics per voxel: n, S1 (x, y, z), S2 (xx, xy, xz, yy, yz, zz).
 STATS = 10
@@ -91,6 +99,56 @@ def shift_moments(moments: np.ndarray, offset: np.ndarray) -> np.ndarray:
     for column, (a, b) in enumerate(((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))):
         out[:, 4 + column] += d[:, a] * s1[:, b] + s1[:, a] * d[:, b] + n[:, 0] * d[:, a] * d[:, b]
     return out
+
+
+def _block_range(px, py, pz, s, b):
+    """Lowest and highest block coordinates of the points (one pass)."""
+    low = np.full(3, np.iinfo(np.int64).max, dtype=np.int64)
+    high = np.full(3, np.iinfo(np.int64).min, dtype=np.int64)
+    for i in range(px.shape[0]):
+        for axis, value in enumerate((px[i], py[i], pz[i])):
+            block = np.int64(np.floor(value / s)) // b
+            low[axis] = min(low[axis], block)
+            high[axis] = max(high[axis], block)
+    return low, high
+
+
+def _mark_blocks(px, py, pz, s, b, low, box, present):
+    for i in range(px.shape[0]):
+        bx = np.int64(np.floor(px[i] / s)) // b - low[0]
+        by = np.int64(np.floor(py[i] / s)) // b - low[1]
+        bz = np.int64(np.floor(pz[i] / s)) // b - low[2]
+        present[(bx * box[1] + by) * box[2] + bz] = True
+
+
+def _accumulate(px, py, pz, s, b, low, box, compact_of_box, slot_of_compact, stats, touched):
+    """Add each point's moments to its voxel (relative to the voxel's corner); mark the voxel touched."""
+    for i in range(px.shape[0]):
+        vx = np.int64(np.floor(px[i] / s))
+        vy = np.int64(np.floor(py[i] / s))
+        vz = np.int64(np.floor(pz[i] / s))
+        bx, by, bz = vx // b, vy // b, vz // b
+        compact = compact_of_box[((bx - low[0]) * box[1] + (by - low[1])) * box[2] + (bz - low[2])]
+        flat = ((vx - bx * b) * b + (vy - by * b)) * b + (vz - bz * b)
+        x, y, z = px[i] - vx * s, py[i] - vy * s, pz[i] - vz * s
+        row = stats[slot_of_compact[compact], flat]
+        row[0] += 1.0
+        row[1] += x
+        row[2] += y
+        row[3] += z
+        row[4] += x * x
+        row[5] += x * y
+        row[6] += x * z
+        row[7] += y * y
+        row[8] += y * z
+        row[9] += z * z
+        touched[compact, flat] = True
+
+
+if njit is not None:
+    _block_range = njit(cache=True)(_block_range)
+    _mark_blocks = njit(cache=True)(_mark_blocks)
+    _accumulate = njit(cache=True)(_accumulate)
 
 
 class VoxelMap:
@@ -194,6 +252,11 @@ class VoxelMap:
         s = self.voxel_size
         # per axis, contiguous: column arithmetic on (M, 3) arrays is strided and several times slower
         columns = [np.ascontiguousarray(points[:, axis]) for axis in range(3)]
+        if njit is not None:
+            changed = self._add_compiled(columns)
+            if changed is not None:
+                self.last_changed = changed
+                return changed
         voxel = [np.floor(c / s).astype(np.int64) for c in columns]
         block = [v // b for v in voxel]
         low = np.array([c.min() for c in block])
@@ -240,6 +303,30 @@ class VoxelMap:
             self._stats[slots[changed // b3], changed % b3] += sums
         self.last_changed = self._voxels_of(touched[changed // b3], changed % b3)
         return self.last_changed
+
+    def _add_compiled(self, columns) -> np.ndarray | None:
+        """:meth:`add_points` in three compiled passes over the points (range, blocks, sums); None
+        when the points' blocks are too spread for a dense box (the numpy path handles those)."""
+        b, s = self.block_voxels, self.voxel_size
+        low, high = _block_range(*columns, s, b)
+        if max(np.abs(low).max(), np.abs(high).max()) >= _PACK_OFFSET:
+            raise ValueError("VoxelMap.add_points: points lie outside the +-1000 km the block keys can address")
+        box = high - low + 1
+        volume = int(np.prod(box))
+        if volume > 1 << 20:
+            return None
+        present = np.zeros(volume, dtype=np.bool_)
+        _mark_blocks(*columns, s, b, low, box, present)
+        boxes = np.flatnonzero(present)
+        coords = np.stack([boxes // (box[1] * box[2]), (boxes // box[2]) % box[1], boxes % box[2]], axis=1)
+        touched = pack_keys(coords + low)
+        self._allocate(np.sort(touched))
+        compact_of_box = np.full(volume, -1, dtype=np.int64)
+        compact_of_box[boxes] = np.arange(len(boxes))
+        marks = np.zeros((len(boxes), b**3), dtype=np.bool_)
+        _accumulate(*columns, s, b, low, box, compact_of_box, self.block_slots(touched), self._stats, marks)
+        compact, flat = np.nonzero(marks)
+        return self._voxels_of(touched[compact], flat)
 
     def _voxels_of(self, block_keys: np.ndarray, local_flat: np.ndarray) -> np.ndarray:
         b = self.block_voxels
