@@ -188,19 +188,13 @@ def pyramid_kernel(points, normals, n_t, d_t):
     for i in range(count.shape[0]):
         for j in range(count.shape[1]):
             regions += count[i, j]
-    # leaves: single nodes whose parent is not single
-    total_leaves = 0
-    for level in range(len(singles)):
-        s = singles[level]
-        for i in range(s.shape[0]):
-            for j in range(s.shape[1]):
-                if s[i, j] and (level + 1 == len(singles) or not singles[level + 1][i // 2, j // 2]):
-                    total_leaves += 1
-    levels = np.empty(total_leaves, dtype=np.int64)
-    rows = np.empty(total_leaves, dtype=np.int64)
-    cols = np.empty(total_leaves, dtype=np.int64)
-    leaf_normals = np.empty((total_leaves, 3))
-    leaf_points = np.empty((total_leaves, 3))
+    # leaves: single nodes whose parent is not single (at most one per level-0 node)
+    capacity = height * width
+    levels = np.empty(capacity, dtype=np.int64)
+    rows = np.empty(capacity, dtype=np.int64)
+    cols = np.empty(capacity, dtype=np.int64)
+    leaf_normals = np.empty((capacity, 3))
+    leaf_points = np.empty((capacity, 3))
     k = 0
     for level in range(len(singles)):
         s = singles[level]
@@ -216,7 +210,7 @@ def pyramid_kernel(points, normals, n_t, d_t):
                         leaf_normals[k, c] = np.float64(nv[c]) / length
                         leaf_points[k, c] = np.float64(point_levels[level][i, j, c])
                     k += 1
-    return levels, rows, cols, leaf_normals, leaf_points, regions
+    return levels[:k], rows[:k], cols[:k], leaf_normals[:k], leaf_points[:k], regions
 
 
 @njit(cache=True)

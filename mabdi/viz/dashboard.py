@@ -27,6 +27,8 @@ Use :class:`Dashboard` with a :class:`mabdi.simulate.Simulation`: after each
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 from vtkmodules.util.numpy_support import numpy_to_vtk, vtk_to_numpy
 from vtkmodules.vtkCommonCore import vtkLookupTable, vtkPoints
@@ -42,11 +44,17 @@ LABEL_COLOURS = np.array([[128, 128, 128], [255, 255, 255], [0, 0, 0], [220, 40,
 NAN_GREY = np.array([128, 128, 128], dtype=np.uint8)
 
 
-def depth_colours(depth: np.ndarray, low: float, high: float) -> np.ndarray:
-    """(H, W, 3) uint8: depth on the magma ramp from ``low`` (dark) to ``high`` (bright); NaN grey."""
+@functools.cache
+def _ramp(name: str) -> np.ndarray:
+    """(256, 3) uint8 colours of a matplotlib colour map (built once per name)."""
     from matplotlib import colormaps
 
-    table = np.round(255 * colormaps["magma"](np.linspace(0, 1, 256))[:, :3]).astype(np.uint8)
+    return np.round(255 * colormaps[name](np.linspace(0, 1, 256))[:, :3]).astype(np.uint8)
+
+
+def depth_colours(depth: np.ndarray, low: float, high: float) -> np.ndarray:
+    """(H, W, 3) uint8: depth on the magma ramp from ``low`` (dark) to ``high`` (bright); NaN grey."""
+    table = _ramp("magma")
     finite = np.isfinite(depth)
     scaled = np.clip((np.nan_to_num(depth, nan=low) - low) / max(high - low, 1e-9), 0, 1)
     out = table[(scaled * 255).astype(np.int64)]
