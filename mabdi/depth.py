@@ -7,8 +7,15 @@ Layout (design.md):
   NaN where there is no return, row-major with index v*W + u and v = 0 the
   **top** row of the image;
 * field data ``intrinsics`` (float64[8]: fx, fy, cx, cy, width, height, near,
-  far), ``world_from_camera`` (float64[16], row-major) and ``frame``
-  (int64[1], the frame index, -1 when unknown).
+  far), ``world_from_camera`` (float64[16], row-major), ``frame``
+  (int64[1], the frame index, -1 when unknown) and ``timestamp`` (float64[1],
+  seconds, NaN when unknown).
+
+**What counts as a return** is decided here, once, for every source and
+filter (:func:`returns`): a depth that is finite and inside the sensor's
+range, near < z < far. Anything else (NaN, 0, negative, +-inf, beyond far)
+is "no return". :func:`depth_array` applies the rule, so a filter that reads
+its input through it never meshes a depth behind the camera or at infinity.
 
 :class:`DepthFrame` is the numpy side of the same thing.
 """
@@ -27,6 +34,31 @@ DEPTH_ARRAY = "depth"
 INTRINSICS_ARRAY = "intrinsics"
 POSE_ARRAY = "world_from_camera"
 FRAME_ARRAY = "frame"
+TIMESTAMP_ARRAY = "timestamp"
+
+
+def returns(depth: np.ndarray, near: float, far: float) -> np.ndarray:
+    """Boolean mask of the pixels that hold a return: finite and near < depth < far (metres)."""
+    depth = np.asarray(depth)
+    kind = depth.dtype.type if depth.dtype.kind == "f" else float
+    with np.errstate(invalid="ignore"):
+        return (depth > kind(near)) & (depth < kind(far))  # NaN and +-inf fail one of the two
+
+
+def only_returns(depth: np.ndarray, near: float, far: float) -> np.ndarray:
+    """``depth`` as float32 with every pixel that is not a return (:func:`returns`) set to NaN.
+
+    Returns the input itself (no copy) when it is float32 and every pixel is
+    a return or NaN already.
+    """
+    depth = np.asarray(depth)
+    if depth.dtype != np.float32:
+        depth = depth.astype(np.float32)
+    keep = returns(depth, near, far)
+    odd = ~keep & ~np.isnan(depth)
+    if not odd.any():
+        return depth
+    return np.where(keep, depth, np.float32(np.nan))
 
 
 @dataclass
@@ -37,6 +69,7 @@ class DepthFrame:
     intrinsics: Intrinsics
     world_from_camera: np.ndarray
     frame: int = -1
+    timestamp: float = float("nan")
 
     def __post_init__(self) -> None:
         self.depth = np.asarray(self.depth, dtype=np.float32)
@@ -48,16 +81,18 @@ class DepthFrame:
 
     def to_image(self) -> vtkImageData:
         """This frame as a depth-image vtkImageData."""
-        return depth_image(self.depth, self.intrinsics, self.world_from_camera, self.frame)
+        return depth_image(self.depth, self.intrinsics, self.world_from_camera, self.frame, self.timestamp)
 
     @classmethod
     def from_image(cls, image) -> DepthFrame:
-        """Read a depth-image vtkImageData (copies the depth array)."""
+        """Read a depth-image vtkImageData (copies the depth array; non-returns become NaN)."""
         intrinsics = image_intrinsics(image)
-        return cls(depth_array(image).copy(), intrinsics, image_pose(image), image_frame(image))
+        return cls(
+            np.array(depth_array(image), copy=True), intrinsics, image_pose(image), image_frame(image), image_timestamp(image)
+        )
 
 
-def depth_image(depth, intrinsics: Intrinsics, world_from_camera, frame: int = -1) -> vtkImageData:
+def depth_image(depth, intrinsics: Intrinsics, world_from_camera, frame: int = -1, timestamp: float = float("nan")) -> vtkImageData:
     """Build a depth-image vtkImageData from a (H, W) array of metres (v = 0 the top row); copies ``depth``."""
     depth = np.array(depth, dtype=np.float32, order="C", copy=True)
     if depth.shape != intrinsics.shape:
@@ -65,11 +100,18 @@ def depth_image(depth, intrinsics: Intrinsics, world_from_camera, frame: int = -
             f"depth image has shape {depth.shape}, but intrinsics say (height, width) = {intrinsics.shape}"
         )
     image = vtkImageData()
-    fill_depth_image(image, depth, intrinsics, check_pose(world_from_camera, "world_from_camera"), frame)
+    fill_depth_image(image, depth, intrinsics, check_pose(world_from_camera, "world_from_camera"), frame, timestamp)
     return image
 
 
-def fill_depth_image(image: vtkImageData, depth: np.ndarray, intrinsics: Intrinsics, pose: np.ndarray, frame: int) -> None:
+def fill_depth_image(
+    image: vtkImageData,
+    depth: np.ndarray,
+    intrinsics: Intrinsics,
+    pose: np.ndarray,
+    frame: int,
+    timestamp: float = float("nan"),
+) -> None:
     """Fill an existing vtkImageData (a filter's output) with a depth image. Inputs are trusted.
 
     The image shares ``depth``'s memory: hand over an array nobody else writes to.
@@ -90,6 +132,7 @@ def fill_depth_image(image: vtkImageData, depth: np.ndarray, intrinsics: Intrins
         (INTRINSICS_ARRAY, intrinsics.to_array()),
         (POSE_ARRAY, np.asarray(pose, dtype=np.float64).ravel()),
         (FRAME_ARRAY, np.array([frame], dtype=np.int64)),
+        (TIMESTAMP_ARRAY, np.array([timestamp], dtype=np.float64)),
     ):
         vtk_array = numpy_to_vtk(values, deep=True)
         vtk_array.SetName(name)
@@ -124,8 +167,18 @@ def image_frame(image) -> int:
     return int(vtk_to_numpy(array)[0]) if array is not None and array.GetNumberOfTuples() else -1
 
 
-def depth_array(image) -> np.ndarray:
-    """(H, W) float32 view of a depth image's ``depth`` array (no copy; row 0 is the top)."""
+def image_timestamp(image) -> float:
+    """Timestamp (seconds) stored in a depth image's field data (NaN when absent)."""
+    array = image.GetFieldData().GetArray(TIMESTAMP_ARRAY)
+    return float(vtk_to_numpy(array)[0]) if array is not None and array.GetNumberOfTuples() else float("nan")
+
+
+def depth_array(image, raw: bool = False) -> np.ndarray:
+    """(H, W) float32 depth of a depth image (row 0 is the top), non-returns as NaN (:func:`returns`).
+
+    A view of the image's array when every pixel is a return or NaN, else a
+    cleaned copy; ``raw=True`` always gives the view, as stored.
+    """
     intrinsics = image_intrinsics(image)
     array = image.GetPointData().GetArray(DEPTH_ARRAY)
     if array is None:
@@ -135,4 +188,7 @@ def depth_array(image) -> np.ndarray:
         raise ValueError(
             f"depth array has {values.size} values, intrinsics say {intrinsics.width}x{intrinsics.height}"
         )
-    return values.reshape(intrinsics.shape)
+    values = values.reshape(intrinsics.shape)
+    if raw:
+        return values
+    return only_returns(values, intrinsics.near, intrinsics.far)

@@ -1,0 +1,152 @@
+"""Sources of depth frames: where the measured image D comes from.
+
+A :class:`FrameSource` yields, frame by frame, a :class:`~mabdi.depth.DepthFrame`:
+a metric depth image in the project's layout (float32 metres, row 0 at the
+top, NaN = no return), its intrinsics, the ``world_from_camera`` pose, the
+frame index and a timestamp (seconds). Kinds:
+
+* the simulated rig (scene + off-screen sensor + helical path),
+  :class:`mabdi.simulate.rig.SimulatedRig`;
+* recorded sequences: TUM RGB-D folders (:mod:`mabdi.sources.tum`) and ROS 2
+  bags (:mod:`mabdi.sources.rosbag2`).
+
+Frames are read by index (``read(i)``, 0 <= i < ``len(source)``), so a run can
+start in the middle (``--resume``) and a benchmark can feed the same frame to
+several methods. :class:`SourceDepthFrames` puts a source at the head of a
+VTK pipeline: set its ``frame`` and its output is D, with the frame index,
+pose and timestamp in the image's field data, where every filter downstream
+(the expected image E, the classifier, the surface filters) takes them from.
+This is the one place a loop sets the frame.
+
+What counts as a return is decided once, in :func:`mabdi.depth.returns`
+(finite and near < z < far); :class:`SourceDepthFrames` applies it to every
+source's depth before it enters the pipeline.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+
+import numpy as np
+from vtkmodules.vtkCommonDataModel import vtkImageData
+from vtkmodules.vtkCommonExecutionModel import vtkStreamingDemandDrivenPipeline
+
+from mabdi.algorithm import MabdiAlgorithm
+from mabdi.camera import Intrinsics
+from mabdi.depth import DepthFrame, fill_depth_image, only_returns
+
+
+class FrameSource:
+    """Depth frames by index (see the module docs). Subclasses implement ``__len__``, ``read`` and ``intrinsics``.
+
+    ``poses`` and ``timestamps`` default to reading every frame; sources that
+    know them without decoding depth (recordings, the simulated path) override them.
+    """
+
+    #: A short description for messages and ``summary.json`` ("simulated table", "TUM folder ...").
+    description: str = "depth frames"
+
+    @property
+    def intrinsics(self) -> Intrinsics:
+        raise NotImplementedError
+
+    def __len__(self) -> int:
+        raise NotImplementedError
+
+    def read(self, index: int) -> DepthFrame:
+        """Frame ``index``: depth (metres, NaN = no return), intrinsics, pose, ``frame == index``, timestamp."""
+        raise NotImplementedError
+
+    @property
+    def poses(self) -> np.ndarray:
+        """(N, 4, 4) world_from_camera of every frame."""
+        return np.stack([self.read(i).world_from_camera for i in range(len(self))])
+
+    @property
+    def timestamps(self) -> np.ndarray:
+        """(N,) timestamps in seconds (NaN where unknown)."""
+        return np.array([self.read(i).timestamp for i in range(len(self))], dtype=np.float64)
+
+    def check_index(self, index: int) -> int:
+        """``index`` as an int, or IndexError naming the source and its length."""
+        if isinstance(index, bool) or not isinstance(index, (int, np.integer)) or not 0 <= index < len(self):
+            raise IndexError(f"{self.description}: frame {index!r} out of range (0 .. {len(self) - 1})")
+        return int(index)
+
+    def __iter__(self) -> Iterator[DepthFrame]:
+        for i in range(len(self)):
+            yield self.read(i)
+
+    def close(self) -> None:
+        """Release files or render windows the source holds (reading again reopens them)."""
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+class FrameList(FrameSource):
+    """A source over frames already in memory (tests, or frames a user built with numpy)."""
+
+    def __init__(self, frames: list[DepthFrame], description: str = "frames in memory") -> None:
+        if not frames:
+            raise ValueError("FrameList needs at least one frame")
+        self._frames = list(frames)
+        self.description = description
+
+    @property
+    def intrinsics(self) -> Intrinsics:
+        return self._frames[0].intrinsics
+
+    def __len__(self) -> int:
+        return len(self._frames)
+
+    def read(self, index: int) -> DepthFrame:
+        frame = self._frames[self.check_index(index)]
+        return DepthFrame(frame.depth, frame.intrinsics, frame.world_from_camera, index, frame.timestamp)
+
+
+class SourceDepthFrames(MabdiAlgorithm):
+    """A :class:`FrameSource` as a VTK source: no input, the depth image of frame ``frame`` out.
+
+    The output is D with field data ``intrinsics``, ``world_from_camera``,
+    ``frame`` and ``timestamp``; depths that are not returns are NaN.
+    """
+
+    def __init__(self, source: FrameSource) -> None:
+        super().__init__(nInputPorts=0, nOutputPorts=1, outputType="vtkImageData")
+        self._source = source
+        self._frame = 0
+
+    @property
+    def source(self) -> FrameSource:
+        return self._source
+
+    @property
+    def frame(self) -> int:
+        """The frame index the next update reads."""
+        return self._frame
+
+    @frame.setter
+    def frame(self, value: int) -> None:
+        self._set("_frame", self._source.check_index(value))
+
+    def RequestInformation(self, request, inInfo, outInfo):  # noqa: N802 (VTK API)
+        intrinsics = self._source.intrinsics
+        info = outInfo.GetInformationObject(0)
+        extent = (0, intrinsics.width - 1, 0, intrinsics.height - 1, 0, 0)
+        info.Set(vtkStreamingDemandDrivenPipeline.WHOLE_EXTENT(), extent, 6)
+        info.Set(vtkImageData.SPACING(), (1.0, 1.0, 1.0), 3)
+        info.Set(vtkImageData.ORIGIN(), (0.0, 0.0, 0.0), 3)
+        return 1
+
+    def RequestData(self, request, inInfo, outInfo):  # noqa: N802 (VTK API)
+        frame = self._source.read(self._frame)
+        intrinsics = frame.intrinsics
+        depth = only_returns(frame.depth, intrinsics.near, intrinsics.far)
+        if depth is frame.depth:
+            depth = depth.copy()  # the output image owns its buffer
+        fill_depth_image(vtkImageData.GetData(outInfo), depth, intrinsics, frame.world_from_camera, self._frame, frame.timestamp)
+        return 1
