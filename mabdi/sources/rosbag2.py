@@ -1,0 +1,605 @@
+"""ROS 2 bags (sqlite3 and MCAP storage) as a frame source, and any frame source written as a bag.
+
+Reading and writing use the pure-Python ``rosbags`` package; message layouts
+are those of ROS 2 Humble (``sensor_msgs/msg/Image``, ``CameraInfo``,
+``geometry_msgs/msg/PoseStamped``, ``tf2_msgs/msg/TFMessage``; unchanged in
+later distributions).
+
+**Depth**: ``sensor_msgs/msg/Image`` with encoding ``16UC1`` (millimetres,
+0 = no return) or ``32FC1`` (metres, NaN or 0 = no return); rows may be
+padded (``step``) and big-endian. Any other encoding is an error naming the
+topic.
+
+**Intrinsics**: the first ``sensor_msgs/msg/CameraInfo`` message: fx = K[0],
+fy = K[4], cx = K[2] + 0.5, cy = K[5] + 0.5 (ROS puts pixel centres at
+integers, mabdi at u + 0.5), width and height; distortion is ignored. near
+and far are :class:`Intrinsics`' defaults unless a ``mabdi.toml`` in the bag
+folder has ``[camera]`` ``near`` / ``far``.
+
+**Poses** (``world_from_camera``, camera = the depth image's
+``header.frame_id``, which REP 103 makes an optical frame: x right, y down,
+z forward, as mabdi's camera frame; it is used without any rotation):
+
+* from a ``geometry_msgs/msg/PoseStamped`` topic: the pose of the camera's
+  optical frame in ``header.frame_id`` (the world);
+* or from ``/tf`` and ``/tf_static``: the transform tree is built from every
+  ``TransformStamped`` (parent ``header.frame_id``, child
+  ``child_frame_id``; the transform is parent_from_child) and chained from
+  the world frame down to the image's frame. Static transforms hold at all
+  times; for each dynamic one the sample with the nearest stamp within
+  ``tolerance`` is taken (no interpolation). The world frame is ``frame_id=``
+  or, by default, the root of the camera frame's tree.
+
+Topics are found by message type when there is one candidate: the depth
+image among the Image topics (those whose first message has a depth
+encoding), the CameraInfo beside it (``<namespace>/camera_info``) or the only
+one, a single PoseStamped topic, else ``/tf``. When there are several
+candidates, or none, the error lists what the bag has and names the argument
+that chooses (``depth_topic=``, ``info_topic=``, ``pose_topic=``).
+
+**Matching**: depth frames and poses are matched by header stamps, nearest
+within ``tolerance`` seconds (default 20 ms); frames without a pose are
+skipped and counted (:attr:`Rosbag2Sequence.skipped`, and in ``description``).
+
+**Reading by index**: at open the depth topic is scanned once (header stamps,
+bag time and position among messages of the same bag time; messages are
+deserialised as views, the pixels are not decoded); ``read(i)`` asks the bag
+for the messages at frame i's bag time only (an indexed query in sqlite3, the
+one chunk that holds it in MCAP) and decodes that image.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import tempfile
+from pathlib import Path
+
+import numpy as np
+from rosbags.rosbag2 import Reader, ReaderError, StoragePlugin, Writer, WriterError
+from rosbags.typesys import Stores, get_typestore
+
+from mabdi.camera import Intrinsics
+from mabdi.depth import DepthFrame
+from mabdi.sources.frames import FrameSource
+from mabdi.sources.sequences import (
+    SequenceError,
+    camera_table,
+    frame_timestamps,
+    metadata_path,
+    nearest_within,
+    poses_from_translations_quaternions,
+    quaternions_from_rotations,
+    read_sequence_metadata,
+    write_metadata,
+)
+
+IMAGE = "sensor_msgs/msg/Image"
+CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
+POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
+TF_MESSAGE = "tf2_msgs/msg/TFMessage"
+
+#: Depth encodings read: name -> (dtype of one pixel, metres per unit).
+DEPTH_ENCODINGS = {"16UC1": (np.uint16, 1e-3), "32FC1": (np.float32, 1.0)}
+
+#: Topics and frames :func:`write_rosbag2` uses.
+DEPTH_TOPIC = "/camera/depth/image"
+INFO_TOPIC = "/camera/depth/camera_info"
+POSE_TOPIC = "/camera/pose"
+WORLD_FRAME = "world"
+CAMERA_LINK_FRAME = "camera_link"
+OPTICAL_FRAME = "camera_depth_optical_frame"
+
+#: camera_link (x forward, y left, z up) from the optical frame (x right, y down, z forward), REP 103.
+LINK_FROM_OPTICAL = np.array(
+    [[0.0, 0.0, 1.0, 0.0], [-1.0, 0.0, 0.0, 0.0], [0.0, -1.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]]
+)
+
+_TYPESTORE = get_typestore(Stores.ROS2_HUMBLE)
+
+
+def _stamp_ns(stamp) -> int:
+    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+
+
+def _pose_matrix(position, orientation) -> np.ndarray:
+    return poses_from_translations_quaternions(
+        [[position.x, position.y, position.z]], [[orientation.x, orientation.y, orientation.z, orientation.w]]
+    )[0]
+
+
+def _list(names) -> str:
+    names = sorted(names)
+    return ", ".join(names) if names else "(none)"
+
+
+class Rosbag2Sequence(FrameSource):
+    """A ROS 2 bag (a bag folder, or one ``.db3`` / ``.mcap`` file) as a :class:`FrameSource` (see the module docs).
+
+    Parameters: ``depth_topic``, ``info_topic``, ``pose_topic`` (a
+    PoseStamped topic, or ``"/tf"`` for the transform tree), each found by type
+    when left out; ``frame_id``: the world frame (the root of the chain for
+    /tf; for a PoseStamped topic, the ``header.frame_id`` its messages must
+    have); ``tolerance``: seconds between a depth image and its pose (and each
+    dynamic transform).
+    """
+
+    def __init__(
+        self,
+        path,
+        depth_topic: str | None = None,
+        info_topic: str | None = None,
+        pose_topic: str | None = None,
+        frame_id: str | None = None,
+        tolerance: float = 0.02,
+    ) -> None:
+        self.path = Path(path)
+        if not self.path.exists():
+            raise SequenceError(f"ROS 2 bag {self.path} does not exist")
+        if not (np.isfinite(tolerance) and tolerance >= 0):
+            raise SequenceError(f"ROS 2 bag {self.path}: tolerance must be >= 0 seconds, got {tolerance!r}")
+        self.tolerance = float(tolerance)
+        self._reader: Reader | None = None
+        reader = self._open()
+        self.topics = {c.topic: c.msgtype for c in reader.connections}
+        self.metadata = read_sequence_metadata(self.path)
+
+        self.depth_topic = self._choose_depth_topic(depth_topic)
+        self.info_topic = self._choose_info_topic(info_topic)
+        self._index_depth()
+        self._intrinsics = self._read_intrinsics()
+        self.pose_source = self._choose_pose_source(pose_topic)
+        stamps, poses = self._poses_from_tf(frame_id) if self.pose_source == "/tf" else self._poses_from_topic(frame_id)
+
+        keep = np.isfinite(poses[:, 0, 0])
+        self.skipped = int((~keep).sum())
+        self._poses = poses[keep]
+        self._stamps = stamps[keep]
+        self._log_times = self._all_log_times[keep]
+        self._occurrence = self._all_occurrence[keep]
+        self.description = f"ROS 2 bag {self.path} ({self.depth_topic}, poses from {self.pose_source}, {len(self._poses)} frames"
+        self.description += (
+            f", {self.skipped} without a pose within {self.tolerance * 1000:g} ms skipped)" if self.skipped else ")"
+        )
+        if not len(self._poses):
+            raise SequenceError(
+                f"ROS 2 bag {self.path}: no image on {self.depth_topic} has a pose from {self.pose_source} "
+                f"within {self.tolerance * 1000:g} ms ({self.skipped} images)"
+            )
+
+    # -- opening --------------------------------------------------------------
+
+    def _open(self) -> Reader:
+        if self._reader is None:
+            try:
+                reader = Reader(self.path)
+                reader.open()
+            except (ReaderError, FileNotFoundError, OSError, ValueError, KeyError) as exc:
+                raise SequenceError(f"ROS 2 bag {self.path}: cannot open: {exc}") from None
+            self._reader = reader
+        return self._reader
+
+    def close(self) -> None:
+        if self._reader is not None:
+            self._reader.close()
+            self._reader = None
+
+    def _connections(self, topic: str):
+        return [c for c in self._open().connections if c.topic == topic]
+
+    def _messages(self, topic: str, start: int | None = None, stop: int | None = None):
+        """(bag time ns, deserialised message) of ``topic``, in bag-time order."""
+        for connection, log_time, raw in self._open().messages(self._connections(topic), start=start, stop=stop):
+            try:
+                yield log_time, _TYPESTORE.deserialize_cdr(raw, connection.msgtype)
+            except Exception as exc:  # noqa: BLE001 (rosbags raises several kinds for a corrupt message)
+                raise SequenceError(f"ROS 2 bag {self.path}: topic {topic}: cannot decode a message: {exc}") from None
+
+    def _check_topic(self, topic: str, msgtype: str, argument: str) -> str:
+        if topic not in self.topics:
+            raise SequenceError(
+                f"ROS 2 bag {self.path}: no topic {topic!r} ({argument}); the bag has: "
+                + _list(f"{t} [{m}]" for t, m in self.topics.items())
+            )
+        if self.topics[topic] != msgtype:
+            raise SequenceError(
+                f"ROS 2 bag {self.path}: topic {topic} ({argument}) is {self.topics[topic]}, expected {msgtype}"
+            )
+        return topic
+
+    def _of_type(self, msgtype: str) -> list[str]:
+        return sorted(t for t, m in self.topics.items() if m == msgtype)
+
+    def _choose_depth_topic(self, topic: str | None) -> str:
+        if topic is not None:
+            return self._check_topic(topic, IMAGE, "depth_topic=")
+        candidates = self._of_type(IMAGE)
+        if len(candidates) > 1:
+            depth = []
+            for name in candidates:
+                first = next(self._messages(name), None)
+                if first is not None and first[1].encoding in DEPTH_ENCODINGS:
+                    depth.append(name)
+            candidates = depth or candidates
+        if len(candidates) != 1:
+            raise SequenceError(
+                f"ROS 2 bag {self.path}: "
+                + (f"several depth image topics ({_list(candidates)})" if candidates else f"no {IMAGE} topic")
+                + "; choose one with depth_topic= (topics: "
+                + _list(f"{t} [{m}]" for t, m in self.topics.items())
+                + ")"
+            )
+        return candidates[0]
+
+    def _choose_info_topic(self, topic: str | None) -> str:
+        if topic is not None:
+            return self._check_topic(topic, CAMERA_INFO, "info_topic=")
+        candidates = self._of_type(CAMERA_INFO)
+        beside = self.depth_topic.rsplit("/", 1)[0] + "/camera_info"
+        if beside in candidates:
+            return beside
+        if len(candidates) != 1:
+            raise SequenceError(
+                f"ROS 2 bag {self.path}: "
+                + (f"several {CAMERA_INFO} topics ({_list(candidates)})" if candidates else f"no {CAMERA_INFO} topic")
+                + f" for the depth images on {self.depth_topic}; choose one with info_topic= (topics: "
+                + _list(f"{t} [{m}]" for t, m in self.topics.items())
+                + ")"
+            )
+        return candidates[0]
+
+    def _choose_pose_source(self, topic: str | None) -> str:
+        if topic is not None:
+            if topic in ("/tf", "/tf_static") or self.topics.get(topic) == TF_MESSAGE:
+                if "/tf" not in self.topics and "/tf_static" not in self.topics:
+                    raise SequenceError(f"ROS 2 bag {self.path}: pose_topic={topic!r} but the bag has no /tf or /tf_static")
+                return "/tf"
+            return self._check_topic(topic, POSE_STAMPED, "pose_topic=")
+        candidates = self._of_type(POSE_STAMPED)
+        if len(candidates) == 1:
+            return candidates[0]
+        if len(candidates) > 1:
+            raise SequenceError(
+                f"ROS 2 bag {self.path}: several {POSE_STAMPED} topics ({_list(candidates)}); "
+                "choose one with pose_topic= (or pose_topic='/tf')"
+            )
+        if self.topics.get("/tf") == TF_MESSAGE or self.topics.get("/tf_static") == TF_MESSAGE:
+            return "/tf"
+        raise SequenceError(
+            f"ROS 2 bag {self.path}: no pose source for {self.depth_topic}: no {POSE_STAMPED} topic and no /tf "
+            "(topics: " + _list(f"{t} [{m}]" for t, m in self.topics.items()) + ")"
+        )
+
+    def _index_depth(self) -> None:
+        """One pass over the depth topic: header stamps, bag times, position among equal bag times, frame id."""
+        stamps, log_times, occurrence, frame_ids = [], [], [], set()
+        previous, count = None, 0
+        for log_time, message in self._messages(self.depth_topic):
+            if message.encoding not in DEPTH_ENCODINGS:
+                raise SequenceError(
+                    f"ROS 2 bag {self.path}: topic {self.depth_topic}: unknown depth encoding {message.encoding!r} "
+                    f"(known: {', '.join(DEPTH_ENCODINGS)})"
+                )
+            count = count + 1 if log_time == previous else 0
+            previous = log_time
+            stamps.append(_stamp_ns(message.header.stamp))
+            log_times.append(log_time)
+            occurrence.append(count)
+            frame_ids.add(message.header.frame_id)
+            self._image_size = (int(message.width), int(message.height))
+        if not stamps:
+            raise SequenceError(f"ROS 2 bag {self.path}: topic {self.depth_topic} has no messages")
+        if len(frame_ids) != 1:
+            raise SequenceError(f"ROS 2 bag {self.path}: topic {self.depth_topic}: images in several frames ({_list(frame_ids)})")
+        self.camera_frame = frame_ids.pop()
+        self._all_stamps = np.array(stamps, dtype=np.int64)
+        self._all_log_times = np.array(log_times, dtype=np.int64)
+        self._all_occurrence = np.array(occurrence, dtype=np.int64)
+        self._time_origin = int(self._all_stamps.min())
+
+    def _seconds(self, stamps_ns) -> np.ndarray:
+        """Seconds since the first depth stamp (float64 keeps nanoseconds there), for matching."""
+        return (np.asarray(stamps_ns, dtype=np.int64) - self._time_origin) / 1e9
+
+    def _read_intrinsics(self) -> Intrinsics:
+        first = next(self._messages(self.info_topic), None)
+        if first is None:
+            raise SequenceError(f"ROS 2 bag {self.path}: topic {self.info_topic} has no {CAMERA_INFO} message")
+        info = first[1]
+        k = np.asarray(info.k, dtype=np.float64)
+        if (int(info.width), int(info.height)) != self._image_size:
+            raise SequenceError(
+                f"ROS 2 bag {self.path}: {self.info_topic} says {info.width}x{info.height}, "
+                f"images on {self.depth_topic} are {self._image_size[0]}x{self._image_size[1]}"
+            )
+        file = metadata_path(self.path)
+        table = camera_table(self.metadata, file)
+        values = {k_: table[k_] for k_ in ("near", "far") if k_ in table}
+        try:
+            return Intrinsics(
+                fx=float(k[0]), fy=float(k[4]), cx=float(k[2]) + 0.5, cy=float(k[5]) + 0.5,
+                width=int(info.width), height=int(info.height), **values,
+            )
+        except Exception as exc:  # noqa: BLE001 (ConfigError from Intrinsics, or a short K)
+            raise SequenceError(f"ROS 2 bag {self.path}: {self.info_topic}: bad camera info (K = {k.tolist()}): {exc}") from None
+
+    # -- poses ----------------------------------------------------------------
+
+    def _poses_from_topic(self, frame_id: str | None) -> tuple[np.ndarray, np.ndarray]:
+        stamps, poses = [], []
+        for _, message in self._messages(self.pose_source):
+            if frame_id is not None and message.header.frame_id != frame_id:
+                raise SequenceError(
+                    f"ROS 2 bag {self.path}: topic {self.pose_source}: pose in frame {message.header.frame_id!r}, "
+                    f"expected frame_id={frame_id!r}"
+                )
+            stamps.append(_stamp_ns(message.header.stamp))
+            poses.append(_pose_matrix(message.pose.position, message.pose.orientation))
+        if not poses:
+            raise SequenceError(f"ROS 2 bag {self.path}: pose topic {self.pose_source} has no messages")
+        match = nearest_within(self._seconds(self._all_stamps), self._seconds(stamps), self.tolerance)
+        return self._all_stamps, self._gather(np.array(poses), match)
+
+    @staticmethod
+    def _gather(poses: np.ndarray, match: np.ndarray) -> np.ndarray:
+        """poses[match], NaN where match is -1."""
+        out = np.full((len(match), 4, 4), np.nan)
+        found = match >= 0
+        out[found] = poses[match[found]]
+        return out
+
+    def _poses_from_tf(self, frame_id: str | None) -> tuple[np.ndarray, np.ndarray]:
+        static: dict[str, tuple[str, np.ndarray]] = {}
+        dynamic: dict[str, tuple[str, list[int], list[np.ndarray]]] = {}
+        for topic in ("/tf_static", "/tf"):
+            if self.topics.get(topic) != TF_MESSAGE:
+                continue
+            for _, message in self._messages(topic):
+                for transform in message.transforms:
+                    parent, child = transform.header.frame_id.lstrip("/"), transform.child_frame_id.lstrip("/")
+                    matrix = _pose_matrix(transform.transform.translation, transform.transform.rotation)
+                    if topic == "/tf_static":
+                        static[child] = (parent, matrix)
+                    else:
+                        entry = dynamic.setdefault(child, (parent, [], []))
+                        if entry[0] != parent:
+                            raise SequenceError(
+                                f"ROS 2 bag {self.path}: /tf: frame {child!r} has two parents ({entry[0]!r}, {parent!r})"
+                            )
+                        entry[1].append(_stamp_ns(transform.header.stamp))
+                        entry[2].append(matrix)
+        parents = {child: value[0] for child, value in {**dynamic, **static}.items()}
+        camera = self.camera_frame.lstrip("/")
+        if camera not in parents:
+            raise SequenceError(
+                f"ROS 2 bag {self.path}: /tf has no transform to the depth images' frame {camera!r} "
+                f"(frames with a parent: {_list(parents)})"
+            )
+        chain = [camera]  # camera, its parent, ..., up to the world frame
+        while chain[-1] in parents and chain[-1] != frame_id:
+            chain.append(parents[chain[-1]])
+            if len(chain) > len(parents) + 1:
+                raise SequenceError(f"ROS 2 bag {self.path}: /tf has a loop through {chain[-1]!r}")
+        if frame_id is not None and chain[-1] != frame_id:
+            raise SequenceError(
+                f"ROS 2 bag {self.path}: /tf: frame_id={frame_id!r} is not above {camera!r} (chain: {' <- '.join(reversed(chain))})"
+            )
+        self.world_frame = chain[-1]
+        times = self._seconds(self._all_stamps)
+        poses = np.tile(np.eye(4), (len(times), 1, 1))
+        for child in reversed(chain[:-1]):  # world_from_camera = world_from_a @ a_from_b @ ... @ x_from_camera
+            if child in static:
+                poses = poses @ static[child][1]
+            else:
+                _, stamps, matrices = dynamic[child]
+                match = nearest_within(times, self._seconds(stamps), self.tolerance)
+                poses = poses @ self._gather(np.array(matrices), match)
+        return self._all_stamps, poses
+
+    # -- frames ---------------------------------------------------------------
+
+    @property
+    def intrinsics(self) -> Intrinsics:
+        return self._intrinsics
+
+    def __len__(self) -> int:
+        return len(self._poses)
+
+    @property
+    def poses(self) -> np.ndarray:
+        return self._poses.copy()
+
+    @property
+    def timestamps(self) -> np.ndarray:
+        """Header stamps of the depth images, seconds."""
+        return self._stamps / 1e9
+
+    def read(self, index: int) -> DepthFrame:
+        index = self.check_index(index)
+        log_time = int(self._log_times[index])
+        wanted = int(self._occurrence[index])
+        for position, (_, message) in enumerate(self._messages(self.depth_topic, start=log_time, stop=log_time + 1)):
+            if position == wanted:
+                depth = self.decode_depth(message)
+                return DepthFrame(depth, self._intrinsics, self._poses[index], index, int(self._stamps[index]) / 1e9)
+        raise SequenceError(f"ROS 2 bag {self.path}: topic {self.depth_topic}: image {index} vanished since the bag was opened")
+
+    def decode_depth(self, message) -> np.ndarray:
+        """(H, W) float32 metres of a depth Image message; no return (0, NaN) as NaN."""
+        dtype, scale = DEPTH_ENCODINGS[message.encoding]
+        dtype = np.dtype(dtype).newbyteorder(">" if message.is_bigendian else "<")
+        height, width, step = int(message.height), int(message.width), int(message.step)
+        data = np.asarray(message.data)
+        if step < width * dtype.itemsize or data.size < step * (height - 1) + width * dtype.itemsize:
+            raise SequenceError(
+                f"ROS 2 bag {self.path}: topic {self.depth_topic}: image of {width}x{height} {message.encoding} "
+                f"with step {step} has only {data.size} bytes"
+            )
+        pixels = np.ndarray((height, width), dtype=dtype, buffer=data, strides=(step, dtype.itemsize))
+        depth = pixels.astype(np.float32)
+        if scale != 1.0:
+            depth *= np.float32(scale)
+        depth[depth == 0] = np.nan
+        return depth
+
+
+# ---------------------------------------------------------------------------
+# Writing
+
+
+def _time(stamp_ns: int):
+    Time = _TYPESTORE.types["builtin_interfaces/msg/Time"]
+    return Time(sec=int(stamp_ns // 1_000_000_000), nanosec=int(stamp_ns % 1_000_000_000))
+
+
+def _header(stamp_ns: int, frame: str):
+    return _TYPESTORE.types["std_msgs/msg/Header"](stamp=_time(stamp_ns), frame_id=frame)
+
+
+def _transform_msgs(pose: np.ndarray, quaternion: np.ndarray):
+    types = _TYPESTORE.types
+    translation = types["geometry_msgs/msg/Vector3"](x=float(pose[0, 3]), y=float(pose[1, 3]), z=float(pose[2, 3]))
+    point = types["geometry_msgs/msg/Point"](x=float(pose[0, 3]), y=float(pose[1, 3]), z=float(pose[2, 3]))
+    rotation = types["geometry_msgs/msg/Quaternion"](
+        x=float(quaternion[0]), y=float(quaternion[1]), z=float(quaternion[2]), w=float(quaternion[3])
+    )
+    return translation, point, rotation
+
+
+def depth_image_bytes(depth: np.ndarray, encoding: str) -> np.ndarray:
+    """The ``data`` of a depth Image (little-endian rows, no padding): 32FC1 metres as float32 (NaN kept),
+    16UC1 round(depth * 1000) millimetres with 0 for NaN, <= 0 and beyond 65.535 m."""
+    depth = np.asarray(depth)
+    if encoding == "32FC1":
+        values = depth.astype("<f4")
+    elif encoding == "16UC1":
+        units = np.rint(depth.astype(np.float64) * 1000.0)
+        with np.errstate(invalid="ignore"):
+            keep = (units > 0) & (units <= 65535)
+        values = np.where(keep, units, 0).astype("<u2")
+    else:
+        raise SequenceError(f"unknown depth encoding {encoding!r} for a ROS 2 bag (known: {', '.join(DEPTH_ENCODINGS)})")
+    return np.ascontiguousarray(values).view(np.uint8).ravel()
+
+
+def write_rosbag2(
+    source: FrameSource,
+    path,
+    *,
+    storage: str = "sqlite3",
+    encoding: str = "32FC1",
+    extra: dict | None = None,
+) -> Path:
+    """Write every frame of ``source`` as a ROS 2 bag folder at ``path``; returns it.
+
+    Topics (stamps = the frames' timestamps, ``index / 30`` s where a frame has none):
+
+    * ``/camera/depth/image``: ``sensor_msgs/msg/Image``, ``encoding``
+      ``32FC1`` (metres, NaN = no return, exact) or ``16UC1`` (millimetres,
+      rounded, 0 = no return), frame ``camera_depth_optical_frame``;
+    * ``/camera/depth/camera_info``: ``CameraInfo`` per frame, K with ROS's
+      integer pixel centres (cx - 0.5, cy - 0.5), no distortion;
+    * ``/camera/pose``: ``PoseStamped`` of the optical frame in ``world``;
+    * ``/tf``: world -> ``camera_link`` (the camera body, x forward, z up) per
+      frame, and ``/tf_static``: ``camera_link`` -> ``camera_depth_optical_frame``
+      (REP 103's optical rotation), so that chaining /tf gives the same pose as
+      ``/camera/pose``.
+
+    ``storage`` is ``"sqlite3"`` or ``"mcap"`` (rosbags >= 0.10 writes both).
+    A ``mabdi.toml`` with ``[camera]`` (so near and far survive) and the
+    ``extra`` tables goes into the bag folder. The bag is written to a
+    temporary folder beside ``path`` and renamed into place when complete;
+    ``path`` must not exist (an empty folder is replaced).
+    """
+    path = Path(path)
+    plugins = {"sqlite3": StoragePlugin.SQLITE3, "mcap": StoragePlugin.MCAP}
+    if storage not in plugins:
+        raise SequenceError(f"cannot write ROS 2 bag {path}: unknown storage {storage!r} (known: {', '.join(plugins)})")
+    if encoding not in DEPTH_ENCODINGS:
+        raise SequenceError(f"cannot write ROS 2 bag {path}: unknown depth encoding {encoding!r} (known: {', '.join(DEPTH_ENCODINGS)})")
+    if path.exists() and not (path.is_dir() and not any(path.iterdir())):
+        raise SequenceError(f"cannot write ROS 2 bag {path}: it exists already (rosbags writes only new bags)")
+    parent = path.parent if str(path.parent) else Path(".")
+    if not parent.is_dir():
+        raise SequenceError(f"cannot write ROS 2 bag {path}: folder {parent} does not exist")
+
+    intrinsics = source.intrinsics
+    stamps = np.rint(frame_timestamps(source) * 1e9).astype(np.int64)
+    if (stamps < 0).any():
+        raise SequenceError(f"cannot write ROS 2 bag {path}: negative timestamps")
+    types = _TYPESTORE.types
+    fx, fy, cx, cy = intrinsics.fx, intrinsics.fy, intrinsics.cx - 0.5, intrinsics.cy - 0.5
+    k = np.array([fx, 0.0, cx, 0.0, fy, cy, 0.0, 0.0, 1.0])
+    p = np.array([fx, 0.0, cx, 0.0, 0.0, fy, cy, 0.0, 0.0, 0.0, 1.0, 0.0])
+    roi = types["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
+    _, _, optical_rotation = _transform_msgs(LINK_FROM_OPTICAL, quaternions_from_rotations(LINK_FROM_OPTICAL[:3, :3])[0])
+    optical_from_link = np.linalg.inv(LINK_FROM_OPTICAL)
+
+    temporary = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".tmp", dir=parent))
+    bag = temporary / "bag"
+    try:
+        try:
+            writer = Writer(bag, version=Writer.VERSION_LATEST, storage_plugin=plugins[storage])
+            writer.open()
+        except WriterError as exc:
+            raise SequenceError(f"cannot write ROS 2 bag {path} ({storage}): {exc}") from None
+        try:
+            add = lambda topic, msgtype: writer.add_connection(topic, msgtype, typestore=_TYPESTORE)  # noqa: E731
+            image_conn, info_conn = add(DEPTH_TOPIC, IMAGE), add(INFO_TOPIC, CAMERA_INFO)
+            pose_conn, tf_conn, static_conn = add(POSE_TOPIC, POSE_STAMPED), add("/tf", TF_MESSAGE), add("/tf_static", TF_MESSAGE)
+            Transform, TransformStamped = types["geometry_msgs/msg/Transform"], types["geometry_msgs/msg/TransformStamped"]
+            static = types[TF_MESSAGE](transforms=[
+                TransformStamped(
+                    header=_header(int(stamps[0]), CAMERA_LINK_FRAME),
+                    child_frame_id=OPTICAL_FRAME,
+                    transform=Transform(translation=types["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0), rotation=optical_rotation),
+                )
+            ])
+            writer.write(static_conn, int(stamps[0]), _TYPESTORE.serialize_cdr(static, TF_MESSAGE))
+            for index in range(len(source)):
+                frame = source.read(index)
+                if frame.depth.shape != intrinsics.shape:
+                    raise SequenceError(f"cannot write frame {index} to {path}: depth {frame.depth.shape} != intrinsics {intrinsics.shape}")
+                stamp = int(stamps[index])
+                pose = frame.world_from_camera
+                link = pose @ optical_from_link
+                quaternions = quaternions_from_rotations(np.stack([pose[:3, :3], link[:3, :3]]))
+                _, point, rotation = _transform_msgs(pose, quaternions[0])
+                link_translation, _, link_rotation = _transform_msgs(link, quaternions[1])
+                messages = [
+                    (image_conn, IMAGE, types[IMAGE](
+                        header=_header(stamp, OPTICAL_FRAME), height=intrinsics.height, width=intrinsics.width,
+                        encoding=encoding, is_bigendian=0, step=intrinsics.width * np.dtype(DEPTH_ENCODINGS[encoding][0]).itemsize,
+                        data=depth_image_bytes(frame.depth, encoding),
+                    )),
+                    (info_conn, CAMERA_INFO, types[CAMERA_INFO](
+                        header=_header(stamp, OPTICAL_FRAME), height=intrinsics.height, width=intrinsics.width,
+                        distortion_model="plumb_bob", d=np.zeros(5), k=k, r=np.eye(3).ravel(), p=p,
+                        binning_x=0, binning_y=0, roi=roi,
+                    )),
+                    (pose_conn, POSE_STAMPED, types[POSE_STAMPED](
+                        header=_header(stamp, WORLD_FRAME), pose=types["geometry_msgs/msg/Pose"](position=point, orientation=rotation),
+                    )),
+                    (tf_conn, TF_MESSAGE, types[TF_MESSAGE](transforms=[
+                        TransformStamped(
+                            header=_header(stamp, WORLD_FRAME), child_frame_id=CAMERA_LINK_FRAME,
+                            transform=Transform(translation=link_translation, rotation=link_rotation),
+                        )
+                    ])),
+                ]
+                for connection, msgtype, message in messages:
+                    writer.write(connection, stamp, _TYPESTORE.serialize_cdr(message, msgtype))
+        except BaseException:
+            writer.abort()
+            raise
+        writer.close()
+        write_metadata(bag, intrinsics, extra)
+        if path.is_dir():
+            path.rmdir()
+        os.replace(bag, path)
+    finally:
+        shutil.rmtree(temporary, ignore_errors=True)
+    return path
+
+
+__all__ = ["DEPTH_ENCODINGS", "Rosbag2Sequence", "write_rosbag2"]

@@ -1,0 +1,266 @@
+"""Recorded depth sequences: open one whatever its format, and the ``mabdi.toml`` beside it.
+
+Two formats are read and written (each a :class:`~mabdi.sources.frames.FrameSource`):
+
+* a TUM RGB-D benchmark folder (``depth/*.png``, ``depth.txt``,
+  ``groundtruth.txt``): :mod:`mabdi.sources.tum`;
+* a ROS 2 bag folder (``metadata.yaml`` with ``.db3`` or ``.mcap`` files), or a
+  single ``.db3`` / ``.mcap`` file: :mod:`mabdi.sources.rosbag2`.
+
+:func:`open_sequence` tells them apart. Either may carry a ``mabdi.toml``
+file in its folder with a ``[camera]`` table (intrinsics in mabdi's
+conventions: pixel (u, v) has its centre at (u + 0.5, v + 0.5); focal
+lengths and principal point in pixels, near and far in metres) and any other
+tables a writer put there (``[recorded]`` with the scene a simulated
+sequence came from, for example); :func:`read_sequence_metadata` returns them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import tomllib
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from mabdi.camera import Intrinsics
+from mabdi.errors import ConfigError
+from mabdi.io.atomic import write_text
+
+#: The metadata file a recorded sequence may carry in its folder.
+METADATA_FILE = "mabdi.toml"
+
+#: Keys of the ``[camera]`` table: the intrinsics' fields (``preset`` is the TUM reader's extra key).
+CAMERA_KEYS = tuple(f.name for f in dataclasses.fields(Intrinsics))
+
+
+class SequenceError(ConfigError):
+    """A recorded sequence (a TUM folder, a ROS 2 bag) cannot be read or written; the message names the file or topic."""
+
+
+def metadata_path(path) -> Path:
+    """Where the ``mabdi.toml`` of a sequence at ``path`` (a folder, or a bag file) lives."""
+    path = Path(path)
+    return (path if path.is_dir() else path.parent) / METADATA_FILE
+
+
+def read_sequence_metadata(path) -> dict:
+    """The tables of the ``mabdi.toml`` beside a sequence (a folder or a bag file); ``{}`` when there is none.
+
+    A file that is not valid TOML is a :class:`SequenceError` naming it.
+    """
+    file = metadata_path(path)
+    if not file.is_file():
+        return {}
+    try:
+        with open(file, "rb") as stream:
+            return tomllib.load(stream)
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise SequenceError(f"{file}: not valid TOML: {exc}") from None
+
+
+def camera_table(metadata: dict, file, allowed=CAMERA_KEYS) -> dict:
+    """The ``[camera]`` table of ``metadata`` (``{}`` if absent), checked: known keys, numbers where numbers go."""
+    table = metadata.get("camera", {})
+    if not isinstance(table, dict):
+        raise SequenceError(f"{file}: 'camera' must be a table")
+    for key, value in table.items():
+        if key not in allowed:
+            raise SequenceError(f"{file}: unknown key 'camera.{key}' (known: {', '.join(allowed)})")
+        if key in CAMERA_KEYS and (isinstance(value, bool) or not isinstance(value, (int, float))):
+            raise SequenceError(f"{file}: 'camera.{key}' must be a number, got {value!r}")
+    return table
+
+
+def intrinsics_with(base: Intrinsics | None, table: dict, file) -> Intrinsics:
+    """``base`` (or the :class:`Intrinsics` defaults) with the keys of a ``[camera]`` table replaced."""
+    values = dataclasses.asdict(base) if base is not None else {}
+    values.update({k: v for k, v in table.items() if k in CAMERA_KEYS})
+    try:
+        return Intrinsics(**values)
+    except (ConfigError, TypeError) as exc:
+        raise SequenceError(f"{file}: [camera]: {exc}") from None
+
+
+# ---------------------------------------------------------------------------
+# Writing mabdi.toml
+
+
+def _toml_key(key) -> str:
+    key = str(key)
+    if key and all(c.isalnum() or c in "-_" for c in key):
+        return key
+    return '"' + key.replace("\\", "\\\\").replace('"', '\\"') + '"'
+
+
+def _toml_value(value, where: str) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, int):
+        return str(value)
+    if isinstance(value, float):
+        if math.isfinite(value):
+            return repr(value)
+        return "nan" if math.isnan(value) else ("inf" if value > 0 else "-inf")
+    if isinstance(value, str):
+        escaped = value.replace("\\", "\\\\").replace('"', '\\"').replace("\n", "\\n").replace("\t", "\\t")
+        return f'"{escaped}"'
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(_toml_value(v, where) for v in value) + "]"
+    if hasattr(value, "item") and getattr(value, "shape", None) == ():  # numpy scalars
+        return _toml_value(value.item(), where)
+    if hasattr(value, "tolist"):  # numpy arrays
+        return _toml_value(value.tolist(), where)
+    raise SequenceError(f"cannot write {where} = {value!r} ({type(value).__name__}) to {METADATA_FILE}")
+
+
+def _toml_tables(table: dict, prefix: str, lines: list[str]) -> None:
+    subtables = []
+    for key, value in table.items():
+        if isinstance(value, dict):
+            subtables.append((key, value))
+        else:
+            lines.append(f"{_toml_key(key)} = {_toml_value(value, prefix + str(key))}")
+    for key, value in subtables:
+        name = f"{prefix}{_toml_key(key)}"
+        lines.append("")
+        lines.append(f"[{name}]")
+        _toml_tables(value, name + ".", lines)
+
+
+def metadata_toml(intrinsics: Intrinsics, extra: dict | None = None) -> str:
+    """TOML text: a ``[camera]`` table with ``intrinsics`` (mabdi's pixel centres) and the tables of ``extra``.
+
+    ``extra`` maps table names to dicts (nested dicts become sub-tables); a
+    ``camera`` entry in it is refused (the camera table is written from the intrinsics).
+    """
+    extra = dict(extra or {})
+    if "camera" in extra:
+        raise SequenceError(f"extra tables for {METADATA_FILE} may not include 'camera' (written from the intrinsics)")
+    for key, value in extra.items():
+        if not isinstance(value, dict):
+            raise SequenceError(f"extra entry {key!r} for {METADATA_FILE} must be a table (a dict), got {type(value).__name__}")
+    lines = [
+        "# Intrinsics in mabdi's conventions: pixel (u, v) has its centre at (u + 0.5, v + 0.5);",
+        "# fx, fy, cx, cy in pixels; near, far in metres.",
+    ]
+    camera = {name: getattr(intrinsics, name) for name in CAMERA_KEYS}
+    camera = {k: (float(v) if k not in ("width", "height") else int(v)) for k, v in camera.items()}
+    _toml_tables({"camera": camera, **extra}, "", lines)
+    return "\n".join(lines) + "\n"
+
+
+def write_metadata(folder, intrinsics: Intrinsics, extra: dict | None = None) -> Path:
+    """Write ``mabdi.toml`` into ``folder`` atomically; returns its path."""
+    file = Path(folder) / METADATA_FILE
+    write_text(file, metadata_toml(intrinsics, extra))
+    return file
+
+
+# ---------------------------------------------------------------------------
+# Format detection
+
+
+def sequence_format(path) -> str:
+    """``"tum"`` or ``"rosbag2"`` for the sequence at ``path``, or a :class:`SequenceError` saying what was found."""
+    path = Path(path)
+    if not path.exists():
+        raise SequenceError(f"recorded sequence {path} does not exist")
+    if path.is_file():
+        if path.suffix in (".db3", ".mcap"):
+            return "rosbag2"
+        raise SequenceError(
+            f"{path}: not a recorded sequence (expected a TUM RGB-D folder with depth.txt, "
+            "a ROS 2 bag folder with metadata.yaml, or a .db3 / .mcap file)"
+        )
+    if (path / "depth.txt").is_file():
+        return "tum"
+    if (path / "metadata.yaml").is_file() or any(path.glob("*.db3")) or any(path.glob("*.mcap")):
+        return "rosbag2"
+    raise SequenceError(
+        f"{path}: not a recorded sequence: no depth.txt (TUM RGB-D folder), "
+        "no metadata.yaml and no .db3 / .mcap file (ROS 2 bag)"
+    )
+
+
+def open_sequence(path, **options):
+    """Open a recorded depth sequence as a :class:`~mabdi.sources.frames.FrameSource`, whatever its format.
+
+    A folder with ``depth.txt`` is a TUM RGB-D folder
+    (:class:`~mabdi.sources.tum.TumSequence`); a folder with
+    ``metadata.yaml`` or ``.db3`` / ``.mcap`` files, or such a file, is a ROS 2
+    bag (:class:`~mabdi.sources.rosbag2.Rosbag2Sequence`). ``options`` go to
+    that class (``camera=``, ``tolerance=`` for TUM; ``depth_topic=``,
+    ``pose_topic=``, ... for bags).
+    """
+    kind = sequence_format(path)
+    if kind == "tum":
+        from mabdi.sources.tum import TumSequence
+
+        return TumSequence(path, **options)
+    from mabdi.sources.rosbag2 import Rosbag2Sequence
+
+    path = Path(path)
+    if path.is_dir() and not (path / "metadata.yaml").is_file():
+        files = sorted(path.glob("*.db3")) + sorted(path.glob("*.mcap"))
+        if len(files) != 1:
+            raise SequenceError(
+                f"{path}: no metadata.yaml and {len(files)} storage files ({', '.join(f.name for f in files)}): "
+                "open one of them, or restore metadata.yaml"
+            )
+        path = files[0]
+    return Rosbag2Sequence(path, **options)
+
+
+# ---------------------------------------------------------------------------
+# Helpers shared by the readers and writers
+
+
+def nearest_within(query, reference, tolerance: float):
+    """For each time in ``query``, the index of the nearest time in ``reference`` (any order), or -1 if none is within ``tolerance``.
+
+    Times in seconds (or any one unit, the same for all three). Ties go to the earlier reference time.
+    """
+    query = np.asarray(query, dtype=np.float64)
+    reference = np.asarray(reference, dtype=np.float64)
+    if reference.size == 0:
+        return np.full(query.shape, -1, dtype=np.int64)
+    order = np.argsort(reference, kind="stable")
+    ordered = reference[order]
+    right = np.minimum(np.searchsorted(ordered, query), len(ordered) - 1)
+    left = np.maximum(right - 1, 0)
+    take_right = np.abs(ordered[right] - query) < np.abs(query - ordered[left])
+    best = np.where(take_right, right, left)
+    found = np.abs(ordered[best] - query) <= tolerance
+    return np.where(found, order[best], -1).astype(np.int64)
+
+
+def quaternions_from_rotations(rotations):
+    """(N, 4) unit quaternions (x, y, z, w) of (N, 3, 3) rotation matrices (w >= 0; the nearest rotation if not exact)."""
+    q = Rotation.from_matrix(np.asarray(rotations, dtype=np.float64).reshape(-1, 3, 3)).as_quat()
+    q *= np.where(q[:, 3:4] < 0, -1.0, 1.0)
+    return q
+
+
+def poses_from_translations_quaternions(translations, quaternions):
+    """(N, 4, 4) poses from (N, 3) translations (m) and (N, 4) quaternions (x, y, z, w), normalised here."""
+    translations = np.asarray(translations, dtype=np.float64).reshape(-1, 3)
+    poses = np.tile(np.eye(4), (len(translations), 1, 1))
+    if len(translations):
+        poses[:, :3, :3] = Rotation.from_quat(np.asarray(quaternions, dtype=np.float64).reshape(-1, 4)).as_matrix()
+        poses[:, :3, 3] = translations
+    return poses
+
+
+def frame_timestamps(source) -> np.ndarray:
+    """Timestamps (s) to write for every frame of ``source``: its own, or ``index / 30`` where it has none (NaN).
+
+    Recorded formats need a time for every frame; a source without them
+    (simulated frames) is written as if it ran at 30 frames per second.
+    """
+    times = np.asarray(source.timestamps, dtype=np.float64)
+    missing = ~np.isfinite(times)
+    times[missing] = np.flatnonzero(missing) / 30.0
+    return times

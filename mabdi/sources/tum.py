@@ -1,0 +1,328 @@
+"""TUM RGB-D benchmark folders: read them as a frame source, write any frame source in their layout.
+
+The layout (https://cvg.cit.tum.de/data/datasets/rgbd-dataset/file_formats):
+
+* ``depth/<timestamp>.png``: 16-bit single-channel PNG, 5000 units per
+  metre (0.2 mm steps, at most 65535 / 5000 = 13.107 m), 0 = no return;
+* ``depth.txt``: lines ``timestamp filename`` (seconds; filename relative to
+  the folder), ``#`` starts a comment;
+* ``groundtruth.txt``: lines ``timestamp tx ty tz qx qy qz qw``: the position
+  (metres) and orientation (unit quaternion, scalar last) of the camera's
+  optical centre in the world (the motion-capture frame), ``#`` comments.
+
+**Poses.** A ground-truth line is the pose of the camera's *optical* frame
+(x right, y down, z forward, as OpenCV) in the world: it maps camera points
+to world points, which is exactly mabdi's ``world_from_camera``; it is used
+as it is. The benchmark's world is the motion-capture frame (metres; its z
+axis is not guaranteed to point up). The ground truth tracks the colour
+camera; the benchmark's depth images are registered to the colour camera, so
+the same pose and intrinsics apply to them.
+
+**Matching.** Each depth frame takes the ground-truth pose with the nearest
+timestamp if it lies within ``tolerance`` seconds (default 20 ms; the
+motion capture runs at 100 Hz); frames without one are skipped and counted
+(:attr:`TumSequence.skipped`, and in ``description``). No interpolation.
+
+**Intrinsics** come from the ``camera=`` argument (an :class:`Intrinsics`
+or a preset name), else from the ``[camera]`` table of a ``mabdi.toml`` in
+the folder (keys fx, fy, cx, cy, width, height, near, far, and optionally
+``preset`` = a preset name whose values the other keys override). Values
+are in mabdi's pixel convention: pixel (u, v) has its centre at
+(u + 0.5, v + 0.5). TUM's documentation (like ROS and OpenCV) puts pixel
+centres at integers, so principal points copied from it need cx + 0.5 and
+cy + 0.5; the presets below have it applied. near and far default to
+:class:`Intrinsics`' defaults. Lens distortion is ignored (fr3 images come
+undistorted; fr1/fr2 have small radial distortion).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+from PIL import Image, UnidentifiedImageError
+
+from mabdi.camera import Intrinsics
+from mabdi.depth import DepthFrame
+from mabdi.io.atomic import atomic_output, write_text
+from mabdi.sources.frames import FrameSource
+from mabdi.sources.sequences import (
+    METADATA_FILE,
+    SequenceError,
+    camera_table,
+    frame_timestamps,
+    intrinsics_with,
+    metadata_path,
+    nearest_within,
+    poses_from_translations_quaternions,
+    quaternions_from_rotations,
+    read_sequence_metadata,
+    write_metadata,
+)
+
+#: Depth units per metre in TUM PNGs.
+DEPTH_SCALE = 5000.0
+
+_DEFAULTS = Intrinsics()
+
+
+def _tum_camera(fx: float, fy: float, cx: float, cy: float) -> Intrinsics:
+    """Intrinsics from TUM's published values (integer pixel centres) with mabdi's +0.5 shift; 640x480, default range."""
+    return dataclasses.replace(_DEFAULTS, fx=fx, fy=fy, cx=cx + 0.5, cy=cy + 0.5, width=640, height=480)
+
+
+#: The TUM cameras, from the benchmark's calibration page (colour-camera intrinsics, which the
+#: registered depth images share), shifted to mabdi's pixel centres (cx + 0.5, cy + 0.5).
+#: ``ros`` is the uncalibrated default (525, 525, 319.5, 239.5) the benchmark recommends for
+#: the pre-registered depth images.
+PRESETS: dict[str, Intrinsics] = {
+    "fr1": _tum_camera(517.3, 516.5, 318.6, 255.3),
+    "fr2": _tum_camera(520.9, 521.0, 325.1, 249.7),
+    "fr3": _tum_camera(535.4, 539.2, 320.1, 247.6),
+    "ros": _tum_camera(525.0, 525.0, 319.5, 239.5),
+}
+
+
+def tum_preset(name: str, where: str = "camera") -> Intrinsics:
+    """The :data:`PRESETS` entry ``name`` (``fr1``, ``fr2``, ``fr3``, ``ros``), or an error listing them."""
+    try:
+        return PRESETS[name]
+    except (KeyError, TypeError):
+        raise SequenceError(f"{where}: unknown TUM camera preset {name!r} (known: {', '.join(PRESETS)})") from None
+
+
+def read_tum_list(path: Path, columns: int) -> tuple[np.ndarray, list[list[str]]]:
+    """Timestamps (s) and the remaining fields of a TUM list file (``#`` comments, blank lines skipped).
+
+    Every line must have exactly ``columns`` fields (timestamp included) and a
+    numeric timestamp; otherwise a :class:`SequenceError` names the file and line.
+    """
+    if not path.is_file():
+        raise SequenceError(f"TUM folder {path.parent}: missing {path.name}")
+    times: list[float] = []
+    rows: list[list[str]] = []
+    with open(path, encoding="utf-8", errors="replace") as stream:
+        for number, line in enumerate(stream, start=1):
+            line = line.split("#", 1)[0].strip()
+            if not line:
+                continue
+            fields = line.split()
+            if len(fields) != columns:
+                raise SequenceError(f"{path}:{number}: expected {columns} fields, got {len(fields)}: {line!r}")
+            try:
+                time = float(fields[0])
+            except ValueError:
+                raise SequenceError(f"{path}:{number}: timestamp {fields[0]!r} is not a number") from None
+            if not np.isfinite(time):
+                raise SequenceError(f"{path}:{number}: timestamp {fields[0]!r} is not finite")
+            times.append(time)
+            rows.append(fields[1:])
+    return np.array(times, dtype=np.float64), rows
+
+
+def read_groundtruth(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """Timestamps (s) and (N, 4, 4) world_from_camera poses of a TUM ``groundtruth.txt``."""
+    times, rows = read_tum_list(path, 8)
+    values = np.empty((len(rows), 7), dtype=np.float64)
+    for index, fields in enumerate(rows):
+        try:
+            values[index] = [float(f) for f in fields]
+        except ValueError:
+            raise SequenceError(f"{path}: pose at timestamp {times[index]!r} has a field that is not a number: {fields}") from None
+    bad = ~np.isfinite(values).all(axis=1) | (np.linalg.norm(values[:, 3:], axis=1) < 1e-9)
+    if bad.any():
+        raise SequenceError(f"{path}: pose at timestamp {times[np.argmax(bad)]!r} is not finite or has a zero quaternion")
+    return times, poses_from_translations_quaternions(values[:, :3], values[:, 3:])
+
+
+def read_depth_png(path: Path, intrinsics: Intrinsics, scale: float = DEPTH_SCALE) -> np.ndarray:
+    """(H, W) float32 depth in metres of a 16-bit depth PNG (``scale`` units per metre; 0 becomes NaN)."""
+    try:
+        with Image.open(path) as image:
+            if image.format != "PNG" or image.mode not in ("I;16", "I;16B", "I;16L", "I"):
+                raise SequenceError(
+                    f"{path}: not a 16-bit single-channel PNG (format {image.format}, mode {image.mode})"
+                )
+            if image.size != (intrinsics.width, intrinsics.height):
+                raise SequenceError(
+                    f"{path}: image is {image.size[0]}x{image.size[1]}, intrinsics say {intrinsics.width}x{intrinsics.height}"
+                )
+            raw = np.asarray(image)
+    except FileNotFoundError:
+        raise SequenceError(f"{path}: depth image missing") from None
+    except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as exc:
+        if isinstance(exc, SequenceError):
+            raise
+        raise SequenceError(f"{path}: cannot read depth PNG: {exc}") from None
+    depth = raw.astype(np.float32)
+    depth *= np.float32(1.0 / scale)
+    depth[raw == 0] = np.nan
+    return depth
+
+
+def depth_png_values(depth: np.ndarray, scale: float = DEPTH_SCALE) -> np.ndarray:
+    """uint16 PNG values of (H, W) depth in metres: round(depth * scale); NaN, <= 0 and > 65535 units become 0."""
+    units = np.rint(np.asarray(depth, dtype=np.float64) * scale)
+    with np.errstate(invalid="ignore"):
+        keep = (units > 0) & (units <= 65535)
+    return np.where(keep, units, 0).astype(np.uint16)
+
+
+def write_depth_png(path, depth: np.ndarray, scale: float = DEPTH_SCALE, compress_level: int = 1) -> None:
+    """Write (H, W) depth in metres as a 16-bit PNG (:func:`depth_png_values`), atomically."""
+    values = depth_png_values(depth, scale)
+    with atomic_output(path) as temporary:
+        Image.fromarray(values).save(temporary, format="PNG", compress_level=compress_level)
+
+
+class TumSequence(FrameSource):
+    """A TUM RGB-D benchmark folder as a :class:`FrameSource` (see the module docs).
+
+    Parameters: ``folder`` (the sequence folder), ``camera`` (an
+    :class:`Intrinsics` or a preset name in :data:`PRESETS`; wins over the
+    folder's ``mabdi.toml``), ``tolerance`` (seconds between a depth frame and
+    its ground-truth pose, default 0.02). Frames are the depth images that
+    have a pose, in ``depth.txt``'s order; ``skipped`` counts the others.
+    ``read(i)`` decodes one PNG; timestamps and poses are known at open.
+    """
+
+    def __init__(self, folder, camera: Intrinsics | str | None = None, tolerance: float = 0.02) -> None:
+        self.folder = Path(folder)
+        if not self.folder.is_dir():
+            raise SequenceError(f"TUM folder {self.folder} does not exist or is not a folder")
+        if not (np.isfinite(tolerance) and tolerance >= 0):
+            raise SequenceError(f"TUM folder {self.folder}: tolerance must be >= 0 seconds, got {tolerance!r}")
+        self.metadata = read_sequence_metadata(self.folder)
+        self._intrinsics = self._resolve_camera(camera)
+        self.tolerance = float(tolerance)
+
+        depth_times, depth_rows = read_tum_list(self.folder / "depth.txt", 2)
+        pose_times, poses = read_groundtruth(self.folder / "groundtruth.txt")
+        match = nearest_within(depth_times, pose_times, self.tolerance)
+        keep = match >= 0
+        self.skipped = int((~keep).sum())
+        self._timestamps = depth_times[keep]
+        self._poses = poses[match[keep]]
+        self._files = [self.folder / depth_rows[i][0] for i in np.flatnonzero(keep)]
+        self.description = f"TUM folder {self.folder} ({len(self._files)} frames"
+        self.description += f", {self.skipped} without a pose within {self.tolerance * 1000:g} ms skipped)" if self.skipped else ")"
+        if not self._files:
+            raise SequenceError(
+                f"TUM folder {self.folder}: no depth frame has a ground-truth pose within {self.tolerance * 1000:g} ms "
+                f"({len(depth_times)} frames in depth.txt, {len(pose_times)} poses in groundtruth.txt)"
+            )
+
+    def _resolve_camera(self, camera) -> Intrinsics:
+        if isinstance(camera, Intrinsics):
+            return camera
+        if camera is not None:
+            return tum_preset(camera, f"TUM folder {self.folder}: camera=")
+        file = metadata_path(self.folder)
+        table = camera_table(self.metadata, file, allowed=("preset", *dataclasses.asdict(_DEFAULTS)))
+        if not table:
+            raise SequenceError(
+                f"TUM folder {self.folder}: no intrinsics: pass camera= (an Intrinsics or one of {', '.join(PRESETS)}) "
+                f"or put a [camera] table (fx, fy, cx, cy, width, height; optional near, far, preset) in {file}"
+            )
+        base = tum_preset(table["preset"], f"{file}: camera.preset") if "preset" in table else None
+        if base is None:
+            missing = [k for k in ("fx", "fy", "cx", "cy", "width", "height") if k not in table]
+            if missing:
+                raise SequenceError(f"{file}: [camera] lacks {', '.join(missing)} (or give camera.preset)")
+        return intrinsics_with(base, table, file)
+
+    @property
+    def intrinsics(self) -> Intrinsics:
+        return self._intrinsics
+
+    def __len__(self) -> int:
+        return len(self._files)
+
+    def read(self, index: int) -> DepthFrame:
+        index = self.check_index(index)
+        depth = read_depth_png(self._files[index], self._intrinsics)
+        return DepthFrame(depth, self._intrinsics, self._poses[index], index, float(self._timestamps[index]))
+
+    @property
+    def poses(self) -> np.ndarray:
+        return self._poses.copy()
+
+    @property
+    def timestamps(self) -> np.ndarray:
+        return self._timestamps.copy()
+
+    @property
+    def files(self) -> list[Path]:
+        """The depth PNG of every frame."""
+        return list(self._files)
+
+
+def _prepare_folder(folder: Path, overwrite: bool, what: str) -> None:
+    if folder.exists() and not folder.is_dir():
+        raise SequenceError(f"cannot write {what} to {folder}: it is a file")
+    if folder.is_dir() and any(folder.iterdir()) and not overwrite:
+        raise SequenceError(f"cannot write {what} to {folder}: the folder exists and is not empty (pass overwrite=True)")
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise SequenceError(f"cannot write {what} to {folder}: {exc}") from None
+
+
+def write_tum(source: FrameSource, folder, *, extra: dict | None = None, overwrite: bool = False) -> Path:
+    """Write every frame of ``source`` as a TUM RGB-D folder; returns the folder.
+
+    ``depth/<timestamp>.png`` (16-bit, round(depth * 5000), 0 where there is
+    no return, where depth <= 0 and beyond 65535 / 5000 = 13.107 m),
+    ``depth.txt``, ``groundtruth.txt`` (poses with 17 significant digits, so
+    they read back to within 1e-12 of the same matrices; quaternions scalar
+    last with w >= 0) and ``mabdi.toml`` with the ``[camera]`` table and the
+    ``extra`` tables (e.g. ``{"recorded": {"scene": "scenes/table.toml"}}``).
+    Frames without a timestamp get ``index / 30`` s. Every file is written
+    atomically. The folder is created; one that exists and is not empty is an
+    error unless ``overwrite=True`` (files of the same name are replaced,
+    others are left alone).
+    """
+    folder = Path(folder)
+    _prepare_folder(folder, overwrite, "a TUM sequence")
+    (folder / "depth").mkdir(exist_ok=True)
+    intrinsics = source.intrinsics
+    times = frame_timestamps(source)
+    names = [f"depth/{t:.6f}.png" for t in times]
+    if len(set(names)) != len(names):
+        raise SequenceError(f"cannot write a TUM sequence to {folder}: two frames share a timestamp (to the microsecond)")
+    poses = np.empty((len(source), 4, 4))
+    for index in range(len(source)):
+        frame = source.read(index)
+        if frame.depth.shape != intrinsics.shape:
+            raise SequenceError(f"cannot write frame {index} to {folder}: depth {frame.depth.shape} != intrinsics {intrinsics.shape}")
+        write_depth_png(folder / names[index], frame.depth)
+        poses[index] = frame.world_from_camera
+    quaternions = quaternions_from_rotations(poses[:, :3, :3])
+    header = "# mabdi recording: {}\n# timestamp {}\n"
+    depth_lines = [f"{t:.6f} {name}" for t, name in zip(times, names, strict=True)]
+    write_text(folder / "depth.txt", header.format(source.description, "filename") + "\n".join(depth_lines) + "\n")
+    pose_lines = [
+        f"{t:.6f} " + " ".join(f"{v:.17g}" for v in (*pose[:3, 3], *q))
+        for t, pose, q in zip(times, poses, quaternions, strict=True)
+    ]
+    write_text(
+        folder / "groundtruth.txt",
+        header.format(source.description, "tx ty tz qx qy qz qw (world_from_camera, camera optical frame)")
+        + "\n".join(pose_lines)
+        + "\n",
+    )
+    write_metadata(folder, intrinsics, extra)
+    return folder
+
+
+__all__ = [
+    "DEPTH_SCALE",
+    "METADATA_FILE",
+    "PRESETS",
+    "TumSequence",
+    "read_depth_png",
+    "tum_preset",
+    "write_depth_png",
+    "write_tum",
+]
