@@ -102,6 +102,19 @@ def _stamp_ns(stamp) -> int:
     return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
 
 
+def seconds_to_ns(seconds) -> np.ndarray:
+    """int64 nanoseconds of times in seconds, exact to the nanosecond (whole seconds split off before scaling)."""
+    seconds = np.asarray(seconds, dtype=np.float64)
+    whole = np.floor(seconds)
+    return whole.astype(np.int64) * 1_000_000_000 + np.rint((seconds - whole) * 1e9).astype(np.int64)
+
+
+def ns_to_seconds(stamps_ns) -> np.ndarray:
+    """float64 seconds of int64 nanoseconds (whole seconds and the rest converted apart: no 256 ns rounding)."""
+    whole, rest = np.divmod(np.asarray(stamps_ns, dtype=np.int64), 1_000_000_000)
+    return whole.astype(np.float64) + rest / 1e9
+
+
 def _pose_matrix(position, orientation) -> np.ndarray:
     return poses_from_translations_quaternions(
         [[position.x, position.y, position.z]], [[orientation.x, orientation.y, orientation.z, orientation.w]]
@@ -412,7 +425,7 @@ class Rosbag2Sequence(FrameSource):
     @property
     def timestamps(self) -> np.ndarray:
         """Header stamps of the depth images, seconds."""
-        return self._stamps / 1e9
+        return ns_to_seconds(self._stamps)
 
     def read(self, index: int) -> DepthFrame:
         index = self.check_index(index)
@@ -421,7 +434,7 @@ class Rosbag2Sequence(FrameSource):
         for position, (_, message) in enumerate(self._messages(self.depth_topic, start=log_time, stop=log_time + 1)):
             if position == wanted:
                 depth = self.decode_depth(message)
-                return DepthFrame(depth, self._intrinsics, self._poses[index], index, int(self._stamps[index]) / 1e9)
+                return DepthFrame(depth, self._intrinsics, self._poses[index], index, float(ns_to_seconds(self._stamps[index])))
         raise SequenceError(f"ROS 2 bag {self.path}: topic {self.depth_topic}: image {index} vanished since the bag was opened")
 
     def decode_depth(self, message) -> np.ndarray:
@@ -524,7 +537,7 @@ def write_rosbag2(
         raise SequenceError(f"cannot write ROS 2 bag {path}: folder {parent} does not exist")
 
     intrinsics = source.intrinsics
-    stamps = np.rint(frame_timestamps(source) * 1e9).astype(np.int64)
+    stamps = seconds_to_ns(frame_timestamps(source))
     if (stamps < 0).any():
         raise SequenceError(f"cannot write ROS 2 bag {path}: negative timestamps")
     types = _TYPESTORE.types

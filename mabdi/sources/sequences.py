@@ -43,7 +43,7 @@ class SequenceError(ConfigError):
 def metadata_path(path) -> Path:
     """Where the ``mabdi.toml`` of a sequence at ``path`` (a folder, or a bag file) lives."""
     path = Path(path)
-    return (path if path.is_dir() else path.parent) / METADATA_FILE
+    return (path.parent if path.is_file() else path) / METADATA_FILE
 
 
 def read_sequence_metadata(path) -> dict:
