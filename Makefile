@@ -11,7 +11,7 @@ SCENE ?= scenes/table.toml
 $(VENV)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -e ".[test,compare]"
+	$(BIN)/python -m pip install --quiet -e ".[test,compare,sweep,rerun]"
 	touch $@
 
 install: $(VENV)/.installed

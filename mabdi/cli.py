@@ -74,6 +74,12 @@ def _parser() -> argparse.ArgumentParser:
     bench.add_argument("--noise", help="noise model (overrides sensor.noise)")
     bench.add_argument("--surface", help="surface filter of the mabdi and black_box methods (overrides surface.method)")
     bench.add_argument("--out", type=Path, help="output folder (default: runs/bench_<scene>)")
+
+    sweep = commands.add_parser("sweep", help="a grid of runs and their evaluations on Ray (SWEEP.toml), one table")
+    sweep.add_argument("sweep", type=Path, help="sweep file (TOML: [sweep] configs, frames; [grid] dotted key = [values])")
+    sweep.add_argument("--out", type=Path, help="output folder (default: runs/sweep_<name>)")
+    sweep.add_argument("--workers", type=int, help="CPUs of the local Ray instance and most cells in flight (default: all cores)")
+    sweep.add_argument("--address", help="an existing Ray cluster to run on (host:port or auto) instead of a local instance")
     return parser
 
 
@@ -211,6 +217,17 @@ def cmd_bench(args) -> int:
     return 0
 
 
+def cmd_sweep(args) -> int:
+    from mabdi.sweep import run_sweep
+
+    result = run_sweep(args.sweep, args.out, workers=args.workers, address=args.address, progress=lambda line: print(line, flush=True))
+    print()
+    print((result.out_dir / "results.md").read_text(), end="")
+    print(f"{result.ran} cells run, {result.reused} already done, {len(result.failed)} failed, in {result.seconds:.1f} s")
+    print(f"results in {result.out_dir}/ ({', '.join(p.name for p in result.files)})")
+    return 1 if result.failed else 0
+
+
 def cmd_export(args) -> int:
     from mabdi.errors import ConfigError
     from mabdi.io.map_files import is_hdf5, load_map, save_map
@@ -314,6 +331,7 @@ def main(argv=None) -> int:
             "view": cmd_view,
             "plan": cmd_plan,
             "bench": cmd_bench,
+            "sweep": cmd_sweep,
         }
         return commands[args.command](args)
     except (MabdiError, FileNotFoundError) as exc:
