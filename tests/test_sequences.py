@@ -324,3 +324,40 @@ def test_nearest_within():
     reference = np.array([0.3, 0.0, 0.1, 0.2])
     np.testing.assert_array_equal(nearest_within([0.0, 0.05, 0.19, 0.5, -0.02, 0.29], reference, 0.02), [1, -1, 3, -1, 1, 0])
     np.testing.assert_array_equal(nearest_within([1.0], [], 0.1), [-1])
+
+
+def _png_with_every_filter(values: np.ndarray) -> bytes:
+    """A 16-bit greyscale PNG of ``values`` whose rows use filter types 0-4 in turn (Pillow picks one for all)."""
+    import struct
+    import zlib
+
+    rows = values.astype(">u2").view(np.uint8).reshape(values.shape[0], -1).astype(np.int32)
+    out = []
+    for y, row in enumerate(rows):
+        kind = y % 5
+        up = rows[y - 1] if y else np.zeros_like(row)
+        left = np.concatenate([[0, 0], row[:-2]])
+        up_left = np.concatenate([[0, 0], up[:-2]])
+        p = left + up - up_left
+        pa, pb, pc = np.abs(p - left), np.abs(p - up), np.abs(p - up_left)
+        paeth = np.where((pa <= pb) & (pa <= pc), left, np.where(pb <= pc, up, up_left))
+        predictor = [np.zeros_like(row), left, up, (left + up) // 2, paeth][kind]
+        out.append(bytes([kind]) + ((row - predictor) & 0xFF).astype(np.uint8).tobytes())
+
+    def chunk(kind, body):
+        return struct.pack(">I", len(body)) + kind + body + struct.pack(">I", zlib.crc32(kind + body))
+
+    header = struct.pack(">IIBBBBB", values.shape[1], values.shape[0], 16, 0, 0, 0, 0)
+    return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", zlib.compress(b"".join(out))) + chunk(b"IEND", b"")
+
+
+def test_fast_png_decoder_equals_pillow_for_every_row_filter(tmp_path):
+    from mabdi.sources.tum import _decode_gray16_png
+
+    values = np.random.default_rng(3).integers(0, 65536, (23, 37)).astype(np.uint16)
+    values[5:9] = 4000  # flat rows, as depth has
+    data = _png_with_every_filter(values)
+    (tmp_path / "x.png").write_bytes(data)
+    np.testing.assert_array_equal(np.asarray(Image.open(tmp_path / "x.png")), values)  # the test's encoder is right
+    np.testing.assert_array_equal(_decode_gray16_png(data), values)
+    assert _decode_gray16_png(data.replace(b"IHDR", b"IHDX")) is None  # not ours: Pillow decides

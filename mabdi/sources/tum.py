@@ -38,8 +38,11 @@ undistorted; fr1/fr2 have small radial distortion).
 from __future__ import annotations
 
 import dataclasses
+import struct
+import zlib
 from pathlib import Path
 
+import numba
 import numpy as np
 from PIL import Image, UnidentifiedImageError
 
@@ -136,8 +139,104 @@ def read_groundtruth(path: Path) -> tuple[np.ndarray, np.ndarray]:
     return times, poses_from_translations_quaternions(values[:, :3], values[:, 3:])
 
 
+try:  # ISA-L's inflate is about twice as fast as zlib's on depth PNGs; used when installed
+    from isal.isal_zlib import decompress as _inflate
+except ImportError:  # pragma: no cover (depends on the environment)
+    _inflate = zlib.decompress
+
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+@numba.njit(cache=True, nogil=True)
+def _unfilter_rows(filtered: np.ndarray, height: int, stride: int, bpp: int, out: np.ndarray) -> bool:
+    """Undo PNG's per-row filters (None, Sub, Up, Average, Paeth) into ``out`` (height, stride) bytes; False on a bad filter type."""
+    previous = np.zeros(stride, dtype=np.uint8)  # the row above the first is zeros
+    for y in range(height):
+        start = y * (stride + 1) + 1
+        kind = filtered[start - 1]
+        row = filtered[start : start + stride]
+        current = out[y]
+        if y > 0:
+            previous = out[y - 1]
+        if kind == 0:
+            current[:] = row
+        elif kind == 1:
+            for x in range(bpp):
+                current[x] = row[x]
+            for x in range(bpp, stride):
+                current[x] = (row[x] + current[x - bpp]) & 0xFF
+        elif kind == 2:
+            for x in range(stride):
+                current[x] = (row[x] + previous[x]) & 0xFF
+        elif kind == 3:
+            for x in range(bpp):
+                current[x] = (row[x] + (previous[x] >> 1)) & 0xFF
+            for x in range(bpp, stride):
+                current[x] = (np.int32(row[x]) + ((np.int32(current[x - bpp]) + np.int32(previous[x])) >> 1)) & 0xFF
+        elif kind == 4:
+            for x in range(bpp):
+                current[x] = (row[x] + previous[x]) & 0xFF  # Paeth with a = c = 0 predicts b
+            for x in range(bpp, stride):
+                a, b, c = np.int32(current[x - bpp]), np.int32(previous[x]), np.int32(previous[x - bpp])
+                p = a + b - c
+                pa, pb, pc = abs(p - a), abs(p - b), abs(p - c)
+                predictor = a if (pa <= pb and pa <= pc) else (b if pb <= pc else c)
+                current[x] = (np.int32(row[x]) + predictor) & 0xFF
+        else:
+            return False
+    return True
+
+
+def _decode_gray16_png(data: bytes) -> np.ndarray | None:
+    """uint16 (H, W) of a non-interlaced 16-bit greyscale PNG's bytes; None for any other PNG (Pillow reads those).
+
+    Chunks are walked by hand, the image data inflated at once (ISA-L when
+    installed) and unfiltered by a compiled loop: about 2-3x faster than
+    Pillow on 640x480 depth images. CRCs are not checked; a truncated or
+    inconsistent stream raises ValueError.
+    """
+    if data[:8] != _PNG_SIGNATURE or data[12:16] != b"IHDR":
+        return None
+    width, height, bit_depth, colour, _, _, interlace = struct.unpack(">IIBBBBB", data[16:29])
+    if bit_depth != 16 or colour != 0 or interlace != 0:
+        return None
+    parts, position = [], 8
+    while position + 8 <= len(data):
+        (length,) = struct.unpack(">I", data[position : position + 4])
+        kind = data[position + 4 : position + 8]
+        if kind == b"IDAT":
+            parts.append(data[position + 8 : position + 8 + length])
+        elif kind == b"IEND":
+            break
+        position += 12 + length
+    stride = 2 * width
+    try:
+        filtered = np.frombuffer(_inflate(b"".join(parts)), dtype=np.uint8)
+    except Exception as exc:  # noqa: BLE001 (zlib.error, isal's IsalError)
+        raise ValueError(f"corrupt image data: {exc}") from None
+    if filtered.size < height * (stride + 1):
+        raise ValueError(f"image data holds {filtered.size} bytes, a {width}x{height} 16-bit image needs {height * (stride + 1)}")
+    out = np.empty((height, stride), dtype=np.uint8)
+    if not _unfilter_rows(filtered, height, stride, 2, out):
+        raise ValueError("unknown PNG row filter")
+    return out.view(">u2")
+
+
 def read_depth_png(path: Path, intrinsics: Intrinsics, scale: float = DEPTH_SCALE) -> np.ndarray:
     """(H, W) float32 depth in metres of a 16-bit depth PNG (``scale`` units per metre; 0 becomes NaN)."""
+    try:
+        with open(path, "rb") as stream:
+            raw = _decode_gray16_png(stream.read())
+    except FileNotFoundError:
+        raise SequenceError(f"{path}: depth image missing") from None
+    except (ValueError, struct.error) as exc:
+        raise SequenceError(f"{path}: cannot read depth PNG: {exc}") from None
+    if raw is not None:
+        if raw.shape != intrinsics.shape:
+            raise SequenceError(
+                f"{path}: image is {raw.shape[1]}x{raw.shape[0]}, intrinsics say {intrinsics.width}x{intrinsics.height}"
+            )
+        return _depth_from_units(raw, scale)
     try:
         with Image.open(path) as image:
             if image.format != "PNG" or image.mode not in ("I;16", "I;16B", "I;16L", "I"):
@@ -155,6 +254,10 @@ def read_depth_png(path: Path, intrinsics: Intrinsics, scale: float = DEPTH_SCAL
         if isinstance(exc, SequenceError):
             raise
         raise SequenceError(f"{path}: cannot read depth PNG: {exc}") from None
+    return _depth_from_units(raw, scale)
+
+
+def _depth_from_units(raw: np.ndarray, scale: float) -> np.ndarray:
     depth = raw.astype(np.float32)
     depth *= np.float32(1.0 / scale)
     depth[raw == 0] = np.nan
