@@ -7,10 +7,17 @@ closes that hole:
 
 * every pipeline request (``RequestDataObject``, ``RequestInformation``,
   ``RequestUpdateExtent``, ``RequestData``) runs inside a try/except that
-  stores the exception and returns failure;
+  stores the exception and returns failure. That includes ``BaseException``:
+  a ``KeyboardInterrupt`` (Ctrl-C) or ``SystemExit`` raised inside a request
+  would otherwise be printed by VTK and forgotten, and the run would go on;
 * ``Update()`` called on a mabdi algorithm re-raises the stored exception
   (the original type and traceback), and hides VTK's own "returned failure"
   dump since the Python exception says what went wrong;
+* **Ctrl-C** during ``Update()`` (in the main thread, with Python's default
+  SIGINT handler) is held until the update returns and then raised as
+  ``KeyboardInterrupt`` by ``Update()``, so it never lands in Python code that
+  VTK calls outside a request of ours (where VTK would print and drop it). A
+  second Ctrl-C while the first is held raises at once;
 * **the boundary**: when the update is pulled through a plain VTK filter
   downstream (``vtk_filter.Update()``), nothing of ours is on the call stack
   to raise. Call :func:`raise_pipeline_errors` (or
@@ -22,7 +29,10 @@ Setters call ``Modified()`` only when the value changes (:meth:`_set`).
 
 from __future__ import annotations
 
+import contextlib
+import signal
 import sys
+import threading
 from typing import Any
 
 import numpy as np
@@ -41,7 +51,7 @@ class MabdiAlgorithm(VTKPythonAlgorithmBase):
     def ProcessRequest(self, request, inInfo, outInfo):  # noqa: N802 (VTK API)
         try:
             return super().ProcessRequest(request, inInfo, outInfo)
-        except Exception as exc:  # stored and re-raised by Update()/raise_if_failed()
+        except BaseException as exc:  # stored and re-raised by Update()/raise_if_failed(), Ctrl-C included
             if self._pending_error is None:
                 self._pending_error = exc
             # Make the next update try again rather than reuse a failed output.
@@ -61,14 +71,18 @@ class MabdiAlgorithm(VTKPythonAlgorithmBase):
         verbosity = vtkLogger.GetCurrentVerbosityCutoff()  # no getter for stderr alone
         vtkLogger.SetStderrVerbosity(vtkLogger.VERBOSITY_OFF)
         try:
-            result = super().Update(*args)
+            with interrupts_held():
+                result = super().Update(*args)
         finally:
             vtkLogger.SetStderrVerbosity(verbosity)
             vtkOutputWindow.SetInstance(previous)
         raise_pipeline_errors(*upstream_algorithms(self), self)
         text = captured.GetOutput()
         if text:
-            sys.stderr.write(text)
+            if isinstance(previous, vtkStringOutputWindow):
+                previous.DisplayText(text)  # a collecting window (the command line's): pass them on
+            else:
+                sys.stderr.write(text)
         return result
 
     def GetOutput(self, port: int = 0):  # noqa: N802 (VTK API)
@@ -101,6 +115,46 @@ class MabdiAlgorithm(VTKPythonAlgorithmBase):
         if not same:
             setattr(self, name, value)
             self.Modified()
+
+
+_held = {"depth": 0, "pending": False}
+
+
+@contextlib.contextmanager
+def interrupts_held():
+    """Hold Ctrl-C (SIGINT) inside the block and raise ``KeyboardInterrupt`` when it ends.
+
+    Only in the main thread and only while Python's default SIGINT handler is
+    installed (a program with its own handler keeps it). Nested blocks hold
+    until the outermost one ends. A second SIGINT while one is held raises
+    ``KeyboardInterrupt`` at once (for an update that never returns).
+    """
+    if _held["depth"]:
+        _held["depth"] += 1
+        try:
+            yield
+        finally:
+            _held["depth"] -= 1
+        return
+    if threading.current_thread() is not threading.main_thread() or signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
+        yield
+        return
+
+    def hold(signum, frame):
+        if _held["pending"]:
+            raise KeyboardInterrupt
+        _held["pending"] = True
+
+    _held["depth"], _held["pending"] = 1, False
+    signal.signal(signal.SIGINT, hold)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+        _held["depth"] = 0
+        pending, _held["pending"] = _held["pending"], False
+        if pending:
+            raise KeyboardInterrupt
 
 
 def upstream_algorithms(algorithm) -> list:

@@ -65,3 +65,52 @@ def test_setter_helper_modifies_only_on_change():
     assert source.GetMTime() == before
     source._set("_value", np.zeros((2, 2)))
     assert source.GetMTime() > before
+
+
+class InterruptedSource(MabdiAlgorithm):
+    """A source whose RequestData raises ``error`` (a BaseException) or receives a SIGINT mid-way."""
+
+    def __init__(self, error=None, signal_mid_way=False):
+        super().__init__(nInputPorts=0, nOutputPorts=1, outputType="vtkPolyData")
+        self.exception, self.signal_mid_way, self.finished = error, signal_mid_way, False
+
+    def RequestData(self, request, inInfo, outInfo):
+        if self.exception is not None:
+            raise self.exception
+        if self.signal_mid_way:
+            import signal
+
+            signal.raise_signal(signal.SIGINT)
+            sum(range(10000))  # Python code runs on after the signal: the interrupt is held
+        vtkPolyData.GetData(outInfo).Initialize()
+        self.finished = True
+        return 1
+
+
+@pytest.mark.parametrize("error", [KeyboardInterrupt(), SystemExit(3)])
+def test_base_exceptions_in_a_request_are_raised_by_update(error):
+    source = InterruptedSource(error)
+    with pytest.raises(type(error)):
+        source.Update()
+
+
+def test_keyboard_interrupt_pulled_through_a_plain_vtk_filter_surfaces_on_check():
+    source = InterruptedSource(KeyboardInterrupt())
+    plain = vtkTriangleFilter()
+    plain.SetInputConnection(source.GetOutputPort())
+    plain.Update()
+    with pytest.raises(KeyboardInterrupt):
+        raise_pipeline_errors(source)
+
+
+def test_ctrl_c_during_update_is_held_until_the_update_ends():
+    import signal
+
+    source = InterruptedSource(signal_mid_way=True)
+    with pytest.raises(KeyboardInterrupt):
+        source.Update()
+    assert source.finished  # the request ran to its end; the interrupt came after
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    source.signal_mid_way = False
+    source.Modified()
+    assert source.Update()  # nothing is left pending
