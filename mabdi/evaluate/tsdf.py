@@ -1,50 +1,67 @@
-"""The TSDF baseline: Open3D's VoxelBlockGrid (tensor API) fed the same depth images as MABDI.
+"""The TSDF baseline: Open3D's VoxelBlockGrid (tensor API) fed the same depth frames as MABDI, at its best.
 
 Open3D is an optional extra (``pip install "mabdi[compare]"``; on Debian its
 import also needs ``apt-get install libusb-1.0-0``). :func:`open3d_status`
 says whether it can be used, and why not.
 
-Conventions, measured rather than assumed: Open3D's back-projection
-(``create_from_depth_image``) puts pixel centres on integers and would need
-cx - 0.5, cy - 0.5; but its VoxelBlockGrid integration projects a voxel to a
-continuous (u, v) and reads pixel ``int(u), int(v)``, so pixel i covers
-[i, i + 1) there, which is mabdi's own convention: the integration gets cx,
-cy unchanged. :func:`alignment_error` shows it on the noise-free table frame
-at 1 cm voxels: median 0.48 mm from the ground truth with cx, 2.5 mm with
-cx - 0.5. Extrinsics are ``camera_from_world``; depth is metres with 0 for
-no return (``depth_scale = 1``, ``depth_max`` = the sensor's far plane). The
-truncation is Open3D's default, 8 voxels. The mesh keeps every voxel fused
-from at least one frame (``weight_threshold`` 0.5): Open3D's default of 3
-drops what fewer than four frames saw, which on the noise-free table cost
-the baseline recall (F@2cm 0.82 instead of 0.99) and would not be a fair
-comparison with a mapper that meshes single observations.
+**Settings** (:class:`TsdfSettings`, defaults and checks in one place):
+voxel size; truncation in voxels (2-6; Open3D's ``trunc_voxel_multiplier``);
+the weight threshold of the extraction (0.5-3: Open3D keeps a voxel only
+when its weight, the number of frames fused into it, is *above* the
+threshold, so 0.5 keeps what a single frame saw and 1 drops it; on the
+table with ``kinect`` noise that costs recall, R@1cm 0.86 at 1); the depth range handed to Open3D
+(``depth_max``; returns are < the sensor's far plane by definition, so any
+``depth_max`` >= far is the same as far); and the pixel convention.
 
-A run integrates every frame and extracts the mesh at the end; the mesh is
-also extracted every ``mesh_every`` frames (and at the end of each circle of
-the path) to give the triangles-per-frame curve and the cost of keeping a
-mesh up to date.
+**Pixel convention** (``pixel_centre``), which cx, cy Open3D is given:
+``"half"`` hands it mabdi's own cx, cy (pixel (u, v) centred on (u + 0.5,
+v + 0.5)); ``"integer"`` hands it cx - 0.5, cy - 0.5, right for a library
+with integer pixel centres. Open3D's back-projection
+(``create_from_depth_image``) has integer centres, but its VoxelBlockGrid
+integration projects a voxel to a continuous (u, v) and reads pixel
+``int(u), int(v)``, so pixel i covers [i, i + 1) there: mabdi's convention,
+and ``"half"`` is right. :func:`alignment_error` and ``tests/test_tsdf.py``
+(a tilted plane) measure it; the tuner searches both.
+
+**Runs**: :func:`run_tsdf` integrates every frame of a
+:class:`mabdi.sources.frames.FrameSource` and extracts the mesh at the end
+(optionally at several weight thresholds from the one integration: the
+threshold is an extraction parameter), and every ``mesh_every`` frames and
+at each circle's end to give the triangles-per-frame curve and the cost of
+keeping a mesh up to date.
+
+**Tuning**: :func:`tune_tsdf` searches truncation, weight threshold, depth
+range and pixel convention at one voxel size against a score the caller
+gives (F@1cm against the ground truth, in the benchmarks), by coordinate
+search (default) or the full grid; see its docs for what is searched.
 """
 
 from __future__ import annotations
 
+import math
 import time
-from dataclasses import dataclass, field
+from collections import OrderedDict
+from collections.abc import Callable, Iterable
+from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 from vtkmodules.vtkCommonDataModel import vtkPolyData
 
 from mabdi.camera import Intrinsics
-from mabdi.config import RunConfig
-from mabdi.depth import depth_array
-from mabdi.filters.depth_image import FilterDepthImage
+from mabdi.depth import DepthFrame
+from mabdi.errors import ConfigError
 from mabdi.polydata import triangles_polydata
 from mabdi.simulate.path import circle_index
-from mabdi.simulate.runner import Simulation
+from mabdi.sources.frames import FrameList, FrameSource
 
 OPEN3D_HELP = (
     'Open3D is not available: pip install "mabdi[compare]" '
     "(on Debian its import also needs: apt-get install libusb-1.0-0)"
 )
+
+PIXEL_CENTRES = ("half", "integer")
+TRUNC_VOXELS_RANGE = (2.0, 6.0)
+WEIGHT_THRESHOLD_RANGE = (0.5, 3.0)
 
 
 def open3d_status() -> tuple[bool, str]:
@@ -56,70 +73,179 @@ def open3d_status() -> tuple[bool, str]:
     return True, ""
 
 
-class TsdfMapper:
-    """A VoxelBlockGrid TSDF volume with ``voxel_size`` (m) voxels, integrating metric depth images."""
+# ---------------------------------------------------------------------------
+# Settings
 
-    def __init__(self, voxel_size: float, intrinsics: Intrinsics, trunc_voxel_multiplier: float = 8.0, block_count: int = 40000):
+
+@dataclass(frozen=True)
+class TsdfSettings:
+    """How the TSDF is built and meshed (see the module docs). Every check is here.
+
+    * ``voxel_size``: metres, > 0.
+    * ``trunc_voxels``: truncation distance in voxels, 2-6.
+    * ``weight_threshold``: extraction keeps voxels whose weight (frames fused) is above it, 0.5-3
+      (0.5: every voxel a frame reached; 1, the plain setting: seen by two frames or more).
+    * ``depth_max``: metres; depths beyond it are not fused (>= the sensor's far plane = all returns).
+    * ``pixel_centre``: ``"half"`` (Open3D gets cx, cy) or ``"integer"`` (cx - 0.5, cy - 0.5).
+    * ``block_resolution``: voxels per block edge (Open3D's default 16); ``block_count``: the hash map's
+      initial capacity in blocks. Open3D grows it as needed; what it allocates up front is zeroed at
+      once (40,000 blocks = 1.3 GB, 8-16 s on the 2-core machine), so the default 4,000 (131 MB) is
+      about the bench scenes' need at 1 cm (2,100-2,900 blocks).
+    """
+
+    voxel_size: float = 0.01
+    trunc_voxels: float = 4.0
+    weight_threshold: float = 1.0
+    depth_max: float = 5.0
+    pixel_centre: str = "half"
+    block_resolution: int = 16
+    block_count: int = 4000
+
+    def __post_init__(self) -> None:
+        def number(name: str) -> float:
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
+                raise ConfigError(f"tsdf: {name} must be a number, got {value!r}")
+            value = float(value)
+            if not math.isfinite(value):
+                raise ConfigError(f"tsdf: {name} must be finite, got {value!r}")
+            object.__setattr__(self, name, value)
+            return value
+
+        if number("voxel_size") <= 0:
+            raise ConfigError(f"tsdf: voxel_size must be > 0 (metres), got {self.voxel_size!r}")
+        lo, hi = TRUNC_VOXELS_RANGE
+        if not lo <= number("trunc_voxels") <= hi:
+            raise ConfigError(f"tsdf: trunc_voxels must be in [{lo:g}, {hi:g}] voxels, got {self.trunc_voxels!r}")
+        lo, hi = WEIGHT_THRESHOLD_RANGE
+        if not lo <= number("weight_threshold") <= hi:
+            raise ConfigError(f"tsdf: weight_threshold must be in [{lo:g}, {hi:g}], got {self.weight_threshold!r}")
+        if number("depth_max") <= 0:
+            raise ConfigError(f"tsdf: depth_max must be > 0 (metres), got {self.depth_max!r}")
+        if self.pixel_centre not in PIXEL_CENTRES:
+            raise ConfigError(
+                f"tsdf: pixel_centre must be one of {', '.join(PIXEL_CENTRES)}, got {self.pixel_centre!r}"
+            )
+        for name in ("block_resolution", "block_count"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value <= 0:
+                raise ConfigError(f"tsdf: {name} must be a positive integer, got {value!r}")
+            object.__setattr__(self, name, int(value))
+
+    def replace(self, **changes) -> TsdfSettings:
+        """A copy with ``changes`` (checked again)."""
+        return replace(self, **changes)
+
+    def open3d_intrinsic(self, intrinsics: Intrinsics) -> np.ndarray:
+        """The 3x3 camera matrix handed to Open3D under this pixel convention."""
+        shift = 0.0 if self.pixel_centre == "half" else 0.5
+        return np.array(
+            [[intrinsics.fx, 0.0, intrinsics.cx - shift], [0.0, intrinsics.fy, intrinsics.cy - shift], [0.0, 0.0, 1.0]]
+        )
+
+    def integration_key(self) -> tuple:
+        """What the volume depends on (everything but the extraction's weight threshold)."""
+        return (self.voxel_size, self.trunc_voxels, self.depth_max, self.pixel_centre, self.block_resolution)
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+# ---------------------------------------------------------------------------
+# The volume
+
+
+class TsdfMapper:
+    """A VoxelBlockGrid TSDF volume built with ``settings``, integrating metric depth images.
+
+    ``TsdfMapper(voxel_size, intrinsics)`` (the old form) still works: the
+    other settings are :class:`TsdfSettings`' defaults.
+    """
+
+    def __init__(self, settings: TsdfSettings | float, intrinsics: Intrinsics, block_count: int | None = None):
         import open3d as o3d
         import open3d.core as o3c
 
+        if not isinstance(settings, TsdfSettings):
+            settings = TsdfSettings(voxel_size=float(settings))
+        if block_count is not None:
+            settings = settings.replace(block_count=block_count)
         self._o3d, self._o3c = o3d, o3c
-        self.voxel_size = voxel_size
+        self.settings = settings
+        self.voxel_size = settings.voxel_size
         self.intrinsics = intrinsics
-        self.trunc_voxel_multiplier = trunc_voxel_multiplier
         self.device = o3c.Device("CPU:0")
         self.grid = o3d.t.geometry.VoxelBlockGrid(
             attr_names=("tsdf", "weight"),
             attr_dtypes=(o3c.float32, o3c.float32),
             attr_channels=((1), (1)),
-            voxel_size=voxel_size,
-            block_resolution=16,
-            block_count=block_count,
+            voxel_size=settings.voxel_size,
+            block_resolution=settings.block_resolution,
+            block_count=settings.block_count,
             device=self.device,
         )
-        k = intrinsics
-        self._intrinsic = o3c.Tensor(
-            [[k.fx, 0.0, k.cx], [0.0, k.fy, k.cy], [0.0, 0.0, 1.0]], dtype=o3c.float64
-        )
+        self._intrinsic = o3c.Tensor(settings.open3d_intrinsic(intrinsics), dtype=o3c.float64)
 
     def integrate(self, depth: np.ndarray, world_from_camera: np.ndarray) -> None:
         """Fuse a (H, W) metric depth image (NaN = no return) taken from ``world_from_camera``."""
         o3d, o3c = self._o3d, self._o3c
+        s = self.settings
         image = o3d.t.geometry.Image(o3c.Tensor(np.nan_to_num(np.asarray(depth, dtype=np.float32), nan=0.0)))
         extrinsic = o3c.Tensor(np.linalg.inv(world_from_camera), dtype=o3c.float64)
-        far = self.intrinsics.far
         blocks = self.grid.compute_unique_block_coordinates(
-            image, self._intrinsic, extrinsic, depth_scale=1.0, depth_max=far, trunc_voxel_multiplier=self.trunc_voxel_multiplier
+            image,
+            self._intrinsic,
+            extrinsic,
+            depth_scale=1.0,
+            depth_max=s.depth_max,
+            trunc_voxel_multiplier=s.trunc_voxels,
         )
         self.grid.integrate(
-            blocks, image, self._intrinsic, extrinsic, depth_scale=1.0, depth_max=far,
-            trunc_voxel_multiplier=self.trunc_voxel_multiplier,
+            blocks,
+            image,
+            self._intrinsic,
+            extrinsic,
+            depth_scale=1.0,
+            depth_max=s.depth_max,
+            trunc_voxel_multiplier=s.trunc_voxels,
         )
 
-    def extract(self, weight_threshold: float = 0.5) -> vtkPolyData:
+    def extract(self, weight_threshold: float | None = None) -> vtkPolyData:
         """The zero crossing as a triangle mesh (marching cubes over the blocks).
 
         Voxels whose weight (frames fused) is not above ``weight_threshold``
-        are left out; 0.5 keeps everything seen once. An empty volume gives an
-        empty mesh.
+        (default: the settings') are left out. An empty volume gives an empty mesh.
         """
+        if weight_threshold is None:
+            weight_threshold = self.settings.weight_threshold
         try:
-            mesh = self.grid.extract_triangle_mesh(weight_threshold=weight_threshold).to_legacy()
+            mesh = self.grid.extract_triangle_mesh(weight_threshold=float(weight_threshold)).to_legacy()
         except RuntimeError:  # Open3D raises on a volume with no surface yet
             return vtkPolyData()
         vertices = np.asarray(mesh.vertices)
         triangles = np.asarray(mesh.triangles)
+        if len(triangles) == 0:
+            return vtkPolyData()
         return triangles_polydata(vertices, triangles, dtype=np.float32)
 
     def memory_bytes(self) -> int:
         """Bytes of the voxel blocks in use (tsdf + weight, float32 each)."""
         active = int(self.grid.hashmap().size())
-        return active * 16**3 * 2 * 4
+        return active * self.settings.block_resolution**3 * 2 * 4
+
+
+# ---------------------------------------------------------------------------
+# A run
 
 
 @dataclass
 class TsdfRun:
-    """A TSDF run: the final mesh, per-frame timings, the triangles curve and the volume's memory."""
+    """A TSDF run: the final mesh, per-frame timings, the triangles curve and the volume's memory.
+
+    ``t_depth_ms`` is the time to read each frame from the source (rendering,
+    for a simulated source). ``meshes`` holds the final mesh at every weight
+    threshold asked for (``mesh`` is the one at ``settings.weight_threshold``).
+    """
 
     voxel_size: float
     mesh: vtkPolyData
@@ -128,6 +254,9 @@ class TsdfRun:
     extractions: list[tuple[int, int, float]] = field(default_factory=list)  # (frame, triangles, ms)
     seconds: float = 0.0
     volume_bytes: int = 0
+    settings: TsdfSettings | None = None
+    meshes: dict[float, vtkPolyData] = field(default_factory=dict)
+    t_final_extract_ms: dict[float, float] = field(default_factory=dict)
 
     def growth_per_circle(self, frames: int, turns: float) -> list[int]:
         """Net triangles added in each circle, from the extractions at the circles' ends."""
@@ -138,60 +267,318 @@ class TsdfRun:
         return [counts[0]] + [counts[i] - counts[i - 1] for i in range(1, len(counts))]
 
 
-def run_tsdf(config: RunConfig, voxel_size: float, mesh_every: int = 5) -> TsdfRun:
-    """Integrate every depth image of the run ``config`` describes into a TSDF.
+def _settings_of(settings: TsdfSettings | float | None) -> TsdfSettings:
+    if settings is None:
+        return TsdfSettings()
+    if isinstance(settings, TsdfSettings):
+        return settings
+    return TsdfSettings(voxel_size=float(settings))
 
-    The depth images come from a :class:`mabdi.simulate.Simulation`'s own scene
-    and sensor, so they are MABDI's D, frame for frame.
+
+def run_tsdf(
+    frames: FrameSource,
+    settings: TsdfSettings | float | None = None,
+    mesh_every: int | None = 5,
+    turns: float | None = None,
+    weight_thresholds: Iterable[float] | None = None,
+) -> TsdfRun:
+    """Integrate every frame of ``frames`` into a TSDF built with ``settings`` and mesh it.
+
+    ``settings`` may be a voxel size (m), the other settings being the
+    defaults. The mesh is extracted at the end, also every ``mesh_every``
+    frames (None or 0: only at the end) and, with ``turns`` (the helix's
+    circles), at the last frame of each circle, for :meth:`TsdfRun.growth_per_circle`.
+    The final mesh is extracted at ``settings.weight_threshold`` and at each
+    of ``weight_thresholds`` (one integration, several meshes: ``run.meshes``).
     """
-    simulation = Simulation(config)
-    scene, sensor, poses = simulation.scene, simulation.sensor, simulation.poses
-    frames = len(poses)
-    mapper = TsdfMapper(voxel_size, sensor.intrinsics)
-    circle = circle_index(frames, config.path.turns)
-    extract_at = {i for i in range(frames) if (i + 1) % mesh_every == 0 or i == frames - 1}
-    extract_at |= {int(np.flatnonzero(circle == c).max()) for c in np.unique(circle)}
-    run = TsdfRun(voxel_size, vtkPolyData(), [], [])
+    settings = _settings_of(settings)
+    thresholds = [
+        settings.replace(weight_threshold=float(w)).weight_threshold for w in weight_thresholds or ()
+    ]  # checked
+    count = len(frames)
+    if count == 0:
+        raise ValueError(f"{frames.description}: no frames to integrate")
+    mapper = TsdfMapper(settings, frames.intrinsics)
+    extract_at: set[int] = set()
+    if mesh_every:
+        extract_at |= {i for i in range(count) if (i + 1) % mesh_every == 0}
+    if turns is not None:
+        circle = circle_index(count, turns)
+        extract_at |= {int(np.flatnonzero(circle == c).max()) for c in np.unique(circle)}
+    run = TsdfRun(settings.voxel_size, vtkPolyData(), [], [], settings=settings)
     start = time.perf_counter()
-    for i, pose in enumerate(poses):
+    for i in range(count):
         t0 = time.perf_counter()
-        scene.set_frame(i)
-        sensor.pose, sensor.frame = pose, i
-        sensor.Update()
-        depth = depth_array(sensor.GetOutput())
+        frame = frames.read(i)
         t1 = time.perf_counter()
-        mapper.integrate(depth, pose)
+        mapper.integrate(frame.depth, frame.world_from_camera)
         t2 = time.perf_counter()
         run.t_depth_ms.append(1000.0 * (t1 - t0))
         run.t_integrate_ms.append(1000.0 * (t2 - t1))
-        if i in extract_at:
-            mesh = mapper.extract()
-            run.extractions.append((i, mesh.GetNumberOfCells(), 1000.0 * (time.perf_counter() - t2)))
-            if i == frames - 1:
+        if i in extract_at or i == count - 1:
+            mesh = mapper.extract(settings.weight_threshold)
+            ms = 1000.0 * (time.perf_counter() - t2)
+            run.extractions.append((i, mesh.GetNumberOfCells(), ms))
+            if i == count - 1:
                 run.mesh = mesh
+                run.meshes[settings.weight_threshold] = mesh
+                run.t_final_extract_ms[settings.weight_threshold] = ms
+    for threshold in thresholds:
+        if threshold in run.meshes:
+            continue
+        t0 = time.perf_counter()
+        run.meshes[threshold] = mapper.extract(threshold)
+        run.t_final_extract_ms[threshold] = 1000.0 * (time.perf_counter() - t0)
     run.seconds = time.perf_counter() - start
     run.volume_bytes = mapper.memory_bytes()
     return run
 
 
-def alignment_error(config: RunConfig, voxel_size: float = 0.01) -> float:
-    """Median distance (m) from the TSDF surface of the first noise-free frame to the ground truth.
+# ---------------------------------------------------------------------------
+# Tuning
 
-    A few millimetres means intrinsics and poses reach Open3D as intended; a
-    half-pixel or frame mix-up shows as centimetres.
+#: The axes :func:`tune_tsdf` searches, in the order the coordinate search visits them.
+TUNED_AXES = ("pixel_centre", "trunc_voxels", "weight_threshold", "depth_max")
+
+
+def default_grid(intrinsics: Intrinsics) -> dict[str, tuple]:
+    """The search grid for ``intrinsics``: truncation 2-6 voxels, weight threshold 0.5-3, both pixel
+    conventions, and depth range 0.75 far (drops the noisiest far returns) or far (every return;
+    anything beyond far, 5 m say, fuses the same)."""
+    return {
+        "pixel_centre": PIXEL_CENTRES,
+        "trunc_voxels": (2.0, 3.0, 4.0, 5.0, 6.0),
+        "weight_threshold": (0.5, 1.0, 2.0, 3.0),
+        "depth_max": (round(0.75 * intrinsics.far, 3), float(intrinsics.far)),
+    }
+
+
+@dataclass
+class TsdfTuning:
+    """What :func:`tune_tsdf` found: the best settings, its mesh and score, and every point tried.
+
+    ``table`` has one dict per point scored: the settings' fields, the score's
+    entries, ``score_s`` (seconds the score took) and ``best`` (bool).
+    ``integrations`` counts the volumes built; ``seconds`` is the whole search,
+    of which ``integrate_s``, ``extract_s`` and ``score_s`` are the parts.
+    """
+
+    best: TsdfSettings
+    mesh: vtkPolyData
+    score: dict
+    table: list[dict]
+    search: str
+    grid: dict[str, tuple]
+    integrations: int = 0
+    seconds: float = 0.0
+    integrate_s: float = 0.0
+    extract_s: float = 0.0
+    score_s: float = 0.0
+
+
+def _rank(score: dict) -> tuple:
+    """Sort key, smaller is better: the highest F@1cm, then the fewest triangles."""
+    return (-float(score["fscore_1cm"]), int(score["triangles"]))
+
+
+def tune_tsdf(
+    frames: FrameSource,
+    voxel_size: float,
+    score: Callable[[vtkPolyData], dict],
+    grid: dict[str, Iterable] | None = None,
+    search: str = "coordinate",
+    start: TsdfSettings | None = None,
+    max_rounds: int = 3,
+    progress: Callable[[str], None] | None = None,
+) -> TsdfTuning:
+    """The TSDF settings at ``voxel_size`` that score best on ``frames``.
+
+    ``score(mesh)`` returns a dict with at least ``fscore_1cm``,
+    ``precision_1cm``, ``recall_1cm`` and ``triangles``; the best point has the
+    highest ``fscore_1cm`` (ties: fewer triangles). ``grid`` maps the axes
+    ``pixel_centre``, ``trunc_voxels``, ``weight_threshold``, ``depth_max`` to
+    the values to try (a missing axis: :func:`default_grid`'s values; one
+    value fixes it).
+
+    The frames are read once and kept in memory. The weight threshold is an
+    extraction parameter, so one volume serves every threshold. Searches:
+
+    * ``"coordinate"`` (default): from ``start`` (default: the plain
+      settings, truncation 4, threshold 1, every return, half-pixel centres,
+      moved into the grid), try every value of one axis with the others
+      held, keep the best, go on to the next axis (pixel convention,
+      truncation, threshold, depth range); repeat the sweep until a whole
+      sweep changes nothing (at most ``max_rounds``). With the default grid
+      that is 11 points and 7 volumes in the first sweep.
+    * ``"full"``: every point of the grid (with the default grid 80 points, 20 volumes).
+    """
+    if search not in ("coordinate", "full"):
+        raise ValueError(f"tune_tsdf: search must be 'coordinate' or 'full', got {search!r}")
+    say = progress or (lambda message: None)
+    began = time.perf_counter()
+    cached = (
+        frames
+        if isinstance(frames, FrameList)
+        else FrameList([frames.read(i) for i in range(len(frames))], frames.description)
+    )
+    intrinsics = cached.intrinsics
+    axes = default_grid(intrinsics)
+    for name, values in (grid or {}).items():
+        if name not in axes:
+            raise ValueError(f"tune_tsdf: unknown axis {name!r} (known: {', '.join(TUNED_AXES)})")
+        values = tuple(values)
+        if not values:
+            raise ValueError(f"tune_tsdf: axis {name!r} has no values")
+        axes[name] = values
+    base = (start or TsdfSettings()).replace(voxel_size=voxel_size)
+    for name in TUNED_AXES:  # every grid value must make valid settings, checked before any work
+        for value in axes[name]:
+            base.replace(**{name: value})
+    if search == "coordinate":
+        held = {name: getattr(base, name) for name in TUNED_AXES}
+        for name in TUNED_AXES:
+            if held[name] not in axes[name]:  # the nearest grid value (the first, for a name)
+                numeric = [v for v in axes[name] if not isinstance(v, str)]
+                if numeric and not isinstance(held[name], str):
+                    held[name] = min(numeric, key=lambda v: abs(float(v) - float(held[name])))
+                else:
+                    held[name] = axes[name][0]
+        base = base.replace(**held)
+
+    tuning = TsdfTuning(base, vtkPolyData(), {}, [], search, {k: tuple(v) for k, v in axes.items()})
+    volumes: OrderedDict[tuple, TsdfMapper] = OrderedDict()  # the last two volumes built
+    results: dict[TsdfSettings, tuple[dict, vtkPolyData | None]] = {}
+    best: list = [None, None, None]  # settings, score, mesh
+
+    def volume(settings: TsdfSettings) -> TsdfMapper:
+        key = settings.integration_key()
+        if key in volumes:
+            volumes.move_to_end(key)
+            return volumes[key]
+        t0 = time.perf_counter()
+        mapper = TsdfMapper(settings, intrinsics)
+        for frame in cached:
+            mapper.integrate(frame.depth, frame.world_from_camera)
+        tuning.integrate_s += time.perf_counter() - t0
+        tuning.integrations += 1
+        volumes[key] = mapper
+        while len(volumes) > 2:
+            volumes.popitem(last=False)
+        return mapper
+
+    def evaluate(settings: TsdfSettings) -> dict:
+        if settings in results:
+            return results[settings][0]
+        mapper = volume(settings)
+        t0 = time.perf_counter()
+        mesh = mapper.extract(settings.weight_threshold)
+        t1 = time.perf_counter()
+        values = dict(score(mesh))
+        t2 = time.perf_counter()
+        tuning.extract_s += t1 - t0
+        tuning.score_s += t2 - t1
+        missing = {"fscore_1cm", "precision_1cm", "recall_1cm", "triangles"} - set(values)
+        if missing:
+            raise ValueError(f"tune_tsdf: score() must return {', '.join(sorted(missing))}")
+        row = {name: getattr(settings, name) for name in ("voxel_size", *TUNED_AXES)}
+        row.update(values)
+        row["extract_s"], row["score_s"] = t1 - t0, t2 - t1
+        tuning.table.append(row)
+        if best[0] is None or _rank(values) < _rank(best[1]):
+            best[:] = [settings, values, mesh]
+        results[settings] = (values, None)
+        say(
+            f"tsdf {settings.voxel_size * 100:g} cm: trunc {settings.trunc_voxels:g}, weight > {settings.weight_threshold:g}, "
+            f"depth_max {settings.depth_max:g}, {settings.pixel_centre}: F@1cm {values['fscore_1cm']:.4f}, "
+            f"{int(values['triangles']):,} triangles"
+        )
+        return values
+
+    if search == "full":
+        import itertools
+
+        for pixel, trunc, depth in itertools.product(axes["pixel_centre"], axes["trunc_voxels"], axes["depth_max"]):
+            for weight in axes["weight_threshold"]:  # one volume, every threshold
+                evaluate(base.replace(pixel_centre=pixel, trunc_voxels=trunc, depth_max=depth, weight_threshold=weight))
+    else:
+        current = base
+        evaluate(current)
+        for _ in range(max_rounds):
+            changed = False
+            for name in TUNED_AXES:
+                candidates = [current.replace(**{name: value}) for value in axes[name]]
+                # the current volume's values first, so a threshold sweep reuses it
+                candidates.sort(key=lambda s: s.integration_key() != current.integration_key())
+                scored = [(evaluate(s), s) for s in candidates]
+                winner = min(scored, key=lambda pair: _rank(pair[0]))[1]
+                if _rank(results[winner][0]) < _rank(results[current][0]):
+                    current, changed = winner, True
+            if not changed:
+                break
+
+    tuning.best, tuning.score, tuning.mesh = best[0], best[1], best[2]
+    for row in tuning.table:
+        row["best"] = all(row[name] == getattr(tuning.best, name) for name in ("voxel_size", *TUNED_AXES))
+    tuning.seconds = time.perf_counter() - began
+    return tuning
+
+
+def tuning_markdown(tuning: TsdfTuning) -> str:
+    """The table of points tried, best first, as markdown."""
+    lines = [
+        "| pixel centre | trunc (voxels) | weight > | depth max (m) | F@1cm | P@1cm | R@1cm | F@2cm | triangles |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|",
+    ]
+    for row in sorted(tuning.table, key=_rank):
+        f2 = f"{row['fscore_2cm']:.4f}" if "fscore_2cm" in row else "-"
+        mark = " **best**" if row.get("best") else ""
+        lines.append(
+            f"| {row['pixel_centre']}{mark} | {row['trunc_voxels']:g} | {row['weight_threshold']:g} | {row['depth_max']:g} "
+            f"| {row['fscore_1cm']:.4f} | {row['precision_1cm']:.4f} | {row['recall_1cm']:.4f} | {f2} | {int(row['triangles']):,} |"
+        )
+    return "\n".join(lines)
+
+
+# ---------------------------------------------------------------------------
+# Alignment check
+
+
+def alignment_error(
+    frame: DepthFrame, ground_truth: vtkPolyData, voxel_size: float = 0.01, settings: TsdfSettings | None = None
+) -> float:
+    """Median distance (m) from the TSDF surface of one noise-free ``frame`` to ``ground_truth``.
+
+    A fraction of a millimetre means intrinsics and poses reach Open3D as
+    intended; a half-pixel or frame mix-up shows as millimetres to
+    centimetres. The frame is fused alone and every voxel it reached is meshed
+    (weight threshold 0.5: one frame gives weight 1). ``settings`` (default: the defaults at ``voxel_size``) choose
+    the truncation and the pixel convention.
     """
     from vtkmodules.util.numpy_support import vtk_to_numpy
 
     from mabdi.evaluate.distance import distances_to_mesh
 
-    simulation = Simulation(config)
-    sensor = FilterDepthImage(intrinsics=simulation.sensor.intrinsics, backend=config.sensor.backend)  # no noise
-    sensor.SetInputConnection(simulation.scene.GetOutputPort())
-    pose = simulation.poses[0]
-    sensor.pose = pose
-    sensor.Update()
-    mapper = TsdfMapper(voxel_size, sensor.intrinsics)
-    mapper.integrate(depth_array(sensor.GetOutput()), pose)
-    vertices = vtk_to_numpy(mapper.extract().GetPoints().GetData())
-    ground_truth = simulation.scene.mesh_at(0)
+    settings = (settings or TsdfSettings()).replace(voxel_size=voxel_size)
+    mapper = TsdfMapper(settings, frame.intrinsics)
+    mapper.integrate(frame.depth, frame.world_from_camera)
+    mesh = mapper.extract(weight_threshold=0.5)
+    if mesh.GetNumberOfPoints() == 0:
+        return float("inf")
+    vertices = vtk_to_numpy(mesh.GetPoints().GetData())
     return float(np.median(distances_to_mesh(vertices[:: max(1, len(vertices) // 50000)], ground_truth)))
+
+
+__all__ = [
+    "PIXEL_CENTRES",
+    "TUNED_AXES",
+    "TsdfMapper",
+    "TsdfRun",
+    "TsdfSettings",
+    "TsdfTuning",
+    "alignment_error",
+    "default_grid",
+    "open3d_status",
+    "run_tsdf",
+    "tune_tsdf",
+    "tuning_markdown",
+]
