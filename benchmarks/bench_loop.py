@@ -30,6 +30,7 @@ os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
 import numpy as np  # noqa: E402
 
 import mabdi  # noqa: E402
+from mabdi.config import set_value  # noqa: E402
 from mabdi.evaluate.bench import machine_info  # noqa: E402
 from mabdi.simulate.runner import Simulation  # noqa: E402
 
@@ -41,7 +42,7 @@ class MergedMapSimulation(Simulation):
 
     def step(self, i):
         start = time.perf_counter()
-        self.expected.SetInputDataObject(self.world.mesh())
+        self.loop.expected.SetInputDataObject(0, self.loop.world.mesh())
         merge_ms = 1000.0 * (time.perf_counter() - start)
         record = super().step(i)
         record.t_expected_ms += merge_ms
@@ -54,10 +55,10 @@ def one(name: str, variant: str, frames: int | None):
     if frames:
         config.run.frames = frames
     if variant == "black box":
-        config.classifier.enabled = False
+        set_value(config, "classifier.enabled", False)
     elif variant == "no speck filter":
-        config.classifier.min_width = 1
-        config.classifier.min_region = 0
+        set_value(config, "classifier.min_width", 1)
+        set_value(config, "classifier.min_region", 0)
     simulation_class = MergedMapSimulation if variant == "E from merged map" else Simulation
     result = simulation_class(config).run()
     summary = result.summary()

@@ -19,14 +19,17 @@ from mabdi.filters import (  # noqa: E402
     FilterClassifier,
     FilterDepthImage,
     FilterDepthImageToSurface,
+    FilterPixelGrid,
     FilterQuadTree,
     FilterVoxelPlanes,
     FilterWorldMesh,
     SensorNoise,
 )
 from mabdi.maps import MeshMap  # noqa: E402
-from mabdi.simulate import Simulation, helical_path  # noqa: E402
-from mabdi.sources import SourceScene  # noqa: E402
+from mabdi.filters.expected_image import FilterExpectedImage  # noqa: E402
+from mabdi.filters.registry import register_surface_filter  # noqa: E402
+from mabdi.simulate import MabdiLoop, SimulatedRig, Simulation, helical_path  # noqa: E402
+from mabdi.sources import FrameSource, SourceDepthFrames, SourceScene  # noqa: E402
 
 __version__ = "0.1.0"
 
@@ -38,6 +41,13 @@ __all__ = [
     "FilterClassifier",
     "FilterDepthImage",
     "FilterDepthImageToSurface",
+    "FilterExpectedImage",
+    "FilterPixelGrid",
+    "FrameSource",
+    "MabdiLoop",
+    "SimulatedRig",
+    "SourceDepthFrames",
+    "register_surface_filter",
     "FilterQuadTree",
     "FilterVoxelPlanes",
     "FilterWorldMesh",

@@ -61,6 +61,12 @@ class Intrinsics:
                 value = int(value)
             if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value <= 0:
                 raise ConfigError(f"intrinsics: {name} must be a positive integer (pixels), got {value!r}")
+        for name, size in (("cx", "width"), ("cy", "height")):
+            if not 0.0 <= getattr(self, name) <= getattr(self, size):
+                raise ConfigError(
+                    f"intrinsics: principal point {name} = {getattr(self, name)!r} lies outside the image "
+                    f"(0 .. {size} = {getattr(self, size)} pixels)"
+                )
         if not (math.isfinite(self.near) and math.isfinite(self.far) and 0 < self.near < self.far):
             raise ConfigError(f"intrinsics: need 0 < near < far (metres), got near={self.near!r}, far={self.far!r}")
 

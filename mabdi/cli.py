@@ -28,15 +28,22 @@ def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="mabdi", description="Mesh maps from a moving depth sensor (MABDI).")
     commands = parser.add_subparsers(dest="command", required=True)
 
-    run = commands.add_parser("run", help="run the MABDI loop on a run config (scenes/*.toml) and write the map")
-    run.add_argument("config", type=Path, help="run config (TOML), e.g. scenes/bunnies.toml")
+    surfaces = _surface_help()
+    run = commands.add_parser("run", help="run the MABDI loop on a run config (scenes/*.toml) or a recorded sequence")
+    run.add_argument(
+        "config", type=Path, nargs="?", help="run config (TOML), e.g. scenes/bunnies.toml (optional with --sequence)"
+    )
     run.add_argument("--frames", type=int, help="number of frames (overrides run.frames)")
     run.add_argument("--out", type=Path, help="output folder (default: runs/<config name>)")
     run.add_argument("--noise", help="noise model: none, zbuffer or kinect (overrides sensor.noise)")
     run.add_argument("--seed", type=int, help="noise seed (overrides run.seed)")
-    run.add_argument("--surface", help="surface filter: pixel_grid, quadtree or voxel_planes (overrides surface.method)")
+    run.add_argument("--surface", help=f"surface filter (overrides surface.method): {surfaces}")
     run.add_argument(
         "--no-classifier", action="store_true", help="black box: mesh every valid pixel every frame (classifier.enabled = false)"
+    )
+    run.add_argument(
+        "--set", dest="settings", action="append", default=[], metavar="KEY=VALUE",
+        help="set any config value by its dotted key, e.g. --set surface.quadtree.n_t=0.05 (TOML value syntax; repeatable)",
     )
     run.add_argument("--depth-images", action="store_true", help="also write D, E and labels of every frame as VTI")
     run.add_argument("--h5", action="store_true", help="also write world_mesh.h5 with cost layers, labels, poses (output.h5)")
@@ -44,6 +51,40 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument("--backend", help="render backend: egl or osmesa (overrides sensor.backend)")
     run.add_argument("--quiet", action="store_true", help="no progress bar")
     run.add_argument("--no-eval", action="store_true", help="skip the evaluation against the ground truth")
+    run.add_argument(
+        "--overwrite", action="store_true",
+        help="write into an output folder that holds files mabdi did not write (they are left as they are)",
+    )
+    run.add_argument(
+        "--resume", type=Path, metavar="OUT",
+        help="finish the interrupted run in folder OUT from its last checkpoint (output.checkpoint_every)",
+    )
+    sequence = run.add_argument_group("recorded sequences (--sequence)")
+    sequence.add_argument(
+        "--sequence", type=Path,
+        help="run on a recorded sequence (a TUM RGB-D folder or a ROS 2 bag) instead of the simulated sensor; "
+        "CONFIG then gives the classifier, surface and output settings (its [sensor] noise sets the thresholds)",
+    )
+    sequence.add_argument("--camera", help="TUM intrinsics preset when the folder has no mabdi.toml: fr1, fr2 or fr3")
+    sequence.add_argument("--depth-topic", help="ROS 2 bag: the depth image topic (when there are several)")
+    sequence.add_argument("--info-topic", help="ROS 2 bag: the CameraInfo topic (when there are several)")
+    sequence.add_argument("--pose-topic", help="ROS 2 bag: a PoseStamped topic for the poses (default: /tf when present)")
+    sequence.add_argument(
+        "--tolerance", type=float, default=0.02, help="largest time between a depth frame and its pose, seconds (default 0.02)"
+    )
+
+    record = commands.add_parser("record", help="write a simulated run's depth frames as a TUM folder or a ROS 2 bag")
+    record.add_argument("config", type=Path, help="run config (TOML), e.g. scenes/table.toml")
+    record.add_argument("--format", required=True, choices=("tum", "rosbag2"), help="tum (TUM RGB-D folder) or rosbag2")
+    record.add_argument("--out", type=Path, required=True, help="folder to create (must not exist or be empty)")
+    record.add_argument("--storage", default="sqlite3", choices=("sqlite3", "mcap"), help="ROS 2 bag storage (default sqlite3)")
+    record.add_argument(
+        "--encoding", default="32FC1", choices=("32FC1", "16UC1"), help="ROS 2 depth encoding: 32FC1 metres (default) or 16UC1 mm"
+    )
+    record.add_argument("--frames", type=int, help="number of frames (overrides run.frames)")
+    record.add_argument("--noise", help="noise model: none, zbuffer or kinect (overrides sensor.noise)")
+    record.add_argument("--seed", type=int, help="noise seed (overrides run.seed)")
+    record.add_argument("--overwrite", action="store_true", help="replace a previous recording in --out")
 
     export = commands.add_parser("export", help="convert a saved map between VTP, PLY, OBJ, STL and HDF5 (.h5)")
     export.add_argument("source", type=Path, help="map file to read (.vtp, .ply, .obj, .stl, .h5)")
@@ -83,6 +124,13 @@ def _parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _surface_help() -> str:
+    """The registered surface filters with their help lines (the registry is the one list)."""
+    from mabdi.filters.registry import surface_filter, surface_filter_names
+
+    return "; ".join(f"{name} ({surface_filter(name).help})" for name in surface_filter_names())
+
+
 def _find_config(scene: str) -> Path:
     """A run config from a path or a scene name in ./scenes."""
     path = Path(scene)
@@ -101,42 +149,54 @@ def _find_config(scene: str) -> Path:
 
 
 def _apply_overrides(config, args) -> None:
-    from mabdi.config import validate_run_config
+    """Command-line options onto the config, each through :func:`mabdi.config.set_value` (typed and checked)."""
+    import tomllib
 
-    if args.frames is not None:
-        config.run.frames = args.frames
-    if args.noise is not None:
-        config.sensor.noise = args.noise
-    if getattr(args, "seed", None) is not None:
-        config.run.seed = args.seed
-    if getattr(args, "backend", None) is not None:
-        config.sensor.backend = args.backend
-    if getattr(args, "surface", None) is not None:
-        config.surface.method = args.surface
-    if getattr(args, "no_classifier", False):
-        config.classifier.enabled = False
-    if args.command == "run" and args.out is not None:
-        config.output.dir = str(args.out)
-    if getattr(args, "depth_images", False):
-        config.output.depth_images = True
-    if getattr(args, "h5", False):
-        config.output.h5 = True
-    if getattr(args, "movie", False):
-        config.output.movie = True
+    from mabdi.config import set_value, validate_run_config
+    from mabdi.errors import ConfigError
+
+    options = {
+        "run.frames": getattr(args, "frames", None),
+        "sensor.noise": getattr(args, "noise", None),
+        "run.seed": getattr(args, "seed", None),
+        "sensor.backend": getattr(args, "backend", None),
+        "surface.method": getattr(args, "surface", None),
+        "classifier.enabled": False if getattr(args, "no_classifier", False) else None,
+        "output.dir": str(args.out) if args.command == "run" and args.out is not None else None,
+        "output.depth_images": True if getattr(args, "depth_images", False) else None,
+        "output.h5": True if getattr(args, "h5", False) else None,
+        "output.movie": True if getattr(args, "movie", False) else None,
+    }
+    for key, value in options.items():
+        if value is not None:
+            set_value(config, key, value, where="command line")
+    for setting in getattr(args, "settings", []):
+        key, equals, text = setting.partition("=")
+        if not equals or not key.strip():
+            raise ConfigError(f"command line: --set wants KEY=VALUE, got {setting!r}")
+        try:
+            value = tomllib.loads(f"value = {text}")["value"]
+        except tomllib.TOMLDecodeError:
+            value = text  # a bare word is a string: --set surface.method=quadtree
+        set_value(config, key.strip(), value, where="command line (--set)")
     validate_run_config(config, where="command line")
 
 
 class ProgressBar:
     """A one-line progress bar on stderr (only when stderr is a terminal)."""
 
-    def __init__(self, total: int, enabled: bool) -> None:
-        self.total = total
+    def __init__(self, total: int | None, enabled: bool) -> None:
+        self.total = total  # None: not known (a resumed run)
         self.enabled = enabled and sys.stderr.isatty()
 
     def __call__(self, record) -> None:
         if not self.enabled:
             return
         done = record.frame + 1
+        if self.total is None:
+            sys.stderr.write(f"\rframe {done}  map {record.cells_total:,} triangles ")
+            sys.stderr.flush()
+            return
         width = 30
         filled = int(width * done / self.total)
         bar = "#" * filled + "." * (width - filled)
@@ -147,21 +207,66 @@ class ProgressBar:
 
 
 def cmd_run(args) -> int:
-    from mabdi.config import load_run_config
+    from mabdi.config import RunConfig, load_run_config
+    from mabdi.errors import ConfigError
     from mabdi.simulate import Simulation
 
-    config = load_run_config(args.config)
+    if args.resume is not None:
+        if args.config is not None or args.sequence is not None:
+            raise ConfigError("run: --resume OUT takes the config and source of the run in OUT; give neither CONFIG nor --sequence")
+        simulation, result = Simulation.resume(args.resume, progress=ProgressBar(None, not args.quiet), finish=False)
+        print(f"resumed {args.resume}")
+        return _report_run(args, simulation, result, None, None, None)
+    if args.config is None and args.sequence is None:
+        raise ConfigError("run: give a run config (e.g. scenes/table.toml), or --sequence PATH")
+    config = load_run_config(args.config) if args.config is not None else RunConfig()
     _apply_overrides(config, args)
-    out_dir = Path(config.output.dir) if config.output.dir else Path("runs") / (config.run.name or args.config.stem)
-    simulation = Simulation(config)
-    progress = ProgressBar(config.run.frames, not args.quiet)
-    movie = None
+    note = None
+    recording = None
+    if args.sequence is not None:
+        from mabdi.simulate.recorded import recorded_simulation
+
+        name = config.run.name or args.sequence.resolve().name
+        options = {
+            "camera": args.camera,
+            "depth_topic": args.depth_topic,
+            "info_topic": args.info_topic,
+            "pose_topic": args.pose_topic,
+            "tolerance": args.tolerance,
+        }
+        simulation, note = recorded_simulation(config, args.sequence, **options)
+        recording = {"path": str(args.sequence.resolve()), "options": options}
+        print(f"source: {simulation.source.description}")
+    else:
+        for option in ("camera", "depth_topic", "info_topic", "pose_topic"):
+            if getattr(args, option) is not None:
+                raise ConfigError(f"run: --{option.replace('_', '-')} is for recorded sequences; use it with --sequence")
+        if not config.scene.objects:
+            raise ConfigError(
+                f"{args.config}: nothing to map: the scene has no objects (add [[scene.objects]] tables; see scenes/table.toml)"
+            )
+        name = config.run.name or args.config.stem
+        simulation = Simulation(config)
+    out_dir = Path(config.output.dir) if config.output.dir else Path("runs") / name
+    progress = ProgressBar(simulation.frames, not args.quiet)
+    movie = dashboard_ms = None
     if config.output.movie:
         from mabdi.viz.record import run_with_movie
 
-        result, movie, dashboard_ms = run_with_movie(simulation, out_dir, config.output.snapshots or None, progress=progress)
+        result, movie, dashboard_ms = run_with_movie(
+            simulation, out_dir, config.output.snapshots or None, progress=progress, overwrite=args.overwrite, finish=False
+        )
     else:
-        result = simulation.run(out_dir, progress=progress)
+        result = simulation.run(out_dir, progress=progress, overwrite=args.overwrite, finish=False, recording=recording)
+    return _report_run(args, simulation, result, note, movie, dashboard_ms)
+
+
+def _report_run(args, simulation, result, note, movie, dashboard_ms) -> int:
+    """Print a finished run, evaluate it (unless --no-eval), write summary.json last."""
+    import warnings
+
+    from mabdi.simulate.runner import finish_run
+
     summary = result.summary()
     mode = "classifier on" if summary["classifier"] else "black box (classifier off)"
     print(
@@ -169,24 +274,44 @@ def cmd_run(args) -> int:
         f"{mode}, surface {summary['surface']}"
     )
     print(f"map: {summary['cells']:,} triangles, {summary['points']:,} points, {summary['map_bytes'] / 2**20:.1f} MB")
-    if not args.no_eval and config.scene.objects:
-        import json
-
+    metrics = None
+    evaluation = "skipped (--no-eval)" if args.no_eval else None
+    if note is not None and not args.no_eval:
+        print(f"note: {note}")
+        evaluation = f"skipped: {note}"
+    elif simulation.scene is None and not args.no_eval:
+        evaluation = "skipped: no ground-truth scene"
+    elif result.mesh.GetNumberOfCells() == 0 and not args.no_eval:
+        evaluation = "skipped: the map is empty"
+    elif not args.no_eval:
         from mabdi.evaluate import evaluate_run
-        from mabdi.io.atomic import write_text
 
-        metrics = evaluate_run(simulation, result)
-        summary["metrics"] = metrics.as_dict()
-        write_text(out_dir / "summary.json", json.dumps(summary, indent=2) + "\n")
-        growth = metrics.growth_per_circle
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            scores = evaluate_run(simulation, result)
+        metrics = scores.as_dict()
+        growth = scores.growth_per_circle
         second = f", 2nd circle adds {100.0 * growth[1] / growth[0]:.1f}% of the 1st" if len(growth) > 1 and growth[0] else ""
         print(
-            f"vs ground truth: F@1cm {metrics.fscore_1cm:.3f}, F@2cm {metrics.fscore_2cm:.3f}, "
-            f"accuracy median {metrics.accuracy_median_mm:.2f} mm, redundancy {100.0 * (metrics.redundancy or 0.0):.1f}%{second}"
+            f"vs ground truth: F@1cm {scores.fscore_1cm:.3f}, F@2cm {scores.fscore_2cm:.3f}, "
+            f"accuracy median {scores.accuracy_median_mm:.2f} mm, redundancy {100.0 * (scores.redundancy or 0.0):.1f}%{second}"
         )
+    finish_run(result, metrics, evaluation)
     if movie is not None:
-        print(f"movie: {movie} ({config.run.frames} frames, dashboard {dashboard_ms:.0f} ms per frame)")
-    print(f"results in {out_dir}/ (world_mesh.vtp, world_mesh.ply, metrics.csv, summary.json, elements.png)")
+        print(f"movie: {movie} ({simulation.frames} frames, dashboard {dashboard_ms:.0f} ms per frame)")
+    print(f"results in {result.out_dir}/ (world_mesh.vtp, world_mesh.ply, metrics.csv, summary.json, elements.png)")
+    return 0
+
+
+def cmd_record(args) -> int:
+    from mabdi.config import load_run_config
+    from mabdi.simulate.recorded import record
+
+    config = load_run_config(args.config)
+    _apply_overrides(config, args)
+    written = record(config, args.out, args.format, storage=args.storage, encoding=args.encoding, overwrite=args.overwrite)
+    kind = "TUM RGB-D folder" if args.format == "tum" else f"ROS 2 bag ({args.storage}, {args.encoding})"
+    print(f"wrote {written} ({kind}, {config.run.frames} frames of {config.run.name or args.config.stem})")
     return 0
 
 
@@ -326,6 +451,7 @@ def main(argv=None) -> int:
     try:
         commands = {
             "run": cmd_run,
+            "record": cmd_record,
             "export": cmd_export,
             "info": cmd_info,
             "view": cmd_view,

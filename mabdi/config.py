@@ -3,10 +3,20 @@
 A file in ``scenes/`` is a whole run config: ``[run]`` (frames, seed),
 ``[scene]`` (the objects), ``[sensor]`` (intrinsics, noise, backend),
 ``[path]`` (the helix), ``[classifier]`` (on/off and thresholds),
-``[surface]`` (which surface filter) and ``[output]`` (what is written). Every section and key has a default, so a config
-states only what differs. An unknown or misspelt key, a value of the wrong
-type, or a value out of range is a :class:`ConfigError` that names the file
-and the key.
+``[surface]`` (which surface filter, and ``[surface.<name>]`` its
+parameters) and ``[output]`` (what is written). Every section and key has a
+default, so a config states only what differs. An unknown or misspelt key, a
+value of the wrong type, or a value out of range is a :class:`ConfigError`
+that names the file and the key.
+
+One home for every parameter: where a section configures a filter, the
+section *is* that filter's parameter dataclass (``[classifier]`` is
+:class:`~mabdi.filters.classifier.ClassifierParameters`, ``[surface.quadtree]``
+is :class:`~mabdi.filters.quadtree.QuadTreeParameters`, ...), whose defaults
+and checks are written once, in the filter's module; this module only reads
+TOML into them and adds the file and key to their error messages. Those
+dataclasses are frozen: change a value with :func:`set_value` (``"classifier.enabled"``,
+``"surface.quadtree.n_t"``), which also checks it.
 
 ``load_run_config(path)`` reads a file; ``dump_toml(config)`` writes the
 resolved config back (saved next to a run's outputs). Relative mesh paths in
@@ -25,15 +35,14 @@ from pathlib import Path
 
 from mabdi.camera import Intrinsics
 from mabdi.errors import ConfigError
+from mabdi.filters.classifier import ClassifierParameters
+from mabdi.filters.depth_image import BACKENDS, NOISE_MODELS, SensorNoise
+from mabdi.filters.registry import surface_filter, surface_filter_names
 
 PRIMITIVES = ("box", "cylinder", "sphere", "plane")
 OBJECT_TYPES = (*PRIMITIVES, "mesh")
 ANCHORS = ("bottom", "center", "origin")
 AXES = ("x", "y", "z", "-x", "-y", "-z", "+x", "+y", "+z")
-NOISE_MODELS = ("none", "zbuffer", "kinect")
-#: Surface filters by config name; quadtree and voxel_planes join when they exist.
-SURFACES = ("pixel_grid", "quadtree", "voxel_planes")
-BACKENDS = ("egl", "osmesa")
 
 
 @dataclass
@@ -86,31 +95,43 @@ class SceneConfig:
 class SensorConfig:
     """The simulated depth sensor: intrinsics (pixels, metres), noise model and render backend.
 
-    Noise models: ``none``; ``zbuffer`` (seed 001: d + d N(0, zbuffer_sigma)
-    on the normalised z-buffer value d); ``kinect`` (axial sigma(z) =
-    kinect_coefficient z^2 metres, Khoshelham & Elberink 2012).
+    The defaults and checks of the intrinsics are :class:`mabdi.camera.Intrinsics`'
+    and those of the noise models :class:`mabdi.filters.depth_image.SensorNoise`'
+    (``noise`` here is its ``model``): this section only gathers them under
+    the keys of a run config. Noise models: ``none``; ``zbuffer`` (seed 001:
+    d + d N(0, zbuffer_sigma) on the normalised z-buffer value d); ``kinect``
+    (axial sigma(z) = kinect_coefficient z^2 metres, Khoshelham & Elberink 2012).
     """
 
-    width: int = 640
-    height: int = 480
-    fx: float = 525.0
-    fy: float = 525.0
-    cx: float = 320.0
-    cy: float = 240.0
-    near: float = 0.5
-    far: float = 4.0
-    noise: str = "none"
-    zbuffer_sigma: float = 0.001
-    kinect_coefficient: float = 1.425e-3
-    backend: str = "egl"
+    width: int = Intrinsics.width
+    height: int = Intrinsics.height
+    fx: float = Intrinsics.fx
+    fy: float = Intrinsics.fy
+    cx: float = Intrinsics.cx
+    cy: float = Intrinsics.cy
+    near: float = Intrinsics.near
+    far: float = Intrinsics.far
+    noise: str = SensorNoise.model
+    zbuffer_sigma: float = SensorNoise.zbuffer_sigma
+    kinect_coefficient: float = SensorNoise.kinect_coefficient
+    backend: str = BACKENDS[0]
 
     def intrinsics(self) -> Intrinsics:
         return Intrinsics(self.fx, self.fy, self.cx, self.cy, self.width, self.height, self.near, self.far)
 
+    def sensor_noise(self) -> SensorNoise:
+        return SensorNoise.from_config(self)
+
 
 @dataclass
 class PathConfig:
-    """The helical sensor path (see :func:`mabdi.simulate.helical_path`). Metres and degrees."""
+    """The helical sensor path (see :func:`mabdi.simulate.helical_path`, which takes its defaults from here).
+
+    Metres and degrees: ``center`` (x, y) of the ellipse with radii
+    ``radius_x``, ``radius_y``; heights from ``z0`` to ``z1``; the sensor looks
+    at a point moving from ``look_from`` to ``look_to``; ``turns`` circles
+    starting at ``start_angle`` (-90 = on the -y side of the centre).
+    """
 
     center: list[float] = field(default_factory=lambda: [0.0, 0.0])
     radius_x: float = 2.5
@@ -123,45 +144,36 @@ class PathConfig:
     start_angle: float = -90.0
 
 
-@dataclass
-class ClassifierConfig:
-    """FilterClassifier's switch and thresholds (see :mod:`mabdi.filters.classifier`).
-
-    ``enabled = false`` is the "black box": every valid pixel is meshed every frame.
-    """
-
-    enabled: bool = True
-    tau_min: float = 0.01
-    k_sigma: float = 3.0
-    min_width: int = 3
-    min_region: int = 32
-    rim: int = 1
-
-
-@dataclass
+@dataclass(eq=False)
 class SurfaceConfig:
-    """The surface filter that meshes novel pixels: ``method`` is one of :data:`SURFACES`.
+    """Which surface filter meshes the novel pixels, and the parameters of each.
 
-    ``max_jump``: largest depth jump (fraction of the depth) inside a face
-    (pixel_grid) or between vertices that are merged (quadtree).
-    ``n_t``, ``d_t`` (m), ``reduction``: the quad-tree's merge thresholds and
-    block reduction (:mod:`mabdi.filters.quadtree`); in the loop the quad-tree
-    outputs triangles, so the map's counts are triangles.
-    ``voxel_size`` (m), ``epsilon`` (m, the anticipated point noise),
-    ``window`` (voxels a side), ``min_points``: voxel planes
-    (:mod:`mabdi.filters.voxel_planes`), which re-meshes the blocks new points
-    fall in and replaces them in the map.
+    ``method`` names a filter of the surface registry
+    (:mod:`mabdi.filters.registry`: ``pixel_grid``, ``quadtree``,
+    ``voxel_planes`` and any filter registered at run time). Each filter's
+    parameters are a sub-table named after it, e.g. ``[surface.quadtree]
+    n_t = 0.05``; its keys, defaults and checks are the filter's own
+    parameter dataclass (``PixelGridParameters``, ``QuadTreeParameters``,
+    ``VoxelPlanesParameters``). Sub-tables of filters other than ``method``
+    are checked and kept, so one config can switch surfaces with ``--surface``.
     """
 
     method: str = "pixel_grid"
-    max_jump: float = 0.05
-    n_t: float = 0.1
-    d_t: float = 0.02
-    reduction: int = 3
-    voxel_size: float = 0.05
-    epsilon: float = 0.02
-    window: int = 2
-    min_points: int = 10
+    #: Parameters by surface name, as given in the config (the rest take the defaults).
+    parameters: dict = field(default_factory=dict, metadata={"toml": False})
+
+    def parameters_of(self, name: str | None = None):
+        """The parameter dataclass of surface ``name`` (default: ``method``), defaults filled in."""
+        name = self.method if name is None else name
+        given = self.parameters.get(name)
+        return given if given is not None else surface_filter(name).parameters()
+
+    def __eq__(self, other) -> bool:
+        """Equal when the method and every surface's parameters (defaults filled in) are equal."""
+        if not isinstance(other, SurfaceConfig):
+            return NotImplemented
+        names = (set(self.parameters) | set(other.parameters)) & set(surface_filter_names())
+        return self.method == other.method and all(self.parameters_of(n) == other.parameters_of(n) for n in names)
 
 
 @dataclass
@@ -175,7 +187,9 @@ class OutputConfig:
     clusters, and the run's poses and intrinsics. ``movie``: ``mabdi run``
     also writes ``movie.mp4``, the six-panel dashboard of every frame
     (:mod:`mabdi.viz`), and ``dashboard_<frame>.png`` for the frames in
-    ``snapshots`` (empty: the first, middle and last).
+    ``snapshots`` (empty: the first, middle and last). ``checkpoint_every``:
+    save the loop's state every N frames (0: never), so ``mabdi run --resume``
+    can finish an interrupted run; the checkpoint goes when the run completes.
     """
 
     dir: str = ""
@@ -185,11 +199,13 @@ class OutputConfig:
     depth_images: bool = False
     movie: bool = False
     snapshots: list[int] = field(default_factory=list)
+    checkpoint_every: int = 10
 
 
 @dataclass
 class RunSection:
-    """Run-wide settings: a name, the number of frames (iterations) and the noise seed."""
+    """Run-wide settings: a name (a plain folder name: the default output is ``runs/<name>``),
+    the number of frames (iterations) and the noise seed."""
 
     name: str = ""
     frames: int = 30
@@ -204,7 +220,7 @@ class RunConfig:
     scene: SceneConfig = field(default_factory=SceneConfig)
     sensor: SensorConfig = field(default_factory=SensorConfig)
     path: PathConfig = field(default_factory=PathConfig)
-    classifier: ClassifierConfig = field(default_factory=ClassifierConfig)
+    classifier: ClassifierParameters = field(default_factory=ClassifierParameters)
     surface: SurfaceConfig = field(default_factory=SurfaceConfig)
     output: OutputConfig = field(default_factory=OutputConfig)
     #: The file this config was read from (not a TOML key).
@@ -288,6 +304,8 @@ def _convert(tp, value, where: str, key: str):
 
 
 def _build(cls, data: dict, where: str, prefix: str):
+    if cls is SurfaceConfig:
+        return _build_surface(data, where, prefix)
     hints = typing.get_type_hints(cls)
     fields = {f.name: f for f in dataclasses.fields(cls) if f.metadata.get("toml", True)}
     section = f"[{prefix}]" if prefix else "top level"
@@ -300,7 +318,75 @@ def _build(cls, data: dict, where: str, prefix: str):
     for name, value in data.items():
         key = f"{prefix}.{name}" if prefix else name
         values[name] = _convert(hints[name], value, where, key)
-    return cls(**values)
+    try:
+        return cls(**values)
+    except ConfigError as exc:  # the dataclass's own checks (one home): add the file and section
+        raise ConfigError(f"{where}: {section} {exc}") from None
+
+
+def _build_surface(data: dict, where: str, prefix: str) -> SurfaceConfig:
+    """``[surface]``: ``method`` and one sub-table per surface filter, each built as that filter's parameters."""
+    names = surface_filter_names()
+    config = SurfaceConfig()
+    for key, value in data.items():
+        if key == "method":
+            config.method = _convert(str, value, where, f"{prefix}.method")
+        elif key in names:
+            if not isinstance(value, dict):
+                raise ConfigError(f"{where}: '{prefix}.{key}' must be a table of {key}'s parameters, got {value!r}")
+            config.parameters[key] = _build(surface_filter(key).parameters, value, where, f"{prefix}.{key}")
+        else:
+            owners = [n for n in names if key in {f.name for f in dataclasses.fields(surface_filter(n).parameters)}]
+            hint = f"; {key} is a parameter of {' and '.join(owners)}: put it in [{prefix}.{owners[0]}]" if owners else ""
+            raise ConfigError(
+                f"{where}: unknown key '{key}' in [{prefix}] (known keys: method, {', '.join(names)}){hint}"
+            )
+    return config
+
+
+def set_value(config: RunConfig, key: str, value, where: str = "command line") -> None:
+    """Set one value by its dotted key (``"run.frames"``, ``"classifier.enabled"``, ``"surface.quadtree.n_t"``).
+
+    The value is type-checked and converted as in a file; frozen parameter
+    sections are rebuilt with :func:`dataclasses.replace`, so their checks
+    run. Raises :class:`ConfigError` naming the key.
+    """
+    parts = key.split(".")
+    if parts[0] == "surface" and len(parts) == 3:
+        name, attribute = parts[1], parts[2]
+        if name not in surface_filter_names():
+            raise ConfigError(f"{where}: unknown key '{key}' (surface filters: {', '.join(surface_filter_names())})")
+        cls = surface_filter(name).parameters
+        current = config.surface.parameters_of(name)
+        config.surface.parameters[name] = _replace_checked(current, attribute, value, where, key, cls)
+        return
+    if len(parts) != 2 or parts[0] not in {f.name for f in dataclasses.fields(RunConfig) if f.metadata.get("toml", True)}:
+        raise ConfigError(f"{where}: unknown key '{key}' (a dotted key: section.key, or surface.<filter>.key)")
+    section_name, attribute = parts
+    section = getattr(config, section_name)
+    if isinstance(section, SurfaceConfig) and attribute == "method":
+        section.method = _convert(str, value, where, key)
+        return
+    if not dataclasses.is_dataclass(section) or isinstance(section, SceneConfig):
+        raise ConfigError(f"{where}: key '{key}' cannot be set this way")
+    replaced = _replace_checked(section, attribute, value, where, key, type(section))
+    if replaced is not section:
+        setattr(config, section_name, replaced)
+
+
+def _replace_checked(section, attribute: str, value, where: str, key: str, cls):
+    fields = {f.name for f in dataclasses.fields(cls) if f.metadata.get("toml", True)}
+    if attribute not in fields:
+        raise ConfigError(f"{where}: unknown key '{key}' (known keys: {', '.join(sorted(fields))})")
+    converted = _convert(typing.get_type_hints(cls)[attribute], value, where, key)
+    params = getattr(cls, "__dataclass_params__", None)
+    if params is not None and params.frozen:
+        try:
+            return dataclasses.replace(section, **{attribute: converted})
+        except ConfigError as exc:
+            raise ConfigError(f"{where}: key '{key}': {exc}") from None
+    setattr(section, attribute, converted)
+    return section
 
 
 def _check_choice(value: str, choices, where: str, key: str) -> None:
@@ -361,21 +447,45 @@ def validate_object(obj: ObjectConfig, where: str, key: str) -> None:
             raise ConfigError(f"{where}: key '{key}.{name}' must be a frame number >= 0, got {value}")
 
 
+def _check_schedule(obj: ObjectConfig, frames: int, where: str, key: str) -> None:
+    """An object must exist at some frame of the run: ``appear_at < disappear_at`` once resolved."""
+    from mabdi.sources.scene import schedule_frame  # the one rule for fractions -> frames
+
+    appear = schedule_frame(obj.appear_at, frames) or 0
+    disappear = schedule_frame(obj.disappear_at, frames)
+    if appear >= frames:
+        raise ConfigError(
+            f"{where}: '{key}' appears at frame {appear} (appear_at = {obj.appear_at!r}), after the run's last "
+            f"frame {frames - 1}: it would never be seen"
+        )
+    if disappear is not None and disappear <= appear:
+        raise ConfigError(
+            f"{where}: '{key}' disappears (disappear_at = {obj.disappear_at!r}, frame {disappear}) before or when "
+            f"it appears (appear_at = {obj.appear_at!r}, frame {appear}): it would never be seen"
+        )
+
+
 def validate_run_config(config: RunConfig, where: str = "<config>") -> None:
     """Range checks across a whole config."""
     if config.run.frames < 1:
         raise ConfigError(f"{where}: key 'run.frames' must be at least 1, got {config.run.frames}")
     if config.run.seed < 0:
         raise ConfigError(f"{where}: key 'run.seed' must be >= 0, got {config.run.seed}")
+    name = config.run.name
+    if name and (name in (".", "..") or "/" in name or "\\" in name or name != name.strip() or "\0" in name):
+        raise ConfigError(
+            f"{where}: key 'run.name' = {name!r} must be a plain folder name (no '/', not '..'): "
+            "runs are written to runs/<name>; use --out for another place"
+        )
     for i, obj in enumerate(config.scene.objects):
         validate_object(obj, where, f"scene.objects[{i}]")
+        _check_schedule(obj, config.run.frames, where, f"scene.objects[{i}]")
     sensor = config.sensor
     _check_choice(sensor.noise, NOISE_MODELS, where, "sensor.noise")
     _check_choice(sensor.backend, BACKENDS, where, "sensor.backend")
-    if sensor.zbuffer_sigma < 0 or sensor.kinect_coefficient < 0:
-        raise ConfigError(f"{where}: noise parameters 'sensor.zbuffer_sigma' and 'sensor.kinect_coefficient' must be >= 0")
     try:
         sensor.intrinsics()
+        sensor.sensor_noise()
     except ConfigError as exc:
         raise ConfigError(f"{where}: [sensor] {exc}") from None
     path = config.path
@@ -386,20 +496,10 @@ def validate_run_config(config: RunConfig, where: str = "<config>") -> None:
         raise ConfigError(f"{where}: keys 'path.radius_x' and 'path.radius_y' must be positive")
     if path.turns <= 0:
         raise ConfigError(f"{where}: key 'path.turns' must be positive, got {path.turns}")
-    classifier = config.classifier
-    if classifier.tau_min <= 0 or classifier.k_sigma < 0:
-        raise ConfigError(f"{where}: need 'classifier.tau_min' > 0 and 'classifier.k_sigma' >= 0")
-    if classifier.min_width < 1 or classifier.min_region < 0 or classifier.rim < 0:
-        raise ConfigError(f"{where}: need 'classifier.min_width' >= 1, 'classifier.min_region' >= 0, 'classifier.rim' >= 0")
-    _check_choice(config.surface.method, SURFACES, where, "surface.method")
-    if config.surface.max_jump <= 0:
-        raise ConfigError(f"{where}: key 'surface.max_jump' must be > 0, got {config.surface.max_jump}")
-    if config.surface.n_t < 0 or config.surface.d_t <= 0 or config.surface.reduction < 1:
-        raise ConfigError(f"{where}: need 'surface.n_t' >= 0, 'surface.d_t' > 0 and 'surface.reduction' >= 1")
-    if not (config.surface.voxel_size > 0 and config.surface.epsilon > 0):
-        raise ConfigError(f"{where}: need 'surface.voxel_size' > 0 and 'surface.epsilon' > 0 (metres)")
-    if not 1 <= config.surface.window <= 6 or config.surface.min_points < 3:
-        raise ConfigError(f"{where}: need 1 <= 'surface.window' <= 6 and 'surface.min_points' >= 3")
+    names = surface_filter_names()
+    _check_choice(config.surface.method, names, where, "surface.method")
+    if config.output.checkpoint_every < 0:
+        raise ConfigError(f"{where}: key 'output.checkpoint_every' must be >= 0 frames (0: no checkpoints)")
 
 
 # ---------------------------------------------------------------------------
@@ -421,6 +521,14 @@ def _toml_value(value) -> str:
 
 
 def _toml_table(obj, prefix: str, lines: list[str]) -> None:
+    if isinstance(obj, SurfaceConfig):
+        lines.append(f"method = {_toml_value(obj.method)}")
+        for name in sorted(set(obj.parameters) | {obj.method}):
+            if name in surface_filter_names():
+                lines.append("")
+                lines.append(f"[{prefix}{name}]")
+                _toml_table(obj.parameters_of(name), f"{prefix}{name}.", lines)
+        return
     scalars, tables, arrays = [], [], []
     for f in dataclasses.fields(obj):
         if not f.metadata.get("toml", True):

@@ -91,3 +91,44 @@ def extract_polys(surface: vtkPolyData, cell_ids: np.ndarray) -> vtkPolyData:
             values.SetName(array.GetName())
             target.AddArray(values)
     return patch
+
+
+def polydata_to_state(mesh: vtkPolyData) -> dict:
+    """A polygonal vtkPolyData as plain numpy arrays (points, polygon offsets and connectivity, point and
+    cell arrays by name), for checkpoints; :func:`polydata_from_state` rebuilds it exactly."""
+    points = mesh.GetPoints()
+    polys = mesh.GetPolys()
+    state = {
+        "points": vtk_to_numpy(points.GetData()).copy() if points is not None else np.zeros((0, 3), np.float32),
+        "offsets": vtk_to_numpy(polys.GetOffsetsArray()).copy(),
+        "connectivity": vtk_to_numpy(polys.GetConnectivityArray()).copy(),
+        "point_data": {},
+        "cell_data": {},
+        "attributes": {"point_data": {}, "cell_data": {}},  # name -> attribute type (Normals, Scalars, ...)
+    }
+    for key, data in (("point_data", mesh.GetPointData()), ("cell_data", mesh.GetCellData())):
+        for i in range(data.GetNumberOfArrays()):
+            array = data.GetArray(i)
+            if array is not None and array.GetName():
+                state[key][array.GetName()] = vtk_to_numpy(array).copy()
+                role = data.IsArrayAnAttribute(i)
+                if role >= 0:
+                    state["attributes"][key][array.GetName()] = role
+    return state
+
+
+def polydata_from_state(state: dict) -> vtkPolyData:
+    """The vtkPolyData of :func:`polydata_to_state` (same dtypes, same order)."""
+    mesh = vtkPolyData()
+    points = vtkPoints()
+    points.SetData(numpy_to_vtk(np.ascontiguousarray(state["points"]), deep=True))
+    mesh.SetPoints(points)
+    mesh.SetPolys(_cell_array(state["offsets"], state["connectivity"]))
+    for key, data in (("point_data", mesh.GetPointData()), ("cell_data", mesh.GetCellData())):
+        for name, values in state[key].items():
+            array = numpy_to_vtk(np.ascontiguousarray(values), deep=True)
+            array.SetName(name)
+            data.AddArray(array)
+        for name, role in state["attributes"][key].items():
+            data.SetActiveAttribute(name, role)
+    return mesh

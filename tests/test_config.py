@@ -87,3 +87,122 @@ def test_bad_values_are_named(tmp_path, text, message):
 def test_missing_file(tmp_path):
     with pytest.raises(ConfigError, match="not found"):
         load_run_config(tmp_path / "nope.toml")
+
+
+# --- one home for every parameter: sections are the filters' own parameter dataclasses -------------
+
+
+def test_sections_are_the_filters_parameter_classes(tmp_path):
+    from mabdi.filters import ClassifierParameters, PixelGridParameters, QuadTreeParameters
+
+    config = load_run_config(write(tmp_path, '[classifier]\ntau_min = 0.02\n[surface]\nmethod = "quadtree"\n[surface.quadtree]\nn_t = 0.05\n'))
+    assert isinstance(config.classifier, ClassifierParameters) and config.classifier.tau_min == 0.02
+    assert config.surface.parameters_of() == QuadTreeParameters(n_t=0.05)
+    assert config.surface.parameters_of("pixel_grid") == PixelGridParameters()  # defaults from the filter's class
+    again = run_config_from_dict(tomllib.loads(dump_toml(config)))
+    assert again == config and again.surface.parameters_of().n_t == 0.05
+
+
+@pytest.mark.parametrize(
+    "text,message",
+    [
+        ("[classifier]\ntau_min = 0\n", "[classifier] tau_min must be > 0"),
+        ("[classifier]\nmin_width = 0\n", "min_width must be >= 1"),
+        ("[surface.quadtree]\nd_t = -1\n", "[surface.quadtree] need n_t >= 0 and d_t > 0"),
+        ("[surface.voxel_planes]\nwindow = 9\n", "[surface.voxel_planes] window must be an integer from 1 to 6"),
+        ("[surface.pixel_grid]\nmax_jump = 0\n", "[surface.pixel_grid] max_jump must be > 0"),
+        ("[surface]\nn_t = 0.1\n", "n_t is a parameter of quadtree: put it in [surface.quadtree]"),
+        ("[surface.quadtree]\nn_tt = 0.1\n", "unknown key 'n_tt' in [surface.quadtree]"),
+        ("[surface.quadtree]\ntriangles = false\n", "unknown key 'triangles'"),  # not a config key: the loop triangulates
+        ("[surface]\nmethod = 'marching_cubes'\n", "surface.method' = 'marching_cubes' is not one of: pixel_grid, quadtree, voxel_planes"),
+        ("[sensor]\ncx = 1000.0\n", "principal point cx = 1000.0 lies outside the image"),
+        ("[run]\nname = '../../escape'\n", "run.name' = '../../escape' must be a plain folder name"),
+        ("[run]\nframes = 10\n[[scene.objects]]\ntype = 'sphere'\nappear_at = 0.8\ndisappear_at = 0.2\n", "disappears"),
+        ("[run]\nframes = 10\n[[scene.objects]]\ntype = 'sphere'\nappear_at = 12\n", "after the run's last frame 9"),
+    ],
+)
+def test_parameter_checks_name_file_section_and_key(tmp_path, text, message):
+    path = write(tmp_path, text)
+    with pytest.raises(ConfigError) as info:
+        load_run_config(path)
+    assert message in str(info.value) and str(path) in str(info.value)
+
+
+def test_set_value_checks_and_names_the_key(tmp_path):
+    from mabdi.config import set_value
+
+    config = load_run_config(write(tmp_path, ""))
+    set_value(config, "surface.quadtree.n_t", 0.25)
+    set_value(config, "classifier.enabled", False)
+    set_value(config, "run.frames", 7)
+    assert config.surface.parameters_of("quadtree").n_t == 0.25
+    assert config.classifier.enabled is False and config.run.frames == 7
+    with pytest.raises(ConfigError, match="key 'classifier.tau_min': tau_min must be > 0"):
+        set_value(config, "classifier.tau_min", -1.0)
+    with pytest.raises(ConfigError, match="unknown key 'classifier.tau'"):
+        set_value(config, "classifier.tau", 1.0)
+    with pytest.raises(ConfigError, match="must be true or false"):
+        set_value(config, "classifier.enabled", "yes")
+
+
+def test_a_surface_filter_registered_from_outside_runs_by_name(tmp_path):
+    """A new surface is one class and one register call: the config section and the loop follow."""
+    import dataclasses
+
+    import numpy as np
+    from vtkmodules.vtkCommonDataModel import vtkImageData, vtkPolyData
+
+    import mabdi
+    from mabdi.depth import depth_array, image_pose
+    from mabdi.filters.registry import surface_filter_names, unregister_surface_filter
+    from mabdi.polydata import triangles_polydata
+
+    @dataclasses.dataclass(frozen=True)
+    class CentreTriangleParameters:
+        size: float = 0.1
+
+        def __post_init__(self):
+            if self.size <= 0:
+                raise ConfigError(f"size must be > 0, got {self.size}")
+
+    class FilterCentreTriangle(mabdi.MabdiAlgorithm):
+        """One triangle at the centre pixel's point, if it has a return."""
+
+        def __init__(self, parameters):
+            super().__init__(nInputPorts=1, inputType="vtkImageData", nOutputPorts=1, outputType="vtkPolyData")
+            self.parameters = parameters
+
+        def RequestData(self, request, inInfo, outInfo):  # noqa: N802
+            image = vtkImageData.GetData(inInfo[0])
+            depth = depth_array(image)
+            z = depth[depth.shape[0] // 2, depth.shape[1] // 2]
+            output = vtkPolyData.GetData(outInfo)
+            if np.isfinite(z):
+                pose = image_pose(image)
+                centre = pose[:3, :3] @ np.array([0.0, 0.0, z]) + pose[:3, 3]
+                s = self.parameters.size
+                points = centre + np.array([[0, 0, 0], [s, 0, 0], [0, s, 0]])
+                output.ShallowCopy(triangles_polydata(points, np.array([[0, 1, 2]])))
+            output.GetFieldData().ShallowCopy(image.GetFieldData())
+            return 1
+
+    mabdi.register_surface_filter(
+        "centre_triangle", CentreTriangleParameters, lambda parameters, noise: FilterCentreTriangle(parameters), "one test triangle"
+    )
+    try:
+        assert "centre_triangle" in surface_filter_names()
+        path = write(
+            tmp_path,
+            '[run]\nframes = 3\n[classifier]\nenabled = false\n[surface]\nmethod = "centre_triangle"\n'
+            '[surface.centre_triangle]\nsize = 0.2\n[[scene.objects]]\ntype = "box"\nsize = [1.0, 1.0, 2.0]\n',
+        )
+        config = load_run_config(path)
+        assert config.surface.parameters_of().size == 0.2
+        result = mabdi.Simulation(config).run()
+        assert result.mesh.GetNumberOfCells() == 3  # one triangle a frame
+        with pytest.raises(ConfigError, match=r"\[surface.centre_triangle\] size must be > 0"):
+            load_run_config(write(tmp_path, "[surface.centre_triangle]\nsize = -1.0\n"))
+    finally:
+        unregister_surface_filter("centre_triangle")
+    with pytest.raises(ConfigError, match="unknown key 'centre_triangle'"):
+        load_run_config(path)

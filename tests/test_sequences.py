@@ -11,7 +11,7 @@ from PIL import Image
 from rosbags.rosbag2 import Reader, StoragePlugin, Writer
 
 from mabdi.camera import Intrinsics, look_at
-from mabdi.depth import DepthFrame
+from mabdi.depth import DepthFrame, only_returns
 from mabdi.errors import ConfigError
 from mabdi.sources.frames import FrameList
 from mabdi.sources.rosbag2 import _TYPESTORE, Rosbag2Sequence, write_rosbag2
@@ -31,7 +31,8 @@ def _frames() -> list[DepthFrame]:
     for i, t in enumerate(TIMES):
         depth = 0.8 + 0.02 * u + 0.01 * v + 0.1 * i + rng.uniform(-0.01, 0.01, (48, 64))
         depth[5:9, 10:20] = np.nan  # no return
-        depth[0, 0] = 0.0012345  # a tiny depth: still a number after the round trip
+        depth[0, 0] = 0.0012345  # closer than near: not a return (mabdi.depth.returns), NaN once read
+        depth[0, 1] = 0.30002  # just inside near: a return, still a number after the round trip
         pose = look_at([2.0 + 0.1 * i, -1.0, 1.2 + 0.05 * i], [0.0, 0.2 * i, 0.4])  # rotated about every axis
         frames.append(DepthFrame(depth.astype(np.float32), INTRINSICS, pose, i, float(t)))
     return frames
@@ -48,7 +49,8 @@ def tum_folder(tmp_path_factory, frames):
 
 
 def _check_depth(read, expected, step):
-    """Same no-return pixels; depth within half the format's step (plus float32 rounding)."""
+    """Same no-return pixels (by the one rule, mabdi.depth.returns); depth within half the format's step."""
+    expected = only_returns(expected, INTRINSICS.near, INTRINSICS.far)
     np.testing.assert_array_equal(np.isnan(read), np.isnan(expected))
     np.testing.assert_allclose(read, expected, rtol=0, atol=step / 2 + 1e-6, equal_nan=True)
 

@@ -12,7 +12,7 @@ from vtkmodules.util.numpy_support import vtk_to_numpy
 
 from conftest import REPO
 from mabdi.cli import main
-from mabdi.config import load_run_config
+from mabdi.config import load_run_config, set_value
 from mabdi.depth import depth_array
 from mabdi.errors import ConfigError
 from mabdi.evaluate import distances_to_mesh
@@ -25,8 +25,7 @@ from mabdi.polydata import triangles_polydata
 def run(name, **changes):
     config = load_run_config(REPO / "scenes" / f"{name}.toml")
     for dotted, value in changes.items():
-        section, key = dotted.split("__")
-        setattr(getattr(config, section), key, value)
+        set_value(config, dotted.replace("__", "."), value)
     simulation = Simulation(config)
     return simulation, simulation.run()
 
@@ -140,7 +139,18 @@ def test_hand_built_pipeline_from_the_readme_equals_simulation(table_run, monkey
     )
 
 
-@pytest.mark.parametrize("stage", ["scene", "sensor", "expected", "classifier", "surface", "world"])
+STAGES = {
+    "scene": lambda s: s.rig.scene,
+    "sensor": lambda s: s.rig.sensor,
+    "measured": lambda s: s.loop.measured,
+    "expected": lambda s: s.loop.expected,
+    "classifier": lambda s: s.loop.classifier,
+    "surface": lambda s: s.loop.surface,
+    "world": lambda s: s.loop.world,
+}
+
+
+@pytest.mark.parametrize("stage", list(STAGES))
 def test_an_exception_in_any_filter_reaches_the_caller(stage):
     config = load_run_config(REPO / "scenes" / "table.toml")
     config.run.frames = 3
@@ -149,7 +159,7 @@ def test_an_exception_in_any_filter_reaches_the_caller(stage):
     def broken(*args):
         raise RuntimeError(f"{stage} broke")
 
-    getattr(simulation, stage).RequestData = broken
+    STAGES[stage](simulation).RequestData = broken
     with pytest.raises(RuntimeError, match=f"{stage} broke"):
         simulation.run()
 
@@ -191,7 +201,7 @@ def test_failed_run_leaves_earlier_outputs_whole(tmp_path):
     def broken(*args):
         raise RuntimeError("surface broke")
 
-    simulation.surface.RequestData = broken
+    simulation.loop.surface.RequestData = broken
     with pytest.raises(RuntimeError):
         simulation.run(out)
     assert (out / "world_mesh.vtp").read_bytes() == before

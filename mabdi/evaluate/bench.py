@@ -1,6 +1,9 @@
 """The benchmark harness behind ``mabdi bench``: every method on the same frames, one table.
 
-Methods (all fed the same depth images D: same scene, poses and noise seed):
+Methods, all fed the same depth frames: the scene's simulated rig
+(:class:`~mabdi.simulate.rig.SimulatedRig`) is built once, its frames are
+rendered once and kept in memory (:class:`~mabdi.sources.frames.FrameList`),
+and every method reads them from there:
 
 * ``mabdi``: the MABDI loop with the config's surface filter and classifier;
 * ``black_box``: the same runner with the classifier off;
@@ -15,6 +18,7 @@ numbers, the machine, the command), ``bench.md`` (the table) and
 
 from __future__ import annotations
 
+import copy
 import json
 import os
 import platform
@@ -26,18 +30,21 @@ from pathlib import Path
 import numpy as np
 import vtkmodules
 
-from mabdi.config import RunConfig
+from mabdi.config import RunConfig, set_value
 from mabdi.evaluate.metrics import SAMPLES, evaluate_map, evaluate_run, observed_ground_truth, scenes_per_pose
 from mabdi.evaluate.tsdf import alignment_error, open3d_status, run_tsdf
 from mabdi.io.atomic import write_text
 from mabdi.io.plots import write_elements_plot
-from mabdi.simulate.runner import Simulation, prepare_output_dir, render_backend
+from mabdi.simulate.rig import SimulatedRig
+from mabdi.io.run_folder import prepare_output_dir
+from mabdi.simulate.runner import Simulation
+from mabdi.sources.frames import FrameList
 
 METHODS = ("mabdi", "black_box", "tsdf_1cm", "tsdf_2cm")
 TSDF_VOXELS = {"tsdf_1cm": 0.01, "tsdf_2cm": 0.02}
 
 
-def machine_info(simulation: Simulation | None = None) -> dict:
+def machine_info(rig: SimulatedRig | None = None) -> dict:
     """CPU, cores, GPU (nvidia-smi, if any), VTK render backend and versions."""
     cpu = platform.processor() or platform.machine()
     try:
@@ -68,8 +75,8 @@ def machine_info(simulation: Simulation | None = None) -> dict:
         import open3d
 
         info["open3d"] = open3d.__version__
-    if simulation is not None:
-        info["render"] = render_backend(simulation.sensor)
+    if rig is not None:
+        info["render"] = rig.render_backend()
     return info
 
 
@@ -85,18 +92,24 @@ def _mabdi_row(name: str, simulation: Simulation, result, observed) -> dict:
     }
 
 
-def _observed_samples(simulation: Simulation, samples: int):
+def _observed_samples(rig: SimulatedRig, config: RunConfig, samples: int):
     """The ground-truth samples that the run's poses saw (shared by every method of a bench)."""
-    config = simulation.config
-    frames = len(simulation.poses)
+    frames = len(rig)
     return observed_ground_truth(
-        simulation.scene.mesh_at(frames - 1),
-        scenes_per_pose(simulation.scene, frames),
-        simulation.poses,
-        config.sensor.intrinsics(),
+        rig.scene.mesh_at(frames - 1),
+        scenes_per_pose(rig.scene, frames),
+        rig.poses,
+        rig.intrinsics,
         samples,
         config.sensor.backend,
     )
+
+
+def bench_frames(config: RunConfig) -> tuple[SimulatedRig, FrameList]:
+    """The scene's rig (built once) and its frames, rendered once and kept for every method."""
+    rig = SimulatedRig.from_config(config)
+    frames = FrameList([rig.read(i) for i in range(len(rig))], description=rig.description)
+    return rig, frames
 
 
 def run_bench(
@@ -105,6 +118,7 @@ def run_bench(
     """Run ``methods`` on the run ``config`` describes; return (and with ``out_dir`` write) the results.
 
     ``command`` (the command line that asked for it) is recorded with the numbers.
+    The caller's config is not changed.
     """
     unknown = [m for m in methods if m not in METHODS]
     if unknown:
@@ -112,69 +126,63 @@ def run_bench(
 
         raise ConfigError(f"unknown bench method {unknown[0]!r} (known: {', '.join(METHODS)})")
     out = prepare_output_dir(out_dir) if out_dir is not None else None
-    frames = config.run.frames
+    progress(f"rendering {config.run.frames} frames of {config.run.name or 'the scene'}")
+    rig, frames = bench_frames(config)
+    observed = _observed_samples(rig, config, samples)
+    ground_truth = rig.scene.mesh_at(len(frames) - 1)
     rows, notes = [], []
-    observed = None
-    reference = None
-    classifier_enabled = config.classifier.enabled  # restored below: the caller's config is not changed
     for method in methods:
         if method in ("mabdi", "black_box"):
-            config.classifier.enabled = method == "mabdi"
-            progress(f"{method}: running {frames} frames")
-            simulation = Simulation(config)
+            method_config = copy.deepcopy(config)
+            set_value(method_config, "classifier.enabled", method == "mabdi")
+            progress(f"{method}: running {len(frames)} frames")
+            simulation = Simulation(method_config, source=frames, scene=rig.scene)
             result = simulation.run()
-            if observed is None:
-                reference = simulation
-                observed = _observed_samples(simulation, samples)
             progress(f"{method}: evaluating {result.mesh.GetNumberOfCells():,} triangles")
             rows.append(_mabdi_row(method, simulation, result, observed))
-        else:
-            usable, reason = open3d_status()
-            if not usable:
-                note = f"{method} skipped: {reason}"
-                progress(note)
-                notes.append(note)
-                continue
-            voxel = TSDF_VOXELS[method]
-            progress(f"{method}: integrating {frames} frames")
-            run = run_tsdf(config, voxel)
-            if observed is None:
-                reference = Simulation(config)
-                observed = _observed_samples(reference, samples)
-            metrics = evaluate_map(run.mesh, reference.scene.mesh_at(frames - 1), observed, samples=samples)
-            metrics.growth_per_circle = run.growth_per_circle(frames, config.path.turns)
-            extract_ms = float(np.mean([ms for _, _, ms in run.extractions])) if run.extractions else 0.0
-            rows.append(
-                {
-                    "method": method,
-                    "metrics": metrics.as_dict(),
-                    "ms_per_frame": {
-                        "t_depth_ms": float(np.mean(run.t_depth_ms)),
-                        "t_integrate_ms": float(np.mean(run.t_integrate_ms)),
-                        "t_extract_ms": extract_ms,
-                        "t_total_ms": float(np.mean(np.add(run.t_depth_ms, run.t_integrate_ms))),
-                        "t_total_with_mesh_ms": float(np.mean(np.add(run.t_depth_ms, run.t_integrate_ms)) + extract_ms),
-                    },
-                    "seconds": run.seconds,
-                    "volume_bytes": run.volume_bytes,
-                    "triangles_at": [[frame, triangles] for frame, triangles, _ in run.extractions],
-                }
-            )
-    config.classifier.enabled = classifier_enabled
+            continue
+        usable, reason = open3d_status()
+        if not usable:
+            note = f"{method} skipped: {reason}"
+            progress(note)
+            notes.append(note)
+            continue
+        voxel = TSDF_VOXELS[method]
+        progress(f"{method}: integrating {len(frames)} frames")
+        run = run_tsdf(frames, voxel, turns=config.path.turns)
+        metrics = evaluate_map(run.mesh, ground_truth, observed, samples=samples)
+        metrics.growth_per_circle = run.growth_per_circle(len(frames), config.path.turns)
+        extract_ms = float(np.mean([ms for _, _, ms in run.extractions])) if run.extractions else 0.0
+        rows.append(
+            {
+                "method": method,
+                "metrics": metrics.as_dict(),
+                "ms_per_frame": {
+                    "t_depth_ms": float(np.mean(run.t_depth_ms)),
+                    "t_integrate_ms": float(np.mean(run.t_integrate_ms)),
+                    "t_extract_ms": extract_ms,
+                    "t_total_ms": float(np.mean(np.add(run.t_depth_ms, run.t_integrate_ms))),
+                    "t_total_with_mesh_ms": float(np.mean(np.add(run.t_depth_ms, run.t_integrate_ms)) + extract_ms),
+                },
+                "seconds": run.seconds,
+                "volume_bytes": run.volume_bytes,
+                "triangles_at": [[frame, triangles] for frame, triangles, _ in run.extractions],
+            }
+        )
     bench = {
         "scene": config.run.name,
-        "frames": frames,
+        "frames": len(frames),
         "noise": config.sensor.noise,
         "seed": config.run.seed,
         "surface": config.surface.method,
         "samples": samples,
         "command": command,
-        "machine": machine_info(reference),
+        "machine": machine_info(rig),
         "methods": rows,
         "notes": notes,
     }
     if any(r["method"].startswith("tsdf") for r in rows):
-        bench["tsdf_alignment_mm"] = 1000.0 * alignment_error(config)
+        bench["tsdf_alignment_mm"] = 1000.0 * alignment_error(rig.noise_free(0), rig.scene.mesh_at(0))
     if out is not None:
         write_bench_outputs(bench, out)
     return bench

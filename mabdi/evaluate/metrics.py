@@ -32,6 +32,7 @@ from vtkmodules.util.numpy_support import vtk_to_numpy
 from vtkmodules.vtkCommonDataModel import vtkPolyData
 
 from mabdi.camera import Intrinsics
+from mabdi.errors import MabdiError
 from mabdi.evaluate.distance import distances_to_mesh, distances_within
 from mabdi.evaluate.redundancy import DELTA_MIN, redundancy
 from mabdi.evaluate.sampling import SurfaceSamples, sample_surface
@@ -185,16 +186,18 @@ def scenes_per_pose(scene, frames: int) -> list[vtkPolyData]:
 
 
 def evaluate_run(simulation, result, samples: int = SAMPLES, observed: SurfaceSamples | None = None) -> MapMetrics:
-    """Metrics of a finished :class:`mabdi.simulate.Simulation` run against its own scene."""
+    """Metrics of a finished :class:`mabdi.simulate.Simulation` run against its own scene (``simulation.scene``)."""
     config = simulation.config
+    if simulation.scene is None:
+        raise MabdiError(f"{simulation.source.description}: no ground-truth scene is known, so the map cannot be evaluated")
     frames = len(simulation.poses)
-    intrinsics = config.sensor.intrinsics()
+    intrinsics = simulation.source.intrinsics
     ground_truth = simulation.scene.mesh_at(frames - 1)
     if observed is None:
         observed = observed_ground_truth(
             ground_truth, scenes_per_pose(simulation.scene, frames), simulation.poses, intrinsics, samples, config.sensor.backend
         )
-    noise = SensorNoise.from_config(config.sensor)
+    noise = config.sensor.sensor_noise()
 
     def delta(map_samples):
         return redundancy_delta(map_samples, result.mesh, simulation.poses, noise, intrinsics)

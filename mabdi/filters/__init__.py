@@ -2,11 +2,12 @@
 
 from mabdi.filters.classifier import ClassifierParameters, FilterClassifier
 from mabdi.filters.depth_image import DepthRenderer, FilterDepthImage, SensorNoise
-from mabdi.filters.depth_to_surface import FilterDepthImageToSurface
+from mabdi.filters.pixel_grid import FilterDepthImageToSurface, FilterPixelGrid, PixelGridParameters
 from mabdi.filters.quadtree import FilterQuadTree, QuadTreeParameters
 from mabdi.filters.voxel_map import VoxelMap
 from mabdi.filters.voxel_planes import FilterVoxelPlanes, VoxelPlanesParameters
 from mabdi.filters.world_mesh import FilterWorldMesh
+from mabdi.filters.registry import make_surface_filter, register_surface_filter, surface_filter, surface_filter_names
 
 __all__ = [
     "ClassifierParameters",
@@ -14,6 +15,12 @@ __all__ = [
     "FilterClassifier",
     "FilterDepthImage",
     "FilterDepthImageToSurface",
+    "FilterPixelGrid",
+    "PixelGridParameters",
+    "make_surface_filter",
+    "register_surface_filter",
+    "surface_filter",
+    "surface_filter_names",
     "FilterQuadTree",
     "FilterVoxelPlanes",
     "FilterWorldMesh",

@@ -27,7 +27,9 @@ pixels get label 1 (explained by the map). ``min_width = 1`` and
 
 Output: a depth image whose ``depth`` is D on the novel pixels and on a rim
 of ``rim`` pixels around them (NaN elsewhere), plus the uint8 point array
-``label``. The rim makes a new patch overlap the map by one pixel square
+``label`` and the field-data array ``pixel_counts`` (valid = D has a return,
+novel after speck removal, specks, contradicted; read it with
+:func:`pixel_counts`). The rim makes a new patch overlap the map by one pixel square
 instead of leaving a crack one pixel wide between them (the pixel-grid mesher
 needs four valid corners). Field data (intrinsics, pose, frame) is D's.
 
@@ -41,25 +43,34 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy import ndimage
-from vtkmodules.util.numpy_support import numpy_to_vtk
+from vtkmodules.util.numpy_support import numpy_to_vtk, vtk_to_numpy
 from vtkmodules.vtkCommonDataModel import vtkImageData
 from vtkmodules.vtkCommonExecutionModel import vtkStreamingDemandDrivenPipeline
 
 from mabdi.algorithm import MabdiAlgorithm
-from mabdi.depth import depth_array, fill_depth_image, image_frame, image_intrinsics, image_pose
+from mabdi.depth import depth_array, fill_depth_image, image_frame, image_intrinsics, image_pose, image_timestamp
 from mabdi.errors import ConfigError
 from mabdi.filters.depth_image import SensorNoise
 
 NO_RETURN, KNOWN, NOVEL, CONTRADICTED = 0, 1, 2, 3
 LABEL_ARRAY = "label"
+#: Field data of the output: int64 pixel counts (valid, novel, specks, contradicted) of this frame.
+PIXEL_COUNTS_ARRAY = "pixel_counts"
+PIXEL_COUNT_NAMES = ("valid", "novel", "specks", "contradicted")
 
 _EIGHT_NEIGHBOURS = np.ones((3, 3), dtype=bool)
 
 
 @dataclass(frozen=True)
 class ClassifierParameters:
-    """Thresholds of :class:`FilterClassifier` (metres and pixels; see the module docs)."""
+    """Thresholds of :class:`FilterClassifier` (metres and pixels; see the module docs).
 
+    The ``[classifier]`` section of a run config. ``enabled = false`` is the
+    loop's "black box": the surface filter meshes every valid pixel of D,
+    every frame (the classifier filter itself ignores it).
+    """
+
+    enabled: bool = True
     tau_min: float = 0.01
     k_sigma: float = 3.0
     min_width: int = 3
@@ -68,11 +79,13 @@ class ClassifierParameters:
 
     def __post_init__(self) -> None:
         if not self.tau_min > 0:
-            raise ConfigError(f"classifier: tau_min must be > 0 metres, got {self.tau_min}")
+            raise ConfigError(f"tau_min must be > 0 metres, got {self.tau_min}")
         if self.k_sigma < 0:
-            raise ConfigError(f"classifier: k_sigma must be >= 0, got {self.k_sigma}")
-        if self.min_width < 1 or self.min_region < 0 or self.rim < 0:
-            raise ConfigError("classifier: min_width must be >= 1, min_region and rim >= 0")
+            raise ConfigError(f"k_sigma must be >= 0, got {self.k_sigma}")
+        if self.min_width < 1:
+            raise ConfigError(f"min_width must be >= 1 pixel, got {self.min_width}")
+        if self.min_region < 0 or self.rim < 0:
+            raise ConfigError(f"min_region and rim must be >= 0 pixels, got min_region={self.min_region}, rim={self.rim}")
 
 
 def classify(measured: np.ndarray, expected: np.ndarray, tau: np.ndarray) -> np.ndarray:
@@ -140,8 +153,6 @@ class FilterClassifier(MabdiAlgorithm):
         super().__init__(nInputPorts=2, inputType="vtkImageData", nOutputPorts=1, outputType="vtkImageData")
         self._parameters = parameters if parameters is not None else ClassifierParameters()
         self._noise = SensorNoise.of(noise)
-        #: Pixel counts of the last update: valid (D has a return), novel (after speck removal), specks.
-        self.counts: dict[str, int] = {}
 
     @property
     def parameters(self) -> ClassifierParameters:
@@ -213,14 +224,36 @@ class FilterClassifier(MabdiAlgorithm):
             meshed = dilate(novel, p.rim) & np.isfinite(measured)
         depth = np.where(meshed, measured, np.float32(np.nan)).astype(np.float32)
         output = vtkImageData.GetData(outInfo)
-        fill_depth_image(output, depth, intrinsics, pose, image_frame(measured_image))
+        fill_depth_image(output, depth, intrinsics, pose, image_frame(measured_image), image_timestamp(measured_image))
         label_array = numpy_to_vtk(labels.ravel(), deep=False)
         label_array.SetName(LABEL_ARRAY)
         output.GetPointData().AddArray(label_array)
-        self.counts = {
-            "valid": int(np.count_nonzero(labels != NO_RETURN)),
-            "novel": int(np.count_nonzero(novel)),
-            "specks": int(np.count_nonzero(specks)),
-            "contradicted": int(np.count_nonzero(labels == CONTRADICTED)),
-        }
+        counts = np.array(
+            [
+                np.count_nonzero(labels != NO_RETURN),
+                np.count_nonzero(novel),
+                np.count_nonzero(specks),
+                np.count_nonzero(labels == CONTRADICTED),
+            ],
+            dtype=np.int64,
+        )
+        count_array = numpy_to_vtk(counts, deep=True)
+        count_array.SetName(PIXEL_COUNTS_ARRAY)
+        output.GetFieldData().AddArray(count_array)
         return 1
+
+
+def pixel_counts(image) -> dict[str, int]:
+    """The classifier output's pixel counts: ``valid``, ``novel``, ``specks``, ``contradicted``."""
+    array = image.GetFieldData().GetArray(PIXEL_COUNTS_ARRAY)
+    if array is None:
+        raise ValueError(f"image has no field-data array '{PIXEL_COUNTS_ARRAY}' (is it a FilterClassifier output?)")
+    return dict(zip(PIXEL_COUNT_NAMES, (int(v) for v in vtk_to_numpy(array)), strict=True))
+
+
+def label_array(image) -> np.ndarray:
+    """(H, W) uint8 labels of a classifier output (0 no return, 1 known, 2 novel, 3 contradicted)."""
+    labels = image.GetPointData().GetArray(LABEL_ARRAY)
+    if labels is None:
+        raise ValueError(f"image has no point array '{LABEL_ARRAY}' (is it a FilterClassifier output?)")
+    return vtk_to_numpy(labels).reshape(image_intrinsics(image).shape)

@@ -46,10 +46,15 @@ from vtkmodules.vtkRenderingCore import vtkActor, vtkMapper, vtkPolyDataMapper, 
 import vtkmodules.vtkRenderingOpenGL2  # noqa: F401  (registers the OpenGL implementations)
 from mabdi.algorithm import MabdiAlgorithm
 from mabdi.camera import Intrinsics, check_pose, configure_vtk_camera, zbuffer_depth_derivative, zbuffer_to_depth
-from mabdi.config import BACKENDS, NOISE_MODELS
 from mabdi.depth import fill_depth_image
 from mabdi.errors import ConfigError
 
+
+
+#: Depth noise models (see the module docs).
+NOISE_MODELS = ("none", "zbuffer", "kinect")
+#: Off-screen render backends; the first is the default.
+BACKENDS = ("egl", "osmesa")
 
 
 @dataclass(frozen=True)
@@ -231,6 +236,17 @@ class DepthRenderer:
         width, height = size
         self._window.GetZbufferData(0, 0, width - 1, height - 1, self._zbuffer)
         return vtk_to_numpy(self._zbuffer).reshape(height, width)[::-1]
+
+    def describe(self) -> dict:
+        """The backend that drew the frames: name, window class and OpenGL renderer string."""
+        if self._window is None:
+            return {"backend": self.backend}
+        renderer = "?"
+        for line in self._window.ReportCapabilities().splitlines():
+            if "renderer string" in line:
+                renderer = line.split(":", 1)[1].strip()
+                break
+        return {"backend": self.backend, "window": self._window.GetClassName(), "gl_renderer": renderer}
 
     def close(self) -> None:
         """Release the render window (a later render makes a new one)."""

@@ -1,4 +1,4 @@
-"""FilterDepthImageToSurface: the seed's pixel-grid surface (``pixel_grid`` in configs).
+"""FilterPixelGrid: the seed's pixel-grid surface (``pixel_grid`` in configs; formerly FilterDepthImageToSurface).
 
 Depth image in, triangle mesh in world coordinates out. The topology lives in
 the image: every 2x2 square of pixels (u, v), (u+1, v), (u, v+1), (u+1, v+1)
@@ -20,6 +20,8 @@ The output keeps the input's field data (intrinsics, pose, frame).
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 from vtkmodules.vtkCommonDataModel import vtkImageData, vtkPolyData
 
@@ -28,6 +30,18 @@ from mabdi.camera import Intrinsics
 from mabdi.depth import depth_array, image_intrinsics, image_pose
 from mabdi.errors import ConfigError
 from mabdi.polydata import triangles_polydata
+
+
+@dataclass(frozen=True)
+class PixelGridParameters:
+    """Parameters of :class:`FilterPixelGrid`: ``max_jump``, the largest depth spread within a
+    triangle as a fraction of its nearest corner's depth (0.05 = 5%)."""
+
+    max_jump: float = 0.05
+
+    def __post_init__(self) -> None:
+        if not (isinstance(self.max_jump, (int, float)) and self.max_jump > 0):
+            raise ConfigError(f"max_jump must be > 0 (a fraction of the depth), got {self.max_jump!r}")
 
 
 def pixel_grid_triangles(depth: np.ndarray, max_jump: float) -> np.ndarray:
@@ -60,24 +74,39 @@ def pixel_grid_triangles(depth: np.ndarray, max_jump: float) -> np.ndarray:
     return triangles
 
 
-class FilterDepthImageToSurface(MabdiAlgorithm):
-    """Mesh a depth image's valid pixels as a pixel grid in world coordinates (depth image -> vtkPolyData)."""
+class FilterPixelGrid(MabdiAlgorithm):
+    """Mesh a depth image's valid pixels as a pixel grid in world coordinates (depth image -> vtkPolyData).
 
-    def __init__(self, max_jump: float = 0.05) -> None:
+    ``FilterPixelGrid(PixelGridParameters(max_jump=0.05))``; a bare number is taken as ``max_jump``.
+    """
+
+    def __init__(self, parameters: PixelGridParameters | float | None = None) -> None:
         super().__init__(nInputPorts=1, inputType="vtkImageData", nOutputPorts=1, outputType="vtkPolyData")
-        self.max_jump = max_jump
+        if parameters is None:
+            parameters = PixelGridParameters()
+        elif not isinstance(parameters, PixelGridParameters):
+            parameters = PixelGridParameters(max_jump=float(parameters))
+        self._parameters = parameters
         self._rays: tuple[Intrinsics, np.ndarray] | None = None
+
+    @property
+    def parameters(self) -> PixelGridParameters:
+        return self._parameters
+
+    @parameters.setter
+    def parameters(self, value: PixelGridParameters) -> None:
+        if not isinstance(value, PixelGridParameters):
+            raise TypeError(f"FilterPixelGrid.parameters must be PixelGridParameters, got {type(value).__name__}")
+        self._set("_parameters", value)
 
     @property
     def max_jump(self) -> float:
         """Largest depth spread within a triangle, as a fraction of its nearest corner's depth."""
-        return self._max_jump
+        return self._parameters.max_jump
 
     @max_jump.setter
     def max_jump(self, value: float) -> None:
-        if not value > 0:
-            raise ConfigError(f"FilterDepthImageToSurface: max_jump must be > 0, got {value}")
-        self._set("_max_jump", float(value))
+        self.parameters = PixelGridParameters(max_jump=value)
 
     def _cached_rays(self, intrinsics: Intrinsics) -> np.ndarray:
         if self._rays is None or self._rays[0] != intrinsics:
@@ -89,7 +118,7 @@ class FilterDepthImageToSurface(MabdiAlgorithm):
         intrinsics = image_intrinsics(image)
         pose = image_pose(image)
         depth = depth_array(image)
-        triangles = pixel_grid_triangles(depth, self._max_jump)
+        triangles = pixel_grid_triangles(depth, self._parameters.max_jump)
         # Keep only the pixels the triangles use, renumbered in order.
         used = np.zeros(depth.size, dtype=bool)
         used[triangles.ravel()] = True
@@ -101,3 +130,7 @@ class FilterDepthImageToSurface(MabdiAlgorithm):
         output.ShallowCopy(triangles_polydata(world_points, renumber[triangles], dtype=np.float32))
         output.GetFieldData().ShallowCopy(image.GetFieldData())
         return 1
+
+
+#: The former name of :class:`FilterPixelGrid`.
+FilterDepthImageToSurface = FilterPixelGrid

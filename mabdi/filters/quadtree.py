@@ -64,7 +64,7 @@ triangles, cell data ``level`` (the face's size in input pixels) and
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from vtkmodules.util.numpy_support import numpy_to_vtk, numpy_to_vtkIdTypeArray
@@ -100,15 +100,16 @@ class QuadTreeParameters:
     reduction: int = 3
     max_jump: float = 0.05
     planarity: float = 0.002
-    triangles: bool = False
+    #: Triangulate every face. Not a config key: in the MABDI loop faces are always triangulated.
+    triangles: bool = field(default=False, metadata={"toml": False})
 
     def __post_init__(self) -> None:
         if self.n_t < 0 or self.d_t <= 0:
-            raise ConfigError(f"quadtree: need n_t >= 0 and d_t > 0, got n_t={self.n_t}, d_t={self.d_t}")
+            raise ConfigError(f"need n_t >= 0 and d_t > 0 (metres), got n_t={self.n_t}, d_t={self.d_t}")
         if not isinstance(self.reduction, (int, np.integer)) or self.reduction < 1:
-            raise ConfigError(f"quadtree: reduction must be an integer >= 1, got {self.reduction!r}")
+            raise ConfigError(f"reduction must be an integer >= 1, got {self.reduction!r}")
         if self.max_jump <= 0 or self.planarity <= 0:
-            raise ConfigError("quadtree: max_jump and planarity must be > 0")
+            raise ConfigError(f"max_jump and planarity must be > 0, got max_jump={self.max_jump}, planarity={self.planarity}")
 
 
 # ---------------------------------------------------------------------------

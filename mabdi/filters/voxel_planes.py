@@ -90,12 +90,12 @@ class VoxelPlanesParameters:
     def __post_init__(self) -> None:
         if not self.voxel_size > 0 or not self.epsilon > 0:
             raise ConfigError(
-                f"voxel_planes: need voxel_size > 0 and epsilon > 0, got voxel_size={self.voxel_size}, epsilon={self.epsilon}"
+                f"need voxel_size > 0 and epsilon > 0 (metres), got voxel_size={self.voxel_size}, epsilon={self.epsilon}"
             )
         if not isinstance(self.window, (int, np.integer)) or not 1 <= self.window <= 6:
-            raise ConfigError(f"voxel_planes: window must be an integer from 1 to 6, got {self.window!r}")
+            raise ConfigError(f"window must be an integer from 1 to 6, got {self.window!r}")
         if not isinstance(self.min_points, (int, np.integer)) or self.min_points < 3:
-            raise ConfigError(f"voxel_planes: min_points must be an integer >= 3, got {self.min_points!r}")
+            raise ConfigError(f"min_points must be an integer >= 3, got {self.min_points!r}")
 
     @property
     def lambda_small(self) -> float:
@@ -290,6 +290,19 @@ class FilterVoxelPlanes(MabdiAlgorithm):
     @output.setter
     def output(self, value: str) -> None:
         self._set("_output", self._check_output(value))
+
+    def state(self) -> dict:
+        """What the filter keeps across updates (the voxel statistics and the polygons per block), for checkpoints."""
+        return {"map": self.map, "blocks": self._blocks, "meshed_with": self._meshed_with}
+
+    def set_state(self, state: dict) -> None:
+        """Restore what :meth:`state` returned (the next update goes on from there)."""
+        self.map = state["map"]
+        self._blocks = state["blocks"]
+        self._meshed_with = state["meshed_with"]
+        self._changed = np.zeros(0, dtype=np.int64)
+        self._last_input = None
+        self.Modified()
 
     def reset(self) -> None:
         """Forget every point and face."""

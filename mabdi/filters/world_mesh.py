@@ -29,7 +29,7 @@ from vtkmodules.vtkFiltersCore import vtkAppendPolyData
 
 from mabdi.algorithm import MabdiAlgorithm
 from mabdi.depth import FRAME_ARRAY
-from mabdi.polydata import extract_polys
+from mabdi.polydata import extract_polys, polydata_from_state, polydata_to_state
 
 FRAME_CELL_ARRAY = "frame"
 PATCH_KEY_ARRAY = "patch_key"
@@ -123,6 +123,24 @@ class FilterWorldMesh(MabdiAlgorithm):
         self._merged = None
         self._last_input = None
         self._next_frame = 0
+        self.cells_added = 0
+        self._rebuild_blocks()
+        self.Modified()
+
+    def state(self) -> dict:
+        """The map as plain arrays (patches in order, with their keys), for checkpoints."""
+        return {
+            "patches": [(key, polydata_to_state(patch)) for key, patch in self._patches.items()],
+            "next_frame": self._next_frame,
+        }
+
+    def set_state(self, state: dict) -> None:
+        """Restore a map saved by :meth:`state` (replaces the current map)."""
+        self._patches = {key: polydata_from_state(patch) for key, patch in state["patches"]}
+        self._cells = sum(p.GetNumberOfCells() for p in self._patches.values())
+        self._next_frame = int(state["next_frame"])
+        self._merged = None
+        self._last_input = None
         self.cells_added = 0
         self._rebuild_blocks()
         self.Modified()

@@ -1,6 +1,8 @@
-"""Simulation: the helical sensor path and the runner that drives the MABDI loop along it."""
+"""Simulation: the simulated rig (scene, sensor, helical path), the MABDI loop and the runner."""
 
+from mabdi.simulate.loop import FrameRecord, MabdiLoop
 from mabdi.simulate.path import helical_path, path_from_config
-from mabdi.simulate.runner import FrameRecord, RunResult, Simulation
+from mabdi.simulate.rig import SimulatedRig
+from mabdi.simulate.runner import RunResult, Simulation
 
-__all__ = ["FrameRecord", "RunResult", "Simulation", "helical_path", "path_from_config"]
+__all__ = ["FrameRecord", "MabdiLoop", "RunResult", "Simulation", "SimulatedRig", "helical_path", "path_from_config"]

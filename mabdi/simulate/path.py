@@ -11,6 +11,7 @@ frames always span the same helix; more frames are finer steps.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -20,39 +21,19 @@ from mabdi.config import PathConfig
 from mabdi.errors import ConfigError
 
 
-def helical_path(
-    frames: int,
-    center=(0.0, 0.0),
-    radius_x: float = 2.5,
-    radius_y: float = 2.5,
-    z0: float = 1.2,
-    z1: float = 1.8,
-    look_from=(0.0, 0.0, 0.5),
-    look_to=(0.0, 0.0, 0.8),
-    turns: float = 2.0,
-    start_angle: float = -90.0,
-) -> np.ndarray:
+def helical_path(frames: int, **parameters) -> np.ndarray:
     """(frames, 4, 4) ``world_from_camera`` poses along the helix (metres; ``start_angle`` in degrees).
 
-    The angle runs counter-clockwise seen from above, starting at
-    ``start_angle`` (-90 degrees = on the -y side of the centre).
+    ``parameters`` are the keys of :class:`mabdi.config.PathConfig` (``center``,
+    ``radius_x``, ``radius_y``, ``z0``, ``z1``, ``look_from``, ``look_to``,
+    ``turns``, ``start_angle``), which also holds their defaults. The angle
+    runs counter-clockwise seen from above, starting at ``start_angle``
+    (-90 degrees = on the -y side of the centre).
     """
-    if isinstance(frames, bool) or not isinstance(frames, (int, np.integer)) or frames < 1:
-        raise ConfigError(f"helical_path: frames must be a positive integer, got {frames!r}")
-    t = np.linspace(0.0, 1.0, frames) if frames > 1 else np.zeros(1)
-    angle = math.radians(start_angle) + 2.0 * math.pi * turns * t
-    eye = np.stack(
-        [
-            center[0] + radius_x * np.cos(angle),
-            center[1] + radius_y * np.sin(angle),
-            z0 + (z1 - z0) * t,
-        ],
-        axis=1,
-    )
-    look_from = np.asarray(look_from, dtype=np.float64)
-    look_to = np.asarray(look_to, dtype=np.float64)
-    targets = look_from + t[:, None] * (look_to - look_from)
-    return np.stack([look_at(e, g) for e, g in zip(eye, targets, strict=True)])
+    unknown = sorted(set(parameters) - {f.name for f in dataclasses.fields(PathConfig)})
+    if unknown:
+        raise TypeError(f"helical_path: unknown parameter {unknown[0]!r}")
+    return path_from_config(frames, PathConfig(**parameters))
 
 
 def circle_index(frames: int, turns: float) -> np.ndarray:
@@ -71,16 +52,17 @@ def path_targets(frames: int, config: PathConfig) -> np.ndarray:
 
 
 def path_from_config(frames: int, config: PathConfig) -> np.ndarray:
-    """:func:`helical_path` with the parameters of a ``[path]`` config section."""
-    return helical_path(
-        frames,
-        center=config.center,
-        radius_x=config.radius_x,
-        radius_y=config.radius_y,
-        z0=config.z0,
-        z1=config.z1,
-        look_from=config.look_from,
-        look_to=config.look_to,
-        turns=config.turns,
-        start_angle=config.start_angle,
+    """(frames, 4, 4) poses along the helix of a ``[path]`` config section (see :func:`helical_path`)."""
+    if isinstance(frames, bool) or not isinstance(frames, (int, np.integer)) or frames < 1:
+        raise ConfigError(f"helical_path: frames must be a positive integer, got {frames!r}")
+    t = np.linspace(0.0, 1.0, frames) if frames > 1 else np.zeros(1)
+    angle = math.radians(config.start_angle) + 2.0 * math.pi * config.turns * t
+    eye = np.stack(
+        [
+            config.center[0] + config.radius_x * np.cos(angle),
+            config.center[1] + config.radius_y * np.sin(angle),
+            config.z0 + (config.z1 - config.z0) * t,
+        ],
+        axis=1,
     )
+    return np.stack([look_at(e, g) for e, g in zip(eye, path_targets(frames, config), strict=True)])

@@ -1,29 +1,28 @@
-"""The simulation runner: a run config in, a map and its per-frame records out.
+"""The runner: a run config in, a map and its per-frame records out.
 
-``Simulation(config)`` builds the MABDI loop of seed 001 Fig. 3-4 from the
-filters, connected as a VTK pipeline:
+``Simulation(config)`` is the simulated rig (:class:`~mabdi.simulate.rig.SimulatedRig`:
+scene, sensor, helical path) feeding the MABDI loop
+(:class:`~mabdi.simulate.loop.MabdiLoop`: expected image, classifier,
+surface, world mesh), plus the outputs. ``Simulation(config, source=...)``
+runs the same loop on any other :class:`~mabdi.sources.frames.FrameSource`
+(a recorded sequence), with ``scene=`` the ground truth when it is known.
 
-    SourceScene (frame i) --> FilterDepthImage (pose i, noise) ----------> D --+
-    FilterWorldMesh.map  --> FilterDepthImage (pose i, no noise) --------> E --+--> FilterClassifier
-         ^                                                                              |
-         +---------- FilterWorldMesh <-- surface filter (pixel_grid) <-----------------+
-
-E is rendered from the map as it stood after the previous frame: the
-expected-image filter reads the world mesh's live map, and the world mesh
-appends frame i's surface only at the end of frame i. With the classifier
-off (the "black box") the surface filter meshes D itself: every valid pixel,
-every frame.
-
-``run(out_dir)`` steps through the path and returns a :class:`RunResult`;
-with an output folder it writes (each file to a temporary name, then renamed):
+``run(out_dir)`` steps through every frame of the source and returns a
+:class:`RunResult`; with an output folder it writes (each file to a
+temporary name, then renamed):
 
 * ``config.toml``: the resolved config (every default filled in);
 * ``world_mesh.vtp`` (cell data ``frame``) and ``world_mesh.ply`` (binary);
 * ``metrics.csv``: one row per frame, columns :data:`METRICS_COLUMNS`;
-* ``summary.json``: totals, timings, the machine's render backend;
+* ``summary.json``: totals, timings, the source, the machine's render backend,
+  and the metrics against the ground truth when the run was evaluated
+  (written last: a folder with a ``summary.json`` holds a finished run);
 * ``elements.png``: triangles in the map per frame (seed 001 Fig. 7);
-* ``poses.npy``, ``path.vtp`` and ``scene.vtp`` (the ground truth at the last frame);
-* with ``output.depth_images``: ``depth/D_000000.vti``, ``E_...``, ``labels_...``.
+* ``poses.npy``, ``path.vtp`` and, when the scene is known, ``scene.vtp``
+  (the ground truth at the last frame);
+* with ``output.depth_images``: ``depth/D_000000.vti``, ``E_...``, ``labels_...``;
+* ``.mabdi-run.json``: the manifest of the files above (:mod:`mabdi.io.run_folder`);
+* while running, with ``output.checkpoint_every``: ``checkpoint.pkl``.
 """
 
 from __future__ import annotations
@@ -31,33 +30,35 @@ from __future__ import annotations
 import csv
 import io
 import json
+import pickle
 import time
+import tomllib
+import warnings
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 
 import numpy as np
 from vtkmodules.vtkCommonDataModel import vtkPolyData
 
-from mabdi.algorithm import raise_pipeline_errors
-from mabdi.config import SURFACES, RunConfig, dump_toml
-from mabdi.errors import MabdiError
-from mabdi.filters.classifier import ClassifierParameters, FilterClassifier
-from mabdi.filters.depth_image import FilterDepthImage, SensorNoise
-from mabdi.filters.depth_to_surface import FilterDepthImageToSurface
-from mabdi.filters.quadtree import FilterQuadTree, QuadTreeParameters
-from mabdi.filters.voxel_planes import FilterVoxelPlanes, VoxelPlanesParameters
-from mabdi.filters.world_mesh import FilterWorldMesh
+from mabdi.config import RunConfig, dump_toml, run_config_from_dict
 from mabdi.io.atomic import atomic_output, write_text
 from mabdi.io.hdf5 import write_map
 from mabdi.io.plots import write_elements_plot
+from mabdi.io.run_folder import OutputError, RunFolder, prepare_output_dir  # noqa: F401 (OutputError, prepare_output_dir: imported from here by older code)
 from mabdi.io.vtk_files import write_image, write_mesh_file, write_polydata
 from mabdi.maps.colours import colours_by_normal
 from mabdi.maps.labels import label_floor, planar_clusters
 from mabdi.maps.layers import add_cost_layers
 from mabdi.maps.mesh_map import MeshMap
 from mabdi.polydata import polyline
-from mabdi.simulate.path import path_from_config
+from mabdi.simulate.loop import FrameRecord, MabdiLoop
+from mabdi.simulate.rig import SimulatedRig
+from mabdi.sources.frames import FrameSource
 from mabdi.sources.scene import SourceScene
+
+#: The loop's state every ``output.checkpoint_every`` frames (pickled; read only by the same mabdi version).
+CHECKPOINT = "checkpoint.pkl"
+CHECKPOINT_VERSION = 1
 
 #: The first columns of metrics.csv, in this order (counts are triangles; times in ms).
 METRICS_COLUMNS = (
@@ -74,31 +75,6 @@ METRICS_COLUMNS = (
 )
 
 
-class OutputError(MabdiError, OSError):
-    """A run's output folder or file cannot be written."""
-
-
-@dataclass
-class FrameRecord:
-    """What one frame did. Counts of cells are triangles; ``cells_added`` is the map's net change."""
-
-    frame: int
-    novel_fraction: float
-    cells_added: int
-    cells_total: int
-    t_depth_ms: float
-    t_expected_ms: float
-    t_classify_ms: float
-    t_surface_ms: float
-    t_append_ms: float
-    t_total_ms: float
-    points_total: int = 0
-    valid_pixels: int = 0
-    novel_pixels: int = 0
-    speck_pixels: int = 0
-    contradicted_pixels: int = 0
-
-
 @dataclass
 class RunResult:
     """A finished run: its config, one record per frame, the map (one merged vtkPolyData)."""
@@ -110,6 +86,8 @@ class RunResult:
     seconds: float
     out_dir: Path | None = None
     backend: dict = field(default_factory=dict)
+    source: str = ""
+    folder: RunFolder | None = field(default=None, repr=False)
 
     @property
     def cells(self) -> np.ndarray:
@@ -123,9 +101,11 @@ class RunResult:
         stages = ("t_depth_ms", "t_expected_ms", "t_classify_ms", "t_surface_ms", "t_append_ms", "t_total_ms")
         return {
             "name": self.config.run.name,
+            "source": self.source,
             "frames": len(records),
             "classifier": self.config.classifier.enabled,
             "surface": self.config.surface.method,
+            "surface_parameters": asdict(self.config.surface.parameters_of()),
             "noise": self.config.sensor.noise,
             "seed": self.config.run.seed,
             "cells": int(self.mesh.GetNumberOfCells()),
@@ -139,185 +119,137 @@ class RunResult:
 
 
 class Simulation:
-    """The MABDI loop along a run config's path (see the module docs)."""
+    """A source of depth frames + the MABDI loop + the outputs (see the module docs).
 
-    def __init__(self, config: RunConfig) -> None:
+    Attributes: ``config``; ``source`` (the frames); ``rig`` (the
+    :class:`SimulatedRig` when the frames are simulated, else None);
+    ``scene`` (the ground truth :class:`SourceScene`, None when unknown);
+    ``loop`` (:class:`MabdiLoop`); ``poses`` ((N, 4, 4) world_from_camera).
+    """
+
+    def __init__(self, config: RunConfig, source: FrameSource | None = None, scene: SourceScene | None = None) -> None:
         self.config = config
-        base_dir = config.source.parent if config.source is not None else None
-        frames = config.run.frames
-        sensor = config.sensor
-        noise = SensorNoise.from_config(sensor)
-        intrinsics = sensor.intrinsics()
+        self.rig: SimulatedRig | None = None
+        if source is None:
+            self.rig = SimulatedRig.from_config(config)
+            source = self.rig
+            scene = self.rig.scene if scene is None else scene
+        self.source = source
+        self.scene = scene
+        self.loop = MabdiLoop.from_config(config, source)
+        self.poses = source.poses
 
-        self.scene = SourceScene(config.scene, frames=frames, base_dir=base_dir)
-        self.sensor = FilterDepthImage(intrinsics=intrinsics, noise=noise, seed=config.run.seed, backend=sensor.backend)
-        self.sensor.SetInputConnection(self.scene.GetOutputPort())
-
-        self.world = FilterWorldMesh()
-        self.expected = FilterDepthImage(intrinsics=intrinsics, noise="none", backend=sensor.backend)
-        self.expected.SetInputDataObject(self.world.map)
-
-        c = config.classifier
-        self.classifier = FilterClassifier(
-            ClassifierParameters(c.tau_min, c.k_sigma, c.min_width, c.min_region, c.rim), noise=noise
-        )
-        self.classifier.SetInputConnection(0, self.sensor.GetOutputPort())
-        self.classifier.SetInputConnection(1, self.expected.GetOutputPort())
-
-        self.surface = make_surface_filter(config, noise)
-        source = self.classifier if c.enabled else self.sensor
-        self.surface.SetInputConnection(source.GetOutputPort())
-        self.world.SetInputConnection(self.surface.GetOutputPort())
-
-        self.poses = path_from_config(frames, config.path)
-        self._algorithms = (self.scene, self.sensor, self.expected, self.classifier, self.surface, self.world)
+    @property
+    def frames(self) -> int:
+        """Number of frames a run steps through (the source's)."""
+        return len(self.source)
 
     def step(self, i: int) -> FrameRecord:
-        """Run frame ``i``: measure D, render E, classify, mesh, append. Times each stage."""
-        pose = self.poses[i]
-        start = time.perf_counter()
-        self.scene.set_frame(i)
-        self.sensor.pose = pose
-        self.sensor.frame = i
-        self.sensor.Update()
-        t_depth = time.perf_counter()
-        t_expected = t_classify = t_depth
-        if self.config.classifier.enabled:
-            self.expected.pose = pose
-            self.expected.frame = i
-            self.expected.Update()
-            t_expected = time.perf_counter()
-            self.classifier.Update()
-            t_classify = time.perf_counter()
-        self.surface.Update()
-        t_surface = time.perf_counter()
-        self.world.Update()
-        t_append = time.perf_counter()
-        raise_pipeline_errors(*self._algorithms)
+        """Run frame ``i`` (see :meth:`MabdiLoop.step`)."""
+        return self.loop.step(i)
 
-        if self.config.classifier.enabled:
-            counts = self.classifier.counts
-        else:
-            valid = int(np.count_nonzero(np.isfinite(self._sensor_depth())))
-            counts = {"valid": valid, "novel": valid, "specks": 0, "contradicted": 0}
-        ms = 1000.0
-        return FrameRecord(
-            frame=i,
-            novel_fraction=counts["novel"] / counts["valid"] if counts["valid"] else 0.0,
-            cells_added=self.world.cells_added,
-            cells_total=self.world.number_of_cells,
-            t_depth_ms=ms * (t_depth - start),
-            t_expected_ms=ms * (t_expected - t_depth),
-            t_classify_ms=ms * (t_classify - t_expected),
-            t_surface_ms=ms * (t_surface - t_classify),
-            t_append_ms=ms * (t_append - t_surface),
-            t_total_ms=ms * (t_append - start),
-            points_total=self.world.number_of_points,
-            valid_pixels=counts["valid"],
-            novel_pixels=counts["novel"],
-            speck_pixels=counts["specks"],
-            contradicted_pixels=counts["contradicted"],
-        )
+    def render_backend(self) -> dict:
+        """The backend that rendered (the sensor's for simulated frames, else E's)."""
+        renderer = self.rig.sensor.renderer if self.rig is not None else self.loop.expected.renderer
+        return renderer.describe()
 
-    def _sensor_depth(self) -> np.ndarray:
-        from mabdi.depth import depth_array
-
-        return depth_array(self.sensor.GetOutput())
-
-    def run(self, out_dir=None, progress=None) -> RunResult:
+    def run(
+        self, out_dir=None, progress=None, *, overwrite: bool = False, finish: bool = True, recording: dict | None = None
+    ) -> RunResult:
         """Run every frame; write the outputs of the module docs when ``out_dir`` is given.
 
-        ``progress(record)`` is called after each frame.
+        ``progress(record)`` is called after each frame. The output folder
+        follows :mod:`mabdi.io.run_folder` (a previous run's files are
+        replaced whole; a folder with other files is refused unless
+        ``overwrite``). With ``output.checkpoint_every = N`` the loop's state
+        is saved every N frames (``checkpoint.pkl``) so that :meth:`resume`
+        can finish an interrupted run. ``finish=False`` leaves
+        ``summary.json`` and the completion mark to the caller (who
+        evaluates first, then calls :func:`finish_run`). ``recording``
+        describes a recorded source so a resume can reopen it.
         """
-        out = prepare_output_dir(out_dir) if out_dir is not None else None
-        if out is not None:
-            write_text(out / "config.toml", dump_toml(self.config))
-        self.world.reset()
-        records = []
+        folder = None
+        if out_dir is not None:
+            folder = out_dir if isinstance(out_dir, RunFolder) else RunFolder.prepare(out_dir, overwrite, self.config.source)
+            write_text(folder.path("config.toml"), dump_toml(self.config))
+        self.loop.reset()
+        self._recording = recording
+        return self._run_frames(folder, 0, [], progress, finish)
+
+    @classmethod
+    def resume(cls, out_dir, progress=None, finish: bool = True) -> tuple[Simulation, RunResult]:
+        """Finish the interrupted run in ``out_dir`` from its last checkpoint; returns (simulation, result).
+
+        Runs are deterministic, so the map equals the one an uninterrupted run gives.
+        """
+        folder = RunFolder.resume(out_dir)
+        checkpoint = read_checkpoint(folder.folder)
+        config = run_config_from_dict(tomllib.loads(checkpoint["config"]), where=str(folder.folder / "config.toml"))
+        config.source = Path(checkpoint["config_source"]) if checkpoint["config_source"] else None
+        recording = checkpoint["recording"]
+        if recording is None:
+            simulation = cls(config)
+        else:
+            from mabdi.simulate.recorded import recorded_simulation  # above this module: imported when needed
+
+            simulation, _ = recorded_simulation(config, recording["path"], **recording["options"])
+        simulation._recording = recording
+        simulation.loop.set_state(checkpoint["loop"])
+        result = simulation._run_frames(folder, checkpoint["next_frame"], checkpoint["records"], progress, finish)
+        return simulation, result
+
+    def _run_frames(self, folder, first: int, records: list, progress, finish: bool) -> RunResult:
+        every = self.config.output.checkpoint_every
         start = time.perf_counter()
-        for i in range(len(self.poses)):
+        for i in range(first, self.frames):
             records.append(self.step(i))
-            if out is not None and self.config.output.depth_images:
-                self._write_depth_images(out, i)
+            if folder is not None and self.config.output.depth_images:
+                self._write_depth_images(folder, i)
+            if folder is not None and every and (i + 1) % every == 0 and i + 1 < self.frames:
+                self._write_checkpoint(folder, i + 1, records)
             if progress is not None:
                 progress(records[-1])
         seconds = time.perf_counter() - start
         result = RunResult(
             config=self.config,
             records=records,
-            mesh=self.world.mesh(),
-            map_bytes=self.world.memory_bytes(),
+            mesh=self.loop.mesh(),
+            map_bytes=self.loop.memory_bytes(),
             seconds=seconds,
-            out_dir=out,
-            backend=render_backend(self.sensor),
+            out_dir=folder.folder if folder is not None else None,
+            backend=self.render_backend(),
+            source=self.source.description,
+            folder=folder,
         )
-        if out is not None:
+        if folder is not None:
             write_run_outputs(result, self)
+            if finish:
+                finish_run(result)
         return result
 
-    def _write_depth_images(self, out: Path, i: int) -> None:
-        folder = out / "depth"
-        folder.mkdir(exist_ok=True)
-        write_image(self.sensor.GetOutput(), folder / f"D_{i:06d}.vti")
-        if self.config.classifier.enabled:
-            write_image(self.expected.GetOutput(), folder / f"E_{i:06d}.vti")
-            write_image(self.classifier.GetOutput(), folder / f"labels_{i:06d}.vti")
+    def _write_checkpoint(self, folder: RunFolder, next_frame: int, records: list) -> None:
+        """Save the loop's state after ``next_frame`` frames (atomically; the previous checkpoint is replaced)."""
+        state = {
+            "version": CHECKPOINT_VERSION,
+            "config": dump_toml(self.config),
+            "config_source": str(self.config.source) if self.config.source is not None else "",
+            "recording": getattr(self, "_recording", None),
+            "next_frame": next_frame,
+            "records": records,
+            "loop": self.loop.state(),
+        }
+        with atomic_output(folder.path(CHECKPOINT)) as temporary, open(temporary, "wb") as stream:
+            pickle.dump(state, stream, protocol=pickle.HIGHEST_PROTOCOL)
 
-
-def make_surface_filter(config: RunConfig, noise: SensorNoise | None = None):
-    """The surface filter named by ``config.surface.method`` (``noise``: the sensor's, for thresholds)."""
-    surface = config.surface
-    if surface.method == "pixel_grid":
-        return FilterDepthImageToSurface(max_jump=surface.max_jump)
-    if surface.method == "quadtree":
-        return FilterQuadTree(
-            QuadTreeParameters(
-                n_t=surface.n_t, d_t=surface.d_t, reduction=surface.reduction, max_jump=surface.max_jump, triangles=True
-            ),
-            noise=noise or "none",
-        )
-    if surface.method == "voxel_planes":
-        return FilterVoxelPlanes(
-            VoxelPlanesParameters(
-                voxel_size=surface.voxel_size,
-                epsilon=surface.epsilon,
-                window=surface.window,
-                min_points=surface.min_points,
-            )
-        )
-    raise MabdiError(f"unknown surface filter {surface.method!r} (known: {', '.join(SURFACES)})")
-
-
-def prepare_output_dir(out_dir) -> Path:
-    """Create the output folder or raise :class:`OutputError` saying why it cannot be."""
-    out = Path(out_dir)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except (FileExistsError, NotADirectoryError):
-        blocker = next((p for p in [out, *out.parents] if p.exists() and not p.is_dir()), out)
-        raise OutputError(f"cannot create output folder {out}: {blocker} is a file, not a folder") from None
-    except OSError as exc:
-        raise OutputError(f"cannot create output folder {out}: {exc.strerror}") from None
-    probe = out / ".mabdi-write-test"
-    try:
-        probe.write_text("")
-        probe.unlink()
-    except OSError as exc:
-        raise OutputError(f"cannot write into output folder {out}: {exc.strerror}") from None
-    return out
-
-
-def render_backend(sensor: FilterDepthImage) -> dict:
-    """The render backend that drew the frames: the window class and OpenGL renderer string."""
-    window = sensor.renderer.window
-    if window is None:
-        return {"backend": sensor.renderer.backend}
-    renderer = "?"
-    for line in window.ReportCapabilities().splitlines():
-        if "renderer string" in line:
-            renderer = line.split(":", 1)[1].strip()
-            break
-    return {"backend": sensor.renderer.backend, "window": window.GetClassName(), "gl_renderer": renderer}
+    def _write_depth_images(self, folder: RunFolder, i: int) -> None:
+        names = [f"depth/D_{i:06d}.vti"]
+        if self.loop.classifier_enabled:
+            names += [f"depth/E_{i:06d}.vti", f"depth/labels_{i:06d}.vti"]
+        folder.path(*names)
+        write_image(self.loop.measured_image(), folder.folder / names[0])
+        if self.loop.classifier_enabled:
+            write_image(self.loop.expected_image(), folder.folder / names[1])
+            write_image(self.loop.classified_image(), folder.folder / names[2])
 
 
 def metrics_csv(records: list[FrameRecord]) -> str:
@@ -349,21 +281,75 @@ def annotated_map(mesh: vtkPolyData, poses: np.ndarray, intrinsics) -> MeshMap:
 
 
 def write_run_outputs(result: RunResult, simulation: Simulation) -> None:
-    """Write a finished run's files into ``result.out_dir`` (each atomically)."""
-    out = result.out_dir
+    """Write a finished run's files (all but ``summary.json``) into its folder, each atomically."""
+    folder = result.folder
     config = result.config
+    if result.mesh.GetNumberOfCells() == 0:
+        # An empty map is a result, but rarely the one wanted: say so (the files stay valid and empty).
+        warnings.warn(empty_map_reason(result, simulation), EmptyMapWarning, stacklevel=3)
     if config.output.vtp:
-        write_mesh_file(result.mesh, out / "world_mesh.vtp")
+        write_mesh_file(result.mesh, folder.path("world_mesh.vtp"))
     if config.output.ply:
-        write_mesh_file(result.mesh, out / "world_mesh.ply")
+        write_mesh_file(result.mesh, folder.path("world_mesh.ply"))
     if config.output.h5:
-        write_map(annotated_map(result.mesh, simulation.poses, config.sensor.intrinsics()), out / "world_mesh.h5")
-    write_text(out / "metrics.csv", metrics_csv(result.records))
-    write_text(out / "summary.json", json.dumps(result.summary(), indent=2) + "\n")
+        mesh_map = annotated_map(result.mesh, simulation.poses, simulation.source.intrinsics)
+        write_map(mesh_map, folder.path("world_mesh.h5"))
+    write_text(folder.path("metrics.csv"), metrics_csv(result.records))
     frames = np.array([r.frame for r in result.records])
     label = "mabdi" if config.classifier.enabled else "black box"
-    write_elements_plot({label: (frames, result.cells)}, out / "elements.png", title=config.run.name)
-    with atomic_output(out / "poses.npy") as temporary:
+    write_elements_plot({label: (frames, result.cells)}, folder.path("elements.png"), title=config.run.name)
+    with atomic_output(folder.path("poses.npy")) as temporary:
         np.save(temporary, simulation.poses)
-    write_polydata(polyline(simulation.poses[:, :3, 3]), out / "path.vtp")
-    write_polydata(simulation.scene.mesh_at(len(simulation.poses) - 1), out / "scene.vtp")
+    write_polydata(polyline(simulation.poses[:, :3, 3]), folder.path("path.vtp"))
+    if simulation.scene is not None:
+        write_polydata(simulation.scene.mesh_at(len(simulation.poses) - 1), folder.path("scene.vtp"))
+
+
+def finish_run(result: RunResult, metrics: dict | None = None, evaluation: str | None = None) -> None:
+    """Write ``summary.json`` (with ``metrics`` when the map was evaluated), drop the checkpoint and mark
+    the run complete. ``evaluation`` says why there are no metrics, when there are none."""
+    folder = result.folder
+    summary = result.summary()
+    if metrics is not None:
+        summary["metrics"] = metrics
+    else:
+        summary["evaluation"] = evaluation or "not run (mabdi run evaluates unless --no-eval)"
+    write_text(folder.path("summary.json"), json.dumps(summary, indent=2) + "\n")
+    folder.forget(CHECKPOINT)
+    folder.complete()
+
+
+class EmptyMapWarning(UserWarning):
+    """A run ended with a map of no triangles."""
+
+
+def empty_map_reason(result: RunResult, simulation: Simulation) -> str:
+    """Why a run's map is empty, in words: no objects, nothing in view, or everything filtered."""
+    config = result.config
+    if simulation.rig is not None and not config.scene.objects:
+        return "the map is empty: the scene has no objects ([[scene.objects]] in the config)"
+    if not any(r.valid_pixels for r in result.records):
+        far = simulation.source.intrinsics.far
+        return (
+            f"the map is empty: no frame had a depth return (nothing in view within the sensor's range, "
+            f"{simulation.source.intrinsics.near:g}-{far:g} m); check the objects' positions, the path and the intrinsics"
+        )
+    return (
+        "the map is empty: frames had depth returns, but the surface filter made no triangles of them "
+        f"({config.surface.method}; e.g. too few points per voxel, or every pixel classified known)"
+    )
+
+
+def read_checkpoint(folder: Path) -> dict:
+    """The checkpoint of an interrupted run (:meth:`Simulation.run` with ``output.checkpoint_every``)."""
+    path = Path(folder) / CHECKPOINT
+    if not path.is_file():
+        raise OutputError(f"cannot resume {folder}: no {CHECKPOINT} (the run stopped before its first checkpoint)")
+    try:
+        with open(path, "rb") as stream:
+            state = pickle.load(stream)
+    except Exception as exc:  # a damaged checkpoint: say which file
+        raise OutputError(f"cannot resume {folder}: {path} is damaged ({type(exc).__name__}: {exc})") from None
+    if not isinstance(state, dict) or state.get("version") != CHECKPOINT_VERSION:
+        raise OutputError(f"cannot resume {folder}: {path} was written by another version of mabdi")
+    return state

@@ -19,8 +19,8 @@ pose and timestamp in the image's field data, where every filter downstream
 This is the one place a loop sets the frame.
 
 What counts as a return is decided once, in :func:`mabdi.depth.returns`
-(finite and near < z < far); :class:`SourceDepthFrames` applies it to every
-source's depth before it enters the pipeline.
+(finite and near < z < far); :meth:`FrameSource.read` applies it to every
+source's depth, so a loop, a TSDF or a recorder sees the same frames.
 """
 
 from __future__ import annotations
@@ -37,8 +37,10 @@ from mabdi.depth import DepthFrame, fill_depth_image, only_returns
 
 
 class FrameSource:
-    """Depth frames by index (see the module docs). Subclasses implement ``__len__``, ``read`` and ``intrinsics``.
+    """Depth frames by index (see the module docs).
 
+    Subclasses implement ``intrinsics``, ``__len__`` and ``read_frame(index)``
+    (called with a checked index); :meth:`read` adds the one rule for returns.
     ``poses`` and ``timestamps`` default to reading every frame; sources that
     know them without decoding depth (recordings, the simulated path) override them.
     """
@@ -54,7 +56,18 @@ class FrameSource:
         raise NotImplementedError
 
     def read(self, index: int) -> DepthFrame:
-        """Frame ``index``: depth (metres, NaN = no return), intrinsics, pose, ``frame == index``, timestamp."""
+        """Frame ``index``: depth (float32 metres, NaN = no return), intrinsics, pose, ``frame == index``, timestamp.
+
+        Every depth that is not a return (:func:`mabdi.depth.returns`: NaN, 0,
+        negative, infinite, outside (near, far)) is NaN here, whatever the source.
+        """
+        frame = self.read_frame(self.check_index(index))
+        intrinsics = frame.intrinsics
+        frame.depth = only_returns(frame.depth, intrinsics.near, intrinsics.far)
+        return frame
+
+    def read_frame(self, index: int) -> DepthFrame:
+        """Frame ``index`` as the source has it (``read`` cleans it); ``index`` is checked already."""
         raise NotImplementedError
 
     @property
@@ -103,8 +116,8 @@ class FrameList(FrameSource):
     def __len__(self) -> int:
         return len(self._frames)
 
-    def read(self, index: int) -> DepthFrame:
-        frame = self._frames[self.check_index(index)]
+    def read_frame(self, index: int) -> DepthFrame:
+        frame = self._frames[index]
         return DepthFrame(frame.depth, frame.intrinsics, frame.world_from_camera, index, frame.timestamp)
 
 
@@ -144,9 +157,8 @@ class SourceDepthFrames(MabdiAlgorithm):
 
     def RequestData(self, request, inInfo, outInfo):  # noqa: N802 (VTK API)
         frame = self._source.read(self._frame)
-        intrinsics = frame.intrinsics
-        depth = only_returns(frame.depth, intrinsics.near, intrinsics.far)
-        if depth is frame.depth:
-            depth = depth.copy()  # the output image owns its buffer
-        fill_depth_image(vtkImageData.GetData(outInfo), depth, intrinsics, frame.world_from_camera, self._frame, frame.timestamp)
+        depth = frame.depth.copy()  # the output image owns its buffer
+        fill_depth_image(
+            vtkImageData.GetData(outInfo), depth, frame.intrinsics, frame.world_from_camera, self._frame, frame.timestamp
+        )
         return 1

@@ -427,8 +427,7 @@ class Rosbag2Sequence(FrameSource):
         """Header stamps of the depth images, seconds."""
         return ns_to_seconds(self._stamps)
 
-    def read(self, index: int) -> DepthFrame:
-        index = self.check_index(index)
+    def read_frame(self, index: int) -> DepthFrame:
         log_time = int(self._log_times[index])
         wanted = int(self._occurrence[index])
         for position, (_, message) in enumerate(self._messages(self.depth_topic, start=log_time, stop=log_time + 1)):

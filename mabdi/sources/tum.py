@@ -342,8 +342,7 @@ class TumSequence(FrameSource):
     def __len__(self) -> int:
         return len(self._files)
 
-    def read(self, index: int) -> DepthFrame:
-        index = self.check_index(index)
+    def read_frame(self, index: int) -> DepthFrame:
         depth = read_depth_png(self._files[index], self._intrinsics)
         return DepthFrame(depth, self._intrinsics, self._poses[index], index, float(self._timestamps[index]))
 

@@ -30,13 +30,13 @@ from __future__ import annotations
 import functools
 
 import numpy as np
-from vtkmodules.util.numpy_support import numpy_to_vtk, vtk_to_numpy
+from vtkmodules.util.numpy_support import numpy_to_vtk
 from vtkmodules.vtkCommonCore import vtkLookupTable, vtkPoints
 from vtkmodules.vtkCommonDataModel import vtkCellArray, vtkImageData, vtkPolyData
 from vtkmodules.vtkRenderingCore import vtkActor, vtkCompositePolyDataMapper, vtkImageActor, vtkPolyDataMapper
 
 from mabdi.camera import Intrinsics
-from mabdi.depth import depth_array
+from mabdi.depth import depth_array, image_pose
 from mabdi.polydata import polyline
 
 SIZE = (1296, 720)
@@ -118,19 +118,26 @@ class Dashboard:
                 "and a height that is a multiple of 16"
             )
         self.simulation = simulation
+        self.loop = simulation.loop
         self.size = (int(width), int(height))
         frames = len(simulation.poses)
         self._frames = frames
-        self._intrinsics = simulation.config.sensor.intrinsics()
+        self._intrinsics = self.loop.intrinsics
         self._counts: list[int] = []
         self._depth_range: tuple[float, float] | None = None
-        self._active = simulation.scene.active_objects(frames - 1)
+        # The ground truth is drawn faintly when it is known (simulated or recorded from a known scene).
+        self._scene = simulation.scene
+        self._active = self._scene.active_objects(frames - 1) if self._scene is not None else ()
         plotter = pv.Plotter(off_screen=True, shape=(2, 3), window_size=self.size, border=False)
         self.plotter = plotter
-        scene = simulation.scene.mesh_at(frames - 1)
+        scene = self._scene.mesh_at(frames - 1) if self._scene is not None else vtkPolyData()
         path_points = simulation.poses[:, :3, 3]
-        low = np.minimum(np.array(scene.GetBounds())[0::2], path_points.min(axis=0))
-        high = np.maximum(np.array(scene.GetBounds())[1::2], path_points.max(axis=0))
+        if scene.GetNumberOfPoints():
+            low = np.minimum(np.array(scene.GetBounds())[0::2], path_points.min(axis=0))
+            high = np.maximum(np.array(scene.GetBounds())[1::2], path_points.max(axis=0))
+        else:  # no scene: the path and what the sensor can see from it
+            reach = self._intrinsics.far
+            low, high = path_points.min(axis=0) - reach, path_points.max(axis=0) + reach
 
         self._scene_actors = []
         for column, title in ((0, "map by creation frame"), (1, "novel surface of this frame")):
@@ -159,7 +166,7 @@ class Dashboard:
             lut.SetTableValue(i, *rgba)
         lut.Build()
         mapper = vtkCompositePolyDataMapper()
-        mapper.SetInputDataObject(simulation.world.map)
+        mapper.SetInputDataObject(self.loop.world.map)
         mapper.SetScalarModeToUseCellFieldData()
         mapper.SelectColorArray("frame")
         mapper.SetLookupTable(lut)
@@ -172,7 +179,7 @@ class Dashboard:
 
         plotter.subplot(0, 1)
         novel_mapper = vtkPolyDataMapper()
-        novel_mapper.SetInputDataObject(simulation.surface.GetOutputDataObject(0))
+        novel_mapper.SetInputDataObject(self.loop.novel_surface())
         novel_mapper.ScalarVisibilityOff()
         novel_actor = vtkActor()
         novel_actor.SetMapper(novel_mapper)
@@ -233,30 +240,30 @@ class Dashboard:
 
     def render(self, frame: int) -> np.ndarray:
         """The dashboard after ``simulation.step(frame)``: a (height, width, 3) uint8 picture."""
-        sim = self.simulation
-        pose = sim.poses[frame]
+        loop = self.loop
+        pose = image_pose(loop.measured_image())
         for actor in self._frustum_actors:
             actor.GetMapper().SetInputData(frustum(pose, self._intrinsics, 0.6))
-        active = sim.scene.active_objects(frame)
+        active = self._scene.active_objects(frame) if self._scene is not None else ()
         if active != self._active:  # a dynamic scene: an object appeared or went
             self._active = active
-            scene = sim.scene.mesh_at(frame)
+            scene = self._scene.mesh_at(frame)
             for actor in self._scene_actors:
                 actor.GetMapper().SetInputData(scene)
-        self._counts.append(sim.world.number_of_cells)
+        self._counts.append(loop.world.number_of_cells)
         x = np.arange(len(self._counts), dtype=float)
         self._line.update(x, np.asarray(self._counts, dtype=float))
         self._chart.y_range = [0, max(max(self._counts), 1) * 1.05]
 
-        measured = depth_array(sim.sensor.GetOutput())
+        measured = depth_array(loop.measured_image())
         if self._depth_range is None:
             finite = measured[np.isfinite(measured)]
             self._depth_range = (float(np.percentile(finite, 2)), float(np.percentile(finite, 98))) if finite.size else (0.5, 5.0)
         low, high = self._depth_range
         self._set_rgb(self._images[0], depth_colours(measured, low, high))
-        if sim.config.classifier.enabled:
-            expected = depth_array(sim.expected.GetOutput())
-            labels = vtk_to_numpy(sim.classifier.GetOutput().GetPointData().GetArray("label")).reshape(measured.shape)
+        if loop.classifier_enabled:
+            expected = depth_array(loop.expected_image())
+            labels = loop.labels()
         else:
             expected = np.full_like(measured, np.nan)
             labels = np.where(np.isfinite(measured), 2, 0)

@@ -1,0 +1,61 @@
+"""FilterExpectedImage: the expected depth image E, the map seen from the measured image's pose.
+
+Port 0 is the map (a vtkPolyData, or the world mesh's composite dataset of
+blocks, drawn block by block); port 1 is the measured depth image D. E is
+rendered without noise with D's intrinsics and ``world_from_camera`` and
+carries D's ``frame`` and ``timestamp``: the pose and frame index are set
+once, at the source of D (:class:`mabdi.sources.frames.SourceDepthFrames`),
+and travel with the images. Pixels where the map has no surface within
+(near, far) are NaN.
+
+The rendering is :class:`~mabdi.filters.depth_image.DepthRenderer`'s: one
+off-screen window reused across frames, multisampling off, one mapper per
+map block so a frame uploads only the blocks that changed.
+"""
+
+from __future__ import annotations
+
+from vtkmodules.vtkCommonDataModel import vtkCompositeDataSet, vtkDataObject, vtkImageData, vtkPolyData
+from vtkmodules.vtkCommonExecutionModel import vtkAlgorithm, vtkStreamingDemandDrivenPipeline
+
+from mabdi.algorithm import MabdiAlgorithm
+from mabdi.depth import fill_depth_image, image_frame, image_intrinsics, image_pose, image_timestamp
+from mabdi.filters.depth_image import DepthRenderer, SensorNoise
+
+MAP_PORT, MEASURED_PORT = 0, 1
+
+
+class FilterExpectedImage(MabdiAlgorithm):
+    """Render the map (port 0) from the pose of the depth image on port 1 (map + D -> E)."""
+
+    def __init__(self, backend: str = "egl") -> None:
+        super().__init__(nInputPorts=2, nOutputPorts=1, outputType="vtkImageData")
+        self.renderer = DepthRenderer(backend)
+
+    def FillInputPortInformation(self, port, info):  # noqa: N802 (VTK API)
+        kind = "vtkImageData" if port == MEASURED_PORT else "vtkDataObject"
+        info.Set(vtkAlgorithm.INPUT_REQUIRED_DATA_TYPE(), kind)
+        return 1
+
+    def RequestInformation(self, request, inInfo, outInfo):  # noqa: N802 (VTK API)
+        measured = inInfo[MEASURED_PORT].GetInformationObject(0)
+        extent = measured.Get(vtkStreamingDemandDrivenPipeline.WHOLE_EXTENT())
+        if extent is not None:
+            outInfo.GetInformationObject(0).Set(vtkStreamingDemandDrivenPipeline.WHOLE_EXTENT(), extent, 6)
+        return 1
+
+    def RequestData(self, request, inInfo, outInfo):  # noqa: N802 (VTK API)
+        world = vtkDataObject.GetData(inInfo[MAP_PORT], 0)
+        if not isinstance(world, (vtkPolyData, vtkCompositeDataSet)):
+            raise TypeError(
+                "FilterExpectedImage: port 0 (the map) must be a vtkPolyData or a composite dataset of polydata, "
+                f"got {world.GetClassName() if world is not None else None}"
+            )
+        measured = vtkImageData.GetData(inInfo[MEASURED_PORT], 0)
+        intrinsics = image_intrinsics(measured)
+        pose = image_pose(measured)
+        zbuffer = self.renderer.render_zbuffer(world, intrinsics, pose)
+        depth = SensorNoise("none").depth_from_zbuffer(zbuffer, intrinsics.near, intrinsics.far, None)
+        output = vtkImageData.GetData(outInfo)
+        fill_depth_image(output, depth, intrinsics, pose, image_frame(measured), image_timestamp(measured))
+        return 1

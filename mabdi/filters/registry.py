@@ -1,0 +1,107 @@
+"""The surface registry: surface filters found by name.
+
+A surface filter turns the classifier's output (a depth image holding only
+the novel pixels, :mod:`mabdi.filters.classifier`) into the triangles
+appended to the map. Each is registered under the name a run config uses
+(``[surface] method = "quadtree"``) with:
+
+* ``parameters``: its parameter dataclass (frozen; defaults and checks in
+  ``__post_init__``, raising :class:`~mabdi.errors.ConfigError`). It is the
+  config's ``[surface.<name>]`` table, field for field; fields with
+  ``metadata={"toml": False}`` are not config keys;
+* ``make(parameters, noise)``: builds the filter (a VTK algorithm with one
+  depth-image input and a vtkPolyData output in world coordinates); ``noise``
+  is the sensor's :class:`~mabdi.filters.depth_image.SensorNoise`, for
+  filters whose thresholds follow the noise;
+* ``help``: one line for ``mabdi run --help``.
+
+A new surface filter is one module plus one :func:`register_surface_filter`
+call: the config section, the ``--surface`` choice and its help follow.
+Filters from outside the package register the same way before the config is
+loaded (see the test that registers a trivial filter).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+
+from mabdi.errors import ConfigError
+from mabdi.filters.pixel_grid import FilterPixelGrid, PixelGridParameters
+from mabdi.filters.quadtree import FilterQuadTree, QuadTreeParameters
+from mabdi.filters.voxel_planes import FilterVoxelPlanes, VoxelPlanesParameters
+
+
+@dataclass(frozen=True)
+class SurfaceFilterEntry:
+    """One registered surface filter (see the module docs)."""
+
+    name: str
+    parameters: type
+    make: Callable
+    help: str
+
+
+_REGISTRY: dict[str, SurfaceFilterEntry] = {}
+
+
+def register_surface_filter(name: str, parameters: type, make: Callable, help: str, replace_existing: bool = False) -> None:
+    """Register a surface filter under ``name`` (a config value: letters, digits, underscores)."""
+    if not name.isidentifier():
+        raise ValueError(f"surface filter name {name!r} must be letters, digits and underscores")
+    if name in _REGISTRY and not replace_existing:
+        raise ValueError(f"a surface filter named {name!r} is registered already")
+    try:
+        parameters()
+    except TypeError as exc:
+        raise TypeError(f"surface filter {name!r}: its parameters class must build with defaults alone ({exc})") from None
+    _REGISTRY[name] = SurfaceFilterEntry(name, parameters, make, help)
+
+
+def unregister_surface_filter(name: str) -> None:
+    """Remove a registered surface filter (tests; the built-in ones stay available by re-registering)."""
+    _REGISTRY.pop(name, None)
+
+
+def surface_filter_names() -> tuple[str, ...]:
+    """The registered names, in registration order (the built-in three first)."""
+    return tuple(_REGISTRY)
+
+
+def surface_filter(name: str) -> SurfaceFilterEntry:
+    """The entry of ``name``, or a ConfigError listing the known names."""
+    entry = _REGISTRY.get(name)
+    if entry is None:
+        raise ConfigError(f"unknown surface filter {name!r} (known: {', '.join(_REGISTRY)})")
+    return entry
+
+
+def make_surface_filter(name: str, parameters=None, noise=None):
+    """A new filter of surface ``name`` with ``parameters`` (default: the filter's defaults)."""
+    entry = surface_filter(name)
+    if parameters is None:
+        parameters = entry.parameters()
+    if not isinstance(parameters, entry.parameters):
+        raise TypeError(f"surface filter {name!r} takes {entry.parameters.__name__}, got {type(parameters).__name__}")
+    return entry.make(parameters, noise)
+
+
+register_surface_filter(
+    "pixel_grid",
+    PixelGridParameters,
+    lambda parameters, noise: FilterPixelGrid(parameters),
+    "two triangles per 2x2 pixels (seed 001)",
+)
+register_surface_filter(
+    "quadtree",
+    QuadTreeParameters,
+    # The loop counts triangles: quad-tree faces are always triangulated there.
+    lambda parameters, noise: FilterQuadTree(replace(parameters, triangles=True), noise=noise or "none"),
+    "quad-tree faces merged over flat regions (seed 002)",
+)
+register_surface_filter(
+    "voxel_planes",
+    VoxelPlanesParameters,
+    lambda parameters, noise: FilterVoxelPlanes(parameters),
+    "incremental voxel-plane patches (seed 000)",
+)

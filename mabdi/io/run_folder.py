@@ -1,0 +1,157 @@
+"""A run's output folder: one policy for every run (``mabdi run``, the runner, the movie).
+
+* A run writes a manifest, ``.mabdi-run.json``, naming every file it is
+  about to write (a name is listed before its file is written), and marks
+  it complete only when everything is written (evaluation included).
+* A new run in a folder that holds a previous mabdi run removes that run's
+  files first, all of them (a shorter run leaves no stale ``depth/*_000003.vti``
+  or ``world_mesh.h5`` behind).
+* A folder that holds files mabdi did not write (no manifest lists them) is
+  refused with an error naming them, unless ``overwrite=True``; even then
+  those files are left as they are (only mabdi's own names are written).
+* The run's own input config is never overwritten: an output folder where
+  ``config.toml`` is the input file is refused, overwrite or not.
+
+:func:`prepare_output_dir` only makes sure a folder exists and is writable
+(for the bench and sweeps, which write their own few files).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+from mabdi.errors import MabdiError
+from mabdi.io.atomic import write_text
+
+MANIFEST = ".mabdi-run.json"
+
+
+class OutputError(MabdiError, OSError):
+    """A run's output folder or file cannot be written."""
+
+
+def prepare_output_dir(out_dir) -> Path:
+    """Create the output folder or raise :class:`OutputError` saying why it cannot be."""
+    out = Path(out_dir)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except (FileExistsError, NotADirectoryError):
+        blocker = next((p for p in [out, *out.parents] if p.exists() and not p.is_dir()), out)
+        raise OutputError(f"cannot create output folder {out}: {blocker} is a file, not a folder") from None
+    except OSError as exc:
+        raise OutputError(f"cannot create output folder {out}: {exc.strerror}") from None
+    probe = out / ".mabdi-write-test"
+    try:
+        probe.write_text("")
+        probe.unlink()
+    except OSError as exc:
+        raise OutputError(f"cannot write into output folder {out}: {exc.strerror}") from None
+    return out
+
+
+def _files_under(folder: Path) -> list[str]:
+    """Every file below ``folder`` as a relative POSIX path, sorted."""
+    return sorted(p.relative_to(folder).as_posix() for p in folder.rglob("*") if p.is_file() or p.is_symlink())
+
+
+def read_manifest(folder) -> dict | None:
+    """The manifest of a run folder, or None when there is none (or it is unreadable)."""
+    path = Path(folder) / MANIFEST
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+    if not isinstance(data, dict) or not isinstance(data.get("files"), list):
+        return None
+    return data
+
+
+class RunFolder:
+    """The output folder of one run (see the module docs). Use :meth:`prepare`, then :meth:`path` per file."""
+
+    def __init__(self, path: Path) -> None:
+        self.folder = Path(path)
+        self._files: list[str] = []
+        self._complete = False
+
+    @classmethod
+    def resume(cls, out_dir) -> RunFolder:
+        """Take up the folder of an interrupted run: its manifest's files stay listed (and are rewritten)."""
+        out = Path(out_dir)
+        previous = read_manifest(out)
+        if previous is None:
+            raise OutputError(f"cannot resume {out}: it is not a mabdi run folder (no {MANIFEST})")
+        if previous.get("complete"):
+            raise OutputError(f"cannot resume {out}: that run is complete already")
+        run = cls(out)
+        run._files = [str(name) for name in previous["files"]]
+        return run
+
+    @classmethod
+    def prepare(cls, out_dir, overwrite: bool = False, input_config=None) -> RunFolder:
+        """Create or take over ``out_dir`` by the policy of the module docs."""
+        out = prepare_output_dir(out_dir)
+        if input_config is not None:
+            target = out / "config.toml"
+            if target.exists() and target.resolve() == Path(input_config).resolve():
+                raise OutputError(
+                    f"output folder {out} holds this run's own config file ({target}), which the run would replace "
+                    "with the resolved config: choose another --out"
+                )
+        previous = read_manifest(out)
+        ours = set(previous["files"]) if previous is not None else set()
+        present = [name for name in _files_under(out) if name != MANIFEST]
+        foreign = [name for name in present if name not in ours]
+        if foreign and not overwrite:
+            shown = ", ".join(foreign[:5]) + (f" and {len(foreign) - 5} more" if len(foreign) > 5 else "")
+            raise OutputError(
+                f"output folder {out} holds files mabdi did not write ({shown}); choose an empty or new folder, "
+                "or pass --overwrite (mabdi's own files are then replaced and the others left as they are)"
+            )
+        for name in sorted(ours):
+            target = out / name
+            if target.is_file() or target.is_symlink():
+                target.unlink()
+        for folder in sorted({(out / name).parent for name in ours}, key=lambda p: len(p.parts), reverse=True):
+            if folder != out and folder.is_dir() and not any(folder.iterdir()):
+                folder.rmdir()
+        run = cls(out)
+        run._write_manifest()
+        return run
+
+    def path(self, *names: str) -> Path:
+        """The path of ``names[0]`` (relative, POSIX) in the folder, listed in the manifest before it is written.
+
+        Several names are listed in one manifest write; the first one's path is returned.
+        """
+        new = [n for n in names if n not in self._files]
+        if new:
+            self._files.extend(new)
+            self._write_manifest()
+        target = self.folder / names[0]
+        target.parent.mkdir(parents=True, exist_ok=True)
+        return target
+
+    def forget(self, name: str) -> None:
+        """Remove a file this run wrote (a checkpoint superseded, say) and drop it from the manifest."""
+        target = self.folder / name
+        if target.is_file():
+            target.unlink()
+        if name in self._files:
+            self._files.remove(name)
+            self._write_manifest()
+
+    @property
+    def files(self) -> list[str]:
+        return list(self._files)
+
+    def complete(self) -> None:
+        """Mark the run complete: every file it meant to write is written."""
+        self._complete = True
+        self._write_manifest()
+
+    def _write_manifest(self) -> None:
+        data = {"complete": self._complete, "files": self._files, "pid": os.getpid()}
+        write_text(self.folder / MANIFEST, json.dumps(data, indent=1) + "\n")

@@ -1,0 +1,213 @@
+"""MabdiLoop: the MABDI loop of seed 001 Fig. 3-4, fed by any source of depth frames.
+
+    FrameSource --> SourceDepthFrames (frame i) ---------------------------> D --+
+    FilterWorldMesh.map --+--> FilterExpectedImage (pose and frame from D) -> E --+--> FilterClassifier
+         ^                                                                                |
+         +---------- FilterWorldMesh <-- surface filter (by name, registry) <-------------+
+
+The frame index is set in one place, :class:`SourceDepthFrames`; D carries it
+with its pose and timestamp in its field data, and E, the classifier and the
+surface take them from there. E is rendered from the map as it stood after
+the previous frame: the world mesh appends frame i's surface only at the end
+of frame i. With the classifier off (``enabled = false``, the "black box")
+the surface filter meshes D itself: every valid pixel, every frame.
+
+``loop.step(i)`` runs frame i and returns its :class:`FrameRecord`. What a
+frame produced is read through public accessors (:meth:`measured_image`,
+:meth:`expected_image`, :meth:`labels`, :meth:`novel_surface`, :meth:`mesh`,
+``world``), which is what the runner, the dashboard and the metrics use.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+from vtkmodules.vtkCommonDataModel import vtkImageData, vtkPolyData
+
+from mabdi.algorithm import raise_pipeline_errors
+from mabdi.camera import Intrinsics
+from mabdi.depth import depth_array
+from mabdi.filters.classifier import ClassifierParameters, FilterClassifier, label_array, pixel_counts
+from mabdi.filters.depth_image import BACKENDS, SensorNoise
+from mabdi.filters.expected_image import MAP_PORT, MEASURED_PORT, FilterExpectedImage
+from mabdi.filters.registry import make_surface_filter
+from mabdi.filters.world_mesh import FilterWorldMesh
+from mabdi.sources.frames import FrameSource, SourceDepthFrames
+
+
+@dataclass
+class FrameRecord:
+    """What one frame did. Counts of cells are triangles; ``cells_added`` is the map's net change. Times in ms."""
+
+    frame: int
+    novel_fraction: float
+    cells_added: int
+    cells_total: int
+    t_depth_ms: float
+    t_expected_ms: float
+    t_classify_ms: float
+    t_surface_ms: float
+    t_append_ms: float
+    t_total_ms: float
+    points_total: int = 0
+    valid_pixels: int = 0
+    novel_pixels: int = 0
+    speck_pixels: int = 0
+    contradicted_pixels: int = 0
+
+
+class MabdiLoop:
+    """Expected image, classifier, surface and world mesh over a :class:`FrameSource` (see the module docs).
+
+    ``classifier``: :class:`ClassifierParameters` (its ``enabled`` chooses the
+    black box); ``surface``: a registered surface name and its parameters
+    (None: the filter's defaults); ``noise``: the sensor's noise model, for the
+    classifier's threshold tau(z) and noise-aware surfaces.
+    """
+
+    def __init__(
+        self,
+        source: FrameSource,
+        classifier: ClassifierParameters | None = None,
+        surface: str = "pixel_grid",
+        surface_parameters=None,
+        noise: SensorNoise | str = "none",
+        backend: str = BACKENDS[0],
+    ) -> None:
+        self.source = source
+        self.classifier_parameters = classifier if classifier is not None else ClassifierParameters()
+        self.noise = SensorNoise.of(noise)
+        self.surface_name = surface
+
+        self.measured = SourceDepthFrames(source)
+        self.world = FilterWorldMesh()
+        self.expected = FilterExpectedImage(backend=backend)
+        self.expected.SetInputDataObject(MAP_PORT, self.world.map)
+        self.expected.SetInputConnection(MEASURED_PORT, self.measured.GetOutputPort())
+        self.classifier = FilterClassifier(self.classifier_parameters, noise=self.noise)
+        self.classifier.SetInputConnection(0, self.measured.GetOutputPort())
+        self.classifier.SetInputConnection(1, self.expected.GetOutputPort())
+        self.surface = make_surface_filter(surface, surface_parameters, self.noise)
+        upstream = self.classifier if self.classifier_parameters.enabled else self.measured
+        self.surface.SetInputConnection(upstream.GetOutputPort())
+        self.world.SetInputConnection(self.surface.GetOutputPort())
+        self._algorithms = (self.measured, self.expected, self.classifier, self.surface, self.world)
+
+    @classmethod
+    def from_config(cls, config, source: FrameSource) -> MabdiLoop:
+        """The loop of a run config (:class:`mabdi.config.RunConfig`) over ``source``."""
+        return cls(
+            source,
+            classifier=config.classifier,
+            surface=config.surface.method,
+            surface_parameters=config.surface.parameters_of(),
+            noise=config.sensor.sensor_noise(),
+            backend=config.sensor.backend,
+        )
+
+    # -- running -----------------------------------------------------------
+    @property
+    def classifier_enabled(self) -> bool:
+        return self.classifier_parameters.enabled
+
+    @property
+    def intrinsics(self) -> Intrinsics:
+        return self.source.intrinsics
+
+    def reset(self) -> None:
+        """Empty the map, and a surface filter's own memory (voxel statistics); render windows stay."""
+        self.world.reset()
+        if hasattr(self.surface, "reset"):
+            self.surface.reset()
+
+    def state(self) -> dict:
+        """The loop's state between frames, for checkpoints: the map, and a stateful surface filter's memory."""
+        state = {"world": self.world.state()}
+        if hasattr(self.surface, "state"):
+            state["surface"] = self.surface.state()
+        return state
+
+    def set_state(self, state: dict) -> None:
+        """Go on from a :meth:`state` (the next :meth:`step` continues the saved run)."""
+        self.world.set_state(state["world"])
+        if "surface" in state:
+            self.surface.set_state(state["surface"])
+
+    def step(self, index: int) -> FrameRecord:
+        """Run frame ``index``: read D, render E, classify, mesh, append. Times each stage."""
+        start = time.perf_counter()
+        self.measured.frame = index
+        self.measured.Update()
+        t_depth = time.perf_counter()
+        t_expected = t_classify = t_depth
+        if self.classifier_enabled:
+            self.expected.Update()
+            t_expected = time.perf_counter()
+            self.classifier.Update()
+            t_classify = time.perf_counter()
+        self.surface.Update()
+        t_surface = time.perf_counter()
+        self.world.Update()
+        t_append = time.perf_counter()
+        raise_pipeline_errors(*self._algorithms)
+
+        if self.classifier_enabled:
+            counts = pixel_counts(self.classifier.GetOutput())
+        else:
+            valid = int(np.count_nonzero(np.isfinite(depth_array(self.measured_image()))))
+            counts = {"valid": valid, "novel": valid, "specks": 0, "contradicted": 0}
+        ms = 1000.0
+        return FrameRecord(
+            frame=index,
+            novel_fraction=counts["novel"] / counts["valid"] if counts["valid"] else 0.0,
+            cells_added=self.world.cells_added,
+            cells_total=self.world.number_of_cells,
+            t_depth_ms=ms * (t_depth - start),
+            t_expected_ms=ms * (t_expected - t_depth),
+            t_classify_ms=ms * (t_classify - t_expected),
+            t_surface_ms=ms * (t_surface - t_classify),
+            t_append_ms=ms * (t_append - t_surface),
+            t_total_ms=ms * (t_append - start),
+            points_total=self.world.number_of_points,
+            valid_pixels=counts["valid"],
+            novel_pixels=counts["novel"],
+            speck_pixels=counts["specks"],
+            contradicted_pixels=counts["contradicted"],
+        )
+
+    # -- what the last frame produced --------------------------------------
+    def measured_image(self) -> vtkImageData:
+        """D of the last frame (depth image; field data: intrinsics, pose, frame, timestamp)."""
+        return self.measured.GetOutput()
+
+    def expected_image(self) -> vtkImageData | None:
+        """E of the last frame, or None when the classifier is off (E is not rendered then)."""
+        return self.expected.GetOutput() if self.classifier_enabled else None
+
+    def classified_image(self) -> vtkImageData | None:
+        """The classifier's output of the last frame (novel depth + ``label``), or None when it is off."""
+        return self.classifier.GetOutput() if self.classifier_enabled else None
+
+    def labels(self) -> np.ndarray | None:
+        """(H, W) uint8 labels of the last frame (0 no return, 1 known, 2 novel, 3 contradicted), or None."""
+        image = self.classified_image()
+        return None if image is None else label_array(image)
+
+    def novel_surface(self) -> vtkPolyData:
+        """The surface filter's output of the last frame (what was meshed), world coordinates."""
+        return self.surface.GetOutput()
+
+    def mesh(self) -> vtkPolyData:
+        """The whole map as one vtkPolyData (cell data ``frame``)."""
+        return self.world.mesh()
+
+    def memory_bytes(self) -> int:
+        """Memory held by the map's blocks."""
+        return self.world.memory_bytes()
+
+    def close(self) -> None:
+        """Release the render windows (of E, and of the source)."""
+        self.expected.renderer.close()
+        self.source.close()

@@ -1,0 +1,110 @@
+"""Recorded sequences in the loop: record the simulated table as TUM and as a ROS 2 bag, run the loop on
+each recording, get the map the simulation gives; the bench feeds every method the same frames."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+from vtkmodules.util.numpy_support import vtk_to_numpy
+
+from conftest import REPO
+from mabdi.cli import main
+from mabdi.io.vtk_files import read_mesh_file
+
+TABLE = str(REPO / "scenes" / "table.toml")
+COMMON = ["--noise", "kinect", "--frames", "12", "--surface", "quadtree"]
+
+
+def vertices(path):
+    return vtk_to_numpy(read_mesh_file(path).GetPoints().GetData()).astype(np.float64)
+
+
+@pytest.fixture(scope="module")
+def simulated(tmp_path_factory):
+    out = tmp_path_factory.mktemp("simulated") / "run"
+    assert main(["run", TABLE, *COMMON, "--out", str(out), "--quiet", "--no-eval"]) == 0
+    return out
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(
+    "format,extra,step",
+    [
+        ("tum", [], 0.0002),  # 1/5000 m depth steps
+        ("rosbag2", ["--storage", "sqlite3"], 0.0),  # 32FC1: exact
+        ("rosbag2", ["--storage", "mcap", "--encoding", "16UC1"], 0.001),  # millimetres
+    ],
+)
+def test_a_recording_gives_the_map_the_simulation_gives(tmp_path, simulated, format, extra, step, capsys):
+    recording = tmp_path / "recording"
+    assert main(["record", TABLE, "--format", format, "--out", str(recording), *COMMON[:4], *extra]) == 0
+    out = tmp_path / "from_recording"
+    assert main(["run", TABLE, "--sequence", str(recording), *COMMON, "--out", str(out), "--quiet"]) == 0
+    text = capsys.readouterr().out
+    assert "vs ground truth: F@1cm" in text  # recorded from this config's scene: evaluated
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["metrics"]["fscore_1cm"] > 0.9 and summary["frames"] == 12
+    expected, got = vertices(simulated / "world_mesh.vtp"), vertices(out / "world_mesh.vtp")
+    assert abs(len(got) - len(expected)) <= 0.005 * len(expected)
+    cells = [read_mesh_file(p / "world_mesh.vtp").GetNumberOfCells() for p in (simulated, out)]
+    assert abs(cells[1] - cells[0]) <= 0.005 * cells[0], cells
+    distance, _ = cKDTree(expected).query(got)
+    if step == 0.0:
+        np.testing.assert_array_equal(got, expected)
+    else:
+        # Depth quantised to `step` moves a vertex at most half a step along its ray (plus float32 rounding).
+        assert np.percentile(distance, 99) <= 0.5 * step + 1e-5, np.percentile(distance, [50, 99, 100])
+
+
+def test_a_recording_of_another_scene_is_run_without_evaluation(tmp_path, capsys):
+    recording = tmp_path / "recording"
+    assert main(["record", TABLE, "--format", "tum", "--out", str(recording), "--frames", "3"]) == 0
+    out = tmp_path / "run"
+    bunnies = str(REPO / "scenes" / "bunnies.toml")
+    assert main(["run", bunnies, "--sequence", str(recording), "--out", str(out), "--quiet"]) == 0
+    assert "the evaluation is skipped" in capsys.readouterr().out
+    summary = json.loads((out / "summary.json").read_text())
+    assert "metrics" not in summary and summary["evaluation"].startswith("skipped")
+    assert main(["record", TABLE, "--format", "tum", "--out", str(recording), "--frames", "3"]) == 2  # exists
+    assert main(["record", TABLE, "--format", "tum", "--out", str(recording), "--frames", "3", "--overwrite"]) == 0
+
+
+def test_the_bench_feeds_every_method_the_same_frames_from_one_rig(monkeypatch):
+    import hashlib
+
+    from mabdi.config import load_run_config, set_value
+    from mabdi.evaluate import bench
+    from mabdi.sources.frames import FrameList
+
+    built = []
+    original_init = bench.SimulatedRig.__init__
+
+    def counting_init(self, *args, **kwargs):
+        built.append(self)
+        original_init(self, *args, **kwargs)
+
+    monkeypatch.setattr(bench.SimulatedRig, "__init__", counting_init)
+    seen: dict[int, list[str]] = {}
+    original_read = FrameList.read_frame
+
+    def recording_read(self, index):
+        frame = original_read(self, index)
+        digest = hashlib.sha1(frame.depth.tobytes() + frame.world_from_camera.tobytes()).hexdigest()
+        seen.setdefault(index, []).append(digest)
+        return frame
+
+    monkeypatch.setattr(FrameList, "read_frame", recording_read)
+    config = load_run_config(REPO / "scenes" / "table.toml")
+    set_value(config, "run.frames", 4)
+    set_value(config, "sensor.noise", "kinect")
+    methods = ["mabdi", "black_box", "tsdf_2cm"]
+    result = bench.run_bench(config, methods, samples=2000, progress=lambda line: None)
+    assert len(built) == 1  # one rig for the scene
+    ran = [row["method"] for row in result["methods"]]
+    assert sorted(seen) == [0, 1, 2, 3]
+    for index, digests in seen.items():
+        assert len(set(digests)) == 1, index  # the very same frame, whoever read it
+        assert len(digests) == len(ran), (index, ran)

@@ -1,0 +1,91 @@
+"""Output folders and long runs: a re-run replaces its previous outputs whole, foreign files are refused,
+the input config is never overwritten, checkpoints let an interrupted run finish with the same map."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from conftest import REPO
+from mabdi.config import load_run_config, set_value
+from mabdi.io.run_folder import MANIFEST, OutputError, RunFolder
+from mabdi.simulate import Simulation
+from mabdi.simulate.runner import CHECKPOINT
+
+
+def table(frames: int, surface: str = "pixel_grid", **values):
+    config = load_run_config(REPO / "scenes" / "table.toml")
+    set_value(config, "run.frames", frames)
+    set_value(config, "surface.method", surface)
+    for key, value in values.items():
+        set_value(config, key.replace("__", "."), value)
+    return config
+
+
+def test_a_rerun_leaves_no_file_of_the_previous_run(tmp_path):
+    out = tmp_path / "run"
+    Simulation(table(4, output__depth_images=True, output__h5=True)).run(out)
+    assert (out / "depth" / "D_000003.vti").is_file() and (out / "world_mesh.h5").is_file()
+    Simulation(table(2)).run(out)
+    names = sorted(p.relative_to(out).as_posix() for p in out.rglob("*") if p.is_file())
+    assert "world_mesh.h5" not in names and not any(n.startswith("depth/") for n in names)
+    assert not (out / "depth").exists()
+    manifest = json.loads((out / MANIFEST).read_text())
+    assert manifest["complete"] and sorted(manifest["files"]) == sorted(n for n in names if n != MANIFEST)
+
+
+def test_a_folder_with_foreign_files_is_refused_unless_overwrite(tmp_path):
+    out = tmp_path / "mine"
+    out.mkdir()
+    (out / "notes.txt").write_text("my notes")
+    with pytest.raises(OutputError, match=r"holds files mabdi did not write \(notes.txt\).*--overwrite"):
+        Simulation(table(2)).run(out)
+    assert sorted(p.name for p in out.iterdir()) == ["notes.txt"]
+    Simulation(table(2)).run(out, overwrite=True)
+    assert (out / "notes.txt").read_text() == "my notes" and (out / "world_mesh.vtp").is_file()
+
+
+def test_the_input_config_is_never_overwritten(tmp_path):
+    folder = tmp_path / "exp"
+    folder.mkdir()
+    config_path = folder / "config.toml"
+    text = "# my hand-written config\n" + (REPO / "scenes" / "table.toml").read_text().replace("frames = 30", "frames = 2")
+    config_path.write_text(text)
+    config = load_run_config(config_path)
+    for overwrite in (False, True):
+        with pytest.raises(OutputError, match="own config file"):
+            Simulation(config).run(folder, overwrite=overwrite)
+    assert config_path.read_text() == text
+
+
+def interrupt_at(frame: int):
+    def progress(record):
+        if record.frame == frame:
+            raise KeyboardInterrupt
+
+    return progress
+
+
+@pytest.mark.parametrize("surface", ["quadtree", "voxel_planes"])
+def test_resume_after_an_interrupt_gives_the_same_map(tmp_path, surface):
+    """--resume after an interrupt at frame 17 of 30: the map is byte-identical to the uninterrupted run's."""
+    whole = tmp_path / "whole"
+    Simulation(table(30, surface, output__checkpoint_every=5)).run(whole)
+    cut = tmp_path / "cut"
+    with pytest.raises(KeyboardInterrupt):
+        Simulation(table(30, surface, output__checkpoint_every=5)).run(cut, progress=interrupt_at(17))
+    assert (cut / CHECKPOINT).is_file() and not (cut / "summary.json").exists()
+    assert not json.loads((cut / MANIFEST).read_text())["complete"]
+    simulation, result = Simulation.resume(cut)
+    assert [r.frame for r in result.records] == list(range(30))
+    for name in ("world_mesh.vtp", "world_mesh.ply", "poses.npy"):
+        assert (cut / name).read_bytes() == (whole / name).read_bytes(), name
+    assert not (cut / CHECKPOINT).exists() and json.loads((cut / MANIFEST).read_text())["complete"]
+    with pytest.raises(OutputError, match="complete already"):
+        Simulation.resume(cut)
+
+
+def test_resume_needs_a_run_folder(tmp_path):
+    with pytest.raises(OutputError, match="not a mabdi run folder"):
+        RunFolder.resume(tmp_path)
