@@ -64,25 +64,11 @@ class MabdiAlgorithm(VTKPythonAlgorithmBase):
             if isinstance(algorithm, MabdiAlgorithm):
                 algorithm._pending_error = None
         # Hold VTK's own messages back while updating: when a request of ours failed, the
-        # Python exception says what went wrong; otherwise they are printed afterwards.
-        previous = vtkOutputWindow.GetInstance()
-        captured = vtkStringOutputWindow()
-        vtkOutputWindow.SetInstance(captured)
-        verbosity = vtkLogger.GetCurrentVerbosityCutoff()  # no getter for stderr alone
-        vtkLogger.SetStderrVerbosity(vtkLogger.VERBOSITY_OFF)
-        try:
+        # Python exception says what went wrong; otherwise they are passed on afterwards.
+        with vtk_messages_held():
             with interrupts_held():
                 result = super().Update(*args)
-        finally:
-            vtkLogger.SetStderrVerbosity(verbosity)
-            vtkOutputWindow.SetInstance(previous)
-        raise_pipeline_errors(*upstream_algorithms(self), self)
-        text = captured.GetOutput()
-        if text:
-            if isinstance(previous, vtkStringOutputWindow):
-                previous.DisplayText(text)  # a collecting window (the command line's): pass them on
-            else:
-                sys.stderr.write(text)
+            raise_pipeline_errors(*upstream_algorithms(self), self)
         return result
 
     def GetOutput(self, port: int = 0):  # noqa: N802 (VTK API)
@@ -115,6 +101,35 @@ class MabdiAlgorithm(VTKPythonAlgorithmBase):
         if not same:
             setattr(self, name, value)
             self.Modified()
+
+
+@contextlib.contextmanager
+def vtk_messages_held():
+    """Collect VTK's messages (its output window and vtkLogger's stderr) inside the block.
+
+    Yields a function that returns the text collected so far. When the block
+    ends normally the text is passed on: to the output window installed
+    before, when that is a collecting one (``vtkStringOutputWindow``, as the
+    command line installs), else to stderr. When the block raises, the text
+    is dropped: the exception says what went wrong (include what VTK said in
+    its message where it helps).
+    """
+    previous = vtkOutputWindow.GetInstance()
+    captured = vtkStringOutputWindow()
+    vtkOutputWindow.SetInstance(captured)
+    verbosity = vtkLogger.GetCurrentVerbosityCutoff()  # no getter for stderr alone
+    vtkLogger.SetStderrVerbosity(vtkLogger.VERBOSITY_OFF)
+    try:
+        yield captured.GetOutput
+    finally:
+        vtkLogger.SetStderrVerbosity(verbosity)
+        vtkOutputWindow.SetInstance(previous)
+    text = captured.GetOutput()
+    if text:
+        if isinstance(previous, vtkStringOutputWindow):
+            previous.DisplayText(text)
+        else:
+            sys.stderr.write(text)
 
 
 _held = {"depth": 0, "pending": False}

@@ -23,3 +23,11 @@ class PoseError(MabdiError, ValueError):
 
 class AssetNotFoundError(MabdiError, FileNotFoundError):
     """A mesh file or built-in asset (the bunny) could not be found."""
+
+
+class DamagedFileError(MabdiError, ValueError):
+    """An input file that is cut short, empty, or not what its suffix says (a truncated PLY, a map with NaN vertices)."""
+
+
+class WriteError(MabdiError, OSError):
+    """A file could not be written completely (a full disk, a failing writer); nothing was left under its name."""

@@ -1,13 +1,12 @@
 """HDF5 mesh maps: round trips in both layouts, a reader written from the layout description, bad files."""
 
+import h5py  # a required dependency: its absence is a failure, not a skip
 import numpy as np
 import pytest
 
-h5py = pytest.importorskip("h5py")
-
-from mabdi.io.hdf5 import MapFileError, map_layout, read_map, write_map  # noqa: E402
-from mabdi.io.map_files import load_map, save_map  # noqa: E402
-from mabdi.maps.mesh_map import MeshMap, MeshMapError  # noqa: E402
+from mabdi.io.hdf5 import MapFileError, map_layout, read_map, write_map
+from mabdi.io.map_files import load_map, save_map
+from mabdi.maps.mesh_map import MeshMap, MeshMapError
 
 
 def sample_map(n=500, seed=0) -> MeshMap:

@@ -10,6 +10,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
@@ -106,3 +107,225 @@ def test_ctrl_c_during_evaluation_exits_130(tmp_path):
     assert code == 130, f"exit {code}\nstderr: {stderr[-2000:]}"
     summary = out / "summary.json"
     assert not summary.exists() or "metrics" not in json.loads(summary.read_text())
+
+
+# -- damaged input files ----------------------------------------------------------------------
+
+# Runs each case in one child process: before these checks, VTK's PLY reader crashed the process.
+_CASES = r"""
+import contextlib, io, json, sys
+from mabdi.cli import main
+from mabdi.sources.assets import read_mesh
+for kind, args in json.loads(sys.argv[1]):
+    err = io.StringIO()
+    with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
+        if kind == "main":
+            code = main(args)
+        else:
+            try:
+                read_mesh(args[0]); code = 0
+            except Exception as error:
+                code, err = type(error).__name__, io.StringIO(str(error))
+    print(json.dumps([kind, args, code, err.getvalue()]), flush=True)
+"""
+
+
+def _run_cases(cases) -> list:
+    done = subprocess.run([sys.executable, "-c", _CASES, json.dumps(cases)], cwd=REPO, capture_output=True, text=True, timeout=300)
+    results = [json.loads(line) for line in done.stdout.splitlines() if line.startswith("[")]
+    assert done.returncode == 0 and len(results) == len(cases), (
+        f"the process died (status {done.returncode}) after {len(results)} of {len(cases)} cases: {done.stderr[-2000:]}"
+    )
+    return results
+
+
+def _sphere(resolution=60):
+    from vtkmodules.vtkFiltersSources import vtkSphereSource
+
+    sphere = vtkSphereSource()
+    sphere.SetThetaResolution(resolution)
+    sphere.SetPhiResolution(resolution)
+    sphere.Update()
+    return sphere.GetOutput()
+
+
+@pytest.fixture(scope="module")
+def whole_files(tmp_path_factory):
+    from mabdi.io.vtk_files import write_mesh_file
+
+    folder = tmp_path_factory.mktemp("whole")
+    mesh = _sphere()
+    return {suffix: write_mesh_file(mesh, folder / f"sphere{suffix}") for suffix in (".ply", ".vtp", ".obj", ".stl")}
+
+
+def _cut(source: Path, folder: Path, size: int, name: str) -> str:
+    target = folder / name
+    target.write_bytes(source.read_bytes()[:size])
+    return str(target)
+
+
+def test_damaged_mesh_files_are_an_error_naming_the_file(tmp_path, whole_files):
+    from mabdi.io.checks import ply_header
+
+    ply = whole_files[".ply"]
+    _, elements, data = ply_header(ply)
+    vertices = elements[0]["count"] * 12
+    total = ply.stat().st_size
+    cuts = {
+        "header_part.ply": 60,
+        "header_only.ply": data,
+        "mid_vertices.ply": data + vertices // 2,
+        "mid_faces.ply": data + vertices + (total - data - vertices) // 2,
+        "one_byte_short.ply": total - 1,
+    }
+    damaged = [_cut(ply, tmp_path, size, name) for name, size in cuts.items()]
+    damaged += [_cut(whole_files[".vtp"], tmp_path, n, f"cut{n}.vtp") for n in (0, 400, whole_files[".vtp"].stat().st_size // 2)]
+    damaged.append(_cut(whole_files[".stl"], tmp_path, whole_files[".stl"].stat().st_size - 30, "cut.stl"))
+    damaged.append(_cut(whole_files[".stl"], tmp_path, 50, "tiny.stl"))
+    (tmp_path / "empty.obj").write_bytes(b"")
+    (tmp_path / "noise.obj").write_bytes(np.random.default_rng(0).integers(0, 256, 5000, dtype=np.uint8).tobytes())
+    damaged += [str(tmp_path / "empty.obj"), str(tmp_path / "noise.obj")]
+    cases = []
+    for path in damaged:
+        cases += [["main", ["info", path]], ["main", ["export", path, str(tmp_path / "out.vtp")]], ["scene", [path]]]
+    for kind, args, code, err in _run_cases(cases):
+        path = args[0] if kind == "scene" else args[1]
+        if kind == "main":
+            assert code == 2, f"mabdi {' '.join(args)}: exit {code}, stderr {err!r}"
+            assert err.startswith("mabdi: error: "), err
+        else:
+            assert code == "DamagedFileError", f"scene mesh {path}: {code} {err!r}"
+        assert path in err, f"the message does not name {path}: {err!r}"
+        assert "\x1b[" not in err and "vtkExecutive" not in err
+    assert not (tmp_path / "out.vtp").exists()
+
+
+def test_whole_mesh_files_pass_the_checks(whole_files):
+    from mabdi.io.checks import check_mesh_file
+    from mabdi.io.vtk_files import read_mesh_file
+
+    for path in whole_files.values():
+        check_mesh_file(path)
+        assert read_mesh_file(path).GetNumberOfCells() > 0
+
+
+def _ply(path: Path, faces: list[list[int]], order: str = "<", extra: bool = False) -> Path:
+    """A binary PLY of 4 vertices (a colour byte after x y z when ``extra``) and ``faces`` of any size."""
+    fmt = {"<": "binary_little_endian", ">": "binary_big_endian"}[order]
+    header = f"ply\nformat {fmt} 1.0\nelement vertex 4\nproperty float x\nproperty float y\nproperty float z\n"
+    header += "property uchar red\n" if extra else ""
+    header += f"element face {len(faces)}\nproperty list uchar int vertex_indices\n"
+    header += "property float quality\n" if extra else ""
+    header += "end_header\n"
+    data = b""
+    for vertex in ((0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0)):
+        data += np.array(vertex, dtype=order + "f4").tobytes() + (b"\x07" if extra else b"")
+    for face in faces:
+        data += np.uint8(len(face)).tobytes() + np.array(face, dtype=order + "i4").tobytes()
+        data += np.array([0.5], dtype=order + "f4").tobytes() if extra else b""
+    path.write_bytes(header.encode() + data)
+    return path
+
+
+@pytest.mark.parametrize("order", ["<", ">"])
+@pytest.mark.parametrize("extra", [False, True])
+def test_ply_check_walks_mixed_face_lists(tmp_path, order, extra):
+    from mabdi.errors import DamagedFileError
+    from mabdi.io.checks import check_ply
+
+    faces = [[0, 1, 2], [0, 2, 3], [0, 1, 2, 3]] * 50 + [[0, 1, 2]] * 100 + [[0, 1, 2, 3], [3, 2, 1]] * 40
+    path = _ply(tmp_path / "mixed.ply", faces, order, extra)
+    check_ply(path)
+    data = path.read_bytes()
+    for cut in (len(data) - 1, len(data) - 20, len(data) // 2):
+        path.write_bytes(data[:cut])
+        with pytest.raises(DamagedFileError, match="mixed.ply.*face"):
+            check_ply(path)
+    # a list length that runs past the end (garbage in the last face's count byte)
+    broken = bytearray(data)
+    broken[len(data) - (1 + 12 + (4 if extra else 0))] = 250
+    path.write_bytes(bytes(broken))
+    with pytest.raises(DamagedFileError, match="mixed.ply"):
+        check_ply(path)
+
+
+def test_ascii_ply_cut_short_is_damaged(tmp_path):
+    from mabdi.errors import DamagedFileError
+    from mabdi.io.checks import check_ply
+
+    text = "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\n"
+    text += "element face 1\nproperty list uchar int vertex_indices\nend_header\n0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n"
+    path = tmp_path / "a.ply"
+    path.write_text(text)
+    check_ply(path)
+    path.write_text(text.rsplit("0 1 0", 1)[0])
+    with pytest.raises(DamagedFileError, match="a.ply"):
+        check_ply(path)
+
+
+# -- a full disk ---------------------------------------------------------------------------------
+
+# A file-size limit (RLIMIT_FSIZE) makes every write past it fail, as a full disk does (EFBIG instead
+# of ENOSPC), for VTK's C++ writers, HDF5 and Python alike; root is not exempt. In a child process.
+_FULL_DISK = r"""
+import json, os, resource, signal, sys
+from pathlib import Path
+import numpy as np
+from vtkmodules.vtkFiltersSources import vtkSphereSource
+from vtkmodules.vtkImagingCore import vtkRTAnalyticSource
+from mabdi.errors import WriteError
+from mabdi.io.atomic import write_text
+from mabdi.io.hdf5 import write_map
+from mabdi.io.plots import write_png
+from mabdi.io.vtk_files import write_image, write_mesh_file
+from mabdi.maps.mesh_map import MeshMap
+
+out = Path(sys.argv[1])
+sphere = vtkSphereSource(); sphere.SetThetaResolution(300); sphere.SetPhiResolution(300); sphere.Update()
+image = vtkRTAnalyticSource(); image.SetWholeExtent(0, 199, 0, 199, 0, 20); image.Update()
+rng = np.random.default_rng(0)
+big_map = MeshMap(rng.uniform(size=(100000, 3)), rng.integers(0, 100000, (200000, 3)))
+jobs = {name: (lambda name=name: write_mesh_file(sphere.GetOutput(), out / name)) for name in ("m.vtp", "m.ply", "m.obj", "m.stl")}
+jobs["d.vti"] = lambda: write_image(image.GetOutput(), out / "d.vti")
+jobs["t.txt"] = lambda: write_text(out / "t.txt", "x" * 300_000)
+jobs["m.h5"] = lambda: write_map(big_map, out / "m.h5")
+jobs["p.png"] = lambda: write_png(rng.integers(0, 256, (600, 600, 3), dtype=np.uint8), out / "p.png")
+signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+resource.setrlimit(resource.RLIMIT_FSIZE, (100_000, 100_000))
+for name, job in jobs.items():
+    try:
+        job()
+        result = "written"
+    except WriteError as error:
+        result = "WriteError: " + str(error)
+    except Exception as error:
+        result = type(error).__name__ + ": " + str(error)
+    print(json.dumps([name, result]), flush=True)
+"""
+
+
+def test_a_full_disk_leaves_no_file_under_the_final_name(tmp_path):
+    (tmp_path / "m.ply").write_bytes(b"the old map")  # an old file stays as it was
+    done = subprocess.run([sys.executable, "-c", _FULL_DISK, str(tmp_path)], cwd=REPO, capture_output=True, text=True, timeout=300)
+    results = dict(json.loads(line) for line in done.stdout.splitlines() if line.startswith("["))
+    assert done.returncode == 0, f"the process died (status {done.returncode}): {done.stderr[-3000:]}"
+    assert set(results) == {"m.vtp", "m.ply", "m.obj", "m.stl", "d.vti", "t.txt", "m.h5", "p.png"}
+    for name, result in results.items():
+        assert result.startswith("WriteError: cannot write " + str(tmp_path / name)), f"{name}: {result}"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["m.ply"], "a file or temporary file was left behind"
+    assert (tmp_path / "m.ply").read_bytes() == b"the old map"
+
+
+def test_write_error_from_python_write_names_the_target(tmp_path, monkeypatch):
+    import errno
+
+    from mabdi.errors import WriteError
+    from mabdi.io.atomic import write_text
+
+    def full(self, data, *args, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(Path, "write_text", full)
+    with pytest.raises(WriteError, match=r"cannot write .*summary.json: No space left on device"):
+        write_text(tmp_path / "summary.json", "{}")
+    assert list(tmp_path.iterdir()) == []

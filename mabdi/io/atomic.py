@@ -2,7 +2,11 @@
 
 A crash, a full disk or an exception while writing never leaves a
 half-written file where a good one was: the old file stays until the new one
-is complete, and the temporary file is removed on failure.
+is complete, and the temporary file is removed on failure. Python's own
+writes raise on a full disk; an ``OSError`` in the block (or in the final
+fsync) becomes :class:`~mabdi.errors.WriteError` naming the target. Writers
+that do not report a full disk (VTK's) must check what they wrote before the
+block ends (:mod:`mabdi.io.vtk_files` does).
 """
 
 from __future__ import annotations
@@ -11,6 +15,8 @@ import contextlib
 import os
 import tempfile
 from pathlib import Path
+
+from mabdi.errors import MabdiError, WriteError
 
 
 def _umask() -> int:
@@ -34,11 +40,17 @@ def atomic_output(path):
     os.close(handle)
     temporary = Path(temporary)
     try:
-        yield temporary
-        with open(temporary, "rb+") as stream:
-            os.fsync(stream.fileno())
-        os.chmod(temporary, 0o666 & ~_umask())  # mkstemp makes it 0600; give it a normal file's mode
-        os.replace(temporary, path)
+        try:
+            yield temporary
+            with open(temporary, "rb+") as stream:
+                os.fsync(stream.fileno())
+            os.chmod(temporary, 0o666 & ~_umask())  # mkstemp makes it 0600; give it a normal file's mode
+            os.replace(temporary, path)
+        except MabdiError:
+            raise
+        except OSError as error:
+            reason = error.strerror or str(error)
+            raise WriteError(f"cannot write {path}: {reason}") from error
     finally:
         if temporary.exists():
             temporary.unlink()

@@ -43,12 +43,14 @@ load), gzip-compressed (level 4; readable by any HDF5 build, unlike lzf) and
 chunked; the run's poses and intrinsics, when given, go to
 ``/source/poses`` (F, 4, 4) and ``/source/intrinsics`` (8,), float64: seed
 003 keeps the source data beside the map. The root carries
-``mabdi_layout``. Files are written to a temporary file beside the target
-and renamed: a failure never leaves a half-written map where a good one was.
+``mabdi_layout``. Files are built in memory, written to a temporary file
+beside the target and renamed: a failure (a full disk included) never leaves
+a half-written map where a good one was.
 """
 
 from __future__ import annotations
 
+import io
 from pathlib import Path
 
 import numpy as np
@@ -103,8 +105,12 @@ def write_map(mesh_map: MeshMap, path, layout: str = "mesh_tools") -> Path:
         raise MapFileError(f"cannot write {path}: {mesh_map.number_of_vertices} vertices do not fit uint32 face ids")
     h5py = _h5py()
     path = Path(path)
+    # The file is built in memory and written with Python: the HDF5 library writing straight to
+    # a full disk only warns while closing (and the process may crash afterwards), whereas
+    # Python's write raises and atomic_output removes the temporary file.
+    buffer = io.BytesIO()
     try:
-        with atomic_output(path) as temporary, h5py.File(temporary, "w") as file:
+        with h5py.File(buffer, "w") as file:
             file.attrs["mabdi_layout"] = layout
             if layout == "mesh_tools":
                 _write_mesh_tools(file, mesh_map)
@@ -116,6 +122,8 @@ def write_map(mesh_map: MeshMap, path, layout: str = "mesh_tools") -> Path:
                     _dataset(source, "poses", np.asarray(mesh_map.poses, dtype=np.float64))
                 if mesh_map.intrinsics is not None:
                     _dataset(source, "intrinsics", np.asarray(mesh_map.intrinsics, dtype=np.float64))
+        with atomic_output(path) as temporary, open(temporary, "wb") as stream:
+            stream.write(buffer.getbuffer())
     except MabdiError:
         raise
     except OSError as error:

@@ -32,8 +32,22 @@ def write_line_plot(series: dict[str, tuple[np.ndarray, np.ndarray]], path, x_la
     plotter = pv.Plotter(off_screen=True, window_size=(800, 500))
     try:
         plotter.add_chart(chart)
-        with atomic_output(path) as temporary:
-            plotter.screenshot(str(temporary))
+        picture = plotter.screenshot(return_img=True)
     finally:
         plotter.close()
+    write_png(picture, path)
+    return Path(path)
+
+
+def write_png(picture: np.ndarray, path) -> Path:
+    """Write an (H, W, 3|4) uint8 picture as PNG, atomically; encoded in memory and written with
+    Python, so a full disk raises (:class:`~mabdi.errors.WriteError`) instead of leaving a short file."""
+    import io
+
+    from PIL import Image
+
+    buffer = io.BytesIO()
+    Image.fromarray(np.ascontiguousarray(picture)).save(buffer, format="PNG")
+    with atomic_output(path) as temporary, open(temporary, "wb") as stream:
+        stream.write(buffer.getbuffer())
     return Path(path)

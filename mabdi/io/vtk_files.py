@@ -3,6 +3,12 @@
 Meshes: VTP (binary, compressed, every array kept), PLY (binary; triangles),
 OBJ and STL. Images: VTI (field data kept). :func:`read_mesh_file` and
 :func:`write_mesh_file` pick the format from the suffix.
+
+Both directions are checked (:mod:`mabdi.io.checks`): a file is checked to
+be whole before VTK reads it (a binary PLY cut short would crash VTK's
+reader), and what a VTK writer wrote is checked before the temporary file
+takes the target's name (VTK's writers report success on a full disk).
+Either failure is a :class:`~mabdi.errors.MabdiError` naming the file.
 """
 
 from __future__ import annotations
@@ -15,19 +21,36 @@ from vtkmodules.vtkIOGeometry import vtkOBJReader, vtkOBJWriter, vtkSTLReader, v
 from vtkmodules.vtkIOPLY import vtkPLYReader, vtkPLYWriter
 from vtkmodules.vtkIOXML import vtkXMLImageDataWriter, vtkXMLPolyDataReader, vtkXMLPolyDataWriter
 
-from mabdi.errors import AssetNotFoundError, ConfigError
+from mabdi.errors import AssetNotFoundError, ConfigError, DamagedFileError, WriteError
 from mabdi.io.atomic import atomic_output
+from mabdi.io.checks import check_mesh_file
 
 MESH_FORMATS = (".vtp", ".ply", ".obj", ".stl")
 
 
-def _write(writer, data, path) -> Path:
+def _write(writer, data, path, points: int | None = None, cells: int | None = None) -> Path:
+    """Write ``data`` with a VTK ``writer`` to ``path`` atomically; check the file before renaming it.
+
+    ``points``/``cells``: the counts the file must hold (PLY, OBJ, STL).
+    """
+    from mabdi.algorithm import vtk_messages_held
+
     path = Path(path)
     with atomic_output(path) as temporary:
         writer.SetFileName(str(temporary))
         writer.SetInputData(data)
-        if writer.Write() != 1:
-            raise OSError(f"could not write {path} (VTK writer failed; is the disk full?)")
+        with vtk_messages_held() as messages:
+            written = writer.Write()
+            if written != 1 or writer.GetErrorCode() != 0:
+                said = _first_line(messages())
+                raise WriteError(f"cannot write {path}: the VTK writer failed (is the disk full?)" + (f": {said}" if said else ""))
+        if not temporary.exists():
+            raise WriteError(f"cannot write {path}: the VTK writer left no file (is the disk full?)")
+        try:
+            check_mesh_file(temporary, points=points, cells=cells)
+        except DamagedFileError as error:
+            what = str(error).split(": ", 1)[-1]
+            raise WriteError(f"cannot write {path}: the file came out incomplete (is the disk full?): {what}") from None
     return path
 
 
@@ -76,11 +99,19 @@ def write_mesh_file(mesh: vtkPolyData, path) -> Path:
         writer.SetFileTypeToBinary()
     else:
         raise ConfigError(f"{path}: unknown mesh format '{path.suffix}' (known: {', '.join(MESH_FORMATS)})")
-    return _write(writer, _triangles(mesh), path)
+    triangles = _triangles(mesh)
+    return _write(writer, triangles, path, points=triangles.GetNumberOfPoints(), cells=triangles.GetNumberOfCells())
 
 
 def read_mesh_file(path) -> vtkPolyData:
-    """Read a VTP, PLY, OBJ or STL file as vtkPolyData (as stored: no cleaning)."""
+    """Read a VTP, PLY, OBJ or STL file as vtkPolyData (as stored: no cleaning).
+
+    Raises :class:`ConfigError` for an unknown suffix, :class:`AssetNotFoundError`
+    for a missing file and :class:`DamagedFileError` for a file that is empty,
+    cut short or gives no mesh.
+    """
+    from mabdi.algorithm import vtk_messages_held
+
     path = Path(path)
     readers = {".vtp": vtkXMLPolyDataReader, ".ply": vtkPLYReader, ".obj": vtkOBJReader, ".stl": vtkSTLReader}
     reader_class = readers.get(path.suffix.lower())
@@ -88,11 +119,27 @@ def read_mesh_file(path) -> vtkPolyData:
         raise ConfigError(f"{path}: unknown mesh format '{path.suffix}' (known: {', '.join(MESH_FORMATS)})")
     if not path.is_file():
         raise AssetNotFoundError(f"mesh file not found: {path}")
+    check_mesh_file(path)
     reader = reader_class()
     reader.SetFileName(str(path))
-    reader.Update()
-    mesh = vtkPolyData()
-    mesh.ShallowCopy(reader.GetOutput())
-    if mesh.GetNumberOfPoints() == 0:
-        raise ConfigError(f"{path}: no mesh could be read from this file")
+    with vtk_messages_held() as messages:
+        reader.Update()
+        mesh = vtkPolyData()
+        mesh.ShallowCopy(reader.GetOutput())
+        said = _first_line(messages())
+        if mesh.GetNumberOfPoints() == 0:
+            raise DamagedFileError(f"{path}: no mesh could be read from this file" + (f" (VTK: {said})" if said else ""))
+        if reader.GetErrorCode() != 0:
+            raise DamagedFileError(f"{path}: VTK's reader failed on this file" + (f" (VTK: {said})" if said else ""))
     return mesh
+
+
+def _first_line(text: str) -> str:
+    """VTK's first own message in ``text`` ("vtkX (0x...): message"), without the pipeline's dump."""
+    import re
+
+    text = re.sub(r"\x1b\[[0-9;]*[A-Za-z]", "", text)
+    for match in re.finditer(r"(vtk\w+) \(0x[0-9a-fA-F]+\): ([^\n]+)", text):
+        if "returned failure for request" not in match.group(2):
+            return f"{match.group(1)}: {match.group(2).strip()}"
+    return ""
