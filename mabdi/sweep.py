@@ -23,8 +23,8 @@ SWEEP.toml::
   as ``"table"`` is ``scenes/table.toml``.
 * ``[grid]``: the cells are the product configs x every grid list (in file
   order). A key is a dotted path into the run config: any key of
-  :mod:`mabdi.config`, e.g. ``"surface.method"``, ``"surface.n_t"`` or, in
-  nested tables, ``"surface.quadtree.n_t"``; list items by index
+  :mod:`mabdi.config`, e.g. ``"surface.method"``, ``"sensor.noise"``, or a
+  surface filter's parameter ``"surface.quadtree.n_t"``; list items by index
   (``"scene.objects.0.position"``). Unquoted dotted keys (``surface.method
   = [...]``) mean the same. A value that is itself a list (a position) is
   given as a list of lists.

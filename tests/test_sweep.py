@@ -8,7 +8,7 @@ import json
 import pytest
 
 from mabdi.errors import ConfigError
-from mabdi.sweep import load_sweep, run_cell, run_sweep, sweep_cells, sweep_from_dict
+from mabdi.sweep import apply_overrides, load_sweep, run_cell, run_sweep, sweep_cells, sweep_from_dict
 
 from conftest import SCENES
 
@@ -99,9 +99,8 @@ def test_a_sweep_on_ray_equals_the_runs_made_one_by_one(first_sweep, sweep_dir):
     for row, csv_row in zip(first_sweep.rows, table, strict=True):
         assert json.loads((sweep_dir / "cells" / row["cell"] / "row.json").read_text())["triangles"] == row["triangles"]
         assert (sweep_dir / "cells" / row["cell"] / "world_mesh.vtp").is_file()
-        config = load_run_config(SCENES / "table.toml")
-        config.run.frames = 5
-        config.surface.method, config.run.seed = row["surface.method"], row["run.seed"]
+        overrides = {"run.frames": 5, "surface.method": row["surface.method"], "run.seed": row["run.seed"]}
+        config = apply_overrides(load_run_config(SCENES / "table.toml"), overrides)
         simulation = Simulation(config)
         result = simulation.run()
         metrics = evaluate_run(simulation, result, samples=SAMPLES)
