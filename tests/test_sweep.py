@@ -115,7 +115,6 @@ def test_a_rerun_runs_no_cell(first_sweep, sweep_dir):
     again = run_sweep(_spec(GRID), sweep_dir, workers=2)
     assert again.ran == 0 and again.reused == 4
     assert again.rows == first_sweep.rows
-    assert again.seconds < 10.0  # reading four rows and writing the table, not four runs
 
 
 @pytest.mark.slow
