@@ -111,22 +111,27 @@ def vtk_messages_held():
     ends normally the text is passed on: to the output window installed
     before, when that is a collecting one (``vtkStringOutputWindow``, as the
     command line installs), else to stderr. When the block raises, the text
-    is dropped: the exception says what went wrong (include what VTK said in
-    its message where it helps).
+    goes only to a collecting window: the exception says what went wrong
+    (include what VTK said in its message where it helps).
     """
     previous = vtkOutputWindow.GetInstance()
     captured = vtkStringOutputWindow()
     vtkOutputWindow.SetInstance(captured)
     verbosity = vtkLogger.GetCurrentVerbosityCutoff()  # no getter for stderr alone
     vtkLogger.SetStderrVerbosity(vtkLogger.VERBOSITY_OFF)
+    collecting = isinstance(previous, vtkStringOutputWindow)
     try:
         yield captured.GetOutput
+    except BaseException:
+        if collecting and captured.GetOutput():
+            previous.DisplayText(captured.GetOutput())  # kept by the collector, which decides what to show
+        raise
     finally:
         vtkLogger.SetStderrVerbosity(verbosity)
         vtkOutputWindow.SetInstance(previous)
     text = captured.GetOutput()
     if text:
-        if isinstance(previous, vtkStringOutputWindow):
+        if collecting:
             previous.DisplayText(text)
         else:
             sys.stderr.write(text)

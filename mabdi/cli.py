@@ -26,6 +26,13 @@ os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
 
 def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="mabdi", description="Mesh maps from a moving depth sensor (MABDI).")
+    try:
+        from importlib.metadata import version
+
+        mabdi_version = version("mabdi")
+    except Exception:  # noqa: BLE001 - not installed (a source tree on sys.path): say so
+        mabdi_version = "unknown (not installed)"
+    parser.add_argument("--version", action="version", version=f"%(prog)s {mabdi_version}")
     commands = parser.add_subparsers(dest="command", required=True)
 
     surfaces = _surface_help()
@@ -355,9 +362,12 @@ def cmd_sweep(args) -> int:
 
 def cmd_export(args) -> int:
     from mabdi.errors import ConfigError
-    from mabdi.io.map_files import is_hdf5, load_map, save_map
+    from mabdi.io.map_files import MAP_FORMATS, is_hdf5, load_map, save_map
     from mabdi.io.vtk_files import read_mesh_file, write_mesh_file
 
+    for what, path in (("source", args.source), ("target", args.target)):
+        if path.suffix.lower() not in MAP_FORMATS:
+            raise ConfigError(f"export: {what} {path}: unknown format '{path.suffix}' (known: {', '.join(MAP_FORMATS)})")
     if args.source.resolve() == args.target.resolve():
         raise ConfigError(f"export: source and target are the same file ({args.source})")
     if is_hdf5(args.source) or is_hdf5(args.target):
@@ -430,9 +440,18 @@ def cmd_plan(args) -> int:
 
     start, goal = _point(args.start, "start"), _point(args.goal, "goal")
     mesh_map = load_map(args.map)
-    if "lethal" not in mesh_map.vertex_layers:
-        print("map has no cost layers: computing them (mabdi.maps.layers defaults)")
+    layers = mesh_map.vertex_layers
+    if "lethal" not in layers and "cost" not in layers:
         add_cost_layers(mesh_map, faces=False)
+        print(
+            f"mabdi: warning: {args.map} has no cost layers: computed the default ones (roughness, height "
+            "difference, lethal, cost; mabdi.maps.layers) and planned on them, not on costs of your own",
+            file=sys.stderr,
+        )
+    elif "cost" not in layers:
+        print(f"mabdi: warning: {args.map} has a 'lethal' layer but no 'cost' layer: planning by length", file=sys.stderr)
+    elif "lethal" not in layers:
+        print(f"mabdi: warning: {args.map} has a 'cost' layer but no 'lethal' layer: no vertex is excluded", file=sys.stderr)
     result = plan(mesh_map, start, goal, planner=args.planner)
     if not result.reachable:
         print(f"goal unreachable: no free path from vertex {result.start_vertex} to vertex {result.goal_vertex} ({args.planner})")
@@ -446,8 +465,20 @@ def cmd_plan(args) -> int:
 
 def main(argv=None) -> int:
     args = _parser().parse_args(argv)
+    import re
+
+    from vtkmodules.vtkCommonCore import vtkLogger, vtkOutputWindow, vtkStringOutputWindow
+
     from mabdi.errors import MabdiError
 
+    # VTK's own messages (raw, with terminal colour codes) are collected rather than printed:
+    # shown at the end with MABDI_VTK_MESSAGES=1, else only counted when a command fails.
+    show_vtk = os.environ.get("MABDI_VTK_MESSAGES", "").strip() not in ("", "0")
+    previous_window, verbosity = vtkOutputWindow.GetInstance(), vtkLogger.GetCurrentVerbosityCutoff()
+    vtk_messages = vtkStringOutputWindow()
+    vtkOutputWindow.SetInstance(vtk_messages)
+    vtkLogger.SetStderrVerbosity(vtkLogger.VERBOSITY_OFF)
+    failed = True
     try:
         commands = {
             "run": cmd_run,
@@ -459,13 +490,32 @@ def main(argv=None) -> int:
             "bench": cmd_bench,
             "sweep": cmd_sweep,
         }
-        return commands[args.command](args)
+        status = commands[args.command](args)
+        sys.stdout.flush()  # a closed pipe shows here, inside the try
+        failed = status != 0
+        return status
     except (MabdiError, FileNotFoundError) as exc:
         print(f"mabdi: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("mabdi: interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:
+        # The reader went away (mabdi info MAP | head -1): stop quietly, as Unix tools do, and
+        # point stdout at /dev/null so that Python's own flush at exit does not complain.
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        os.close(devnull)
+        return 141  # 128 + SIGPIPE, the status of a tool the pipe stopped
+    finally:
+        vtkOutputWindow.SetInstance(previous_window)
+        vtkLogger.SetStderrVerbosity(verbosity)
+        text = re.sub(r"\x1b\[[0-9;]*[A-Za-z]", "", vtk_messages.GetOutput() or "").strip()
+        if text and show_vtk:
+            print("mabdi: VTK said:\n" + text, file=sys.stderr)
+        elif text and failed:
+            count = len(re.findall(r"(?m)^(?:ERROR|Warning|Generic Warning)", text)) or 1
+            print(f"mabdi: note: VTK printed {count} message(s); MABDI_VTK_MESSAGES=1 shows them", file=sys.stderr)
 
 
 if __name__ == "__main__":

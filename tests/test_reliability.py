@@ -329,3 +329,125 @@ def test_write_error_from_python_write_names_the_target(tmp_path, monkeypatch):
     with pytest.raises(WriteError, match=r"cannot write .*summary.json: No space left on device"):
         write_text(tmp_path / "summary.json", "{}")
     assert list(tmp_path.iterdir()) == []
+
+
+# -- damaged maps, plan's layers ------------------------------------------------------------------
+
+
+def _grid_map(n=12):
+    from mabdi.maps.mesh_map import MeshMap
+
+    x, y = np.meshgrid(np.linspace(0, 1, n), np.linspace(0, 1, n), indexing="ij")
+    vertices = np.stack([x.ravel(), y.ravel(), np.zeros(n * n)], axis=1)
+    i, j = np.meshgrid(np.arange(n - 1), np.arange(n - 1), indexing="ij")
+    v0 = (i * n + j).ravel()
+    faces = np.concatenate([np.stack([v0, v0 + n, v0 + n + 1], 1), np.stack([v0, v0 + n + 1, v0 + 1], 1)])
+    return MeshMap(vertices, faces)
+
+
+@pytest.mark.parametrize("suffix", [".h5", ".vtp", ".ply"])
+@pytest.mark.parametrize("bad", [np.nan, np.inf])
+def test_a_map_with_non_finite_vertices_is_damaged(tmp_path, capsys, suffix, bad):
+    from mabdi.cli import main
+    from mabdi.io.map_files import save_map
+
+    mesh_map = _grid_map()
+    mesh_map.vertices[[3, 50, 51], 1] = bad
+    path = save_map(mesh_map, tmp_path / f"map{suffix}")
+    for argv in (["info", str(path)], ["plan", str(path), "--start=0,0,0", "--goal=1,1,0"]):
+        assert main(argv) == 2, argv
+        err = capsys.readouterr().err
+        assert err.startswith(f"mabdi: error: {path}: damaged map: 3 of 144 vertices are not finite"), err
+        assert "Traceback" not in err
+
+
+def test_plan_says_what_it_planned_on(tmp_path, capsys):
+    from mabdi.cli import main
+    from mabdi.io.map_files import save_map
+    from mabdi.maps.layers import add_cost_layers
+
+    bare = save_map(_grid_map(), tmp_path / "bare.h5")
+    assert main(["plan", str(bare), "--start=0,0,0", "--goal=1,1,0"]) == 0
+    err = capsys.readouterr().err
+    assert "mabdi: warning:" in err and "no cost layers: computed the default ones" in err and str(bare) in err
+
+    lethal_only = _grid_map()
+    lethal_only.vertex_layers["lethal"] = np.zeros(144, dtype=np.uint8)
+    path = save_map(lethal_only, tmp_path / "lethal.h5")
+    assert main(["plan", str(path), "--start=0,0,0", "--goal=1,1,0"]) == 0
+    assert "no 'cost' layer: planning by length" in capsys.readouterr().err
+
+    full = add_cost_layers(_grid_map(), faces=False)
+    path = save_map(full, tmp_path / "full.h5")
+    assert main(["plan", str(path), "--start=0,0,0", "--goal=1,1,0"]) == 0
+    assert "warning" not in capsys.readouterr().err
+
+
+# -- the command line's small manners -----------------------------------------------------------
+
+
+def test_info_into_a_closed_pipe_exits_quietly(tmp_path):
+    from mabdi.io.map_files import save_map
+
+    path = save_map(_grid_map(), tmp_path / "map.h5")
+    # `mabdi info MAP | head -1`: the reader stops after one line
+    done = subprocess.run(
+        f"'{sys.executable}' -m mabdi.cli info '{path}' | head -1", shell=True, cwd=REPO, capture_output=True, text=True, timeout=120
+    )
+    assert done.stdout.strip() == str(path) + " (mesh_tools layout)"
+    assert "Traceback" not in done.stderr and "BrokenPipe" not in done.stderr, done.stderr
+
+
+def test_version(capsys):
+    import importlib.metadata
+
+    from mabdi.cli import main
+
+    with pytest.raises(SystemExit) as exit_:
+        main(["--version"])
+    assert exit_.value.code == 0
+    assert capsys.readouterr().out.strip() == f"mabdi {importlib.metadata.version('mabdi')}"
+
+
+def test_export_unknown_format_lists_every_format(tmp_path, capsys):
+    from mabdi.cli import main
+    from mabdi.io.map_files import MAP_FORMATS, save_map
+
+    path = save_map(_grid_map(), tmp_path / "map.vtp")
+    assert main(["export", str(path), str(tmp_path / "map.xyz")]) == 2
+    err = capsys.readouterr().err
+    assert "map.xyz" in err and "'.xyz'" in err
+    for suffix in MAP_FORMATS:
+        assert suffix in err
+    assert ".h5" in MAP_FORMATS
+
+
+def test_vtk_messages_are_collected_not_dumped(tmp_path):
+    """A file VTK's reader complains about: our one-line error, no raw VTK dump unless asked for."""
+    path = tmp_path / "broken.vtp"
+    path.write_text('<?xml version="1.0"?>\n<VTKFile type="PolyData" version="1.0">\n<Nonsense/>\n</VTKFile>\n')
+    done = subprocess.run([sys.executable, "-m", "mabdi.cli", "info", str(path)], cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2
+    assert done.stderr.startswith(f"mabdi: error: {path}"), done.stderr
+    assert "ERROR: In" not in done.stderr and "\x1b[" not in done.stderr
+    env = dict(os.environ, MABDI_VTK_MESSAGES="1")
+    shown = subprocess.run(
+        [sys.executable, "-m", "mabdi.cli", "info", str(path)], cwd=REPO, capture_output=True, text=True, timeout=120, env=env
+    )
+    assert shown.returncode == 2 and "mabdi: VTK said:" in shown.stderr and "\x1b[" not in shown.stderr
+
+
+def test_mesh_name_near_misses_get_a_hint(tmp_path):
+    from mabdi.errors import AssetNotFoundError
+    from mabdi.sources.assets import resolve_mesh
+
+    with pytest.raises(AssetNotFoundError, match="did you mean the built-in mesh 'bunny'"):
+        resolve_mesh("Bunny", tmp_path)
+    (tmp_path / "Table.ply").write_bytes(b"ply")
+    with pytest.raises(AssetNotFoundError, match=r"did you mean .*Table\.ply"):
+        resolve_mesh("table.ply", tmp_path)
+    with pytest.raises(AssetNotFoundError, match=r"did you mean .*Table\.ply"):
+        resolve_mesh("Tabel.ply", tmp_path)
+    with pytest.raises(AssetNotFoundError) as error:
+        resolve_mesh("chair.obj", tmp_path)
+    assert "did you mean" not in str(error.value)

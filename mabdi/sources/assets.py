@@ -52,16 +52,40 @@ def bunny_path() -> Path:
     raise AssetNotFoundError(BUNNY_HELP)
 
 
+#: Built-in mesh assets by name (the value of a scene object's ``mesh``).
+ASSETS = ("bunny",)
+
+
 def resolve_mesh(name: str, base: Path | None = None) -> Path:
-    """The file behind a config's ``mesh`` value: ``"bunny"`` or a path (relative to ``base``)."""
+    """The file behind a config's ``mesh`` value: ``"bunny"`` or a path (relative to ``base``).
+
+    A name that is not found gets a "did you mean" for a built-in asset (any
+    case, or a near miss) and for files with a near-miss name in that folder.
+    """
     if name == "bunny":
         return bunny_path()
     path = Path(name).expanduser()
     if not path.is_absolute() and base is not None:
         path = base / path
     if not path.is_file():
-        raise AssetNotFoundError(f"mesh file not found: {path}")
+        raise AssetNotFoundError(f"mesh file not found: {path}" + _did_you_mean(name, path))
     return path
+
+
+def _did_you_mean(name: str, path: Path) -> str:
+    """``" (did you mean ...?)"`` for a near-miss asset or file name, or ``""``."""
+    import difflib
+
+    guesses = [f"the built-in mesh {asset!r}" for asset in ASSETS if asset == name.strip().lower()]
+    if not guesses and "/" not in name and "." not in name:
+        guesses = [f"the built-in mesh {a!r}" for a in difflib.get_close_matches(name.lower(), list(ASSETS), n=1, cutoff=0.75)]
+    folder = path.parent
+    if folder.is_dir():
+        files = {p.name.lower(): p.name for p in folder.iterdir() if p.is_file()}
+        same_case = [files[path.name.lower()]] if path.name.lower() in files else []
+        close = same_case or [files[k] for k in difflib.get_close_matches(path.name.lower(), list(files), n=2, cutoff=0.8)]
+        guesses += [str(folder / match) for match in close]
+    return f" (did you mean {' or '.join(guesses)}?)" if guesses else ""
 
 
 def read_mesh(path) -> vtkPolyData:
