@@ -23,6 +23,16 @@ accumulated by three compiled passes over the points (numba) when the
 touched blocks fit a dense box of a million blocks, else (and without
 numba) by numpy bincounts.
 
+Free space (object removal): where the sensor sees through a surface of the
+map, the voxels its rays cross are empty now. :meth:`VoxelMap.clear_free_space`
+walks those rays (:mod:`mabdi.filters.voxel_traversal`, Amanatides & Woo,
+stopping a margin before the measured point and never clearing the voxel that
+holds it) and zeroes the statistics of every voxel they cross;
+:meth:`VoxelMap.clear_voxels` zeroes given voxels. Both return the voxels
+that held points (:class:`ClearedVoxels`), which is what a mesher re-meshes
+around, exactly as for the voxels :meth:`VoxelMap.add_points` returns. Emptied
+blocks stay allocated (a later point reuses them).
+
 Neighbourhoods (the seed's sliding window, eqs. 2-3) combine the statistics
 of ``window``^3 voxels. Eqs. (2)-(3) mix Gaussians weighted by p_i = N_i / N;
 in raw moments that is exactly the sum of the shifted sums, which is what
@@ -31,9 +41,12 @@ in raw moments that is exactly the sum of the shifted sums, which is what
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from mabdi.errors import ConfigError
+from mabdi.filters import voxel_traversal
 
 try:
     from numba import njit
@@ -44,6 +57,8 @@ except ImportError:  # pragma: no cover - numba is a dependency; add_points has 
 STATS = 10
 _PACK_BITS = 21
 _PACK_OFFSET = 1 << (_PACK_BITS - 1)
+#: Largest dense table of blocks :meth:`VoxelMap.clear_free_space` builds over its rays' bounding box.
+CLEAR_BLOCKS = 1 << 22
 
 
 def pack_keys(indices: np.ndarray) -> np.ndarray:
@@ -151,12 +166,29 @@ if njit is not None:
     _accumulate = njit(cache=True)(_accumulate)
 
 
+@dataclass(frozen=True)
+class ClearedVoxels:
+    """What :meth:`VoxelMap.clear_voxels` / :meth:`VoxelMap.clear_free_space` removed.
+
+    ``voxels`` (K, 3) int64: the voxels that held points and are empty now, sorted by (i, j, k);
+    ``blocks`` (sorted int64 keys, :func:`pack_keys` of block coordinates): their blocks;
+    ``points``: how many points their statistics counted.
+    """
+
+    voxels: np.ndarray
+    blocks: np.ndarray
+    points: int
+
+    def __len__(self) -> int:
+        return len(self.voxels)
+
+
 class VoxelMap:
     """Sufficient statistics of points per voxel, stored blockwise (see the module docs).
 
     ``voxel_size`` and ``block_size`` in metres; ``block_size`` must be a whole
-    number of voxels. Attributes after :meth:`add_points`: ``last_changed``,
-    the (M, 3) voxel indices whose statistics changed.
+    number of voxels. Attributes after :meth:`add_points`, :meth:`clear_voxels` or
+    :meth:`clear_free_space`: ``last_changed``, the (M, 3) voxel indices whose statistics changed.
     """
 
     def __init__(self, voxel_size: float = 0.05, block_size: float = 1.0) -> None:
@@ -327,6 +359,83 @@ class VoxelMap:
         _accumulate(*columns, s, b, low, box, compact_of_box, self.block_slots(touched), self._stats, marks)
         compact, flat = np.nonzero(marks)
         return self._voxels_of(touched[compact], flat)
+
+    # -- removal -----------------------------------------------------------
+    def clear_voxels(self, voxels: np.ndarray) -> ClearedVoxels:
+        """Zero the statistics of (M, 3) voxel indices (duplicates fine); returns those that held points.
+
+        Voxels without points (or in blocks never allocated) change nothing.
+        """
+        voxels = np.asarray(voxels, dtype=np.int64).reshape(-1, 3)
+        b = self.block_voxels
+        blocks = np.floor_divide(voxels, b)
+        addressable = ((blocks >= -_PACK_OFFSET) & (blocks < _PACK_OFFSET)).all(axis=1)  # no key aliasing
+        voxels, blocks = voxels[addressable], blocks[addressable]
+        local = voxels - blocks * b
+        slots = self.block_slots(pack_keys(blocks))
+        flat = (local[:, 0] * b + local[:, 1]) * b + local[:, 2]
+        held = np.flatnonzero(slots >= 0)
+        held = held[self._stats[slots[held], flat[held], 0] > 0]
+        _, first = np.unique(slots[held] * b**3 + flat[held], return_index=True)
+        held = held[first]
+        return self._clear(voxels[held], slots[held], flat[held])
+
+    def clear_free_space(self, origins: np.ndarray, ends: np.ndarray, margins=0.0) -> ClearedVoxels:
+        """Empty the voxels that rays from ``origins`` to ``ends`` cross in free space; returns those that held points.
+
+        ``origins`` (N, 3) or one (3,) (a camera centre) and ``ends`` (N, 3) in world metres: the
+        measured points of rays that saw through the map. Each ray is walked up to ``margins``
+        metres (along the ray; one number or (N,), e.g. the classifier's threshold tau(z) of each
+        pixel, scaled by |ray| / z) before its end, and the voxel holding that pulled-back end is
+        kept too (:func:`mabdi.filters.voxel_traversal.traverse_voxels` with ``include_end=False``):
+        a ray never clears its own end point's voxel. A crossed voxel is emptied when the ray saw
+        through its points (:func:`mabdi.filters.voxel_traversal.seen_through`: it passes within
+        3 sigma of their Gaussian before the pulled-back end), so a ray that grazes the surface it
+        measures, or passes beside points in a voxel it crosses, leaves them. One compiled pass walks the rays and flags the crossed voxels that hold points (when the
+        rays' blocks fit a dense table of :data:`CLEAR_BLOCKS` blocks); otherwise, and without
+        numba, :meth:`clear_voxels` of the traversal.
+        """
+        origins, ends, margins = voxel_traversal.prepare_rays(origins, ends, margins)
+        s, b = self.voxel_size, self.block_voxels
+        if len(ends) == 0 or self._used == 0:
+            return self._clear(np.zeros((0, 3), dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64))
+        low, dims = voxel_traversal.voxel_box(origins, ends, margins, s)
+        block_low = np.floor_divide(low, b)
+        block_dims = np.floor_divide(low + dims - 1, b) - block_low + 1
+        if voxel_traversal.njit is None or float(np.prod(block_dims.astype(np.float64))) > CLEAR_BLOCKS:
+            return self.clear_voxels(self._seen_through(origins, ends, margins))
+        coords = unpack_keys(self._keys) - block_low
+        inside = np.flatnonzero(((coords >= 0) & (coords < block_dims)).all(axis=1))
+        table = np.full(int(np.prod(block_dims)), -1, dtype=np.int64)
+        box = (coords[inside, 0] * block_dims[1] + coords[inside, 1]) * block_dims[2] + coords[inside, 2]
+        table[box] = np.arange(len(inside))
+        flags = np.zeros((len(inside), b**3), dtype=np.bool_)
+        slots = self._slots[inside]
+        voxel_traversal.flag_occupied(origins, ends, margins, s, False, b, block_low, block_dims, table, slots, self._stats, flags)
+        compact, flat = np.nonzero(flags)
+        return self._clear(self._voxels_of(self._keys[inside][compact], flat), slots[compact], flat)
+
+    def _seen_through(self, origins: np.ndarray, ends: np.ndarray, margins: np.ndarray) -> np.ndarray:
+        """The voxels :meth:`clear_free_space` empties, from every (ray, voxel) crossing (numpy; the reference)."""
+        rays, voxels = voxel_traversal.ray_voxels(origins, ends, self.voxel_size, margins, include_end=False)
+        moments = self.moments(voxels)
+        occupied = moments[:, 0] > 0
+        rays, voxels, moments = rays[occupied], voxels[occupied], moments[occupied]
+        delta = ends[rays] - origins[rays]
+        length = np.linalg.norm(delta, axis=1)
+        w = origins[rays] - voxels * self.voxel_size
+        u = delta / length[:, None]
+        hit = voxel_traversal.seen_through(*moments.T, *w.T, *u.T, length - margins[rays], self.voxel_size)
+        return voxels[hit]
+
+    def _clear(self, voxels: np.ndarray, slots: np.ndarray, flat: np.ndarray) -> ClearedVoxels:
+        """Zero the statistics of distinct voxels (their slots and flat indices); the result, sorted."""
+        points = int(round(self._stats[slots, flat, 0].sum()))
+        self._stats[slots, flat] = 0.0
+        order = np.lexsort(voxels.T[::-1])
+        voxels = voxels[order]
+        self.last_changed = voxels
+        return ClearedVoxels(voxels, np.unique(self.block_of(voxels)), points)
 
     def _voxels_of(self, block_keys: np.ndarray, local_flat: np.ndarray) -> np.ndarray:
         b = self.block_voxels
