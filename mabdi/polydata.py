@@ -132,3 +132,12 @@ def polydata_from_state(state: dict) -> vtkPolyData:
         for name, role in state["attributes"][key].items():
             data.SetActiveAttribute(name, role)
     return mesh
+
+
+def polydata_area(mesh: vtkPolyData) -> float:
+    """Total area (m^2) of a mesh's polygons (triangulated)."""
+    if mesh.GetNumberOfCells() == 0:
+        return 0.0
+    points, triangles = polydata_arrays(mesh)
+    corners = points[triangles]
+    return float(0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1).sum())

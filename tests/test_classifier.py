@@ -16,6 +16,7 @@ from mabdi.filters.classifier import (
     ClassifierParameters,
     FilterClassifier,
     classify,
+    pixel_counts,
     remove_specks,
 )
 
@@ -51,8 +52,8 @@ def test_labels_on_known_cases():
     np.testing.assert_array_equal(np.isfinite(frame.depth), novel)
     np.testing.assert_array_equal(frame.depth[novel], measured[novel])
     assert frame.frame == 4
-    assert classifier.counts["novel"] == novel.sum()
-    assert classifier.counts["valid"] == (labels != NO_RETURN).sum()
+    assert pixel_counts(classifier.GetOutput())["novel"] == novel.sum()
+    assert pixel_counts(classifier.GetOutput())["valid"] == (labels != NO_RETURN).sum()
 
 
 def test_threshold_grows_with_range_for_the_kinect_model():
@@ -92,7 +93,7 @@ def test_all_nan_measurement_gives_nothing_and_does_not_fail():
     frame, labels, classifier = run_classifier(measured, expected, ClassifierParameters())
     assert (labels == NO_RETURN).all()
     assert np.isnan(frame.depth).all()
-    assert classifier.counts["valid"] == 0
+    assert pixel_counts(classifier.GetOutput())["valid"] == 0
 
 
 def test_mismatched_sizes_are_a_clear_error():

@@ -138,17 +138,17 @@ def test_tsdf_baseline_is_aligned_and_not_crippled():
     from mabdi.config import load_run_config
     from mabdi.evaluate.metrics import scenes_per_pose
     from mabdi.evaluate.tsdf import alignment_error, run_tsdf
-    from mabdi.simulate import Simulation
+    from mabdi.simulate import SimulatedRig
 
     config = load_run_config(REPO / "scenes" / "table.toml")
-    assert alignment_error(config) < 1e-3
-    run = run_tsdf(config, 0.01)
-    reference = Simulation(config)
+    rig = SimulatedRig.from_config(config)
+    assert alignment_error(rig.noise_free(0), rig.scene.mesh_at(0)) < 1e-3
+    run = run_tsdf(rig, 0.01)
     frames = config.run.frames
     observed = observed_ground_truth(
-        reference.scene.mesh_at(frames - 1), scenes_per_pose(reference.scene, frames), reference.poses, config.sensor.intrinsics()
+        rig.scene.mesh_at(frames - 1), scenes_per_pose(rig.scene, frames), rig.poses, config.sensor.intrinsics()
     )
-    metrics = evaluate_map(run.mesh, reference.scene.mesh_at(frames - 1), observed)
+    metrics = evaluate_map(run.mesh, rig.scene.mesh_at(frames - 1), observed)
     assert metrics.fscore_2cm > 0.9, metrics
 
 

@@ -1,4 +1,4 @@
-"""FilterDepthImageToSurface: the pixel grid against known geometry."""
+"""FilterPixelGrid: the pixel grid against known geometry."""
 
 from __future__ import annotations
 
@@ -7,13 +7,13 @@ from vtkmodules.util.numpy_support import vtk_to_numpy
 
 from mabdi.camera import Intrinsics, backproject, look_at
 from mabdi.depth import depth_image
-from mabdi.filters.depth_to_surface import FilterDepthImageToSurface, pixel_grid_triangles
+from mabdi.filters.pixel_grid import FilterDepthImageToSurface, FilterPixelGrid, PixelGridParameters, pixel_grid_triangles
 
 SMALL = Intrinsics(fx=52.5, fy=52.5, cx=32.0, cy=24.0, width=64, height=48)
 
 
 def surface_of(depth, pose=None, max_jump=0.05):
-    surface = FilterDepthImageToSurface(max_jump=max_jump)
+    surface = FilterPixelGrid(PixelGridParameters(max_jump=max_jump))
     surface.SetInputDataObject(depth_image(depth, SMALL, np.eye(4) if pose is None else pose, frame=2))
     surface.Update()
     mesh = surface.GetOutput()
@@ -54,7 +54,7 @@ def test_oblique_plane_within_the_jump_is_kept():
     normal = np.array([0.0, -np.sin(np.radians(60)), -np.cos(np.radians(60))])
     depth = (normal @ [0, 0, 2.0]) / (intrinsics.rays() @ normal)
     assert depth.min() > 1.0 and depth.max() > 9.0
-    surface = FilterDepthImageToSurface()
+    surface = FilterPixelGrid()
     from mabdi.depth import depth_image as make_image
 
     surface.SetInputDataObject(make_image(depth, intrinsics, np.eye(4)))
@@ -72,3 +72,14 @@ def test_triangle_ids_follow_the_square_layout():
     triangles = pixel_grid_triangles(depth, 0.05)
     assert triangles.tolist()[:2] == [[0, 4, 1], [1, 5, 2]]
     assert [1, 4, 5] in triangles.tolist()
+
+
+def test_the_former_name_is_an_alias_and_parameters_are_checked():
+    import pytest
+
+    from mabdi.errors import ConfigError
+
+    assert FilterDepthImageToSurface is FilterPixelGrid
+    assert FilterPixelGrid(0.1).max_jump == 0.1 and FilterPixelGrid().parameters == PixelGridParameters()
+    with pytest.raises(ConfigError, match="max_jump must be > 0"):
+        FilterPixelGrid(PixelGridParameters(max_jump=0.0))

@@ -67,10 +67,13 @@ class ClassifierParameters:
 
     The ``[classifier]`` section of a run config. ``enabled = false`` is the
     loop's "black box": the surface filter meshes every valid pixel of D,
-    every frame (the classifier filter itself ignores it).
+    every frame. ``removal = true``: contradicted pixels remove the map faces
+    they see through (:mod:`mabdi.filters.removal`). The classifier filter
+    itself reads neither switch: the loop does.
     """
 
     enabled: bool = True
+    removal: bool = True
     tau_min: float = 0.01
     k_sigma: float = 3.0
     min_width: int = 3

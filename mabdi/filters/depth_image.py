@@ -32,7 +32,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from vtkmodules.util.numpy_support import vtk_to_numpy
-from vtkmodules.vtkCommonCore import vtkFloatArray
+from vtkmodules.vtkCommonCore import vtkFloatArray, vtkUnsignedCharArray
 from vtkmodules.vtkCommonDataModel import (
     vtkCompositeDataSet,
     vtkDataObject,
@@ -167,15 +167,20 @@ class DepthRenderer:
     or when it changes, so a map that grows by new blocks uploads only those.
     """
 
-    def __init__(self, backend: str = "egl") -> None:
+    def __init__(self, backend: str = "egl", identity_array: str | None = None) -> None:
         if backend not in BACKENDS:
             raise ConfigError(f"unknown render backend {backend!r} (known: {', '.join(BACKENDS)})")
         self.backend = backend
+        #: With a name: draw each cell in the colour of its uint8 RGB cell array of that name (flat, no
+        #: lighting), so the colour buffer says which face each pixel shows (:meth:`render_identity`).
+        self.identity_array = identity_array
         self._window = None
         self._size: tuple[int, int] | None = None
         self._renderer = vtkRenderer()
+        self._renderer.SetBackground(0.0, 0.0, 0.0)  # identity 0: no face
         self._actors: dict[int, tuple[vtkPolyData, vtkActor]] = {}
         self._zbuffer = vtkFloatArray()
+        self._rgb = vtkUnsignedCharArray()
 
     def _sync_actors(self, data) -> None:
         """One actor per polydata of ``data``; actors of polydata no longer there are dropped."""
@@ -185,10 +190,18 @@ class DepthRenderer:
             if entry is None:
                 mapper = vtkPolyDataMapper()
                 mapper.SetInputData(leaf)
-                mapper.ScalarVisibilityOff()
+                if self.identity_array is not None and leaf.GetCellData().GetArray(self.identity_array) is not None:
+                    mapper.ScalarVisibilityOn()
+                    mapper.SetScalarModeToUseCellFieldData()
+                    mapper.SelectColorArray(self.identity_array)
+                    mapper.SetColorModeToDirectScalars()
+                else:
+                    mapper.ScalarVisibilityOff()
                 actor = vtkActor()
                 actor.SetMapper(mapper)
                 actor.GetProperty().LightingOff()
+                if self.identity_array is not None:
+                    actor.GetProperty().SetColor(0.0, 0.0, 0.0)  # a block without identities reads as "no face"
                 self._renderer.AddActor(actor)
                 entry = (leaf, actor)
             current[id(leaf)] = entry
@@ -236,6 +249,16 @@ class DepthRenderer:
         width, height = size
         self._window.GetZbufferData(0, 0, width - 1, height - 1, self._zbuffer)
         return vtk_to_numpy(self._zbuffer).reshape(height, width)[::-1]
+
+    def render_identity(self) -> np.ndarray:
+        """(H, W) int64 identity of the last render (top row first): the 24-bit RGB of the face seen, 0 = none.
+
+        Call right after :meth:`render_zbuffer` (same frame); needs ``identity_array``.
+        """
+        width, height = self._size
+        self._window.GetPixelData(0, 0, width - 1, height - 1, 0, self._rgb, 0)
+        rgb = vtk_to_numpy(self._rgb).reshape(height, width, 3)[::-1].astype(np.int64)
+        return rgb[..., 0] | (rgb[..., 1] << 8) | (rgb[..., 2] << 16)
 
     def describe(self) -> dict:
         """The backend that drew the frames: name, window class and OpenGL renderer string."""

@@ -11,26 +11,38 @@ and travel with the images. Pixels where the map has no surface within
 The rendering is :class:`~mabdi.filters.depth_image.DepthRenderer`'s: one
 off-screen window reused across frames, multisampling off, one mapper per
 map block so a frame uploads only the blocks that changed.
+
+**Face identity** (``identity=True``, the loop's default): the same render
+draws every face in the colour of its 24-bit identity (the world mesh's cell
+data ``face_rgb``), and the output gains the int32 point array ``face_id``:
+per pixel, the identity of the map face seen there (0 = none). Object
+removal (:mod:`mabdi.filters.removal`) votes on faces through it.
 """
 
 from __future__ import annotations
 
+import numpy as np
+from vtkmodules.util.numpy_support import numpy_to_vtk, vtk_to_numpy
 from vtkmodules.vtkCommonDataModel import vtkCompositeDataSet, vtkDataObject, vtkImageData, vtkPolyData
 from vtkmodules.vtkCommonExecutionModel import vtkAlgorithm, vtkStreamingDemandDrivenPipeline
 
 from mabdi.algorithm import MabdiAlgorithm
 from mabdi.depth import fill_depth_image, image_frame, image_intrinsics, image_pose, image_timestamp
 from mabdi.filters.depth_image import DepthRenderer, SensorNoise
+from mabdi.filters.world_mesh import FACE_RGB_ARRAY
 
 MAP_PORT, MEASURED_PORT = 0, 1
+#: Point data of E with identity: the map face seen at each pixel (int32, 0 = none).
+FACE_ID_ARRAY = "face_id"
 
 
 class FilterExpectedImage(MabdiAlgorithm):
     """Render the map (port 0) from the pose of the depth image on port 1 (map + D -> E)."""
 
-    def __init__(self, backend: str = "egl") -> None:
+    def __init__(self, backend: str = "egl", identity: bool = False) -> None:
         super().__init__(nInputPorts=2, nOutputPorts=1, outputType="vtkImageData")
-        self.renderer = DepthRenderer(backend)
+        self.identity = identity
+        self.renderer = DepthRenderer(backend, identity_array=FACE_RGB_ARRAY if identity else None)
 
     def FillInputPortInformation(self, port, info):  # noqa: N802 (VTK API)
         kind = "vtkImageData" if port == MEASURED_PORT else "vtkDataObject"
@@ -58,4 +70,18 @@ class FilterExpectedImage(MabdiAlgorithm):
         depth = SensorNoise("none").depth_from_zbuffer(zbuffer, intrinsics.near, intrinsics.far, None)
         output = vtkImageData.GetData(outInfo)
         fill_depth_image(output, depth, intrinsics, pose, image_frame(measured), image_timestamp(measured))
+        if self.identity:
+            ids = self.renderer.render_identity().astype(np.int32)
+            ids[np.isnan(depth)] = 0  # beyond the range: no face
+            array = numpy_to_vtk(ids.ravel(), deep=True)
+            array.SetName(FACE_ID_ARRAY)
+            output.GetPointData().AddArray(array)
         return 1
+
+
+def face_id_array(image) -> np.ndarray:
+    """(H, W) int32 face identities of an expected image rendered with identity (0 = no face)."""
+    array = image.GetPointData().GetArray(FACE_ID_ARRAY)
+    if array is None:
+        raise ValueError(f"expected image has no point array '{FACE_ID_ARRAY}' (rendered without identity?)")
+    return vtk_to_numpy(array).reshape(image_intrinsics(image).shape)

@@ -259,6 +259,7 @@ class FilterVoxelPlanes(MabdiAlgorithm):
         self.map = VoxelMap(self._parameters.voxel_size, self._parameters.block_size)
         self._blocks: dict[int, BlockPolygons] = {}
         self._changed = np.zeros(0, dtype=np.int64)
+        self._pending_cleared = np.zeros((0, 3), dtype=np.int64)
         self._last_input: tuple[str, int] | None = None
         self._meshed_with = self._parameters
 
@@ -293,13 +294,14 @@ class FilterVoxelPlanes(MabdiAlgorithm):
 
     def state(self) -> dict:
         """What the filter keeps across updates (the voxel statistics and the polygons per block), for checkpoints."""
-        return {"map": self.map, "blocks": self._blocks, "meshed_with": self._meshed_with}
+        return {"map": self.map, "blocks": self._blocks, "meshed_with": self._meshed_with, "pending": self._pending_cleared}
 
     def set_state(self, state: dict) -> None:
         """Restore what :meth:`state` returned (the next update goes on from there)."""
         self.map = state["map"]
         self._blocks = state["blocks"]
         self._meshed_with = state["meshed_with"]
+        self._pending_cleared = state["pending"]
         self._changed = np.zeros(0, dtype=np.int64)
         self._last_input = None
         self.Modified()
@@ -309,6 +311,7 @@ class FilterVoxelPlanes(MabdiAlgorithm):
         self.map = VoxelMap(self._parameters.voxel_size, self._parameters.block_size)
         self._blocks.clear()
         self._changed = np.zeros(0, dtype=np.int64)
+        self._pending_cleared = np.zeros((0, 3), dtype=np.int64)
         self._last_input = None
         self._meshed_with = self._parameters
         self.Modified()
@@ -323,9 +326,23 @@ class FilterVoxelPlanes(MabdiAlgorithm):
         """Keys of the blocks re-meshed by the last update."""
         return self._changed.copy()
 
+    def clear_free_space(self, origins: np.ndarray, ends: np.ndarray, margins) -> int:
+        """Empty the voxels that rays from ``origins`` to ``ends`` (world, metres) saw through, stopping
+        ``margins`` (m) short of the ends (:meth:`VoxelMap.clear_free_space`); the neighbourhoods that
+        change are re-meshed with the next points. Returns the number of points removed."""
+        cleared = self.map.clear_free_space(origins, ends, margins)
+        if len(cleared.voxels):
+            self._pending_cleared = np.concatenate([self._pending_cleared, cleared.voxels])
+            self.Modified()
+        return int(cleared.points)
+
     def add_points(self, points: np.ndarray) -> np.ndarray:
-        """Add (M, 3) world points and re-mesh the blocks they touch; returns the re-meshed block keys."""
+        """Add (M, 3) world points and re-mesh the blocks they touch (and those emptied by
+        :meth:`clear_free_space` since the last call); returns the re-meshed block keys."""
         changed = self.map.add_points(points)
+        if len(self._pending_cleared):
+            changed = np.concatenate([np.asarray(changed, dtype=np.int64).reshape(-1, 3), self._pending_cleared])
+            self._pending_cleared = np.zeros((0, 3), dtype=np.int64)
         window = self._parameters.window
         low = anchor_range(window)
         # voxel v lies in the neighbourhoods of anchors v - low - (window - 1) ... v - low

@@ -5,6 +5,12 @@
          ^                                                                                |
          +---------- FilterWorldMesh <-- surface filter (by name, registry) <-------------+
 
+With removal on (``[classifier] removal = true``, the default), E also says
+which map face each pixel shows, and pixels that see through a face
+(D > E + tau) vote it out of the map (:mod:`mabdi.filters.removal`) at the
+end of the frame; voxel planes also clear the voxels those rays crossed
+(re-meshed with the next frame's points).
+
 The frame index is set in one place, :class:`SourceDepthFrames`; D carries it
 with its pose and timestamp in its field data, and E, the classifier and the
 surface take them from there. E is rendered from the map as it stood after
@@ -28,12 +34,14 @@ from vtkmodules.vtkCommonDataModel import vtkImageData, vtkPolyData
 
 from mabdi.algorithm import raise_pipeline_errors
 from mabdi.camera import Intrinsics
-from mabdi.depth import depth_array
-from mabdi.filters.classifier import ClassifierParameters, FilterClassifier, label_array, pixel_counts
+from mabdi.depth import depth_array, image_pose
+from mabdi.filters.classifier import CONTRADICTED, ClassifierParameters, FilterClassifier, label_array, pixel_counts
 from mabdi.filters.depth_image import BACKENDS, SensorNoise
-from mabdi.filters.expected_image import MAP_PORT, MEASURED_PORT, FilterExpectedImage
+from mabdi.filters.expected_image import MAP_PORT, MEASURED_PORT, FilterExpectedImage, face_id_array
 from mabdi.filters.registry import make_surface_filter
+from mabdi.filters.removal import RemovalParameters, removal_votes
 from mabdi.filters.world_mesh import FilterWorldMesh
+from mabdi.polydata import polydata_area
 from mabdi.sources.frames import FrameSource, SourceDepthFrames
 
 
@@ -56,6 +64,10 @@ class FrameRecord:
     novel_pixels: int = 0
     speck_pixels: int = 0
     contradicted_pixels: int = 0
+    #: Faces removed this frame (object removal, :mod:`mabdi.filters.removal`), and the stage's time.
+    cells_removed: int = 0
+    area_removed: float = 0.0  # m^2
+    t_remove_ms: float = 0.0
 
 
 class MabdiLoop:
@@ -81,9 +93,12 @@ class MabdiLoop:
         self.noise = SensorNoise.of(noise)
         self.surface_name = surface
 
+        #: Object removal runs when the classifier does and ``removal`` is on (the default).
+        self.removal = self.classifier_parameters.enabled and self.classifier_parameters.removal
+        self.removal_parameters = RemovalParameters()
         self.measured = SourceDepthFrames(source)
         self.world = FilterWorldMesh()
-        self.expected = FilterExpectedImage(backend=backend)
+        self.expected = FilterExpectedImage(backend=backend, identity=self.removal)
         self.expected.SetInputDataObject(MAP_PORT, self.world.map)
         self.expected.SetInputConnection(MEASURED_PORT, self.measured.GetOutputPort())
         self.classifier = FilterClassifier(self.classifier_parameters, noise=self.noise)
@@ -94,6 +109,8 @@ class MabdiLoop:
         self.surface.SetInputConnection(upstream.GetOutputPort())
         self.world.SetInputConnection(self.surface.GetOutputPort())
         self._algorithms = (self.measured, self.expected, self.classifier, self.surface, self.world)
+        self._removed = vtkPolyData()
+        self._ray_cache: tuple[Intrinsics, np.ndarray] | None = None
 
     @classmethod
     def from_config(cls, config, source: FrameSource) -> MabdiLoop:
@@ -142,6 +159,7 @@ class MabdiLoop:
         self.measured.Update()
         t_depth = time.perf_counter()
         t_expected = t_classify = t_depth
+        cells_removed = 0
         if self.classifier_enabled:
             self.expected.Update()
             t_expected = time.perf_counter()
@@ -152,6 +170,12 @@ class MabdiLoop:
         self.world.Update()
         t_append = time.perf_counter()
         raise_pipeline_errors(*self._algorithms)
+        # Removal last: the map changes after this frame's E was used, so E is not drawn twice; the
+        # surface behind a removed face is novel (and meshed) in the next frame.
+        t_remove = t_append
+        if self.removal:
+            cells_removed = self._remove_contradicted()
+            t_remove = time.perf_counter()
 
         if self.classifier_enabled:
             counts = pixel_counts(self.classifier.GetOutput())
@@ -169,13 +193,60 @@ class MabdiLoop:
             t_classify_ms=ms * (t_classify - t_expected),
             t_surface_ms=ms * (t_surface - t_classify),
             t_append_ms=ms * (t_append - t_surface),
-            t_total_ms=ms * (t_append - start),
+            t_total_ms=ms * (t_remove - start),
             points_total=self.world.number_of_points,
             valid_pixels=counts["valid"],
             novel_pixels=counts["novel"],
             speck_pixels=counts["specks"],
             contradicted_pixels=counts["contradicted"],
+            cells_removed=cells_removed,
+            area_removed=polydata_area(self._removed) if cells_removed else 0.0,
+            t_remove_ms=ms * (t_remove - t_append),
         )
+
+    def _unit_rays(self) -> tuple[np.ndarray, np.ndarray]:
+        """(H, W, 3) unit pixel rays in the camera frame, and (H, W) their length per metre of depth (cached)."""
+        intrinsics = self.intrinsics
+        if self._ray_cache is None or self._ray_cache[0] != intrinsics:
+            rays = intrinsics.rays()  # ((u + 0.5 - cx) / fx, (v + 0.5 - cy) / fy, 1)
+            length = np.linalg.norm(rays, axis=-1)
+            self._ray_cache = (intrinsics, (rays / length[..., None]).astype(np.float32), length)
+        return self._ray_cache[1], self._ray_cache[2]
+
+    def _remove_contradicted(self) -> int:
+        """Vote with this frame's contradicted and known pixels, remove the faces the evidence condemns."""
+        self._removed = vtkPolyData()
+        classified = self.classifier.GetOutput()
+        labels = label_array(classified)
+        if not np.any(labels == CONTRADICTED):
+            # No pixel sees through the map: nothing can go. (Confirmations only matter against
+            # contradictions, so a frame without any is skipped whole: the common case once the world is known.)
+            return 0
+        measured_image = self.measured_image()
+        measured = depth_array(measured_image)
+        face_ids = face_id_array(self.expected.GetOutput())
+        pose = image_pose(measured_image)
+        unit_rays, length = self._unit_rays()
+        faces, contradicted, confirmed, voting = removal_votes(
+            labels, measured, face_ids, unit_rays, pose, self.world.face_normals_of, self.removal_parameters
+        )
+        if not len(faces):
+            return 0
+        gone = self.world.update_evidence(faces, contradicted, confirmed, self.removal_parameters)
+        if not len(gone):
+            return 0
+        self._removed = self.world.remove_faces(gone)
+        if hasattr(self.surface, "clear_free_space"):
+            # Rays that saw through the removed faces empty the voxels they crossed (up to tau before D).
+            through = voting & np.isin(face_ids, gone)
+            if through.any():
+                depth = measured[through].astype(np.float64)
+                intrinsics = self.intrinsics
+                tau = self.classifier.threshold(measured[through], intrinsics.near, intrinsics.far).astype(np.float64)
+                directions = unit_rays[through].astype(np.float64) @ pose[:3, :3].T
+                ends = pose[:3, 3] + directions * (depth * length[through])[:, None]
+                self.surface.clear_free_space(pose[:3, 3], ends, tau * length[through])
+        return int(self._removed.GetNumberOfCells())
 
     # -- what the last frame produced --------------------------------------
     def measured_image(self) -> vtkImageData:
@@ -194,6 +265,10 @@ class MabdiLoop:
         """(H, W) uint8 labels of the last frame (0 no return, 1 known, 2 novel, 3 contradicted), or None."""
         image = self.classified_image()
         return None if image is None else label_array(image)
+
+    def removed_surface(self) -> vtkPolyData:
+        """The faces object removal took out of the map in the last frame (world coordinates)."""
+        return self._removed
 
     def novel_surface(self) -> vtkPolyData:
         """The surface filter's output of the last frame (what was meshed), world coordinates."""

@@ -65,10 +65,12 @@ METRICS_COLUMNS = (
     "frame",
     "novel_fraction",
     "cells_added",
+    "cells_removed",
     "cells_total",
     "t_depth_ms",
     "t_expected_ms",
     "t_classify_ms",
+    "t_remove_ms",
     "t_surface_ms",
     "t_append_ms",
     "t_total_ms",
@@ -98,12 +100,14 @@ class RunResult:
         """Totals for ``summary.json`` and the command line."""
         records = self.records
         n = max(len(records), 1)
-        stages = ("t_depth_ms", "t_expected_ms", "t_classify_ms", "t_surface_ms", "t_append_ms", "t_total_ms")
+        stages = ("t_depth_ms", "t_expected_ms", "t_classify_ms", "t_remove_ms", "t_surface_ms", "t_append_ms", "t_total_ms")
         return {
             "name": self.config.run.name,
             "source": self.source,
             "frames": len(records),
             "classifier": self.config.classifier.enabled,
+            "removal": self.config.classifier.enabled and self.config.classifier.removal,
+            "cells_removed": int(sum(r.cells_removed for r in records)),
             "surface": self.config.surface.method,
             "surface_parameters": asdict(self.config.surface.parameters_of()),
             "noise": self.config.sensor.noise,

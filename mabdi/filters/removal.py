@@ -1,0 +1,153 @@
+"""Object removal by free-space contradiction (seed 001 §3 and §6): which map faces are gone.
+
+The sign of D - E says more than its magnitude. Where the sensor measures
+*farther* than the map predicts (D > E + tau, the classifier's
+"contradicted" label), it sees through a surface of the map: that surface is
+not there any more. Where D and E agree (|D - E| <= tau, "known"), the face
+is confirmed. E carries the identity of the face each pixel shows
+(:class:`~mabdi.filters.expected_image.FilterExpectedImage`), so every such
+pixel is a vote on one face.
+
+**Which pixels vote** (:func:`removal_votes`): pixels whose E shows a face and
+whose label is known (a confirmation) or contradicted (a contradiction),
+except
+
+* at depth discontinuities of D (silhouettes of what the sensor sees): a
+  pixel whose 3x3 neighbourhood in D holds a depth jump of more than
+  ``edge_jump`` (5%) or a pixel with no return, dilated by ``edge_margin``
+  pixels (2). A map object's silhouette in E lies within a pixel or two of
+  the same object's silhouette in D, so this keeps a slightly misplaced edge
+  from voting against the surface beside it. A silhouette in E with no
+  silhouette in D near it is not masked: that is the edge of a ghost (the
+  world behind it is smooth), exactly where the votes are wanted;
+* at grazing incidence: the angle between the pixel's ray and the face's
+  normal is over ``grazing_deg`` (75 degrees), where tiny depth errors along
+  the ray are large;
+* within the noise threshold tau(z): such pixels are "known" already.
+
+**The rule** (:func:`update_log_odds`): each face keeps the log-odds L that it
+is gone, starting at 0 when the face is made. In a frame where a face gets
+votes, a majority of contradictions adds ``hit`` (1.1: a probability of 0.75
+that one such frame means the face is gone) and counts the frame; otherwise
+confirmations subtract ``miss`` (0.4). L stays within [``floor``,
+``ceiling``] = [-0.7, 3]: a surface seen often is not made unremovable, and
+the floor is what lets a departed object go within two or three frames. A
+face is removed when L >= ``threshold`` (1.5) *and* it was contradicted in
+at least ``min_frames`` (2) frames: never from one noisy frame. A face
+confirmed all along (L = -0.7) goes after two contradicting frames with no
+confirming frame between them; a confirming frame between costs a third.
+Frames in which a face gets no vote (not in view, or too small to cover a
+pixel centre) leave its L as it is.
+
+The removed faces leave their blocks in the world mesh
+(:meth:`~mabdi.filters.world_mesh.FilterWorldMesh.remove_faces`), the blocks
+are re-uploaded for E, and the surface behind them is novel in the next
+frame. Voxel planes also clear the statistics along the rays that saw
+through removed faces (:meth:`~mabdi.filters.voxel_planes.FilterVoxelPlanes.clear_free_space`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from mabdi.errors import ConfigError
+from mabdi.filters.classifier import CONTRADICTED, KNOWN, dilate
+
+
+@dataclass(frozen=True)
+class RemovalParameters:
+    """The evidence rule and the vote filters (see the module docs); angles in degrees."""
+
+    hit: float = 1.1
+    miss: float = 0.4
+    floor: float = -0.7
+    ceiling: float = 3.0
+    threshold: float = 1.5
+    min_frames: int = 2
+    grazing_deg: float = 75.0
+    edge_jump: float = 0.05
+    edge_margin: int = 2
+
+    def __post_init__(self) -> None:
+        if not (self.hit > 0 and self.miss >= 0 and self.floor <= 0 < self.threshold <= self.ceiling):
+            raise ConfigError("removal: need hit > 0, miss >= 0 and floor <= 0 < threshold <= ceiling")
+        if self.min_frames < 1 or self.edge_margin < 0 or not 0 < self.grazing_deg < 90 or self.edge_jump <= 0:
+            raise ConfigError("removal: need min_frames >= 1, edge_margin >= 0, 0 < grazing_deg < 90, edge_jump > 0")
+
+
+def depth_edges(depth: np.ndarray, jump: float) -> np.ndarray:
+    """Pixels whose 3x3 neighbourhood holds a relative depth jump over ``jump`` or a pixel without a return
+    (the image's own border is not an edge). Separable 3x3 min and max; NaN counts as no return."""
+    missing = np.isnan(depth)
+    filled = np.where(missing, np.float32(np.inf), depth)
+    low = _three_by_three(filled, np.minimum)
+    high = _three_by_three(np.where(missing, np.float32(-np.inf), depth), np.maximum)
+    near_missing = _three_by_three(missing, np.logical_or)
+    with np.errstate(invalid="ignore"):
+        return near_missing | (high > np.float32(1.0 + jump) * low)
+
+
+def _three_by_three(values: np.ndarray, combine) -> np.ndarray:
+    """``combine`` (np.minimum / np.maximum) over each pixel's 3x3 neighbourhood, edges repeated."""
+    padded = np.pad(values, 1, mode="edge")
+    rows = combine(combine(padded[:, :-2], padded[:, 1:-1]), padded[:, 2:])
+    return combine(combine(rows[:-2], rows[1:-1]), rows[2:])
+
+
+def removal_votes(
+    labels: np.ndarray,
+    measured: np.ndarray,
+    face_ids: np.ndarray,
+    unit_rays: np.ndarray,
+    world_from_camera: np.ndarray,
+    normals_of,
+    parameters: RemovalParameters,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """One frame's votes: (face ids, contradicting pixels, confirming pixels per face, the voting contradicted pixels' mask).
+
+    ``labels`` (H, W) from the classifier; ``measured`` D (H, W) metres; ``face_ids`` (H, W) from E
+    (0 = no face); ``unit_rays`` (H, W, 3) unit pixel rays in the camera frame; ``world_from_camera``
+    the pose; ``normals_of(ids)`` -> (N, 3) world normals of faces (NaN for unknown ids).
+    """
+    candidates = (face_ids > 0) & ((labels == KNOWN) | (labels == CONTRADICTED))
+    if not candidates.any():
+        empty = np.zeros(0, dtype=np.int64)
+        return empty, empty, empty, np.zeros(labels.shape, dtype=bool)
+    edges = depth_edges(measured, parameters.edge_jump)
+    if parameters.edge_margin:
+        edges = dilate(edges, parameters.edge_margin)
+    candidates &= ~edges
+    pixels = np.flatnonzero(candidates)
+    ids = face_ids.ravel()[pixels].astype(np.int64)
+    seen = np.bincount(ids)  # ids are below 2^24: counting is faster than sorting them
+    faces = np.flatnonzero(seen)
+    index = np.zeros(len(seen), dtype=np.int64)
+    index[faces] = np.arange(len(faces))
+    # normals into the camera frame (rows: n_world @ R = (R^T n_world)^T), one per face, then per pixel
+    normals = (normals_of(faces) @ np.asarray(world_from_camera)[:3, :3]).astype(np.float32)[index[ids]]
+    rays = unit_rays.reshape(-1, 3)[pixels]
+    cosine = np.abs(normals[:, 0] * rays[:, 0] + normals[:, 1] * rays[:, 1] + normals[:, 2] * rays[:, 2])
+    facing = cosine >= np.float32(np.cos(np.radians(parameters.grazing_deg)))  # NaN normals fail too
+    pixels, ids = pixels[facing], ids[facing]
+    contradicting = labels.ravel()[pixels] == CONTRADICTED
+    seen = np.bincount(ids, minlength=len(seen))
+    faces = np.flatnonzero(seen)
+    contradicted = np.bincount(ids[contradicting], minlength=len(seen))[faces].astype(np.int64)
+    confirmed = seen[faces].astype(np.int64) - contradicted
+    voting = np.zeros(labels.size, dtype=bool)
+    voting[pixels[contradicting]] = True
+    return faces, contradicted, confirmed, voting.reshape(labels.shape)
+
+
+def update_log_odds(
+    evidence: np.ndarray, frames: np.ndarray, contradicted: np.ndarray, confirmed: np.ndarray, parameters: RemovalParameters
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One frame of the rule in the module docs: (new log-odds, new contradicting-frame counts, removed mask)."""
+    against = contradicted > confirmed
+    evidence = evidence + np.where(against, parameters.hit, np.where(confirmed > 0, -parameters.miss, 0.0))
+    evidence = np.clip(evidence, parameters.floor, parameters.ceiling).astype(np.float32)
+    frames = (frames + against).astype(np.uint16)
+    gone = (evidence >= parameters.threshold) & (frames >= parameters.min_frames)
+    return evidence, frames, gone

@@ -1,0 +1,150 @@
+"""Object removal: E says which face each pixel shows, votes by the sign of D - E, a log-odds rule that
+never removes on one frame, removal from the world mesh and from the voxel-plane statistics."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from vtkmodules.util.numpy_support import numpy_to_vtk, vtk_to_numpy
+from vtkmodules.vtkCommonDataModel import vtkCellLocator
+
+import mabdi
+from conftest import plane_mesh
+from mabdi.camera import Intrinsics, project
+from mabdi.depth import DepthFrame, image_pose
+from mabdi.filters.depth_image import DepthRenderer
+from mabdi.filters.removal import RemovalParameters, depth_edges, update_log_odds
+from mabdi.filters.world_mesh import FACE_RGB_ARRAY, FaceIds, face_rgb
+from mabdi.polydata import polydata_arrays
+from mabdi.sources.frames import FrameList
+
+SMALL = Intrinsics(fx=160, fy=160, cx=80, cy=60, width=160, height=120)
+
+
+def test_identity_render_names_the_face_under_each_pixel_centre():
+    mesh = plane_mesh([0, 0, 2], [0, 0, -1], size=4.0, subdivisions=40)
+    count = mesh.GetNumberOfCells()
+    rgb = numpy_to_vtk(face_rgb(1000, count), deep=True)
+    rgb.SetName(FACE_RGB_ARRAY)
+    mesh.GetCellData().AddArray(rgb)
+    renderer = DepthRenderer(identity_array=FACE_RGB_ARRAY)
+    intrinsics = Intrinsics()
+    pose = np.eye(4)
+    pose[:3, 3] = [0.013, -0.021, 0.0]  # pixel centres off the mesh's vertices
+    renderer.render_zbuffer(mesh, intrinsics, pose)
+    identity = renderer.render_identity()
+    locator = vtkCellLocator()
+    locator.SetDataSet(mesh)
+    locator.BuildLocator()
+    rays = intrinsics.rays()
+    rng = np.random.default_rng(1)
+    for v, u in zip(rng.integers(0, 480, 200), rng.integers(0, 640, 200), strict=True):
+        point = rays[v, u] * 2.0 + pose[:3, 3]
+        assert identity[v, u] == 1000 + locator.FindCell(point), (v, u)
+    assert set(np.unique(identity)) <= set(range(1000, 1000 + count))
+
+
+def test_face_ids_are_allocated_first_fit_and_looked_up():
+    ids = FaceIds()
+    assert ids.allocate("a", 10) == 1 and ids.allocate("b", 5) == 11 and ids.allocate("c", 3) == 16
+    ids.release("b")
+    assert ids.allocate("d", 4) == 11  # reuses the gap
+    block, local, keys = ids.lookup(np.array([1, 10, 11, 14, 15, 16, 18, 19, 0]))
+    named = [keys[b] if b >= 0 else None for b in block]
+    assert named == ["a", "a", "d", "d", None, "c", "c", None, None]
+    assert local[:7].tolist() == [0, 9, 0, 3, -1, 0, 2]
+
+
+def test_one_noisy_frame_never_removes_a_face():
+    p = RemovalParameters()
+    evidence, frames = np.zeros(3, np.float32), np.zeros(3, np.uint16)
+    # a frame of all-contradicting votes, even many of them: not removed
+    evidence, frames, gone = update_log_odds(evidence, frames, np.array([50, 1, 0]), np.array([0, 0, 3]), p)
+    assert not gone.any() and evidence[0] == pytest.approx(p.hit) and evidence[2] == pytest.approx(-p.miss)
+    evidence, frames, gone = update_log_odds(evidence, frames, np.array([1, 0, 2]), np.array([0, 0, 0]), p)
+    assert gone.tolist() == [True, False, False]  # two contradicting frames
+    # a face confirmed many times sits at the floor and goes after two contradicting frames in a row
+    e, f = np.full(1, p.floor, np.float32), np.zeros(1, np.uint16)
+    e, f, gone = update_log_odds(e, f, np.array([3]), np.array([1]), p)
+    assert not gone.any()
+    e, f, gone = update_log_odds(e, f, np.array([0]), np.array([2]), p)  # confirmed between
+    e, f, gone = update_log_odds(e, f, np.array([3]), np.array([0]), p)
+    assert not gone.any()
+    e, f, gone = update_log_odds(e, f, np.array([3]), np.array([0]), p)
+    assert gone.all()
+    with pytest.raises(mabdi.ConfigError):
+        RemovalParameters(min_frames=0)
+
+
+def test_depth_edges_mark_jumps_and_holes_not_the_border():
+    depth = np.full((20, 30), 2.0, np.float32)
+    assert not depth_edges(depth, 0.05).any()
+    depth[:, 15:] = 3.0
+    depth[5, 5] = np.nan
+    edges = depth_edges(depth, 0.05)
+    assert edges[:, 14:16].all() and not edges[10:, :13].any()
+    assert edges[4:7, 4:7].all() and not edges[10, 8] and not edges[10, 20]
+
+
+def plane_then_wall(frames: int = 12, change: int = 5) -> FrameList:
+    """A plane at 2 m filling the view for ``change`` frames, then gone: a wall at 3 m behind it.
+    The camera drifts 1.5 cm a frame (about a pixel)."""
+    out = []
+    for i in range(frames):
+        pose = np.eye(4)
+        pose[:3, 3] = [0.013 * i, 0.007 * i, 0.0]
+        depth = np.full(SMALL.shape, 2.0 if i < change else 3.0, np.float32)
+        out.append(DepthFrame(depth, SMALL, pose, i))
+    return FrameList(out)
+
+
+def map_depths(loop) -> np.ndarray:
+    """z of the centroids of the map's faces (of non-zero area) that the last frame's view holds."""
+    mesh = loop.mesh()
+    if mesh.GetNumberOfCells() == 0:
+        return np.zeros(0)
+    points, triangles = polydata_arrays(mesh)
+    corners = points[triangles]
+    area = 0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1)
+    centroids = corners.mean(axis=1)[area > 1e-9]
+    uv, _ = project(centroids, SMALL, image_pose(loop.measured_image()))
+    inside = (uv[:, 0] >= 1) & (uv[:, 0] < SMALL.width - 1) & (uv[:, 1] >= 1) & (uv[:, 1] < SMALL.height - 1)
+    return centroids[inside, 2]
+
+
+@pytest.mark.parametrize("surface", ["pixel_grid", "quadtree", "voxel_planes"])
+def test_a_plane_that_goes_is_gone_within_three_frames_and_the_wall_is_mapped(surface):
+    loop = mabdi.MabdiLoop(plane_then_wall(), surface=surface, noise="kinect")
+    for i in range(5):
+        loop.step(i)
+    assert np.allclose(map_depths(loop), 2.0, atol=0.02)
+    removed = [loop.step(i).cells_removed for i in range(5, 8)]  # three frames after the plane went
+    assert sum(removed) > 0
+    plane_left = np.abs(map_depths(loop) - 2.0) < 0.05
+    assert plane_left.sum() == 0, (surface, plane_left.sum(), removed)
+    for i in range(8, 12):
+        loop.step(i)
+    depths = map_depths(loop)
+    assert np.abs(depths - 3.0).max() < 0.05 and len(depths) > 100  # the wall, and nothing else
+
+
+def test_removal_off_keeps_the_plane():
+    config = mabdi.ClassifierParameters(removal=False)
+    loop = mabdi.MabdiLoop(plane_then_wall(), classifier=config, surface="quadtree", noise="kinect")
+    records = [loop.step(i) for i in range(12)]
+    assert sum(r.cells_removed for r in records) == 0
+    assert (np.abs(map_depths(loop) - 2.0) < 0.05).any()
+
+
+def test_removed_faces_leave_only_their_blocks(monkeypatch):
+    loop = mabdi.MabdiLoop(plane_then_wall(), surface="pixel_grid", noise="kinect")
+    for i in range(6):
+        loop.step(i)
+    before = {key: loop.world.map.GetBlock(i) for i, key in enumerate(loop.world.patch_keys)}
+    for i in range(6, 8):
+        loop.step(i)
+    after = {key: loop.world.map.GetBlock(i) for i, key in enumerate(loop.world.patch_keys)}
+    changed = [key for key in before if key in after and after[key] is not before[key]]
+    kept = [key for key in before if key in after and after[key] is before[key]]
+    assert not changed or all(after[k].GetNumberOfCells() < before[k].GetNumberOfCells() for k in changed)
+    assert loop.removed_surface().GetNumberOfCells() >= 0 and len(kept) + len(changed) <= len(before)
