@@ -1,28 +1,38 @@
 # mabdi: the two set-up commands of the README.
-#   make run    install into .venv and run the MABDI loop on the table scene (SCENE=...)
-#   make test   install into .venv (with the test extras) and run the tests
+#   make run    install mabdi into .venv (what running needs) and run the MABDI loop on the table scene (SCENE=...)
+#   make test   install the test extras too (pytest, Open3D for the TSDF peer, Ray, Rerun) and run the tests
 PYTHON ?= python3
 VENV ?= .venv
 BIN := $(VENV)/bin
 SCENE ?= scenes/table.toml
 
-.PHONY: run test install bench clean
+.PHONY: run test install install-test bench clean
 
-$(VENV)/.installed: pyproject.toml
+$(VENV)/bin/python:
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
+
+# What running needs.
+$(VENV)/.installed: pyproject.toml | $(VENV)/bin/python
+	$(BIN)/python -m pip install --quiet -e .
+	touch $@
+
+# What the tests need on top: test tools, the comparison peer (Open3D), sweeps (Ray), live viewing (Rerun).
+$(VENV)/.installed-test: pyproject.toml $(VENV)/.installed
 	$(BIN)/python -m pip install --quiet -e ".[test,compare,sweep,rerun]"
 	touch $@
 
 install: $(VENV)/.installed
 
+install-test: $(VENV)/.installed-test
+
 run: install
 	$(BIN)/mabdi run $(SCENE)
 
-test: install
+test: install-test
 	$(BIN)/python -m pytest
 
-bench: install
+bench: install-test
 	$(BIN)/python benchmarks/bench_depth_image.py
 
 clean:

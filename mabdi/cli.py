@@ -49,6 +49,14 @@ def _parser() -> argparse.ArgumentParser:
         "--no-classifier", action="store_true", help="black box: mesh every valid pixel every frame (classifier.enabled = false)"
     )
     run.add_argument(
+        "--no-removal", action="store_true",
+        help="keep every face: no object removal by free-space contradiction (classifier.removal = false)",
+    )
+    run.add_argument(
+        "--rerun", nargs="?", const="", metavar="FILE.rrd",
+        help="log every frame to Rerun: to a viewer (spawned or connected), or to a .rrd recording (needs mabdi[rerun])",
+    )
+    run.add_argument(
         "--set", dest="settings", action="append", default=[], metavar="KEY=VALUE",
         help="set any config value by its dotted key, e.g. --set surface.quadtree.n_t=0.05 (TOML value syntax; repeatable)",
     )
@@ -169,6 +177,7 @@ def _apply_overrides(config, args) -> None:
         "sensor.backend": getattr(args, "backend", None),
         "surface.method": getattr(args, "surface", None),
         "classifier.enabled": False if getattr(args, "no_classifier", False) else None,
+        "classifier.removal": False if getattr(args, "no_removal", False) else None,
         "output.dir": str(args.out) if args.command == "run" and args.out is not None else None,
         "output.depth_images": True if getattr(args, "depth_images", False) else None,
         "output.h5": True if getattr(args, "h5", False) else None,
@@ -256,6 +265,15 @@ def cmd_run(args) -> int:
         simulation = Simulation(config)
     out_dir = Path(config.output.dir) if config.output.dir else Path("runs") / name
     progress = ProgressBar(simulation.frames, not args.quiet)
+    if args.rerun is not None:
+        from mabdi.viz.rerun_log import rerun_progress
+
+        bar, logger = progress, rerun_progress(simulation, args.rerun or None)
+
+        def progress(record):
+            bar(record)
+            logger(record)
+
     movie = dashboard_ms = None
     if config.output.movie:
         from mabdi.viz.record import run_with_movie

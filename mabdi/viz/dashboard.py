@@ -140,7 +140,7 @@ class Dashboard:
             low, high = path_points.min(axis=0) - reach, path_points.max(axis=0) + reach
 
         self._scene_actors = []
-        for column, title in ((0, "map by creation frame"), (1, "novel surface of this frame")):
+        for column, title in ((0, "map by creation frame"), (1, "novel surface (orange), removed (red)")):
             plotter.subplot(0, column)
             plotter.set_background("white")
             actor = self._polydata_actor(scene, (0.75, 0.75, 0.75), opacity=0.35 if column == 1 else 0.25)
@@ -185,6 +185,9 @@ class Dashboard:
         novel_actor.SetMapper(novel_mapper)
         novel_actor.GetProperty().SetColor(0.95, 0.55, 0.1)
         plotter.add_actor(novel_actor)
+        # faces that object removal took out of the map this frame, in red
+        self._removed_actor = self._polydata_actor(vtkPolyData(), (0.85, 0.05, 0.05))
+        plotter.add_actor(self._removed_actor)
 
         plotter.subplot(0, 2)
         chart = pv.Chart2D(x_label="frame", y_label="triangles in the map")
@@ -250,6 +253,7 @@ class Dashboard:
             scene = self._scene.mesh_at(frame)
             for actor in self._scene_actors:
                 actor.GetMapper().SetInputData(scene)
+        self._removed_actor.GetMapper().SetInputData(loop.removed_surface())
         self._counts.append(loop.world.number_of_cells)
         x = np.arange(len(self._counts), dtype=float)
         self._line.update(x, np.asarray(self._counts, dtype=float))
