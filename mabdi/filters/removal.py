@@ -23,7 +23,12 @@ except
 * at grazing incidence: the angle between the pixel's ray and the face's
   normal is over ``grazing_deg`` (75 degrees), where tiny depth errors along
   the ray are large;
-* within the noise threshold tau(z): such pixels are "known" already.
+* within the noise threshold tau(z): such pixels are "known" already; and a
+  contradiction counts only when D is beyond E by more than ``min_gap``
+  (3 cm) too. Smaller gaps are where a map of flat faces cuts across a
+  concave crease (the chord of a pixel-grid triangle bridging floor and wall
+  runs in front of the corner): no vote either way. An object thinner than
+  3 cm lying on a surface is therefore not removed.
 
 **The rule** (:func:`update_log_odds`): each face keeps the log-odds L that it
 is gone, starting at 0 when the face is made. In a frame where a face gets
@@ -69,10 +74,13 @@ class RemovalParameters:
     grazing_deg: float = 75.0
     edge_jump: float = 0.05
     edge_margin: int = 2
+    min_gap: float = 0.03
 
     def __post_init__(self) -> None:
         if not (self.hit > 0 and self.miss >= 0 and self.floor <= 0 < self.threshold <= self.ceiling):
             raise ConfigError("removal: need hit > 0, miss >= 0 and floor <= 0 < threshold <= ceiling")
+        if self.min_gap < 0:
+            raise ConfigError(f"removal: min_gap must be >= 0 metres, got {self.min_gap}")
         if self.min_frames < 1 or self.edge_margin < 0 or not 0 < self.grazing_deg < 90 or self.edge_jump <= 0:
             raise ConfigError("removal: need min_frames >= 1, edge_margin >= 0, 0 < grazing_deg < 90, edge_jump > 0")
 
@@ -99,6 +107,7 @@ def _three_by_three(values: np.ndarray, combine) -> np.ndarray:
 def removal_votes(
     labels: np.ndarray,
     measured: np.ndarray,
+    expected: np.ndarray,
     face_ids: np.ndarray,
     unit_rays: np.ndarray,
     world_from_camera: np.ndarray,
@@ -107,11 +116,13 @@ def removal_votes(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """One frame's votes: (face ids, contradicting pixels, confirming pixels per face, the voting contradicted pixels' mask).
 
-    ``labels`` (H, W) from the classifier; ``measured`` D (H, W) metres; ``face_ids`` (H, W) from E
+    ``labels`` (H, W) from the classifier; ``measured`` D and ``expected`` E (H, W) metres; ``face_ids`` (H, W) from E
     (0 = no face); ``unit_rays`` (H, W, 3) unit pixel rays in the camera frame; ``world_from_camera``
     the pose; ``normals_of(ids)`` -> (N, 3) world normals of faces (NaN for unknown ids).
     """
-    candidates = (face_ids > 0) & ((labels == KNOWN) | (labels == CONTRADICTED))
+    with np.errstate(invalid="ignore"):
+        contradicting_pixels = (labels == CONTRADICTED) & (measured - expected > np.float32(parameters.min_gap))
+    candidates = (face_ids > 0) & ((labels == KNOWN) | contradicting_pixels)
     if not candidates.any():
         empty = np.zeros(0, dtype=np.int64)
         return empty, empty, empty, np.zeros(labels.shape, dtype=bool)
@@ -131,7 +142,7 @@ def removal_votes(
     cosine = np.abs(normals[:, 0] * rays[:, 0] + normals[:, 1] * rays[:, 1] + normals[:, 2] * rays[:, 2])
     facing = cosine >= np.float32(np.cos(np.radians(parameters.grazing_deg)))  # NaN normals fail too
     pixels, ids = pixels[facing], ids[facing]
-    contradicting = labels.ravel()[pixels] == CONTRADICTED
+    contradicting = contradicting_pixels.ravel()[pixels]
     seen = np.bincount(ids, minlength=len(seen))
     faces = np.flatnonzero(seen)
     contradicted = np.bincount(ids[contradicting], minlength=len(seen))[faces].astype(np.int64)

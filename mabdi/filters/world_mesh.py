@@ -112,20 +112,38 @@ def edge_pairs(patch: vtkPolyData) -> tuple[np.ndarray, np.ndarray]:
     return owner[:-1][same], owner[1:][same]
 
 
-def spread_removal(patch: vtkPolyData, gone: np.ndarray, followers: np.ndarray) -> np.ndarray:
-    """``gone`` grown over edge-connected triangles of the mask ``followers`` (a flood fill from the removed faces)."""
+def spread_removal(patch: vtkPolyData, gone: np.ndarray, followers: np.ndarray, steps: int | None = None) -> np.ndarray:
+    """``gone`` grown over edge-connected triangles of the mask ``followers``: whole connected groups of
+    followers that touch a removed face (``steps=1``: only the followers next to a removed face)."""
     a, b = edge_pairs(patch)
-    if not len(a):
+    if not len(a) or not followers.any() or not gone.any():
         return gone
-    gone = gone.copy()
-    while True:
+    if steps == 1:
         reach = np.zeros_like(gone)
         reach[b[gone[a]]] = True
         reach[a[gone[b]]] = True
-        new = reach & followers & ~gone
-        if not new.any():
-            return gone
-        gone |= new
+        return gone | (reach & followers)
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    member = gone | followers
+    keep = member[a] & member[b]
+    size = len(gone)
+    graph = coo_matrix((np.ones(int(keep.sum()), dtype=np.int8), (a[keep], b[keep])), shape=(size, size))
+    _, component = connected_components(graph, directed=False)
+    touched = np.zeros(component.max() + 1, dtype=bool)
+    touched[component[gone]] = True
+    return gone | (member & touched[component])
+
+
+def enclosed(patch: vtkPolyData, gone: np.ndarray) -> np.ndarray:
+    """Triangles not in ``gone`` whose edge neighbours (at least two) are all in ``gone``."""
+    a, b = edge_pairs(patch)
+    if not len(a) or not gone.any():
+        return np.zeros_like(gone)
+    count = np.bincount(a, minlength=len(gone)) + np.bincount(b, minlength=len(gone))
+    gone_count = np.bincount(a, weights=gone[b], minlength=len(gone)) + np.bincount(b, weights=gone[a], minlength=len(gone))
+    return ~gone & (count >= 2) & (gone_count == count)
 
 
 def face_normals(patch: vtkPolyData) -> np.ndarray:
@@ -341,12 +359,14 @@ class FilterWorldMesh(MabdiAlgorithm):
             patch = self._patches[key]
             gone = np.zeros(patch.GetNumberOfCells(), dtype=bool)
             gone[local[block == b]] = True
-            # A departed object's faces are contiguous: faces already contradicted at least once (evidence
-            # above 0), and faces never voted on at all (smaller than a pixel: no pixel centre showed them),
-            # go with a removed neighbour they share an edge with.
+            # A departed object's faces are contiguous: faces already contradicted (evidence above 0) go
+            # with a removed face they are edge-connected to, and so do the direct neighbours of the removed
+            # faces that were never voted on at all (smaller than a pixel: no pixel centre showed them).
             evidence = self._evidence[key]
-            followers = (evidence > 0) | ((evidence == 0) & (self._contradicted_frames[key] == 0))
-            gone = spread_removal(patch, gone, followers)
+            gone = spread_removal(patch, gone, evidence > 0)
+            never_voted = (evidence == 0) & (self._contradicted_frames[key] == 0)
+            gone |= spread_removal(patch, gone, never_voted, steps=1)
+            gone |= enclosed(patch, gone)  # a face whose every neighbour went is a remnant of the same surface
             removed_parts.append(extract_polys(patch, np.flatnonzero(gone)))
             keep = np.flatnonzero(~gone)
             if keep.size == 0:

@@ -227,8 +227,9 @@ class MabdiLoop:
         face_ids = face_id_array(self.expected.GetOutput())
         pose = image_pose(measured_image)
         unit_rays, length = self._unit_rays()
+        expected = depth_array(self.expected.GetOutput())
         faces, contradicted, confirmed, voting = removal_votes(
-            labels, measured, face_ids, unit_rays, pose, self.world.face_normals_of, self.removal_parameters
+            labels, measured, expected, face_ids, unit_rays, pose, self.world.face_normals_of, self.removal_parameters
         )
         if not len(faces):
             return 0
