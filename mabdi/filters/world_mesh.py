@@ -316,6 +316,32 @@ class FilterWorldMesh(MabdiAlgorithm):
         patch.GetCellData().AddArray(rgb)
         self._normals[key] = face_normals(patch)
 
+    def face_lookup(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray, list[str]]:
+        """Where faces ``ids`` (24-bit identities from E) live: (block number into ``keys``, cell id in the
+        block, keys); block -1 for ids not in the map."""
+        return self._ids.lookup(np.asarray(ids, dtype=np.int64))
+
+    def block(self, key: str) -> vtkPolyData:
+        """The polydata of block ``key`` (read it; change its points only through :meth:`move_points`)."""
+        return self._patches[key]
+
+    def move_points(self, key: str, points: np.ndarray) -> None:
+        """Give block ``key`` new vertex positions (N, 3) (same count and order; faces unchanged).
+
+        The block's points are replaced in place and marked modified, so the expected-image renderer
+        re-uploads that block only.
+        """
+        patch = self._patches[key]
+        current = vtk_to_numpy(patch.GetPoints().GetData())
+        if points.shape != current.shape:
+            raise ValueError(f"move_points: block {key} has {current.shape} points, got {points.shape}")
+        current[:] = points.astype(current.dtype)
+        patch.GetPoints().Modified()
+        patch.Modified()
+        self._normals[key] = face_normals(patch)
+        self._map.Modified()
+        self._merged = None
+
     def face_normals_of(self, ids: np.ndarray) -> np.ndarray:
         """(N, 3) world normals of the faces ``ids`` (24-bit identities from E); NaN for ids not in the map."""
         block, local, keys = self._ids.lookup(ids)
