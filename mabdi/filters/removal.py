@@ -113,12 +113,14 @@ def removal_votes(
     world_from_camera: np.ndarray,
     normals_of,
     parameters: RemovalParameters,
+    evidence_of=None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """One frame's votes: (face ids, contradicting pixels, confirming pixels per face, the voting contradicted pixels' mask).
 
     ``labels`` (H, W) from the classifier; ``measured`` D and ``expected`` E (H, W) metres; ``face_ids`` (H, W) from E
     (0 = no face); ``unit_rays`` (H, W, 3) unit pixel rays in the camera frame; ``world_from_camera``
-    the pose; ``normals_of(ids)`` -> (N, 3) world normals of faces (NaN for unknown ids).
+    the pose; ``normals_of(ids)`` -> (N, 3) world normals of faces (NaN for unknown ids);
+    ``evidence_of(ids)`` -> their log-odds, to skip confirmations of faces already at the floor.
     """
     with np.errstate(invalid="ignore"):
         contradicting_pixels = (labels == CONTRADICTED) & (measured - expected > np.float32(parameters.min_gap))
@@ -132,21 +134,23 @@ def removal_votes(
     candidates &= ~edges
     pixels = np.flatnonzero(candidates)
     ids = face_ids.ravel()[pixels].astype(np.int64)
-    seen = np.bincount(ids)  # ids are below 2^24: counting is faster than sorting them
-    faces = np.flatnonzero(seen)
-    index = np.zeros(len(seen), dtype=np.int64)
-    index[faces] = np.arange(len(faces))
+    contradicting = contradicting_pixels.ravel()[pixels]
+    if evidence_of is not None:
+        # A confirmation cannot lower a face already at the floor: such pixels need no further work.
+        useful = contradicting | (evidence_of(ids) > np.float32(parameters.floor))
+        pixels, ids, contradicting = pixels[useful], ids[useful], contradicting[useful]
+    faces, inverse = np.unique(ids, return_inverse=True)
     # normals into the camera frame (rows: n_world @ R = (R^T n_world)^T), one per face, then per pixel
-    normals = (normals_of(faces) @ np.asarray(world_from_camera)[:3, :3]).astype(np.float32)[index[ids]]
+    normals = (normals_of(faces) @ np.asarray(world_from_camera)[:3, :3]).astype(np.float32)[inverse]
     rays = unit_rays.reshape(-1, 3)[pixels]
     cosine = np.abs(normals[:, 0] * rays[:, 0] + normals[:, 1] * rays[:, 1] + normals[:, 2] * rays[:, 2])
     facing = cosine >= np.float32(np.cos(np.radians(parameters.grazing_deg)))  # NaN normals fail too
-    pixels, ids = pixels[facing], ids[facing]
-    contradicting = contradicting_pixels.ravel()[pixels]
-    seen = np.bincount(ids, minlength=len(seen))
-    faces = np.flatnonzero(seen)
-    contradicted = np.bincount(ids[contradicting], minlength=len(seen))[faces].astype(np.int64)
-    confirmed = seen[faces].astype(np.int64) - contradicted
+    pixels, inverse, contradicting = pixels[facing], inverse[facing], contradicting[facing]
+    seen = np.bincount(inverse, minlength=len(faces))
+    contradicted = np.bincount(inverse[contradicting], minlength=len(faces)).astype(np.int64)
+    confirmed = seen.astype(np.int64) - contradicted
+    voted = seen > 0
+    faces, contradicted, confirmed = faces[voted], contradicted[voted], confirmed[voted]
     voting = np.zeros(labels.size, dtype=bool)
     voting[pixels[contradicting]] = True
     return faces, contradicted, confirmed, voting.reshape(labels.shape)

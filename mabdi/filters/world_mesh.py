@@ -95,69 +95,58 @@ def face_rgb(base: int, count: int) -> np.ndarray:
     return np.stack([ids & 255, (ids >> 8) & 255, (ids >> 16) & 255], axis=1).astype(np.uint8)
 
 
-def edge_pairs(patch: vtkPolyData) -> tuple[np.ndarray, np.ndarray]:
-    """(a, b): the pairs of triangles of a patch that share an edge (empty for non-triangle patches)."""
+def patch_triangles(patch: vtkPolyData) -> np.ndarray | None:
+    """(M, 3) vertex ids of a patch's triangles, or None when it has other polygons."""
     polys = patch.GetPolys()
-    offsets = vtk_to_numpy(polys.GetOffsetsArray()).astype(np.int64)
+    offsets = vtk_to_numpy(polys.GetOffsetsArray())
     if len(offsets) < 2 or np.any(np.diff(offsets) != 3):
-        empty = np.zeros(0, dtype=np.int64)
-        return empty, empty
-    triangles = vtk_to_numpy(polys.GetConnectivityArray()).astype(np.int64).reshape(-1, 3)
-    edges = np.sort(np.stack([triangles[:, [0, 1]], triangles[:, [1, 2]], triangles[:, [2, 0]]], axis=1), axis=2)
-    keys = (edges[..., 0] * (int(triangles.max()) + 1) + edges[..., 1]).ravel()
-    owner = np.repeat(np.arange(len(triangles)), 3)
-    order = np.argsort(keys, kind="stable")
-    keys, owner = keys[order], owner[order]
-    same = keys[1:] == keys[:-1]
-    return owner[:-1][same], owner[1:][same]
+        return None
+    return vtk_to_numpy(polys.GetConnectivityArray()).reshape(-1, 3)
 
 
-def spread_removal(patch: vtkPolyData, gone: np.ndarray, followers: np.ndarray, steps: int | None = None) -> np.ndarray:
-    """``gone`` grown over edge-connected triangles of the mask ``followers``: whole connected groups of
-    followers that touch a removed face (``steps=1``: only the followers next to a removed face)."""
-    a, b = edge_pairs(patch)
-    if not len(a) or not followers.any() or not gone.any():
+def spread_removal(triangles: np.ndarray, points: int, gone: np.ndarray, followers: np.ndarray, steps: int | None = None) -> np.ndarray:
+    """``gone`` grown over the triangles of the mask ``followers`` that share an edge (two vertices) with a
+    removed one, ring by ring until nothing more joins (``steps``: at most that many rings)."""
+    gone = gone.copy()
+    if not followers.any():
         return gone
-    if steps == 1:
-        reach = np.zeros_like(gone)
-        reach[b[gone[a]]] = True
-        reach[a[gone[b]]] = True
-        return gone | (reach & followers)
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
-    member = gone | followers
-    keep = member[a] & member[b]
-    size = len(gone)
-    graph = coo_matrix((np.ones(int(keep.sum()), dtype=np.int8), (a[keep], b[keep])), shape=(size, size))
-    _, component = connected_components(graph, directed=False)
-    touched = np.zeros(component.max() + 1, dtype=bool)
-    touched[component[gone]] = True
-    return gone | (member & touched[component])
+    marked = np.zeros(points, dtype=bool)
+    rings = 0
+    while steps is None or rings < steps:
+        marked[triangles[gone].ravel()] = True
+        new = (marked[triangles].sum(axis=1) >= 2) & followers & ~gone
+        if not new.any():
+            break
+        gone |= new
+        rings += 1
+    return gone
 
 
-def enclosed(patch: vtkPolyData, gone: np.ndarray) -> np.ndarray:
-    """Triangles not in ``gone`` whose edge neighbours (at least two) are all in ``gone``."""
-    a, b = edge_pairs(patch)
-    if not len(a) or not gone.any():
-        return np.zeros_like(gone)
-    count = np.bincount(a, minlength=len(gone)) + np.bincount(b, minlength=len(gone))
-    gone_count = np.bincount(a, weights=gone[b], minlength=len(gone)) + np.bincount(b, weights=gone[a], minlength=len(gone))
-    return ~gone & (count >= 2) & (gone_count == count)
+def enclosed(triangles: np.ndarray, points: int, gone: np.ndarray) -> np.ndarray:
+    """Triangles not in ``gone`` whose three vertices all belong to removed triangles too (remnants left
+    inside a removed region)."""
+    touches = np.zeros(points, dtype=bool)
+    touches[triangles[gone].ravel()] = True
+    return ~gone & touches[triangles].all(axis=1)
 
 
 def face_normals(patch: vtkPolyData) -> np.ndarray:
     """(M, 3) float32 unit normals of a patch's polygons (from their first three corners; triangles in the map)."""
     if patch.GetNumberOfCells() == 0:
         return np.zeros((0, 3), dtype=np.float32)
-    points = vtk_to_numpy(patch.GetPoints().GetData()).astype(np.float64)
+    points = vtk_to_numpy(patch.GetPoints().GetData()).astype(np.float32, copy=False)
     polys = patch.GetPolys()
-    offsets = vtk_to_numpy(polys.GetOffsetsArray())[:-1].astype(np.int64)
-    connectivity = vtk_to_numpy(polys.GetConnectivityArray()).astype(np.int64)
-    a, b, c = (points[connectivity[offsets + k]] for k in range(3))
-    normals = np.cross(b - a, c - a)
-    length = np.linalg.norm(normals, axis=1, keepdims=True)
-    return (normals / np.where(length > 0, length, 1.0)).astype(np.float32)
+    offsets = vtk_to_numpy(polys.GetOffsetsArray())[:-1]
+    connectivity = vtk_to_numpy(polys.GetConnectivityArray())
+    a = points[connectivity[offsets]]
+    ab = points[connectivity[offsets + 1]] - a
+    ac = points[connectivity[offsets + 2]] - a
+    normals = np.empty_like(a)
+    normals[:, 0] = ab[:, 1] * ac[:, 2] - ab[:, 2] * ac[:, 1]
+    normals[:, 1] = ab[:, 2] * ac[:, 0] - ab[:, 0] * ac[:, 2]
+    normals[:, 2] = ab[:, 0] * ac[:, 1] - ab[:, 1] * ac[:, 0]
+    length = np.sqrt((normals * normals).sum(axis=1, keepdims=True))
+    return normals / np.where(length > 0, length, np.float32(1.0))
 
 
 def _input_frame(surface: vtkPolyData) -> int | None:
@@ -181,10 +170,10 @@ class FilterWorldMesh(MabdiAlgorithm):
         #: Net change in the number of cells made by the last update (replacements count net).
         self.cells_added = 0
         self._ids = FaceIds()
-        #: Per block: face normals (world), removal evidence (log-odds) and frames that contradicted each face.
-        self._normals: dict[str, np.ndarray] = {}
-        self._evidence: dict[str, np.ndarray] = {}
-        self._contradicted_frames: dict[str, np.ndarray] = {}
+        #: By face identity: normal (world), removal evidence (log-odds), frames that contradicted it.
+        self._face_normals = np.zeros((0, 3), dtype=np.float32)
+        self._face_evidence = np.zeros(0, dtype=np.float32)
+        self._face_contradicted = np.zeros(0, dtype=np.uint16)
 
     # -- the map -----------------------------------------------------------
     @property
@@ -218,10 +207,10 @@ class FilterWorldMesh(MabdiAlgorithm):
     def add_patch(self, key: str, patch: vtkPolyData, frame: int) -> int:
         """Add ``patch`` under ``key`` (replacing a patch of that key); returns the net change in cells."""
         patch = self._stamp(patch, frame)
-        self._identify(key, patch)
+        base = self._identify(key, patch)
         count = patch.GetNumberOfCells()
-        self._evidence[key] = np.zeros(count, dtype=np.float32)
-        self._contradicted_frames[key] = np.zeros(count, dtype=np.uint16)
+        self._face_evidence[base : base + count] = 0.0
+        self._face_contradicted[base : base + count] = 0
         before = self._cells
         old = self._patches.get(key)
         if old is not None:
@@ -245,8 +234,6 @@ class FilterWorldMesh(MabdiAlgorithm):
         if old is None:
             return 0
         self._ids.release(key)
-        for table in (self._normals, self._evidence, self._contradicted_frames):
-            table.pop(key, None)
         self._cells -= old.GetNumberOfCells()
         self._rebuild_blocks()
         self._merged = None
@@ -256,8 +243,9 @@ class FilterWorldMesh(MabdiAlgorithm):
         """Empty the map."""
         self._patches.clear()
         self._ids.clear()
-        for table in (self._normals, self._evidence, self._contradicted_frames):
-            table.clear()
+        self._face_normals = np.zeros((0, 3), dtype=np.float32)
+        self._face_evidence = np.zeros(0, dtype=np.float32)
+        self._face_contradicted = np.zeros(0, dtype=np.uint16)
         self._cells = 0
         self._merged = None
         self._last_input = None
@@ -271,8 +259,8 @@ class FilterWorldMesh(MabdiAlgorithm):
         return {
             "patches": [(key, polydata_to_state(patch)) for key, patch in self._patches.items()],
             "ranges": dict(self._ids._ranges),
-            "evidence": {k: v.copy() for k, v in self._evidence.items()},
-            "contradicted_frames": {k: v.copy() for k, v in self._contradicted_frames.items()},
+            "evidence": self._face_evidence.copy(),
+            "contradicted": self._face_contradicted.copy(),
             "next_frame": self._next_frame,
         }
 
@@ -281,9 +269,12 @@ class FilterWorldMesh(MabdiAlgorithm):
         self._patches = {key: polydata_from_state(patch) for key, patch in state["patches"]}
         self._ids.clear()
         self._ids._ranges.update(state["ranges"])
-        self._normals = {key: face_normals(patch) for key, patch in self._patches.items()}
-        self._evidence = {k: v.copy() for k, v in state["evidence"].items()}
-        self._contradicted_frames = {k: v.copy() for k, v in state["contradicted_frames"].items()}
+        self._face_evidence = state["evidence"].copy()
+        self._face_contradicted = state["contradicted"].copy()
+        self._face_normals = np.zeros((len(self._face_evidence), 3), dtype=np.float32)
+        for key, patch in self._patches.items():
+            base, count = self._ids._ranges[key]
+            self._face_normals[base : base + count] = face_normals(patch)
         self._cells = sum(p.GetNumberOfCells() for p in self._patches.values())
         self._next_frame = int(state["next_frame"])
         self._merged = None
@@ -307,14 +298,27 @@ class FilterWorldMesh(MabdiAlgorithm):
         return self._merged
 
     # -- faces: identity in E, evidence, removal ------------------------------
-    def _identify(self, key: str, patch: vtkPolyData) -> None:
-        """Give the faces of block ``key`` their identities (cell data ``face_rgb``) and normals."""
+    def _identify(self, key: str, patch: vtkPolyData, normals: np.ndarray | None = None) -> int:
+        """Give the faces of block ``key`` their identities (cell data ``face_rgb``) and normals (computed
+        unless given); returns the base id."""
         count = patch.GetNumberOfCells()
         base = self._ids.allocate(key, count)
+        self._grow(base + count)
         rgb = numpy_to_vtk(face_rgb(base, count), deep=True)
         rgb.SetName(FACE_RGB_ARRAY)
         patch.GetCellData().AddArray(rgb)
-        self._normals[key] = face_normals(patch)
+        self._face_normals[base : base + count] = face_normals(patch) if normals is None else normals
+        return base
+
+    def _grow(self, size: int) -> None:
+        """Room in the per-identity arrays for ids below ``size`` (doubling)."""
+        if size <= len(self._face_evidence):
+            return
+        capacity = max(size, 2 * len(self._face_evidence), 1024)
+        grown = len(self._face_evidence)
+        self._face_normals = np.concatenate([self._face_normals, np.zeros((capacity - grown, 3), np.float32)])
+        self._face_evidence = np.concatenate([self._face_evidence, np.zeros(capacity - grown, np.float32)])
+        self._face_contradicted = np.concatenate([self._face_contradicted, np.zeros(capacity - grown, np.uint16)])
 
     def face_lookup(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray, list[str]]:
         """Where faces ``ids`` (24-bit identities from E) live: (block number into ``keys``, cell id in the
@@ -338,18 +342,24 @@ class FilterWorldMesh(MabdiAlgorithm):
         current[:] = points.astype(current.dtype)
         patch.GetPoints().Modified()
         patch.Modified()
-        self._normals[key] = face_normals(patch)
+        base, count = self._ids._ranges[key]
+        self._face_normals[base : base + count] = face_normals(patch)
         self._map.Modified()
         self._merged = None
 
     def face_normals_of(self, ids: np.ndarray) -> np.ndarray:
         """(N, 3) world normals of the faces ``ids`` (24-bit identities from E); NaN for ids not in the map."""
-        block, local, keys = self._ids.lookup(ids)
-        normals = np.full((len(block), 3), np.nan, dtype=np.float32)
-        for b in np.unique(block[block >= 0]):
-            chosen = block == b
-            normals[chosen] = self._normals[keys[b]][local[chosen]]
+        ids = np.asarray(ids, dtype=np.int64)
+        block, _, _ = self._ids.lookup(ids)
+        normals = np.full((len(ids), 3), np.nan, dtype=np.float32)
+        live = block >= 0
+        normals[live] = self._face_normals[ids[live]]
         return normals
+
+    def face_evidence_of(self, ids: np.ndarray) -> np.ndarray:
+        """The removal log-odds of faces ``ids`` (meaningless for ids not in the map)."""
+        ids = np.asarray(ids, dtype=np.int64)
+        return self._face_evidence[np.minimum(ids, len(self._face_evidence) - 1)] if len(self._face_evidence) else np.zeros(len(ids), np.float32)
 
     def update_evidence(self, ids: np.ndarray, contradicted: np.ndarray, confirmed: np.ndarray, parameters) -> np.ndarray:
         """Add one frame's votes and return the identities of the faces whose removal the evidence now calls for.
@@ -359,19 +369,16 @@ class FilterWorldMesh(MabdiAlgorithm):
         """
         from mabdi.filters.removal import update_log_odds
 
-        block, local, keys = self._ids.lookup(ids)
-        remove = []
-        for b in np.unique(block[block >= 0]):
-            chosen = block == b
-            key = keys[b]
-            cells = local[chosen]
-            evidence, frames, gone = update_log_odds(
-                self._evidence[key][cells], self._contradicted_frames[key][cells], contradicted[chosen], confirmed[chosen], parameters
-            )
-            self._evidence[key][cells] = evidence
-            self._contradicted_frames[key][cells] = frames
-            remove.append(ids[chosen][gone])
-        return np.concatenate(remove) if remove else np.zeros(0, dtype=np.int64)
+        ids = np.asarray(ids, dtype=np.int64)
+        block, _, _ = self._ids.lookup(ids)
+        live = block >= 0
+        ids = ids[live]
+        evidence, frames, gone = update_log_odds(
+            self._face_evidence[ids], self._face_contradicted[ids], contradicted[live], confirmed[live], parameters
+        )
+        self._face_evidence[ids] = evidence
+        self._face_contradicted[ids] = frames
+        return ids[gone]
 
     def remove_faces(self, ids: np.ndarray) -> vtkPolyData:
         """Remove the faces ``ids`` from their blocks (each changed block is rebuilt, so only it is re-uploaded).
@@ -383,26 +390,34 @@ class FilterWorldMesh(MabdiAlgorithm):
         for b in np.unique(block[block >= 0]):
             key = keys[b]
             patch = self._patches[key]
-            gone = np.zeros(patch.GetNumberOfCells(), dtype=bool)
+            base, count = self._ids._ranges[key]
+            gone = np.zeros(count, dtype=bool)
             gone[local[block == b]] = True
-            # A departed object's faces are contiguous: faces already contradicted (evidence above 0) go
-            # with a removed face they are edge-connected to, and so do the direct neighbours of the removed
-            # faces that were never voted on at all (smaller than a pixel: no pixel centre showed them).
-            evidence = self._evidence[key]
-            gone = spread_removal(patch, gone, evidence > 0)
-            never_voted = (evidence == 0) & (self._contradicted_frames[key] == 0)
-            gone |= spread_removal(patch, gone, never_voted, steps=1)
-            gone |= enclosed(patch, gone)  # a face whose every neighbour went is a remnant of the same surface
+            triangles = patch_triangles(patch)
+            if triangles is not None:
+                # A departed object's faces are contiguous: faces already contradicted (evidence above 0)
+                # go with a removed face they are edge-connected to, and so do the direct neighbours of the
+                # removed faces that were never voted on at all (smaller than a pixel: no pixel centre
+                # showed them), and kept faces left as islands inside the removed region.
+                evidence = self._face_evidence[base : base + count]
+                points = patch.GetNumberOfPoints()
+                gone = spread_removal(triangles, points, gone, evidence > 0)
+                never_voted = (evidence == 0) & (self._face_contradicted[base : base + count] == 0)
+                gone = spread_removal(triangles, points, gone, never_voted, steps=1)
+                gone |= enclosed(triangles, points, gone)
             removed_parts.append(extract_polys(patch, np.flatnonzero(gone)))
             keep = np.flatnonzero(~gone)
             if keep.size == 0:
                 self.remove_patch(key)
                 continue
+            kept_evidence = self._face_evidence[base + keep]
+            kept_frames = self._face_contradicted[base + keep]
+            kept_normals = self._face_normals[base + keep]
             kept = extract_polys(patch, keep)
             kept.GetCellData().RemoveArray(FACE_RGB_ARRAY)
-            self._identify(key, kept)
-            self._evidence[key] = self._evidence[key][keep]
-            self._contradicted_frames[key] = self._contradicted_frames[key][keep]
+            new_base = self._identify(key, kept, kept_normals)
+            self._face_evidence[new_base : new_base + keep.size] = kept_evidence
+            self._face_contradicted[new_base : new_base + keep.size] = kept_frames
             self._cells -= patch.GetNumberOfCells() - kept.GetNumberOfCells()
             self._patches[key] = kept
             self._map.SetBlock(list(self._patches).index(key), kept)

@@ -229,7 +229,15 @@ class MabdiLoop:
         unit_rays, length = self._unit_rays()
         expected = depth_array(self.expected.GetOutput())
         faces, contradicted, confirmed, voting = removal_votes(
-            labels, measured, expected, face_ids, unit_rays, pose, self.world.face_normals_of, self.removal_parameters
+            labels,
+            measured,
+            expected,
+            face_ids,
+            unit_rays,
+            pose,
+            self.world.face_normals_of,
+            self.removal_parameters,
+            evidence_of=self.world.face_evidence_of,
         )
         if not len(faces):
             return 0
