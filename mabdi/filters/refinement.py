@@ -1,0 +1,414 @@
+"""Refinement of known faces: a map that gets better with every look.
+
+Without it the first look at a surface wins: a wall first seen from 4 m
+(Kinect sigma(z) = 1.425e-3 z^2: 2.3 cm) keeps that noise although the robot
+later sees it from 1.5 m (3.2 mm). Once per frame, after the world mesh has
+appended the frame's novel surface, :class:`MapRefinement` reads D, E (with
+the identity of the face each pixel shows), the classifier's labels and the
+pose, and does two things with the pixels that show a map face:
+
+**Refinement** (the faces seen about as well as they were made). Every vertex
+v keeps a running estimate of where the surface is along its normal n_v (the
+area-weighted mean of its faces' normals when the refinement first met it),
+as an offset t_v from its *original* position p0_v:
+
+* **Prior**: weight W0_v = sigma(z_create)^-2, z_create the vertex's depth in
+  the camera of the frame that made it (cell data ``frame``; the pose of that
+  frame is remembered from the frames the refinement saw, else taken from the
+  source's poses). The prior says "t = 0".
+* **Observations**: each *known* pixel (label 1) that shows a triangle f with
+  a return in D. Along the pixel's unit world ray w, the map's surface is at
+  e = E l and the measured one at d = D l (l: ray length per metre of
+  z-depth), the hit point is h = camera centre + w e. The residual along the
+  ray, d - e, is a shift of the surface along f's normal n_f of
+  delta = (d - e)(w . n_f). Relative to the *original* surface the
+  observation is s = delta + sum_j beta_j c_j t_j, where beta are h's
+  barycentric weights on f's corners (from the corners' current positions),
+  c_j = n_f . n_vj and t_j the corners' current offsets: moving a vertex
+  never counts twice. Each corner k gets the observation with weight
+  beta_k w_p, w_p = cos(theta) / sigma(D)^2 (theta the angle of incidence,
+  cos theta = |w . n_f|): sigma^-2 is the measurement's information, and the
+  cosine discounts oblique looks, whose pixel footprints are longer and
+  whose depths are more sensitive to a misplaced edge. A vertex moving by t
+  along n_v moves f by c t along n_f, so corner k accumulates the
+  least-squares sums W_k += beta_k w_p c_k^2, S_k += beta_k w_p c_k s.
+  Pixels within ``grazing_deg`` (75 degrees) of the face's plane do not
+  observe.
+* **Estimate**: the weighted mean of prior and observations,
+  t_v = S_v / (W0_v + W_v), with variance 1 / (W0_v + W_v).
+* **Moving**: a vertex moves to its estimate, p0_v + t_v n_v, once the
+  observations weigh at least as much as its prior (W_v >= ``confidence``
+  W0_v, default 1: the estimate has at least halved the prior's variance)
+  and the estimate differs from where the vertex is by at least ``min_step``
+  (0.2 mm, so a converged block is not re-uploaded for nothing). Moves go
+  through :meth:`~mabdi.filters.world_mesh.FilterWorldMesh.move_points`, one
+  call per changed block; no triangle is added or removed.
+
+**Replacement** (the faces made from a much noisier look than this one). A
+face's uncertainty is sigma_f^2 = the mean over its corners of
+1 / (W0 + W). A pixel showing f *prefers a better look* when
+sigma_f >= ``replace_ratio`` sigma(D) (2: e.g. made at 4 m, seen now from
+2.8 m or nearer) and D lies on the same surface within a gate that allows for
+both uncertainties, |D - E| <= ``gate_k`` sqrt(sigma(D)^2 + sigma_f^2)
+(gate_k = 3), whatever its label: such pixels are mostly "novel" or
+"contradicted" (a map 2 cm off is beyond tau = 1 cm at 1.5 m), and the gate
+keeps an object in front of the face from counting. A face is replaced when
+at least ``replace_share`` (half) of its facing pixels with a return prefer a
+better look. :meth:`MapRefinement.step` returns the identities of those faces;
+the loop removes them (``world.remove_faces``), and their pixels are novel in
+the next frame and meshed from that better look: the surface is replaced,
+never doubled by a layer beside it. Pixels of replaced faces do not refine.
+
+**No noise** (noise model ``none``, sigma = 0): every measurement is exact,
+and so is every vertex as it was made; there is nothing to average, and the
+refinement returns at once, moving nothing (no weight is ever 1/0). With a
+noise model whose sigma can be 0 at some depth, sigma is floored at
+``min_sigma``.
+
+Which faces: triangles of the pixel-grid and quad-tree blocks (``frame_<i>``);
+voxel-plane patches (``patch_<key>``) average their own statistics and are
+left alone, and so are non-triangle faces.
+
+Cost: ``stride`` samples every stride-th pixel in u and v (2: a quarter of the
+pixels; the samples of successive frames fall on different surface points as
+the camera moves). The work is vectorised over the pixels of each block in
+view; per block only the state arrays are kept (original positions, normals,
+prior, sums, offsets).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+from vtkmodules.util.numpy_support import vtk_to_numpy
+from vtkmodules.vtkCommonDataModel import vtkPolyData
+
+from mabdi.depth import depth_array, image_frame, image_pose
+from mabdi.errors import ConfigError
+from mabdi.filters.classifier import KNOWN, NO_RETURN
+from mabdi.filters.expected_image import FACE_ID_ARRAY, face_id_array
+from mabdi.filters.world_mesh import FRAME_CELL_ARRAY
+
+#: Blocks of these key prefixes are refined (pixel grid and quad-tree patches); voxel planes use ``patch_``.
+REFINED_PREFIX = "frame_"
+
+
+@dataclass(frozen=True)
+class RefinementParameters:
+    """The refinement and replacement rules (see the module docs). Metres, degrees, pixels.
+
+    ``stride``: pixels sampled every ``stride`` in u and v; ``grazing_deg``: pixels whose ray is more than this
+    angle off the face's normal neither observe nor vote (75);
+    ``confidence``: a vertex moves once its observations' weight is at least this times its prior's;
+    ``min_step``: nor unless its estimate is at least this far from where it is; ``min_sigma``: floor on
+    sigma(z); ``replace_ratio``: a face is replaced when its sigma is at least this times the pixel's;
+    ``gate_k``: same surface when |D - E| <= gate_k sqrt(sigma_D^2 + sigma_f^2); ``replace_share``: share
+    of a face's pixels that must prefer the better look; ``replace``: False refines only.
+    """
+
+    stride: int = 2
+    grazing_deg: float = 75.0
+    confidence: float = 1.0
+    min_step: float = 2e-4
+    min_sigma: float = 1e-4
+    replace: bool = True
+    replace_ratio: float = 2.0
+    gate_k: float = 3.0
+    replace_share: float = 0.5
+
+    def __post_init__(self) -> None:
+        if not (isinstance(self.stride, int) and self.stride >= 1):
+            raise ConfigError(f"refinement: stride must be an integer >= 1 (pixels), got {self.stride!r}")
+        if not 0 < self.grazing_deg < 90:
+            raise ConfigError(f"refinement: need 0 < grazing_deg < 90, got {self.grazing_deg}")
+        if not (self.confidence >= 0 and self.min_step >= 0 and self.min_sigma > 0):
+            raise ConfigError("refinement: need confidence >= 0, min_step >= 0 and min_sigma > 0")
+        if not (self.replace_ratio > 1 and self.gate_k > 0 and 0 < self.replace_share <= 1):
+            raise ConfigError("refinement: need replace_ratio > 1, gate_k > 0 and 0 < replace_share <= 1")
+
+
+@dataclass
+class RefinementResult:
+    """What one frame's refinement did: vertices moved, faces to replace (24-bit identities as E drew
+    them: remove them with ``world.remove_faces``), pixels that observed, and the time it took (ms)."""
+
+    moved_vertices: int = 0
+    replaced: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    observed_pixels: int = 0
+    t_ms: float = 0.0
+
+
+@dataclass
+class _BlockState:
+    """Per-vertex state of one block (see the module docs)."""
+
+    patch: vtkPolyData  # the block object this state belongs to (a rebuilt block is a new object)
+    triangles: np.ndarray | None  # (M, 3) vertex ids; None when the block has non-triangle faces
+    original: np.ndarray  # (N, 3) float64 positions when first met
+    normal: np.ndarray  # (N, 3) float64 unit vertex normals (original)
+    prior: np.ndarray  # (N,) W0 = sigma(z_create)^-2
+    weight: np.ndarray  # (N,) W: sum of observation weights
+    total: np.ndarray  # (N,) S: weighted sum of observed offsets
+    offset: np.ndarray  # (N,) t: the offset the vertex is at now
+
+
+def _points(patch: vtkPolyData) -> np.ndarray:
+    return vtk_to_numpy(patch.GetPoints().GetData())
+
+
+def _triangles(patch: vtkPolyData) -> np.ndarray | None:
+    polys = patch.GetPolys()
+    offsets = vtk_to_numpy(polys.GetOffsetsArray())
+    if patch.GetNumberOfCells() != polys.GetNumberOfCells() or np.any(np.diff(offsets) != 3):
+        return None
+    return vtk_to_numpy(polys.GetConnectivityArray()).astype(np.int64).reshape(-1, 3)
+
+
+def vertex_normals(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """(N, 3) unit vertex normals: the area-weighted sum of the normals of each vertex's triangles."""
+    p = points.astype(np.float64)
+    cross = np.cross(p[triangles[:, 1]] - p[triangles[:, 0]], p[triangles[:, 2]] - p[triangles[:, 0]])
+    flat = triangles.ravel()
+    n = len(points)
+    normals = np.stack([np.bincount(flat, weights=np.repeat(cross[:, k], 3), minlength=n) for k in range(3)], axis=1)
+    length = np.linalg.norm(normals, axis=1, keepdims=True)
+    return normals / np.where(length > 0, length, 1.0)
+
+
+def _match_rows(old: np.ndarray, new: np.ndarray) -> np.ndarray:
+    """For each row of ``new``, the index of an identical row of ``old`` (-1 where none): how a block's
+    vertices carry their state over when the block is rebuilt with some faces taken out."""
+    old = np.ascontiguousarray(old)
+    new = np.ascontiguousarray(new, dtype=old.dtype)
+    row = np.dtype((np.void, old.dtype.itemsize * 3))
+    keys = np.concatenate([old.view(row).ravel(), new.view(row).ravel()])
+    _, inverse = np.unique(keys, return_inverse=True)
+    inverse = inverse.ravel()
+    where = np.full(inverse.max() + 1 if len(inverse) else 0, -1, dtype=np.int64)
+    where[inverse[: len(old)]] = np.arange(len(old))
+    return where[inverse[len(old):]]
+
+
+class MapRefinement:
+    """Refines the map's known faces and picks faces to replace, once per frame (see the module docs).
+
+    Keep one per loop; call :meth:`step` after the world mesh appended the frame's surface and before any
+    face of that frame is removed (E's face identities must still name the faces E drew).
+    """
+
+    def __init__(self, parameters: RefinementParameters | None = None) -> None:
+        self.parameters = parameters if parameters is not None else RefinementParameters()
+        self._blocks: dict[str, _BlockState] = {}
+        self._poses: dict[int, np.ndarray] = {}
+        self._source_poses: np.ndarray | None = None
+        self._ray_cache = None
+
+    def reset(self) -> None:
+        """Forget every block (after the map was emptied or replaced)."""
+        self._blocks.clear()
+        self._poses.clear()
+        self._source_poses = None
+
+    # -- helpers -------------------------------------------------------------
+    def _unit_rays(self, intrinsics) -> tuple[np.ndarray, np.ndarray]:
+        stride = self.parameters.stride
+        if self._ray_cache is None or self._ray_cache[0] != (intrinsics, stride):
+            rays = intrinsics.rays()[::stride, ::stride]
+            length = np.linalg.norm(rays, axis=-1)
+            self._ray_cache = ((intrinsics, stride), (rays / length[..., None]).reshape(-1, 3), length.ravel())
+        return self._ray_cache[1], self._ray_cache[2]
+
+    def _pose_of(self, frame: int, loop, current: np.ndarray) -> np.ndarray:
+        pose = self._poses.get(frame)
+        if pose is not None:
+            return pose
+        if self._source_poses is None:
+            try:
+                self._source_poses = np.asarray(loop.source.poses, dtype=np.float64)
+            except Exception:  # a source that cannot list its poses: the current one stands in
+                self._source_poses = np.zeros((0, 4, 4))
+        if 0 <= frame < len(self._source_poses):
+            return self._source_poses[frame]
+        return current
+
+    def _sigma(self, loop, depth: np.ndarray) -> np.ndarray:
+        intrinsics = loop.intrinsics
+        sigma = loop.noise.sigma(depth, intrinsics.near, intrinsics.far)
+        return np.maximum(sigma, sigma.dtype.type(self.parameters.min_sigma))
+
+    def _register(self, key: str, patch: vtkPolyData, loop, pose: np.ndarray) -> _BlockState:
+        """The state of block ``key``: new, carried over from a rebuilt block, or as it was."""
+        state = self._blocks.get(key)
+        if state is not None and state.patch is patch:
+            return state
+        points = _points(patch).astype(np.float64)
+        triangles = _triangles(patch)
+        n = len(points)
+        if triangles is not None and len(triangles):
+            normal = vertex_normals(points, triangles)
+        else:
+            normal = np.zeros((n, 3))
+        # prior from the creating frame: each vertex's depth in the camera of the frame that made it
+        frames = patch.GetCellData().GetArray(FRAME_CELL_ARRAY)
+        vertex_frame = np.full(n, -1, dtype=np.int64)
+        if frames is not None and triangles is not None and len(triangles):
+            vertex_frame[triangles.ravel()] = np.repeat(vtk_to_numpy(frames).astype(np.int64), 3)
+        z = np.full(n, np.nan)
+        for frame in np.unique(vertex_frame):
+            chosen = vertex_frame == frame
+            creator = self._pose_of(int(frame), loop, pose)
+            z[chosen] = (points[chosen] - creator[:3, 3]) @ creator[:3, 2]
+        z = np.where(np.isfinite(z) & (z > 0), z, np.linalg.norm(points - pose[:3, 3], axis=1))
+        prior = 1.0 / self._sigma(loop, z) ** 2
+        fresh = _BlockState(patch, triangles, points, normal, prior, np.zeros(n), np.zeros(n), np.zeros(n))
+        if state is not None:
+            # a rebuilt block (faces removed, points compacted): vertices found in the old block keep their state
+            old = _points(state.patch)
+            source = _match_rows(old, _points(patch)) if len(old) and n else np.full(n, -1)
+            kept = source >= 0
+            for name in ("original", "normal", "prior", "weight", "total", "offset"):
+                getattr(fresh, name)[kept] = getattr(state, name)[source[kept]]
+        self._blocks[key] = fresh
+        return fresh
+
+    # -- one frame -----------------------------------------------------------
+    def step(self, loop) -> RefinementResult:
+        """One frame's refinement of ``loop``'s map (a :class:`mabdi.simulate.loop.MabdiLoop` after its world
+        mesh appended the frame); returns what it did. Moves vertices itself; the replaced faces are for the
+        loop to remove."""
+        start = time.perf_counter()
+        p = self.parameters
+        result = RefinementResult()
+        if loop.noise.model == "none" or not loop.classifier_enabled:
+            return result
+        expected_image = loop.expected_image()
+        if expected_image is None or expected_image.GetPointData().GetArray(FACE_ID_ARRAY) is None:
+            return result  # E drawn without face identity: nothing to attribute pixels to
+        measured_image = loop.measured_image()
+        pose = image_pose(measured_image)
+        self._poses[image_frame(measured_image)] = pose
+        world = loop.world
+        for key in [k for k in self._blocks if k not in set(world.patch_keys)]:
+            del self._blocks[key]
+
+        s = p.stride
+        face_ids = face_id_array(expected_image)[::s, ::s].ravel()
+        labels = loop.labels()[::s, ::s].ravel()
+        candidates = np.flatnonzero((face_ids > 0) & (labels != NO_RETURN))
+        if not len(candidates):
+            result.t_ms = 1000.0 * (time.perf_counter() - start)
+            return result
+        ids = face_ids[candidates].astype(np.int64)
+        block, local, keys = world.face_lookup(ids)
+        measured = depth_array(measured_image)[::s, ::s].ravel()[candidates]
+        expected = depth_array(expected_image)[::s, ::s].ravel()[candidates]
+        unit_rays, length = self._unit_rays(loop.intrinsics)
+        rays = unit_rays[candidates] @ pose[:3, :3].T  # world
+        length = length[candidates]
+        known = labels[candidates] == KNOWN
+        sigma_d = self._sigma(loop, measured).astype(np.float64)
+        centre = pose[:3, 3]
+        cos_grazing = np.cos(np.radians(p.grazing_deg))
+
+        replaced = []
+        touched = []
+        observed = 0
+        order = np.argsort(block, kind="stable")  # the pixels of each block together
+        bounds = np.searchsorted(block[order], np.arange(len(keys) + 1), side="left")
+        for b in np.flatnonzero(np.diff(bounds) > 0):
+            key = keys[b]
+            if not key.startswith(REFINED_PREFIX):
+                continue
+            state = self._register(key, world.block(key), loop, pose)
+            if state.triangles is None:
+                continue
+            chosen = order[bounds[b] : bounds[b + 1]]
+            cells = local[chosen]
+            tri = state.triangles[cells]
+            corners = _points(state.patch)[tri].astype(np.float64)  # (n, 3, 3) current positions
+            a = corners[:, 0]
+            e1, e2 = corners[:, 1] - a, corners[:, 2] - a
+            normal = np.cross(e1, e2)
+            norm = np.linalg.norm(normal, axis=1)
+            w = rays[chosen]
+            wn = np.einsum("ij,ij->i", w, normal) / np.where(norm > 0, norm, 1.0)
+            cosine = np.abs(wn)
+            facing = (norm > 0) & (cosine >= cos_grazing)
+            sd = sigma_d[chosen]
+
+            # replacement: faces made from a much noisier look than this one
+            face_var = (1.0 / (state.prior[tri] + state.weight[tri])).mean(axis=1)
+            better = facing & (face_var >= (p.replace_ratio * sd) ** 2)
+            gone = None
+            if p.replace and better.any():
+                gap = np.abs(measured[chosen] - expected[chosen])
+                better &= gap <= p.gate_k * np.sqrt(sd**2 + face_var)
+                size = len(state.triangles)
+                votes = np.bincount(cells, weights=better, minlength=size)
+                counts = np.bincount(cells, weights=facing, minlength=size)
+                out = (votes >= p.replace_share * counts) & (votes > 0)
+                if out.any():
+                    gone = out[cells]
+                    replaced.append(ids[chosen][gone])
+
+            # refinement: known pixels of faces that stay
+            use = facing & known[chosen]
+            if gone is not None:
+                use &= ~gone
+            if not use.any():
+                continue
+            observed += int(use.sum())
+            tri, w, cosine, sd = tri[use], w[use], cosine[use], sd[use]
+            a, e1, e2 = a[use], e1[use], e2[use]
+            e_ray = expected[chosen][use] * length[chosen][use]
+            d_ray = measured[chosen][use] * length[chosen][use]
+            hit = centre + w * e_ray[:, None]
+            beta = _barycentric(hit - a, e1, e2)
+            # the measured point, on the pixel's ray at D: the hit point moved by the residual along the ray
+            measured_point = hit + w * (d_ray - e_ray)[:, None]
+            offset = np.einsum("ikj,ikj->ik", state.normal[tri], measured_point[:, None, :] - state.original[tri])
+            weight = beta * (cosine / sd**2)[:, None]
+            flat = tri.ravel()
+            n = len(state.original)
+            gained = np.bincount(flat, weights=weight.ravel(), minlength=n)
+            state.weight += gained
+            state.total += np.bincount(flat, weights=(weight * offset).ravel(), minlength=n)
+            touched.append((key, state, np.flatnonzero(gained > 0)))
+
+        moved = 0
+        for key, state, vertices in touched:
+            estimate = state.total[vertices] / (state.prior[vertices] + state.weight[vertices])
+            move = (state.weight[vertices] >= p.confidence * state.prior[vertices]) & (
+                np.abs(estimate - state.offset[vertices]) >= p.min_step
+            )
+            if not move.any():
+                continue
+            state.offset[vertices[move]] = estimate[move]
+            points = _points(state.patch).astype(np.float64)
+            points[vertices[move]] = state.original[vertices[move]] + estimate[move][:, None] * state.normal[vertices[move]]
+            world.move_points(key, points)
+            moved += int(move.sum())
+        result.moved_vertices = moved
+        result.observed_pixels = observed
+        if replaced:
+            result.replaced = np.unique(np.concatenate(replaced))
+        result.t_ms = 1000.0 * (time.perf_counter() - start)
+        return result
+
+
+def _barycentric(v: np.ndarray, e1: np.ndarray, e2: np.ndarray) -> np.ndarray:
+    """(n, 3) barycentric weights of points a + v on triangles (a, a + e1, a + e2), clipped to the triangle
+    (a hit a rounding error outside its face counts on the nearest side) and normalised."""
+    d00 = np.einsum("ij,ij->i", e1, e1)
+    d01 = np.einsum("ij,ij->i", e1, e2)
+    d11 = np.einsum("ij,ij->i", e2, e2)
+    d20 = np.einsum("ij,ij->i", v, e1)
+    d21 = np.einsum("ij,ij->i", v, e2)
+    denominator = d00 * d11 - d01 * d01
+    denominator = np.where(denominator > 0, denominator, 1.0)
+    b1 = (d11 * d20 - d01 * d21) / denominator
+    b2 = (d00 * d21 - d01 * d20) / denominator
+    beta = np.clip(np.stack([1.0 - b1 - b2, b1, b2], axis=1), 0.0, 1.0)
+    return beta / np.maximum(beta.sum(axis=1, keepdims=True), 1e-12)
