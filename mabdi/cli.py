@@ -130,6 +130,10 @@ def _parser() -> argparse.ArgumentParser:
     bench.add_argument("--noise", help="noise model (overrides sensor.noise)")
     bench.add_argument("--surface", help="surface filter of the mabdi and black_box methods (overrides surface.method)")
     bench.add_argument("--out", type=Path, help="output folder (default: runs/bench_<scene>)")
+    bench.add_argument(
+        "--no-tune", action="store_true",
+        help="run the TSDF with its plain settings instead of tuning it per scene (faster; the peer is then not at its best)",
+    )
 
     sweep = commands.add_parser("sweep", help="a grid of runs and their evaluations on Ray (SWEEP.toml), one table")
     sweep.add_argument("sweep", type=Path, help="sweep file (TOML: [sweep] configs, frames; [grid] dotted key = [values])")
@@ -351,16 +355,25 @@ def cmd_view(args) -> int:
 
 def cmd_bench(args) -> int:
     from mabdi.config import load_run_config
-    from mabdi.evaluate.bench import METHODS, markdown_table, run_bench
+    from mabdi.evaluate.bench import METHODS, dynamic_table, markdown_table, run_bench
 
     path = _find_config(args.scene)
     config = load_run_config(path)
     _apply_overrides(config, args)
     out_dir = args.out if args.out is not None else Path("runs") / f"bench_{config.run.name or path.stem}"
     command = "mabdi " + " ".join(sys.argv[1:]) if sys.argv[1:2] == ["bench"] else None
-    bench = run_bench(config, args.methods or METHODS, out_dir, progress=lambda line: print(line, flush=True), command=command)
+    bench = run_bench(
+        config,
+        args.methods or METHODS,
+        out_dir,
+        progress=lambda line: print(line, flush=True),
+        command=command,
+        tune=not args.no_tune,
+    )
     print()
     print(markdown_table(bench))
+    if dynamic_table(bench):
+        print(dynamic_table(bench))
     for note in bench["notes"]:
         print(f"note: {note}")
     print(f"results in {out_dir}/ (bench.json, bench.md, elements.png)")

@@ -9,6 +9,12 @@ and every method reads them from there:
 * ``black_box``: the same runner with the classifier off;
 * ``tsdf_1cm``, ``tsdf_2cm``: Open3D's VoxelBlockGrid TSDF (optional; see
   :mod:`mabdi.evaluate.tsdf`), skipped with a note when Open3D is missing.
+  The peer runs at its best: with ``tune=True`` (the default of ``mabdi
+  bench``) its settings are tuned per scene by
+  :func:`~mabdi.evaluate.tsdf.tune_tsdf` (truncation 2-6 voxels, weight
+  threshold 0.5-3, depth range, pixel convention; a coordinate search scored
+  on :data:`TUNING_SAMPLES` ground-truth samples), then the best settings are
+  run again and scored like every other method; the row records them.
 
 Each map is scored against the same observed ground-truth samples
 (:mod:`mabdi.evaluate.metrics`). The harness writes ``bench.json`` (all
@@ -31,8 +37,9 @@ import numpy as np
 import vtkmodules
 
 from mabdi.config import RunConfig, set_value
+from mabdi.evaluate.dynamic import GhostTracker, departures, run_with_ghosts
 from mabdi.evaluate.metrics import SAMPLES, evaluate_map, evaluate_run, observed_ground_truth, scenes_per_pose
-from mabdi.evaluate.tsdf import alignment_error, open3d_status, run_tsdf
+from mabdi.evaluate.tsdf import TsdfSettings, alignment_error, open3d_status, run_tsdf, tune_tsdf
 from mabdi.io.atomic import write_text
 from mabdi.io.plots import write_elements_plot
 from mabdi.simulate.rig import SimulatedRig
@@ -42,6 +49,8 @@ from mabdi.sources.frames import FrameList
 
 METHODS = ("mabdi", "black_box", "tsdf_1cm", "tsdf_2cm")
 TSDF_VOXELS = {"tsdf_1cm": 0.01, "tsdf_2cm": 0.02}
+#: Ground-truth samples for scoring each point of the TSDF's tuning (the chosen one is scored in full).
+TUNING_SAMPLES = 20_000
 
 
 def machine_info(rig: SimulatedRig | None = None) -> dict:
@@ -92,6 +101,16 @@ def _mabdi_row(name: str, simulation: Simulation, result, observed) -> dict:
     }
 
 
+def _dynamic(ghosts) -> dict:
+    """The dynamic-scene numbers of a :class:`~mabdi.evaluate.dynamic.GhostRun` for a bench row."""
+    return {
+        "ghost_share_end": ghosts.final_share,
+        "ghost_share_per_frame": [[int(f), float(v)] for f, v in ghosts.shares],
+        "frames_to_clear": ghosts.frames_to_clear(),
+        "static_loss": ghosts.static.as_dict(),
+    }
+
+
 def _observed_samples(rig: SimulatedRig, config: RunConfig, samples: int):
     """The ground-truth samples that the run's poses saw (shared by every method of a bench)."""
     frames = len(rig)
@@ -113,7 +132,13 @@ def bench_frames(config: RunConfig) -> tuple[SimulatedRig, FrameList]:
 
 
 def run_bench(
-    config: RunConfig, methods=METHODS, out_dir=None, samples: int = SAMPLES, progress=print, command: str | None = None
+    config: RunConfig,
+    methods=METHODS,
+    out_dir=None,
+    samples: int = SAMPLES,
+    progress=print,
+    command: str | None = None,
+    tune: bool = True,
 ) -> dict:
     """Run ``methods`` on the run ``config`` describes; return (and with ``out_dir`` write) the results.
 
@@ -130,6 +155,8 @@ def run_bench(
     rig, frames = bench_frames(config)
     observed = _observed_samples(rig, config, samples)
     ground_truth = rig.scene.mesh_at(len(frames) - 1)
+    #: a scene an object leaves: ghost share, frames to clear and static loss for every method
+    dynamic = bool(departures(rig.scene, len(frames)))
     rows, notes = [], []
     for method in methods:
         if method in ("mabdi", "black_box"):
@@ -137,9 +164,16 @@ def run_bench(
             set_value(method_config, "classifier.enabled", method == "mabdi")
             progress(f"{method}: running {len(frames)} frames")
             simulation = Simulation(method_config, source=frames, scene=rig.scene)
-            result = simulation.run()
+            if dynamic:
+                # the map after every few frames against the scene as it is then (ghosts, static loss)
+                ghosts = run_with_ghosts(simulation, every=max(1, len(frames) // 25))
+                result = ghosts.result
+            else:
+                result = simulation.run()
             progress(f"{method}: evaluating {result.mesh.GetNumberOfCells():,} triangles")
             rows.append(_mabdi_row(method, simulation, result, observed))
+            if dynamic:
+                rows[-1]["dynamic"] = _dynamic(ghosts)
             continue
         usable, reason = open3d_status()
         if not usable:
@@ -148,10 +182,26 @@ def run_bench(
             notes.append(note)
             continue
         voxel = TSDF_VOXELS[method]
+        settings, tuning = TsdfSettings(voxel_size=voxel), None
+        if tune:
+            progress(f"{method}: tuning the TSDF on {len(frames)} frames")
+            tuning_observed = _observed_samples(rig, config, min(samples, TUNING_SAMPLES))
+
+            def score(mesh, tuning_observed=tuning_observed):
+                return evaluate_map(mesh, ground_truth, tuning_observed, samples=min(samples, TUNING_SAMPLES)).as_dict()
+
+            tuning = tune_tsdf(frames, voxel, score)
+            settings = tuning.best
+            progress(f"{method}: best of {len(tuning.table)} settings: {settings.as_dict()}")
         progress(f"{method}: integrating {len(frames)} frames")
-        run = run_tsdf(frames, voxel, turns=config.path.turns)
+        run = run_tsdf(frames, settings, turns=config.path.turns)
         metrics = evaluate_map(run.mesh, ground_truth, observed, samples=samples)
         metrics.growth_per_circle = run.growth_per_circle(len(frames), config.path.turns)
+        tsdf_dynamic = None
+        if dynamic:  # the TSDF's final mesh against the final scene (its meshes along the way are not kept)
+            tracker = GhostTracker(rig.scene, len(frames), rig.poses, rig.intrinsics, backend=config.sensor.backend)
+            tracker.measure(len(frames) - 1, run.mesh, final=True)
+            tsdf_dynamic = _dynamic(tracker.finish())
         extract_ms = float(np.mean([ms for _, _, ms in run.extractions])) if run.extractions else 0.0
         rows.append(
             {
@@ -167,6 +217,11 @@ def run_bench(
                 "seconds": run.seconds,
                 "volume_bytes": run.volume_bytes,
                 "triangles_at": [[frame, triangles] for frame, triangles, _ in run.extractions],
+                "settings": settings.as_dict(),
+                **({"dynamic": tsdf_dynamic} if tsdf_dynamic is not None else {}),
+                "tuning": None
+                if tuning is None
+                else {"points": len(tuning.table), "volumes": tuning.integrations, "seconds": tuning.seconds},
             }
         )
     bench = {
@@ -216,6 +271,21 @@ def markdown_table(bench: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
+def dynamic_table(bench: dict) -> str:
+    """Ghost share at the end, frames to clear and static loss, one row per method (dynamic scenes)."""
+    rows = [r for r in bench["methods"] if "dynamic" in r]
+    if not rows:
+        return ""
+    lines = ["| method | ghost share at the end | frames to clear | static loss (m^2) |", "|---|---:|---|---:|"]
+    for row in rows:
+        d = row["dynamic"]
+        clear = ", ".join(f"{k}: {'-' if v is None else v}" for k, v in d["frames_to_clear"].items()) or "-"
+        if not row.get("triangles_per_frame"):
+            clear = "(final mesh only)"
+        lines.append(f"| {row['method']} | {100.0 * d['ghost_share_end']:.2f}% | {clear} | {d['static_loss']['area_m2']:.4f} |")
+    return "\n".join(lines) + "\n"
+
+
 def stage_table(bench: dict) -> str:
     """Milliseconds per frame by stage, one row per method."""
     lines = ["| method | stage ms per frame |", "|---|---|"]
@@ -240,9 +310,16 @@ def write_bench_outputs(bench: dict, out: Path) -> None:
         + "\n\n"
     )
     notes = "".join(f"- {note}\n" for note in bench["notes"])
+    for row in bench["methods"]:
+        if "settings" in row:
+            tuned = row.get("tuning")
+            how = f"tuned over {tuned['points']} settings in {tuned['seconds']:.0f} s" if tuned else "not tuned"
+            notes += f"- {row['method']} settings ({how}): {row['settings']}\n"
     if "tsdf_alignment_mm" in bench:
         notes += f"- TSDF alignment check (noise-free first frame, 1 cm voxels): median {bench['tsdf_alignment_mm']:.2f} mm\n"
-    write_text(out / "bench.md", header + markdown_table(bench) + "\n" + stage_table(bench) + ("\n" + notes if notes else ""))
+    dynamic = dynamic_table(bench)
+    body = markdown_table(bench) + "\n" + (dynamic + "\n" if dynamic else "") + stage_table(bench)
+    write_text(out / "bench.md", header + body + ("\n" + notes if notes else ""))
     series = {}
     for row in bench["methods"]:
         if "triangles_per_frame" in row:

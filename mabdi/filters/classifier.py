@@ -68,12 +68,16 @@ class ClassifierParameters:
     The ``[classifier]`` section of a run config. ``enabled = false`` is the
     loop's "black box": the surface filter meshes every valid pixel of D,
     every frame. ``removal = true``: contradicted pixels remove the map faces
-    they see through (:mod:`mabdi.filters.removal`). The classifier filter
-    itself reads neither switch: the loop does.
+    they see through (:mod:`mabdi.filters.removal`). ``refinement = true``:
+    known pixels refine the faces they show, and faces made from a much
+    noisier look are replaced (:mod:`mabdi.filters.refinement`; nothing
+    happens with a noise-free sensor). The classifier filter itself reads
+    none of these switches: the loop does.
     """
 
     enabled: bool = True
     removal: bool = True
+    refinement: bool = True
     tau_min: float = 0.01
     k_sigma: float = 3.0
     min_width: int = 3

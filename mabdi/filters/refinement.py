@@ -388,7 +388,7 @@ class MapRefinement:
             state.offset[vertices[move]] = estimate[move]
             points = _points(state.patch).astype(np.float64)
             points[vertices[move]] = state.original[vertices[move]] + estimate[move][:, None] * state.normal[vertices[move]]
-            world.move_points(key, points)
+            world.move_points(key, points, vertices[move])
             moved += int(move.sum())
         result.moved_vertices = moved
         result.observed_pixels = observed

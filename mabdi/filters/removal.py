@@ -23,12 +23,14 @@ except
 * at grazing incidence: the angle between the pixel's ray and the face's
   normal is over ``grazing_deg`` (75 degrees), where tiny depth errors along
   the ray are large;
-* within the noise threshold tau(z): such pixels are "known" already; and a
-  contradiction counts only when D is beyond E by more than ``min_gap``
-  (3 cm) too. Smaller gaps are where a map of flat faces cuts across a
+* within the noise: a contradiction counts only when D is beyond E by more
+  than ``k_sigma`` (3) times the noise of the *difference*, sqrt(sigma(D)^2 +
+  sigma(E)^2) (the map was itself made from a measurement as noisy as D,
+  so D - E spreads sqrt(2) times wider than D alone; the classifier's tau
+  only knows D's), and by more than ``min_gap`` (5 cm) too. Smaller gaps are where a map of flat faces cuts across a
   concave crease (the chord of a pixel-grid triangle bridging floor and wall
   runs in front of the corner): no vote either way. An object thinner than
-  3 cm lying on a surface is therefore not removed.
+  5 cm lying on a surface is therefore not removed.
 
 **The rule** (:func:`update_log_odds`): each face keeps the log-odds L that it
 is gone, starting at 0 when the face is made. In a frame where a face gets
@@ -74,11 +76,14 @@ class RemovalParameters:
     grazing_deg: float = 75.0
     edge_jump: float = 0.05
     edge_margin: int = 2
-    min_gap: float = 0.03
+    min_gap: float = 0.05
+    k_sigma: float = 3.0
 
     def __post_init__(self) -> None:
         if not (self.hit > 0 and self.miss >= 0 and self.floor <= 0 < self.threshold <= self.ceiling):
             raise ConfigError("removal: need hit > 0, miss >= 0 and floor <= 0 < threshold <= ceiling")
+        if self.k_sigma < 0:
+            raise ConfigError(f"removal: k_sigma must be >= 0, got {self.k_sigma}")
         if self.min_gap < 0:
             raise ConfigError(f"removal: min_gap must be >= 0 metres, got {self.min_gap}")
         if self.min_frames < 1 or self.edge_margin < 0 or not 0 < self.grazing_deg < 90 or self.edge_jump <= 0:
@@ -114,16 +119,25 @@ def removal_votes(
     normals_of,
     parameters: RemovalParameters,
     evidence_of=None,
+    sigma=None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """One frame's votes: (face ids, contradicting pixels, confirming pixels per face, the voting contradicted pixels' mask).
 
     ``labels`` (H, W) from the classifier; ``measured`` D and ``expected`` E (H, W) metres; ``face_ids`` (H, W) from E
     (0 = no face); ``unit_rays`` (H, W, 3) unit pixel rays in the camera frame; ``world_from_camera``
     the pose; ``normals_of(ids)`` -> (N, 3) world normals of faces (NaN for unknown ids);
-    ``evidence_of(ids)`` -> their log-odds, to skip confirmations of faces already at the floor.
+    ``evidence_of(ids)`` -> their log-odds, to skip confirmations of faces already at the floor;
+    ``sigma(depth)`` -> the sensor's noise (m) at depths (m), for the contradiction gate.
     """
-    with np.errstate(invalid="ignore"):
-        contradicting_pixels = (labels == CONTRADICTED) & (measured - expected > np.float32(parameters.min_gap))
+    contradicting_pixels = labels == CONTRADICTED
+    if contradicting_pixels.any():
+        gap = np.full(labels.shape, np.float32(parameters.min_gap))
+        if sigma is not None:
+            d, e = measured[contradicting_pixels], expected[contradicting_pixels]
+            noise = np.float32(parameters.k_sigma) * np.sqrt(sigma(d) ** 2 + sigma(e) ** 2).astype(np.float32)
+            gap[contradicting_pixels] = np.maximum(gap[contradicting_pixels], noise)
+        with np.errstate(invalid="ignore"):
+            contradicting_pixels &= measured - expected > gap
     candidates = (face_ids > 0) & ((labels == KNOWN) | contradicting_pixels)
     if not candidates.any():
         empty = np.zeros(0, dtype=np.int64)

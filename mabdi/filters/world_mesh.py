@@ -329,11 +329,12 @@ class FilterWorldMesh(MabdiAlgorithm):
         """The polydata of block ``key`` (read it; change its points only through :meth:`move_points`)."""
         return self._patches[key]
 
-    def move_points(self, key: str, points: np.ndarray) -> None:
+    def move_points(self, key: str, points: np.ndarray, vertex_ids: np.ndarray | None = None) -> None:
         """Give block ``key`` new vertex positions (N, 3) (same count and order; faces unchanged).
 
         The block's points are replaced in place and marked modified, so the expected-image renderer
-        re-uploads that block only.
+        re-uploads that block only. ``vertex_ids``: the vertices that moved (only their faces' normals
+        are recomputed); None: all of them.
         """
         patch = self._patches[key]
         current = vtk_to_numpy(patch.GetPoints().GetData())
@@ -343,7 +344,17 @@ class FilterWorldMesh(MabdiAlgorithm):
         patch.GetPoints().Modified()
         patch.Modified()
         base, count = self._ids._ranges[key]
-        self._face_normals[base : base + count] = face_normals(patch)
+        triangles = patch_triangles(patch) if vertex_ids is not None else None
+        if triangles is None:
+            self._face_normals[base : base + count] = face_normals(patch)
+        else:
+            moved = np.zeros(len(current), dtype=bool)
+            moved[vertex_ids] = True
+            faces = np.flatnonzero(moved[triangles].any(axis=1))
+            a = current[triangles[faces, 0]].astype(np.float32)
+            normals = np.cross(current[triangles[faces, 1]] - a, current[triangles[faces, 2]] - a).astype(np.float32)
+            length = np.linalg.norm(normals, axis=1, keepdims=True)
+            self._face_normals[base + faces] = normals / np.where(length > 0, length, np.float32(1.0))
         self._map.Modified()
         self._merged = None
 

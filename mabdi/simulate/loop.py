@@ -38,6 +38,7 @@ from mabdi.depth import depth_array, image_pose
 from mabdi.filters.classifier import CONTRADICTED, ClassifierParameters, FilterClassifier, label_array, pixel_counts
 from mabdi.filters.depth_image import BACKENDS, SensorNoise
 from mabdi.filters.expected_image import MAP_PORT, MEASURED_PORT, FilterExpectedImage, face_id_array
+from mabdi.filters.refinement import MapRefinement, RefinementParameters
 from mabdi.filters.registry import make_surface_filter
 from mabdi.filters.removal import RemovalParameters, removal_votes
 from mabdi.filters.world_mesh import FilterWorldMesh
@@ -68,6 +69,9 @@ class FrameRecord:
     cells_removed: int = 0
     area_removed: float = 0.0  # m^2
     t_remove_ms: float = 0.0
+    #: Vertices moved by refinement this frame (:mod:`mabdi.filters.refinement`), and the stage's time.
+    vertices_refined: int = 0
+    t_refine_ms: float = 0.0
 
 
 class MabdiLoop:
@@ -93,12 +97,15 @@ class MabdiLoop:
         self.noise = SensorNoise.of(noise)
         self.surface_name = surface
 
-        #: Object removal runs when the classifier does and ``removal`` is on (the default).
+        #: Object removal and refinement run when the classifier does and they are on (the default);
+        #: refinement only with a noisy sensor (a noise-free measurement is exact the first time).
         self.removal = self.classifier_parameters.enabled and self.classifier_parameters.removal
         self.removal_parameters = RemovalParameters()
+        self.refining = self.classifier_parameters.enabled and self.classifier_parameters.refinement and self.noise.model != "none"
+        self.refinement = MapRefinement(RefinementParameters())
         self.measured = SourceDepthFrames(source)
         self.world = FilterWorldMesh()
-        self.expected = FilterExpectedImage(backend=backend, identity=self.removal)
+        self.expected = FilterExpectedImage(backend=backend, identity=self.removal or self.refining)
         self.expected.SetInputDataObject(MAP_PORT, self.world.map)
         self.expected.SetInputConnection(MEASURED_PORT, self.measured.GetOutputPort())
         self.classifier = FilterClassifier(self.classifier_parameters, noise=self.noise)
@@ -110,6 +117,7 @@ class MabdiLoop:
         self.world.SetInputConnection(self.surface.GetOutputPort())
         self._algorithms = (self.measured, self.expected, self.classifier, self.surface, self.world)
         self._removed = vtkPolyData()
+        self._refined = None
         self._ray_cache: tuple[Intrinsics, np.ndarray] | None = None
 
     @classmethod
@@ -136,12 +144,13 @@ class MabdiLoop:
     def reset(self) -> None:
         """Empty the map, and a surface filter's own memory (voxel statistics); render windows stay."""
         self.world.reset()
+        self.refinement.reset()
         if hasattr(self.surface, "reset"):
             self.surface.reset()
 
     def state(self) -> dict:
         """The loop's state between frames, for checkpoints: the map, and a stateful surface filter's memory."""
-        state = {"world": self.world.state()}
+        state = {"world": self.world.state(), "refinement": self.refinement}
         if hasattr(self.surface, "state"):
             state["surface"] = self.surface.state()
         return state
@@ -149,6 +158,7 @@ class MabdiLoop:
     def set_state(self, state: dict) -> None:
         """Go on from a :meth:`state` (the next :meth:`step` continues the saved run)."""
         self.world.set_state(state["world"])
+        self.refinement = state["refinement"]
         if "surface" in state:
             self.surface.set_state(state["surface"])
 
@@ -170,11 +180,19 @@ class MabdiLoop:
         self.world.Update()
         t_append = time.perf_counter()
         raise_pipeline_errors(*self._algorithms)
-        # Removal last: the map changes after this frame's E was used, so E is not drawn twice; the
-        # surface behind a removed face is novel (and meshed) in the next frame.
-        t_remove = t_append
-        if self.removal:
-            cells_removed = self._remove_contradicted()
+        # Refinement and removal last: the map changes after this frame's E was used, so E is not drawn
+        # twice; the surface behind a removed or replaced face is novel (and meshed) in the next frame.
+        replaced = np.zeros(0, dtype=np.int64)
+        moved = 0
+        self._refined = None
+        if self.refining:
+            self._refined = self.refinement.step(self)
+            replaced, moved = self._refined.replaced, self._refined.moved_vertices
+        t_refine = time.perf_counter()
+        t_remove = t_refine
+        self._removed = vtkPolyData()
+        if self.removal or len(replaced):
+            cells_removed = self._remove_contradicted(replaced)
             t_remove = time.perf_counter()
 
         if self.classifier_enabled:
@@ -200,8 +218,10 @@ class MabdiLoop:
             speck_pixels=counts["specks"],
             contradicted_pixels=counts["contradicted"],
             cells_removed=cells_removed,
+            vertices_refined=moved,
+            t_refine_ms=ms * (t_refine - t_append),
             area_removed=polydata_area(self._removed) if cells_removed else 0.0,
-            t_remove_ms=ms * (t_remove - t_append),
+            t_remove_ms=ms * (t_remove - t_refine),
         )
 
     def _unit_rays(self) -> tuple[np.ndarray, np.ndarray]:
@@ -213,20 +233,32 @@ class MabdiLoop:
             self._ray_cache = (intrinsics, (rays / length[..., None]).astype(np.float32), length)
         return self._ray_cache[1], self._ray_cache[2]
 
-    def _remove_contradicted(self) -> int:
-        """Vote with this frame's contradicted and known pixels, remove the faces the evidence condemns."""
-        self._removed = vtkPolyData()
+    def _remove_contradicted(self, replaced: np.ndarray) -> int:
+        """Vote with this frame's contradicted and known pixels, remove the faces the evidence condemns,
+        and the faces refinement ``replaced`` (made from a much noisier look)."""
+        gone = np.asarray(replaced, dtype=np.int64)
         classified = self.classifier.GetOutput()
         labels = label_array(classified)
-        if not np.any(labels == CONTRADICTED):
-            # No pixel sees through the map: nothing can go. (Confirmations only matter against
-            # contradictions, so a frame without any is skipped whole: the common case once the world is known.)
+        voting = None
+        if self.removal and np.any(labels == CONTRADICTED):
+            # (A frame where no pixel sees through the map is skipped whole: confirmations only matter
+            # against contradictions. The common case once the world is known.)
+            voting, condemned = self._votes(labels)
+            gone = np.union1d(gone, condemned)
+        if not len(gone):
             return 0
+        self._removed = self.world.remove_faces(gone)
+        if voting is not None and hasattr(self.surface, "clear_free_space"):
+            self._clear_free_space(voting, gone)
+        return int(self._removed.GetNumberOfCells())
+
+    def _votes(self, labels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(the voting contradicted pixels, the faces the evidence now condemns)."""
         measured_image = self.measured_image()
         measured = depth_array(measured_image)
         face_ids = face_id_array(self.expected.GetOutput())
         pose = image_pose(measured_image)
-        unit_rays, length = self._unit_rays()
+        unit_rays, _ = self._unit_rays()
         expected = depth_array(self.expected.GetOutput())
         faces, contradicted, confirmed, voting = removal_votes(
             labels,
@@ -238,24 +270,28 @@ class MabdiLoop:
             self.world.face_normals_of,
             self.removal_parameters,
             evidence_of=self.world.face_evidence_of,
+            sigma=lambda depth: self.noise.sigma(depth, self.intrinsics.near, self.intrinsics.far),
         )
         if not len(faces):
-            return 0
-        gone = self.world.update_evidence(faces, contradicted, confirmed, self.removal_parameters)
-        if not len(gone):
-            return 0
-        self._removed = self.world.remove_faces(gone)
-        if hasattr(self.surface, "clear_free_space"):
-            # Rays that saw through the removed faces empty the voxels they crossed (up to tau before D).
-            through = voting & np.isin(face_ids, gone)
-            if through.any():
-                depth = measured[through].astype(np.float64)
-                intrinsics = self.intrinsics
-                tau = self.classifier.threshold(measured[through], intrinsics.near, intrinsics.far).astype(np.float64)
-                directions = unit_rays[through].astype(np.float64) @ pose[:3, :3].T
-                ends = pose[:3, 3] + directions * (depth * length[through])[:, None]
-                self.surface.clear_free_space(pose[:3, 3], ends, tau * length[through])
-        return int(self._removed.GetNumberOfCells())
+            return voting, np.zeros(0, dtype=np.int64)
+        return voting, self.world.update_evidence(faces, contradicted, confirmed, self.removal_parameters)
+
+    def _clear_free_space(self, voting: np.ndarray, gone: np.ndarray) -> None:
+        """Voxel planes: rays that saw through removed faces empty the voxels they crossed (up to tau before D)."""
+        face_ids = face_id_array(self.expected.GetOutput())
+        through = voting & np.isin(face_ids, gone)
+        if not through.any():
+            return
+        measured_image = self.measured_image()
+        measured = depth_array(measured_image)
+        pose = image_pose(measured_image)
+        unit_rays, length = self._unit_rays()
+        intrinsics = self.intrinsics
+        depth = measured[through].astype(np.float64)
+        tau = self.classifier.threshold(measured[through], intrinsics.near, intrinsics.far).astype(np.float64)
+        directions = unit_rays[through].astype(np.float64) @ pose[:3, :3].T
+        ends = pose[:3, 3] + directions * (depth * length[through])[:, None]
+        self.surface.clear_free_space(pose[:3, 3], ends, tau * length[through])
 
     # -- what the last frame produced --------------------------------------
     def measured_image(self) -> vtkImageData:
@@ -274,6 +310,10 @@ class MabdiLoop:
         """(H, W) uint8 labels of the last frame (0 no return, 1 known, 2 novel, 3 contradicted), or None."""
         image = self.classified_image()
         return None if image is None else label_array(image)
+
+    def refinement_result(self):
+        """What refinement did in the last frame (:class:`~mabdi.filters.refinement.RefinementResult`), or None."""
+        return self._refined
 
     def removed_surface(self) -> vtkPolyData:
         """The faces object removal took out of the map in the last frame (world coordinates)."""
