@@ -53,6 +53,10 @@ def _parser() -> argparse.ArgumentParser:
         help="keep every face: no object removal by free-space contradiction (classifier.removal = false)",
     )
     run.add_argument(
+        "--no-refinement", action="store_true",
+        help="keep the first look of every face: no refinement by later looks (classifier.refinement = false)",
+    )
+    run.add_argument(
         "--rerun", nargs="?", const="", metavar="FILE.rrd",
         help="log every frame to Rerun: to a viewer (spawned or connected), or to a .rrd recording (needs mabdi[rerun])",
     )
@@ -182,6 +186,7 @@ def _apply_overrides(config, args) -> None:
         "surface.method": getattr(args, "surface", None),
         "classifier.enabled": False if getattr(args, "no_classifier", False) else None,
         "classifier.removal": False if getattr(args, "no_removal", False) else None,
+        "classifier.refinement": False if getattr(args, "no_refinement", False) else None,
         "output.dir": str(args.out) if args.command == "run" and args.out is not None else None,
         "output.depth_images": True if getattr(args, "depth_images", False) else None,
         "output.h5": True if getattr(args, "h5", False) else None,

@@ -405,7 +405,7 @@ def run_sweep(path_or_spec, out_dir=None, workers: int | None = None, address: s
     """
     from mabdi.evaluate.metrics import SAMPLES
     from mabdi.io.atomic import write_text
-    from mabdi.simulate.runner import prepare_output_dir
+    from mabdi.io.run_folder import prepare_output_dir
 
     start = time.perf_counter()
     if isinstance(path_or_spec, SweepSpec):

@@ -18,7 +18,8 @@ from mabdi.errors import ConfigError
 from mabdi.evaluate import distances_to_mesh
 from mabdi.filters.depth_image import FilterDepthImage
 from mabdi.simulate import Simulation
-from mabdi.simulate.runner import METRICS_COLUMNS, OutputError
+from mabdi.io.run_folder import OutputError
+from mabdi.simulate.runner import METRICS_COLUMNS
 from mabdi.polydata import triangles_polydata
 
 

@@ -44,7 +44,7 @@ from mabdi.config import RunConfig, dump_toml, run_config_from_dict
 from mabdi.io.atomic import atomic_output, write_text
 from mabdi.io.hdf5 import write_map
 from mabdi.io.plots import write_elements_plot
-from mabdi.io.run_folder import OutputError, RunFolder, prepare_output_dir  # noqa: F401 (OutputError, prepare_output_dir: imported from here by older code)
+from mabdi.io.run_folder import OutputError, RunFolder
 from mabdi.io.vtk_files import write_image, write_mesh_file, write_polydata
 from mabdi.maps.colours import colours_by_normal
 from mabdi.maps.labels import label_floor, planar_clusters
