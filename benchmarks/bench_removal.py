@@ -32,7 +32,6 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
 
 from mabdi.config import load_run_config, set_value
 from mabdi.evaluate.bench import bench_frames, machine_info

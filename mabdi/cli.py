@@ -53,8 +53,8 @@ def _parser() -> argparse.ArgumentParser:
         help="keep every face: no object removal by free-space contradiction (classifier.removal = false)",
     )
     run.add_argument(
-        "--no-refinement", action="store_true",
-        help="keep the first look of every face: no refinement by later looks (classifier.refinement = false)",
+        "--refinement", action="store_true",
+        help="experimental: later, better looks refine or replace known faces (classifier.refinement = true)",
     )
     run.add_argument(
         "--rerun", nargs="?", const="", metavar="FILE.rrd",
@@ -186,7 +186,7 @@ def _apply_overrides(config, args) -> None:
         "surface.method": getattr(args, "surface", None),
         "classifier.enabled": False if getattr(args, "no_classifier", False) else None,
         "classifier.removal": False if getattr(args, "no_removal", False) else None,
-        "classifier.refinement": False if getattr(args, "no_refinement", False) else None,
+        "classifier.refinement": True if getattr(args, "refinement", False) else None,
         "output.dir": str(args.out) if args.command == "run" and args.out is not None else None,
         "output.depth_images": True if getattr(args, "depth_images", False) else None,
         "output.h5": True if getattr(args, "h5", False) else None,
@@ -331,10 +331,11 @@ def _report_run(args, simulation, result, note, movie, dashboard_ms) -> int:
             f"accuracy median {scores.accuracy_median_mm:.2f} mm, redundancy {100.0 * (scores.redundancy or 0.0):.1f}%{second}"
         )
     finish_run(result, metrics, evaluation)
+    empty = result.mesh.GetNumberOfCells() == 0
     if movie is not None:
         print(f"movie: {movie} ({simulation.frames} frames, dashboard {dashboard_ms:.0f} ms per frame)")
     print(f"results in {result.out_dir}/ (world_mesh.vtp, world_mesh.ply, metrics.csv, summary.json, elements.png)")
-    return 0
+    return 1 if empty else 0  # an empty map: the files are written (and valid), the warning above says why
 
 
 def cmd_record(args) -> int:
@@ -436,7 +437,10 @@ def cmd_info(args) -> int:
     layout = f" ({map_layout(args.map)} layout)" if is_hdf5(args.map) else ""
     print(f"{args.map}{layout}")
     print(f"  {mesh_map.number_of_vertices:,} vertices, {mesh_map.number_of_faces:,} triangles")
-    print(f"  bounds: x {low[0]:.3f} .. {high[0]:.3f}, y {low[1]:.3f} .. {high[1]:.3f}, z {low[2]:.3f} .. {high[2]:.3f} m")
+    if mesh_map.number_of_vertices:
+        print(f"  bounds: x {low[0]:.3f} .. {high[0]:.3f}, y {low[1]:.3f} .. {high[1]:.3f}, z {low[2]:.3f} .. {high[2]:.3f} m")
+    else:
+        print("  bounds: none (an empty map)")
     for kind, layers in (("vertex", mesh_map.vertex_layers), ("face", mesh_map.face_layers)):
         print(f"  {kind} layers: {len(layers)}")
         for name, values in layers.items():
@@ -514,6 +518,14 @@ def main(argv=None) -> int:
     vtk_messages = vtkStringOutputWindow()
     vtkOutputWindow.SetInstance(vtk_messages)
     vtkLogger.SetStderrVerbosity(vtkLogger.VERBOSITY_OFF)
+    import warnings
+
+    def show_warning(message, category, filename, lineno, file=None, line=None) -> None:
+        # One line, like the errors: "mabdi: warning: ..." (no source line, no traceback)
+        ours = category.__module__.startswith("mabdi")
+        print(f"mabdi: warning: {message}" if ours else f"mabdi: warning ({category.__name__}): {message}", file=sys.stderr)
+
+    previous_show, warnings.showwarning = warnings.showwarning, show_warning
     failed = True
     try:
         commands = {
@@ -544,6 +556,7 @@ def main(argv=None) -> int:
         os.close(devnull)
         return 141  # 128 + SIGPIPE, the status of a tool the pipe stopped
     finally:
+        warnings.showwarning = previous_show
         vtkOutputWindow.SetInstance(previous_window)
         vtkLogger.SetStderrVerbosity(verbosity)
         text = re.sub(r"\x1b\[[0-9;]*[A-Za-z]", "", vtk_messages.GetOutput() or "").strip()

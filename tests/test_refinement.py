@@ -62,7 +62,7 @@ def vertex_distances(loop) -> np.ndarray:
 def refining_loop(frames: FrameList, surface: str):
     """The loop with its refinement (on by default with a noisy sensor); object removal made unable to fire,
     so what changes the map here is the refinement alone."""
-    loop = mabdi.MabdiLoop(frames, surface=surface, noise="kinect")
+    loop = mabdi.MabdiLoop(frames, mabdi.ClassifierParameters(refinement=True), surface=surface, noise="kinect")
     assert loop.refining
     loop.removal_parameters = RemovalParameters(min_frames=60000)
     return loop, loop.refinement

@@ -380,6 +380,10 @@ class MapRefinement:
         moved = 0
         for key, state, vertices in touched:
             estimate = state.total[vertices] / (state.prior[vertices] + state.weight[vertices])
+            # never further from the first look than its own noise allows (3 sigma): a bias in the residuals
+            # (a flat face across a curved surface) cannot walk a vertex away
+            bound = 3.0 / np.sqrt(state.prior[vertices])
+            estimate = np.clip(estimate, -bound, bound)
             move = (state.weight[vertices] >= p.confidence * state.prior[vertices]) & (
                 np.abs(estimate - state.offset[vertices]) >= p.min_step
             )

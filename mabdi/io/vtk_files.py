@@ -99,8 +99,40 @@ def write_mesh_file(mesh: vtkPolyData, path) -> Path:
         writer.SetFileTypeToBinary()
     else:
         raise ConfigError(f"{path}: unknown mesh format '{path.suffix}' (known: {', '.join(MESH_FORMATS)})")
+    if mesh.GetNumberOfCells() == 0:
+        return _write_empty_mesh(path, suffix)
     triangles = _triangles(mesh)
     return _write(writer, triangles, path, points=triangles.GetNumberOfPoints(), cells=triangles.GetNumberOfCells())
+
+
+def _holds_no_mesh(path: Path) -> bool:
+    """Whether a (checked) mesh file says it holds no triangles: 0 vertices in a PLY header, 0 STL triangles,
+    an OBJ without vertices (as :func:`_write_empty_mesh` writes an empty map)."""
+    suffix = path.suffix.lower()
+    head = path.read_bytes()[:4096]
+    if suffix == ".ply":
+        return b"\nelement vertex 0\n" in head.split(b"end_header")[0]
+    if suffix == ".stl":
+        return len(head) == 84 and head[80:84] == b"\0\0\0\0"
+    if suffix == ".obj":
+        return not any(line.startswith(b"v ") for line in path.read_bytes().splitlines())
+    if suffix == ".vtp":
+        return b'NumberOfPoints="0"' in head and head.count(b"<Piece") == 1
+    return False
+
+
+def _write_empty_mesh(path: Path, suffix: str) -> Path:
+    """A valid file holding no triangles (VTK's PLY and STL writers refuse to write one)."""
+    if suffix == ".ply":
+        content = b"ply\nformat binary_little_endian 1.0\nelement vertex 0\nproperty float x\nproperty float y\nproperty float z\n" \
+            b"element face 0\nproperty list uchar int vertex_indices\nend_header\n"
+    elif suffix == ".stl":
+        content = b"empty mesh written by mabdi".ljust(80, b" ") + (0).to_bytes(4, "little")
+    else:
+        content = b"# empty mesh written by mabdi\n"
+    with atomic_output(path) as temporary:
+        Path(temporary).write_bytes(content)
+    return path
 
 
 def read_mesh_file(path) -> vtkPolyData:
@@ -127,7 +159,7 @@ def read_mesh_file(path) -> vtkPolyData:
         mesh = vtkPolyData()
         mesh.ShallowCopy(reader.GetOutput())
         said = _first_line(messages())
-        if mesh.GetNumberOfPoints() == 0:
+        if mesh.GetNumberOfPoints() == 0 and not _holds_no_mesh(path):
             raise DamagedFileError(f"{path}: no mesh could be read from this file" + (f" (VTK: {said})" if said else ""))
         if reader.GetErrorCode() != 0:
             raise DamagedFileError(f"{path}: VTK's reader failed on this file" + (f" (VTK: {said})" if said else ""))
