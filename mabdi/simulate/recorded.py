@@ -27,6 +27,11 @@ from mabdi.simulate.runner import Simulation
 from mabdi.sources.scene import SourceScene
 
 FORMATS = ("tum", "rosbag2")
+#: The reader options each format takes (the others are an error when given).
+READER_OPTIONS = {
+    "tum": ("camera", "tolerance"),
+    "rosbag2": ("depth_topic", "info_topic", "pose_topic", "tolerance"),
+}
 
 
 def scene_digest(scene: SceneConfig, frames: int) -> str:
@@ -77,9 +82,16 @@ def record(config: RunConfig, out, format: str, storage: str = "sqlite3", encodi
 def recorded_simulation(config: RunConfig, path, **options) -> tuple[Simulation, str | None]:
     """A Simulation over the recording at ``path`` (``options`` go to the reader), and a note when
     the ground truth is unknown (the evaluation is then skipped)."""
-    from mabdi.sources.sequences import open_sequence, read_sequence_metadata
+    from mabdi.errors import ConfigError
+    from mabdi.sources.sequences import open_sequence, read_sequence_metadata, sequence_format
 
-    source = open_sequence(path, **options)
+    kind = sequence_format(path)
+    wanted = READER_OPTIONS[kind]
+    for name, value in options.items():
+        if value is not None and name not in wanted:
+            flag = "--" + name.replace("_", "-")
+            raise ConfigError(f"{path} is a {'TUM RGB-D folder' if kind == 'tum' else 'ROS 2 bag'}: {flag} does not apply to it")
+    source = open_sequence(path, **{k: v for k, v in options.items() if v is not None and k in wanted})
     recorded = read_sequence_metadata(path).get("recorded", {})
     scene = None
     note = None
