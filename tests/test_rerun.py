@@ -106,3 +106,14 @@ def test_polygons_are_triangulated():
     points, triangles = triangles_of(plane.GetOutput())
     assert points.shape == (12, 3) and points.dtype == np.float32
     assert triangles.shape == (12, 3) and triangles.dtype == np.uint32 and triangles.max() < 12
+
+
+def test_mabdi_run_rerun_writes_the_recording_from_the_command_line(tmp_path):
+    from mabdi.cli import main
+
+    path = tmp_path / "cli.rrd"
+    out = tmp_path / "run"
+    status = main(["run", str(SCENES / "table.toml"), "--frames", str(FRAMES), "--rerun", str(path), "--out", str(out), "--quiet", "--no-eval"])
+    assert status == 0 and path.is_file()
+    columns, frames = read_recording(path)
+    assert frames == set(range(FRAMES)) and any(p.lstrip("/").startswith("world/map/") for p in columns)
