@@ -333,6 +333,7 @@ def _report_run(args, simulation, result, note, movie, dashboard_ms) -> int:
     finish_run(result, metrics, evaluation)
     empty = result.mesh.GetNumberOfCells() == 0
     if movie is not None:
+        movie = result.out_dir / Path(movie).name  # moved from the staging folder by finish_run
         print(f"movie: {movie} ({simulation.frames} frames, dashboard {dashboard_ms:.0f} ms per frame)")
     print(f"results in {result.out_dir}/ (world_mesh.vtp, world_mesh.ply, metrics.csv, summary.json, elements.png)")
     return 1 if empty else 0  # an empty map: the files are written (and valid), the warning above says why

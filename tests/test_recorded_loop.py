@@ -101,7 +101,7 @@ def test_the_bench_feeds_every_method_the_same_frames_from_one_rig(monkeypatch):
     set_value(config, "run.frames", 4)
     set_value(config, "sensor.noise", "kinect")
     methods = ["mabdi", "black_box", "tsdf_2cm"]
-    result = bench.run_bench(config, methods, samples=2000, progress=lambda line: None)
+    result = bench.run_bench(config, methods, samples=2000, progress=lambda line: None, tune=False)
     assert len(built) == 1  # one rig for the scene
     ran = [row["method"] for row in result["methods"]]
     assert sorted(seen) == [0, 1, 2, 3]

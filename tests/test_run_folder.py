@@ -9,7 +9,7 @@ import pytest
 
 from conftest import REPO
 from mabdi.config import load_run_config, set_value
-from mabdi.io.run_folder import MANIFEST, OutputError, RunFolder
+from mabdi.io.run_folder import MANIFEST, STAGING, OutputError, RunFolder
 from mabdi.simulate import Simulation
 from mabdi.simulate.runner import CHECKPOINT
 
@@ -75,15 +75,28 @@ def test_resume_after_an_interrupt_gives_the_same_map(tmp_path, surface):
     cut = tmp_path / "cut"
     with pytest.raises(KeyboardInterrupt):
         Simulation(table(30, surface, output__checkpoint_every=5)).run(cut, progress=interrupt_at(17))
-    assert (cut / CHECKPOINT).is_file() and not (cut / "summary.json").exists()
-    assert not json.loads((cut / MANIFEST).read_text())["complete"]
+    assert (cut / STAGING / CHECKPOINT).is_file() and not (cut / "summary.json").exists()
+    assert not json.loads((cut / STAGING / MANIFEST).read_text())["complete"] and not (cut / MANIFEST).exists()
     simulation, result = Simulation.resume(cut)
     assert [r.frame for r in result.records] == list(range(30))
     for name in ("world_mesh.vtp", "world_mesh.ply", "poses.npy"):
         assert (cut / name).read_bytes() == (whole / name).read_bytes(), name
-    assert not (cut / CHECKPOINT).exists() and json.loads((cut / MANIFEST).read_text())["complete"]
+    assert not (cut / STAGING).exists() and json.loads((cut / MANIFEST).read_text())["complete"]
     with pytest.raises(OutputError, match="complete already"):
         Simulation.resume(cut)
+
+
+def test_a_failed_run_leaves_the_previous_run_whole(tmp_path):
+    out = tmp_path / "run"
+    Simulation(table(2, output__h5=True)).run(out)
+    before = {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()}
+    with pytest.raises(KeyboardInterrupt):
+        Simulation(table(4)).run(out, progress=interrupt_at(1))
+    after = {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()}
+    assert after == before  # the interrupted run is staged beside it, in .mabdi-partial
+    assert (out / STAGING).is_dir()
+    Simulation(table(2)).run(out)  # a new run replaces the staged one and the previous one
+    assert not (out / STAGING).exists() and not (out / "world_mesh.h5").exists()
 
 
 def test_resume_needs_a_run_folder(tmp_path):

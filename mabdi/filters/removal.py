@@ -23,6 +23,12 @@ except
 * at grazing incidence: the angle between the pixel's ray and the face's
   normal is over ``grazing_deg`` (75 degrees), where tiny depth errors along
   the ray are large;
+* pixels with no return count as seeing through to the far limit
+  (``no_return_is_free``, on): in the simulator a ray without a return met
+  nothing within the range, and behind a departed object there is often
+  nothing within 4 m. (A real sensor also loses returns on black or shiny
+  surfaces: turn it off for such data.) The edge of a no-return region is a
+  silhouette like any other;
 * within the noise: a contradiction counts only when D is beyond E by more
   than ``k_sigma`` (3) times the noise of the *difference*, sqrt(sigma(D)^2 +
   sigma(E)^2) (the map was itself made from a measurement as noisy as D,
@@ -60,7 +66,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from mabdi.errors import ConfigError
-from mabdi.filters.classifier import CONTRADICTED, KNOWN, dilate
+from mabdi.filters.classifier import CONTRADICTED, KNOWN, NO_RETURN, dilate
 
 
 @dataclass(frozen=True)
@@ -78,6 +84,7 @@ class RemovalParameters:
     edge_margin: int = 2
     min_gap: float = 0.05
     k_sigma: float = 3.0
+    no_return_is_free: bool = True
 
     def __post_init__(self) -> None:
         if not (self.hit > 0 and self.miss >= 0 and self.floor <= 0 < self.threshold <= self.ceiling):
@@ -120,6 +127,7 @@ def removal_votes(
     parameters: RemovalParameters,
     evidence_of=None,
     sigma=None,
+    far: float = np.inf,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """One frame's votes: (face ids, contradicting pixels, confirming pixels per face, the voting contradicted pixels' mask).
 
@@ -127,9 +135,16 @@ def removal_votes(
     (0 = no face); ``unit_rays`` (H, W, 3) unit pixel rays in the camera frame; ``world_from_camera``
     the pose; ``normals_of(ids)`` -> (N, 3) world normals of faces (NaN for unknown ids);
     ``evidence_of(ids)`` -> their log-odds, to skip confirmations of faces already at the floor;
-    ``sigma(depth)`` -> the sensor's noise (m) at depths (m), for the contradiction gate.
+    ``sigma(depth)`` -> the sensor's noise (m) at depths (m), for the contradiction gate; ``far``: the
+    sensor's range (m), the depth a pixel with no return stands for (``no_return_is_free``).
     """
-    contradicting_pixels = labels == CONTRADICTED
+    if parameters.no_return_is_free:
+        # no return within the range: the ray met nothing up to the far limit (as if D = far)
+        measured = np.where(np.isnan(measured), np.float32(far), measured).astype(np.float32)
+        seen_through = (labels == CONTRADICTED) | ((labels == NO_RETURN) & np.isfinite(expected))
+    else:
+        seen_through = labels == CONTRADICTED
+    contradicting_pixels = seen_through & (face_ids > 0)
     if contradicting_pixels.any():
         gap = np.full(labels.shape, np.float32(parameters.min_gap))
         if sigma is not None:
@@ -142,6 +157,7 @@ def removal_votes(
     if not candidates.any():
         empty = np.zeros(0, dtype=np.int64)
         return empty, empty, empty, np.zeros(labels.shape, dtype=bool)
+    # silhouettes of what the sensor sees; with no_return_is_free the edge of a no-return region is one
     edges = depth_edges(measured, parameters.edge_jump)
     if parameters.edge_margin:
         edges = dilate(edges, parameters.edge_margin)

@@ -1,11 +1,13 @@
 """A run's output folder: one policy for every run (``mabdi run``, the runner, the movie).
 
-* A run writes a manifest, ``.mabdi-run.json``, naming every file it is
-  about to write (a name is listed before its file is written), and marks
-  it complete only when everything is written (evaluation included).
-* A new run in a folder that holds a previous mabdi run removes that run's
-  files first, all of them (a shorter run leaves no stale ``depth/*_000003.vti``
-  or ``world_mesh.h5`` behind).
+* A run writes into ``<folder>/.mabdi-partial/`` with a manifest,
+  ``.mabdi-run.json``, naming every file it is about to write (a name is
+  listed before its file is written). Only when everything is written
+  (evaluation included) are the previous run's files removed, all of them
+  (a shorter run leaves no stale ``depth/*_000003.vti`` or ``world_mesh.h5``
+  behind), and the new files moved into the folder under a complete
+  manifest. An interrupted or failed run leaves the previous run whole, and
+  its own staged files (and checkpoint) for ``--resume``.
 * A folder that holds files mabdi did not write (no manifest lists them) is
   refused with an error naming them, unless ``overwrite=True``; even then
   those files are left as they are (only mabdi's own names are written).
@@ -20,12 +22,15 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 from pathlib import Path
 
 from mabdi.errors import MabdiError
 from mabdi.io.atomic import write_text
 
 MANIFEST = ".mabdi-run.json"
+#: Where a run writes until it completes (inside the output folder).
+STAGING = ".mabdi-partial"
 
 
 class OutputError(MabdiError, OSError):
@@ -69,24 +74,30 @@ def read_manifest(folder) -> dict | None:
 
 
 class RunFolder:
-    """The output folder of one run (see the module docs). Use :meth:`prepare`, then :meth:`path` per file."""
+    """The output folder of one run (see the module docs). Use :meth:`prepare`, then :meth:`path` per file,
+    then :meth:`complete`.
+
+    ``folder`` is the output folder; ``staging`` (``<folder>/.mabdi-partial``) is where this run's files
+    are written until :meth:`complete` moves them in.
+    """
 
     def __init__(self, path: Path) -> None:
         self.folder = Path(path)
+        self.staging = self.folder / STAGING
         self._files: list[str] = []
         self._complete = False
 
     @classmethod
     def resume(cls, out_dir) -> RunFolder:
-        """Take up the folder of an interrupted run: its manifest's files stay listed (and are rewritten)."""
+        """Take up the interrupted run in ``out_dir`` (its staged files stay listed and are rewritten as it goes)."""
         out = Path(out_dir)
-        previous = read_manifest(out)
-        if previous is None:
+        staged = read_manifest(out / STAGING)
+        if staged is None:
+            if read_manifest(out) is not None:
+                raise OutputError(f"cannot resume {out}: that run is complete already (nothing interrupted is staged)")
             raise OutputError(f"cannot resume {out}: it is not a mabdi run folder (no {MANIFEST})")
-        if previous.get("complete"):
-            raise OutputError(f"cannot resume {out}: that run is complete already")
         run = cls(out)
-        run._files = [str(name) for name in previous["files"]]
+        run._files = [str(name) for name in staged["files"]]
         return run
 
     @classmethod
@@ -102,7 +113,7 @@ class RunFolder:
                 )
         previous = read_manifest(out)
         ours = set(previous["files"]) if previous is not None else set()
-        present = [name for name in _files_under(out) if name != MANIFEST]
+        present = [name for name in _files_under(out) if name != MANIFEST and not name.startswith(STAGING + "/")]
         foreign = [name for name in present if name not in ours]
         if foreign and not overwrite:
             shown = ", ".join(foreign[:5]) + (f" and {len(foreign) - 5} more" if len(foreign) > 5 else "")
@@ -110,33 +121,26 @@ class RunFolder:
                 f"output folder {out} holds files mabdi did not write ({shown}); choose an empty or new folder, "
                 "or pass --overwrite (mabdi's own files are then replaced and the others left as they are)"
             )
-        for name in sorted(ours):
-            target = out / name
-            if target.is_file() or target.is_symlink():
-                target.unlink()
-        for folder in sorted({(out / name).parent for name in ours}, key=lambda p: len(p.parts), reverse=True):
-            if folder != out and folder.is_dir() and not any(folder.iterdir()):
-                folder.rmdir()
         run = cls(out)
+        shutil.rmtree(run.staging, ignore_errors=True)  # an earlier interrupted run: this one replaces it
+        run.staging.mkdir()
         run._write_manifest()
         return run
 
     def path(self, *names: str) -> Path:
-        """The path of ``names[0]`` (relative, POSIX) in the folder, listed in the manifest before it is written.
-
-        Several names are listed in one manifest write; the first one's path is returned.
-        """
+        """Where to write ``names[0]`` (relative, POSIX): its place in the staging folder, listed in the
+        manifest before it is written. Several names are listed in one manifest write."""
         new = [n for n in names if n not in self._files]
         if new:
             self._files.extend(new)
             self._write_manifest()
-        target = self.folder / names[0]
+        target = self.staging / names[0]
         target.parent.mkdir(parents=True, exist_ok=True)
         return target
 
     def forget(self, name: str) -> None:
         """Remove a file this run wrote (a checkpoint superseded, say) and drop it from the manifest."""
-        target = self.folder / name
+        target = self.staging / name
         if target.is_file():
             target.unlink()
         if name in self._files:
@@ -147,11 +151,34 @@ class RunFolder:
     def files(self) -> list[str]:
         return list(self._files)
 
+    @property
+    def is_complete(self) -> bool:
+        """Whether :meth:`complete` has run (the files are in the folder, no longer staged)."""
+        return self._complete
+
     def complete(self) -> None:
-        """Mark the run complete: every file it meant to write is written."""
+        """The run is done: the previous run's files go, this run's staged files take their places, and
+        the folder's manifest lists them as complete."""
+        previous = read_manifest(self.folder)
+        for name in sorted(set(previous["files"]) if previous is not None else ()):
+            target = self.folder / name
+            if target.is_file() or target.is_symlink():
+                target.unlink()
+        for name in self._files:
+            source = self.staging / name
+            if source.is_file():
+                target = self.folder / name
+                target.parent.mkdir(parents=True, exist_ok=True)
+                os.replace(source, target)
+        emptied = {(self.folder / name).parent for name in (previous["files"] if previous is not None else ())}
+        for folder in sorted(emptied, key=lambda p: len(p.parts), reverse=True):
+            if folder != self.folder and folder.is_dir() and not any(folder.iterdir()):
+                folder.rmdir()
         self._complete = True
-        self._write_manifest()
+        data = {"complete": True, "files": [n for n in self._files if (self.folder / n).is_file()], "pid": os.getpid()}
+        write_text(self.folder / MANIFEST, json.dumps(data, indent=1) + "\n")
+        shutil.rmtree(self.staging, ignore_errors=True)
 
     def _write_manifest(self) -> None:
-        data = {"complete": self._complete, "files": self._files, "pid": os.getpid()}
-        write_text(self.folder / MANIFEST, json.dumps(data, indent=1) + "\n")
+        data = {"complete": False, "files": self._files, "pid": os.getpid()}
+        write_text(self.staging / MANIFEST, json.dumps(data, indent=1) + "\n")

@@ -35,7 +35,7 @@ from vtkmodules.vtkCommonDataModel import vtkImageData, vtkPolyData
 from mabdi.algorithm import raise_pipeline_errors
 from mabdi.camera import Intrinsics
 from mabdi.depth import depth_array, image_pose
-from mabdi.filters.classifier import CONTRADICTED, ClassifierParameters, FilterClassifier, label_array, pixel_counts
+from mabdi.filters.classifier import CONTRADICTED, NO_RETURN, ClassifierParameters, FilterClassifier, label_array, pixel_counts
 from mabdi.filters.depth_image import BACKENDS, SensorNoise
 from mabdi.filters.expected_image import MAP_PORT, MEASURED_PORT, FilterExpectedImage, face_id_array
 from mabdi.filters.refinement import MapRefinement, RefinementParameters
@@ -240,7 +240,7 @@ class MabdiLoop:
         classified = self.classifier.GetOutput()
         labels = label_array(classified)
         voting = None
-        if self.removal and np.any(labels == CONTRADICTED):
+        if self.removal and self._anything_seen_through(labels):
             # (A frame where no pixel sees through the map is skipped whole: confirmations only matter
             # against contradictions. The common case once the world is known.)
             voting, condemned = self._votes(labels)
@@ -251,6 +251,15 @@ class MabdiLoop:
         if voting is not None and hasattr(self.surface, "clear_free_space"):
             self._clear_free_space(voting, gone)
         return int(self._removed.GetNumberOfCells())
+
+    def _anything_seen_through(self, labels: np.ndarray) -> bool:
+        """Whether any pixel may see through the map: contradicted, or (``no_return_is_free``) no return where E has a face."""
+        if np.any(labels == CONTRADICTED):
+            return True
+        if not self.removal_parameters.no_return_is_free:
+            return False
+        no_return = labels == NO_RETURN
+        return bool(no_return.any() and np.isfinite(depth_array(self.expected.GetOutput())[no_return]).any())
 
     def _votes(self, labels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(the voting contradicted pixels, the faces the evidence now condemns)."""
@@ -271,6 +280,7 @@ class MabdiLoop:
             self.removal_parameters,
             evidence_of=self.world.face_evidence_of,
             sigma=lambda depth: self.noise.sigma(depth, self.intrinsics.near, self.intrinsics.far),
+            far=self.intrinsics.far,
         )
         if not len(faces):
             return voting, np.zeros(0, dtype=np.int64)
@@ -287,8 +297,8 @@ class MabdiLoop:
         pose = image_pose(measured_image)
         unit_rays, length = self._unit_rays()
         intrinsics = self.intrinsics
-        depth = measured[through].astype(np.float64)
-        tau = self.classifier.threshold(measured[through], intrinsics.near, intrinsics.far).astype(np.float64)
+        depth = np.where(np.isnan(measured[through]), intrinsics.far, measured[through]).astype(np.float64)
+        tau = self.classifier.threshold(depth.astype(np.float32), intrinsics.near, intrinsics.far).astype(np.float64)
         directions = unit_rays[through].astype(np.float64) @ pose[:3, :3].T
         ends = pose[:3, 3] + directions * (depth * length[through])[:, None]
         self.surface.clear_free_space(pose[:3, 3], ends, tau * length[through])

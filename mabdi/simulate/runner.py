@@ -187,7 +187,7 @@ class Simulation:
         Runs are deterministic, so the map equals the one an uninterrupted run gives.
         """
         folder = RunFolder.resume(out_dir)
-        checkpoint = read_checkpoint(folder.folder)
+        checkpoint = read_checkpoint(folder.staging)
         config = run_config_from_dict(tomllib.loads(checkpoint["config"]), where=str(folder.folder / "config.toml"))
         config.source = Path(checkpoint["config_source"]) if checkpoint["config_source"] else None
         recording = checkpoint["recording"]
@@ -246,14 +246,10 @@ class Simulation:
             pickle.dump(state, stream, protocol=pickle.HIGHEST_PROTOCOL)
 
     def _write_depth_images(self, folder: RunFolder, i: int) -> None:
-        names = [f"depth/D_{i:06d}.vti"]
+        write_image(self.loop.measured_image(), folder.path(f"depth/D_{i:06d}.vti"))
         if self.loop.classifier_enabled:
-            names += [f"depth/E_{i:06d}.vti", f"depth/labels_{i:06d}.vti"]
-        folder.path(*names)
-        write_image(self.loop.measured_image(), folder.folder / names[0])
-        if self.loop.classifier_enabled:
-            write_image(self.loop.expected_image(), folder.folder / names[1])
-            write_image(self.loop.classified_image(), folder.folder / names[2])
+            write_image(self.loop.expected_image(), folder.path(f"depth/E_{i:06d}.vti"))
+            write_image(self.loop.classified_image(), folder.path(f"depth/labels_{i:06d}.vti"))
 
 
 def metrics_csv(records: list[FrameRecord]) -> str:
@@ -348,7 +344,7 @@ def read_checkpoint(folder: Path) -> dict:
     """The checkpoint of an interrupted run (:meth:`Simulation.run` with ``output.checkpoint_every``)."""
     path = Path(folder) / CHECKPOINT
     if not path.is_file():
-        raise OutputError(f"cannot resume {folder}: no {CHECKPOINT} (the run stopped before its first checkpoint)")
+        raise OutputError(f"cannot resume {folder.parent}: no {CHECKPOINT} (the run stopped before its first checkpoint)")
     try:
         with open(path, "rb") as stream:
             state = pickle.load(stream)

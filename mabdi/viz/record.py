@@ -10,6 +10,7 @@ the encoder as they are rendered; nothing is kept per frame.
 from __future__ import annotations
 
 import time
+from pathlib import Path
 from mabdi.io.atomic import atomic_output
 from mabdi.io.run_folder import RunFolder
 from mabdi.viz.dashboard import SIZE, Dashboard
@@ -38,8 +39,7 @@ def run_with_movie(
         if state["dashboard"] is None:
             state["dashboard"] = Dashboard(simulation, size)
             # The writer picks movie.mp4 or, without ffmpeg, movie.gif: list both names.
-            folder.path("movie.mp4", "movie.gif")
-            state["writer"] = MovieWriter(folder.folder / "movie.mp4", size, fps)
+            state["writer"] = MovieWriter(folder.path("movie.mp4", "movie.gif"), size, fps)
         start = time.perf_counter()
         picture = state["dashboard"].render(record.frame)
         state["ms"].append(1000.0 * (time.perf_counter() - start))
@@ -51,8 +51,14 @@ def run_with_movie(
             progress(record)
 
     try:
-        result = simulation.run(folder, progress=on_frame, finish=finish)
+        result = simulation.run(folder, progress=on_frame, finish=False)
         movie = state["writer"].close() if state["writer"] is not None else None
+        if finish:  # the movie is written: now the run's files take their places
+            from mabdi.simulate.runner import finish_run
+
+            finish_run(result)
+        if movie is not None and folder.is_complete:
+            movie = folder.folder / Path(movie).name
     except BaseException:
         if state["writer"] is not None:
             state["writer"].abort()
