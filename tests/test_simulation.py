@@ -259,7 +259,7 @@ def test_export_round_trip(tmp_path, capsys):
         source = tmp_path / target
         assert f"{cells:,} cells" in capsys.readouterr().out
     assert main(["export", str(source), str(tmp_path / "map.dae")]) == 2
-    assert "unknown mesh format" in capsys.readouterr().err
+    assert "unknown format '.dae' (known: .vtp, .ply, .obj, .stl, .h5" in capsys.readouterr().err
 
 
 def test_cli_unknown_surface_is_named(tmp_path, capsys):

@@ -26,9 +26,10 @@ except
 * pixels with no return count as seeing through to the far limit
   (``no_return_is_free``, on): in the simulator a ray without a return met
   nothing within the range, and behind a departed object there is often
-  nothing within 4 m. (A real sensor also loses returns on black or shiny
-  surfaces: turn it off for such data.) The edge of a no-return region is a
-  silhouette like any other;
+  nothing within 4 m. Only where E is at least ``far_margin`` (0.5 m) inside
+  the range: near the far limit noise alone pushes returns out of it. (A
+  real sensor also loses returns on black or shiny surfaces: turn it off for
+  such data.) The edge of a no-return region is a silhouette like any other;
 * within the noise: a contradiction counts only when D is beyond E by more
   than ``k_sigma`` (3) times the noise of the *difference*, sqrt(sigma(D)^2 +
   sigma(E)^2) (the map was itself made from a measurement as noisy as D,
@@ -85,10 +86,13 @@ class RemovalParameters:
     min_gap: float = 0.05
     k_sigma: float = 3.0
     no_return_is_free: bool = True
+    far_margin: float = 0.5
 
     def __post_init__(self) -> None:
         if not (self.hit > 0 and self.miss >= 0 and self.floor <= 0 < self.threshold <= self.ceiling):
             raise ConfigError("removal: need hit > 0, miss >= 0 and floor <= 0 < threshold <= ceiling")
+        if self.far_margin < 0:
+            raise ConfigError(f"removal: far_margin must be >= 0 metres, got {self.far_margin}")
         if self.k_sigma < 0:
             raise ConfigError(f"removal: k_sigma must be >= 0, got {self.k_sigma}")
         if self.min_gap < 0:
@@ -141,7 +145,9 @@ def removal_votes(
     if parameters.no_return_is_free:
         # no return within the range: the ray met nothing up to the far limit (as if D = far)
         measured = np.where(np.isnan(measured), np.float32(far), measured).astype(np.float32)
-        seen_through = (labels == CONTRADICTED) | ((labels == NO_RETURN) & np.isfinite(expected))
+        # ... but only where E is well inside the range: near the far limit noise alone loses returns
+        inside = np.isfinite(expected) & (expected < np.float32(far - parameters.far_margin))
+        seen_through = (labels == CONTRADICTED) | ((labels == NO_RETURN) & inside)
     else:
         seen_through = labels == CONTRADICTED
     contradicting_pixels = seen_through & (face_ids > 0)

@@ -1,0 +1,104 @@
+"""Object removal on the seed's runs: the departed bunny of Run 4 goes, nothing static goes on Runs 1-2,
+the door of Run 5 opens and closes in the map. Full runs: marked slow (CI runs them)."""
+
+from __future__ import annotations
+
+import pytest
+
+from conftest import REPO
+from mabdi.config import load_run_config, set_value
+from mabdi.evaluate import evaluate_run, run_with_ghosts
+from mabdi.polydata import polydata_area
+from mabdi.simulate import Simulation
+
+pytestmark = pytest.mark.slow
+SURFACES = ["pixel_grid", "quadtree", "voxel_planes"]
+
+
+def simulation(scene: str, surface: str, **values) -> Simulation:
+    config = load_run_config(REPO / "scenes" / f"{scene}.toml")
+    set_value(config, "surface.method", surface)
+    for key, value in values.items():
+        set_value(config, key.replace("__", "."), value)
+    return Simulation(config)
+
+
+@pytest.fixture(scope="session")
+def bunnies_f1cm():
+    """F@1cm of each surface on Run 2 (nothing leaves), removal on: the reference for Run 4."""
+    scores = {}
+    for surface in SURFACES:
+        sim = simulation("bunnies", surface)
+        scores[surface] = evaluate_run(sim, sim.run()).fscore_1cm
+    return scores
+
+
+@pytest.mark.parametrize("surface", SURFACES)
+def test_run4_the_bunny_that_left_leaves_the_map(surface, bunnies_f1cm):
+    sim = simulation("bunnies_leaving", surface)
+    ghosts = run_with_ghosts(sim, every=5)
+    assert ghosts.final_share <= 0.01, ghosts.shares  # today's map without removal keeps ~14%
+    fscore = evaluate_run(sim, ghosts.result).fscore_1cm  # against the final scene
+    assert fscore >= bunnies_f1cm[surface] - 0.01, (fscore, bunnies_f1cm[surface])
+
+
+@pytest.mark.parametrize("scene", ["table", "bunnies"])
+@pytest.mark.parametrize("surface", SURFACES)
+def test_runs_1_and_2_lose_nothing_static(scene, surface):
+    on = simulation(scene, surface)
+    result = on.run()
+    off = simulation(scene, surface, classifier__removal=False)
+    reference = off.run()
+    removed = sum(r.area_removed for r in result.records)
+    assert removed <= 0.001 * polydata_area(result.mesh), (removed, polydata_area(result.mesh))
+    f_on, f_off = evaluate_run(on, result), evaluate_run(off, reference)
+    assert abs(f_on.fscore_1cm - f_off.fscore_1cm) <= 0.002, (f_on.fscore_1cm, f_off.fscore_1cm)
+    growth = f_on.growth_per_circle
+    assert growth[1] <= 0.15 * growth[0], growth
+
+
+def test_run5_the_door_opens_and_closes_in_the_map():
+    """While the door is open the closed door's faces are gone and the room beyond is mapped; after it
+    closes the open door's faces are gone and the closed door is back."""
+    from mabdi.evaluate import distances_to_mesh
+    from mabdi.evaluate.dynamic import departures
+
+    sim = simulation("door", "quadtree")
+    scene = sim.rig.scene
+    frames = sim.frames
+    names = [o.name for o in scene.objects]
+    closed, opened, closed_again = (scene.objects[names.index(n)] for n in ("door_closed", "door_open", "door_closed_again"))
+    beyond = [o for o in scene.objects if o.name in ("wall_b_back", "crate", "barrel")]
+    loop = sim.loop
+    loop.reset()
+
+    def map_near(obj, within=0.03) -> float:
+        """Share of the object's sampled surface that the map covers (a map vertex within 3 cm)."""
+        from mabdi.polydata import triangles_polydata
+        from vtkmodules.util.numpy_support import vtk_to_numpy
+
+        mesh = loop.mesh()
+        if mesh.GetNumberOfPoints() == 0:
+            return 0.0
+        points = vtk_to_numpy(mesh.GetPoints().GetData()).astype(float)
+        d = distances_to_mesh(points, triangles_polydata(obj.points, obj.triangles))
+        return float((d < within).sum())
+
+    opened_at, closed_again_at = opened.appear, closed_again.appear
+    counts = {}
+    for i in range(frames):
+        loop.step(i)
+        if i == opened_at - 1:
+            counts["closed door before opening"] = map_near(closed)
+        if i == closed_again_at - 1:
+            counts["closed door while open"] = map_near(closed)
+            counts["open door while open"] = map_near(opened)
+            counts["beyond while open"] = sum(map_near(o) for o in beyond)
+    counts["open door at the end"] = map_near(opened)
+    counts["closed door at the end"] = map_near(closed_again)
+    assert counts["closed door before opening"] > 1000, counts
+    assert counts["closed door while open"] <= 0.02 * counts["closed door before opening"], counts
+    assert counts["open door while open"] > 1000 and counts["beyond while open"] > 1000, counts
+    assert counts["open door at the end"] <= 0.05 * counts["open door while open"], counts
+    assert counts["closed door at the end"] > 0.5 * counts["closed door before opening"], counts
+    assert departures(scene, frames)  # the run does have objects that leave
