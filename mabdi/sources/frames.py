@@ -116,6 +116,14 @@ class FrameList(FrameSource):
     def __len__(self) -> int:
         return len(self._frames)
 
+    @property
+    def poses(self) -> np.ndarray:
+        return np.stack([frame.world_from_camera for frame in self._frames])
+
+    @property
+    def timestamps(self) -> np.ndarray:
+        return np.array([frame.timestamp for frame in self._frames], dtype=np.float64)
+
     def read_frame(self, index: int) -> DepthFrame:
         frame = self._frames[index]
         return DepthFrame(frame.depth, frame.intrinsics, frame.world_from_camera, index, frame.timestamp)
