@@ -1,16 +1,23 @@
 """The ``mabdi`` command line.
 
-    mabdi run CONFIG [--frames N] [--out DIR] [--noise MODEL] [--seed N] [--surface NAME]
-                     [--no-classifier] [--depth-images] [--backend B] [--quiet]
+    mabdi run CONFIG [--frames N] [--out DIR] [--noise MODEL] [--seed N] [--surface NAME] [--set KEY=VALUE]
+                     [--no-classifier] [--no-removal] [--refinement] [--depth-images] [--h5] [--movie]
+                     [--rerun [FILE.rrd]] [--backend B] [--overwrite] [--quiet] [--no-eval]
+    mabdi run --sequence PATH [CONFIG] [--camera fr1|fr2|fr3] [--depth-topic T] [--info-topic T] [--pose-topic T]
+    mabdi run --resume OUT       finish an interrupted run from its last checkpoint
+    mabdi record CONFIG --format tum|rosbag2 --out PATH [--storage sqlite3|mcap] [--encoding 32FC1|16UC1]
     mabdi export IN OUT [--layout mesh_tools|lvr2]   convert a map between VTP, PLY, OBJ, STL and HDF5
     mabdi info MAP               counts, bounds, layers, labels and cluster sets of a map
     mabdi view PATH [--colour frame|normal|LAYER] [--out PNG]   look at a map or a run folder
     mabdi plan MAP --start x,y,z --goal x,y,z [--planner dijkstra|fmm] [--out path.vtp]
-    mabdi bench [--scene NAME|CONFIG] [--methods M ...] [--frames N] [--out DIR]
+    mabdi bench [--scene NAME|CONFIG] [--methods M ...] [--frames N] [--out DIR] [--no-tune]
+    mabdi sweep SWEEP.toml [--workers N] [--address ADDR] [--out DIR]
 
 Options override the config file; the resolved config is written with the
 outputs. Errors a user can cause (a bad config, a missing mesh) print one
-line ``mabdi: error: ...`` and exit with status 2, without a traceback.
+line ``mabdi: error: ...`` and exit with status 2, without a traceback;
+warnings print ``mabdi: warning: ...``; Ctrl-C exits with 130; ``mabdi run``
+exits 1 when the map it made is empty (the warning says why).
 Heavy imports (VTK) happen inside the commands, so ``mabdi --help`` is quick.
 """
 
