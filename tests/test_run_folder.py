@@ -102,3 +102,16 @@ def test_a_failed_run_leaves_the_previous_run_whole(tmp_path):
 def test_resume_needs_a_run_folder(tmp_path):
     with pytest.raises(OutputError, match="not a mabdi run folder"):
         RunFolder.resume(tmp_path)
+
+
+def test_mabdi_run_resume_finishes_an_interrupted_run_from_the_command_line(tmp_path, capsys):
+    from mabdi.cli import main
+
+    out = tmp_path / "cut"
+    with pytest.raises(KeyboardInterrupt):
+        Simulation(table(12, "quadtree", output__checkpoint_every=4)).run(out, progress=interrupt_at(9))
+    assert main(["run", "--resume", str(out), "--quiet"]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["frames"] == 12 and summary["metrics"]["fscore_1cm"] > 0.9
+    assert main(["run", "--resume", str(out), "--quiet"]) == 2  # complete: nothing to resume
+    assert "complete already" in capsys.readouterr().err
