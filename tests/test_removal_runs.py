@@ -24,34 +24,38 @@ def simulation(scene: str, surface: str, **values) -> Simulation:
 
 
 @pytest.fixture(scope="session")
-def bunnies_f1cm():
-    """F@1cm of each surface on Run 2 (nothing leaves), removal on: the reference for Run 4."""
-    scores = {}
-    for surface in SURFACES:
-        sim = simulation("bunnies", surface)
-        scores[surface] = evaluate_run(sim, sim.run()).fscore_1cm
-    return scores
+def static_runs():
+    """Runs 1-2 (nothing leaves) by (scene, surface, removal): (result, metrics), run once for all tests."""
+    cache = {}
+
+    def get(scene: str, surface: str, removal: bool = True):
+        key = (scene, surface, removal)
+        if key not in cache:
+            sim = simulation(scene, surface, classifier__removal=removal)
+            result = sim.run()
+            cache[key] = (result, evaluate_run(sim, result))
+        return cache[key]
+
+    return get
 
 
 @pytest.mark.parametrize("surface", SURFACES)
-def test_run4_the_bunny_that_left_leaves_the_map(surface, bunnies_f1cm):
+def test_run4_the_bunny_that_left_leaves_the_map(surface, static_runs):
     sim = simulation("bunnies_leaving", surface)
     ghosts = run_with_ghosts(sim, every=5)
     assert ghosts.final_share <= 0.01, ghosts.shares  # today's map without removal keeps ~14%
     fscore = evaluate_run(sim, ghosts.result).fscore_1cm  # against the final scene
-    assert fscore >= bunnies_f1cm[surface] - 0.01, (fscore, bunnies_f1cm[surface])
+    reference = static_runs("bunnies", surface)[1].fscore_1cm  # the same surface on Run 2
+    assert fscore >= reference - 0.01, (fscore, reference)
 
 
 @pytest.mark.parametrize("scene", ["table", "bunnies"])
 @pytest.mark.parametrize("surface", SURFACES)
-def test_runs_1_and_2_lose_nothing_static(scene, surface):
-    on = simulation(scene, surface)
-    result = on.run()
-    off = simulation(scene, surface, classifier__removal=False)
-    reference = off.run()
+def test_runs_1_and_2_lose_nothing_static(scene, surface, static_runs):
+    result, f_on = static_runs(scene, surface)
+    _, f_off = static_runs(scene, surface, removal=False)
     removed = sum(r.area_removed for r in result.records)
     assert removed <= 0.001 * polydata_area(result.mesh), (removed, polydata_area(result.mesh))
-    f_on, f_off = evaluate_run(on, result), evaluate_run(off, reference)
     assert abs(f_on.fscore_1cm - f_off.fscore_1cm) <= 0.002, (f_on.fscore_1cm, f_off.fscore_1cm)
     growth = f_on.growth_per_circle
     assert growth[1] <= 0.15 * growth[0], growth
