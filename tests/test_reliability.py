@@ -13,6 +13,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from mabdi.io.run_folder import STAGING
+
 REPO = Path(__file__).resolve().parents[1]
 INTERRUPTED = (130, -signal.SIGINT)  # main's exit status, or death by SIGINT (an interrupt while importing)
 
@@ -63,8 +65,9 @@ def test_ctrl_c_during_a_run_exits_130(tmp_path, seconds_into_run):
     interrupt would run on (and fail by the timeout) or exit 0.
     """
     out = tmp_path / "run"
+    staging = out / STAGING  # a run writes there until it is complete
     process = _mabdi("run", "scenes/table.toml", "--frames", 400, "--out", out, "--no-eval", "--quiet")
-    started = _wait_for(lambda: (out / "config.toml").exists(), process, timeout=120)
+    started = _wait_for(lambda: (staging / "config.toml").exists(), process, timeout=120)
     assert started, f"the run did not start: {process.communicate()}"
     time.sleep(seconds_into_run)
     assert process.poll() is None, "the run ended before it was interrupted"
@@ -73,8 +76,9 @@ def test_ctrl_c_during_a_run_exits_130(tmp_path, seconds_into_run):
     assert code == 130, f"exit {code}\nstdout: {stdout[-2000:]}\nstderr: {stderr[-2000:]}"
     assert "mabdi: interrupted" in stderr
     assert "Traceback" not in stderr
-    assert not (out / "summary.json").exists()
-    assert not list(out.glob(".*.tmp*")), "a temporary file was left behind"
+    assert not (out / "summary.json").exists() and not (staging / "summary.json").exists()
+    assert not (out / "world_mesh.vtp").exists(), "an interrupted run took the folder's final name"
+    assert not list(out.rglob(".*.tmp*")), "a temporary file was left behind"
 
 
 @pytest.mark.slow

@@ -145,3 +145,28 @@ def test_non_polydata_block_is_an_error():
     expected.pose = np.eye(4)
     with pytest.raises(TypeError, match="only vtkPolyData"):
         expected.Update()
+
+
+def test_a_re_meshed_patch_keeps_the_removal_evidence_of_the_faces_it_replaces():
+    """Re-meshing a block (voxel planes do it whenever a point lands in it) must not reset removal:
+    a face at the same place keeps its evidence, a face somewhere new starts at zero."""
+    from mabdi.filters.removal import RemovalParameters
+
+    world = FilterWorldMesh()
+    world.add_patch("patch_7", plane_mesh((0, 0, 2), (0, 0, 1), size=1.0, subdivisions=4), frame=0)
+    base, count = world._ids._ranges["patch_7"]
+    ids = np.arange(base, base + count)
+    contradicted = np.zeros(count, dtype=bool)
+    contradicted[:10] = True
+    assert not len(world.update_evidence(ids, contradicted, ~contradicted, RemovalParameters()))
+    before = world.face_evidence_of(ids)
+    assert (before[:10] > 0).all() and (before[10:] <= 0).all()
+
+    # the same faces, their vertices moved by a millimetre, and one new face 5 m away
+    again = plane_mesh((0, 0, 2.001), (0, 0, 1), size=1.0, subdivisions=4)
+    world.add_patch("patch_7", again, frame=1)
+    base, count = world._ids._ranges["patch_7"]
+    np.testing.assert_array_equal(world.face_evidence_of(np.arange(base, base + count)), before)
+    world.add_patch("patch_7", plane_mesh((5, 0, 2), (0, 0, 1), size=1.0, subdivisions=4), frame=2)
+    base, count = world._ids._ranges["patch_7"]
+    assert (world.face_evidence_of(np.arange(base, base + count)) == 0).all()

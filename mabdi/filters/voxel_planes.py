@@ -336,6 +336,29 @@ class FilterVoxelPlanes(MabdiAlgorithm):
             self.Modified()
         return int(cleared.points)
 
+    def clear_faces_at(self, points: np.ndarray) -> int:
+        """Empty the neighbourhoods whose planes made the faces at ``points`` (world, metres; e.g. the
+        centroids of faces object removal took out), so that re-meshing does not bring them back.
+
+        A face lies in the cube of its neighbourhood's anchor: for even windows the grid vertex nearest
+        to it, whose window of voxels is emptied; for odd windows the voxel holding it and its window.
+        Returns the number of points removed.
+        """
+        points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        if not len(points):
+            return 0
+        window = self._parameters.window
+        s = self._parameters.voxel_size
+        low = anchor_range(window)
+        anchors = np.rint(points / s).astype(np.int64) if window % 2 == 0 else np.floor(points / s).astype(np.int64)
+        steps = np.array(list(itertools.product(range(low, low + window), repeat=3)), dtype=np.int64)
+        voxels = (anchors[:, None, :] + steps[None]).reshape(-1, 3)
+        cleared = self.map.clear_voxels(voxels)
+        if len(cleared.voxels):
+            self._pending_cleared = np.concatenate([self._pending_cleared, cleared.voxels])
+            self.Modified()
+        return int(cleared.points)
+
     def add_points(self, points: np.ndarray) -> np.ndarray:
         """Add (M, 3) world points and re-mesh the blocks they touch (and those emptied by
         :meth:`clear_free_space` since the last call); returns the re-meshed block keys."""

@@ -18,11 +18,14 @@ planes) marks its cells with an int64 cell array ``patch_key``; the cells of
 each key replace the patch of that key (``patch_<key>``) instead of stacking
 a new layer, and the int64 field-data array ``removed_patch_keys`` deletes
 patches. :meth:`add_patch` / :meth:`remove_patch` do the same from Python.
+A re-meshed patch's faces keep the removal evidence of the faces they
+replace (matched by centre), so re-meshing does not reset object removal.
 """
 
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial import cKDTree
 from vtkmodules.util.numpy_support import numpy_to_vtk, vtk_to_numpy
 from vtkmodules.vtkCommonDataModel import vtkCompositeDataSet, vtkMultiBlockDataSet, vtkPolyData
 from vtkmodules.vtkFiltersCore import vtkAppendPolyData
@@ -149,6 +152,20 @@ def face_normals(patch: vtkPolyData) -> np.ndarray:
     return normals / np.where(length > 0, length, np.float32(1.0))
 
 
+def face_centres(patch: vtkPolyData) -> tuple[np.ndarray, np.ndarray]:
+    """(M, 3) corner-average centres of a patch's polygons and (M,) their radii (farthest corner), metres."""
+    if patch.GetNumberOfCells() == 0:
+        return np.zeros((0, 3)), np.zeros(0)
+    points = vtk_to_numpy(patch.GetPoints().GetData()).astype(np.float64)
+    polys = patch.GetPolys()
+    offsets = vtk_to_numpy(polys.GetOffsetsArray())
+    corners = points[vtk_to_numpy(polys.GetConnectivityArray())]
+    sizes = np.diff(offsets)
+    centres = np.add.reduceat(corners, offsets[:-1], axis=0) / sizes[:, None]
+    reach = np.linalg.norm(corners - np.repeat(centres, sizes, axis=0), axis=1)
+    return centres, np.maximum.reduceat(reach, offsets[:-1])
+
+
 def _input_frame(surface: vtkPolyData) -> int | None:
     array = surface.GetFieldData().GetArray(FRAME_ARRAY)
     if array is None or array.GetNumberOfTuples() == 0:
@@ -207,12 +224,15 @@ class FilterWorldMesh(MabdiAlgorithm):
     def add_patch(self, key: str, patch: vtkPolyData, frame: int) -> int:
         """Add ``patch`` under ``key`` (replacing a patch of that key); returns the net change in cells."""
         patch = self._stamp(patch, frame)
+        old = self._patches.get(key)
+        previous = self._block_evidence(key, old) if old is not None else None
         base = self._identify(key, patch)
         count = patch.GetNumberOfCells()
         self._face_evidence[base : base + count] = 0.0
         self._face_contradicted[base : base + count] = 0
+        if previous is not None:
+            self._inherit_evidence(patch, base, *previous)
         before = self._cells
-        old = self._patches.get(key)
         if old is not None:
             self._cells -= old.GetNumberOfCells()
             self._patches[key] = patch
@@ -319,6 +339,29 @@ class FilterWorldMesh(MabdiAlgorithm):
         self._face_normals = np.concatenate([self._face_normals, np.zeros((capacity - grown, 3), np.float32)])
         self._face_evidence = np.concatenate([self._face_evidence, np.zeros(capacity - grown, np.float32)])
         self._face_contradicted = np.concatenate([self._face_contradicted, np.zeros(capacity - grown, np.uint16)])
+
+    def _block_evidence(self, key: str, patch: vtkPolyData) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(face centres, removal evidence, contradicting frames) of the faces of block ``key``."""
+        base, count = self._ids._ranges[key]
+        centres, _ = face_centres(patch)
+        return centres, self._face_evidence[base : base + count].copy(), self._face_contradicted[base : base + count].copy()
+
+    def _inherit_evidence(self, patch: vtkPolyData, base: int, centres: np.ndarray, evidence: np.ndarray, frames: np.ndarray) -> None:
+        """A re-meshed block's faces keep the removal evidence of the face they replace.
+
+        Voxel planes re-mesh a block whenever a point lands in it: with fresh evidence, the ghost of a
+        departed object whose block keeps receiving points (the floor seen where it stood) would never
+        gather the frames removal asks for. A new face takes the evidence of the old face whose centre is
+        nearest to its own, if that centre lies within the new face (its radius); otherwise it starts at 0.
+        """
+        if not len(centres):
+            return
+        new_centres, radii = face_centres(patch)
+        distance, nearest = cKDTree(centres).query(new_centres, distance_upper_bound=float(radii.max()) if len(radii) else 0.0)
+        same = np.isfinite(distance) & (distance <= radii)
+        ids = base + np.flatnonzero(same)
+        self._face_evidence[ids] = evidence[nearest[same]]
+        self._face_contradicted[ids] = frames[nearest[same]]
 
     def face_lookup(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray, list[str]]:
         """Where faces ``ids`` (24-bit identities from E) live: (block number into ``keys``, cell id in the

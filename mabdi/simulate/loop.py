@@ -42,7 +42,7 @@ from mabdi.filters.refinement import MapRefinement, RefinementParameters
 from mabdi.filters.registry import make_surface_filter
 from mabdi.filters.removal import RemovalParameters, removal_votes
 from mabdi.filters.world_mesh import FilterWorldMesh
-from mabdi.polydata import polydata_area
+from mabdi.polydata import polydata_area, polydata_arrays
 from mabdi.sources.frames import FrameSource, SourceDepthFrames
 
 
@@ -248,6 +248,11 @@ class MabdiLoop:
         if not len(gone):
             return 0
         self._removed = self.world.remove_faces(gone)
+        if hasattr(self.surface, "clear_faces_at") and self._removed.GetNumberOfCells():
+            # voxel planes: the statistics that made the removed faces go with them (else re-meshing brings
+            # them back), and the voxels the voting rays crossed in free space
+            points, triangles = polydata_arrays(self._removed)
+            self.surface.clear_faces_at(points[triangles].mean(axis=1))
         if voting is not None and hasattr(self.surface, "clear_free_space"):
             self._clear_free_space(voting, gone)
         return int(self._removed.GetNumberOfCells())
