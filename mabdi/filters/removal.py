@@ -19,7 +19,10 @@ except
   same object's silhouette in D (big quad-tree faces on a curved surface
   overhang it by up to 4 px), so this keeps a misplaced edge from voting
   against the surface beside it: with 2 px, 0.2% of Run 2's quad-tree map
-  went over a run, with 5 px under 0.1%. A silhouette in E with no
+  went over a run, with 5 px under 0.1%. The mask spares a contradicting
+  pixel when everything D sees within the margin lies beyond E (no surface
+  at E's depth nearby to overhang from: a ghost beside a real edge, like an
+  opened door's old panel beside the jamb). A silhouette in E with no
   silhouette in D near it is not masked: that is the edge of a ghost (the
   world behind it is smooth), exactly where the votes are wanted;
 * at grazing incidence: the angle between the pixel's ray and the face's
@@ -67,6 +70,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.ndimage import minimum_filter
 
 from mabdi.errors import ConfigError
 from mabdi.filters.classifier import CONTRADICTED, KNOWN, NO_RETURN, dilate
@@ -153,8 +157,8 @@ def removal_votes(
     else:
         seen_through = labels == CONTRADICTED
     contradicting_pixels = seen_through & (face_ids > 0)
+    gap = np.full(labels.shape, np.float32(parameters.min_gap))
     if contradicting_pixels.any():
-        gap = np.full(labels.shape, np.float32(parameters.min_gap))
         if sigma is not None:
             d, e = measured[contradicting_pixels], expected[contradicting_pixels]
             noise = np.float32(parameters.k_sigma) * np.sqrt(sigma(d) ** 2 + sigma(e) ** 2).astype(np.float32)
@@ -169,6 +173,14 @@ def removal_votes(
     edges = depth_edges(measured, parameters.edge_jump)
     if parameters.edge_margin:
         edges = dilate(edges, parameters.edge_margin)
+        if contradicting_pixels.any():
+            # A contradiction near an edge is an overhang only if D shows, within the margin, a surface at
+            # E's depth or nearer (the object E's face belongs to). Where all D sees around it lies beyond
+            # E, the face is a ghost (the old door panel beside its jamb) and its vote counts.
+            size = 2 * parameters.edge_margin + 1
+            nearest_seen = minimum_filter(np.where(np.isnan(measured), np.float32(np.inf), measured), size=size, mode="nearest")
+            with np.errstate(invalid="ignore"):
+                edges &= ~(contradicting_pixels & (nearest_seen > expected + gap))
     candidates &= ~edges
     pixels = np.flatnonzero(candidates)
     ids = face_ids.ravel()[pixels].astype(np.int64)
