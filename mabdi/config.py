@@ -3,7 +3,8 @@
 A file in ``scenes/`` is a whole run config: ``[run]`` (frames, seed),
 ``[scene]`` (the objects), ``[sensor]`` (intrinsics, noise, backend),
 ``[path]`` (the helix), ``[classifier]`` (on/off and thresholds),
-``[surface]`` (which surface filter, and ``[surface.<name>]`` its
+``[removal]`` and ``[refinement]`` (their rules, when the classifier turns
+them on), ``[surface]`` (which surface filter, and ``[surface.<name>]`` its
 parameters) and ``[output]`` (what is written). Every section and key has a
 default, so a config states only what differs. An unknown or misspelt key, a
 value of the wrong type, or a value out of range is a :class:`ConfigError`
@@ -36,6 +37,8 @@ from pathlib import Path
 from mabdi.camera import Intrinsics
 from mabdi.errors import ConfigError
 from mabdi.filters.classifier import ClassifierParameters
+from mabdi.filters.refinement import RefinementParameters
+from mabdi.filters.removal import RemovalParameters
 from mabdi.filters.depth_image import BACKENDS, NOISE_MODELS, SensorNoise
 from mabdi.filters.registry import surface_filter, surface_filter_names
 
@@ -221,6 +224,8 @@ class RunConfig:
     sensor: SensorConfig = field(default_factory=SensorConfig)
     path: PathConfig = field(default_factory=PathConfig)
     classifier: ClassifierParameters = field(default_factory=ClassifierParameters)
+    removal: RemovalParameters = field(default_factory=RemovalParameters)
+    refinement: RefinementParameters = field(default_factory=RefinementParameters)
     surface: SurfaceConfig = field(default_factory=SurfaceConfig)
     output: OutputConfig = field(default_factory=OutputConfig)
     #: The file this config was read from (not a TOML key).

@@ -206,3 +206,25 @@ def test_a_surface_filter_registered_from_outside_runs_by_name(tmp_path):
         unregister_surface_filter("centre_triangle")
     with pytest.raises(ConfigError, match="unknown key 'centre_triangle'"):
         load_run_config(path)
+
+
+def test_removal_and_refinement_sections_reach_the_loop(tmp_path):
+    """[removal] and [refinement] are the filters' own parameter classes; their values reach the loop."""
+    import mabdi
+    from mabdi.sources.frames import FrameList
+    from mabdi.depth import DepthFrame
+    from mabdi.camera import Intrinsics
+    import numpy as np
+
+    path = tmp_path / "run.toml"
+    path.write_text("[removal]\nno_return_is_free = false\nedge_margin = 3\n[refinement]\nstride = 2\n")
+    config = load_run_config(path)
+    assert config.removal.edge_margin == 3 and not config.removal.no_return_is_free
+    small = Intrinsics(fx=50, fy=50, cx=20, cy=15, width=40, height=30)
+    frames = FrameList([DepthFrame(np.full(small.shape, 2.0, np.float32), small, np.eye(4), 0)])
+    loop = mabdi.MabdiLoop.from_config(config, frames)
+    assert loop.removal_parameters == config.removal and loop.refinement.parameters == config.refinement
+    assert "edge_margin = 3" in dump_toml(config)
+    path.write_text("[removal]\nedge_margin = -1\n")
+    with pytest.raises(ConfigError, match=r"run.toml.*\[removal\].*edge_margin >= 0"):
+        load_run_config(path)

@@ -80,7 +80,8 @@ class MabdiLoop:
     ``classifier``: :class:`ClassifierParameters` (its ``enabled`` chooses the
     black box); ``surface``: a registered surface name and its parameters
     (None: the filter's defaults); ``noise``: the sensor's noise model, for the
-    classifier's threshold tau(z) and noise-aware surfaces.
+    classifier's threshold tau(z) and noise-aware surfaces; ``removal`` and
+    ``refinement``: their rules (None: defaults), used when ``classifier`` turns them on.
     """
 
     def __init__(
@@ -91,6 +92,8 @@ class MabdiLoop:
         surface_parameters=None,
         noise: SensorNoise | str = "none",
         backend: str = BACKENDS[0],
+        removal: RemovalParameters | None = None,
+        refinement: RefinementParameters | None = None,
     ) -> None:
         self.source = source
         self.classifier_parameters = classifier if classifier is not None else ClassifierParameters()
@@ -100,9 +103,9 @@ class MabdiLoop:
         #: Object removal and refinement run when the classifier does and they are on (the default);
         #: refinement only with a noisy sensor (a noise-free measurement is exact the first time).
         self.removal = self.classifier_parameters.enabled and self.classifier_parameters.removal
-        self.removal_parameters = RemovalParameters()
+        self.removal_parameters = removal if removal is not None else RemovalParameters()
         self.refining = self.classifier_parameters.enabled and self.classifier_parameters.refinement and self.noise.model != "none"
-        self.refinement = MapRefinement(RefinementParameters())
+        self.refinement = MapRefinement(refinement if refinement is not None else RefinementParameters())
         self.measured = SourceDepthFrames(source)
         self.world = FilterWorldMesh()
         self.expected = FilterExpectedImage(backend=backend, identity=self.removal or self.refining)
@@ -130,6 +133,8 @@ class MabdiLoop:
             surface_parameters=config.surface.parameters_of(),
             noise=config.sensor.sensor_noise(),
             backend=config.sensor.backend,
+            removal=config.removal,
+            refinement=config.refinement,
         )
 
     # -- running -----------------------------------------------------------
