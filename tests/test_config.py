@@ -226,5 +226,5 @@ def test_removal_and_refinement_sections_reach_the_loop(tmp_path):
     assert loop.removal_parameters == config.removal and loop.refinement.parameters == config.refinement
     assert "edge_margin = 3" in dump_toml(config)
     path.write_text("[removal]\nedge_margin = -1\n")
-    with pytest.raises(ConfigError, match=r"run.toml.*\[removal\].*edge_margin >= 0"):
+    with pytest.raises(ConfigError, match=r"run.toml.*\[removal\].*0 <= edge_margin"):
         load_run_config(path)

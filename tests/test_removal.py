@@ -13,8 +13,7 @@ from conftest import plane_mesh
 from mabdi.camera import Intrinsics, project
 from mabdi.depth import DepthFrame, image_pose
 from mabdi.filters.depth_image import DepthRenderer
-from mabdi.filters.classifier import CONTRADICTED, KNOWN
-from mabdi.filters.removal import RemovalParameters, depth_edges, removal_votes, update_log_odds
+from mabdi.filters.removal import RemovalParameters, depth_edges, update_log_odds
 from mabdi.filters.world_mesh import FACE_RGB_ARRAY, FaceIds, face_rgb
 from mabdi.polydata import polydata_arrays
 from mabdi.sources.frames import FrameList
@@ -85,30 +84,6 @@ def test_depth_edges_mark_jumps_and_holes_not_the_border():
     edges = depth_edges(depth, 0.05)
     assert edges[:, 14:16].all() and not edges[10:, :13].any()
     assert edges[4:7, 4:7].all() and not edges[10, 8] and not edges[10, 20]
-
-
-def test_an_edge_masks_an_overhang_not_a_ghost_beside_it():
-    """E shows face 1 on the left half at 2 m. D: the left half is seen through (3 m) except a strip at
-    the middle; the right half is either a surface at 2 m (E's face overhangs it: masked near the edge)
-    or something at 4 m (nothing at E's depth nearby: a ghost beside an edge, its pixels vote)."""
-    height, width = 20, 40
-    expected = np.full((height, width), 2.0, np.float32)
-    face_ids = np.zeros((height, width), np.int32)
-    face_ids[:, :20] = 1
-    rays = np.zeros((height, width, 3), np.float32)
-    rays[..., 2] = 1.0
-    normals = lambda ids: np.tile(np.array([[0.0, 0.0, 1.0]], np.float32), (len(ids), 1))  # noqa: E731
-    parameters = RemovalParameters()
-    votes = {}
-    for right in (2.0, 4.0):
-        measured = np.full((height, width), 3.0, np.float32)
-        measured[:, 20:] = right
-        labels = np.where(measured > expected + 0.1, CONTRADICTED, KNOWN).astype(np.uint8)
-        _, _, _, voting = removal_votes(labels, measured, expected, face_ids, rays, np.eye(4), normals, parameters)
-        votes[right] = voting
-    near_edge = slice(20 - parameters.edge_margin, 20)
-    assert not votes[2.0][:, near_edge].any() and votes[2.0][:, :10].all()  # overhang beside a surface at E's depth
-    assert votes[4.0][:, near_edge].all() and votes[4.0][:, :10].all()  # all beyond E: the ghost's edge votes too
 
 
 def plane_then_wall(frames: int = 12, change: int = 5) -> FrameList:

@@ -336,6 +336,12 @@ class FilterVoxelPlanes(MabdiAlgorithm):
             self.Modified()
         return int(cleared.points)
 
+    @property
+    def face_overhang(self) -> float:
+        """How far (metres) a face may reach past a real edge: a voxel's plane polygon fills the voxel, so
+        object removal widens its edge mask by a voxel (see :mod:`mabdi.filters.removal`)."""
+        return float(self._parameters.voxel_size)
+
     def clear_faces_at(self, points: np.ndarray) -> int:
         """Empty the neighbourhoods whose planes made the faces at ``points`` (world, metres; e.g. the
         centroids of faces object removal took out), so that re-meshing does not bring them back.

@@ -27,7 +27,7 @@ frame produced is read through public accessors (:meth:`measured_image`,
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from vtkmodules.vtkCommonDataModel import vtkImageData, vtkPolyData
@@ -287,7 +287,7 @@ class MabdiLoop:
             unit_rays,
             pose,
             self.world.face_normals_of,
-            self.removal_parameters,
+            self._removal_parameters_for(expected),
             evidence_of=self.world.face_evidence_of,
             sigma=lambda depth: self.noise.sigma(depth, self.intrinsics.near, self.intrinsics.far),
             far=self.intrinsics.far,
@@ -295,6 +295,19 @@ class MabdiLoop:
         if not len(faces):
             return voting, np.zeros(0, dtype=np.int64)
         return voting, self.world.update_evidence(faces, contradicted, confirmed, self.removal_parameters)
+
+    def _removal_parameters_for(self, expected: np.ndarray) -> RemovalParameters:
+        """The removal rules for this frame: the edge margin widened to the surface's ``face_overhang``
+        (metres, voxel planes) in pixels at the median depth of E (see :mod:`mabdi.filters.removal`)."""
+        parameters = self.removal_parameters
+        overhang = getattr(self.surface, "face_overhang", 0.0)
+        shown = expected[::4, ::4]
+        shown = shown[np.isfinite(shown)]
+        if overhang <= 0 or not len(shown):
+            return parameters
+        margin = int(np.ceil(overhang * self.intrinsics.fx / float(np.median(shown))))
+        margin = min(max(margin, parameters.edge_margin), parameters.max_edge_margin)
+        return replace(parameters, edge_margin=margin)
 
     def _clear_free_space(self, voting: np.ndarray, gone: np.ndarray) -> None:
         """Voxel planes: rays that saw through removed faces empty the voxels they crossed (up to tau before D)."""
