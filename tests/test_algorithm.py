@@ -103,7 +103,17 @@ def test_keyboard_interrupt_pulled_through_a_plain_vtk_filter_surfaces_on_check(
         raise_pipeline_errors(source)
 
 
-def test_ctrl_c_during_update_is_held_until_the_update_ends():
+@pytest.fixture
+def python_sigint_handler():
+    """Python's own SIGINT handler, as in a terminal (a shell's background job starts with SIGINT ignored)."""
+    import signal
+
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, previous)
+
+
+def test_ctrl_c_during_update_is_held_until_the_update_ends(python_sigint_handler):
     import signal
 
     source = InterruptedSource(signal_mid_way=True)

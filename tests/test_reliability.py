@@ -19,8 +19,15 @@ REPO = Path(__file__).resolve().parents[1]
 INTERRUPTED = (130, -signal.SIGINT)  # main's exit status, or death by SIGINT (an interrupt while importing)
 
 
+def _default_sigint() -> None:
+    """In the child: SIGINT's default action, as in a terminal (a shell's background job, like a CI
+    runner's, may start with SIGINT ignored, and Python then keeps ignoring it)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _mabdi(*args, **kwargs) -> subprocess.Popen:
     env = dict(os.environ, PYTHONUNBUFFERED="1")
+    kwargs.setdefault("preexec_fn", _default_sigint)
     return subprocess.Popen(
         [sys.executable, "-m", "mabdi.cli", *map(str, args)],
         cwd=REPO,
