@@ -1,6 +1,6 @@
 """Pinhole intrinsics, poses and the conversions between them and VTK.
 
-Conventions (design.md):
+Conventions (every module follows them):
 
 * World frame: metres, z up.
 * Camera frame: OpenCV (x right, y down, z forward along the optical axis).

@@ -1,6 +1,6 @@
 """The depth image: a vtkImageData every mabdi filter reads and writes.
 
-Layout (design.md):
+Layout (every filter reads and writes it so):
 
 * extent (0, W-1, 0, H-1, 0, 0), origin 0, spacing 1;
 * point array ``depth`` (float32): metric z-depth along the optical axis,

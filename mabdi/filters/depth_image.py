@@ -3,7 +3,7 @@
 vtkPolyData (or a composite dataset of polydata, drawn block by block) in,
 depth image (see :mod:`mabdi.depth`) out. The filter renders off-screen in
 one render window that it keeps across frames, multisampling off (with it,
-the depth read back is not sampled at pixel centres, see design.md), reads
+the depth read back blends several samples instead of the pixel centre's), reads
 the z-buffer, flips it to top-row-first and converts it to metres. Pixels
 with no surface within [near, far] are NaN.
 
