@@ -330,7 +330,10 @@ class FilterVoxelPlanes(MabdiAlgorithm):
         """Empty the voxels that rays from ``origins`` to ``ends`` (world, metres) saw through, stopping
         ``margins`` (m) short of the ends (:meth:`VoxelMap.clear_free_space`); the neighbourhoods that
         change are re-meshed with the next points. Returns the number of points removed."""
-        cleared = self.map.clear_free_space(origins, ends, margins)
+        return self._cleared(self.map.clear_free_space(origins, ends, margins))
+
+    def _cleared(self, cleared) -> int:
+        """Queue the emptied voxels of a :class:`VoxelMap` clearing for re-meshing; returns the points removed."""
         if len(cleared.voxels):
             self._pending_cleared = np.concatenate([self._pending_cleared, cleared.voxels])
             self.Modified()
@@ -359,11 +362,7 @@ class FilterVoxelPlanes(MabdiAlgorithm):
         anchors = np.rint(points / s).astype(np.int64) if window % 2 == 0 else np.floor(points / s).astype(np.int64)
         steps = np.array(list(itertools.product(range(low, low + window), repeat=3)), dtype=np.int64)
         voxels = (anchors[:, None, :] + steps[None]).reshape(-1, 3)
-        cleared = self.map.clear_voxels(voxels)
-        if len(cleared.voxels):
-            self._pending_cleared = np.concatenate([self._pending_cleared, cleared.voxels])
-            self.Modified()
-        return int(cleared.points)
+        return self._cleared(self.map.clear_voxels(voxels))
 
     def add_points(self, points: np.ndarray) -> np.ndarray:
         """Add (M, 3) world points and re-mesh the blocks they touch (and those emptied by

@@ -301,9 +301,11 @@ class MabdiLoop:
         (metres, voxel planes) in pixels at the median depth of E (see :mod:`mabdi.filters.removal`)."""
         parameters = self.removal_parameters
         overhang = getattr(self.surface, "face_overhang", 0.0)
+        if overhang <= 0:
+            return parameters
         shown = expected[::4, ::4]
         shown = shown[np.isfinite(shown)]
-        if overhang <= 0 or not len(shown):
+        if not len(shown):
             return parameters
         margin = int(np.ceil(overhang * self.intrinsics.fx / float(np.median(shown))))
         margin = min(max(margin, parameters.edge_margin), parameters.max_edge_margin)
