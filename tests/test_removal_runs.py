@@ -76,11 +76,6 @@ def test_runs_1_and_2_lose_nothing_static(scene, surface, static_runs):
     assert growth[1] <= 0.15 * growth[0], growth
 
 
-@pytest.mark.xfail(
-    reason="the closed door's ghost while open is 2.2% of it (272 of 12100 vertices, limit 2%): its faces beside "
-    "the jamb lie within the 5 px edge mask, which cannot tell a ghost beside a real edge from an overhang",
-    strict=True,
-)
 def test_run5_the_door_opens_and_closes_in_the_map():
     """While the door is open the closed door's faces are gone and the room beyond is mapped; after it
     closes the open door's faces are gone and the closed door is back.

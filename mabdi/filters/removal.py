@@ -23,11 +23,16 @@ except
   edges by more states it as ``face_overhang`` (metres; voxel planes: a face
   fills its voxel, 5 cm), and the loop widens the margin to that length in
   pixels at the median depth of E (up to ``max_edge_margin``, 20): on Run 1
-  the voxel-plane map lost 0.13% with 5 px, 0.06% with 10. A wider margin
-  for every surface would hide a ghost beside a real edge at its depth (the
-  closed door's panel beside the jamb; the mask leaves 2.2% of it in Run 5). A silhouette in E with no
-  silhouette in D near it is not masked: that is the edge of a ghost (the
-  world behind it is smooth), exactly where the votes are wanted;
+  the voxel-plane map lost 0.13% with 5 px, 0.06% with 10. A *contradiction*
+  is masked only where E has a silhouette within the margin too: an
+  overhang lies between the map's edge and the sensor's, so both are near,
+  while a ghost beside a real edge at its depth (the closed door's panel
+  beside the jamb in Run 5) continues the map's surface smoothly in E: there
+  the votes are wanted (with the D mask alone 2.2% of the closed door stayed
+  while it was open, with both 1.8%, all of it at the hinge, beside the open
+  door's real silhouette). Confirmations keep the D mask alone. A silhouette
+  in E with no silhouette in D near it is not masked either: that is the
+  edge of a ghost (the world behind it is smooth);
 * at grazing incidence: the angle between the pixel's ray and the face's
   normal is over ``grazing_deg`` (75 degrees), where tiny depth errors along
   the ray are large;
@@ -172,11 +177,15 @@ def removal_votes(
     if not candidates.any():
         empty = np.zeros(0, dtype=np.int64)
         return empty, empty, empty, np.zeros(labels.shape, dtype=bool)
-    # silhouettes of what the sensor sees; with no_return_is_free the edge of a no-return region is one
+    # silhouettes of what the sensor sees (with no_return_is_free the edge of a no-return region is one);
+    # a contradiction there is only doubtful near a silhouette of the map too: only there can a misplaced
+    # map edge overhang what the sensor sees
     edges = depth_edges(measured, parameters.edge_jump)
+    map_edges = depth_edges(expected, parameters.edge_jump)
     if parameters.edge_margin:
         edges = dilate(edges, parameters.edge_margin)
-    candidates &= ~edges
+        map_edges = dilate(map_edges, parameters.edge_margin)
+    candidates &= ~np.where(contradicting_pixels, edges & map_edges, edges)
     pixels = np.flatnonzero(candidates)
     ids = face_ids.ravel()[pixels].astype(np.int64)
     contradicting = contradicting_pixels.ravel()[pixels]
