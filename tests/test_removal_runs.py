@@ -49,23 +49,8 @@ def test_run4_the_bunny_that_left_leaves_the_map(surface, static_runs):
     assert fscore >= reference - 0.01, (fscore, reference)
 
 
-# Known gaps (object removal is not finished): strict, so a fix shows up as a failure to remove the mark.
-REMOVES_TOO_MUCH = {
-    ("bunnies", "pixel_grid"): "removes 0.58% of the map: pixel-grid triangles bridging depth jumps under 5% "
-    "(median edge 5.5 cm against 3-4 mm pixels; F@1cm rises 0.9515 -> 0.9542 without them)",
-}
-
-
-@pytest.mark.parametrize(
-    "scene,surface",
-    [
-        pytest.param(scene, surface, marks=pytest.mark.xfail(reason=REMOVES_TOO_MUCH[scene, surface], strict=True))
-        if (scene, surface) in REMOVES_TOO_MUCH
-        else (scene, surface)
-        for scene in ("table", "bunnies")
-        for surface in SURFACES
-    ],
-)
+@pytest.mark.parametrize("scene", ["table", "bunnies"])
+@pytest.mark.parametrize("surface", SURFACES)
 def test_runs_1_and_2_lose_nothing_static(scene, surface, static_runs):
     result, f_on = static_runs(scene, surface)
     _, f_off = static_runs(scene, surface, removal=False)
