@@ -49,11 +49,12 @@ def test_invalid_pixels_and_discontinuities_are_not_bridged():
 
 
 def test_oblique_plane_within_the_jump_is_kept():
-    # Kinect intrinsics, a plane turned 60 degrees: depth 1.1-9.6 m over the image, at most 1.6% per pixel.
+    # Kinect intrinsics, a plane turned 55 degrees: depth 1.2-5.7 m over the image, at most 0.8% per pixel
+    # (under the 1% limit); turned 60 degrees it reaches 1.6% at the far corner, where triangles go.
     intrinsics = Intrinsics(far=10.0)  # every depth inside the range: all are returns
-    normal = np.array([0.0, -np.sin(np.radians(60)), -np.cos(np.radians(60))])
+    normal = np.array([0.0, -np.sin(np.radians(55)), -np.cos(np.radians(55))])
     depth = (normal @ [0, 0, 2.0]) / (intrinsics.rays() @ normal)
-    assert depth.min() > 1.0 and depth.max() > 9.0
+    assert depth.min() > 1.0 and depth.max() > 5.5
     surface = FilterPixelGrid()
     from mabdi.depth import depth_image as make_image
 

