@@ -170,3 +170,26 @@ def test_a_re_meshed_patch_keeps_the_removal_evidence_of_the_faces_it_replaces()
     world.add_patch("patch_7", plane_mesh((5, 0, 2), (0, 0, 1), size=1.0, subdivisions=4), frame=2)
     base, count = world._ids._ranges["patch_7"]
     assert (world.face_evidence_of(np.arange(base, base + count)) == 0).all()
+
+
+def test_moving_points_changes_the_block_and_its_face_normals_only():
+    """``move_points``: the moved vertices go where they are told, the faces around them get new normals,
+    the rest stay; a wrong shape or vertex id is an error naming the block."""
+    world = FilterWorldMesh()
+    append(world, with_frame(plane_mesh([0, 0, 0], [0, 0, 1], subdivisions=2), 0))
+    block = world.block("frame_0")
+    points = vtk_to_numpy(block.GetPoints().GetData()).copy()
+    ids = np.arange(1, world.number_of_cells + 1)  # the first block's faces: identities 1..8
+    assert np.allclose(world.face_normals_of(ids) @ [0, 0, 1], 1.0) or np.allclose(world.face_normals_of(ids) @ [0, 0, 1], -1.0)
+    centre = int(np.argmin(np.linalg.norm(points[:, :2] - points[:, :2].mean(axis=0), axis=1)))
+    world.move_points("frame_0", [centre], [points[centre] + [0.0, 0.0, 5.0]])
+    moved = vtk_to_numpy(block.GetPoints().GetData())
+    np.testing.assert_allclose(moved[centre], points[centre] + [0.0, 0.0, 5.0], atol=1e-6)
+    others = np.arange(len(points)) != centre
+    np.testing.assert_array_equal(moved[others], points[others])
+    tilted = np.abs(world.face_normals_of(ids)[:, 2]) < 0.999
+    assert tilted.sum() == 6  # the six triangles around the centre vertex of a 2x2 grid (diagonals one way)
+    with pytest.raises(ValueError, match="frame_0"):
+        world.move_points("frame_0", [0, 1], np.zeros((1, 3)))
+    with pytest.raises(ValueError, match="frame_0"):
+        world.move_points("frame_0", [len(points)], np.zeros((1, 3)))

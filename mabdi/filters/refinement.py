@@ -345,12 +345,12 @@ class MapRefinement:
             if p.replace and better.any():
                 gap = np.abs(measured[chosen] - expected[chosen])
                 better &= gap <= p.gate_k * np.sqrt(sd**2 + face_var)
-                size = len(state.triangles)
-                votes = np.bincount(cells, weights=better, minlength=size)
-                counts = np.bincount(cells, weights=facing, minlength=size)
+                _, face_of_pixel = np.unique(cells, return_inverse=True)  # the block's faces in view, compacted
+                votes = np.bincount(face_of_pixel, weights=better)
+                counts = np.bincount(face_of_pixel, weights=facing)
                 out = (votes >= p.replace_share * counts) & (votes > 0)
                 if out.any():
-                    gone = out[cells]
+                    gone = out[face_of_pixel]
                     replaced.append(ids[chosen][gone])
 
             # refinement: known pixels of faces that stay
@@ -370,12 +370,13 @@ class MapRefinement:
             measured_point = hit + w * (d_ray - e_ray)[:, None]
             offset = np.einsum("ikj,ikj->ik", state.normal[tri], measured_point[:, None, :] - state.original[tri])
             weight = beta * (cosine / sd**2)[:, None]
-            flat = tri.ravel()
-            n = len(state.original)
-            gained = np.bincount(flat, weights=weight.ravel(), minlength=n)
-            state.weight += gained
-            state.total += np.bincount(flat, weights=(weight * offset).ravel(), minlength=n)
-            touched.append((key, state, np.flatnonzero(gained > 0)))
+            # sums per corner vertex, over the block's vertices in view only (compacted; a block may hold
+            # a whole frame's 300k vertices)
+            vertices, corner_of = np.unique(tri.ravel(), return_inverse=True)
+            gained = np.bincount(corner_of, weights=weight.ravel())
+            state.weight[vertices] += gained
+            state.total[vertices] += np.bincount(corner_of, weights=(weight * offset).ravel())
+            touched.append((key, state, vertices[gained > 0]))
 
         moved = 0
         for key, state, vertices in touched:
@@ -389,10 +390,9 @@ class MapRefinement:
             )
             if not move.any():
                 continue
-            state.offset[vertices[move]] = estimate[move]
-            points = _points(state.patch).astype(np.float64)
-            points[vertices[move]] = state.original[vertices[move]] + estimate[move][:, None] * state.normal[vertices[move]]
-            world.move_points(key, points, vertices[move])
+            moving = vertices[move]
+            state.offset[moving] = estimate[move]
+            world.move_points(key, moving, state.original[moving] + estimate[move][:, None] * state.normal[moving])
             moved += int(move.sum())
         result.moved_vertices = moved
         result.observed_pixels = observed

@@ -372,23 +372,26 @@ class FilterWorldMesh(MabdiAlgorithm):
         """The polydata of block ``key`` (read it; change its points only through :meth:`move_points`)."""
         return self._patches[key]
 
-    def move_points(self, key: str, points: np.ndarray, vertex_ids: np.ndarray | None = None) -> None:
-        """Give block ``key`` new vertex positions (N, 3) (same count and order; faces unchanged).
+    def move_points(self, key: str, vertex_ids: np.ndarray, positions: np.ndarray) -> None:
+        """Move vertices ``vertex_ids`` of block ``key`` to ``positions`` (K, 3) world metres; faces unchanged.
 
-        The block's points are replaced in place and marked modified, so the expected-image renderer
-        re-uploads that block only. ``vertex_ids``: the vertices that moved (only their faces' normals
-        are recomputed); None: all of them.
+        The block's points are changed in place and marked modified, so the expected-image renderer
+        re-uploads that block only; the normals of the faces around the moved vertices are recomputed.
         """
         patch = self._patches[key]
         current = vtk_to_numpy(patch.GetPoints().GetData())
-        if points.shape != current.shape:
-            raise ValueError(f"move_points: block {key} has {current.shape} points, got {points.shape}")
-        current[:] = points.astype(current.dtype)
+        vertex_ids = np.asarray(vertex_ids, dtype=np.int64)
+        positions = np.asarray(positions)
+        if positions.shape != (len(vertex_ids), 3):
+            raise ValueError(f"move_points: {len(vertex_ids)} vertex ids of block {key} need ({len(vertex_ids)}, 3) positions, got {positions.shape}")
+        if len(vertex_ids) and (vertex_ids.min() < 0 or vertex_ids.max() >= len(current)):
+            raise ValueError(f"move_points: block {key} has {len(current)} points, got vertex ids outside 0..{len(current) - 1}")
+        current[vertex_ids] = positions.astype(current.dtype)
         patch.GetPoints().Modified()
         patch.Modified()
         base, count = self._ids._ranges[key]
-        triangles = patch_triangles(patch) if vertex_ids is not None else None
-        if triangles is None:
+        triangles = patch_triangles(patch)
+        if triangles is None:  # not all triangles: the block's normals anew
             self._face_normals[base : base + count] = face_normals(patch)
         else:
             moved = np.zeros(len(current), dtype=bool)
