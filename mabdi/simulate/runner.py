@@ -100,7 +100,7 @@ class RunResult:
         """Totals for ``summary.json`` and the command line."""
         records = self.records
         n = max(len(records), 1)
-        stages = ("t_depth_ms", "t_expected_ms", "t_classify_ms", "t_remove_ms", "t_surface_ms", "t_append_ms", "t_total_ms")
+        stages = ("t_depth_ms", "t_expected_ms", "t_classify_ms", "t_refine_ms", "t_remove_ms", "t_surface_ms", "t_append_ms", "t_total_ms")
         return {
             "name": self.config.run.name,
             "source": self.source,
