@@ -16,9 +16,18 @@ as an offset t_v from its *original* position p0_v:
   the camera of the frame that made it (cell data ``frame``; the pose of that
   frame is remembered from the frames the refinement saw, else taken from the
   source's poses). The prior says "t = 0".
-* **Observations**: each *known* pixel (label 1) that shows a triangle f with
-  a return in D. Along the pixel's unit world ray w, the map's surface is at
-  e = E l and the measured one at d = D l (l: ray length per metre of
+* **Same surface**: a pixel that shows a triangle f and has a return in D
+  observes f only when D lies on f's surface within a gate that allows for
+  both uncertainties, |D - E| <= ``gate_k`` sqrt(sigma(D)^2 + sigma_f^2)
+  (gate_k = 3; sigma_f^2 is the face's variance, the mean over its corners
+  of 1 / (W0 + W)), whatever the classifier's label. The label is the wrong
+  test both ways: the classifier calls thin slivers of "novel" pixels in
+  front of the map "known" (speck removal), and a face made 2 cm off is
+  beyond tau = 1 cm when seen from 1.5 m, so the pixels that would correct
+  it most are "novel" or "contradicted". Observing by the label let a tail
+  of vertices drift to centimetres off (below).
+* **Observations**: along the pixel's unit world ray w, the map's surface is
+  at e = E l and the measured one at d = D l (l: ray length per metre of
   z-depth): the measured point is m = camera centre + w d, and the ray
   meets f at h = camera centre + w e, with barycentric weights beta on f's
   corners (from their current positions). Each corner k gets the
@@ -30,6 +39,13 @@ as an offset t_v from its *original* position p0_v:
   whose depths are more sensitive to a misplaced edge. Corner k accumulates
   W_k += beta_k w_p and S_k += beta_k w_p s_k. Pixels within
   ``grazing_deg`` (75 degrees) of the face's plane do not observe.
+* **Near the corner only**: m counts for corner k only if it lies within
+  ``radius_px`` (2.5) pixel footprints (D / f metres, f the focal length)
+  of p0_k across n_k. s_k extrapolates the surface from m to the corner
+  along the plane normal to n_k; an error alpha of the vertex normal tilts
+  it by u sin(alpha) at a distance u, and a quad-tree face's corner is
+  30-100 mm from most of its pixels (a 10 degree error: 5-17 mm, the same
+  sign for every pixel on that side).
 * **Estimate**: the weighted mean of prior and observations,
   t_v = S_v / (W0_v + W_v), with variance 1 / (W0_v + W_v), kept within
   3 / sqrt(W0_v) (three sigma of the first look) of the original position.
@@ -42,26 +58,26 @@ as an offset t_v from its *original* position p0_v:
   call per changed block; no triangle is added or removed.
 
 **Replacement** (the faces made from a much noisier look than this one). A
-face's uncertainty is sigma_f^2 = the mean over its corners of
-1 / (W0 + W). A pixel showing f *prefers a better look* when
+pixel showing f *prefers a better look* when
 sigma_f >= ``replace_ratio`` sigma(D) (2: e.g. made at 4 m, seen now from
-2.8 m or nearer) and D lies on the same surface within a gate that allows for
-both uncertainties, |D - E| <= ``gate_k`` sqrt(sigma(D)^2 + sigma_f^2)
-(gate_k = 3), whatever its label: such pixels are mostly "novel" or
-"contradicted" (a map 2 cm off is beyond tau = 1 cm at 1.5 m), and the gate
-keeps an object in front of the face from counting. A face is replaced when
+2.8 m or nearer) and D lies on the same surface (the gate above, which keeps
+an object in front of the face from counting). A face is replaced when
 at least ``replace_share`` (half) of its facing pixels with a return prefer a
 better look. :meth:`MapRefinement.step` returns the identities of those faces;
 the loop removes them (``world.remove_faces``), and their pixels are novel in
 the next frame and meshed from that better look: the surface is replaced,
 never doubled by a layer beside it. Pixels of replaced faces do not refine.
 
-**Status: off by default.** On a plate seen from far then near it does what
-it should, but on the simulated runs the vertex moving makes the map worse:
-the median error of the vertices it moves falls, while a tail drifts to
-centimetres off frame after frame (F@1cm of the quad-tree map on the
-``kinect`` table 0.981 -> 0.887, on Run 2 0.975 -> 0.841; replacement alone
-is neutral). The measurements are in ``docs/benchmarks.md``.
+**Status: off by default.** It improves the maps a little and costs much:
+F@1cm of the quad-tree map on the ``kinect`` table 0.9805 -> 0.9819, on
+Run 2 0.9752 -> 0.9786 with ``replace = false`` (0.9750 with replacement:
+the replaced faces come back with gaps, and recall falls 0.968 -> 0.962);
+the pixel grid on Run 2 0.958 -> 0.964 (the replacement does it: P
+0.948 -> 0.962), on the ``kinect`` table 0.9704 -> 0.9713. On a 2-core
+machine it adds 70-120 ms a frame to the quad-tree loop. The first version
+(label-based observations from anywhere on a face) made every map worse
+(quad-tree, ``kinect`` table 0.981 -> 0.887). The measurements are in
+``docs/benchmarks.md``.
 
 **No noise** (noise model ``none``, sigma = 0): every measurement is exact,
 and so is every vertex as it was made; there is nothing to average, and the
@@ -91,7 +107,7 @@ from vtkmodules.vtkCommonDataModel import vtkPolyData
 
 from mabdi.depth import depth_array, image_frame, image_pose
 from mabdi.errors import ConfigError
-from mabdi.filters.classifier import KNOWN, NO_RETURN
+from mabdi.filters.classifier import NO_RETURN
 from mabdi.filters.expected_image import FACE_ID_ARRAY, face_id_array
 from mabdi.filters.world_mesh import FRAME_CELL_ARRAY
 
@@ -105,6 +121,8 @@ class RefinementParameters:
 
     ``stride``: pixels sampled every ``stride`` in u and v; ``grazing_deg``: pixels whose ray is more than this
     angle off the face's normal neither observe nor vote (75);
+    ``radius_px``: a pixel observes a vertex only if its measured point lies within this many pixel footprints
+    (its depth / focal length) of the vertex across the vertex's normal (2.5);
     ``confidence``: a vertex moves once its observations' weight is at least this times its prior's;
     ``min_step``: nor unless its estimate is at least this far from where it is; ``min_sigma``: floor on
     sigma(z); ``replace_ratio``: a face is replaced when its sigma is at least this times the pixel's;
@@ -114,6 +132,7 @@ class RefinementParameters:
 
     stride: int = 2
     grazing_deg: float = 75.0
+    radius_px: float = 2.5
     confidence: float = 1.0
     min_step: float = 2e-4
     min_sigma: float = 1e-4
@@ -127,6 +146,8 @@ class RefinementParameters:
             raise ConfigError(f"refinement: stride must be an integer >= 1 (pixels), got {self.stride!r}")
         if not 0 < self.grazing_deg < 90:
             raise ConfigError(f"refinement: need 0 < grazing_deg < 90, got {self.grazing_deg}")
+        if not self.radius_px > 0:
+            raise ConfigError(f"refinement: radius_px must be > 0 pixels, got {self.radius_px}")
         if not (self.confidence >= 0 and self.min_step >= 0 and self.min_sigma > 0):
             raise ConfigError("refinement: need confidence >= 0, min_step >= 0 and min_sigma > 0")
         if not (self.replace_ratio > 1 and self.gate_k > 0 and 0 < self.replace_share <= 1):
@@ -311,9 +332,9 @@ class MapRefinement:
         unit_rays, length = self._unit_rays(loop.intrinsics)
         rays = unit_rays[candidates] @ pose[:3, :3].T  # world
         length = length[candidates]
-        known = labels[candidates] == KNOWN
         sigma_d = self._sigma(loop, measured).astype(np.float64)
         centre = pose[:3, 3]
+        focal = 0.5 * (loop.intrinsics.fx + loop.intrinsics.fy)
         cos_grazing = np.cos(np.radians(p.grazing_deg))
 
         replaced = []
@@ -342,13 +363,14 @@ class MapRefinement:
             facing = (norm > 0) & (cosine >= cos_grazing)
             sd = sigma_d[chosen]
 
-            # replacement: faces made from a much noisier look than this one
+            # same surface: D within the gate around E that both uncertainties allow (the face's and the pixel's)
             face_var = (1.0 / (state.prior[tri] + state.weight[tri])).mean(axis=1)
-            better = facing & (face_var >= (p.replace_ratio * sd) ** 2)
+            same = facing & (np.abs(measured[chosen] - expected[chosen]) <= p.gate_k * np.sqrt(sd**2 + face_var))
+
+            # replacement: faces made from a much noisier look than this one
+            better = same & (face_var >= (p.replace_ratio * sd) ** 2)
             gone = None
             if p.replace and better.any():
-                gap = np.abs(measured[chosen] - expected[chosen])
-                better &= gap <= p.gate_k * np.sqrt(sd**2 + face_var)
                 _, face_of_pixel = np.unique(cells, return_inverse=True)  # the block's faces in view, compacted
                 votes = np.bincount(face_of_pixel, weights=better)
                 counts = np.bincount(face_of_pixel, weights=facing)
@@ -357,8 +379,8 @@ class MapRefinement:
                     gone = out[face_of_pixel]
                     replaced.append(ids[chosen][gone])
 
-            # refinement: known pixels of faces that stay
-            use = facing & known[chosen]
+            # refinement: pixels on the same surface as faces that stay
+            use = same
             if gone is not None:
                 use &= ~gone
             if not use.any():
@@ -372,8 +394,14 @@ class MapRefinement:
             beta = _barycentric(hit - a, e1, e2)
             # the measured point, on the pixel's ray at D: the hit point moved by the residual along the ray
             measured_point = hit + w * (d_ray - e_ray)[:, None]
-            offset = np.einsum("ikj,ikj->ik", state.normal[tri], measured_point[:, None, :] - state.original[tri])
-            weight = beta * (cosine / sd**2)[:, None]
+            # each corner's observation: the measured point's offset from the corner's original position
+            # along the corner's normal, from pixels within ``radius`` of the corner across that normal only
+            toward = measured_point[:, None, :] - state.original[tri]  # (n, 3 corners, 3)
+            corner_normal = state.normal[tri]
+            offset = np.einsum("ikj,ikj->ik", corner_normal, toward)
+            across = np.linalg.norm(toward - offset[..., None] * corner_normal, axis=2)
+            radius = p.radius_px * measured[chosen][use] / focal
+            weight = np.where(across <= radius[:, None], beta * (cosine / sd**2)[:, None], 0.0)
             # sums per corner vertex, over the block's vertices in view only (compacted; a block may hold
             # a whole frame's 300k vertices)
             vertices, corner_of = np.unique(tri.ravel(), return_inverse=True)
