@@ -111,6 +111,11 @@ from mabdi.filters.classifier import NO_RETURN
 from mabdi.filters.expected_image import FACE_ID_ARRAY, face_id_array
 from mabdi.filters.world_mesh import FRAME_CELL_ARRAY
 
+try:
+    from mabdi.filters import refinement_kernels as kernels
+except ImportError:  # pragma: no cover - numba is a dependency; the numpy reference works without it
+    kernels = None
+
 #: Blocks of these key prefixes are refined (pixel grid and quad-tree patches); voxel planes use ``patch_``.
 REFINED_PREFIX = "frame_"
 
@@ -179,6 +184,10 @@ class _BlockState:
     offset: np.ndarray  # (N,) t: the offset the vertex is at now
 
 
+#: The per-vertex arrays of a block's state, carried over when the block is rebuilt.
+_STATE = ("original", "normal", "prior", "weight", "total", "offset")
+
+
 def _points(patch: vtkPolyData) -> np.ndarray:
     return vtk_to_numpy(patch.GetPoints().GetData())
 
@@ -225,6 +234,9 @@ class MapRefinement:
 
     def __init__(self, parameters: RefinementParameters | None = None) -> None:
         self.parameters = parameters if parameters is not None else RefinementParameters()
+        #: the per-pixel work in the numba kernel (:mod:`mabdi.filters.refinement_kernels`) when installed;
+        #: False: the numpy reference (:func:`observe_block`)
+        self.compiled = True
         self._blocks: dict[str, _BlockState] = {}
         self._poses: dict[int, np.ndarray] = {}
         self._source_poses: np.ndarray | None = None
@@ -263,14 +275,29 @@ class MapRefinement:
         sigma = loop.noise.sigma(depth, intrinsics.near, intrinsics.far)
         return np.maximum(sigma, sigma.dtype.type(self.parameters.min_sigma))
 
+    def _match_points(self, old: np.ndarray, new: np.ndarray) -> np.ndarray:
+        """For each point of a rebuilt block, its index in the old block (-1: none)."""
+        if self.compiled and kernels is not None:
+            where = kernels.match_kept_points_kernel(old, np.ascontiguousarray(new, dtype=old.dtype))
+            if where is not None:
+                return where
+        return _match_rows(old, new)
+
     def _register(self, key: str, patch: vtkPolyData, loop, pose: np.ndarray) -> _BlockState:
         """The state of block ``key``: new, carried over from a rebuilt block, or as it was."""
         state = self._blocks.get(key)
         if state is not None and state.patch is patch:
             return state
-        points = _points(patch).astype(np.float64)
         triangles = _triangles(patch)
-        n = len(points)
+        n = patch.GetNumberOfPoints()
+        source = np.full(n, -1, dtype=np.int64)
+        if state is not None and n and len(_points(state.patch)):
+            # a rebuilt block (faces removed, points compacted): vertices found in the old block keep their state
+            source = self._match_points(_points(state.patch), _points(patch))
+            if np.all(source >= 0):  # no new vertex (the usual case): the state is the old one's, compacted
+                self._blocks[key] = _BlockState(patch, triangles, *(getattr(state, name)[source] for name in _STATE))
+                return self._blocks[key]
+        points = _points(patch).astype(np.float64)
         if triangles is not None and len(triangles):
             normal = vertex_normals(points, triangles)
         else:
@@ -288,12 +315,9 @@ class MapRefinement:
         z = np.where(np.isfinite(z) & (z > 0), z, np.linalg.norm(points - pose[:3, 3], axis=1))
         prior = 1.0 / self._sigma(loop, z) ** 2
         fresh = _BlockState(patch, triangles, points, normal, prior, np.zeros(n), np.zeros(n), np.zeros(n))
-        if state is not None:
-            # a rebuilt block (faces removed, points compacted): vertices found in the old block keep their state
-            old = _points(state.patch)
-            source = _match_rows(old, _points(patch)) if len(old) and n else np.full(n, -1)
-            kept = source >= 0
-            for name in ("original", "normal", "prior", "weight", "total", "offset"):
+        kept = source >= 0
+        if kept.any():
+            for name in _STATE:
                 getattr(fresh, name)[kept] = getattr(state, name)[source[kept]]
         self._blocks[key] = fresh
         return fresh
@@ -350,65 +374,21 @@ class MapRefinement:
             if state.triangles is None:
                 continue
             chosen = order[bounds[b] : bounds[b + 1]]
-            cells = local[chosen]
-            tri = state.triangles[cells]
-            corners = _points(state.patch)[tri].astype(np.float64)  # (n, 3, 3) current positions
-            a = corners[:, 0]
-            e1, e2 = corners[:, 1] - a, corners[:, 2] - a
-            normal = np.cross(e1, e2)
-            norm = np.linalg.norm(normal, axis=1)
-            w = rays[chosen]
-            wn = np.einsum("ij,ij->i", w, normal) / np.where(norm > 0, norm, 1.0)
-            cosine = np.abs(wn)
-            facing = (norm > 0) & (cosine >= cos_grazing)
-            sd = sigma_d[chosen]
-
-            # same surface: D within the gate around E that both uncertainties allow (the face's and the pixel's)
-            face_var = (1.0 / (state.prior[tri] + state.weight[tri])).mean(axis=1)
-            same = facing & (np.abs(measured[chosen] - expected[chosen]) <= p.gate_k * np.sqrt(sd**2 + face_var))
-
-            # replacement: faces made from a much noisier look than this one
-            better = same & (face_var >= (p.replace_ratio * sd) ** 2)
-            gone = None
-            if p.replace and better.any():
-                _, face_of_pixel = np.unique(cells, return_inverse=True)  # the block's faces in view, compacted
-                votes = np.bincount(face_of_pixel, weights=better)
-                counts = np.bincount(face_of_pixel, weights=facing)
-                out = (votes >= p.replace_share * counts) & (votes > 0)
-                if out.any():
-                    gone = out[face_of_pixel]
-                    replaced.append(ids[chosen][gone])
-
-            # refinement: pixels on the same surface as faces that stay
-            use = same
-            if gone is not None:
-                use &= ~gone
-            if not use.any():
-                continue
-            observed += int(use.sum())
-            tri, w, cosine, sd = tri[use], w[use], cosine[use], sd[use]
-            a, e1, e2 = a[use], e1[use], e2[use]
-            e_ray = expected[chosen][use] * length[chosen][use]
-            d_ray = measured[chosen][use] * length[chosen][use]
-            hit = centre + w * e_ray[:, None]
-            beta = _barycentric(hit - a, e1, e2)
-            # the measured point, on the pixel's ray at D: the hit point moved by the residual along the ray
-            measured_point = hit + w * (d_ray - e_ray)[:, None]
-            # each corner's observation: the measured point's offset from the corner's original position
-            # along the corner's normal, from pixels within ``radius`` of the corner across that normal only
-            toward = measured_point[:, None, :] - state.original[tri]  # (n, 3 corners, 3)
-            corner_normal = state.normal[tri]
-            offset = np.einsum("ikj,ikj->ik", corner_normal, toward)
-            across = np.linalg.norm(toward - offset[..., None] * corner_normal, axis=2)
-            radius = p.radius_px * measured[chosen][use] / focal
-            weight = np.where(across <= radius[:, None], beta * (cosine / sd**2)[:, None], 0.0)
-            # sums per corner vertex, over the block's vertices in view only (compacted; a block may hold
-            # a whole frame's 300k vertices)
-            vertices, corner_of = np.unique(tri.ravel(), return_inverse=True)
-            gained = np.bincount(corner_of, weights=weight.ravel())
-            state.weight[vertices] += gained
-            state.total[vertices] += np.bincount(corner_of, weights=(weight * offset).ravel())
-            touched.append((key, state, vertices[gained > 0]))
+            arguments = (
+                state.triangles, _points(state.patch), state.original, state.normal, state.prior, state.weight,
+                state.total, local[chosen], rays[chosen], measured[chosen], expected[chosen], length[chosen],
+                sigma_d[chosen], centre, focal, cos_grazing, p.gate_k, p.replace, p.replace_ratio,
+                p.replace_share, p.radius_px,
+            )  # fmt: skip
+            if self.compiled and kernels is not None:
+                gone, count, vertices = kernels.observe_block_kernel(*arguments)
+            else:
+                gone, count, vertices = observe_block(*arguments)
+            if gone.any():
+                replaced.append(ids[chosen][gone])
+            observed += int(count)
+            if len(vertices):
+                touched.append((key, state, vertices))
 
         moved = 0
         for key, state, vertices in touched:
@@ -432,6 +412,66 @@ class MapRefinement:
             result.replaced = np.unique(np.concatenate(replaced))
         result.t_ms = 1000.0 * (time.perf_counter() - start)
         return result
+
+
+def observe_block(
+    triangles, points, original, normal, prior, weight, total,
+    cells, rays, measured, expected, length, sd, centre,
+    focal, cos_grazing, gate_k, replace, replace_ratio, replace_share, radius_px,
+):  # fmt: skip
+    """One block's pixels (``cells``: the face each shows; ``rays`` unit world rays, ``measured`` and
+    ``expected`` z-depths D and E, ``length`` ray metres per metre of z-depth, ``sd`` sigma(D), ``centre`` the
+    camera's position, ``focal`` in pixels): adds the observations to the block's ``weight`` and ``total`` in
+    place (see the module docs); returns (per pixel: its face is replaced, pixels that observed, vertices whose
+    weight grew). The numpy reference of :func:`mabdi.filters.refinement_kernels.observe_block_kernel`."""
+    tri = triangles[cells]
+    corners = points[tri].astype(np.float64)  # (n, 3, 3) current positions
+    a = corners[:, 0]
+    e1, e2 = corners[:, 1] - a, corners[:, 2] - a
+    face_normal = np.cross(e1, e2)
+    norm = np.linalg.norm(face_normal, axis=1)
+    cosine = np.abs(np.einsum("ij,ij->i", rays, face_normal)) / np.where(norm > 0, norm, 1.0)
+    facing = (norm > 0) & (cosine >= cos_grazing)
+
+    # same surface: D within the gate around E that both uncertainties allow (the face's and the pixel's)
+    face_var = (1.0 / (prior[tri] + weight[tri])).mean(axis=1)
+    same = facing & (np.abs(measured - expected) <= gate_k * np.sqrt(sd**2 + face_var))
+
+    # replacement: faces made from a much noisier look than this one
+    better = same & (face_var >= (replace_ratio * sd) ** 2)
+    gone = np.zeros(len(cells), dtype=bool)
+    if replace and better.any():
+        _, face_of_pixel = np.unique(cells, return_inverse=True)  # the block's faces in view, compacted
+        votes = np.bincount(face_of_pixel, weights=better)
+        counts = np.bincount(face_of_pixel, weights=facing)
+        gone = ((votes >= replace_share * counts) & (votes > 0))[face_of_pixel]
+
+    # refinement: pixels on the same surface as faces that stay
+    use = same & ~gone
+    if not use.any():
+        return gone, 0, np.zeros(0, dtype=np.int64)
+    tri, w, sd = tri[use], rays[use], sd[use]
+    e_ray = expected[use] * length[use]
+    d_ray = measured[use] * length[use]
+    hit = centre + w * e_ray[:, None]
+    beta = _barycentric(hit - a[use], e1[use], e2[use])
+    # the measured point, on the pixel's ray at D: the hit point moved by the residual along the ray
+    measured_point = hit + w * (d_ray - e_ray)[:, None]
+    # each corner's observation: the measured point's offset from the corner's original position along the
+    # corner's normal, from pixels within radius_px footprints of the corner across that normal only
+    toward = measured_point[:, None, :] - original[tri]  # (n, 3 corners, 3)
+    corner_normal = normal[tri]
+    offset = np.einsum("ikj,ikj->ik", corner_normal, toward)
+    across = np.linalg.norm(toward - offset[..., None] * corner_normal, axis=2)
+    radius = radius_px * measured[use] / focal
+    contribution = np.where(across <= radius[:, None], beta * (cosine[use] / sd**2)[:, None], 0.0)
+    # sums per corner vertex, over the block's vertices in view only (compacted; a block may hold a whole
+    # frame's 300k vertices)
+    vertices, corner_of = np.unique(tri.ravel(), return_inverse=True)
+    gained = np.bincount(corner_of, weights=contribution.ravel())
+    weight[vertices] += gained
+    total[vertices] += np.bincount(corner_of, weights=(contribution * offset).ravel())
+    return gone, int(use.sum()), vertices[gained > 0]
 
 
 def _barycentric(v: np.ndarray, e1: np.ndarray, e2: np.ndarray) -> np.ndarray:
