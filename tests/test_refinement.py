@@ -198,7 +198,7 @@ def test_moved_vertices_of_the_kinect_table_do_not_drift():
 
     def recording_move_points(key, vertex_ids, positions):
         before = vtk_to_numpy(world.block(key).GetPoints().GetData())[vertex_ids].astype(np.float64)
-        for vertex, old, new in zip(vertex_ids, before, np.asarray(positions, dtype=np.float64)):
+        for vertex, old, new in zip(vertex_ids, before, np.asarray(positions, dtype=np.float64), strict=True):
             first.setdefault((key, int(vertex)), old)
             last[(key, int(vertex))] = new
         move_points(key, vertex_ids, positions)
