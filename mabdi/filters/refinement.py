@@ -68,15 +68,18 @@ the loop removes them (``world.remove_faces``), and their pixels are novel in
 the next frame and meshed from that better look: the surface is replaced,
 never doubled by a layer beside it. Pixels of replaced faces do not refine.
 
-**Status: off by default.** It improves the maps a little and costs much:
-F@1cm of the quad-tree map on the ``kinect`` table 0.9805 -> 0.9819, on
-Run 2 0.9752 -> 0.9786 with ``replace = false`` (0.9750 with replacement:
-the replaced faces come back with gaps, and recall falls 0.968 -> 0.962);
-the pixel grid on Run 2 0.958 -> 0.964 (the replacement does it: P
-0.948 -> 0.962), on the ``kinect`` table 0.9704 -> 0.9713. On a 2-core
-machine it adds 70-120 ms a frame to the quad-tree loop. The first version
-(label-based observations from anywhere on a face) made every map worse
-(quad-tree, ``kinect`` table 0.981 -> 0.887). The measurements are in
+**Status: off by default.** It improves the maps a little and costs time:
+F@1cm of the quad-tree map on the ``kinect`` table 0.9805 -> 0.9818, on
+Run 2 0.9752 -> 0.9786 with ``replace = false`` (0.9751 with replacement:
+a quad-tree face is a plane fitted to many pixels, better than the one-pixel
+sigma(z_create) its prior assumes, so good faces are replaced and come back
+with gaps; recall falls 0.970 -> 0.962); the pixel grid on Run 2
+0.958 -> 0.964 (the replacement does it: P 0.948 -> 0.962), on the
+``kinect`` table 0.9704 -> 0.9713. For the quad-tree, ``replace = false``
+is the better setting. On a 2-core machine it adds about 30 ms a frame to
+the quad-tree loop (goal: 5 ms). The first version (label-based
+observations from anywhere on a face) made every map worse (quad-tree,
+``kinect`` table 0.981 -> 0.887). The measurements are in
 ``docs/benchmarks.md``.
 
 **No noise** (noise model ``none``, sigma = 0): every measurement is exact,
@@ -91,9 +94,16 @@ left alone, and so are non-triangle faces.
 
 Cost: ``stride`` samples every stride-th pixel in u and v (2: a quarter of the
 pixels; the samples of successive frames fall on different surface points as
-the camera moves). The work is vectorised over the pixels of each block in
-view; per block only the state arrays are kept (original positions, normals,
-prior, sums, offsets).
+the camera moves). The per-pixel work on each block in view runs in one
+numba kernel (:mod:`mabdi.filters.refinement_kernels`) that adds straight
+into the block's sums; :func:`observe_block` is its numpy reference and the
+fallback (``MapRefinement.compiled = False``). Per block only the state
+arrays are kept (original positions, normals, prior, sums, offsets); a block
+rebuilt with faces removed keeps its points in order, so its state is
+carried over by one in-order walk. Measured on a 2-core machine (``kinect``
+table, 640x480): 28 ms a frame for the quad-tree map, 68 ms for the pixel
+grid with replacement (numpy: 73 and 338 ms); most of what is left is
+moving the points in the world mesh and the Python work per block.
 """
 
 from __future__ import annotations
