@@ -119,7 +119,7 @@ from mabdi.depth import depth_array, image_frame, image_pose
 from mabdi.errors import ConfigError
 from mabdi.filters.classifier import NO_RETURN
 from mabdi.filters.expected_image import FACE_ID_ARRAY, face_id_array
-from mabdi.filters.world_mesh import FRAME_CELL_ARRAY
+from mabdi.filters.world_mesh import FRAME_CELL_ARRAY, patch_triangles
 
 try:
     from mabdi.filters import refinement_kernels as kernels
@@ -200,14 +200,6 @@ _STATE = ("original", "normal", "prior", "weight", "total", "offset")
 
 def _points(patch: vtkPolyData) -> np.ndarray:
     return vtk_to_numpy(patch.GetPoints().GetData())
-
-
-def _triangles(patch: vtkPolyData) -> np.ndarray | None:
-    polys = patch.GetPolys()
-    offsets = vtk_to_numpy(polys.GetOffsetsArray())
-    if patch.GetNumberOfCells() != polys.GetNumberOfCells() or np.any(np.diff(offsets) != 3):
-        return None
-    return vtk_to_numpy(polys.GetConnectivityArray()).astype(np.int64).reshape(-1, 3)
 
 
 def vertex_normals(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
@@ -298,7 +290,9 @@ class MapRefinement:
         state = self._blocks.get(key)
         if state is not None and state.patch is patch:
             return state
-        triangles = _triangles(patch)
+        triangles = patch_triangles(patch)
+        if triangles is not None:
+            triangles = triangles.astype(np.int64, copy=False)
         n = patch.GetNumberOfPoints()
         source = np.full(n, -1, dtype=np.int64)
         if state is not None and n and len(_points(state.patch)):
