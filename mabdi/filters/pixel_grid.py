@@ -27,11 +27,16 @@ Vectorised: the corner tests are slices of the (H, W) arrays, the vertex ids
 of a square follow from its top-left pixel id p (a = p, b = p + 1, c = p + W,
 d = p + W + 1), and the rays for an image size are computed once and cached.
 The output keeps the input's field data (intrinsics, pose, frame).
+
+Before meshing, the depth image is smoothed by the sensor's noise model
+(``smooth_depth``, on by default: :mod:`mabdi.filters.depth_smoothing`, each
+pixel averaged with the opposite-neighbour pairs on its surface). A noise-free
+sensor's image is meshed as it is.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from vtkmodules.vtkCommonDataModel import vtkImageData, vtkPolyData
@@ -40,19 +45,25 @@ from mabdi.algorithm import MabdiAlgorithm
 from mabdi.camera import Intrinsics
 from mabdi.depth import depth_array, image_intrinsics, image_pose
 from mabdi.errors import ConfigError
+from mabdi.filters.depth_image import SensorNoise
+from mabdi.filters.depth_smoothing import smooth_depth
 from mabdi.polydata import triangles_polydata
 
 
 @dataclass(frozen=True)
 class PixelGridParameters:
     """Parameters of :class:`FilterPixelGrid`: ``max_jump``, the largest depth spread within a
-    triangle as a fraction of its nearest corner's depth (0.01 = 1%; see the module docs)."""
+    triangle as a fraction of its nearest corner's depth (0.01 = 1%; see the module docs);
+    ``smooth_depth``, smooth the image by the sensor's noise model before meshing it."""
 
     max_jump: float = 0.01
+    smooth_depth: bool = True
 
     def __post_init__(self) -> None:
         if not (isinstance(self.max_jump, (int, float)) and self.max_jump > 0):
             raise ConfigError(f"max_jump must be > 0 (a fraction of the depth), got {self.max_jump!r}")
+        if not isinstance(self.smooth_depth, bool):
+            raise ConfigError(f"smooth_depth must be true or false, got {self.smooth_depth!r}")
 
 
 def pixel_grid_triangles(depth: np.ndarray, max_jump: float) -> np.ndarray:
@@ -88,16 +99,19 @@ def pixel_grid_triangles(depth: np.ndarray, max_jump: float) -> np.ndarray:
 class FilterPixelGrid(MabdiAlgorithm):
     """Mesh a depth image's valid pixels as a pixel grid in world coordinates (depth image -> vtkPolyData).
 
-    ``FilterPixelGrid(PixelGridParameters(max_jump=0.01))``; a bare number is taken as ``max_jump``.
+    ``FilterPixelGrid(PixelGridParameters(max_jump=0.01), noise="kinect")``; a bare number is taken as
+    ``max_jump``. ``noise``: the sensor's noise model (a :class:`SensorNoise` or its name), which
+    ``smooth_depth`` follows.
     """
 
-    def __init__(self, parameters: PixelGridParameters | float | None = None) -> None:
+    def __init__(self, parameters: PixelGridParameters | float | None = None, noise: SensorNoise | str = "none") -> None:
         super().__init__(nInputPorts=1, inputType="vtkImageData", nOutputPorts=1, outputType="vtkPolyData")
         if parameters is None:
             parameters = PixelGridParameters()
         elif not isinstance(parameters, PixelGridParameters):
             parameters = PixelGridParameters(max_jump=float(parameters))
         self._parameters = parameters
+        self._noise = SensorNoise.of(noise)
         self._rays: tuple[Intrinsics, np.ndarray] | None = None
 
     @property
@@ -117,7 +131,7 @@ class FilterPixelGrid(MabdiAlgorithm):
 
     @max_jump.setter
     def max_jump(self, value: float) -> None:
-        self.parameters = PixelGridParameters(max_jump=value)
+        self.parameters = replace(self._parameters, max_jump=value)
 
     def _cached_rays(self, intrinsics: Intrinsics) -> np.ndarray:
         if self._rays is None or self._rays[0] != intrinsics:
@@ -129,6 +143,8 @@ class FilterPixelGrid(MabdiAlgorithm):
         intrinsics = image_intrinsics(image)
         pose = image_pose(image)
         depth = depth_array(image)
+        if self._parameters.smooth_depth:
+            depth = smooth_depth(depth, self._noise.sigma(depth, intrinsics.near, intrinsics.far))
         triangles = pixel_grid_triangles(depth, self._parameters.max_jump)
         # Keep only the pixels the triangles use, renumbered in order.
         used = np.zeros(depth.size, dtype=bool)

@@ -1,7 +1,10 @@
 """FilterQuadTree: quad-tree meshing of a depth image (seed 002), closed and without bridges.
 
 Depth image in (D, or the classifier's output: only its valid pixels are
-meshed), mesh in world coordinates out. The stages of seed 002:
+meshed), mesh in world coordinates out. First the image is smoothed by
+the sensor's noise model (``smooth_depth``, on by default; see
+:mod:`mabdi.filters.depth_smoothing`; a noise-free image stays as it is),
+then the stages of seed 002:
 
 1. **Filter and reduce**: the NaN-aware median of each ``reduction`` x
    ``reduction`` block (3 by default, the seed's 3x3 median then reduce by 3;
@@ -76,6 +79,7 @@ from mabdi.camera import Intrinsics
 from mabdi.depth import depth_array, image_intrinsics, image_pose
 from mabdi.errors import ConfigError
 from mabdi.filters.depth_image import SensorNoise
+from mabdi.filters.depth_smoothing import smooth_depth
 
 try:
     from mabdi.filters import quadtree_kernels as kernels
@@ -100,6 +104,8 @@ class QuadTreeParameters:
     reduction: int = 3
     max_jump: float = 0.05
     planarity: float = 0.002
+    #: Smooth the depth image by the sensor's noise model first (:mod:`mabdi.filters.depth_smoothing`).
+    smooth_depth: bool = True
     #: Triangulate every face. Not a config key: in the MABDI loop faces are always triangulated.
     triangles: bool = field(default=False, metadata={"toml": False})
 
@@ -110,6 +116,8 @@ class QuadTreeParameters:
             raise ConfigError(f"reduction must be an integer >= 1, got {self.reduction!r}")
         if self.max_jump <= 0 or self.planarity <= 0:
             raise ConfigError(f"max_jump and planarity must be > 0, got max_jump={self.max_jump}, planarity={self.planarity}")
+        if not isinstance(self.smooth_depth, bool):
+            raise ConfigError(f"smooth_depth must be true or false, got {self.smooth_depth!r}")
 
 
 # ---------------------------------------------------------------------------
@@ -523,12 +531,14 @@ def _gather(members: np.ndarray, starts: np.ndarray, faces: np.ndarray) -> np.nd
 def leaves_of_image(
     depth: np.ndarray, intrinsics: Intrinsics, p: QuadTreeParameters, noise: SensorNoise, compiled: bool = True
 ) -> tuple[np.ndarray, Intrinsics, Leaves]:
-    """Stages 1-5 and the small-leaf plane test: (reduced points, reduced intrinsics, kept leaves).
+    """Smoothing, stages 1-5 and the small-leaf plane test: (reduced points, reduced intrinsics, kept leaves).
 
     ``compiled``: the numba kernels of :mod:`mabdi.filters.quadtree_kernels` (when installed)
     instead of the numpy functions above; both compute the same leaves. The leaves carry
     ``regions``, the pyramid root's region count.
     """
+    if p.smooth_depth:
+        depth = smooth_depth(depth, noise.sigma(depth, intrinsics.near, intrinsics.far))
     fast = compiled and kernels is not None
     if fast and p.reduction > 1:
         k = intrinsics

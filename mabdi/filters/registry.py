@@ -89,7 +89,7 @@ def make_surface_filter(name: str, parameters=None, noise=None):
 register_surface_filter(
     "pixel_grid",
     PixelGridParameters,
-    lambda parameters, noise: FilterPixelGrid(parameters),
+    lambda parameters, noise: FilterPixelGrid(parameters, noise=noise or "none"),
     "two triangles per 2x2 pixels (seed 001)",
 )
 register_surface_filter(

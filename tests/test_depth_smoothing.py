@@ -1,0 +1,84 @@
+"""smooth_depth and the surfaces' ``smooth_depth`` switch: noise falls, planes and steps stay where they are."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from vtkmodules.util.numpy_support import vtk_to_numpy
+
+from mabdi.camera import Intrinsics
+from mabdi.config import load_run_config, set_value
+from mabdi.depth import depth_image
+from mabdi.errors import ConfigError
+from mabdi.filters.depth_image import SensorNoise
+from mabdi.filters.depth_smoothing import smooth_depth
+from mabdi.filters.pixel_grid import FilterPixelGrid, PixelGridParameters
+from mabdi.filters.quadtree import FilterQuadTree, QuadTreeParameters
+
+K = Intrinsics(fx=525.0, fy=525.0, cx=160.0, cy=120.0, width=320, height=240)
+KINECT = SensorNoise("kinect")
+
+
+def tilted_plane(normal=(0.3, -0.4, -1.0), distance=2.0) -> tuple[np.ndarray, np.ndarray]:
+    """z-depth of the plane n . X = -distance (camera frame, n unit) at every pixel, and n."""
+    n = np.asarray(normal, dtype=np.float64)
+    n /= np.linalg.norm(n)
+    rays = K.rays().reshape(K.height, K.width, 3)  # z = 1
+    return (-distance / (rays @ n)).astype(np.float32), n
+
+
+def test_a_plane_keeps_its_depth_and_its_noise_falls_to_a_third():
+    exact, _ = tilted_plane()
+    sigma = KINECT.sigma(exact, K.near, K.far)
+    # noise-free: the inverse-depth mean of symmetric pairs is exact on a plane at any tilt
+    np.testing.assert_allclose(smooth_depth(exact, sigma), exact, rtol=2e-6)
+    rng = np.random.default_rng(4)
+    noisy = exact + sigma * rng.standard_normal(exact.shape).astype(np.float32)
+    error = (smooth_depth(noisy, KINECT.sigma(noisy, K.near, K.far)) - exact)[1:-1, 1:-1] / sigma[1:-1, 1:-1]
+    assert 0.30 < error.std() < 0.37  # nine pixels: 1/3
+    assert abs(error.mean()) < 0.01
+
+
+def test_steps_holes_and_a_noise_free_sensor_are_left_alone():
+    depth = np.full((40, 60), 2.0, np.float32)
+    depth[:, 30:] = 2.1  # a 10 cm step
+    depth[10:14, 5:9] = np.nan
+    sigma = np.full(depth.shape, 0.005)
+    out = smooth_depth(depth, sigma)
+    np.testing.assert_array_equal(out[:, 29], 2.0)  # beside the step: only pairs along it
+    np.testing.assert_array_equal(out[:, 30], np.float32(2.1))
+    assert np.isnan(out[10:14, 5:9]).all() and np.isfinite(out[~np.isnan(depth)]).all()
+    noisy = depth + np.float32(0.01) * np.random.default_rng(1).standard_normal(depth.shape).astype(np.float32)
+    np.testing.assert_array_equal(smooth_depth(noisy, 0.0), noisy)
+    with pytest.raises(ValueError, match=r"\(H, W\) depth image, got shape \(5,\)"):
+        smooth_depth(np.ones(5), 0.01)
+
+
+def plane_distances(surface, depth, normal, distance=2.0) -> np.ndarray:
+    surface.SetInputDataObject(depth_image(depth, K, np.eye(4)))
+    surface.Update()
+    points = vtk_to_numpy(surface.GetOutput().GetPoints().GetData()).astype(np.float64)
+    return np.abs(points @ normal + distance)
+
+
+@pytest.mark.parametrize("make", [FilterPixelGrid, FilterQuadTree])
+def test_the_surfaces_mesh_the_smoothed_image_of_a_noisy_plane(make):
+    exact, normal = tilted_plane()
+    sigma = KINECT.sigma(exact, K.near, K.far)
+    noisy = exact + sigma * np.random.default_rng(7).standard_normal(exact.shape).astype(np.float32)
+    raw_parameters = PixelGridParameters(max_jump=0.05, smooth_depth=False) if make is FilterPixelGrid else QuadTreeParameters(smooth_depth=False)
+    smooth_parameters = PixelGridParameters(max_jump=0.05) if make is FilterPixelGrid else QuadTreeParameters()
+    raw = np.median(plane_distances(make(raw_parameters, noise=KINECT), noisy, normal))
+    smoothed = np.median(plane_distances(make(smooth_parameters, noise=KINECT), noisy, normal))
+    assert smoothed < 0.75 * raw
+    if make is FilterPixelGrid:  # one pixel each: median |N(0, s)| = 0.674 s, and s = sigma / 3 smoothed
+        assert smoothed < 0.3 * 0.674 * np.median(sigma) * 1.5
+
+
+def test_smooth_depth_is_a_surface_config_key_and_is_checked(tmp_path):
+    config = load_run_config("scenes/table.toml")
+    assert config.surface.parameters_of("pixel_grid").smooth_depth is True
+    set_value(config, "surface.quadtree.smooth_depth", False)
+    assert config.surface.parameters_of("quadtree").smooth_depth is False
+    with pytest.raises(ConfigError, match="smooth_depth must be true or false, got 'yes'"):
+        PixelGridParameters(smooth_depth="yes")
