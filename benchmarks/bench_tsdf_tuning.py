@@ -9,8 +9,9 @@ weight threshold 1, depth range 5 m, half-pixel centres), then runs
 truth (100,000 samples each side, as ``mabdi bench``) and prints markdown:
 F@1cm/2cm, P/R@1cm, triangles, the settings found, and the tuning's time.
 Every point tried is listed too. JSON goes to ``benchmarks/results/tsdf_tuning.json``.
-``--smooth-depth`` feeds the TSDF the depth smoothed as MABDI's surfaces smooth
-theirs (:mod:`mabdi.filters.depth_smoothing`), so the peer gets the same input.
+With a noisy sensor the tuner also tries the depth smoothed by the noise
+model, as MABDI's pixel grid and quad-tree smooth theirs
+(:mod:`mabdi.filters.depth_smoothing`).
 
     python benchmarks/bench_tsdf_tuning.py                  # both scenes, 1 and 2 cm, coordinate search
     python benchmarks/bench_tsdf_tuning.py --scene table --voxel 0.01 --search full
@@ -55,7 +56,6 @@ from mabdi.depth import DepthFrame, depth_array  # noqa: E402
 from mabdi.evaluate.metrics import evaluate_map, observed_ground_truth, scenes_per_pose  # noqa: E402
 from mabdi.evaluate.tsdf import TsdfSettings, alignment_error, run_tsdf, tune_tsdf, tuning_markdown  # noqa: E402
 from mabdi.filters.depth_image import SensorNoise  # noqa: E402
-from mabdi.filters.depth_smoothing import smooth_depth  # noqa: E402
 from mabdi.simulate.path import path_from_config  # noqa: E402
 from mabdi.sources.frames import FrameList, FrameSource  # noqa: E402
 
@@ -118,22 +118,13 @@ def noise_free_first_frame(config) -> DepthFrame:
     return DepthFrame(depth_array(sensor.GetOutput()), sensor.intrinsics, pose, 0)
 
 
-def smoothed(frame: DepthFrame, noise: SensorNoise) -> DepthFrame:
-    """``frame`` with its depth smoothed as MABDI's surfaces smooth theirs (:mod:`mabdi.filters.depth_smoothing`)."""
-    k = frame.intrinsics
-    depth = smooth_depth(frame.depth, noise.sigma(frame.depth, k.near, k.far))
-    return DepthFrame(depth, k, frame.world_from_camera, frame.frame, frame.timestamp)
-
-
-def case(name: str, voxels, search: str, progress, smooth: bool = False) -> list[dict]:
+def case(name: str, voxels, search: str, progress) -> list[dict]:
     path, noise = CASES[name]
     config = load_run_config(REPO / path)
     source = SceneFrames(config, noise)
+    sensor_noise = SensorNoise.from_config(config.sensor)  # the tuner tries smoothing the depth by it
     t0 = time.perf_counter()
-    read = list(source)
-    if smooth:
-        read = [smoothed(frame, SensorNoise.from_config(config.sensor)) for frame in read]
-    frames = FrameList(read, source.description + (", depth smoothed" if smooth else ""))
+    frames = FrameList(list(source), source.description)
     render_s = time.perf_counter() - t0
     count = len(frames)
     ground_truth = source.scene.mesh_at(count - 1)
@@ -162,15 +153,14 @@ def case(name: str, voxels, search: str, progress, smooth: bool = False) -> list
     for voxel in voxels:
         plain = TsdfSettings(voxel_size=voxel)
         t0 = time.perf_counter()
-        run = run_tsdf(frames, plain, mesh_every=None)
+        run = run_tsdf(frames, plain, mesh_every=None, noise=sensor_noise)
         plain_s = time.perf_counter() - t0
         plain_score = score(run.mesh)
-        tuning = tune_tsdf(frames, voxel, score, search=search, progress=progress)
+        tuning = tune_tsdf(frames, voxel, score, search=search, progress=progress, noise=sensor_noise)
         rows.append(
             {
                 "scene": name,
                 "noise": config.sensor.noise,
-                "smooth_depth": smooth,
                 "frames": count,
                 "voxel_size": voxel,
                 "search": search,
@@ -194,9 +184,9 @@ def case(name: str, voxels, search: str, progress, smooth: bool = False) -> list
 
 def summary_markdown(rows: list[dict]) -> str:
     lines = [
-        "| scene (noise) | voxel | settings | pixel centre | trunc | weight > | depth max | F@1cm | F@2cm | P@1cm | R@1cm "
-        "| triangles | tuning s (points / volumes) |",
-        "|---|---:|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+        "| scene (noise) | voxel | settings | pixel centre | trunc | weight > | depth max | smoothed | F@1cm | F@2cm "
+        "| P@1cm | R@1cm | triangles | tuning s (points / volumes) |",
+        "|---|---:|---|---|---:|---:|---:|---|---:|---:|---:|---:|---:|---:|",
     ]
     for row in rows:
         for label in ("plain", "best"):
@@ -206,7 +196,8 @@ def summary_markdown(rows: list[dict]) -> str:
             )
             lines.append(
                 f"| {row['scene']} ({row['noise']}) | {row['voxel_size'] * 100:g} cm | {label} | {s['pixel_centre']} "
-                f"| {s['trunc_voxels']:g} | {s['weight_threshold']:g} | {s['depth_max']:g} | {m['fscore_1cm']:.4f} "
+                f"| {s['trunc_voxels']:g} | {s['weight_threshold']:g} | {s['depth_max']:g} "
+                f"| {'yes' if s.get('smooth_depth') else 'no'} | {m['fscore_1cm']:.4f} "
                 f"| {m['fscore_2cm']:.4f} | {m['precision_1cm']:.4f} | {m['recall_1cm']:.4f} | {m['triangles']:,} | {time_cell} |"
             )
     return "\n".join(lines)
@@ -219,9 +210,6 @@ def main() -> None:
     )
     parser.add_argument("--voxel", type=float, action="append", help="metres, repeatable; default: 0.01 and 0.02")
     parser.add_argument("--search", choices=("coordinate", "full"), default="coordinate")
-    parser.add_argument(
-        "--smooth-depth", action="store_true", help="feed the TSDF the depth smoothed as MABDI's surfaces smooth it"
-    )
     parser.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "tsdf_tuning.json")
     args = parser.parse_args()
     scenes = args.scene or ["table", "bunnies"]
@@ -229,7 +217,7 @@ def main() -> None:
     rows = []
     start = time.perf_counter()
     for name in scenes:
-        rows.extend(case(name, voxels, args.search, lambda message: print(message, flush=True), args.smooth_depth))
+        rows.extend(case(name, voxels, args.search, lambda message: print(message, flush=True)))
     print()
     print(summary_markdown(rows))
     for row in rows:

@@ -85,6 +85,8 @@ def test_default_grid_covers_the_axes():
     assert grid["weight_threshold"] == (0.5, 1.0, 2.0, 3.0)
     assert set(grid["pixel_centre"]) == {"half", "integer"}
     assert grid["depth_max"] == (3.0, 4.0)
+    assert grid["smooth_depth"] == (False,)  # no noise model: nothing to smooth
+    assert default_grid(Intrinsics(), "kinect")["smooth_depth"] == (False, True)
 
 
 def signed_offsets(mesh) -> np.ndarray:
@@ -154,7 +156,7 @@ def test_tuning_returns_the_best_grid_point_of_the_score(monkeypatch):
         return original(self, weight_threshold)
 
     monkeypatch.setattr(tsdf.TsdfMapper, "extract", extract)
-    target = {"pixel_centre": "integer", "trunc_voxels": 3.0, "weight_threshold": 2.0, "depth_max": 2.5}
+    target = {"pixel_centre": "integer", "trunc_voxels": 3.0, "weight_threshold": 2.0, "depth_max": 2.5, "smooth_depth": False}
 
     def fake_score(mesh):
         misses = sum(extracted[-1][name] != target[name] for name in tsdf.TUNED_AXES)
@@ -197,3 +199,24 @@ def test_tuning_breaks_ties_with_fewer_triangles_and_checks_the_score():
         tune_tsdf(frames, 0.02, lambda mesh: {"fscore_1cm": 1.0}, grid=grid, start=CHEAP)
     with pytest.raises(ConfigError, match="trunc_voxels"):
         tune_tsdf(frames, 0.02, flat, grid={"trunc_voxels": (1.0,)})
+
+
+def test_smoothed_depth_brings_the_surface_of_a_noisy_plane_nearer():
+    """``smooth_depth`` integrates the depth smoothed by the noise model (as the pixel grid and quad-tree mesh
+    it): with one noisy frame the TSDF surface lies nearer the plane; without a noise model nothing changes."""
+    pytest.importorskip("open3d")
+    from mabdi.evaluate.tsdf import run_tsdf
+    from mabdi.filters.depth_image import SensorNoise
+
+    exact = plane_frames(offsets=(0.0,), intrinsics=Intrinsics()).read(0)
+    sigma = SensorNoise("kinect").sigma(exact.depth, exact.intrinsics.near, exact.intrinsics.far)
+    noisy_depth = exact.depth + sigma * np.random.default_rng(2).standard_normal(exact.depth.shape).astype(np.float32)
+    frames = FrameList([DepthFrame(noisy_depth, exact.intrinsics, exact.world_from_camera, 0)], "noisy plane")
+    settings = CHEAP.replace(weight_threshold=0.5)
+    raw = np.median(np.abs(signed_offsets(run_tsdf(frames, settings, mesh_every=None, noise="kinect").mesh)))
+    smoothed_run = run_tsdf(frames, settings.replace(smooth_depth=True), mesh_every=None, noise="kinect")
+    assert np.median(np.abs(signed_offsets(smoothed_run.mesh))) < 0.6 * raw
+    unsmoothed = run_tsdf(frames, settings.replace(smooth_depth=True), mesh_every=None)  # no noise model
+    assert unsmoothed.mesh.GetNumberOfCells() == run_tsdf(frames, settings, mesh_every=None).mesh.GetNumberOfCells()
+    with pytest.raises(ConfigError, match="smooth_depth must be true or false"):
+        TsdfSettings(smooth_depth="yes")

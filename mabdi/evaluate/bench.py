@@ -12,7 +12,8 @@ and every method reads them from there:
   The peer runs at its best: with ``tune=True`` (the default of ``mabdi
   bench``) its settings are tuned per scene by
   :func:`~mabdi.evaluate.tsdf.tune_tsdf` (truncation 2-6 voxels, weight
-  threshold 0.5-3, depth range, pixel convention; a coordinate search scored
+  threshold 0.5-3, depth range, pixel convention, and depth smoothing by the
+  sensor's noise model as the pixel grid and quad-tree do it; a coordinate search scored
   on :data:`TUNING_SAMPLES` ground-truth samples), then the best settings are
   run again and scored like every other method; the row records them.
 
@@ -37,6 +38,7 @@ import numpy as np
 import vtkmodules
 
 from mabdi.config import RunConfig, set_value
+from mabdi.filters.depth_image import SensorNoise
 from mabdi.evaluate.dynamic import GhostTracker, departures, run_with_ghosts
 from mabdi.evaluate.metrics import SAMPLES, evaluate_map, evaluate_run, observed_ground_truth, scenes_per_pose
 from mabdi.evaluate.tsdf import TsdfSettings, alignment_error, open3d_status, run_tsdf, tune_tsdf
@@ -157,6 +159,7 @@ def run_bench(
     ground_truth = rig.scene.mesh_at(len(frames) - 1)
     #: a scene an object leaves: ghost share, frames to clear and static loss for every method
     dynamic = bool(departures(rig.scene, len(frames)))
+    noise = SensorNoise.from_config(config.sensor)  # the TSDF may smooth its depth by it, as our surfaces do
     rows, notes = [], []
     for method in methods:
         if method in ("mabdi", "black_box"):
@@ -190,11 +193,11 @@ def run_bench(
             def score(mesh, tuning_observed=tuning_observed):
                 return evaluate_map(mesh, ground_truth, tuning_observed, samples=min(samples, TUNING_SAMPLES)).as_dict()
 
-            tuning = tune_tsdf(frames, voxel, score)
+            tuning = tune_tsdf(frames, voxel, score, noise=noise)
             settings = tuning.best
             progress(f"{method}: best of {len(tuning.table)} settings: {settings.as_dict()}")
         progress(f"{method}: integrating {len(frames)} frames")
-        run = run_tsdf(frames, settings, turns=config.path.turns)
+        run = run_tsdf(frames, settings, turns=config.path.turns, noise=noise)
         metrics = evaluate_map(run.mesh, ground_truth, observed, samples=samples)
         metrics.growth_per_circle = run.growth_per_circle(len(frames), config.path.turns)
         tsdf_dynamic = None

@@ -13,6 +13,14 @@ table with ``kinect`` noise that costs recall, R@1cm 0.86 at 1); the depth range
 (``depth_max``; returns are < the sensor's far plane by definition, so any
 ``depth_max`` >= far is the same as far); and the pixel convention.
 
+**Depth smoothing** (``smooth_depth``): integrate each depth image smoothed
+by the sensor's noise model, as MABDI's pixel grid and quad-tree mesh it
+(:mod:`mabdi.filters.depth_smoothing`; the mapper, :func:`run_tsdf` and
+:func:`tune_tsdf` take the sensor's ``noise``; without one, or with the
+``none`` model, it changes nothing). The tuner tries it whenever a noise
+model is given. It lifts the tuned TSDF at 1 cm from F@1cm 0.982 to 0.991
+on the table with ``kinect`` noise, and from 0.987 to 0.990 on Run 2.
+
 **Pixel convention** (``pixel_centre``), which cx, cy Open3D is given:
 ``"half"`` hands it mabdi's own cx, cy (pixel (u, v) centred on (u + 0.5,
 v + 0.5)); ``"integer"`` hands it cx - 0.5, cy - 0.5, right for a library
@@ -31,7 +39,7 @@ at each circle's end to give the triangles-per-frame curve and the cost of
 keeping a mesh up to date.
 
 **Tuning**: :func:`tune_tsdf` searches truncation, weight threshold, depth
-range and pixel convention at one voxel size against a score the caller
+range, pixel convention and depth smoothing at one voxel size against a score the caller
 gives (F@1cm against the ground truth, in the benchmarks), by coordinate
 search (default) or the full grid; see its docs for what is searched.
 """
@@ -50,6 +58,8 @@ from vtkmodules.vtkCommonDataModel import vtkPolyData
 from mabdi.camera import Intrinsics
 from mabdi.depth import DepthFrame
 from mabdi.errors import ConfigError
+from mabdi.filters.depth_image import SensorNoise
+from mabdi.filters.depth_smoothing import smooth_depth
 from mabdi.polydata import triangles_polydata
 from mabdi.simulate.path import circle_index
 from mabdi.sources.frames import FrameList, FrameSource
@@ -87,6 +97,7 @@ class TsdfSettings:
       (0.5: every voxel a frame reached; 1, the plain setting: seen by two frames or more).
     * ``depth_max``: metres; depths beyond it are not fused (>= the sensor's far plane = all returns).
     * ``pixel_centre``: ``"half"`` (Open3D gets cx, cy) or ``"integer"`` (cx - 0.5, cy - 0.5).
+    * ``smooth_depth``: integrate the depth smoothed by the sensor's noise model (see the module docs).
     * ``block_resolution``: voxels per block edge (Open3D's default 16); ``block_count``: the hash map's
       initial capacity in blocks. Open3D grows it as needed; what it allocates up front is zeroed at
       once (40,000 blocks = 1.3 GB, 8-16 s on the 2-core machine), so the default 4,000 (131 MB) is
@@ -98,6 +109,7 @@ class TsdfSettings:
     weight_threshold: float = 1.0
     depth_max: float = 5.0
     pixel_centre: str = "half"
+    smooth_depth: bool = False
     block_resolution: int = 16
     block_count: int = 4000
 
@@ -126,6 +138,9 @@ class TsdfSettings:
             raise ConfigError(
                 f"tsdf: pixel_centre must be one of {', '.join(PIXEL_CENTRES)}, got {self.pixel_centre!r}"
             )
+        if not isinstance(self.smooth_depth, (bool, np.bool_)):
+            raise ConfigError(f"tsdf: smooth_depth must be true or false, got {self.smooth_depth!r}")
+        object.__setattr__(self, "smooth_depth", bool(self.smooth_depth))
         for name in ("block_resolution", "block_count"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value <= 0:
@@ -145,7 +160,7 @@ class TsdfSettings:
 
     def integration_key(self) -> tuple:
         """What the volume depends on (everything but the extraction's weight threshold)."""
-        return (self.voxel_size, self.trunc_voxels, self.depth_max, self.pixel_centre, self.block_resolution)
+        return (self.voxel_size, self.trunc_voxels, self.depth_max, self.pixel_centre, self.smooth_depth, self.block_resolution)
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -159,10 +174,18 @@ class TsdfMapper:
     """A VoxelBlockGrid TSDF volume built with ``settings``, integrating metric depth images.
 
     ``TsdfMapper(voxel_size, intrinsics)`` (the old form) still works: the
-    other settings are :class:`TsdfSettings`' defaults.
+    other settings are :class:`TsdfSettings`' defaults. ``noise``: the sensor's
+    noise model (a :class:`~mabdi.filters.depth_image.SensorNoise` or its name),
+    which ``settings.smooth_depth`` follows.
     """
 
-    def __init__(self, settings: TsdfSettings | float, intrinsics: Intrinsics, block_count: int | None = None):
+    def __init__(
+        self,
+        settings: TsdfSettings | float,
+        intrinsics: Intrinsics,
+        block_count: int | None = None,
+        noise: SensorNoise | str | None = None,
+    ):
         import open3d as o3d
         import open3d.core as o3c
 
@@ -172,6 +195,7 @@ class TsdfMapper:
             settings = settings.replace(block_count=block_count)
         self._o3d, self._o3c = o3d, o3c
         self.settings = settings
+        self.noise = SensorNoise.of(noise or "none")
         self.voxel_size = settings.voxel_size
         self.intrinsics = intrinsics
         self.device = o3c.Device("CPU:0")
@@ -190,6 +214,9 @@ class TsdfMapper:
         """Fuse a (H, W) metric depth image (NaN = no return) taken from ``world_from_camera``."""
         o3d, o3c = self._o3d, self._o3c
         s = self.settings
+        if s.smooth_depth:
+            k = self.intrinsics
+            depth = smooth_depth(depth, self.noise.sigma(np.asarray(depth, dtype=np.float32), k.near, k.far))
         image = o3d.t.geometry.Image(o3c.Tensor(np.nan_to_num(np.asarray(depth, dtype=np.float32), nan=0.0)))
         extrinsic = o3c.Tensor(np.linalg.inv(world_from_camera), dtype=o3c.float64)
         blocks = self.grid.compute_unique_block_coordinates(
@@ -281,6 +308,7 @@ def run_tsdf(
     mesh_every: int | None = 5,
     turns: float | None = None,
     weight_thresholds: Iterable[float] | None = None,
+    noise: SensorNoise | str | None = None,
 ) -> TsdfRun:
     """Integrate every frame of ``frames`` into a TSDF built with ``settings`` and mesh it.
 
@@ -290,6 +318,7 @@ def run_tsdf(
     circles), at the last frame of each circle, for :meth:`TsdfRun.growth_per_circle`.
     The final mesh is extracted at ``settings.weight_threshold`` and at each
     of ``weight_thresholds`` (one integration, several meshes: ``run.meshes``).
+    ``noise``: the sensor's noise model, for ``settings.smooth_depth``.
     """
     settings = _settings_of(settings)
     thresholds = [
@@ -298,7 +327,7 @@ def run_tsdf(
     count = len(frames)
     if count == 0:
         raise ValueError(f"{frames.description}: no frames to integrate")
-    mapper = TsdfMapper(settings, frames.intrinsics)
+    mapper = TsdfMapper(settings, frames.intrinsics, noise=noise)
     extract_at: set[int] = set()
     if mesh_every:
         extract_at |= {i for i in range(count) if (i + 1) % mesh_every == 0}
@@ -338,18 +367,21 @@ def run_tsdf(
 # Tuning
 
 #: The axes :func:`tune_tsdf` searches, in the order the coordinate search visits them.
-TUNED_AXES = ("pixel_centre", "trunc_voxels", "weight_threshold", "depth_max")
+TUNED_AXES = ("pixel_centre", "trunc_voxels", "weight_threshold", "depth_max", "smooth_depth")
 
 
-def default_grid(intrinsics: Intrinsics) -> dict[str, tuple]:
+def default_grid(intrinsics: Intrinsics, noise: SensorNoise | str | None = None) -> dict[str, tuple]:
     """The search grid for ``intrinsics``: truncation 2-6 voxels, weight threshold 0.5-3, both pixel
-    conventions, and depth range 0.75 far (drops the noisiest far returns) or far (every return;
-    anything beyond far, 5 m say, fuses the same)."""
+    conventions, depth range 0.75 far (drops the noisiest far returns) or far (every return;
+    anything beyond far, 5 m say, fuses the same), and depth smoothing off and on when ``noise``
+    names a noise model (off only without one: there is nothing to smooth)."""
+    noisy = SensorNoise.of(noise or "none").model != "none"
     return {
         "pixel_centre": PIXEL_CENTRES,
         "trunc_voxels": (2.0, 3.0, 4.0, 5.0, 6.0),
         "weight_threshold": (0.5, 1.0, 2.0, 3.0),
         "depth_max": (round(0.75 * intrinsics.far, 3), float(intrinsics.far)),
+        "smooth_depth": (False, True) if noisy else (False,),
     }
 
 
@@ -390,15 +422,16 @@ def tune_tsdf(
     start: TsdfSettings | None = None,
     max_rounds: int = 3,
     progress: Callable[[str], None] | None = None,
+    noise: SensorNoise | str | None = None,
 ) -> TsdfTuning:
     """The TSDF settings at ``voxel_size`` that score best on ``frames``.
 
     ``score(mesh)`` returns a dict with at least ``fscore_1cm``,
     ``precision_1cm``, ``recall_1cm`` and ``triangles``; the best point has the
     highest ``fscore_1cm`` (ties: fewer triangles). ``grid`` maps the axes
-    ``pixel_centre``, ``trunc_voxels``, ``weight_threshold``, ``depth_max`` to
-    the values to try (a missing axis: :func:`default_grid`'s values; one
-    value fixes it).
+    ``pixel_centre``, ``trunc_voxels``, ``weight_threshold``, ``depth_max``,
+    ``smooth_depth`` to the values to try (a missing axis: :func:`default_grid`'s
+    values for ``noise``, the sensor's noise model; one value fixes it).
 
     The frames are read once and kept in memory. The weight threshold is an
     extraction parameter, so one volume serves every threshold. Searches:
@@ -407,10 +440,12 @@ def tune_tsdf(
       settings, truncation 4, threshold 1, every return, half-pixel centres,
       moved into the grid), try every value of one axis with the others
       held, keep the best, go on to the next axis (pixel convention,
-      truncation, threshold, depth range); repeat the sweep until a whole
-      sweep changes nothing (at most ``max_rounds``). With the default grid
-      that is 11 points and 7 volumes in the first sweep.
-    * ``"full"``: every point of the grid (with the default grid 80 points, 20 volumes).
+      truncation, threshold, depth range, smoothing); repeat the sweep until a
+      whole sweep changes nothing (at most ``max_rounds``). With the default
+      grid and no noise that is 11 points and 7 volumes in the first sweep
+      (one more of each with a noise model).
+    * ``"full"``: every point of the grid (with the default grid 80 points, 20 volumes; twice
+      that with a noise model).
     """
     if search not in ("coordinate", "full"):
         raise ValueError(f"tune_tsdf: search must be 'coordinate' or 'full', got {search!r}")
@@ -422,7 +457,7 @@ def tune_tsdf(
         else FrameList([frames.read(i) for i in range(len(frames))], frames.description)
     )
     intrinsics = cached.intrinsics
-    axes = default_grid(intrinsics)
+    axes = default_grid(intrinsics, noise)
     for name, values in (grid or {}).items():
         if name not in axes:
             raise ValueError(f"tune_tsdf: unknown axis {name!r} (known: {', '.join(TUNED_AXES)})")
@@ -456,7 +491,7 @@ def tune_tsdf(
             volumes.move_to_end(key)
             return volumes[key]
         t0 = time.perf_counter()
-        mapper = TsdfMapper(settings, intrinsics)
+        mapper = TsdfMapper(settings, intrinsics, noise=noise)
         for frame in cached:
             mapper.integrate(frame.depth, frame.world_from_camera)
         tuning.integrate_s += time.perf_counter() - t0
@@ -489,7 +524,7 @@ def tune_tsdf(
         results[settings] = (values, None)
         say(
             f"tsdf {settings.voxel_size * 100:g} cm: trunc {settings.trunc_voxels:g}, weight > {settings.weight_threshold:g}, "
-            f"depth_max {settings.depth_max:g}, {settings.pixel_centre}: F@1cm {values['fscore_1cm']:.4f}, "
+            f"depth_max {settings.depth_max:g}, {settings.pixel_centre}{', smoothed' if settings.smooth_depth else ''}: F@1cm {values['fscore_1cm']:.4f}, "
             f"{int(values['triangles']):,} triangles"
         )
         return values
@@ -497,9 +532,16 @@ def tune_tsdf(
     if search == "full":
         import itertools
 
-        for pixel, trunc, depth in itertools.product(axes["pixel_centre"], axes["trunc_voxels"], axes["depth_max"]):
+        volumes_grid = itertools.product(
+            axes["pixel_centre"], axes["trunc_voxels"], axes["depth_max"], axes["smooth_depth"]
+        )
+        for pixel, trunc, depth, smooth in volumes_grid:
             for weight in axes["weight_threshold"]:  # one volume, every threshold
-                evaluate(base.replace(pixel_centre=pixel, trunc_voxels=trunc, depth_max=depth, weight_threshold=weight))
+                evaluate(
+                    base.replace(
+                        pixel_centre=pixel, trunc_voxels=trunc, depth_max=depth, smooth_depth=smooth, weight_threshold=weight
+                    )
+                )
     else:
         current = base
         evaluate(current)
@@ -526,14 +568,15 @@ def tune_tsdf(
 def tuning_markdown(tuning: TsdfTuning) -> str:
     """The table of points tried, best first, as markdown."""
     lines = [
-        "| pixel centre | trunc (voxels) | weight > | depth max (m) | F@1cm | P@1cm | R@1cm | F@2cm | triangles |",
-        "|---|---:|---:|---:|---:|---:|---:|---:|---:|",
+        "| pixel centre | trunc (voxels) | weight > | depth max (m) | smoothed | F@1cm | P@1cm | R@1cm | F@2cm | triangles |",
+        "|---|---:|---:|---:|---|---:|---:|---:|---:|---:|",
     ]
     for row in sorted(tuning.table, key=_rank):
         f2 = f"{row['fscore_2cm']:.4f}" if "fscore_2cm" in row else "-"
         mark = " **best**" if row.get("best") else ""
         lines.append(
             f"| {row['pixel_centre']}{mark} | {row['trunc_voxels']:g} | {row['weight_threshold']:g} | {row['depth_max']:g} "
+            f"| {'yes' if row.get('smooth_depth') else 'no'} "
             f"| {row['fscore_1cm']:.4f} | {row['precision_1cm']:.4f} | {row['recall_1cm']:.4f} | {f2} | {int(row['triangles']):,} |"
         )
     return "\n".join(lines)
