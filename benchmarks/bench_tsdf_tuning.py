@@ -32,6 +32,11 @@ machine (results/tsdf_tuning_runs1_3.json): plain 0.939 / 913k and 0.912 /
 1.03M; tuned (half, weight > 0.5, 4 m; trunc 4 and 5) 0.996 / 0.9996 / 1.04M
 and 0.972 / 0.986 / 1.23M, in 121 s and 444 s.
 
+With the smoothing axis (2026-11-23, same machine, ``--scene table --scene
+bunnies --voxel 0.01``, results/tsdf_tuning_smoothing.json): the tuner takes
+smoothing on both, half-pixel, trunc 4, weight > 0.5, 4 m: table 0.9913 /
+0.9973 / 870k (149 s), bunnies 0.9902 / 0.9955 / 1.10M (609 s).
+
 Scoring is most of the time (249 of 370 s on the table, 560 of 675 s on the
 bunnies). Half-pixel centres win everywhere; the alignment check reads
 0.3-0.5 mm for them, 1.9-2.5 mm with cx - 0.5. The weight threshold matters
