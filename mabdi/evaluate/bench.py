@@ -38,10 +38,10 @@ import numpy as np
 import vtkmodules
 
 from mabdi.config import RunConfig, set_value
-from mabdi.filters.depth_image import SensorNoise
 from mabdi.evaluate.dynamic import GhostTracker, departures, run_with_ghosts
 from mabdi.evaluate.metrics import SAMPLES, evaluate_map, evaluate_run, observed_ground_truth, scenes_per_pose
 from mabdi.evaluate.tsdf import TsdfSettings, alignment_error, open3d_status, run_tsdf, tune_tsdf
+from mabdi.filters.depth_image import SensorNoise
 from mabdi.io.atomic import write_text
 from mabdi.io.plots import write_elements_plot
 from mabdi.simulate.rig import SimulatedRig

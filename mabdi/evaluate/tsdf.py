@@ -59,7 +59,7 @@ from mabdi.camera import Intrinsics
 from mabdi.depth import DepthFrame
 from mabdi.errors import ConfigError
 from mabdi.filters.depth_image import SensorNoise
-from mabdi.filters.depth_smoothing import smooth_depth
+from mabdi.filters.depth_smoothing import smooth_depth_by_noise
 from mabdi.polydata import triangles_polydata
 from mabdi.simulate.path import circle_index
 from mabdi.sources.frames import FrameList, FrameSource
@@ -215,8 +215,7 @@ class TsdfMapper:
         o3d, o3c = self._o3d, self._o3c
         s = self.settings
         if s.smooth_depth:
-            k = self.intrinsics
-            depth = smooth_depth(depth, self.noise.sigma(np.asarray(depth, dtype=np.float32), k.near, k.far))
+            depth = smooth_depth_by_noise(depth, self.noise, self.intrinsics)
         image = o3d.t.geometry.Image(o3c.Tensor(np.nan_to_num(np.asarray(depth, dtype=np.float32), nan=0.0)))
         extrinsic = o3c.Tensor(np.linalg.inv(world_from_camera), dtype=o3c.float64)
         blocks = self.grid.compute_unique_block_coordinates(

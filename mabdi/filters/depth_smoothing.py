@@ -40,7 +40,13 @@ surface's config section meshes the raw image.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
+
+if TYPE_CHECKING:
+    from mabdi.camera import Intrinsics
+    from mabdi.filters.depth_image import SensorNoise
 
 #: Gate of a neighbour pair, in standard deviations of one pixel's noise (times sqrt 2 for a difference).
 SMOOTHING_GATE_K = 3.0
@@ -72,3 +78,11 @@ def smooth_depth(depth: np.ndarray, sigma: np.ndarray, gate_k: float = SMOOTHING
             inverse_sum[pair] += 1.0 / ahead[pair] + 1.0 / behind[pair]
             count[pair] += 2.0
         return (count / inverse_sum).astype(np.float32)
+
+
+def smooth_depth_by_noise(depth: np.ndarray, noise: SensorNoise, intrinsics: Intrinsics) -> np.ndarray:
+    """``depth`` smoothed with each pixel's sigma from the sensor's ``noise`` model at its own depth (the
+    intrinsics' near and far planes); a noise-free model returns ``depth`` itself, with no pass over it."""
+    if noise.model == "none":
+        return depth
+    return smooth_depth(depth, noise.sigma(np.asarray(depth, dtype=np.float32), intrinsics.near, intrinsics.far))

@@ -46,7 +46,7 @@ from mabdi.camera import Intrinsics
 from mabdi.depth import depth_array, image_intrinsics, image_pose
 from mabdi.errors import ConfigError
 from mabdi.filters.depth_image import SensorNoise
-from mabdi.filters.depth_smoothing import smooth_depth
+from mabdi.filters.depth_smoothing import smooth_depth_by_noise
 from mabdi.polydata import triangles_polydata
 
 
@@ -144,7 +144,7 @@ class FilterPixelGrid(MabdiAlgorithm):
         pose = image_pose(image)
         depth = depth_array(image)
         if self._parameters.smooth_depth:
-            depth = smooth_depth(depth, self._noise.sigma(depth, intrinsics.near, intrinsics.far))
+            depth = smooth_depth_by_noise(depth, self._noise, intrinsics)
         triangles = pixel_grid_triangles(depth, self._parameters.max_jump)
         # Keep only the pixels the triangles use, renumbered in order.
         used = np.zeros(depth.size, dtype=bool)

@@ -86,7 +86,7 @@ from mabdi.camera import Intrinsics
 from mabdi.depth import depth_array, image_intrinsics, image_pose
 from mabdi.errors import ConfigError
 from mabdi.filters.depth_image import SensorNoise
-from mabdi.filters.depth_smoothing import smooth_depth
+from mabdi.filters.depth_smoothing import smooth_depth_by_noise
 
 try:
     from mabdi.filters import quadtree_kernels as kernels
@@ -545,7 +545,7 @@ def leaves_of_image(
     ``regions``, the pyramid root's region count.
     """
     if p.smooth_depth:
-        depth = smooth_depth(depth, noise.sigma(depth, intrinsics.near, intrinsics.far))
+        depth = smooth_depth_by_noise(depth, noise, intrinsics)
     fast = compiled and kernels is not None
     if fast and p.reduction > 1:
         k = intrinsics
