@@ -1,10 +1,11 @@
 """The ``mabdi`` command line.
 
     mabdi run CONFIG [--frames N] [--out DIR] [--noise MODEL] [--seed N] [--surface NAME] [--set KEY=VALUE]
-                     [--no-classifier] [--no-removal] [--refinement] [--depth-images] [--h5] [--movie]
+                     [--no-classifier] [--no-removal] [--no-registration] [--refinement] [--depth-images] [--h5] [--movie]
                      [--rerun [FILE.rrd]] [--backend B] [--overwrite] [--quiet] [--no-eval]
     mabdi run --sequence PATH [CONFIG] [--camera fr1|fr2|fr3] [--depth-topic T] [--info-topic T] [--pose-topic T]
-    mabdi run --resume OUT       finish an interrupted run from its last checkpoint
+    mabdi run --resume OUT [--quiet] [--no-eval]   finish an interrupted run from its last checkpoint (its inputs
+                                                   must be unchanged; the run's own options are kept)
     mabdi record CONFIG --format tum|rosbag2 --out PATH [--storage sqlite3|mcap] [--encoding 32FC1|16UC1]
     mabdi export IN OUT [--layout mesh_tools|lvr2]   convert a map between VTP, PLY, OBJ, STL and HDF5
     mabdi info MAP               counts, bounds, layers, labels and cluster sets of a map
@@ -58,6 +59,10 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument(
         "--no-removal", action="store_true",
         help="keep every face: no object removal by free-space contradiction (classifier.removal = false)",
+    )
+    run.add_argument(
+        "--no-registration", action="store_true",
+        help="use the poses as given: no frame-to-map registration (registration.enabled = false)",
     )
     run.add_argument(
         "--refinement", action="store_true",
@@ -194,6 +199,7 @@ def _apply_overrides(config, args) -> None:
         "classifier.enabled": False if getattr(args, "no_classifier", False) else None,
         "classifier.removal": False if getattr(args, "no_removal", False) else None,
         "classifier.refinement": True if getattr(args, "refinement", False) else None,
+        "registration.enabled": False if getattr(args, "no_registration", False) else None,
         "output.dir": str(args.out) if args.command == "run" and args.out is not None else None,
         "output.depth_images": True if getattr(args, "depth_images", False) else None,
         "output.h5": True if getattr(args, "h5", False) else None,
@@ -246,13 +252,24 @@ def cmd_run(args) -> int:
     if args.resume is not None:
         if args.config is not None or args.sequence is not None:
             raise ConfigError("run: --resume OUT takes the config and source of the run in OUT; give neither CONFIG nor --sequence")
+        given = _resume_refused_options(args)
+        if given:
+            raise ConfigError(
+                f"run: --resume OUT finishes the run in OUT with its own settings; {', '.join(given)} cannot be given "
+                "with it (only --quiet and --no-eval, which change no map); start a new run to change them"
+            )
         simulation, result = Simulation.resume(args.resume, progress=ProgressBar(None, not args.quiet), finish=False)
         print(f"resumed {args.resume}")
-        return _report_run(args, simulation, result, None, None, None)
+        if simulation.run_options.get("no_eval"):
+            args.no_eval = True  # the run was started with --no-eval: it stays unevaluated
+        elif args.no_eval:
+            print("note: --no-eval: the resumed run is not evaluated (its map is the same)")
+        return _report_run(args, simulation, result, getattr(simulation, "recording_note", None), None, None)
     if args.config is None and args.sequence is None:
         raise ConfigError("run: give a run config (e.g. scenes/table.toml), or --sequence PATH")
     config = load_run_config(args.config) if args.config is not None else RunConfig()
     _apply_overrides(config, args)
+    _check_run_options(args, config)
     note = None
     recording = None
     if args.sequence is not None:
@@ -298,8 +315,43 @@ def cmd_run(args) -> int:
             simulation, out_dir, config.output.snapshots or None, progress=progress, overwrite=args.overwrite, finish=False
         )
     else:
-        result = simulation.run(out_dir, progress=progress, overwrite=args.overwrite, finish=False, recording=recording)
+        result = simulation.run(
+            out_dir, progress=progress, overwrite=args.overwrite, finish=False, recording=recording,
+            run_options={"no_eval": bool(args.no_eval)},
+        )
     return _report_run(args, simulation, result, note, movie, dashboard_ms)
+
+
+#: Options of ``mabdi run`` that --resume takes (the others could change the map, or are the run's own).
+_RESUME_OPTIONS = ("quiet", "no_eval")
+
+
+def _resume_refused_options(args) -> list[str]:
+    """The options given with --resume that it does not take, as the user wrote them (--frames, --set, ...)."""
+    defaults = {"tolerance": 0.02, "settings": []}
+    given = []
+    for name, value in vars(args).items():
+        if name in ("command", "resume", "config", "sequence", *_RESUME_OPTIONS):
+            continue
+        if value is None or value is False or value == defaults.get(name, None):
+            continue
+        given.append("--set" if name == "settings" else "--" + name.replace("_", "-"))
+    return given
+
+
+def _check_run_options(args, config) -> None:
+    """Options a run would only fail on late, checked before any frame: the render backend's library,
+    and where --rerun saves."""
+    from mabdi.errors import ConfigError
+    from mabdi.filters.depth_image import _check_backend_library
+
+    _check_backend_library(config.sensor.backend)
+    if args.rerun:
+        target = Path(args.rerun)
+        if target.is_dir():
+            raise ConfigError(f"run: --rerun {target}: that is a folder; give a file to save to, e.g. {target / 'run.rrd'}")
+        if not target.parent.is_dir():
+            raise ConfigError(f"run: --rerun {target}: folder {target.parent} does not exist")
 
 
 def _report_run(args, simulation, result, note, movie, dashboard_ms) -> int:

@@ -4,7 +4,8 @@ A file in ``scenes/`` is a whole run config: ``[run]`` (frames, seed),
 ``[scene]`` (the objects), ``[sensor]`` (intrinsics, noise, backend),
 ``[path]`` (the helix), ``[classifier]`` (on/off and thresholds),
 ``[removal]`` and ``[refinement]`` (their rules, when the classifier turns
-them on), ``[surface]`` (which surface filter, and ``[surface.<name>]`` its
+them on), ``[registration]`` (frame-to-map registration of each frame's
+pose, :mod:`mabdi.filters.registration`), ``[surface]`` (which surface filter, and ``[surface.<name>]`` its
 parameters) and ``[output]`` (what is written). Every section and key has a
 default, so a config states only what differs. An unknown or misspelt key, a
 value of the wrong type, or a value out of range is a :class:`ConfigError`
@@ -38,9 +39,11 @@ from mabdi.camera import Intrinsics
 from mabdi.errors import ConfigError
 from mabdi.filters.classifier import ClassifierParameters
 from mabdi.filters.refinement import RefinementParameters
+from mabdi.filters.registration import RegistrationParameters
 from mabdi.filters.removal import RemovalParameters
 from mabdi.filters.depth_image import BACKENDS, NOISE_MODELS, SensorNoise
 from mabdi.filters.registry import surface_filter, surface_filter_names
+from mabdi.pose_noise import PoseNoise
 
 PRIMITIVES = ("box", "cylinder", "sphere", "plane")
 OBJECT_TYPES = (*PRIMITIVES, "mesh")
@@ -103,7 +106,20 @@ class SensorConfig:
     (``noise`` here is its ``model``): this section only gathers them under
     the keys of a run config. Noise models: ``none``; ``zbuffer`` (seed 001:
     d + d N(0, zbuffer_sigma) on the normalised z-buffer value d); ``kinect``
-    (axial sigma(z) = kinect_coefficient z^2 metres, Khoshelham & Elberink 2012).
+    (axial sigma(z) = kinect_coefficient z^2 metres, Khoshelham & Elberink 2012);
+    ``structured_light`` (a Kinect-v1-like camera by default: correlated
+    noise of ``disparity_sigma`` pixels on the disparity f b / z with
+    f = ``fx`` and b = ``baseline``, quantised to ``disparity_step`` pixels,
+    so sigma grows with z^2; no returns within ``edge_dropout`` pixels of a
+    depth jump larger than ``edge_jump`` or beyond ``max_incidence`` degrees
+    of incidence; :mod:`mabdi.filters.depth_image` says where each default
+    comes from).
+
+    ``[sensor.pose_noise]`` (:class:`mabdi.pose_noise.PoseNoise`): jitter and
+    drift of the poses the frames carry, while the sensor renders from the
+    true ones (``jitter_translation`` m, ``jitter_rotation`` degrees per frame;
+    ``drift_translation``, ``drift_rotation``: the random walk's spread after
+    one metre travelled, growing with sqrt(distance)); zero: exact poses.
     """
 
     width: int = Intrinsics.width
@@ -117,7 +133,15 @@ class SensorConfig:
     noise: str = SensorNoise.model
     zbuffer_sigma: float = SensorNoise.zbuffer_sigma
     kinect_coefficient: float = SensorNoise.kinect_coefficient
+    baseline: float = SensorNoise.baseline
+    disparity_sigma: float = SensorNoise.disparity_sigma
+    disparity_step: float = SensorNoise.disparity_step
+    correlation_length: float = SensorNoise.correlation_length
+    edge_dropout: int = SensorNoise.edge_dropout
+    edge_jump: float = SensorNoise.edge_jump
+    max_incidence: float = SensorNoise.max_incidence
     backend: str = BACKENDS[0]
+    pose_noise: PoseNoise = field(default_factory=PoseNoise)
 
     def intrinsics(self) -> Intrinsics:
         return Intrinsics(self.fx, self.fy, self.cx, self.cy, self.width, self.height, self.near, self.far)
@@ -226,6 +250,7 @@ class RunConfig:
     classifier: ClassifierParameters = field(default_factory=ClassifierParameters)
     removal: RemovalParameters = field(default_factory=RemovalParameters)
     refinement: RefinementParameters = field(default_factory=RefinementParameters)
+    registration: RegistrationParameters = field(default_factory=RegistrationParameters)
     surface: SurfaceConfig = field(default_factory=SurfaceConfig)
     output: OutputConfig = field(default_factory=OutputConfig)
     #: The file this config was read from (not a TOML key).
@@ -365,6 +390,17 @@ def set_value(config: RunConfig, key: str, value, where: str = "command line") -
         current = config.surface.parameters_of(name)
         config.surface.parameters[name] = _replace_checked(current, attribute, value, where, key, cls)
         return
+    if len(parts) == 3 and parts[0] in {f.name for f in dataclasses.fields(RunConfig) if f.metadata.get("toml", True)}:
+        section = getattr(config, parts[0])  # a sub-table of a section, e.g. sensor.pose_noise.jitter_rotation
+        sub_fields = {f.name for f in dataclasses.fields(section)} if dataclasses.is_dataclass(section) else set()
+        sub = getattr(section, parts[1]) if parts[1] in sub_fields else None
+        if dataclasses.is_dataclass(sub):
+            replaced = _replace_checked(sub, parts[2], value, where, key, type(sub))
+            if type(section).__dataclass_params__.frozen:
+                setattr(config, parts[0], dataclasses.replace(section, **{parts[1]: replaced}))
+            else:
+                setattr(section, parts[1], replaced)
+            return
     if len(parts) != 2 or parts[0] not in {f.name for f in dataclasses.fields(RunConfig) if f.metadata.get("toml", True)}:
         raise ConfigError(f"{where}: unknown key '{key}' (a dotted key: section.key, or surface.<filter>.key)")
     section_name, attribute = parts
@@ -407,6 +443,11 @@ def _check_length(values, length: int, where: str, key: str) -> None:
 def validate_object(obj: ObjectConfig, where: str, key: str) -> None:
     """Range and consistency checks of one scene object (the loader checked types)."""
     _check_choice(obj.type, OBJECT_TYPES, where, f"{key}.type")
+    if obj.type != "mesh" and obj.mesh:  # before the size checks: a mesh without type = "mesh" is a box
+        raise ConfigError(
+            f"{where}: key '{key}.mesh' is only used with type = \"mesh\" (this object's type is {obj.type!r}; "
+            "add type = \"mesh\")"
+        )
     _check_choice(obj.anchor, ANCHORS, where, f"{key}.anchor")
     _check_choice(obj.up, AXES, where, f"{key}.up")
     _check_length(obj.position, 3, where, f"{key}.position")
@@ -426,8 +467,6 @@ def validate_object(obj: ObjectConfig, where: str, key: str) -> None:
         raise ConfigError(f"{where}: key '{key}.height' must be positive, got {obj.height}")
     if obj.type == "mesh" and not obj.mesh:
         raise ConfigError(f"{where}: key '{key}.mesh' is required for type 'mesh' (\"bunny\" or a file path)")
-    if obj.type != "mesh" and obj.mesh:
-        raise ConfigError(f"{where}: key '{key}.mesh' is only used with type = \"mesh\"")
     if obj.scale <= 0:
         raise ConfigError(f"{where}: key '{key}.scale' must be positive, got {obj.scale}")
     if obj.resolution < 3:

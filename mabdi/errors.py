@@ -31,3 +31,7 @@ class DamagedFileError(MabdiError, ValueError):
 
 class WriteError(MabdiError, OSError):
     """A file could not be written completely (a full disk, a failing writer); nothing was left under its name."""
+
+
+class RenderBackendError(MabdiError, RuntimeError):
+    """A render backend cannot be used on this machine (its system library is missing)."""

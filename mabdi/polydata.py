@@ -141,3 +141,28 @@ def polydata_area(mesh: vtkPolyData) -> float:
     points, triangles = polydata_arrays(mesh)
     corners = points[triangles]
     return float(0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1).sum())
+
+
+def transformed_polydata(mesh: vtkPolyData, matrix: np.ndarray) -> vtkPolyData:
+    """A copy of ``mesh`` moved by the rigid 4x4 ``matrix``: its points, and its 3-component point and cell
+    arrays whose names say they are normals, turned by the rotation (the rest shared with ``mesh``)."""
+    matrix = np.asarray(matrix, dtype=np.float64)
+    out = vtkPolyData()
+    out.ShallowCopy(mesh)
+    if mesh.GetNumberOfPoints() == 0:
+        return out
+    points = vtk_to_numpy(mesh.GetPoints().GetData())
+    moved = (points.astype(np.float64) @ matrix[:3, :3].T + matrix[:3, 3]).astype(points.dtype)
+    vtk_points = vtkPoints()
+    vtk_points.SetData(numpy_to_vtk(moved, deep=True))
+    out.SetPoints(vtk_points)
+    for data, source in ((out.GetPointData(), mesh.GetPointData()), (out.GetCellData(), mesh.GetCellData())):
+        for index in range(source.GetNumberOfArrays()):
+            array = source.GetArray(index)
+            if array is None or array.GetNumberOfComponents() != 3 or "normal" not in (array.GetName() or "").lower():
+                continue
+            values = vtk_to_numpy(array)
+            turned = numpy_to_vtk((values.astype(np.float64) @ matrix[:3, :3].T).astype(values.dtype), deep=True)
+            turned.SetName(array.GetName())
+            data.AddArray(turned)
+    return out

@@ -37,7 +37,9 @@ An override that names no config key, or a value the config rejects, makes
 only that cell fail: it is reported with its error and the others run.
 
 Each cell resolves its config (file + overrides, validated), is keyed by a
-hash of the resolved config and the evaluation settings, and runs in
+hash of the resolved config, the evaluation settings and the content
+(SHA-256) of every mesh file its scene reads (so a mesh replaced at the same
+path makes new cells), and runs in
 ``OUT/cells/<id>/``: the run's own outputs (:mod:`mabdi.simulate.runner`)
 and, after success, ``row.json`` (written atomically). A cell whose
 ``row.json`` exists is not run again, so an interrupted or extended sweep
@@ -279,10 +281,14 @@ def apply_overrides(config, overrides: dict, where: str = "<overrides>"):
 
 
 def config_hash(config, samples: int) -> str:
-    """Hex digest of the resolved config (as TOML) and the evaluation settings."""
+    """Hex digest of the resolved config (as TOML), the evaluation settings and the content of the scene's
+    mesh files (:func:`mabdi.io.fingerprint.scene_mesh_digests`; a mesh that cannot be found counts by its
+    name, and the cell's run reports it)."""
     from mabdi.config import dump_toml
+    from mabdi.io.fingerprint import scene_mesh_digests
 
-    text = f"row version {ROW_VERSION}\nsamples {samples}\n{dump_toml(config)}"
+    meshes = "".join(f"mesh {digest}\n" for digest in scene_mesh_digests(config))
+    text = f"row version {ROW_VERSION}\nsamples {samples}\n{meshes}{dump_toml(config)}"
     return hashlib.sha256(text.encode()).hexdigest()
 
 

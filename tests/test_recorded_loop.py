@@ -16,6 +16,9 @@ from mabdi.io.vtk_files import read_mesh_file
 
 TABLE = str(REPO / "scenes" / "table.toml")
 COMMON = ["--noise", "kinect", "--frames", "12"]
+#: The round trip compares the readers: registration would turn a depth quantised to a millimetre into a
+#: pose a fraction of a millimetre away, and move every vertex with it (its own tests are test_registration).
+EXACT_POSES = ["--no-registration"]
 
 
 def vertices(path):
@@ -32,7 +35,7 @@ def simulated(tmp_path_factory):
     runs = {}
     for surface in ("pixel_grid", "quadtree"):
         runs[surface] = tmp_path_factory.mktemp("simulated") / surface
-        assert main(["run", TABLE, *COMMON, "--surface", surface, "--out", str(runs[surface]), "--quiet"]) == 0
+        assert main(["run", TABLE, *COMMON, *EXACT_POSES, "--surface", surface, "--out", str(runs[surface]), "--quiet"]) == 0
     return runs
 
 
@@ -54,7 +57,8 @@ def test_a_recording_gives_the_map_the_simulation_gives(tmp_path, simulated, for
     assert main(["record", TABLE, "--format", format, "--out", str(recording), *COMMON, *extra]) == 0
     for surface in ("pixel_grid", "quadtree"):
         out = tmp_path / surface
-        assert main(["run", TABLE, "--sequence", str(recording), *COMMON, "--surface", surface, "--out", str(out), "--quiet"]) == 0
+        run = ["run", TABLE, "--sequence", str(recording), *COMMON, *EXACT_POSES, "--surface", surface, "--out", str(out)]
+        assert main([*run, "--quiet"]) == 0
         assert "vs ground truth: F@1cm" in capsys.readouterr().out  # recorded from this config's scene: evaluated
         assert json.loads((out / "summary.json").read_text())["frames"] == 12
         cells = [read_mesh_file(p / "world_mesh.vtp").GetNumberOfCells() for p in (simulated[surface], out)]

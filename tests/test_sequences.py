@@ -273,24 +273,34 @@ def test_bag_pose_30_ms_away_is_skipped_and_counted(bags, tmp_path):
 def test_bag_tf_matching_skips_frames_without_a_transform(bags, tmp_path):
     def late(topic, index, message):
         if topic == "/tf" and index == 4:
-            message.transforms[0].header.stamp.nanosec += 25_000_000
+            message.transforms[0].header.stamp.sec += 1  # the last frame is 1 s past the link's last transform
         return message
 
     path = _rewrite(bags["sqlite3", "32FC1"], tmp_path / "bag", change=late)
-    assert Rosbag2Sequence(path, pose_topic="/tf").skipped == 1
+    sequence = Rosbag2Sequence(path, pose_topic="/tf")
+    assert sequence.skipped == 0  # a link published late is interpolated across the gap, as tf2 does
+
+    def gone(topic, index, message):
+        if topic == "/tf" and index == 4:
+            message.transforms[0].header.stamp.sec -= 10  # now the link ends 33 ms before the last frame
+        return message
+
+    path = _rewrite(bags["sqlite3", "32FC1"], tmp_path / "bag2", change=gone)
+    sequence = Rosbag2Sequence(path, pose_topic="/tf")
+    assert sequence.skipped == 1 and "not reached by world -> camera_link" in sequence.description
 
 
 @pytest.mark.parametrize(
     ("rewrite", "options", "message"),
     [
         ({"drop": ("/camera/pose", "/tf", "/tf_static")}, {}, r"bag.*: no pose source for /camera/depth/image"),
-        ({"drop": ("/camera/depth/camera_info",)}, {}, r"bag.*: no sensor_msgs/msg/CameraInfo topic .*info_topic="),
+        ({"drop": ("/camera/depth/camera_info",)}, {}, r"bag.*: no sensor_msgs/msg/CameraInfo topic .*--info-topic \(Python: info_topic=\)"),
         ({"change": lambda t, i, m: dataclasses.replace(m, encoding="rgb8") if t.endswith("image") else m}, {"depth_topic": "/camera/depth/image"}, r"topic /camera/depth/image: unknown depth encoding 'rgb8'"),
-        ({}, {"depth_topic": "/camera/dept"}, r"no topic '/camera/dept' \(depth_topic=\); the bag has: /camera/depth/camera_info"),
-        ({}, {"pose_topic": "/odom"}, r"no topic '/odom' \(pose_topic=\); the bag has:.*/camera/pose"),
-        ({}, {"info_topic": "/camera/pose"}, r"topic /camera/pose \(info_topic=\) is geometry_msgs/msg/PoseStamped"),
-        ({"copy": {"/camera/depth/image": "/other/depth"}}, {}, r"several depth image topics \(/camera/depth/image, /other/depth\); choose one with depth_topic="),
-        ({"copy": {"/camera/pose": "/other/pose"}}, {}, r"several geometry_msgs/msg/PoseStamped topics .*pose_topic="),
+        ({}, {"depth_topic": "/camera/dept"}, r"no topic '/camera/dept' \(--depth-topic \(Python: depth_topic=\)\); the bag has: /camera/depth/camera_info"),
+        ({}, {"pose_topic": "/odom"}, r"no topic '/odom' \(--pose-topic .*\); the bag has:.*/camera/pose"),
+        ({}, {"info_topic": "/camera/pose"}, r"topic /camera/pose \(--info-topic .*\) is geometry_msgs/msg/PoseStamped"),
+        ({"copy": {"/camera/depth/image": "/other/depth"}}, {}, r"several depth image topics \(/camera/depth/image, /other/depth\); choose one with --depth-topic"),
+        ({"copy": {"/camera/pose": "/other/pose"}}, {}, r"several geometry_msgs/msg/PoseStamped topics .*--pose-topic"),
         ({"drop": ("/tf_static",)}, {"pose_topic": "/tf"}, r"/tf has no transform to the depth images' frame 'camera_depth_optical_frame'"),
         ({}, {"pose_topic": "/tf", "frame_id": "map"}, r"frame_id='map' is not above"),
         ({}, {"frame_id": "map"}, r"topic /camera/pose: pose in frame 'world', expected frame_id='map'"),

@@ -119,7 +119,7 @@ def _observed_samples(rig: SimulatedRig, config: RunConfig, samples: int):
     return observed_ground_truth(
         rig.scene.mesh_at(frames - 1),
         scenes_per_pose(rig.scene, frames),
-        rig.poses,
+        rig.true_poses,  # where the sensor saw from (the frames carry the given poses)
         rig.intrinsics,
         samples,
         config.sensor.backend,
@@ -129,7 +129,7 @@ def _observed_samples(rig: SimulatedRig, config: RunConfig, samples: int):
 def bench_frames(config: RunConfig) -> tuple[SimulatedRig, FrameList]:
     """The scene's rig (built once) and its frames, rendered once and kept for every method."""
     rig = SimulatedRig.from_config(config)
-    frames = FrameList([rig.read(i) for i in range(len(rig))], description=rig.description)
+    frames = FrameList([rig.read(i) for i in range(len(rig))], description=rig.description, true_poses=rig.true_poses)
     return rig, frames
 
 
@@ -202,7 +202,7 @@ def run_bench(
         metrics.growth_per_circle = run.growth_per_circle(len(frames), config.path.turns)
         tsdf_dynamic = None
         if dynamic:  # the TSDF's final mesh against the final scene (its meshes along the way are not kept)
-            tracker = GhostTracker(rig.scene, len(frames), rig.poses, rig.intrinsics, backend=config.sensor.backend)
+            tracker = GhostTracker(rig.scene, len(frames), rig.true_poses, rig.intrinsics, backend=config.sensor.backend)
             tracker.measure(len(frames) - 1, run.mesh, final=True)
             tsdf_dynamic = _dynamic(tracker.finish())
         extract_ms = float(np.mean([ms for _, _, ms in run.extractions])) if run.extractions else 0.0

@@ -430,7 +430,7 @@ def run_with_ghosts(
     tracker = GhostTracker(
         scene,
         frames,
-        simulation.poses,
+        simulation.poses if getattr(simulation, "true_poses", None) is None else simulation.true_poses,  # what the sensor saw
         simulation.source.intrinsics,
         threshold=threshold,
         samples=samples,

@@ -8,7 +8,9 @@ Definitions (distances in metres, reported in mm where named so):
 * **recall (completeness) at tau**: share of the *observed* ground-truth
   samples within tau of the map. Observed = seen by some pose of the run
   (:mod:`mabdi.evaluate.visibility`), so surfaces never in view do not count
-  as missed.
+  as missed. The poses are the true ones where the source knows them
+  (:func:`sensor_poses`: with pose noise the sensor saw from its true
+  poses, not from the ones the frames carry).
 * **F-score at tau**: 2 P R / (P + R) (Tanks and Temples).
 * **redundancy**: share of the map's area stacked over a surface made at
   another frame (:mod:`mabdi.evaluate.redundancy`), from the first 50,000
@@ -185,6 +187,12 @@ def scenes_per_pose(scene, frames: int) -> list[vtkPolyData]:
     return meshes
 
 
+def sensor_poses(simulation) -> np.ndarray:
+    """The poses the sensor really saw from: the source's true poses when known, else the given ones."""
+    true_poses = getattr(simulation, "true_poses", None)
+    return simulation.poses if true_poses is None else true_poses
+
+
 def evaluate_run(simulation, result, samples: int = SAMPLES, observed: SurfaceSamples | None = None) -> MapMetrics:
     """Metrics of a finished :class:`mabdi.simulate.Simulation` run against its own scene (``simulation.scene``)."""
     config = simulation.config
@@ -195,12 +203,14 @@ def evaluate_run(simulation, result, samples: int = SAMPLES, observed: SurfaceSa
     ground_truth = simulation.scene.mesh_at(frames - 1)
     if observed is None:
         observed = observed_ground_truth(
-            ground_truth, scenes_per_pose(simulation.scene, frames), simulation.poses, intrinsics, samples, config.sensor.backend
+            ground_truth, scenes_per_pose(simulation.scene, frames), sensor_poses(simulation), intrinsics, samples, config.sensor.backend
         )
     noise = config.sensor.sensor_noise()
 
-    def delta(map_samples):
-        return redundancy_delta(map_samples, result.mesh, simulation.poses, noise, intrinsics)
+    meshed = simulation.meshed_poses() if hasattr(simulation, "meshed_poses") else simulation.poses
+
+    def delta(map_samples):  # depth from the poses the frames were meshed with: where the map put the samples
+        return redundancy_delta(map_samples, result.mesh, meshed, noise, intrinsics)
 
     return evaluate_map(
         result.mesh,

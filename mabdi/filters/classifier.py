@@ -4,9 +4,14 @@ Port 0 is D (what the sensor measured), port 1 is E (what the map predicts
 from the same pose, rendered without noise). Both are depth images
 (:mod:`mabdi.depth`) of the same size, intrinsics and pose.
 
-Per pixel, with tau(z) = max(tau_min, k_sigma * sigma(z)) metres at the
-measured depth z = D and sigma the active noise model's standard deviation
-(:meth:`mabdi.filters.depth_image.SensorNoise.sigma`):
+Per pixel, with tau = max(tau_min, k_sigma * sqrt(sigma(z)^2 + sigma_pose^2))
+metres at the measured depth z = D, sigma the active noise model's standard
+deviation (:meth:`mabdi.filters.depth_image.SensorNoise.sigma`) and
+sigma_pose the depth uncertainty that the pose's own uncertainty causes at
+that pixel of E (0 unless D carries a ``pose_covariance``, which frame-to-map
+registration puts there, :func:`mabdi.filters.registration.pose_depth_sigma`:
+a lateral pose error d becomes d tan(theta) in depth at incidence theta, so
+tau widens on surfaces seen at grazing angles, as far as the pose is uncertain):
 
 ====  ============  ====================================================
 label  name          rule
@@ -27,7 +32,9 @@ pixels get label 1 (explained by the map). ``min_width = 1`` and
 
 Output: a depth image whose ``depth`` is D on the novel pixels and on a rim
 of ``rim`` pixels around them (NaN elsewhere), plus the uint8 point array
-``label`` and the field-data array ``pixel_counts`` (valid = D has a return,
+``label``, the float32 point array ``pose_sigma`` when D carries a pose
+covariance (metres, NaN where E has no surface; object removal widens its
+gate by it), and the field-data array ``pixel_counts`` (valid = D has a return,
 novel after speck removal, specks, contradicted; read it with
 :func:`pixel_counts`). The rim makes a new patch overlap the map by one pixel square
 instead of leaving a crack one pixel wide between them (the pixel-grid mesher
@@ -51,9 +58,12 @@ from mabdi.algorithm import MabdiAlgorithm
 from mabdi.depth import depth_array, fill_depth_image, image_frame, image_intrinsics, image_pose, image_timestamp
 from mabdi.errors import ConfigError
 from mabdi.filters.depth_image import SensorNoise
+from mabdi.filters.registration import image_pose_covariance, pose_depth_sigma
 
 NO_RETURN, KNOWN, NOVEL, CONTRADICTED = 0, 1, 2, 3
 LABEL_ARRAY = "label"
+#: Point data of the output when D carries a pose covariance: E's depth uncertainty from the pose (m).
+POSE_SIGMA_ARRAY = "pose_sigma"
 #: Field data of the output: int64 pixel counts (valid, novel, specks, contradicted) of this frame.
 PIXEL_COUNTS_ARRAY = "pixel_counts"
 PIXEL_COUNT_NAMES = ("valid", "novel", "specks", "contradicted")
@@ -181,9 +191,11 @@ class FilterClassifier(MabdiAlgorithm):
     def noise(self, value: SensorNoise | str) -> None:
         self._set("_noise", SensorNoise.of(value))
 
-    def threshold(self, depth: np.ndarray, near: float, far: float) -> np.ndarray:
-        """tau(z) = max(tau_min, k_sigma sigma(z)) in metres."""
+    def threshold(self, depth: np.ndarray, near: float, far: float, pose_sigma: np.ndarray | None = None) -> np.ndarray:
+        """tau = max(tau_min, k_sigma sqrt(sigma(z)^2 + pose_sigma^2)) in metres (``pose_sigma`` NaN counts as 0)."""
         sigma = self._noise.sigma(depth, near, far)
+        if pose_sigma is not None:
+            sigma = np.sqrt(sigma * sigma + np.nan_to_num(pose_sigma, nan=0.0).astype(sigma.dtype) ** 2)
         return np.maximum(sigma.dtype.type(self._parameters.tau_min), sigma.dtype.type(self._parameters.k_sigma) * sigma)
 
     def RequestInformation(self, request, inInfo, outInfo):  # noqa: N802 (VTK API)
@@ -222,7 +234,9 @@ class FilterClassifier(MabdiAlgorithm):
             )
         measured = depth_array(measured_image)
         expected = depth_array(expected_image)
-        tau = self.threshold(measured, intrinsics.near, intrinsics.far)
+        covariance = image_pose_covariance(measured_image)
+        pose_sigma = None if covariance is None else pose_depth_sigma(expected, intrinsics, covariance)
+        tau = self.threshold(measured, intrinsics.near, intrinsics.far, pose_sigma)
         labels = classify(measured, expected, tau)
         p = self._parameters
         raw_novel = labels == NOVEL
@@ -238,6 +252,10 @@ class FilterClassifier(MabdiAlgorithm):
         label_array = numpy_to_vtk(labels.ravel(), deep=False)
         label_array.SetName(LABEL_ARRAY)
         output.GetPointData().AddArray(label_array)
+        if pose_sigma is not None:
+            sigma_array = numpy_to_vtk(pose_sigma.ravel(), deep=True)
+            sigma_array.SetName(POSE_SIGMA_ARRAY)
+            output.GetPointData().AddArray(sigma_array)
         counts = np.array(
             [
                 np.count_nonzero(labels != NO_RETURN),
@@ -267,3 +285,9 @@ def label_array(image) -> np.ndarray:
     if labels is None:
         raise ValueError(f"image has no point array '{LABEL_ARRAY}' (is it a FilterClassifier output?)")
     return vtk_to_numpy(labels).reshape(image_intrinsics(image).shape)
+
+
+def pose_sigma_array(image) -> np.ndarray | None:
+    """(H, W) float32 ``pose_sigma`` of a classifier output (m, NaN where E has no surface), or None when D had no pose covariance."""
+    array = image.GetPointData().GetArray(POSE_SIGMA_ARRAY)
+    return None if array is None else vtk_to_numpy(array).reshape(image_intrinsics(image).shape)

@@ -116,7 +116,8 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
-from vtkmodules.util.numpy_support import vtk_to_numpy
+from vtkmodules.util.numpy_support import numpy_to_vtk, vtk_to_numpy
+from vtkmodules.vtkCommonCore import vtkPoints
 from vtkmodules.vtkCommonDataModel import vtkPolyData
 
 from mabdi.depth import depth_array, image_frame, image_pose
@@ -253,6 +254,42 @@ class MapRefinement:
         self._blocks.clear()
         self._poses.clear()
         self._source_poses = None
+
+    def state(self, world) -> dict:
+        """The per-block and per-frame memory as plain data, for checkpoints (``world``: the loop's world mesh).
+
+        Per block: its state arrays, its triangles (-1 rows stand for None), the points of the block object
+        the state belongs to, and whether that object is the world's current block (then :meth:`set_state`
+        binds the state to the restored block, else to a copy of those points, as an uninterrupted run has it).
+        """
+        blocks = {}
+        for key, block in self._blocks.items():
+            current = key in world.patch_keys and world.block(key) is block.patch
+            blocks[key] = {
+                "current": bool(current),
+                "points": _points(block.patch).copy(),
+                "triangles": np.zeros((0, 3), dtype=np.int64) if block.triangles is None else block.triangles.copy(),
+                "has_triangles": block.triangles is not None,
+                **{name: getattr(block, name).copy() for name in _STATE},
+            }
+        frames = np.array(sorted(self._poses), dtype=np.int64)
+        poses = np.array([self._poses[int(f)] for f in frames]).reshape(-1, 4, 4)
+        return {"blocks": blocks, "pose_frames": frames, "poses": poses}
+
+    def set_state(self, state: dict, world) -> None:
+        """Go on from :meth:`state` (after ``world`` was restored from the same checkpoint)."""
+        self.reset()
+        for key, block in state["blocks"].items():
+            if block["current"] and key in world.patch_keys:
+                patch = world.block(key)
+            else:
+                patch = vtkPolyData()
+                points = vtkPoints()
+                points.SetData(numpy_to_vtk(np.ascontiguousarray(block["points"]), deep=True))
+                patch.SetPoints(points)
+            triangles = np.asarray(block["triangles"], dtype=np.int64) if block["has_triangles"] else None
+            self._blocks[key] = _BlockState(patch, triangles, *(np.array(block[name]) for name in _STATE))
+        self._poses = {int(f): np.array(p) for f, p in zip(state["pose_frames"], state["poses"], strict=True)}
 
     # -- helpers -------------------------------------------------------------
     def _unit_rays(self, intrinsics) -> tuple[np.ndarray, np.ndarray]:

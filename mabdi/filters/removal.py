@@ -47,7 +47,9 @@ except
   than ``k_sigma`` (3) times the noise of the *difference*, sqrt(sigma(D)^2 +
   sigma(E)^2) (the map was itself made from a measurement as noisy as D,
   so D - E spreads sqrt(2) times wider than D alone; the classifier's tau
-  only knows D's), and by more than ``min_gap`` (5 cm) too. Smaller gaps are where a map of flat faces cuts across a
+  only knows D's) and of the registered pose (the classifier's
+  ``pose_sigma``: a lateral pose error seen at grazing incidence), and by
+  more than ``min_gap`` (5 cm) too. Smaller gaps are where a map of flat faces cuts across a
   concave crease (the chord of a pixel-grid triangle bridging floor and wall
   runs in front of the corner): no vote either way. An object thinner than
   5 cm lying on a surface is therefore not removed.
@@ -146,6 +148,7 @@ def removal_votes(
     evidence_of=None,
     sigma=None,
     far: float = np.inf,
+    pose_sigma: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """One frame's votes: (face ids, contradicting pixels, confirming pixels per face, the voting contradicted pixels' mask).
 
@@ -154,7 +157,9 @@ def removal_votes(
     the pose; ``normals_of(ids)`` -> (N, 3) world normals of faces (NaN for unknown ids);
     ``evidence_of(ids)`` -> their log-odds, to skip confirmations of faces already at the floor;
     ``sigma(depth)`` -> the sensor's noise (m) at depths (m), for the contradiction gate; ``far``: the
-    sensor's range (m), the depth a pixel with no return stands for (``no_return_is_free``).
+    sensor's range (m), the depth a pixel with no return stands for (``no_return_is_free``);
+    ``pose_sigma`` (H, W): E's depth uncertainty from the registered pose's own uncertainty (m, NaN = 0),
+    added to the noise of the difference.
     """
     if parameters.no_return_is_free:
         # no return within the range: the ray met nothing up to the far limit (as if D = far)
@@ -169,7 +174,10 @@ def removal_votes(
         gap = np.full(labels.shape, np.float32(parameters.min_gap))
         if sigma is not None:
             d, e = measured[contradicting_pixels], expected[contradicting_pixels]
-            noise = np.float32(parameters.k_sigma) * np.sqrt(sigma(d) ** 2 + sigma(e) ** 2).astype(np.float32)
+            variance = sigma(d) ** 2 + sigma(e) ** 2
+            if pose_sigma is not None:
+                variance = variance + np.nan_to_num(pose_sigma[contradicting_pixels], nan=0.0) ** 2
+            noise = np.float32(parameters.k_sigma) * np.sqrt(variance).astype(np.float32)
             gap[contradicting_pixels] = np.maximum(gap[contradicting_pixels], noise)
         with np.errstate(invalid="ignore"):
             contradicting_pixels &= measured - expected > gap

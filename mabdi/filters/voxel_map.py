@@ -214,6 +214,31 @@ class VoxelMap:
         self._used = 0
         self.last_changed = np.zeros((0, 3), dtype=np.int64)
 
+    def state(self) -> dict:
+        """The statistics as plain data (sizes in metres, the used blocks' arrays, the store's capacity), for checkpoints."""
+        return {
+            "voxel_size": self.voxel_size,
+            "block_size": self.block_size,
+            "keys": self._keys.copy(),
+            "slots": self._slots.copy(),
+            "stats": self._stats[: self._used].copy(),
+            "capacity": int(len(self._stats)),
+            "last_changed": np.asarray(self.last_changed, dtype=np.int64).copy(),
+        }
+
+    @classmethod
+    def from_state(cls, state: dict) -> VoxelMap:
+        """The map of :meth:`state` (the same statistics, and the same capacity, so it grows as the original would)."""
+        voxels = cls(float(state["voxel_size"]), float(state["block_size"]))
+        stats = np.asarray(state["stats"], dtype=np.float64)
+        voxels._stats = np.zeros((max(int(state["capacity"]), len(stats)),) + voxels._stats.shape[1:], dtype=np.float64)
+        voxels._stats[: len(stats)] = stats
+        voxels._used = len(stats)
+        voxels._keys = np.asarray(state["keys"], dtype=np.int64).copy()
+        voxels._slots = np.asarray(state["slots"], dtype=np.int64).copy()
+        voxels.last_changed = np.asarray(state["last_changed"], dtype=np.int64).reshape(-1, 3).copy()
+        return voxels
+
     @property
     def number_of_blocks(self) -> int:
         return int(len(self._keys))

@@ -53,6 +53,7 @@ of a depth-image input (intrinsics, pose, frame) is passed on.
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 from dataclasses import dataclass
 
@@ -294,14 +295,48 @@ class FilterVoxelPlanes(MabdiAlgorithm):
 
     def state(self) -> dict:
         """What the filter keeps across updates (the voxel statistics and the polygons per block), for checkpoints."""
-        return {"map": self.map, "blocks": self._blocks, "meshed_with": self._meshed_with, "pending": self._pending_cleared}
+        keys = np.array(list(self._blocks), dtype=np.int64)
+        blocks = [self._blocks[int(k)] for k in keys]
+
+        def joined(name: str, shape: tuple, dtype) -> np.ndarray:
+            parts = [np.asarray(getattr(b, name)) for b in blocks]
+            return np.concatenate(parts) if parts else np.zeros(shape, dtype=dtype)
+
+        return {
+            "map": self.map.state(),
+            "blocks": {  # every block's polygons one after another; "polygons" says how many are each block's
+                "keys": keys,
+                "polygons": np.array([len(b.anchors) for b in blocks], dtype=np.int64),
+                "anchors": joined("anchors", (0,), np.int64),
+                "sizes": joined("sizes", (0,), np.int64),
+                "vertices": joined("vertices", (0, 3), np.float64),
+                "normals": joined("normals", (0, 3), np.float64),
+            },
+            "meshed_with": dataclasses.asdict(self._meshed_with),
+            "pending": self._pending_cleared.copy(),
+        }
 
     def set_state(self, state: dict) -> None:
         """Restore what :meth:`state` returned (the next update goes on from there)."""
-        self.map = state["map"]
-        self._blocks = state["blocks"]
-        self._meshed_with = state["meshed_with"]
-        self._pending_cleared = state["pending"]
+        self.map = VoxelMap.from_state(state["map"])
+        blocks = state["blocks"]
+        polygons = np.asarray(blocks["polygons"], dtype=np.int64)
+        sizes = np.asarray(blocks["sizes"])
+        cuts = np.cumsum(polygons)[:-1]
+        vertex_cuts = np.concatenate([[0], np.cumsum(sizes)])[np.cumsum(polygons)][:-1]
+        self._blocks = {} if not len(polygons) else {
+            int(key): BlockPolygons(anchors, block_sizes, vertices, normals)
+            for key, anchors, block_sizes, vertices, normals in zip(
+                blocks["keys"],
+                np.split(np.asarray(blocks["anchors"]), cuts),
+                np.split(sizes, cuts),
+                np.split(np.asarray(blocks["vertices"]), vertex_cuts),
+                np.split(np.asarray(blocks["normals"]), cuts),
+                strict=True,
+            )
+        }
+        self._meshed_with = VoxelPlanesParameters(**state["meshed_with"])
+        self._pending_cleared = np.asarray(state["pending"], dtype=np.int64).reshape(-1, 3).copy()
         self._changed = np.zeros(0, dtype=np.int64)
         self._last_input = None
         self.Modified()

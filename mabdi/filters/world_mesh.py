@@ -275,10 +275,10 @@ class FilterWorldMesh(MabdiAlgorithm):
         self.Modified()
 
     def state(self) -> dict:
-        """The map as plain arrays (patches in order, with their keys), for checkpoints."""
+        """The map as plain data (patches in order as [key, arrays] pairs, face id ranges, evidence), for checkpoints."""
         return {
-            "patches": [(key, polydata_to_state(patch)) for key, patch in self._patches.items()],
-            "ranges": dict(self._ids._ranges),
+            "patches": [[key, polydata_to_state(patch)] for key, patch in self._patches.items()],
+            "ranges": {key: [int(base), int(count)] for key, (base, count) in self._ids._ranges.items()},
             "evidence": self._face_evidence.copy(),
             "contradicted": self._face_contradicted.copy(),
             "next_frame": self._next_frame,
@@ -288,7 +288,7 @@ class FilterWorldMesh(MabdiAlgorithm):
         """Restore a map saved by :meth:`state` (replaces the current map)."""
         self._patches = {key: polydata_from_state(patch) for key, patch in state["patches"]}
         self._ids.clear()
-        self._ids._ranges.update(state["ranges"])
+        self._ids._ranges.update({key: (int(base), int(count)) for key, (base, count) in state["ranges"].items()})
         self._face_evidence = state["evidence"].copy()
         self._face_contradicted = state["contradicted"].copy()
         self._face_normals = np.zeros((len(self._face_evidence), 3), dtype=np.float32)

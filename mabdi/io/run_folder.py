@@ -13,6 +13,17 @@
   those files are left as they are (only mabdi's own names are written).
 * The run's own input config is never overwritten: an output folder where
   ``config.toml`` is the input file is refused, overwrite or not.
+* One run at a time per folder: a run (and ``--resume``) takes an exclusive
+  ``flock`` on ``<folder>/.mabdi-lock`` before it touches anything and holds
+  it until it completes (or fails, or its process ends). A second run into
+  the same folder is refused at once with an error naming the folder and the
+  holder's process id; it changes nothing there. The kernel drops the lock
+  when the holding process dies, ``kill -9`` included, so a crashed run
+  never leaves the folder locked (its lock file, holding its pid, stays
+  until the next run takes and removes it; it is mabdi's own and never
+  counts as a foreign file). A run removes the lock file when it releases
+  the lock (complete or failed), and one that finds the file replaced
+  under it locks the new one.
 
 :func:`prepare_output_dir` only makes sure a folder exists and is writable
 (for the bench and sweeps, which write their own few files).
@@ -20,6 +31,7 @@
 
 from __future__ import annotations
 
+import fcntl
 import json
 import os
 import shutil
@@ -29,6 +41,10 @@ from mabdi.errors import MabdiError
 from mabdi.io.atomic import write_text
 
 MANIFEST = ".mabdi-run.json"
+#: The file (name prefix) that checks a folder is writable; it exists for an instant.
+PROBE = ".mabdi-write-test"
+#: Held (flock) by the run writing the folder (see the module docs).
+LOCK = ".mabdi-lock"
 #: Where a run writes until it completes (inside the output folder).
 STAGING = ".mabdi-partial"
 
@@ -47,7 +63,7 @@ def prepare_output_dir(out_dir) -> Path:
         raise OutputError(f"cannot create output folder {out}: {blocker} is a file, not a folder") from None
     except OSError as exc:
         raise OutputError(f"cannot create output folder {out}: {exc.strerror}") from None
-    probe = out / ".mabdi-write-test"
+    probe = out / f"{PROBE}.{os.getpid()}"
     try:
         probe.write_text("")
         probe.unlink()
@@ -86,6 +102,59 @@ class RunFolder:
         self.staging = self.folder / STAGING
         self._files: list[str] = []
         self._complete = False
+        self._lock: int | None = None
+
+    def _acquire(self) -> None:
+        """Take the folder's lock, or raise :class:`OutputError` when another run holds it (see the module docs)."""
+        path = self.folder / LOCK
+        while True:
+            try:
+                handle = os.open(path, os.O_RDWR | os.O_CREAT, 0o666)
+            except OSError as exc:
+                raise OutputError(f"cannot lock output folder {self.folder}: {exc.strerror}") from None
+            try:
+                fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                try:
+                    holder = os.pread(handle, 64, 0).decode(errors="replace").strip()
+                except OSError:
+                    holder = ""
+                os.close(handle)
+                raise OutputError(
+                    f"output folder {self.folder} is in use by another mabdi run"
+                    + (f" (process {holder})" if holder else "")
+                    + ": wait for it to finish, or choose another --out"
+                ) from None
+            except OSError as exc:
+                os.close(handle)
+                raise OutputError(f"cannot lock output folder {self.folder}: {exc.strerror}") from None
+            try:
+                same = os.stat(path).st_ino == os.fstat(handle).st_ino
+            except FileNotFoundError:
+                same = False
+            if same:
+                break
+            os.close(handle)  # the holder removed that file as we opened it: lock the new one
+        os.ftruncate(handle, 0)
+        os.pwrite(handle, f"{os.getpid()}\n".encode(), 0)
+        self._lock = handle
+
+    def release(self) -> None:
+        """Let go of the folder's lock and remove its file (done by :meth:`complete`, and when a run fails;
+        the kernel also drops it when the process ends)."""
+        if self._lock is not None:
+            try:
+                (self.folder / LOCK).unlink()  # while still holding it: a run waiting on it re-opens a new file
+            except OSError:
+                pass
+            os.close(self._lock)  # closing the descriptor drops the flock
+            self._lock = None
+
+    def __del__(self) -> None:
+        try:
+            self.release()
+        except Exception:  # noqa: BLE001 - at interpreter exit; the kernel drops the lock anyway
+            pass
 
     @classmethod
     def resume(cls, out_dir) -> RunFolder:
@@ -97,6 +166,11 @@ class RunFolder:
                 raise OutputError(f"cannot resume {out}: that run is complete already (nothing interrupted is staged)")
             raise OutputError(f"cannot resume {out}: it is not a mabdi run folder (no {MANIFEST})")
         run = cls(out)
+        run._acquire()
+        staged = read_manifest(out / STAGING)  # again, under the lock: a run may have completed meanwhile
+        if staged is None:
+            run.release()
+            raise OutputError(f"cannot resume {out}: that run is complete already (nothing interrupted is staged)")
         run._files = [str(name) for name in staged["files"]]
         return run
 
@@ -104,6 +178,18 @@ class RunFolder:
     def prepare(cls, out_dir, overwrite: bool = False, input_config=None) -> RunFolder:
         """Create or take over ``out_dir`` by the policy of the module docs."""
         out = prepare_output_dir(out_dir)
+        run = cls(out)
+        run._acquire()
+        try:
+            run._take_over(overwrite, input_config)
+        except BaseException:
+            run.release()
+            raise
+        return run
+
+    def _take_over(self, overwrite: bool, input_config) -> None:
+        """:meth:`prepare`'s checks and staging folder, under the lock."""
+        out = self.folder
         if input_config is not None:
             target = out / "config.toml"
             if target.exists() and target.resolve() == Path(input_config).resolve():
@@ -113,7 +199,7 @@ class RunFolder:
                 )
         previous = read_manifest(out)
         ours = set(previous["files"]) if previous is not None else set()
-        present = [name for name in _files_under(out) if name != MANIFEST and not name.startswith(STAGING + "/")]
+        present = [name for name in _files_under(out) if name not in (MANIFEST, LOCK) and not name.startswith((STAGING + "/", PROBE))]
         foreign = [name for name in present if name not in ours]
         if foreign and not overwrite:
             shown = ", ".join(foreign[:5]) + (f" and {len(foreign) - 5} more" if len(foreign) > 5 else "")
@@ -121,11 +207,9 @@ class RunFolder:
                 f"output folder {out} holds files mabdi did not write ({shown}); choose an empty or new folder, "
                 "or pass --overwrite (mabdi's own files are then replaced and the others left as they are)"
             )
-        run = cls(out)
-        shutil.rmtree(run.staging, ignore_errors=True)  # an earlier interrupted run: this one replaces it
-        run.staging.mkdir()
-        run._write_manifest()
-        return run
+        shutil.rmtree(self.staging, ignore_errors=True)  # an earlier interrupted run: this one replaces it
+        self.staging.mkdir()
+        self._write_manifest()
 
     def path(self, *names: str) -> Path:
         """Where to write ``names[0]`` (relative, POSIX): its place in the staging folder, listed in the
@@ -178,6 +262,7 @@ class RunFolder:
         data = {"complete": True, "files": [n for n in self._files if (self.folder / n).is_file()], "pid": os.getpid()}
         write_text(self.folder / MANIFEST, json.dumps(data, indent=1) + "\n")
         shutil.rmtree(self.staging, ignore_errors=True)
+        self.release()
 
     def _write_manifest(self) -> None:
         data = {"complete": False, "files": self._files, "pid": os.getpid()}

@@ -35,14 +35,24 @@ from vtkmodules.vtkCommonDataModel import vtkImageData, vtkPolyData
 from mabdi.algorithm import raise_pipeline_errors
 from mabdi.camera import Intrinsics
 from mabdi.depth import depth_array, image_pose
-from mabdi.filters.classifier import CONTRADICTED, NO_RETURN, ClassifierParameters, FilterClassifier, label_array, pixel_counts
+from mabdi.filters.classifier import (
+    CONTRADICTED,
+    NO_RETURN,
+    ClassifierParameters,
+    FilterClassifier,
+    label_array,
+    pixel_counts,
+    dilate,
+    pose_sigma_array,
+)
 from mabdi.filters.depth_image import BACKENDS, SensorNoise
 from mabdi.filters.expected_image import MAP_PORT, MEASURED_PORT, FilterExpectedImage, face_id_array
 from mabdi.filters.refinement import MapRefinement, RefinementParameters
+from mabdi.filters.registration import FilterRegistration, RegistrationParameters, registration_values
 from mabdi.filters.registry import make_surface_filter
-from mabdi.filters.removal import RemovalParameters, removal_votes
+from mabdi.filters.removal import RemovalParameters, depth_edges, removal_votes
 from mabdi.filters.world_mesh import FilterWorldMesh
-from mabdi.polydata import polydata_area, polydata_arrays
+from mabdi.polydata import polydata_area, polydata_arrays, transformed_polydata
 from mabdi.sources.frames import FrameSource, SourceDepthFrames
 
 
@@ -72,6 +82,21 @@ class FrameRecord:
     #: Vertices moved by refinement this frame (:mod:`mabdi.filters.refinement`), and the stage's time.
     vertices_refined: int = 0
     t_refine_ms: float = 0.0
+    #: Registration to the map (:mod:`mabdi.filters.registration`): its status ("off" when not run), the
+    #: correction of the given pose (mm, degrees), the RMS residual of its pairs (mm), the inlier share, and
+    #: the least share of a constrained direction's constraint that its pairs carry.
+    registration: str = "off"
+    correction_mm: float = 0.0
+    correction_deg: float = 0.0
+    residual_mm: float = float("nan")
+    inlier_share: float = float("nan")
+    constraint_support: float = float("nan")
+    t_register_ms: float = 0.0
+
+    @property
+    def registered(self) -> bool:
+        """Whether the frame's pose was registered to the map (only such frames vote for removal)."""
+        return self.registration == "registered"
 
 
 class MabdiLoop:
@@ -81,7 +106,8 @@ class MabdiLoop:
     black box); ``surface``: a registered surface name and its parameters
     (None: the filter's defaults); ``noise``: the sensor's noise model, for the
     classifier's threshold tau(z) and noise-aware surfaces; ``removal`` and
-    ``refinement``: their rules (None: defaults), used when ``classifier`` turns them on.
+    ``refinement``: their rules (None: defaults), used when ``classifier`` turns them on;
+    ``registration``: frame-to-map registration (None: defaults, on), used when the classifier is on.
     """
 
     def __init__(
@@ -94,6 +120,7 @@ class MabdiLoop:
         backend: str = BACKENDS[0],
         removal: RemovalParameters | None = None,
         refinement: RefinementParameters | None = None,
+        registration: RegistrationParameters | None = None,
     ) -> None:
         self.source = source
         self.classifier_parameters = classifier if classifier is not None else ClassifierParameters()
@@ -109,16 +136,29 @@ class MabdiLoop:
         self.measured = SourceDepthFrames(source)
         self.world = FilterWorldMesh()
         self.expected = FilterExpectedImage(backend=backend, identity=self.removal or self.refining)
+        self.registration_parameters = registration if registration is not None else RegistrationParameters()
+        #: D as the classifier sees it: registered to the map (the renderer of E is shared: one upload of the map)
+        self.registration: FilterRegistration | None = None
+        measured_port = self.measured.GetOutputPort()
+        if self.classifier_parameters.enabled and self.registration_parameters.enabled:
+            self.registration = FilterRegistration(self.registration_parameters, self.noise, renderer=self.expected.renderer)
+            self.registration.SetInputDataObject(MAP_PORT, self.world.map)
+            self.registration.SetInputConnection(MEASURED_PORT, measured_port)
+            measured_port = self.registration.GetOutputPort()
         self.expected.SetInputDataObject(MAP_PORT, self.world.map)
-        self.expected.SetInputConnection(MEASURED_PORT, self.measured.GetOutputPort())
+        self.expected.SetInputConnection(MEASURED_PORT, measured_port)
         self.classifier = FilterClassifier(self.classifier_parameters, noise=self.noise)
-        self.classifier.SetInputConnection(0, self.measured.GetOutputPort())
+        self.classifier.SetInputConnection(0, measured_port)
         self.classifier.SetInputConnection(1, self.expected.GetOutputPort())
         self.surface = make_surface_filter(surface, surface_parameters, self.noise)
         upstream = self.classifier if self.classifier_parameters.enabled else self.measured
         self.surface.SetInputConnection(upstream.GetOutputPort())
         self.world.SetInputConnection(self.surface.GetOutputPort())
-        self._algorithms = (self.measured, self.expected, self.classifier, self.surface, self.world)
+        self._algorithms = tuple(
+            a for a in (self.measured, self.registration, self.expected, self.classifier, self.surface, self.world) if a is not None
+        )
+        #: (N, 4, 4) the pose each frame was meshed with (registered, or as given); NaN for frames not run
+        self._poses = np.full((len(source), 4, 4), np.nan)
         self._removed = vtkPolyData()
         self._refined = None
         self._ray_cache: tuple[Intrinsics, np.ndarray] | None = None
@@ -135,6 +175,7 @@ class MabdiLoop:
             backend=config.sensor.backend,
             removal=config.removal,
             refinement=config.refinement,
+            registration=config.registration,
         )
 
     # -- running -----------------------------------------------------------
@@ -150,22 +191,37 @@ class MabdiLoop:
         """Empty the map, and a surface filter's own memory (voxel statistics); render windows stay."""
         self.world.reset()
         self.refinement.reset()
+        if self.registration is not None:
+            self.registration.reset()
+        if self.noise.calibration is not None:
+            self.noise.calibration.reset()
+        self._poses[:] = np.nan
         if hasattr(self.surface, "reset"):
             self.surface.reset()
 
     def state(self) -> dict:
-        """The loop's state between frames, for checkpoints: the map, and a stateful surface filter's memory."""
-        state = {"world": self.world.state(), "refinement": self.refinement}
+        """The loop's state between frames, for checkpoints: the map, refinement's and a stateful surface
+        filter's memory. Plain data only (dicts, lists, numbers, strings, numpy arrays: :mod:`mabdi.io.checkpoint`)."""
+        state = {"world": self.world.state(), "refinement": self.refinement.state(self.world), "poses": self._poses.copy()}
         if hasattr(self.surface, "state"):
             state["surface"] = self.surface.state()
+        if self.registration is not None:
+            state["registration"] = self.registration.state()
+        if self.noise.calibration is not None:
+            state["noise_calibration"] = self.noise.calibration.state()
         return state
 
     def set_state(self, state: dict) -> None:
         """Go on from a :meth:`state` (the next :meth:`step` continues the saved run)."""
         self.world.set_state(state["world"])
-        self.refinement = state["refinement"]
+        self.refinement.set_state(state["refinement"], self.world)
         if "surface" in state:
             self.surface.set_state(state["surface"])
+        self._poses = np.array(state["poses"], dtype=np.float64)
+        if self.registration is not None:
+            self.registration.set_state(state["registration"])
+        if self.noise.calibration is not None:
+            self.noise.calibration.set_state(state["noise_calibration"])
 
     def step(self, index: int) -> FrameRecord:
         """Run frame ``index``: read D, render E, classify, mesh, append. Times each stage."""
@@ -173,8 +229,13 @@ class MabdiLoop:
         self.measured.frame = index
         self.measured.Update()
         t_depth = time.perf_counter()
-        t_expected = t_classify = t_depth
+        t_register = t_expected = t_classify = t_depth
         cells_removed = 0
+        registration = {"status": "off", "correction_m": 0.0, "correction_deg": 0.0, "residual_m": np.nan, "inlier_share": np.nan, "support": np.nan}
+        if self.registration is not None:
+            self.registration.Update()
+            registration = registration_values(self.registration.GetOutput())
+            t_register = t_expected = t_classify = time.perf_counter()
         if self.classifier_enabled:
             self.expected.Update()
             t_expected = time.perf_counter()
@@ -185,6 +246,11 @@ class MabdiLoop:
         self.world.Update()
         t_append = time.perf_counter()
         raise_pipeline_errors(*self._algorithms)
+        self._poses[index] = image_pose(self.measured_image())
+        # Removal votes only from frames whose pose is known to fit the map (registered, or given as exact).
+        votes = registration["status"] in ("registered", "off")
+        if self.noise.calibration is not None and self.classifier_enabled and votes:
+            self._calibrate_noise()
         # Refinement and removal last: the map changes after this frame's E was used, so E is not drawn
         # twice; the surface behind a removed or replaced face is novel (and meshed) in the next frame.
         replaced = np.zeros(0, dtype=np.int64)
@@ -196,8 +262,8 @@ class MabdiLoop:
         t_refine = time.perf_counter()
         t_remove = t_refine
         self._removed = vtkPolyData()
-        if self.removal or len(replaced):
-            cells_removed = self._remove_contradicted(replaced)
+        if (self.removal and votes) or len(replaced):
+            cells_removed = self._remove_contradicted(replaced, votes)
             t_remove = time.perf_counter()
 
         if self.classifier_enabled:
@@ -212,7 +278,7 @@ class MabdiLoop:
             cells_added=self.world.cells_added,
             cells_total=self.world.number_of_cells,
             t_depth_ms=ms * (t_depth - start),
-            t_expected_ms=ms * (t_expected - t_depth),
+            t_expected_ms=ms * (t_expected - t_register),
             t_classify_ms=ms * (t_classify - t_expected),
             t_surface_ms=ms * (t_surface - t_classify),
             t_append_ms=ms * (t_append - t_surface),
@@ -227,7 +293,21 @@ class MabdiLoop:
             t_refine_ms=ms * (t_refine - t_append),
             area_removed=polydata_area(self._removed) if cells_removed else 0.0,
             t_remove_ms=ms * (t_remove - t_refine),
+            registration=registration["status"],
+            correction_mm=1000.0 * registration["correction_m"],
+            correction_deg=registration["correction_deg"],
+            residual_mm=1000.0 * registration["residual_m"],
+            inlier_share=registration["inlier_share"],
+            constraint_support=registration["support"],
+            t_register_ms=ms * (t_register - t_depth),
         )
+
+    def _calibrate_noise(self) -> None:
+        """``noise = "auto"``: this frame's D - E where the map explains D, away from E's silhouettes
+        (:mod:`mabdi.filters.noise_calibration`)."""
+        expected = depth_array(self.expected.GetOutput())
+        silhouettes = dilate(depth_edges(expected, self.removal_parameters.edge_jump), 2)
+        self.noise.calibration.observe(depth_array(self.measured_image()), expected, silhouettes)
 
     def _unit_rays(self) -> tuple[np.ndarray, np.ndarray]:
         """(H, W, 3) unit pixel rays in the camera frame, and (H, W) their length per metre of depth (cached)."""
@@ -238,14 +318,14 @@ class MabdiLoop:
             self._ray_cache = (intrinsics, (rays / length[..., None]).astype(np.float32), length)
         return self._ray_cache[1], self._ray_cache[2]
 
-    def _remove_contradicted(self, replaced: np.ndarray) -> int:
-        """Vote with this frame's contradicted and known pixels, remove the faces the evidence condemns,
-        and the faces refinement ``replaced`` (made from a much noisier look)."""
+    def _remove_contradicted(self, replaced: np.ndarray, votes: bool) -> int:
+        """Vote with this frame's contradicted and known pixels (when ``votes``), remove the faces the
+        evidence condemns, and the faces refinement ``replaced`` (made from a much noisier look)."""
         gone = np.asarray(replaced, dtype=np.int64)
         classified = self.classifier.GetOutput()
         labels = label_array(classified)
         voting = None
-        if self.removal and self._anything_seen_through(labels):
+        if self.removal and votes and self._anything_seen_through(labels):
             # (A frame where no pixel sees through the map is skipped whole: confirmations only matter
             # against contradictions. The common case once the world is known.)
             voting, condemned = self._votes(labels)
@@ -291,6 +371,7 @@ class MabdiLoop:
             evidence_of=self.world.face_evidence_of,
             sigma=lambda depth: self.noise.sigma(depth, self.intrinsics.near, self.intrinsics.far),
             far=self.intrinsics.far,
+            pose_sigma=pose_sigma_array(self.classifier.GetOutput()),
         )
         if not len(faces):
             return voting, np.zeros(0, dtype=np.int64)
@@ -330,8 +411,20 @@ class MabdiLoop:
 
     # -- what the last frame produced --------------------------------------
     def measured_image(self) -> vtkImageData:
-        """D of the last frame (depth image; field data: intrinsics, pose, frame, timestamp)."""
-        return self.measured.GetOutput()
+        """D of the last frame (depth image; field data: intrinsics, pose, frame, timestamp), with its pose
+        registered to the map when registration is on (the given pose is beside it, :mod:`mabdi.filters.registration`)."""
+        return (self.registration if self.registration is not None else self.measured).GetOutput()
+
+    def world_from_map(self) -> np.ndarray:
+        """Where the map's frame lies in the world (4x4): the loop builds the map in its own frame, started at
+        the first frame's given pose and tied to the given poses as a whole (:mod:`mabdi.filters.map_anchor`);
+        identity without registration."""
+        return np.eye(4) if self.registration is None else self.registration.anchor.world_from_map
+
+    def trajectory(self) -> np.ndarray:
+        """(N, 4, 4) world_from_camera each frame was meshed with (registered, else as given), in the world
+        frame; NaN for frames not run."""
+        return np.einsum("ij,njk->nik", self.world_from_map(), self._poses)
 
     def expected_image(self) -> vtkImageData | None:
         """E of the last frame, or None when the classifier is off (E is not rendered then)."""
@@ -359,8 +452,11 @@ class MabdiLoop:
         return self.surface.GetOutput()
 
     def mesh(self) -> vtkPolyData:
-        """The whole map as one vtkPolyData (cell data ``frame``)."""
-        return self.world.mesh()
+        """The whole map as one vtkPolyData (cell data ``frame``), in the world frame (:meth:`world_from_map`)."""
+        world_from_map = self.world_from_map()
+        if np.array_equal(world_from_map, np.eye(4)):
+            return self.world.mesh()
+        return transformed_polydata(self.world.mesh(), world_from_map)
 
     def memory_bytes(self) -> int:
         """Memory held by the map's blocks."""

@@ -4,14 +4,19 @@
 RGB-D folder (:mod:`mabdi.sources.tum`) or a ROS 2 bag
 (:mod:`mabdi.sources.rosbag2`), with a ``[recorded]`` table in the
 recording's ``mabdi.toml`` that names the scene it came from (the digest of
-the config's ``[scene]`` and frame count, :func:`scene_digest`).
+the config's ``[scene]`` and frame count, :func:`scene_digest`). The
+recording's poses are the rig's given poses (with the config's
+``[sensor.pose_noise]``, as a robot gives them); the true poses go beside
+them, in ``poses_true.npy`` (:data:`TRUE_POSES`) in the recording's folder,
+so the pose error can be scored.
 
 ``recorded_simulation(config, path)`` opens a recording and builds a
 :class:`~mabdi.simulate.runner.Simulation` over it with the config's
 classifier, surface and output settings. The ground truth for the
 evaluation is the config's scene when the recording says it came from that
 very scene (same digest); otherwise the evaluation is skipped, with a note
-saying why.
+saying why. When the recording has ``poses_true.npy``, the evaluation judges
+what the sensor saw from those (``Simulation.true_poses``).
 """
 
 from __future__ import annotations
@@ -20,13 +25,18 @@ import hashlib
 import shutil
 from pathlib import Path
 
+import numpy as np
+
 from mabdi.config import RunConfig, SceneConfig, dump_toml
+from mabdi.io.atomic import atomic_output
 from mabdi.io.run_folder import OutputError
 from mabdi.simulate.rig import SimulatedRig
 from mabdi.simulate.runner import Simulation
 from mabdi.sources.scene import SourceScene
 
 FORMATS = ("tum", "rosbag2")
+#: The true poses of a recording made by :func:`record`, (N, 4, 4), in the recording's folder.
+TRUE_POSES = "poses_true.npy"
 #: The reader options each format takes (the others are an error when given).
 READER_OPTIONS = {
     "tum": ("camera", "tolerance"),
@@ -74,6 +84,8 @@ def record(config: RunConfig, out, format: str, storage: str = "sqlite3", encodi
             from mabdi.sources.rosbag2 import write_rosbag2
 
             write_rosbag2(rig, out, storage=storage, encoding=encoding, extra=extra)
+        with atomic_output(Path(out) / TRUE_POSES) as temporary:
+            np.save(temporary, rig.true_poses)
     finally:
         rig.close()
     return Path(out)
@@ -83,7 +95,7 @@ def recorded_simulation(config: RunConfig, path, **options) -> tuple[Simulation,
     """A Simulation over the recording at ``path`` (``options`` go to the reader), and a note when
     the ground truth is unknown (the evaluation is then skipped)."""
     from mabdi.errors import ConfigError
-    from mabdi.sources.sequences import open_sequence, read_sequence_metadata, sequence_format
+    from mabdi.sources.sequences import metadata_path, open_sequence, read_sequence_metadata, sequence_format
 
     kind = sequence_format(path)
     wanted = READER_OPTIONS[kind]
@@ -105,4 +117,10 @@ def recorded_simulation(config: RunConfig, path, **options) -> tuple[Simulation,
     else:
         base_dir = config.source.parent if config.source is not None else None
         scene = SourceScene(config.scene, frames=int(recorded["frames"]), base_dir=base_dir)
-    return Simulation(config, source=source, scene=scene), note
+    simulation = Simulation(config, source=source, scene=scene)
+    true_file = metadata_path(path).with_name(TRUE_POSES)  # beside the recording's mabdi.toml
+    if scene is not None and true_file.is_file():
+        true_poses = np.load(true_file, allow_pickle=False)
+        if true_poses.shape == simulation.poses.shape:
+            simulation.true_poses = true_poses
+    return simulation, note

@@ -7,6 +7,12 @@ off by their schedules) + off-screen depth sensor
 stands at frame i, seen from pose i, with noise drawn from the stream of
 (seed, i): reading a frame twice, or out of order, gives the same image.
 
+Poses: the sensor renders frame i from the *true* pose i (the path), and
+the frame carries the *given* pose i, the true one with the run config's
+``[sensor.pose_noise]`` (:class:`~mabdi.pose_noise.PoseNoise`, drawn from the
+run seed), as a robot's odometry or SLAM would give it. ``poses`` are the
+given poses, ``true_poses`` the true ones; without pose noise they are equal.
+
 Timestamps: the simulated sensor runs at :data:`FRAME_RATE` frames per
 second (frame i at i / 30 s), like the Kinect it imitates.
 """
@@ -19,6 +25,7 @@ from mabdi.camera import Intrinsics
 from mabdi.config import RunConfig
 from mabdi.depth import DepthFrame, depth_array
 from mabdi.filters.depth_image import FilterDepthImage, SensorNoise
+from mabdi.pose_noise import PoseNoise
 from mabdi.simulate.path import path_from_config
 from mabdi.sources.frames import FrameSource
 from mabdi.sources.scene import SourceScene
@@ -39,18 +46,22 @@ class SimulatedRig(FrameSource):
         seed: int = 0,
         backend: str = "egl",
         description: str = "simulated sensor",
+        pose_noise: PoseNoise | None = None,
     ) -> None:
         self.scene = scene
-        self._poses = np.asarray(poses, dtype=np.float64)
-        if self._poses.ndim != 3 or self._poses.shape[1:] != (4, 4) or len(self._poses) == 0:
-            raise ValueError(f"SimulatedRig: poses must be (N, 4, 4) with N >= 1, got shape {self._poses.shape}")
+        self._true_poses = np.asarray(poses, dtype=np.float64)
+        if self._true_poses.ndim != 3 or self._true_poses.shape[1:] != (4, 4) or len(self._true_poses) == 0:
+            raise ValueError(f"SimulatedRig: poses must be (N, 4, 4) with N >= 1, got shape {self._true_poses.shape}")
+        #: The noise of the given poses (the frames' poses); the sensor renders from the true ones.
+        self.pose_noise = pose_noise if pose_noise is not None else PoseNoise()
+        self._poses = self.pose_noise.given_poses(self._true_poses, seed)
         self.sensor = FilterDepthImage(intrinsics=intrinsics, noise=noise, seed=seed, backend=backend)
         self.sensor.SetInputConnection(scene.GetOutputPort())
         self.description = description
 
     @classmethod
     def from_config(cls, config: RunConfig) -> SimulatedRig:
-        """The rig of a run config: its scene, ``[sensor]`` (intrinsics, noise, backend), ``[path]`` and seed."""
+        """The rig of a run config: its scene, ``[sensor]`` (intrinsics, noise, backend, pose noise), ``[path]`` and seed."""
         base_dir = config.source.parent if config.source is not None else None
         frames = config.run.frames
         scene = SourceScene(config.scene, frames=frames, base_dir=base_dir)
@@ -63,6 +74,7 @@ class SimulatedRig(FrameSource):
             seed=config.run.seed,
             backend=sensor.backend,
             description=f"simulated {config.run.name or 'scene'}",
+            pose_noise=sensor.pose_noise,
         )
 
     @property
@@ -71,7 +83,13 @@ class SimulatedRig(FrameSource):
 
     @property
     def poses(self) -> np.ndarray:
+        """(N, 4, 4) the given poses: those the frames carry (the true ones with the pose noise)."""
         return self._poses.copy()
+
+    @property
+    def true_poses(self) -> np.ndarray:
+        """(N, 4, 4) the poses the sensor renders from."""
+        return self._true_poses.copy()
 
     @property
     def timestamps(self) -> np.ndarray:
@@ -81,9 +99,10 @@ class SimulatedRig(FrameSource):
         return len(self._poses)
 
     def read_frame(self, index: int) -> DepthFrame:
-        """Render frame ``index``: the scene at that frame, from pose ``index``, with its noise."""
+        """Render frame ``index``: the scene at that frame, from true pose ``index``, with its noise; the
+        frame carries the given pose ``index``."""
         self.scene.set_frame(index)
-        self.sensor.pose = self._poses[index]
+        self.sensor.pose = self._true_poses[index]
         self.sensor.frame = index
         self.sensor.Update()
         # Each render hands out a new array, so the frame may keep it.

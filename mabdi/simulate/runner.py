@@ -18,11 +18,30 @@ temporary name, then renamed):
   and the metrics against the ground truth when the run was evaluated
   (written last: a folder with a ``summary.json`` holds a finished run);
 * ``elements.png``: triangles in the map per frame (seed 001 Fig. 7);
-* ``poses.npy``, ``path.vtp`` and, when the scene is known, ``scene.vtp``
-  (the ground truth at the last frame);
+* ``poses.npy``: the poses the frames were meshed with (registered to the
+  map, :mod:`mabdi.filters.registration`; as given where registration is off
+  or failed), the same as a TUM trajectory (``trajectory.txt``: timestamp
+  tx ty tz qx qy qz qw), ``poses_given.npy`` (the poses the frames carried),
+  ``path.vtp`` (the meshed poses' path) and, when the scene is known,
+  ``scene.vtp`` (the ground truth at the last frame);
+* ``poses_true.npy`` when the source knows the true poses (a simulation:
+  they differ from ``poses.npy`` with ``[sensor.pose_noise]``);
 * with ``output.depth_images``: ``depth/D_000000.vti``, ``E_...``, ``labels_...``;
 * ``.mabdi-run.json``: the manifest of the files above (:mod:`mabdi.io.run_folder`);
-* while running, with ``output.checkpoint_every``: ``checkpoint.pkl``.
+* while running, with ``output.checkpoint_every``: ``checkpoint.npz``.
+
+**Checkpoints** (``.mabdi-partial/checkpoint.npz``, :mod:`mabdi.io.checkpoint`
+format version 2: arrays and a JSON header, loaded without pickle, so a
+checkpoint from elsewhere runs no code). They hold the resolved config, the
+recording and its options, the run's own options (``run_options``: whether
+it is evaluated), the next frame, the seconds run so far, the frame records,
+:meth:`MabdiLoop.state` and the fingerprint of every input file
+(:mod:`mabdi.io.fingerprint`: config file, scene meshes, the recording's
+files, by SHA-256). :meth:`Simulation.resume` refuses (an
+:class:`~mabdi.io.run_folder.OutputError` naming it) a checkpoint of another
+format version, an old ``checkpoint.pkl`` (never unpickled), any input file
+that changed, went or appeared since the run started, and a checkpoint that
+is past the source's last frame.
 """
 
 from __future__ import annotations
@@ -30,7 +49,6 @@ from __future__ import annotations
 import csv
 import io
 import json
-import pickle
 import time
 import tomllib
 import warnings
@@ -42,6 +60,9 @@ from vtkmodules.vtkCommonDataModel import vtkPolyData
 
 from mabdi.config import RunConfig, dump_toml, run_config_from_dict
 from mabdi.io.atomic import atomic_output, write_text
+from mabdi.io.checkpoint import VERSION as CHECKPOINT_FORMAT_VERSION
+from mabdi.io.checkpoint import CheckpointError, read_tree, write_tree
+from mabdi.io.fingerprint import changed_inputs, fingerprint, run_inputs
 from mabdi.io.hdf5 import write_map
 from mabdi.io.plots import write_elements_plot
 from mabdi.io.run_folder import OutputError, RunFolder
@@ -55,10 +76,13 @@ from mabdi.simulate.loop import FrameRecord, MabdiLoop
 from mabdi.simulate.rig import SimulatedRig
 from mabdi.sources.frames import FrameSource
 from mabdi.sources.scene import SourceScene
+from mabdi.sources.tum import write_tum_trajectory
 
-#: The loop's state every ``output.checkpoint_every`` frames (pickled; read only by the same mabdi version).
-CHECKPOINT = "checkpoint.pkl"
-CHECKPOINT_VERSION = 1
+#: The loop's state every ``output.checkpoint_every`` frames (data only: :mod:`mabdi.io.checkpoint`).
+CHECKPOINT = "checkpoint.npz"
+CHECKPOINT_VERSION = CHECKPOINT_FORMAT_VERSION
+#: The pickled checkpoint of mabdi before format version 2: refused, never loaded.
+OLD_CHECKPOINT = "checkpoint.pkl"
 
 #: The first columns of metrics.csv, in this order (counts are triangles; times in ms).
 METRICS_COLUMNS = (
@@ -90,6 +114,8 @@ class RunResult:
     backend: dict = field(default_factory=dict)
     source: str = ""
     folder: RunFolder | None = field(default=None, repr=False)
+    #: ``noise = "auto"``: the calibrated sigma(z) (:meth:`mabdi.filters.noise_calibration.NoiseCalibration.summary`)
+    noise_calibration: dict | None = None
 
     @property
     def cells(self) -> np.ndarray:
@@ -100,7 +126,7 @@ class RunResult:
         """Totals for ``summary.json`` and the command line."""
         records = self.records
         n = max(len(records), 1)
-        stages = ("t_depth_ms", "t_expected_ms", "t_classify_ms", "t_refine_ms", "t_remove_ms", "t_surface_ms", "t_append_ms", "t_total_ms")
+        stages = ("t_depth_ms", "t_register_ms", "t_expected_ms", "t_classify_ms", "t_refine_ms", "t_remove_ms", "t_surface_ms", "t_append_ms", "t_total_ms")
         return {
             "name": self.config.run.name,
             "source": self.source,
@@ -119,6 +145,8 @@ class RunResult:
             "frames_per_second": len(records) / self.seconds if self.seconds > 0 else None,
             "mean_ms": {s: float(sum(getattr(r, s) for r in records) / n) for s in stages},
             "render": self.backend,
+            "registration": registration_summary(records),
+            "noise_calibration": self.noise_calibration,
         }
 
 
@@ -128,7 +156,9 @@ class Simulation:
     Attributes: ``config``; ``source`` (the frames); ``rig`` (the
     :class:`SimulatedRig` when the frames are simulated, else None);
     ``scene`` (the ground truth :class:`SourceScene`, None when unknown);
-    ``loop`` (:class:`MabdiLoop`); ``poses`` ((N, 4, 4) world_from_camera).
+    ``loop`` (:class:`MabdiLoop`); ``poses`` ((N, 4, 4) world_from_camera, as
+    the frames give them); ``true_poses`` (the poses the sensor really had,
+    when known, else None: :attr:`FrameSource.true_poses`).
     """
 
     def __init__(self, config: RunConfig, source: FrameSource | None = None, scene: SourceScene | None = None) -> None:
@@ -142,6 +172,7 @@ class Simulation:
         self.scene = scene
         self.loop = MabdiLoop.from_config(config, source)
         self.poses = source.poses
+        self.true_poses = source.true_poses
 
     @property
     def frames(self) -> int:
@@ -152,68 +183,132 @@ class Simulation:
         """Run frame ``i`` (see :meth:`MabdiLoop.step`)."""
         return self.loop.step(i)
 
+    def meshed_poses(self) -> np.ndarray:
+        """(N, 4, 4) the poses the frames were meshed with: registered to the map, else as given (frames not run too)."""
+        trajectory = self.loop.trajectory()
+        run = np.isfinite(trajectory).all(axis=(1, 2))
+        return np.where(run[:, None, None], trajectory, self.poses)
+
     def render_backend(self) -> dict:
         """The backend that rendered (the sensor's for simulated frames, else E's)."""
         renderer = self.rig.sensor.renderer if self.rig is not None else self.loop.expected.renderer
         return renderer.describe()
 
     def run(
-        self, out_dir=None, progress=None, *, overwrite: bool = False, finish: bool = True, recording: dict | None = None
+        self,
+        out_dir=None,
+        progress=None,
+        *,
+        overwrite: bool = False,
+        finish: bool = True,
+        recording: dict | None = None,
+        run_options: dict | None = None,
     ) -> RunResult:
         """Run every frame; write the outputs of the module docs when ``out_dir`` is given.
 
         ``progress(record)`` is called after each frame. The output folder
         follows :mod:`mabdi.io.run_folder` (a previous run's files are
         replaced whole; a folder with other files is refused unless
-        ``overwrite``). With ``output.checkpoint_every = N`` the loop's state
-        is saved every N frames (``checkpoint.pkl``) so that :meth:`resume`
-        can finish an interrupted run. ``finish=False`` leaves
-        ``summary.json`` and the completion mark to the caller (who
-        evaluates first, then calls :func:`finish_run`). ``recording``
-        describes a recorded source so a resume can reopen it.
+        ``overwrite``; a folder another run is writing is refused). With
+        ``output.checkpoint_every = N`` the loop's state is saved every N
+        frames (``checkpoint.npz``) so that :meth:`resume` can finish an
+        interrupted run. ``finish=False`` leaves ``summary.json`` and the
+        completion mark to the caller (who evaluates first, then calls
+        :func:`finish_run`). ``recording`` describes a recorded source so a
+        resume can reopen it (``{"path": ..., "options": {...}}``);
+        ``run_options`` (plain data, e.g. ``{"no_eval": True}``) is kept in
+        the checkpoint for the resumed run (:attr:`run_options`).
         """
         folder = None
+        self._recording = recording
+        self.run_options = dict(run_options or {})
+        self._inputs = None
         if out_dir is not None:
             folder = out_dir if isinstance(out_dir, RunFolder) else RunFolder.prepare(out_dir, overwrite, self.config.source)
             write_text(folder.path("config.toml"), dump_toml(self.config))
+            if self.config.output.checkpoint_every:
+                self._inputs = fingerprint(self._input_files())
         self.loop.reset()
-        self._recording = recording
         return self._run_frames(folder, 0, [], progress, finish)
+
+    def _input_files(self) -> dict[str, str]:
+        """The files this run reads (:func:`mabdi.io.fingerprint.run_inputs`)."""
+        recording = self._recording["path"] if getattr(self, "_recording", None) else None
+        return run_inputs(self.config, recording, scene=self.scene is not None or self.rig is not None)
 
     @classmethod
     def resume(cls, out_dir, progress=None, finish: bool = True) -> tuple[Simulation, RunResult]:
         """Finish the interrupted run in ``out_dir`` from its last checkpoint; returns (simulation, result).
 
-        Runs are deterministic, so the map equals the one an uninterrupted run gives.
+        Runs are deterministic, so the map equals the one an uninterrupted run gives. Refused (an
+        :class:`OutputError` naming the reason) when an input file changed since the run started, or the
+        checkpoint is not one this mabdi reads (see the module docs).
         """
         folder = RunFolder.resume(out_dir)
-        checkpoint = read_checkpoint(folder.staging)
-        config = run_config_from_dict(tomllib.loads(checkpoint["config"]), where=str(folder.folder / "config.toml"))
-        config.source = Path(checkpoint["config_source"]) if checkpoint["config_source"] else None
-        recording = checkpoint["recording"]
-        if recording is None:
-            simulation = cls(config)
-        else:
-            from mabdi.simulate.recorded import recorded_simulation  # above this module: imported when needed
+        try:
+            checkpoint = read_checkpoint(folder.staging)
+            config = run_config_from_dict(tomllib.loads(checkpoint["config"]), where=str(folder.folder / "config.toml"))
+            config.source = Path(checkpoint["config_source"]) if checkpoint["config_source"] else None
+            recording = checkpoint["recording"]
+            saved_inputs = checkpoint["inputs"]
+            changes = changed_inputs(saved_inputs, run_inputs(config, recording["path"] if recording else None, scene=False))
+            if changes:
+                shown = "; ".join(changes[:3]) + (f"; and {len(changes) - 3} more" if len(changes) > 3 else "")
+                raise OutputError(
+                    f"cannot resume {folder.folder}: an input changed since the run started ({shown}); "
+                    "run it again without --resume"
+                )
+            if recording is None:
+                simulation = cls(config)
+            else:
+                from mabdi.simulate.recorded import recorded_simulation  # above this module: imported when needed
 
-            simulation, _ = recorded_simulation(config, recording["path"], **recording["options"])
-        simulation._recording = recording
-        simulation.loop.set_state(checkpoint["loop"])
-        result = simulation._run_frames(folder, checkpoint["next_frame"], checkpoint["records"], progress, finish)
+                simulation, simulation_note = recorded_simulation(config, recording["path"], **recording["options"])
+                simulation.recording_note = simulation_note  # why the evaluation is skipped, if it is
+            first = int(checkpoint["next_frame"])
+            if first > simulation.frames:
+                raise OutputError(
+                    f"cannot resume {folder.folder}: its checkpoint is at frame {first}, "
+                    f"but the source has {simulation.frames} frames now"
+                )
+            try:
+                records = [FrameRecord(**record) for record in checkpoint["records"]]
+            except TypeError as exc:
+                raise OutputError(f"cannot resume {folder.folder}: its checkpoint's frame records do not fit ({exc})") from None
+            simulation._recording = recording
+            simulation.run_options = dict(checkpoint["run_options"] or {})
+            simulation._inputs = saved_inputs
+            try:
+                simulation.loop.set_state(checkpoint["loop"])
+            except (KeyError, TypeError, ValueError, IndexError) as exc:
+                raise OutputError(
+                    f"cannot resume {folder.folder}: its checkpoint's loop state does not fit this run "
+                    f"({type(exc).__name__}: {exc})"
+                ) from None
+        except BaseException:
+            folder.release()
+            raise
+        result = simulation._run_frames(folder, first, records, progress, finish, float(checkpoint["seconds"]))
         return simulation, result
 
-    def _run_frames(self, folder, first: int, records: list, progress, finish: bool) -> RunResult:
+    def _run_frames(self, folder, first: int, records: list, progress, finish: bool, seconds_before: float = 0.0) -> RunResult:
+        """Frames ``first``.. of the source; ``seconds_before``: the time an interrupted run spent on the earlier ones."""
         every = self.config.output.checkpoint_every
         start = time.perf_counter()
-        for i in range(first, self.frames):
-            records.append(self.step(i))
-            if folder is not None and self.config.output.depth_images:
-                self._write_depth_images(folder, i)
-            if folder is not None and every and (i + 1) % every == 0 and i + 1 < self.frames:
-                self._write_checkpoint(folder, i + 1, records)
-            if progress is not None:
-                progress(records[-1])
-        seconds = time.perf_counter() - start
+        try:
+            for i in range(first, self.frames):
+                records.append(self.step(i))
+                if folder is not None and self.config.output.depth_images:
+                    self._write_depth_images(folder, i)
+                if folder is not None and every and (i + 1) % every == 0 and i + 1 < self.frames:
+                    self._write_checkpoint(folder, i + 1, records, seconds_before + time.perf_counter() - start)
+                if progress is not None:
+                    progress(records[-1])
+        except BaseException:
+            if folder is not None:
+                folder.release()  # an interrupted run: its staged files stay for --resume, the folder is free
+            raise
+        seconds = seconds_before + time.perf_counter() - start
         result = RunResult(
             config=self.config,
             records=records,
@@ -224,32 +319,56 @@ class Simulation:
             backend=self.render_backend(),
             source=self.source.description,
             folder=folder,
+            noise_calibration=self.loop.noise.calibration.summary() if self.loop.noise.calibration is not None else None,
         )
         if folder is not None:
-            write_run_outputs(result, self)
-            if finish:
-                finish_run(result)
+            try:
+                write_run_outputs(result, self)
+                if finish:
+                    finish_run(result)
+            except BaseException:
+                folder.release()
+                raise
         return result
 
-    def _write_checkpoint(self, folder: RunFolder, next_frame: int, records: list) -> None:
+    def _write_checkpoint(self, folder: RunFolder, next_frame: int, records: list, seconds: float) -> None:
         """Save the loop's state after ``next_frame`` frames (atomically; the previous checkpoint is replaced)."""
+        if getattr(self, "_inputs", None) is None:
+            self._inputs = fingerprint(self._input_files())
         state = {
-            "version": CHECKPOINT_VERSION,
             "config": dump_toml(self.config),
             "config_source": str(self.config.source) if self.config.source is not None else "",
             "recording": getattr(self, "_recording", None),
+            "run_options": getattr(self, "run_options", {}),
             "next_frame": next_frame,
-            "records": records,
+            "seconds": float(seconds),
+            "records": [asdict(record) for record in records],
+            "inputs": self._inputs,
             "loop": self.loop.state(),
         }
-        with atomic_output(folder.path(CHECKPOINT)) as temporary, open(temporary, "wb") as stream:
-            pickle.dump(state, stream, protocol=pickle.HIGHEST_PROTOCOL)
+        write_tree(folder.path(CHECKPOINT), state)
 
     def _write_depth_images(self, folder: RunFolder, i: int) -> None:
         write_image(self.loop.measured_image(), folder.path(f"depth/D_{i:06d}.vti"))
         if self.loop.classifier_enabled:
             write_image(self.loop.expected_image(), folder.path(f"depth/E_{i:06d}.vti"))
             write_image(self.loop.classified_image(), folder.path(f"depth/labels_{i:06d}.vti"))
+
+
+def registration_summary(records: list[FrameRecord]) -> dict:
+    """How many frames were registered to the map, why the others were not, and the corrections' medians."""
+    statuses: dict[str, int] = {}
+    for record in records:
+        statuses[record.registration] = statuses.get(record.registration, 0) + 1
+    registered = [r for r in records if r.registered]
+    return {
+        "registered": len(registered),
+        "not_registered": len(records) - len(registered) - statuses.get("off", 0),
+        "statuses": statuses,
+        "median_correction_mm": float(np.median([r.correction_mm for r in registered])) if registered else None,
+        "median_correction_deg": float(np.median([r.correction_deg for r in registered])) if registered else None,
+        "median_residual_mm": float(np.median([r.residual_mm for r in registered])) if registered else None,
+    }
 
 
 def metrics_csv(records: list[FrameRecord]) -> str:
@@ -298,9 +417,16 @@ def write_run_outputs(result: RunResult, simulation: Simulation) -> None:
     frames = np.array([r.frame for r in result.records])
     label = "mabdi" if config.classifier.enabled else "black box"
     write_elements_plot({label: (frames, result.cells)}, folder.path("elements.png"), title=config.run.name)
+    meshed = simulation.meshed_poses()
     with atomic_output(folder.path("poses.npy")) as temporary:
+        np.save(temporary, meshed)
+    with atomic_output(folder.path("poses_given.npy")) as temporary:
         np.save(temporary, simulation.poses)
-    write_polydata(polyline(simulation.poses[:, :3, 3]), folder.path("path.vtp"))
+    write_tum_trajectory(folder.path("trajectory.txt"), simulation.source.timestamps, meshed, simulation.source.description)
+    if getattr(simulation, "true_poses", None) is not None:
+        with atomic_output(folder.path("poses_true.npy")) as temporary:
+            np.save(temporary, simulation.true_poses)
+    write_polydata(polyline(meshed[:, :3, 3]), folder.path("path.vtp"))
     if simulation.scene is not None:
         write_polydata(simulation.scene.mesh_at(len(simulation.poses) - 1), folder.path("scene.vtp"))
 
@@ -341,15 +467,25 @@ def empty_map_reason(result: RunResult, simulation: Simulation) -> str:
 
 
 def read_checkpoint(folder: Path) -> dict:
-    """The checkpoint of an interrupted run (:meth:`Simulation.run` with ``output.checkpoint_every``)."""
-    path = Path(folder) / CHECKPOINT
+    """The checkpoint of an interrupted run (:meth:`Simulation.run` with ``output.checkpoint_every``).
+
+    Data only: nothing in it is executed (an old pickled ``checkpoint.pkl`` is refused unread).
+    """
+    folder = Path(folder)
+    path = folder / CHECKPOINT
     if not path.is_file():
+        if (folder / OLD_CHECKPOINT).is_file():
+            raise OutputError(
+                f"cannot resume {folder.parent}: its checkpoint {folder / OLD_CHECKPOINT} is a pickle from an older mabdi, "
+                "which is not loaded (loading a pickle can run code); run it again without --resume"
+            )
         raise OutputError(f"cannot resume {folder.parent}: no {CHECKPOINT} (the run stopped before its first checkpoint)")
     try:
-        with open(path, "rb") as stream:
-            state = pickle.load(stream)
-    except Exception as exc:  # a damaged checkpoint: say which file
-        raise OutputError(f"cannot resume {folder}: {path} is damaged ({type(exc).__name__}: {exc})") from None
-    if not isinstance(state, dict) or state.get("version") != CHECKPOINT_VERSION:
-        raise OutputError(f"cannot resume {folder}: {path} was written by another version of mabdi")
+        state = read_tree(path)
+    except CheckpointError as exc:
+        raise OutputError(f"cannot resume {folder.parent}: {exc}") from None
+    needed = ("config", "config_source", "recording", "run_options", "next_frame", "seconds", "records", "inputs", "loop")
+    missing = [key for key in needed if not isinstance(state, dict) or key not in state]
+    if missing:
+        raise OutputError(f"cannot resume {folder.parent}: {path} lacks {', '.join(missing)}")
     return state

@@ -80,6 +80,13 @@ class FrameSource:
         """(N,) timestamps in seconds (NaN where unknown)."""
         return np.array([self.read(i).timestamp for i in range(len(self))], dtype=np.float64)
 
+    @property
+    def true_poses(self) -> np.ndarray | None:
+        """(N, 4, 4) the poses the sensor really had, when the source knows them (a simulation with pose
+        noise: ``poses`` are the given ones), else None. Use them to judge what the sensor saw, or how far
+        off the given poses are; the map is built with ``poses``."""
+        return None
+
     def check_index(self, index: int) -> int:
         """``index`` as an int, or IndexError naming the source and its length."""
         if isinstance(index, bool) or not isinstance(index, (int, np.integer)) or not 0 <= index < len(self):
@@ -103,11 +110,14 @@ class FrameSource:
 class FrameList(FrameSource):
     """A source over frames already in memory (tests, or frames a user built with numpy)."""
 
-    def __init__(self, frames: list[DepthFrame], description: str = "frames in memory") -> None:
+    def __init__(self, frames: list[DepthFrame], description: str = "frames in memory", true_poses=None) -> None:
         if not frames:
             raise ValueError("FrameList needs at least one frame")
         self._frames = list(frames)
         self.description = description
+        self._true_poses = None if true_poses is None else np.array(true_poses, dtype=np.float64)
+        if self._true_poses is not None and self._true_poses.shape != (len(self._frames), 4, 4):
+            raise ValueError(f"FrameList: true_poses must be ({len(self._frames)}, 4, 4), got shape {self._true_poses.shape}")
 
     @property
     def intrinsics(self) -> Intrinsics:
@@ -123,6 +133,10 @@ class FrameList(FrameSource):
     @property
     def timestamps(self) -> np.ndarray:
         return np.array([frame.timestamp for frame in self._frames], dtype=np.float64)
+
+    @property
+    def true_poses(self) -> np.ndarray | None:
+        return None if self._true_poses is None else self._true_poses.copy()
 
     def read_frame(self, index: int) -> DepthFrame:
         frame = self._frames[index]

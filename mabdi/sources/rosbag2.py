@@ -24,22 +24,36 @@ z forward, as mabdi's camera frame; it is used without any rotation):
   optical frame in ``header.frame_id`` (the world);
 * or from ``/tf`` and ``/tf_static``: the transform tree is built from every
   ``TransformStamped`` (parent ``header.frame_id``, child
-  ``child_frame_id``; the transform is parent_from_child) and chained from
-  the world frame down to the image's frame. Static transforms hold at all
-  times; for each dynamic one the sample with the nearest stamp within
-  ``tolerance`` is taken (no interpolation). The world frame is ``frame_id=``
-  or, by default, the root of the camera frame's tree.
+  ``child_frame_id``; the transform is parent_from_child) and chained, per
+  depth image, from the world frame down to the image's frame, as tf2 does:
+  a ``/tf_static`` link holds at all times; a ``/tf`` link is interpolated
+  between its two samples around the image's stamp (linear in position,
+  slerp in rotation) however far apart they are (AMCL's map -> odom comes
+  at a few Hz), and held from its nearest sample within ``tolerance`` past
+  its first or last one. An image that some link does not reach is skipped
+  and counted, and the description names that link; when no image has a
+  pose, the error names the links that failed. The world frame is
+  ``frame_id=`` or, by default, the root of the camera frame's tree; a tree
+  with several roots (a link missing between the camera's part and the
+  rest, say base_link -> camera_link) is an error naming the missing link,
+  never a map in the wrong frame.
+* every transform's (and PoseStamped's) quaternion must be finite and of
+  non-zero length, its translation finite: otherwise an error names the
+  topic, the link (parent -> child) and the stamp.
 
 Topics are found by message type when there is one candidate: the depth
 image among the Image topics (those whose first message has a depth
 encoding), the CameraInfo beside it (``<namespace>/camera_info``) or the only
 one, a single PoseStamped topic, else ``/tf``. When there are several
 candidates, or none, the error lists what the bag has and names the argument
-that chooses (``depth_topic=``, ``info_topic=``, ``pose_topic=``).
+that chooses (``--depth-topic``, ``--info-topic``, ``--pose-topic`` on the
+command line; ``depth_topic=``, ``info_topic=``, ``pose_topic=`` in Python).
 
-**Matching**: depth frames and poses are matched by header stamps, nearest
-within ``tolerance`` seconds (default 20 ms); frames without a pose are
-skipped and counted (:attr:`Rosbag2Sequence.skipped`, and in ``description``).
+**Matching**: depth frames and poses are matched by header stamps: a
+PoseStamped topic's nearest pose within ``tolerance`` seconds (default 20
+ms), /tf as above; frames without a pose are skipped and counted
+(:attr:`Rosbag2Sequence.skipped`, and in ``description``, with the /tf links
+that did not reach them).
 
 **Reading by index**: at open the depth topic is scanned once (header stamps,
 bag time and position among messages of the same bag time; messages are
@@ -64,8 +78,10 @@ from mabdi.depth import DepthFrame
 from mabdi.sources.frames import FrameSource
 from mabdi.sources.sequences import (
     SequenceError,
+    bad_quaternions,
     camera_table,
     frame_timestamps,
+    interpolate_poses,
     metadata_path,
     nearest_within,
     poses_from_translations_quaternions,
@@ -78,6 +94,8 @@ IMAGE = "sensor_msgs/msg/Image"
 CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
 POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
 TF_MESSAGE = "tf2_msgs/msg/TFMessage"
+#: Compressed images (image_transport's compressed / compressedDepth): named in errors, not read.
+COMPRESSED_IMAGE = "sensor_msgs/msg/CompressedImage"
 
 #: Depth encodings read: name -> (dtype of one pixel, metres per unit).
 DEPTH_ENCODINGS = {"16UC1": (np.uint16, 1e-3), "32FC1": (np.float32, 1.0)}
@@ -115,10 +133,23 @@ def ns_to_seconds(stamps_ns) -> np.ndarray:
     return whole.astype(np.float64) + rest / 1e9
 
 
-def _pose_matrix(position, orientation) -> np.ndarray:
-    return poses_from_translations_quaternions(
-        [[position.x, position.y, position.z]], [[orientation.x, orientation.y, orientation.z, orientation.w]]
-    )[0]
+def _pose_matrix(position, orientation, what: str = "") -> np.ndarray:
+    """The 4x4 pose of a ROS position and quaternion; ``what`` names it in the error a NaN or zero quaternion gets."""
+    translation = [[position.x, position.y, position.z]]
+    quaternion = [[orientation.x, orientation.y, orientation.z, orientation.w]]
+    if bad_quaternions(quaternion)[0] or not np.isfinite(translation).all():
+        shown = ", ".join(f"{v:g}" for v in quaternion[0])
+        raise SequenceError(
+            f"{what}: the quaternion (x, y, z, w = {shown}) is not finite or has zero length"
+            if bad_quaternions(quaternion)[0]
+            else f"{what}: the translation ({', '.join(f'{v:g}' for v in translation[0])}) is not finite"
+        )
+    return poses_from_translations_quaternions(translation, quaternion)[0]
+
+
+def _option(name: str) -> str:
+    """How a reader option is given: on the command line and in Python."""
+    return f"--{name.replace('_', '-')} (Python: {name}=)"
 
 
 def _list(names) -> str:
@@ -174,10 +205,14 @@ class Rosbag2Sequence(FrameSource):
         self.description += (
             f", {self.skipped} without a pose within {self.tolerance * 1000:g} ms skipped)" if self.skipped else ")"
         )
+        spans = getattr(self, "_link_spans", {})
+        if spans and self.skipped:
+            self.description = self.description[:-1] + f"; not reached by {_list(spans)})"
         if not len(self._poses):
             raise SequenceError(
                 f"ROS 2 bag {self.path}: no image on {self.depth_topic} has a pose from {self.pose_source} "
                 f"within {self.tolerance * 1000:g} ms ({self.skipped} images)"
+                + (f"; the links that do not reach them: {'; '.join(spans.values())}" if spans else "")
             )
 
     # -- opening --------------------------------------------------------------
@@ -225,7 +260,7 @@ class Rosbag2Sequence(FrameSource):
 
     def _choose_depth_topic(self, topic: str | None) -> str:
         if topic is not None:
-            return self._check_topic(topic, IMAGE, "depth_topic=")
+            return self._check_topic(topic, IMAGE, _option("depth_topic"))
         candidates = self._of_type(IMAGE)
         if len(candidates) > 1:
             depth = []
@@ -234,11 +269,18 @@ class Rosbag2Sequence(FrameSource):
                 if first is not None and first[1].encoding in DEPTH_ENCODINGS:
                     depth.append(name)
             candidates = depth or candidates
+        packed = self._of_type(COMPRESSED_IMAGE)
+        if not candidates and packed:
+            raise SequenceError(
+                f"ROS 2 bag {self.path}: no {IMAGE} topic; compressed images ({_list(packed)}) are not read: "
+                f"decompress them into a {IMAGE} topic (e.g. ros2 run image_transport republish) and choose it with "
+                f"{_option('depth_topic')}"
+            )
         if len(candidates) != 1:
             raise SequenceError(
                 f"ROS 2 bag {self.path}: "
                 + (f"several depth image topics ({_list(candidates)})" if candidates else f"no {IMAGE} topic")
-                + "; choose one with depth_topic= (topics: "
+                + f"; choose one with {_option('depth_topic')} (topics: "
                 + _list(f"{t} [{m}]" for t, m in self.topics.items())
                 + ")"
             )
@@ -246,7 +288,7 @@ class Rosbag2Sequence(FrameSource):
 
     def _choose_info_topic(self, topic: str | None) -> str:
         if topic is not None:
-            return self._check_topic(topic, CAMERA_INFO, "info_topic=")
+            return self._check_topic(topic, CAMERA_INFO, _option("info_topic"))
         candidates = self._of_type(CAMERA_INFO)
         beside = self.depth_topic.rsplit("/", 1)[0] + "/camera_info"
         if beside in candidates:
@@ -255,7 +297,7 @@ class Rosbag2Sequence(FrameSource):
             raise SequenceError(
                 f"ROS 2 bag {self.path}: "
                 + (f"several {CAMERA_INFO} topics ({_list(candidates)})" if candidates else f"no {CAMERA_INFO} topic")
-                + f" for the depth images on {self.depth_topic}; choose one with info_topic= (topics: "
+                + f" for the depth images on {self.depth_topic}; choose one with {_option('info_topic')} (topics: "
                 + _list(f"{t} [{m}]" for t, m in self.topics.items())
                 + ")"
             )
@@ -265,16 +307,18 @@ class Rosbag2Sequence(FrameSource):
         if topic is not None:
             if topic in ("/tf", "/tf_static") or self.topics.get(topic) == TF_MESSAGE:
                 if "/tf" not in self.topics and "/tf_static" not in self.topics:
-                    raise SequenceError(f"ROS 2 bag {self.path}: pose_topic={topic!r} but the bag has no /tf or /tf_static")
+                    raise SequenceError(
+                        f"ROS 2 bag {self.path}: pose topic {topic!r} ({_option('pose_topic')}) but the bag has no /tf or /tf_static"
+                    )
                 return "/tf"
-            return self._check_topic(topic, POSE_STAMPED, "pose_topic=")
+            return self._check_topic(topic, POSE_STAMPED, _option("pose_topic"))
         candidates = self._of_type(POSE_STAMPED)
         if len(candidates) == 1:
             return candidates[0]
         if len(candidates) > 1:
             raise SequenceError(
                 f"ROS 2 bag {self.path}: several {POSE_STAMPED} topics ({_list(candidates)}); "
-                "choose one with pose_topic= (or pose_topic='/tf')"
+                f"choose one with {_option('pose_topic')} (or /tf)"
             )
         if self.topics.get("/tf") == TF_MESSAGE or self.topics.get("/tf_static") == TF_MESSAGE:
             return "/tf"
@@ -346,8 +390,10 @@ class Rosbag2Sequence(FrameSource):
                     f"ROS 2 bag {self.path}: topic {self.pose_source}: pose in frame {message.header.frame_id!r}, "
                     f"expected frame_id={frame_id!r}"
                 )
-            stamps.append(_stamp_ns(message.header.stamp))
-            poses.append(_pose_matrix(message.pose.position, message.pose.orientation))
+            stamp = _stamp_ns(message.header.stamp)
+            stamps.append(stamp)
+            where = f"ROS 2 bag {self.path}: topic {self.pose_source}: the pose at stamp {float(ns_to_seconds(stamp)):.9f} s"
+            poses.append(_pose_matrix(message.pose.position, message.pose.orientation, where))
         if not poses:
             raise SequenceError(f"ROS 2 bag {self.path}: pose topic {self.pose_source} has no messages")
         match = nearest_within(self._seconds(self._all_stamps), self._seconds(stamps), self.tolerance)
@@ -361,7 +407,8 @@ class Rosbag2Sequence(FrameSource):
         out[found] = poses[match[found]]
         return out
 
-    def _poses_from_tf(self, frame_id: str | None) -> tuple[np.ndarray, np.ndarray]:
+    def _read_tf(self) -> tuple[dict, dict]:
+        """Every link of /tf_static (child -> (parent, pose)) and /tf (child -> (parent, stamps ns, poses)), checked."""
         static: dict[str, tuple[str, np.ndarray]] = {}
         dynamic: dict[str, tuple[str, list[int], list[np.ndarray]]] = {}
         for topic in ("/tf_static", "/tf"):
@@ -370,7 +417,12 @@ class Rosbag2Sequence(FrameSource):
             for _, message in self._messages(topic):
                 for transform in message.transforms:
                     parent, child = transform.header.frame_id.lstrip("/"), transform.child_frame_id.lstrip("/")
-                    matrix = _pose_matrix(transform.transform.translation, transform.transform.rotation)
+                    stamp = _stamp_ns(transform.header.stamp)
+                    where = (
+                        f"ROS 2 bag {self.path}: {topic}: transform {parent} -> {child} "
+                        f"at stamp {float(ns_to_seconds(stamp)):.9f} s"
+                    )
+                    matrix = _pose_matrix(transform.transform.translation, transform.transform.rotation, where)
                     if topic == "/tf_static":
                         static[child] = (parent, matrix)
                     else:
@@ -379,13 +431,17 @@ class Rosbag2Sequence(FrameSource):
                             raise SequenceError(
                                 f"ROS 2 bag {self.path}: /tf: frame {child!r} has two parents ({entry[0]!r}, {parent!r})"
                             )
-                        entry[1].append(_stamp_ns(transform.header.stamp))
+                        entry[1].append(stamp)
                         entry[2].append(matrix)
+        return static, dynamic
+
+    def _poses_from_tf(self, frame_id: str | None) -> tuple[np.ndarray, np.ndarray]:
+        static, dynamic = self._read_tf()
         parents = {child: value[0] for child, value in {**dynamic, **static}.items()}
         camera = self.camera_frame.lstrip("/")
         if camera not in parents:
             raise SequenceError(
-                f"ROS 2 bag {self.path}: /tf has no transform to the depth images' frame {camera!r} "
+                f"ROS 2 bag {self.path}: /tf has no transform to the depth images' frame {camera!r}: missing link ? -> {camera} "
                 f"(frames with a parent: {_list(parents)})"
             )
         chain = [camera]  # camera, its parent, ..., up to the world frame
@@ -395,19 +451,54 @@ class Rosbag2Sequence(FrameSource):
                 raise SequenceError(f"ROS 2 bag {self.path}: /tf has a loop through {chain[-1]!r}")
         if frame_id is not None and chain[-1] != frame_id:
             raise SequenceError(
-                f"ROS 2 bag {self.path}: /tf: frame_id={frame_id!r} is not above {camera!r} (chain: {' <- '.join(reversed(chain))})"
+                f"ROS 2 bag {self.path}: /tf: frame_id={frame_id!r} is not above {camera!r}: missing link ? -> {chain[-1]} "
+                f"(chain: {' <- '.join(reversed(chain))})"
             )
+        if frame_id is None:
+            roots = sorted({p for p in parents.values() if p not in parents} - {chain[-1]})
+            if roots:
+                # a forest: the camera's part is not linked to the rest, so its root is not the world
+                others = sorted(f for f in {*parents, *parents.values()} if self._root(f, parents) in roots)
+                raise SequenceError(
+                    f"ROS 2 bag {self.path}: /tf: the images' frame {camera!r} is not connected to "
+                    f"{_list(roots)}: missing link ? -> {chain[-1]} (the chain from {camera!r} ends at {chain[-1]!r}: "
+                    f"{' <- '.join(reversed(chain))}; no transform has {chain[-1]!r} as its child; the other tree has "
+                    f"{_list(others)})"
+                )
         self.world_frame = chain[-1]
         times = self._seconds(self._all_stamps)
         poses = np.tile(np.eye(4), (len(times), 1, 1))
+        self.missing_links: dict[str, int] = {}  # "parent -> child": images that link does not reach
+        self._link_spans: dict[str, str] = {}
         for child in reversed(chain[:-1]):  # world_from_camera = world_from_a @ a_from_b @ ... @ x_from_camera
             if child in static:
                 poses = poses @ static[child][1]
-            else:
-                _, stamps, matrices = dynamic[child]
-                match = nearest_within(times, self._seconds(stamps), self.tolerance)
-                poses = poses @ self._gather(np.array(matrices), match)
+                continue
+            parent, stamps, matrices = dynamic[child]
+            link = self._interpolated(times, self._seconds(stamps), np.array(matrices))
+            gone = ~np.isfinite(link[:, 0, 0])
+            if gone.any():
+                name = f"{parent} -> {child}"
+                self.missing_links[name] = int(gone.sum())
+                seconds = self._seconds(stamps)
+                self._link_spans[name] = (
+                    f"{name} ({len(stamps)} transforms from {seconds.min():.3f} s to {seconds.max():.3f} s after the "
+                    f"first image; it misses {int(gone.sum())} of {len(times)} images)"
+                )
+            poses = poses @ link
         return self._all_stamps, poses
+
+    @staticmethod
+    def _root(frame: str, parents: dict) -> str:
+        seen = {frame}
+        while frame in parents and parents[frame] not in seen:
+            frame = parents[frame]
+            seen.add(frame)
+        return frame
+
+    def _interpolated(self, times: np.ndarray, stamps: np.ndarray, matrices: np.ndarray) -> np.ndarray:
+        """A /tf link at the image ``times`` (see the module docs): interpolated within its span, held within tolerance."""
+        return interpolate_poses(times, stamps, matrices, self.tolerance, bridge_gaps=True)
 
     # -- frames ---------------------------------------------------------------
 

@@ -237,6 +237,53 @@ def nearest_within(query, reference, tolerance: float):
     return np.where(found, order[best], -1).astype(np.int64)
 
 
+def interpolate_poses(query, times, poses, tolerance: float, bridge_gaps: bool = False) -> np.ndarray:
+    """(Q, 4, 4) poses at the ``query`` times, interpolated between the two samples around each (linear in
+    position, slerp in rotation); NaN where there is none. Times in seconds, ``poses`` (N, 4, 4) rigid.
+
+    A query between two samples that are both within ``tolerance`` of it is interpolated; with
+    ``bridge_gaps`` (a transform published slowly, as tf2 treats it) any two samples around it are.
+    Otherwise (past the ends, or in a gap) the nearest sample is held if it is within ``tolerance``.
+    A query at a sample's own time gets that sample exactly.
+    """
+    query = np.asarray(query, dtype=np.float64)
+    times = np.asarray(times, dtype=np.float64)
+    poses = np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)
+    out = np.full((len(query), 4, 4), np.nan)
+    if not len(times):
+        return out
+    order = np.argsort(times, kind="stable")
+    times, poses = times[order], poses[order]
+    nearest = nearest_within(query, times, tolerance)
+    held = nearest >= 0
+    out[held] = poses[nearest[held]]
+    right = np.searchsorted(times, query, side="right")  # times[right - 1] <= query < times[right]
+    left = right - 1
+    inside = (left >= 0) & (right < len(times))
+    left, right = np.clip(left, 0, len(times) - 1), np.clip(right, 0, len(times) - 1)
+    span = times[right] - times[left]
+    near = (query - times[left] <= tolerance) & (times[right] - query <= tolerance)
+    blend = inside & (span > 0) & (query > times[left]) & (near | bridge_gaps)
+    if blend.any():
+        a, b = left[blend], right[blend]
+        alpha = (query[blend] - times[a]) / span[blend]
+        out[blend] = np.eye(4)
+        out[blend, :3, 3] = (1.0 - alpha)[:, None] * poses[a, :3, 3] + alpha[:, None] * poses[b, :3, 3]
+        start = Rotation.from_matrix(poses[a, :3, :3])
+        step = (start.inv() * Rotation.from_matrix(poses[b, :3, :3])).as_rotvec()
+        out[blend, :3, :3] = (start * Rotation.from_rotvec(alpha[:, None] * step)).as_matrix()
+    exact = held & (np.abs(query - times[np.maximum(nearest, 0)]) == 0)
+    out[exact] = poses[nearest[exact]]
+    return out
+
+
+def bad_quaternions(quaternions) -> np.ndarray:
+    """(N,) True where an (x, y, z, w) quaternion is not finite or has (nearly) zero norm."""
+    q = np.asarray(quaternions, dtype=np.float64).reshape(-1, 4)
+    with np.errstate(invalid="ignore"):
+        return ~np.isfinite(q).all(axis=1) | ~(np.linalg.norm(q, axis=1) > 1e-9)
+
+
 def quaternions_from_rotations(rotations):
     """(N, 4) unit quaternions (x, y, z, w) of (N, 3, 3) rotation matrices (w >= 0; the nearest rotation if not exact)."""
     q = Rotation.from_matrix(np.asarray(rotations, dtype=np.float64).reshape(-1, 3, 3)).as_quat()

@@ -18,10 +18,15 @@ axis is not guaranteed to point up). The ground truth tracks the colour
 camera; the benchmark's depth images are registered to the colour camera, so
 the same pose and intrinsics apply to them.
 
-**Matching.** Each depth frame takes the ground-truth pose with the nearest
-timestamp if it lies within ``tolerance`` seconds (default 20 ms; the
-motion capture runs at 100 Hz); frames without one are skipped and counted
-(:attr:`TumSequence.skipped`, and in ``description``). No interpolation.
+**Matching.** Each depth frame's pose is interpolated between the two
+ground-truth samples around its timestamp (linear in position, slerp in
+rotation; :func:`~mabdi.sources.sequences.interpolate_poses`) when both lie
+within ``tolerance`` seconds of it (default 20 ms; the motion capture runs
+at 100 Hz, the depth camera at 30 Hz, so the nearest sample alone would be up
+to 5 ms off); otherwise (the ends of the ground truth, a gap in it) the
+nearest sample within ``tolerance`` is taken as it is. Frames with neither
+are skipped and counted (:attr:`TumSequence.skipped`, and in
+``description``).
 
 **Intrinsics** come from the ``camera=`` argument (an :class:`Intrinsics`
 or a preset name), else from the ``[camera]`` table of a ``mabdi.toml`` in
@@ -57,7 +62,7 @@ from mabdi.sources.sequences import (
     frame_timestamps,
     intrinsics_with,
     metadata_path,
-    nearest_within,
+    interpolate_poses,
     poses_from_translations_quaternions,
     quaternions_from_rotations,
     read_sequence_metadata,
@@ -132,10 +137,12 @@ def read_groundtruth(path: Path) -> tuple[np.ndarray, np.ndarray]:
         try:
             values[index] = [float(f) for f in fields]
         except ValueError:
-            raise SequenceError(f"{path}: pose at timestamp {times[index]!r} has a field that is not a number: {fields}") from None
+            raise SequenceError(
+                f"{path}: pose at timestamp {float(times[index])!r} has a field that is not a number: {fields}"
+            ) from None
     bad = ~np.isfinite(values).all(axis=1) | (np.linalg.norm(values[:, 3:], axis=1) < 1e-9)
     if bad.any():
-        raise SequenceError(f"{path}: pose at timestamp {times[np.argmax(bad)]!r} is not finite or has a zero quaternion")
+        raise SequenceError(f"{path}: pose at timestamp {float(times[np.argmax(bad)])!r} is not finite or has a zero quaternion")
     return times, poses_from_translations_quaternions(values[:, :3], values[:, 3:])
 
 
@@ -302,11 +309,11 @@ class TumSequence(FrameSource):
 
         depth_times, depth_rows = read_tum_list(self.folder / "depth.txt", 2)
         pose_times, poses = read_groundtruth(self.folder / "groundtruth.txt")
-        match = nearest_within(depth_times, pose_times, self.tolerance)
-        keep = match >= 0
+        matched = interpolate_poses(depth_times, pose_times, poses, self.tolerance)
+        keep = np.isfinite(matched[:, 0, 0])
         self.skipped = int((~keep).sum())
         self._timestamps = depth_times[keep]
-        self._poses = poses[match[keep]]
+        self._poses = matched[keep]
         self._files = [self.folder / depth_rows[i][0] for i in np.flatnonzero(keep)]
         self.description = f"TUM folder {self.folder} ({len(self._files)} frames"
         self.description += f", {self.skipped} without a pose within {self.tolerance * 1000:g} ms skipped)" if self.skipped else ")"
@@ -418,6 +425,21 @@ def write_tum(source: FrameSource, folder, *, extra: dict | None = None, overwri
     return folder
 
 
+def write_tum_trajectory(path, timestamps: np.ndarray, poses: np.ndarray, description: str = "") -> None:
+    """A TUM trajectory file (atomically): one line ``timestamp tx ty tz qx qy qz qw`` per pose
+    (world_from_camera; quaternion scalar last, w >= 0; 17 significant digits). Frames without a
+    timestamp get ``index / 30`` s, as in :func:`write_tum`."""
+    times = np.asarray(timestamps, dtype=np.float64)
+    times = np.where(np.isfinite(times), times, np.arange(len(times)) / 30.0)
+    poses = np.asarray(poses, dtype=np.float64)
+    quaternions = quaternions_from_rotations(poses[:, :3, :3])
+    lines = [
+        f"{t:.6f} " + " ".join(f"{v:.17g}" for v in (*pose[:3, 3], *q)) for t, pose, q in zip(times, poses, quaternions, strict=True)
+    ]
+    header = f"# mabdi trajectory: {description}\n# timestamp tx ty tz qx qy qz qw (world_from_camera, camera optical frame)\n"
+    write_text(path, header + "\n".join(lines) + "\n")
+
+
 __all__ = [
     "DEPTH_SCALE",
     "METADATA_FILE",
@@ -427,4 +449,5 @@ __all__ = [
     "tum_preset",
     "write_depth_png",
     "write_tum",
+    "write_tum_trajectory",
 ]

@@ -74,6 +74,8 @@ def view(path, colour: str = "frame", screenshot=None, window_size=(1280, 800), 
     if path.is_dir():
         map_file, scene_file, path_file = _run_files(path)
     mesh_map = load_map(map_file)
+    if mesh_map.number_of_faces == 0:
+        raise ConfigError(f"view: {map_file} is an empty map (no triangles): nothing to show")
     rgb, scalars, where = face_colours(mesh_map, colour)
     mesh = pv.wrap(mesh_map.to_polydata())
     interactive = has_display() and screenshot is None if interactive is None else interactive

@@ -1,0 +1,147 @@
+"""MapAnchor: where the map's frame lies in the world, from the given poses and the registered ones.
+
+Frame-to-map registration (:mod:`mabdi.filters.registration`) makes every
+frame agree with the map, but the map itself was started from a given pose:
+the first frame is meshed where its pose says, error included, and every
+later frame is registered into that frame. A map whose first pose was
+0.2 degrees off is 0.2 degrees off as a whole (1.4 cm at 4 m), however well
+the frames fit it. The given poses are the only link to the world, so the
+map's frame is tied to them as a whole, not to the first one alone.
+
+Each frame that fits the map gives the *apparent offset* between its
+registered pose C (map frame) and its given pose G (world): the rotation
+dR = R_C R_G^T (a rotation vector) and the translation dt = t_C - t_G. If
+the map frame is the world moved by A = (R_A, t_A), then dR = R_A and
+dt = (R_A - I) t_G + t_A, up to the errors of the given pose. How those
+errors behave decides which frames to believe:
+
+* **jitter** (a motion-capture system, a SLAM with loop closures): errors
+  independent from frame to frame, so the mean over all frames is best;
+* **drift** (odometry): errors that start at zero and grow as a random walk
+  with the distance travelled s, so the first frames are best.
+
+The anchor learns which it is from the offsets themselves: half the mean
+squared difference of two frames' offsets, per component, is modelled as
+sigma^2 + q |s_i - s_j| / 2 (the variogram of white noise plus a random
+walk in s) and fitted by the method of moments (:func:`_variogram_fit`), and A is the best linear unbiased
+estimate of a constant under the covariance sigma^2 I + q min(s_i, s_j):
+the mean for pure jitter, the first frame for pure drift, in between for
+both. Rotation first (its components), then the translation (what is left
+of dt once (R_A - I) t_G is taken off). At most :data:`MAX_FRAMES` frames
+take part, spread evenly over the run (the first always).
+
+``world_from_map`` is A's inverse: the loop builds the map in the map frame
+(E, the classifier and the surfaces all work there) and turns the map and
+the trajectory into the world with it when they are handed out.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+#: Frames that take part in the estimate, at most (spread evenly over the run, the first always).
+MAX_FRAMES = 128
+#: Below this many frames the given poses' errors are taken as white (too few to see a drift).
+MIN_FRAMES_FOR_DRIFT = 8
+#: A floor on the white-noise variance (relative), so the covariance stays invertible for pure drift.
+REGULARISER = 1e-6
+
+
+def _variogram_fit(values: np.ndarray, travelled: np.ndarray) -> tuple[float, float]:
+    """(sigma^2, q) of white noise plus a random walk in s, per component, by the method of moments:
+    consecutive frames differ by 2 sigma^2 + q ds in mean square, and the frames spread about their mean
+    by about sigma^2 + q L / 6 (L: the distance covered; a Brownian path's mean spread). Both >= 0.
+    With fewer than :data:`MIN_FRAMES_FOR_DRIFT` frames the offsets are taken as white noise."""
+    n = len(values)
+    if n < MIN_FRAMES_FOR_DRIFT:
+        return 1.0, 0.0
+    components = values.shape[1]
+    steps = np.diff(travelled)
+    consecutive = 0.5 * float(np.sum(np.diff(values, axis=0) ** 2)) / ((n - 1) * components)  # sigma^2 + q ds / 2
+    spread = float(np.sum((values - values.mean(axis=0)) ** 2)) / ((n - 1) * components)  # sigma^2 + q L / 6
+    half_step = 0.5 * float(steps.mean())
+    sixth = (float(travelled[-1] - travelled[0])) / 6.0
+    if sixth <= half_step:  # no distance to tell a walk from noise by
+        return spread, 0.0
+    q = max((spread - consecutive) / (sixth - half_step), 0.0)
+    sigma2 = max(consecutive - q * half_step, 0.0)
+    return sigma2, q
+
+
+def _blue_weights(sigma2: float, q: float, travelled: np.ndarray) -> np.ndarray:
+    """Weights of the best linear unbiased estimate of a constant under sigma^2 I + q min(s_i, s_j)."""
+    n = len(travelled)
+    scale = max(sigma2 + q * float(travelled.max(initial=0.0)), 1e-300)
+    covariance = q * np.minimum(travelled[:, None], travelled[None, :]) + (sigma2 + REGULARISER * scale) * np.eye(n)
+    solved = np.linalg.solve(covariance, np.ones(n))
+    return solved / solved.sum()
+
+
+class MapAnchor:
+    """The map frame's place in the world, estimated from (given, registered) pose pairs (see the module docs)."""
+
+    def __init__(self) -> None:
+        self.reset()
+
+    def reset(self) -> None:
+        self._rotations = np.zeros((0, 3))  # dR as rotation vectors (rad)
+        self._translations = np.zeros((0, 3))  # dt (m)
+        self._positions = np.zeros((0, 3))  # t_G (m)
+        self._travelled = np.zeros(0)  # s (m)
+        self._map_from_world = np.eye(4)
+
+    def __len__(self) -> int:
+        return len(self._travelled)
+
+    @property
+    def map_from_world(self) -> np.ndarray:
+        """A: world coordinates to map coordinates (4x4)."""
+        return self._map_from_world.copy()
+
+    @property
+    def world_from_map(self) -> np.ndarray:
+        """A's inverse: map coordinates to world coordinates (4x4)."""
+        return np.linalg.inv(self._map_from_world)
+
+    def add(self, given: np.ndarray, registered: np.ndarray, travelled: float) -> None:
+        """One frame that fits the map: its given pose (world), its registered pose (map frame), and the
+        distance (m) the given poses travelled from the first frame to it. Updates the estimate."""
+        rotation = Rotation.from_matrix(registered[:3, :3] @ given[:3, :3].T).as_rotvec()
+        self._rotations = np.vstack([self._rotations, rotation])
+        self._translations = np.vstack([self._translations, registered[:3, 3] - given[:3, 3]])
+        self._positions = np.vstack([self._positions, given[:3, 3]])
+        self._travelled = np.append(self._travelled, float(travelled))
+        self._estimate()
+
+    def _estimate(self) -> None:
+        n = len(self._travelled)
+        use = np.unique(np.round(np.linspace(0, n - 1, min(n, MAX_FRAMES))).astype(int))
+        s = self._travelled[use]
+        rotations = self._rotations[use]
+        weights = _blue_weights(*_variogram_fit(rotations, s), s)
+        rotation = Rotation.from_rotvec(weights @ rotations).as_matrix()
+        residual = self._translations[use] - (self._positions[use] @ (rotation - np.eye(3)).T)
+        weights = _blue_weights(*_variogram_fit(residual, s), s)
+        anchor = np.eye(4)
+        anchor[:3, :3] = rotation
+        anchor[:3, 3] = weights @ residual
+        self._map_from_world = anchor
+
+    def state(self) -> dict:
+        """Plain arrays (for checkpoints)."""
+        return {
+            "rotations": self._rotations.copy(),
+            "translations": self._translations.copy(),
+            "positions": self._positions.copy(),
+            "travelled": self._travelled.copy(),
+        }
+
+    def set_state(self, state: dict) -> None:
+        self._rotations = np.array(state["rotations"], dtype=np.float64).reshape(-1, 3)
+        self._translations = np.array(state["translations"], dtype=np.float64).reshape(-1, 3)
+        self._positions = np.array(state["positions"], dtype=np.float64).reshape(-1, 3)
+        self._travelled = np.array(state["travelled"], dtype=np.float64).ravel()
+        self._map_from_world = np.eye(4)
+        if len(self._travelled):
+            self._estimate()

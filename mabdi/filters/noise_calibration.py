@@ -1,0 +1,199 @@
+"""NoiseCalibration: the sensor's sigma(z) learnt online from D - E, for ``noise = "auto"``.
+
+A user with a camera of unknown noise need not pick a model: with
+``[sensor] noise = "auto"`` the loop measures it. Where the map already
+explains a pixel, D - E is the sensor's error there (plus the map's own,
+which was averaged over several looks and smoothed, so it is smaller, and
+what is left of the pose's after registration). Each frame the loop hands
+:meth:`NoiseCalibration.observe` the residuals of D's returns on the map
+(every ``stride``-th pixel; E and D both valid; away from E's silhouettes,
+where a pixel may show either side; within ``gate_k`` times the current
+sigma or ``min_gate``, so new surfaces in front of the map and objects that
+left are not counted), from registered frames only. Per depth bin
+(``bin_width`` metres) it keeps the most recent ``samples_per_bin`` absolute
+residuals and reads sigma as 1.4826 times their median (the median absolute
+deviation: robust to the few pairs of different surfaces the gate lets in).
+
+The curve is sigma(z) = sqrt(a^2 + (c z^2)^2): the z^2 law of every
+triangulating camera (structured light, stereo) plus a floor a that does not
+grow with depth. The floor is mostly the map's own error (the chord of a
+big flat face across a curved surface, about a millimetre or two whatever
+the depth), so the *sensor's* curve is read as c z^2
+(:meth:`NoiseCalibration.sensor_sigma`); a sensor's own depth-independent
+error (quantisation at short range) lands in the floor too. The thresholds
+use the whole curve, since D - E is what they judge. a^2 and c^2 are fitted by
+least squares on the relative error of sigma^2 to the bins holding at least
+``min_samples`` residuals, weighted by their sample counts. Until the first fit (the first frame has
+no map to compare with) it is the Kinect v1's c = 1.425e-3 / m, a = 0
+(Khoshelham & Elberink 2012), a typical consumer depth camera.
+
+Everything that uses the sensor's noise reads this curve through
+:meth:`mabdi.filters.depth_image.SensorNoise.sigma` (the classifier's tau,
+depth smoothing, registration's weights, removal's gate), so it follows the
+calibration frame by frame. The calibrated curve and its bins go into a
+run's ``summary.json`` (:meth:`summary`).
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+
+#: Median absolute deviation to standard deviation, for a normal distribution.
+MAD_TO_SIGMA = 1.4826
+#: The curve before the first fit: the Kinect v1's c (1/m), Khoshelham & Elberink 2012.
+PRIOR_COEFFICIENT = 1.425e-3
+
+
+class NoiseCalibration:
+    """sigma(z) of an unknown sensor from the residuals D - E of pixels the map explains (see the module docs).
+
+    Lengths in metres. ``bin_width``: depth bins; ``max_depth``: the last
+    bin's far edge; ``samples_per_bin``: residuals kept per bin (the most
+    recent); ``min_samples``: a bin counts in the fit from this many;
+    ``stride``: pixels sampled in u and v; ``gate_k`` and ``min_gate``:
+    residuals within max(gate_k sigma(z), min_gate) are counted.
+    """
+
+    def __init__(
+        self,
+        bin_width: float = 0.25,
+        max_depth: float = 10.0,
+        samples_per_bin: int = 4096,
+        min_samples: int = 200,
+        stride: int = 2,
+        gate_k: float = 5.0,
+        min_gate: float = 0.02,
+    ) -> None:
+        self.bin_width = float(bin_width)
+        self.edges = np.arange(0.0, max_depth + 0.5 * bin_width, bin_width)
+        self.samples_per_bin = int(samples_per_bin)
+        self.min_samples = int(min_samples)
+        self.stride = int(stride)
+        self.gate_k = float(gate_k)
+        self.min_gate = float(min_gate)
+        self.reset()
+
+    def reset(self) -> None:
+        bins = len(self.edges) - 1
+        #: per bin: a ring of the most recent absolute residuals (m), how many were ever added
+        self._residuals = np.full((bins, self.samples_per_bin), np.nan, dtype=np.float32)
+        self._added = np.zeros(bins, dtype=np.int64)
+        self._floor = 0.0
+        self._coefficient = PRIOR_COEFFICIENT
+        self._fitted = False
+
+    # -- the curve -------------------------------------------------------------
+    def sigma(self, depth) -> np.ndarray:
+        """sigma (m) at metric depths ``depth``: sqrt(a^2 + (c z^2)^2); float32 for float32 input."""
+        z = np.asarray(depth)
+        if z.dtype != np.float32:
+            z = z.astype(np.float64)
+        kind = z.dtype.type
+        return np.sqrt(kind(self._floor**2) + (kind(self._coefficient) * z * z) ** 2)
+
+    def sensor_sigma(self, depth) -> np.ndarray:
+        """The sensor's part of the curve, c z^2 (m), without the floor (see the module docs)."""
+        z = np.asarray(depth)
+        if z.dtype != np.float32:
+            z = z.astype(np.float64)
+        return z.dtype.type(self._coefficient) * z * z
+
+    @property
+    def fitted(self) -> bool:
+        """Whether the curve comes from measurements yet (else it is the prior)."""
+        return self._fitted
+
+    def bin_sigmas(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(bin centres in m, sigma per bin in m (NaN with no residuals), residuals held per bin)."""
+        held = np.minimum(self._added, self.samples_per_bin)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # bins with no residuals: NaN
+            sigma = MAD_TO_SIGMA * np.nanmedian(self._residuals, axis=1)
+        return 0.5 * (self.edges[:-1] + self.edges[1:]), sigma, held
+
+    # -- learning ----------------------------------------------------------------
+    def observe(self, measured: np.ndarray, expected: np.ndarray, silhouettes: np.ndarray | None = None) -> int:
+        """Add one frame's residuals (D, E: (H, W) metres, NaN = none; ``silhouettes``: pixels to skip) and
+        refit the curve. Returns the number of residuals added."""
+        s = self.stride
+        d = measured[::s, ::s]
+        e = expected[::s, ::s]
+        use = np.isfinite(d) & np.isfinite(e)
+        if silhouettes is not None:
+            use &= ~silhouettes[::s, ::s]
+        d, e = d[use].astype(np.float64), e[use].astype(np.float64)
+        residual = np.abs(d - e)
+        gate = np.maximum(self.gate_k * self.sigma(e), self.min_gate)
+        keep = residual <= gate
+        z, residual = e[keep], residual[keep]
+        which = np.searchsorted(self.edges, z, side="right") - 1
+        inside = (which >= 0) & (which < len(self._added))
+        which, residual = which[inside], residual[inside]
+        order = np.argsort(which, kind="stable")
+        which, residual = which[order], residual[order]
+        bins, starts, counts = np.unique(which, return_index=True, return_counts=True)
+        for b, start, count in zip(bins, starts, counts, strict=True):
+            values = residual[start : start + count][-self.samples_per_bin :]
+            slots = (self._added[b] + np.arange(len(values))) % self.samples_per_bin
+            self._residuals[b, slots] = values
+            self._added[b] += len(values)
+        self._fit()
+        return int(len(residual))
+
+    def _fit(self) -> None:
+        centres, sigma, held = self.bin_sigmas()
+        use = (held >= self.min_samples) & np.isfinite(sigma)
+        if not use.any():
+            return
+        z = centres[use]
+        weight = held[use].astype(np.float64)
+        # sigma^2 = a^2 + c^2 z^4, linear in (a^2, c^2): least squares on the relative error of sigma^2
+        # (each bin weighted by its residual count), both kept >= 0
+        relative = np.sqrt(weight) / sigma[use] ** 2
+        design = np.stack([np.ones_like(z), z**4], axis=1) * relative[:, None]
+        target = sigma[use] ** 2 * relative
+        if use.sum() >= 2:
+            (a2, c2), *_ = np.linalg.lstsq(design, target, rcond=None)
+            if a2 < 0 or c2 <= 0:
+                a2 = max(a2, 0.0)
+                w = weight / sigma[use] ** 4
+                c2 = max(float(np.sum(w * (sigma[use] ** 2 - a2) * z**4) / np.sum(w * z**8)), 0.0)
+        else:  # one bin: the z^2 law through it
+            a2, c2 = 0.0, float(sigma[use][0] ** 2 / z[0] ** 4)
+        self._floor = float(np.sqrt(max(a2, 0.0)))
+        self._coefficient = float(np.sqrt(max(c2, 0.0)))
+        self._fitted = True
+
+    # -- checkpoints and reports ---------------------------------------------------
+    def state(self) -> dict:
+        """Plain arrays and numbers (for checkpoints)."""
+        return {
+            "residuals": self._residuals.copy(),
+            "added": self._added.copy(),
+            "floor": self._floor,
+            "coefficient": self._coefficient,
+            "fitted": self._fitted,
+        }
+
+    def set_state(self, state: dict) -> None:
+        self._residuals = np.array(state["residuals"], dtype=np.float32)
+        self._added = np.array(state["added"], dtype=np.int64)
+        self._floor = float(state["floor"])
+        self._coefficient = float(state["coefficient"])
+        self._fitted = bool(state["fitted"])
+
+    def summary(self) -> dict:
+        """The calibrated curve for ``summary.json``: sigma(z) = sqrt(floor^2 + (coefficient z^2)^2), and its bins."""
+        centres, sigma, held = self.bin_sigmas()
+        used = held > 0
+        return {
+            "law": "sigma(z) = sqrt(floor_m^2 + (coefficient_per_m * z^2)^2); the sensor's part: coefficient_per_m * z^2",
+            "fitted": self._fitted,
+            "floor_m": self._floor,
+            "coefficient_per_m": self._coefficient,
+            "bins_m": [round(float(c), 4) for c in centres[used]],
+            "bin_sigma_m": [float(s) for s in sigma[used]],
+            "bin_samples": [int(h) for h in held[used]],
+        }

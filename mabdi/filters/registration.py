@@ -1,0 +1,528 @@
+"""FilterRegistration: align the measured image D to the map before it is classified (frame-to-map tracking).
+
+MABDI compares D and E pixel by pixel, so it is only as right as the pose
+it is given: 0.2 degrees of pose error moves a surface 1.4 cm sideways at
+4 m, and at grazing incidence that is centimetres in depth, which the
+classifier would mesh as a second layer and removal would count against
+the map. Every robot's pose has such errors (jitter of a few millimetres
+and tenths of a degree; drift of centimetres over a run). This filter
+corrects the pose the way KinectFusion's frame-to-model tracking does
+(Newcombe et al. 2011), against the E that MABDI renders anyway:
+
+1. **The map's frame**: the map is built in a frame of its own, started at
+   the first frame's given pose and tied to the given poses as a whole by
+   a :class:`~mabdi.filters.map_anchor.MapAnchor` (the mean of jittery
+   poses, the start of drifting ones). The given pose G is first moved
+   into that frame.
+2. **E at the given pose**: the map rendered from G (the loop passes the
+   renderer of its expected image, so the map's geometry is uploaded once).
+   E's points and normals come straight from its depth (central
+   differences over 2 pixels; none at silhouettes, where depth jumps by 5%).
+3. **Two starts**: G itself, and G with the last registered frame's
+   correction carried over (a rotation about the camera centre and a
+   translation, which is how odometry drifts). The one under which D's
+   coarsest samples lie nearer E (median residual) is taken.
+4. **Projective point-to-plane ICP**, coarse to fine: D is sampled every
+   ``stride * 2**k`` pixels for k = levels-1 .. 0; each sampled point, moved by
+   the current estimate, is projected into E and paired with the map point
+   and normal at that pixel. A pair counts when its point-to-plane residual
+   is within the gate: ``gate_k`` times the point's noise (sqrt(sigma(z)^2 +
+   model_sigma^2), sigma the sensor's noise model), or more while the pose
+   is still off: ``gate_k`` times the residuals' spread (1.4826 times their
+   median), which starts at the start's own spread (never above
+   ``max_distance``) and only shrinks. A gate sized by the residuals keeps
+   surfaces the map does not have (the unseen side of a table leg a few
+   centimetres behind the seen one) from pulling along a direction the
+   scene barely constrains. Pairs are weighted by Huber's rule (``huber``
+   noise units; 0: Tukey's biweight over the gate). Novel surfaces (nearer
+   than the map, or where it has none) and objects that left fall outside
+   the gate and pull on nothing. Gauss-Newton steps in (rotation vector,
+   translation); directions the scene does not constrain (a camera sliding
+   along a plane) get no step.
+5. **Checks**: the frame is *registered* when at least ``min_points`` pairs
+   and ``min_inliers`` of the candidates (sampled points that landed on the
+   map) are within the gate, every direction the map constrains is held at
+   least ``min_support`` by those pairs (:func:`constraint_support`: a pose
+   30 cm off along a wall fits the floor and the other wall, and only the
+   left-out points of that wall say where it is), the last step is below a
+   millimetre and 0.05 degrees, and the correction from the start is within
+   ``max_translation`` and ``max_rotation``. Otherwise it is *not
+   registered*: the frame is meshed with its given pose (in the map's
+   frame), its correction is not carried on, and the loop lets it cast no
+   removal votes.
+
+Output: D with the registered pose (in the map's frame) as its
+``world_from_camera`` and in field data ``given_world_from_camera`` (the
+pose the source gave, float64[16]), ``world_from_map`` (the anchor's
+estimate, float64[16]),
+``registration`` (float64[:data:`REGISTRATION_FIELDS`]: status code, the
+correction from the given pose in metres and degrees, the RMS residual of the
+pairs in metres, the inlier share, the iterations) and, when registered,
+``pose_covariance`` (float64[36]: the 6x6 covariance of the pose in the
+camera frame, rotation vector in radians then translation in metres, from
+the normal equations scaled by the residuals' chi-square). The classifier
+turns that covariance into each pixel's depth uncertainty
+(:func:`pose_depth_sigma`).
+
+Parameters: :class:`RegistrationParameters` (``[registration]`` of a run
+config; ``enabled = false`` or ``mabdi run --no-registration`` passes D on
+with the given pose, as before registration existed).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+from vtkmodules.util.numpy_support import numpy_to_vtk, vtk_to_numpy
+from vtkmodules.vtkCommonDataModel import vtkCompositeDataSet, vtkDataObject, vtkImageData, vtkPolyData
+from vtkmodules.vtkCommonExecutionModel import vtkAlgorithm, vtkStreamingDemandDrivenPipeline
+
+from mabdi.algorithm import MabdiAlgorithm
+from mabdi.camera import Intrinsics
+from mabdi.depth import depth_array, fill_depth_image, image_frame, image_intrinsics, image_pose, image_timestamp
+from mabdi.errors import ConfigError
+from mabdi.filters.depth_image import BACKENDS, DepthRenderer, SensorNoise
+from mabdi.filters.map_anchor import MapAnchor
+from mabdi.filters.registration_kernels import point_to_plane_system, pose_sigma_image
+
+MAP_PORT, MEASURED_PORT = 0, 1
+
+GIVEN_POSE_ARRAY = "given_world_from_camera"
+WORLD_FROM_MAP_ARRAY = "world_from_map"
+REGISTRATION_ARRAY = "registration"
+POSE_COVARIANCE_ARRAY = "pose_covariance"
+#: The values of the ``registration`` field-data array, in order.
+REGISTRATION_FIELDS = ("status", "correction_m", "correction_deg", "residual_m", "inlier_share", "support", "iterations")
+#: Status codes: 0 registered; the rest leave the frame unregistered (see the module docs).
+STATUSES = ("registered", "off", "no_map", "few_points", "few_inliers", "not_converged", "beyond_bound")
+REGISTERED = 0
+
+#: Normals of E: central differences over this many pixels; none across a relative depth jump above this.
+NORMAL_STEP = 2
+NORMAL_MAX_JUMP = 0.05
+#: Median absolute deviation to standard deviation, for a normal distribution.
+MAD_TO_SIGMA = 1.4826
+#: The last step of a registered frame is below these (m, degrees).
+CONVERGED_TRANSLATION = 1e-3
+CONVERGED_ROTATION = 0.05
+
+
+@dataclass(frozen=True)
+class RegistrationParameters:
+    """Frame-to-map registration (see the module docs): the ``[registration]`` section of a run config.
+
+    Lengths in metres, angles in degrees, ``stride`` in pixels; ``huber`` and
+    ``gate_k`` in units of a point's noise; ``min_inliers`` a share (0-1).
+    """
+
+    enabled: bool = True
+    levels: int = 3
+    stride: int = 2
+    iterations: int = 10
+    max_distance: float = 0.1
+    gate_k: float = 4.0
+    huber: float = 2.0
+    model_sigma: float = 0.002
+    min_points: int = 300
+    min_inliers: float = 0.3
+    min_support: float = 0.3
+    max_translation: float = 0.1
+    max_rotation: float = 5.0
+
+    def __post_init__(self) -> None:
+        for name in ("levels", "stride", "iterations", "min_points"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ConfigError(f"registration: {name} must be an integer >= 1, got {value!r}")
+        for name in ("max_distance", "gate_k", "max_translation", "max_rotation"):
+            if not getattr(self, name) > 0:
+                raise ConfigError(f"registration: {name} must be > 0, got {getattr(self, name)!r}")
+        if not self.model_sigma >= 0:
+            raise ConfigError(f"registration: model_sigma must be >= 0 metres, got {self.model_sigma!r}")
+        for name in ("min_inliers", "min_support"):
+            if not 0 <= getattr(self, name) <= 1:
+                raise ConfigError(f"registration: {name} must be a share in [0, 1], got {getattr(self, name)!r}")
+
+
+@dataclass
+class RegistrationResult:
+    """What :func:`register_depth` found: ``transform`` (4x4, E-camera from D-camera), the status
+    (an entry of :data:`STATUSES`), the RMS residual of the pairs (m), the inlier share, the
+    Gauss-Newton iterations, and the 6x6 pose covariance (rotation vector in rad, translation in m)."""
+
+    transform: np.ndarray
+    status: str
+    residual: float = float("nan")
+    inlier_share: float = 0.0
+    support: float = 0.0
+    iterations: int = 0
+    covariance: np.ndarray | None = None
+
+    @property
+    def registered(self) -> bool:
+        return self.status == STATUSES[REGISTERED]
+
+
+def sample_points(measured: np.ndarray, intrinsics: Intrinsics, stride: int) -> tuple[np.ndarray, np.ndarray]:
+    """D's points (N, 3, camera frame, m) at every ``stride``-th pixel (the centre pixel of each
+    stride x stride cell) that has a return, and their depths (N,)."""
+    offset = stride // 2
+    depth = measured[offset::stride, offset::stride].astype(np.float64)
+    rows, cols = np.nonzero(np.isfinite(depth))
+    z = depth[rows, cols]
+    u = cols * stride + offset + 0.5
+    v = rows * stride + offset + 0.5
+    points = np.stack([(u - intrinsics.cx) / intrinsics.fx * z, (v - intrinsics.cy) / intrinsics.fy * z, z], axis=1)
+    return points, z
+
+
+def _rigid(rotation_vector: np.ndarray, translation: np.ndarray) -> np.ndarray:
+    transform = np.eye(4)
+    transform[:3, :3] = Rotation.from_rotvec(rotation_vector).as_matrix()
+    transform[:3, 3] = translation
+    return transform
+
+
+def transform_size(transform: np.ndarray) -> tuple[float, float]:
+    """(translation in m, rotation angle in degrees) of a 4x4 rigid transform."""
+    angle = np.degrees(Rotation.from_matrix(transform[:3, :3]).magnitude())
+    return float(np.linalg.norm(transform[:3, 3])), float(angle)
+
+
+def _solve(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The step x of A x = -b and the pseudo-inverse of A, with no step along directions A does not constrain."""
+    values, vectors = np.linalg.eigh(a)
+    keep = values > max(values[-1], 0.0) * 1e-8
+    inverse_values = np.zeros_like(values)
+    inverse_values[keep] = 1.0 / values[keep]
+    inverse = (vectors * inverse_values) @ vectors.T
+    return -inverse @ b, inverse
+
+
+def register_depth(
+    measured: np.ndarray,
+    expected: np.ndarray,
+    intrinsics: Intrinsics,
+    noise: SensorNoise,
+    parameters: RegistrationParameters,
+    starts: tuple[np.ndarray, ...] = (),
+) -> RegistrationResult:
+    """Align D (``measured``) to E (``expected``, the map rendered at D's pose) by projective point-to-plane ICP.
+
+    Both are (H, W) metric depth images (NaN = none) with ``intrinsics``.
+    Returns the transform E-camera from D-camera: the registered pose is the
+    rendering pose times it. The search starts from the identity or from
+    the transform in ``starts`` whose residuals are smallest. See the module
+    docs for the steps and checks.
+    """
+    p = parameters
+    if np.count_nonzero(np.isfinite(expected[::4, ::4])) * 16 < p.min_points:
+        return RegistrationResult(np.eye(4), "no_map")
+    expected = np.ascontiguousarray(expected, dtype=np.float32)
+    transform = _best_start(measured, expected, intrinsics, (np.eye(4), *starts), p)
+    transform = np.eye(4)
+    a = b = None
+    chi2 = 0.0
+    pairs = candidates = 0
+    iterations = 0
+    step_size = (np.inf, np.inf)
+    reach = p.max_distance  # the gate beyond the noise: shrinks with the residuals as the pose converges
+    start = transform.copy()
+    for level in range(p.levels):
+        points, z = sample_points(measured, intrinsics, p.stride * 2 ** (p.levels - 1 - level))
+        scale = np.sqrt(noise.sigma(z, intrinsics.near, intrinsics.far) ** 2 + p.model_sigma**2)
+        scale = np.maximum(scale, 1e-4)
+        for _ in range(p.iterations):
+            gate = np.maximum(reach, p.gate_k * scale)
+            if iterations == 0:
+                # how far off the prediction is, before the first step: pairs beyond that are other surfaces
+                *_, candidates, residuals, _ = point_to_plane_system(
+                    points, scale, gate, transform[:3, :3], np.ascontiguousarray(transform[:3, 3]), expected,
+                    intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy, NORMAL_STEP, NORMAL_MAX_JUMP, p.huber,
+                )  # fmt: skip
+                if candidates:
+                    reach = min(reach, p.gate_k * MAD_TO_SIGMA * float(np.median(residuals)))
+                gate = np.maximum(reach, p.gate_k * scale)
+            a, b, chi2, pairs, candidates, residuals, support = point_to_plane_system(
+                points, scale, gate, transform[:3, :3], np.ascontiguousarray(transform[:3, 3]), expected,
+                intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy, NORMAL_STEP, NORMAL_MAX_JUMP, p.huber,
+            )  # fmt: skip
+            iterations += 1
+            if pairs < max(6, p.min_points // 4 ** (p.levels - 1 - level)):
+                return RegistrationResult(np.eye(4), "few_points", iterations=iterations)
+            step, _ = _solve(a, b)
+            update = _rigid(step[:3], step[3:])
+            transform = update @ transform
+            step_size = transform_size(update)
+            # the spread of the residuals says how far off the pose still is (robust: a median)
+            spread = MAD_TO_SIGMA * float(np.median(residuals))
+            reach = min(reach, p.gate_k * spread)
+            if step_size[0] < 1e-5 and step_size[1] < 1e-4:
+                break
+    _, inverse = _solve(a, b)
+    dof = max(pairs - 6, 1)
+    covariance = inverse * max(1.0, chi2 / dof)
+    residual = float(np.sqrt(chi2 / max(pairs, 1)))  # in units of the noise; metres below
+    share = pairs / max(candidates, 1)
+    translation, angle = transform_size(np.linalg.inv(start) @ transform)
+    status = "registered"
+    held = constraint_support(support, z)
+    if share < p.min_inliers or pairs < p.min_points or held < p.min_support:
+        status = "few_inliers"
+    elif step_size[0] > CONVERGED_TRANSLATION or step_size[1] > CONVERGED_ROTATION:
+        status = "not_converged"
+    elif translation > p.max_translation or angle > p.max_rotation:
+        status = "beyond_bound"
+    median_scale = float(np.median(scale)) if len(scale) else 0.0
+    return RegistrationResult(
+        transform if status == "registered" else np.eye(4),
+        status,
+        residual=residual * median_scale,
+        inlier_share=float(share),
+        support=held,
+        iterations=iterations,
+        covariance=covariance if status == "registered" else None,
+    )
+
+
+def constraint_support(support: np.ndarray, depths: np.ndarray) -> float:
+    """The least share, over the directions the map constrains, of the constraint that the pairs within the
+    gate carry (1: every direction as well held as by all candidates; near 0: some direction is held only by
+    points the registration left out, as when a wall is 30 cm from where the map has it).
+
+    ``support``: the pairs' and the candidates' information (2, 6, 6) from the last ICP step; ``depths``:
+    D's sampled depths, whose median turns rotations into lengths. Directions with under 1e-3 of the
+    strongest one's information are not counted (the scene does not constrain them).
+    """
+    length = float(np.median(depths)) if len(depths) else 1.0
+    scaling = np.diag([1.0 / length] * 3 + [1.0] * 3)
+    pairs = scaling @ support[0] @ scaling
+    candidates = scaling @ support[1] @ scaling
+    values, vectors = np.linalg.eigh(candidates)
+    if values[-1] <= 0:
+        return 0.0
+    constrained = values > 1e-3 * values[-1]
+    shares = np.einsum("ij,jk,ki->i", vectors.T, pairs, vectors)[constrained] / values[constrained]
+    return float(shares.min())
+
+
+def _best_start(measured, expected, intrinsics: Intrinsics, starts, p: RegistrationParameters) -> np.ndarray:
+    """The transform of ``starts`` under which D's coarsest samples lie nearest E (median point-to-plane residual)."""
+    if len(starts) == 1:
+        return starts[0].copy()
+    points, z = sample_points(measured, intrinsics, p.stride * 2 ** (p.levels - 1))
+    scale = np.ones(len(z))
+    gate = np.full(len(z), p.max_distance)
+    best, best_spread = starts[0], np.inf
+    for transform in starts:
+        *_, candidates, residuals, _ = point_to_plane_system(
+            points, scale, gate, transform[:3, :3], np.ascontiguousarray(transform[:3, 3]), expected,
+            intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy, NORMAL_STEP, NORMAL_MAX_JUMP, p.huber,
+        )  # fmt: skip
+        spread = float(np.median(residuals)) if candidates else np.inf
+        if spread < best_spread:
+            best, best_spread = transform, spread
+    return best.copy()
+
+
+def pose_depth_sigma(expected: np.ndarray, intrinsics: Intrinsics, covariance: np.ndarray, max_incidence: float = 80.0) -> np.ndarray:
+    """(H, W) float32 standard deviation (m) of E's depth that the pose uncertainty ``covariance`` causes.
+
+    A pose error xi = (rotation vector, translation) moves the map's surface
+    at a pixel by J xi along its normal, J = (p x n, n) for the point p and
+    normal n E shows there; along the pixel's ray that is J xi / cos(theta)
+    (theta the angle of incidence, capped at ``max_incidence`` degrees): a
+    lateral error d becomes d tan(theta) in depth. Pixels of E without a
+    normal (silhouettes) take the head-on value. NaN where E has no surface.
+    """
+    return pose_sigma_image(
+        np.ascontiguousarray(expected, dtype=np.float32), intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy,
+        NORMAL_STEP, NORMAL_MAX_JUMP, np.ascontiguousarray(covariance, dtype=np.float64), float(np.cos(np.radians(max_incidence))),
+    )  # fmt: skip
+
+
+def registration_values(image) -> dict | None:
+    """The ``registration`` field data of a registered D as a dict (status as its name), or None if absent."""
+    array = image.GetFieldData().GetArray(REGISTRATION_ARRAY)
+    if array is None:
+        return None
+    values = vtk_to_numpy(array)
+    result = dict(zip(REGISTRATION_FIELDS, (float(v) for v in values), strict=True))
+    result["status"] = STATUSES[int(result["status"])]
+    result["iterations"] = int(result["iterations"])
+    return result
+
+
+def image_pose_covariance(image) -> np.ndarray | None:
+    """The 6x6 ``pose_covariance`` of a registered D, or None when the frame was not registered."""
+    array = image.GetFieldData().GetArray(POSE_COVARIANCE_ARRAY)
+    return None if array is None else vtk_to_numpy(array).reshape(6, 6).copy()
+
+
+def image_world_from_map(image) -> np.ndarray:
+    """The ``world_from_map`` of a registered D (where the map's frame lies in the world), identity if absent."""
+    array = image.GetFieldData().GetArray(WORLD_FROM_MAP_ARRAY)
+    return np.eye(4) if array is None else vtk_to_numpy(array).reshape(4, 4).copy()
+
+
+def given_pose(image) -> np.ndarray:
+    """The pose the source gave for D (its ``world_from_camera`` when it was not registered)."""
+    array = image.GetFieldData().GetArray(GIVEN_POSE_ARRAY)
+    return image_pose(image) if array is None else vtk_to_numpy(array).reshape(4, 4).copy()
+
+
+def correction_between(given: np.ndarray, registered: np.ndarray) -> np.ndarray:
+    """The correction that takes pose ``given`` to ``registered``, as (rotation about the camera centre,
+    translation in the world): a 4x4 [dR, dt] with R_registered = dR R_given and t_registered = t_given + dt.
+    Odometry drifts that way (a heading error turns the camera where it stands), so it carries to the next frame."""
+    correction = np.eye(4)
+    correction[:3, :3] = registered[:3, :3] @ given[:3, :3].T
+    correction[:3, 3] = registered[:3, 3] - given[:3, 3]
+    return correction
+
+
+def apply_correction(correction: np.ndarray, given: np.ndarray) -> np.ndarray:
+    """Pose ``given`` with a :func:`correction_between` applied."""
+    pose = np.eye(4)
+    pose[:3, :3] = correction[:3, :3] @ given[:3, :3]
+    pose[:3, 3] = given[:3, 3] + correction[:3, 3]
+    return pose
+
+
+def _add_field(image, name: str, values) -> None:
+    array = numpy_to_vtk(np.asarray(values, dtype=np.float64).ravel(), deep=True)
+    array.SetName(name)
+    image.GetFieldData().AddArray(array)
+
+
+class FilterRegistration(MabdiAlgorithm):
+    """Register D (port 1) to the map (port 0): D out with the registered pose (see the module docs).
+
+    ``renderer``: the :class:`DepthRenderer` that draws the map (share the
+    expected image's so the map is uploaded once). The filter keeps the
+    world-frame correction of the last registered frame, which predicts the
+    next frame's pose; :meth:`state` and :meth:`set_state` carry it over a checkpoint.
+    """
+
+    def __init__(
+        self,
+        parameters: RegistrationParameters | None = None,
+        noise: SensorNoise | str = "none",
+        renderer: DepthRenderer | None = None,
+        backend: str = BACKENDS[0],
+    ) -> None:
+        super().__init__(nInputPorts=2, nOutputPorts=1, outputType="vtkImageData")
+        self._parameters = parameters if parameters is not None else RegistrationParameters()
+        self._noise = SensorNoise.of(noise)
+        self.renderer = renderer if renderer is not None else DepthRenderer(backend)
+        self.reset()
+
+    @property
+    def parameters(self) -> RegistrationParameters:
+        return self._parameters
+
+    @parameters.setter
+    def parameters(self, value: RegistrationParameters) -> None:
+        self._set("_parameters", value)
+
+    @property
+    def noise(self) -> SensorNoise:
+        return self._noise
+
+    @noise.setter
+    def noise(self, value: SensorNoise | str) -> None:
+        self._set("_noise", SensorNoise.of(value))
+
+    def reset(self) -> None:
+        """Forget the correction and the anchor (the next frame starts a new map at its given pose)."""
+        #: the last registered frame's correction (map frame), carried to the next frame as one start
+        self._correction = np.eye(4)
+        #: the distance the given poses travelled (m) and the last given position, for the anchor
+        self._travelled = 0.0
+        self._last_position: np.ndarray | None = None
+        self._last_frame = -1
+        self.anchor = MapAnchor()
+        self.Modified()
+
+    def state(self) -> dict:
+        """What is carried between frames (plain arrays and numbers, for checkpoints)."""
+        return {
+            "correction": self._correction.copy(),
+            "travelled": self._travelled,
+            "last_position": np.full(3, np.nan) if self._last_position is None else self._last_position.copy(),
+            "last_frame": self._last_frame,
+            "anchor": self.anchor.state(),
+        }
+
+    def set_state(self, state: dict) -> None:
+        self._correction = np.asarray(state["correction"], dtype=np.float64).reshape(4, 4).copy()
+        self._travelled = float(state["travelled"])
+        position = np.asarray(state["last_position"], dtype=np.float64)
+        self._last_position = None if np.isnan(position).any() else position.copy()
+        self._last_frame = int(state["last_frame"])
+        self.anchor.set_state(state["anchor"])
+        self.Modified()
+
+    def FillInputPortInformation(self, port, info):  # noqa: N802 (VTK API)
+        kind = "vtkImageData" if port == MEASURED_PORT else "vtkDataObject"
+        info.Set(vtkAlgorithm.INPUT_REQUIRED_DATA_TYPE(), kind)
+        return 1
+
+    def RequestInformation(self, request, inInfo, outInfo):  # noqa: N802 (VTK API)
+        measured = inInfo[MEASURED_PORT].GetInformationObject(0)
+        extent = measured.Get(vtkStreamingDemandDrivenPipeline.WHOLE_EXTENT())
+        if extent is not None:
+            outInfo.GetInformationObject(0).Set(vtkStreamingDemandDrivenPipeline.WHOLE_EXTENT(), extent, 6)
+        return 1
+
+    def RequestData(self, request, inInfo, outInfo):  # noqa: N802 (VTK API)
+        world = vtkDataObject.GetData(inInfo[MAP_PORT], 0)
+        if not isinstance(world, (vtkPolyData, vtkCompositeDataSet)):
+            raise TypeError(
+                "FilterRegistration: port 0 (the map) must be a vtkPolyData or a composite dataset of polydata, "
+                f"got {world.GetClassName() if world is not None else None}"
+            )
+        measured_image = vtkImageData.GetData(inInfo[MEASURED_PORT], 0)
+        intrinsics = image_intrinsics(measured_image)
+        given = image_pose(measured_image)
+        frame = image_frame(measured_image)
+        measured = depth_array(measured_image)
+        new_frame = frame != self._last_frame or frame < 0  # a re-executed frame is not counted twice
+        if new_frame and self._last_position is not None:
+            self._travelled += float(np.linalg.norm(given[:3, 3] - self._last_position))
+        p = self._parameters
+        if not p.enabled:
+            result = RegistrationResult(np.eye(4), "off")
+            given_in_map = given
+        else:
+            given_in_map = self.anchor.map_from_world @ given
+            zbuffer = self.renderer.render_zbuffer(world, intrinsics, given_in_map)
+            expected = SensorNoise("none").depth_from_zbuffer(zbuffer, intrinsics.near, intrinsics.far, None)
+            carried = np.linalg.inv(given_in_map) @ apply_correction(self._correction, given_in_map)
+            result = register_depth(measured, expected, intrinsics, self._noise, p, starts=(carried,))
+        pose = given_in_map @ result.transform
+        if p.enabled and new_frame:
+            if result.registered:
+                self._correction = correction_between(given_in_map, pose)
+                self.anchor.add(given, pose, self._travelled)
+            elif result.status == "no_map" and len(self.anchor) == 0:
+                self.anchor.add(given, pose, self._travelled)  # the first frame starts the map where it is given
+        if new_frame:
+            self._last_position = given[:3, 3].copy()
+            self._last_frame = frame
+        world_from_map = self.anchor.world_from_map
+        output = vtkImageData.GetData(outInfo)
+        fill_depth_image(output, measured.copy(), intrinsics, pose, frame, image_timestamp(measured_image))
+        _add_field(output, GIVEN_POSE_ARRAY, given)
+        _add_field(output, WORLD_FROM_MAP_ARRAY, world_from_map)
+        # the correction in the world: the camera centre moved, and turned
+        translation, angle = transform_size(np.linalg.inv(given) @ world_from_map @ pose)
+        values = (
+            STATUSES.index(result.status), translation, angle, result.residual, result.inlier_share, result.support, result.iterations
+        )  # fmt: skip
+        _add_field(output, REGISTRATION_ARRAY, values)
+        if result.covariance is not None:
+            _add_field(output, POSE_COVARIANCE_ARRAY, result.covariance)
+        return 1

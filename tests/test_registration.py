@@ -1,0 +1,268 @@
+"""Frame-to-map registration: projective point-to-plane ICP of D against E, its checks, the pose's
+depth uncertainty, and the loop that meshes and votes with the registered pose."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+import mabdi
+from conftest import REPO, plane_mesh
+from mabdi.camera import Intrinsics, look_at
+from mabdi.config import load_run_config, set_value
+from mabdi.depth import DepthFrame
+from mabdi.errors import ConfigError
+from mabdi.filters.depth_image import DepthRenderer, SensorNoise, noise_rng
+from mabdi.filters.map_anchor import MapAnchor
+from mabdi.filters.registration import (
+    RegistrationParameters,
+    pose_depth_sigma,
+    register_depth,
+    transform_size,
+)
+from mabdi.polydata import polydata_arrays, triangles_polydata
+from mabdi.sources.primitives import box
+from mabdi.sources.frames import FrameList
+from mabdi.sources.scene import SourceScene
+
+
+def perturbed(pose: np.ndarray, translation, rotation_deg) -> np.ndarray:
+    """``pose`` moved by ``translation`` (world, m) and turned by ``rotation_deg`` (rotation vector, camera frame)."""
+    out = pose.copy()
+    out[:3, :3] = pose[:3, :3] @ Rotation.from_rotvec(np.radians(rotation_deg)).as_matrix()
+    out[:3, 3] += translation
+    return out
+
+
+NOISE_FREE = SensorNoise()
+ROOM_CAMERA = Intrinsics()
+
+
+def depth_of(renderer: DepthRenderer, mesh, intrinsics: Intrinsics, pose, noise: SensorNoise = NOISE_FREE, frame: int = 0):
+    zbuffer = renderer.render_zbuffer(mesh, intrinsics, pose)
+    rng = None if noise.model == "none" else noise_rng(7, frame)
+    return noise.depth_from_zbuffer(zbuffer, intrinsics.near, intrinsics.far, rng)
+
+
+@pytest.fixture(scope="module")
+def bunnies():
+    """Run 2's scene and four of its poses."""
+    config = load_run_config(REPO / "scenes" / "bunnies.toml")
+    scene = SourceScene(config.scene, frames=config.run.frames)
+    poses = mabdi.simulate.path.path_from_config(config.run.frames, config.path)
+    return scene.mesh_at(0), poses[[3, 17, 29, 41]]
+
+
+def test_icp_recovers_the_true_pose_against_a_known_map(bunnies):
+    """D from the true pose (z-buffer noise), E of the true scene from a pose 5-10 mm and 0.3-0.5 degrees
+    off: the registered poses are within 1.5 mm and 0.05 degrees of the true ones, 1 mm and 0.03 degrees
+    in the median."""
+    mesh, poses = bunnies
+    intrinsics = Intrinsics()
+    renderer = DepthRenderer()
+    noise = SensorNoise("zbuffer")
+    rng = np.random.default_rng(3)
+    errors = []
+    for i, true in enumerate(poses):
+        given = perturbed(true, rng.normal(0, 0.005, 3), rng.normal(0, 0.25, 3))
+        before = transform_size(np.linalg.inv(true) @ given)
+        measured = depth_of(renderer, mesh, intrinsics, true, noise, frame=i)
+        expected = depth_of(renderer, mesh, intrinsics, given)
+        result = register_depth(measured, expected, intrinsics, noise, RegistrationParameters())
+        assert result.registered, result.status
+        assert result.inlier_share > 0.95
+        error = transform_size(np.linalg.inv(true) @ given @ result.transform)
+        assert error[0] < 0.0015 and error[1] < 0.05, (before, error)
+        assert np.all(np.linalg.eigvalsh(result.covariance) >= 0)
+        errors.append(error)
+    assert np.all(np.median(np.array(errors), axis=0) < [0.001, 0.03]), errors
+
+
+def test_a_plane_alone_fixes_only_what_it_constrains():
+    """Seen head-on, a plane fixes the distance to it and the tilt, not a slide along it: the slide is
+    left as given (no step along an unconstrained direction), the rest is corrected."""
+    mesh = plane_mesh([0, 0, 0], [0, 0, 1], size=20.0)
+    intrinsics = Intrinsics()
+    true = look_at([0.0, 0.0, 2.0], [0.0, 0.3, 0.0])
+    given = perturbed(true, [0.02, 0.0, 0.01], [0.0, 0.0, 0.0])
+    renderer = DepthRenderer()
+    measured = depth_of(renderer, mesh, intrinsics, true)
+    expected = depth_of(renderer, mesh, intrinsics, given)
+    result = register_depth(measured, expected, intrinsics, SensorNoise(), RegistrationParameters())
+    assert result.registered
+    registered = given @ result.transform
+    # the height above the plane is corrected, the slide along x stays as given
+    assert registered[2, 3] == pytest.approx(2.0, abs=2e-4)
+    assert registered[0, 3] == pytest.approx(0.02, abs=2e-4)
+
+
+def test_a_view_the_map_does_not_explain_is_not_registered():
+    intrinsics = Intrinsics()
+    renderer = DepthRenderer()
+    pose = np.eye(4)
+    wall = depth_of(renderer, plane_mesh([0, 0, 2], [0, 0, -1], size=10), intrinsics, pose)
+    far_wall = depth_of(renderer, plane_mesh([0, 0, 3], [0, 0, -1], size=10), intrinsics, pose)
+    parameters = RegistrationParameters()
+    assert register_depth(wall, np.full_like(wall, np.nan), intrinsics, SensorNoise(), parameters).status == "no_map"
+    result = register_depth(wall, far_wall, intrinsics, SensorNoise(), parameters)
+    assert not result.registered and result.status in ("few_points", "few_inliers")
+    assert np.array_equal(result.transform, np.eye(4))
+
+
+def test_pose_uncertainty_becomes_depth_uncertainty_by_the_angle_of_incidence():
+    """A lateral pose error d reads as d tan(theta) in depth on a surface seen at incidence theta; along
+    the optical axis it reads as itself on a surface seen head-on."""
+    intrinsics = Intrinsics()
+    renderer = DepthRenderer()
+    sigma = 0.001
+    lateral = np.diag([0.0, 0.0, 0.0, 0.0, sigma**2, 0.0])  # translation along the camera's y (image down)
+    axial = np.diag([0.0, 0.0, 0.0, 0.0, 0.0, sigma**2])
+    head_on = depth_of(renderer, plane_mesh([0, 0, 2], [0, 0, -1], size=10), intrinsics, np.eye(4))
+    centre = (240, 320)
+    assert pose_depth_sigma(head_on, intrinsics, axial)[centre] == pytest.approx(sigma, rel=0.01)
+    assert pose_depth_sigma(head_on, intrinsics, lateral)[centre] == pytest.approx(0.0, abs=1e-5)
+    for theta in (30.0, 60.0, 75.0):
+        normal = [0.0, -np.sin(np.radians(theta)), -np.cos(np.radians(theta))]  # tilted about the camera's x
+        tilted = depth_of(renderer, plane_mesh([0, 0, 2], normal, size=20), intrinsics, np.eye(4))
+        expected = sigma * np.tan(np.radians(theta))
+        assert pose_depth_sigma(tilted, intrinsics, lateral)[centre] == pytest.approx(expected, rel=0.03), theta
+    assert np.isnan(pose_depth_sigma(np.full_like(head_on, np.nan), intrinsics, axial)).all()
+
+
+def merged(*meshes):
+    """One polydata of several (vtkPolyData or (points, triangles))."""
+    points, triangles, offset = [], [], 0
+    for mesh in meshes:
+        p, t = polydata_arrays(mesh) if not isinstance(mesh, tuple) else mesh
+        points.append(p)
+        triangles.append(t + offset)
+        offset += len(p)
+    return triangles_polydata(np.concatenate(points), np.concatenate(triangles))
+
+
+def room_frames(poses: np.ndarray, *, extra=None, intrinsics: Intrinsics = ROOM_CAMERA, noise="none") -> list[np.ndarray]:
+    """Depth images of a small room (floor, two walls, a box) from ``poses``; ``extra``: a mesh added from frame 4."""
+    box_points, box_triangles = box([0.6, 0.6, 0.8])
+    room = merged(
+        plane_mesh([0, 0, 0], [0, 0, 1], size=8.0),
+        plane_mesh([0, 2.5, 0], [0, -1, 0], size=8.0),
+        plane_mesh([2.5, 0, 0], [-1, 0, 0], size=8.0),
+        (box_points + [0.5, 0.8, 0.4], box_triangles),
+    )
+    renderer = DepthRenderer()
+    noise = SensorNoise.of(noise)
+    depths = []
+    for i, pose in enumerate(poses):
+        mesh = room if extra is None or i < 4 else merged(room, extra)
+        depths.append(depth_of(renderer, mesh, intrinsics, pose, noise, frame=i))
+    return depths
+
+
+def room_poses(count: int) -> np.ndarray:
+    return np.stack([look_at([-1.5 + 0.05 * i, -1.8, 1.4], [0.8, 0.8, 0.5]) for i in range(count)])
+
+
+def test_the_loop_meshes_with_the_registered_pose_and_reports_it():
+    """Poses 7 mm and 0.5 degrees off (median): the frames fit each other within 1.5 mm and 0.05 degrees
+    (the map's frame itself is only as good as the mean of eight given poses: the anchor's test)."""
+    true = room_poses(8)
+    rng = np.random.default_rng(5)
+    given = np.stack([perturbed(p, rng.normal(0, 0.005, 3), rng.normal(0, 0.3, 3)) for p in true])
+    depths = room_frames(true, noise="kinect")
+    frames = [DepthFrame(d, Intrinsics(), g, i, i / 30) for i, (d, g) in enumerate(zip(depths, given, strict=True))]
+    loop = mabdi.MabdiLoop(FrameList(frames), surface="quadtree", noise="kinect")
+    records = [loop.step(i) for i in range(len(frames))]
+    assert records[0].registration == "no_map" and all(r.registered for r in records[1:])
+    trajectory = loop.trajectory()
+    relative = np.array(
+        [transform_size(np.linalg.inv(np.linalg.inv(true[0]) @ true[i]) @ np.linalg.inv(trajectory[0]) @ trajectory[i]) for i in range(1, 8)]
+    )
+    assert np.median(relative[:, 0]) < 0.0015 and np.median(relative[:, 1]) < 0.05, relative
+    assert relative[:, 0].max() < 0.004 and relative[:, 1].max() < 0.1, relative
+    world_from_map = loop.world_from_map()
+    for record in records[1:]:  # the corrections of the given poses are reported (mm, degrees, the fit's residual)
+        assert 0 < record.correction_mm < 50 and 0 < record.correction_deg < 2
+        assert 0 < record.residual_mm < 20 and 0.9 < record.inlier_share <= 1
+    mesh = loop.mesh()
+    map_points = mabdi.polydata.polydata_arrays(loop.world.mesh())[0]
+    assert np.allclose(mabdi.polydata.polydata_arrays(mesh)[0], map_points @ world_from_map[:3, :3].T + world_from_map[:3, 3], atol=1e-5)
+    assert sum(r.cells_removed for r in records) == 0
+
+    off = mabdi.MabdiLoop(FrameList(frames), surface="quadtree", noise="kinect", registration=RegistrationParameters(enabled=False))
+    assert off.step(1).registration == "off"
+    assert np.array_equal(off.trajectory()[1], given[1])
+
+
+def anchored(offsets_rotation: np.ndarray, offsets_translation: np.ndarray, positions: np.ndarray) -> MapAnchor:
+    """A MapAnchor fed frames whose registered poses differ from their given poses by the offsets."""
+    anchor = MapAnchor()
+    travelled = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(positions, axis=0), axis=1))])
+    for rotation, translation, position, s in zip(offsets_rotation, offsets_translation, positions, travelled, strict=True):
+        given = np.eye(4)
+        given[:3, 3] = position
+        registered = np.eye(4)
+        registered[:3, :3] = Rotation.from_rotvec(rotation).as_matrix()
+        registered[:3, 3] = position + translation
+        anchor.add(given, registered, s)
+    return anchor
+
+
+def test_the_anchor_averages_jitter_and_trusts_the_start_of_a_drift():
+    """Map frame = world moved by (2 degrees about z, 5 cm in x). Given poses with white jitter: the anchor
+    is the mean (within 3 sigma / sqrt(N)); given poses that drift from an exact start: the first frames."""
+    n = 200
+    rng = np.random.default_rng(0)
+    angle = np.radians(2.0)
+    positions = np.stack([3 * np.cos(np.linspace(0, 4 * np.pi, n)), 3 * np.sin(np.linspace(0, 4 * np.pi, n)), np.ones(n)], axis=1)
+    true_rotation = np.array([0.0, 0.0, angle])
+    rotation_matrix = Rotation.from_rotvec(true_rotation).as_matrix()
+    lever = positions @ (rotation_matrix - np.eye(3)).T + [0.05, 0.0, 0.0]  # dt = (R_A - I) t_G + t_A
+    sigma_r, sigma_t = np.radians(0.3), 0.005
+    jitter = anchored(true_rotation + rng.normal(0, sigma_r, (n, 3)), lever + rng.normal(0, sigma_t, (n, 3)), positions)
+    estimate = jitter.map_from_world
+    error_rotation = np.degrees(Rotation.from_matrix(estimate[:3, :3].T @ rotation_matrix).magnitude())
+    assert error_rotation < 3 * np.degrees(sigma_r) * np.sqrt(3) / np.sqrt(n)
+    assert np.linalg.norm(estimate[:3, 3] - [0.05, 0.0, 0.0]) < 3 * sigma_t * np.sqrt(3) / np.sqrt(n) + 0.001
+
+    steps = np.linalg.norm(np.diff(positions, axis=0), axis=1)
+    walk_r = np.concatenate([np.zeros((1, 3)), np.cumsum(rng.normal(0, 1, (n - 1, 3)) * np.radians(0.5) * np.sqrt(steps)[:, None], axis=0)])
+    walk_t = np.concatenate([np.zeros((1, 3)), np.cumsum(rng.normal(0, 1, (n - 1, 3)) * 0.01 * np.sqrt(steps)[:, None], axis=0)])
+    drift = anchored(true_rotation + walk_r, lever + walk_t, positions)
+    estimate = drift.map_from_world
+    error_rotation = np.degrees(Rotation.from_matrix(estimate[:3, :3].T @ rotation_matrix).magnitude())
+    assert error_rotation < 0.05, error_rotation  # the walk's spread over the run is degrees
+    assert np.linalg.norm(estimate[:3, 3] - [0.05, 0.0, 0.0]) < 0.005
+
+
+def test_a_frame_that_does_not_register_casts_no_removal_votes():
+    """Two frames whose given poses are 30 cm off: with registration they fail their checks and remove
+    nothing; without registration their pixels see "through" the map and vote faces out."""
+    true = room_poses(8)
+    depths = room_frames(true)
+    given = true.copy()
+    given[5, :3, 3] += [0.0, 0.3, 0.0]
+    given[6, :3, 3] += [0.3, 0.0, 0.0]
+    frames = [DepthFrame(d, Intrinsics(), g, i, i / 30) for i, (d, g) in enumerate(zip(depths, given, strict=True))]
+    loop = mabdi.MabdiLoop(FrameList(frames), surface="quadtree")
+    records = [loop.step(i) for i in range(len(frames))]
+    assert [r.registered for r in records[5:7]] == [False, False]
+    assert all(r.registered for r in records[1:5])
+    assert sum(r.cells_removed for r in records[:7]) == 0
+
+    off = mabdi.MabdiLoop(FrameList(frames), surface="quadtree", registration=RegistrationParameters(enabled=False))
+    assert sum(off.step(i).cells_removed for i in range(7)) > 0
+
+
+def test_registration_config_section_and_checks(tmp_path):
+    config = load_run_config(REPO / "scenes" / "table.toml")
+    assert config.registration.enabled
+    set_value(config, "registration.max_rotation", 2.0)
+    assert config.registration.max_rotation == 2.0
+    path = tmp_path / "bad.toml"
+    path.write_text("[registration]\nmin_inliers = 1.5\n")
+    with pytest.raises(ConfigError, match="min_inliers"):
+        load_run_config(path)
+    path.write_text("[registration]\nlevel = 2\n")
+    with pytest.raises(ConfigError, match="level"):
+        load_run_config(path)
