@@ -50,7 +50,10 @@ def _parser() -> argparse.ArgumentParser:
     )
     run.add_argument("--frames", type=int, help="number of frames (overrides run.frames)")
     run.add_argument("--out", type=Path, help="output folder (default: runs/<config name>)")
-    run.add_argument("--noise", help="noise model: none, zbuffer or kinect (overrides sensor.noise)")
+    run.add_argument(
+        "--noise",
+        help="noise model: none, zbuffer, kinect, structured_light, or auto (learnt from the run: recordings) (overrides sensor.noise)",
+    )
     run.add_argument("--seed", type=int, help="noise seed (overrides run.seed)")
     run.add_argument("--surface", help=f"surface filter (overrides surface.method): {surfaces}")
     run.add_argument(
@@ -113,7 +116,7 @@ def _parser() -> argparse.ArgumentParser:
         "--encoding", default="32FC1", choices=("32FC1", "16UC1"), help="ROS 2 depth encoding: 32FC1 metres (default) or 16UC1 mm"
     )
     record.add_argument("--frames", type=int, help="number of frames (overrides run.frames)")
-    record.add_argument("--noise", help="noise model: none, zbuffer or kinect (overrides sensor.noise)")
+    record.add_argument("--noise", help="noise model: none, zbuffer, kinect or structured_light (overrides sensor.noise)")
     record.add_argument("--seed", type=int, help="noise seed (overrides run.seed)")
     record.add_argument("--overwrite", action="store_true", help="replace a previous recording in --out")
 

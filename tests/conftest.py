@@ -62,3 +62,33 @@ def check_table_loop(surface: str, median_limit: float):
     added = np.array([r.cells_added for r in result.records])
     assert added[15:].sum() <= 0.15 * added[:15].sum()
     return simulation, result
+
+
+def simulation(scene: str, surface: str, **values):
+    """The Simulation of ``scenes/<scene>.toml`` with ``surface``; ``values`` set config keys (``a__b`` = ``a.b``)."""
+    from mabdi.config import load_run_config, set_value
+    from mabdi.simulate import Simulation
+
+    config = load_run_config(REPO / "scenes" / f"{scene}.toml")
+    set_value(config, "surface.method", surface)
+    for key, value in values.items():
+        set_value(config, key.replace("__", "."), value)
+    return Simulation(config)
+
+
+@pytest.fixture(scope="session")
+def static_runs():
+    """Runs 1-2 (nothing leaves) by (scene, surface, removal): (result, metrics), run once for all tests."""
+    from mabdi.evaluate import evaluate_run
+
+    cache = {}
+
+    def get(scene: str, surface: str, removal: bool = True):
+        key = (scene, surface, removal)
+        if key not in cache:
+            sim = simulation(scene, surface, classifier__removal=removal)
+            result = sim.run()
+            cache[key] = (result, evaluate_run(sim, result))
+        return cache[key]
+
+    return get

@@ -5,38 +5,12 @@ from __future__ import annotations
 
 import pytest
 
-from conftest import REPO
-from mabdi.config import load_run_config, set_value
+from conftest import simulation
 from mabdi.evaluate import evaluate_run, run_with_ghosts
 from mabdi.polydata import polydata_area
-from mabdi.simulate import Simulation
 
 pytestmark = pytest.mark.slow
 SURFACES = ["pixel_grid", "quadtree", "voxel_planes"]
-
-
-def simulation(scene: str, surface: str, **values) -> Simulation:
-    config = load_run_config(REPO / "scenes" / f"{scene}.toml")
-    set_value(config, "surface.method", surface)
-    for key, value in values.items():
-        set_value(config, key.replace("__", "."), value)
-    return Simulation(config)
-
-
-@pytest.fixture(scope="session")
-def static_runs():
-    """Runs 1-2 (nothing leaves) by (scene, surface, removal): (result, metrics), run once for all tests."""
-    cache = {}
-
-    def get(scene: str, surface: str, removal: bool = True):
-        key = (scene, surface, removal)
-        if key not in cache:
-            sim = simulation(scene, surface, classifier__removal=removal)
-            result = sim.run()
-            cache[key] = (result, evaluate_run(sim, result))
-        return cache[key]
-
-    return get
 
 
 @pytest.mark.parametrize("surface", SURFACES)

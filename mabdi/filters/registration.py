@@ -20,8 +20,8 @@ corrects the pose the way KinectFusion's frame-to-model tracking does
    differences over 2 pixels; none at silhouettes, where depth jumps by 5%).
 3. **Two starts**: G itself, and G with the last registered frame's
    correction carried over (a rotation about the camera centre and a
-   translation, which is how odometry drifts). The one under which D's
-   coarsest samples lie nearer E (median residual) is taken.
+   translation, which is how odometry drifts). The one under which more of
+   D's coarsest samples lie on E within their noise is taken.
 4. **Projective point-to-plane ICP**, coarse to fine: D is sampled every
    ``stride * 2**k`` pixels for k = levels-1 .. 0; each sampled point, moved by
    the current estimate, is projected into E and paired with the map point
@@ -47,9 +47,10 @@ corrects the pose the way KinectFusion's frame-to-model tracking does
    left-out points of that wall say where it is), the last step is below a
    millimetre and 0.05 degrees, and the correction from the start is within
    ``max_translation`` and ``max_rotation``. Otherwise it is *not
-   registered*: the frame is meshed with its given pose (in the map's
-   frame), its correction is not carried on, and the loop lets it cast no
-   removal votes.
+   registered*: the frame is meshed with its start (the given pose, or the
+   given pose with the last correction where that fitted better: under
+   drift the given pose alone may be degrees off), its correction is not
+   carried on, and the loop lets it cast no removal votes.
 
 Output: D with the registered pose (in the map's frame) as its
 ``world_from_camera`` and in field data ``given_world_from_camera`` (the
@@ -148,7 +149,8 @@ class RegistrationParameters:
 
 @dataclass
 class RegistrationResult:
-    """What :func:`register_depth` found: ``transform`` (4x4, E-camera from D-camera), the status
+    """What :func:`register_depth` found: ``transform`` (4x4, E-camera from D-camera; when not registered,
+    the start the search began from), the status
     (an entry of :data:`STATUSES`), the RMS residual of the pairs (m), the inlier share, the
     Gauss-Newton iterations, and the 6x6 pose covariance (rotation vector in rad, translation in m)."""
 
@@ -219,10 +221,10 @@ def register_depth(
     """
     p = parameters
     if np.count_nonzero(np.isfinite(expected[::4, ::4])) * 16 < p.min_points:
-        return RegistrationResult(np.eye(4), "no_map")
+        # nothing to fit: the last correction carried on is the best guess (drift grows; jitter stays small)
+        return RegistrationResult(starts[-1].copy() if starts else np.eye(4), "no_map")
     expected = np.ascontiguousarray(expected, dtype=np.float32)
-    transform = _best_start(measured, expected, intrinsics, (np.eye(4), *starts), p)
-    transform = np.eye(4)
+    transform = _best_start(measured, expected, intrinsics, (np.eye(4), *starts), noise, p)
     a = b = None
     chi2 = 0.0
     pairs = candidates = 0
@@ -251,7 +253,7 @@ def register_depth(
             )  # fmt: skip
             iterations += 1
             if pairs < max(6, p.min_points // 4 ** (p.levels - 1 - level)):
-                return RegistrationResult(np.eye(4), "few_points", iterations=iterations)
+                return RegistrationResult(start, "few_points", iterations=iterations)
             step, _ = _solve(a, b)
             update = _rigid(step[:3], step[3:])
             transform = update @ transform
@@ -277,7 +279,7 @@ def register_depth(
         status = "beyond_bound"
     median_scale = float(np.median(scale)) if len(scale) else 0.0
     return RegistrationResult(
-        transform if status == "registered" else np.eye(4),
+        transform if status == "registered" else start,
         status,
         residual=residual * median_scale,
         inlier_share=float(share),
@@ -308,22 +310,22 @@ def constraint_support(support: np.ndarray, depths: np.ndarray) -> float:
     return float(shares.min())
 
 
-def _best_start(measured, expected, intrinsics: Intrinsics, starts, p: RegistrationParameters) -> np.ndarray:
-    """The transform of ``starts`` under which D's coarsest samples lie nearest E (median point-to-plane residual)."""
+def _best_start(measured, expected, intrinsics: Intrinsics, starts, noise: SensorNoise, p: RegistrationParameters) -> np.ndarray:
+    """The transform of ``starts`` under which most of D's coarsest samples lie on E within their noise gate
+    (a count, not a median: a heading error leaves the floor where it was and moves only the objects)."""
     if len(starts) == 1:
         return starts[0].copy()
     points, z = sample_points(measured, intrinsics, p.stride * 2 ** (p.levels - 1))
-    scale = np.ones(len(z))
-    gate = np.full(len(z), p.max_distance)
-    best, best_spread = starts[0], np.inf
+    scale = np.maximum(np.sqrt(noise.sigma(z, intrinsics.near, intrinsics.far) ** 2 + p.model_sigma**2), 1e-4)
+    gate = p.gate_k * scale
+    best, best_pairs = starts[0], -1
     for transform in starts:
-        *_, candidates, residuals, _ = point_to_plane_system(
+        _, _, _, pairs, *_ = point_to_plane_system(
             points, scale, gate, transform[:3, :3], np.ascontiguousarray(transform[:3, 3]), expected,
             intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy, NORMAL_STEP, NORMAL_MAX_JUMP, p.huber,
         )  # fmt: skip
-        spread = float(np.median(residuals)) if candidates else np.inf
-        if spread < best_spread:
-            best, best_spread = transform, spread
+        if pairs > best_pairs:
+            best, best_pairs = transform, pairs
     return best.copy()
 
 
