@@ -21,8 +21,10 @@ from mabdi.filters import (  # noqa: E402
     FilterDepthImageToSurface,
     FilterPixelGrid,
     FilterQuadTree,
+    FilterRegistration,
     FilterVoxelPlanes,
     FilterWorldMesh,
+    RegistrationParameters,
     SensorNoise,
 )
 from mabdi.maps import MeshMap  # noqa: E402
@@ -49,6 +51,7 @@ __all__ = [
     "SourceDepthFrames",
     "register_surface_filter",
     "FilterQuadTree",
+    "FilterRegistration",
     "FilterVoxelPlanes",
     "FilterWorldMesh",
     "MeshMap",
@@ -56,6 +59,7 @@ __all__ = [
     "MabdiAlgorithm",
     "MabdiError",
     "PoseError",
+    "RegistrationParameters",
     "RunConfig",
     "SensorNoise",
     "Simulation",

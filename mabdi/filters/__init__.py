@@ -3,7 +3,10 @@
 from mabdi.filters.classifier import ClassifierParameters, FilterClassifier
 from mabdi.filters.depth_image import DepthRenderer, FilterDepthImage, SensorNoise
 from mabdi.filters.pixel_grid import FilterDepthImageToSurface, FilterPixelGrid, PixelGridParameters
+from mabdi.filters.map_anchor import MapAnchor
+from mabdi.filters.noise_calibration import NoiseCalibration
 from mabdi.filters.quadtree import FilterQuadTree, QuadTreeParameters
+from mabdi.filters.registration import FilterRegistration, RegistrationParameters
 from mabdi.filters.voxel_map import VoxelMap
 from mabdi.filters.voxel_planes import FilterVoxelPlanes, VoxelPlanesParameters
 from mabdi.filters.world_mesh import FilterWorldMesh
@@ -22,9 +25,13 @@ __all__ = [
     "surface_filter",
     "surface_filter_names",
     "FilterQuadTree",
+    "FilterRegistration",
     "FilterVoxelPlanes",
     "FilterWorldMesh",
+    "MapAnchor",
+    "NoiseCalibration",
     "QuadTreeParameters",
+    "RegistrationParameters",
     "VoxelMap",
     "VoxelPlanesParameters",
     "SensorNoise",
