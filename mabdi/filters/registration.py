@@ -115,7 +115,8 @@ class RegistrationParameters:
     """Frame-to-map registration (see the module docs): the ``[registration]`` section of a run config.
 
     Lengths in metres, angles in degrees, ``stride`` in pixels; ``huber`` and
-    ``gate_k`` in units of a point's noise; ``min_inliers`` a share (0-1).
+    ``gate_k`` in units of a point's noise (``huber = 0``: Tukey's biweight
+    over the gate instead); ``min_inliers`` and ``min_support`` shares (0-1).
     """
 
     enabled: bool = True
@@ -140,6 +141,8 @@ class RegistrationParameters:
         for name in ("max_distance", "gate_k", "max_translation", "max_rotation"):
             if not getattr(self, name) > 0:
                 raise ConfigError(f"registration: {name} must be > 0, got {getattr(self, name)!r}")
+        if not self.huber >= 0:
+            raise ConfigError(f"registration: huber must be >= 0 noise units (0: Tukey's biweight), got {self.huber!r}")
         if not self.model_sigma >= 0:
             raise ConfigError(f"registration: model_sigma must be >= 0 metres, got {self.model_sigma!r}")
         for name in ("min_inliers", "min_support"):
@@ -215,9 +218,9 @@ def register_depth(
 
     Both are (H, W) metric depth images (NaN = none) with ``intrinsics``.
     Returns the transform E-camera from D-camera: the registered pose is the
-    rendering pose times it. The search starts from the identity or from
-    the transform in ``starts`` whose residuals are smallest. See the module
-    docs for the steps and checks.
+    rendering pose times it. The search starts from the identity or from the
+    transform in ``starts`` under which more of D's samples lie on E within
+    their noise. See the module docs for the steps and checks.
     """
     p = parameters
     if np.count_nonzero(np.isfinite(expected[::4, ::4])) * 16 < p.min_points:

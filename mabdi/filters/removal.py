@@ -8,6 +8,14 @@ is confirmed. E carries the identity of the face each pixel shows
 (:class:`~mabdi.filters.expected_image.FilterExpectedImage`), so every such
 pixel is a vote on one face.
 
+**Which frames vote**: only frames whose pose is known to fit the map: with
+frame-to-map registration on (the default), the frames it registered
+(:mod:`mabdi.filters.registration`); a frame whose pose it could not
+confirm may see "through" the map only because it is misplaced, so its
+pixels cast no vote. (A view in which everything changed at once, with
+nothing static left to register on, therefore removes nothing until some
+of the known world is back in view.)
+
 **Which pixels vote** (:func:`removal_votes`): pixels whose E shows a face and
 whose label is known (a confirmation) or contradicted (a contradiction),
 except
