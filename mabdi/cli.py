@@ -357,6 +357,22 @@ def _check_run_options(args, config) -> None:
             raise ConfigError(f"run: --rerun {target}: folder {target.parent} does not exist")
 
 
+def registration_line(registration: dict) -> str:
+    """One line on how the frames' poses fared (summary.json's ``registration``)."""
+    statuses = registration["statuses"]
+    if set(statuses) == {"off"}:
+        return "poses: used as given (registration off)"
+    frames = sum(statuses.values())
+    line = f"poses: {registration['registered']} of {frames} frames registered to the map"
+    if registration["median_correction_mm"] is not None:
+        line += f" (median correction {registration['median_correction_mm']:.1f} mm, {registration['median_correction_deg']:.3f} deg)"
+    others = {k: v for k, v in statuses.items() if k not in ("registered", "off", "no_map")}
+    if others:
+        listed = ", ".join(f"{v} {k.replace('_', ' ')}" for k, v in sorted(others.items()))
+        line += f"; {registration['not_registered'] - statuses.get('no_map', 0)} not ({listed}): meshed unregistered, no removal votes"
+    return line
+
+
 def _report_run(args, simulation, result, note, movie, dashboard_ms) -> int:
     """Print a finished run, evaluate it (unless --no-eval), write summary.json last."""
     import warnings
@@ -370,6 +386,7 @@ def _report_run(args, simulation, result, note, movie, dashboard_ms) -> int:
         f"{mode}, surface {summary['surface']}"
     )
     print(f"map: {summary['cells']:,} triangles, {summary['points']:,} points, {summary['map_bytes'] / 2**20:.1f} MB")
+    print(registration_line(summary["registration"]))
     metrics = None
     evaluation = "skipped (--no-eval)" if args.no_eval else None
     if note is not None and not args.no_eval:

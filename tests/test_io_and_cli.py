@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import tomllib
 
 import numpy as np
@@ -39,7 +41,11 @@ def test_run_writes_depth_images_labels_and_resolved_config(tmp_path, scenes_dir
         ["run", str(scenes_dir / "table.toml"), "--frames", "3", "--noise", "kinect", "--out", str(out), "--quiet", "--depth-images"]
     )
     assert status == 0
-    assert "3 frames in" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "3 frames in" in printed
+    assert "frames registered to the map" in printed  # and how the others fared
+    summary = json.loads((out / "summary.json").read_text())["registration"]
+    assert sum(summary["statuses"].values()) == 3 and summary["statuses"].get("no_map") == 1  # frame 0: no map yet
     images = sorted((out / "depth").glob("D_*.vti"))
     assert [p.name for p in images] == ["D_000000.vti", "D_000001.vti", "D_000002.vti"]
     assert len(list((out / "depth").glob("E_*.vti"))) == 3
