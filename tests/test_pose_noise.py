@@ -211,7 +211,7 @@ def test_a_run_writes_the_true_poses_beside_the_given_ones(tmp_path):
     config = small_table()
     simulation = Simulation(config)
     simulation.run(tmp_path / "run")
-    given, true_poses = np.load(tmp_path / "run" / "poses.npy"), np.load(tmp_path / "run" / "poses_true.npy")
+    given, true_poses = np.load(tmp_path / "run" / "poses_given.npy"), np.load(tmp_path / "run" / "poses_true.npy")
     np.testing.assert_array_equal(true_poses, path_from_config(2, config.path))
     np.testing.assert_array_equal(given, simulation.rig.poses)
     assert not np.allclose(given, true_poses)
