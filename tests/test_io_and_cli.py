@@ -14,6 +14,7 @@ from mabdi.cli import main
 from mabdi.config import load_run_config, run_config_from_dict
 from mabdi.depth import DepthFrame
 from mabdi.filters.registration import given_pose, image_world_from_map
+from mabdi.sources.tum import read_groundtruth
 from mabdi.io.atomic import atomic_output, write_text
 
 
@@ -65,6 +66,9 @@ def test_run_writes_depth_images_labels_and_resolved_config(tmp_path, scenes_dir
     np.testing.assert_allclose(given_pose(reader.GetOutput()), np.load(out / "poses_given.npy")[1])
     in_world = image_world_from_map(reader.GetOutput()) @ frame.world_from_camera
     np.testing.assert_allclose(in_world, poses[1], atol=2e-3)
+    times, trajectory = read_groundtruth(out / "trajectory.txt")  # the same poses as a TUM trajectory
+    np.testing.assert_allclose(trajectory, poses, atol=1e-12)
+    np.testing.assert_allclose(times, np.arange(3) / 30.0, atol=1e-6)
     assert 0.5 <= np.nanmin(frame.depth) and np.nanmax(frame.depth) <= 4.2
     resolved = run_config_from_dict(tomllib.loads((out / "config.toml").read_text()))
     original = load_run_config(scenes_dir / "table.toml")
