@@ -86,6 +86,7 @@ from mabdi.depth import depth_array, fill_depth_image, image_frame, image_intrin
 from mabdi.errors import ConfigError
 from mabdi.filters.depth_image import BACKENDS, DepthRenderer, SensorNoise
 from mabdi.filters.map_anchor import MapAnchor
+from mabdi.filters.noise_calibration import MAD_TO_SIGMA
 from mabdi.filters.registration_kernels import point_to_plane_system, pose_sigma_image
 
 MAP_PORT, MEASURED_PORT = 0, 1
@@ -103,8 +104,6 @@ REGISTERED = 0
 #: Normals of E: central differences over this many pixels; none across a relative depth jump above this.
 NORMAL_STEP = 2
 NORMAL_MAX_JUMP = 0.05
-#: Median absolute deviation to standard deviation, for a normal distribution.
-MAD_TO_SIGMA = 1.4826
 #: The last step of a registered frame is below these (m, degrees).
 CONVERGED_TRANSLATION = 1e-3
 CONVERGED_ROTATION = 0.05
