@@ -1,9 +1,18 @@
 """MabdiLoop: the MABDI loop of seed 001 Fig. 3-4, fed by any source of depth frames.
 
-    FrameSource --> SourceDepthFrames (frame i) ---------------------------> D --+
-    FilterWorldMesh.map --+--> FilterExpectedImage (pose and frame from D) -> E --+--> FilterClassifier
-         ^                                                                                |
-         +---------- FilterWorldMesh <-- surface filter (by name, registry) <-------------+
+    FrameSource --> SourceDepthFrames (frame i) --> FilterRegistration (D's pose fitted to the map) --> D --+
+    FilterWorldMesh.map --+--> FilterExpectedImage (pose and frame from D) -------------------------> E --+--> FilterClassifier
+         ^                                                                                                      |
+         +---------- FilterWorldMesh <-- surface filter (by name, registry) <-----------------------------------+
+
+Registration (``[registration]``, on by default with the classifier,
+:mod:`mabdi.filters.registration`) corrects each frame's given pose against
+the map before anything is classified; the map is built in a frame of its
+own, tied to the given poses as a whole (:mod:`mabdi.filters.map_anchor`),
+and :meth:`MabdiLoop.mesh` and :meth:`MabdiLoop.trajectory` hand it out in
+the world. Frames it cannot register are meshed unregistered and cast no
+removal votes. With ``noise = "auto"`` the loop feeds each registered
+frame's D - E to the noise calibration (:mod:`mabdi.filters.noise_calibration`).
 
 With removal on (``[classifier] removal = true``, the default), E also says
 which map face each pixel shows, and pixels that see through a face
