@@ -96,6 +96,7 @@ def loop_row(scene: str, overrides: dict, registration: bool) -> dict:
     trajectory = simulation.meshed_poses()
     errors = np.array([transform_size(np.linalg.inv(t) @ p) for t, p in zip(true, trajectory, strict=True)])
     records = result.records
+    aligned_mm, aligned_deg = aligned_error(true, trajectory)
     return {
         "method": "mabdi quad-tree" + ("" if registration else ", no registration"),
         "fscore_1cm": metrics["fscore_1cm"],
@@ -106,8 +107,8 @@ def loop_row(scene: str, overrides: dict, registration: bool) -> dict:
         "frames": len(records),
         "pose_error_mm": 1000 * float(np.median(errors[:, 0])),
         "pose_error_deg": float(np.median(errors[:, 1])),
-        "aligned_error_mm": aligned_error(true, trajectory)[0],
-        "aligned_error_deg": aligned_error(true, trajectory)[1],
+        "aligned_error_mm": aligned_mm,
+        "aligned_error_deg": aligned_deg,
         "register_ms": float(np.median([r.t_register_ms for r in records])),
         "growth_per_circle": metrics.get("growth_per_circle"),
         "seconds": seconds,

@@ -57,17 +57,11 @@ class FilterExpectedImage(MabdiAlgorithm):
         return 1
 
     def RequestData(self, request, inInfo, outInfo):  # noqa: N802 (VTK API)
-        world = vtkDataObject.GetData(inInfo[MAP_PORT], 0)
-        if not isinstance(world, (vtkPolyData, vtkCompositeDataSet)):
-            raise TypeError(
-                "FilterExpectedImage: port 0 (the map) must be a vtkPolyData or a composite dataset of polydata, "
-                f"got {world.GetClassName() if world is not None else None}"
-            )
+        world = map_input(inInfo, "FilterExpectedImage")
         measured = vtkImageData.GetData(inInfo[MEASURED_PORT], 0)
         intrinsics = image_intrinsics(measured)
         pose = image_pose(measured)
-        zbuffer = self.renderer.render_zbuffer(world, intrinsics, pose)
-        depth = SensorNoise("none").depth_from_zbuffer(zbuffer, intrinsics.near, intrinsics.far, None)
+        depth = render_expected(self.renderer, world, intrinsics, pose)
         output = vtkImageData.GetData(outInfo)
         fill_depth_image(output, depth, intrinsics, pose, image_frame(measured), image_timestamp(measured))
         if self.identity:
@@ -77,6 +71,24 @@ class FilterExpectedImage(MabdiAlgorithm):
             array.SetName(FACE_ID_ARRAY)
             output.GetPointData().AddArray(array)
         return 1
+
+
+def map_input(inInfo, name: str):
+    """The map on port :data:`MAP_PORT` of a filter that renders it (a vtkPolyData or a composite dataset
+    of polydata), or a TypeError naming the filter ``name``."""
+    world = vtkDataObject.GetData(inInfo[MAP_PORT], 0)
+    if not isinstance(world, (vtkPolyData, vtkCompositeDataSet)):
+        raise TypeError(
+            f"{name}: port 0 (the map) must be a vtkPolyData or a composite dataset of polydata, "
+            f"got {world.GetClassName() if world is not None else None}"
+        )
+    return world
+
+
+def render_expected(renderer: DepthRenderer, world, intrinsics, world_from_camera) -> np.ndarray:
+    """(H, W) float32 metric depth of the map seen from ``world_from_camera``, without noise (NaN: no surface)."""
+    zbuffer = renderer.render_zbuffer(world, intrinsics, world_from_camera)
+    return SensorNoise("none").depth_from_zbuffer(zbuffer, intrinsics.near, intrinsics.far, None)
 
 
 def face_id_array(image) -> np.ndarray:

@@ -77,7 +77,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 from vtkmodules.util.numpy_support import numpy_to_vtk, vtk_to_numpy
-from vtkmodules.vtkCommonDataModel import vtkCompositeDataSet, vtkDataObject, vtkImageData, vtkPolyData
+from vtkmodules.vtkCommonDataModel import vtkImageData
 from vtkmodules.vtkCommonExecutionModel import vtkAlgorithm, vtkStreamingDemandDrivenPipeline
 
 from mabdi.algorithm import MabdiAlgorithm
@@ -85,11 +85,11 @@ from mabdi.camera import Intrinsics
 from mabdi.depth import depth_array, fill_depth_image, image_frame, image_intrinsics, image_pose, image_timestamp
 from mabdi.errors import ConfigError
 from mabdi.filters.depth_image import BACKENDS, DepthRenderer, SensorNoise
+from mabdi.filters.expected_image import MEASURED_PORT, map_input, render_expected
 from mabdi.filters.map_anchor import MapAnchor
 from mabdi.filters.noise_calibration import MAD_TO_SIGMA
 from mabdi.filters.registration_kernels import point_to_plane_system, pose_sigma_image
 
-MAP_PORT, MEASURED_PORT = 0, 1
 
 GIVEN_POSE_ARRAY = "given_world_from_camera"
 WORLD_FROM_MAP_ARRAY = "world_from_map"
@@ -482,12 +482,7 @@ class FilterRegistration(MabdiAlgorithm):
         return 1
 
     def RequestData(self, request, inInfo, outInfo):  # noqa: N802 (VTK API)
-        world = vtkDataObject.GetData(inInfo[MAP_PORT], 0)
-        if not isinstance(world, (vtkPolyData, vtkCompositeDataSet)):
-            raise TypeError(
-                "FilterRegistration: port 0 (the map) must be a vtkPolyData or a composite dataset of polydata, "
-                f"got {world.GetClassName() if world is not None else None}"
-            )
+        world = map_input(inInfo, "FilterRegistration")
         measured_image = vtkImageData.GetData(inInfo[MEASURED_PORT], 0)
         intrinsics = image_intrinsics(measured_image)
         given = image_pose(measured_image)
@@ -502,8 +497,7 @@ class FilterRegistration(MabdiAlgorithm):
             given_in_map = given
         else:
             given_in_map = self.anchor.map_from_world @ given
-            zbuffer = self.renderer.render_zbuffer(world, intrinsics, given_in_map)
-            expected = SensorNoise("none").depth_from_zbuffer(zbuffer, intrinsics.near, intrinsics.far, None)
+            expected = render_expected(self.renderer, world, intrinsics, given_in_map)
             carried = np.linalg.inv(given_in_map) @ apply_correction(self._correction, given_in_map)
             result = register_depth(measured, expected, intrinsics, self._noise, p, starts=(carried,))
         pose = given_in_map @ result.transform

@@ -58,6 +58,18 @@ def point_and_normal(depth, row, col, fx, fy, cx, cy, step, max_jump):
     return True, x, y, z, nx / norm, ny / norm, nz / norm
 
 
+@njit(cache=True, inline="always")
+def point_plane_jacobian(jac, x, y, z, nx, ny, nz):
+    """``jac`` = d(n . p) / d(omega, t) = (p x n, n): how a point p's distance along the normal n moves under a
+    small pose change (rotation vector omega, translation t)."""
+    jac[0] = y * nz - z * ny
+    jac[1] = z * nx - x * nz
+    jac[2] = x * ny - y * nx
+    jac[3] = nx
+    jac[4] = ny
+    jac[5] = nz
+
+
 @njit(cache=True)
 def point_to_plane_system(points, scale, gate, rotation, translation, e_depth, fx, fy, cx, cy, step, max_jump, huber):
     """Normal equations of one ICP step in E's camera frame.
@@ -106,13 +118,7 @@ def point_to_plane_system(points, scale, gate, rotation, translation, e_depth, f
         r = nx * (x - qx) + ny * (y - qy) + nz * (z - qz)
         residuals[candidates] = abs(r)
         candidates += 1
-        # d r / d (omega, t) = (p x n, n) with p the moved point
-        jac[0] = y * nz - z * ny
-        jac[1] = z * nx - x * nz
-        jac[2] = x * ny - y * nx
-        jac[3] = nx
-        jac[4] = ny
-        jac[5] = nz
+        point_plane_jacobian(jac, x, y, z, nx, ny, nz)
         s = scale[i]
         g = gate[i]
         inside = abs(r) <= g and abs(z - qz) <= 2.0 * g
@@ -170,12 +176,7 @@ def pose_sigma_image(e_depth, fx, fy, cx, cy, step, max_jump, covariance, min_co
                 nx, ny, nz = -x / distance, -y / distance, -z / distance
             else:
                 distance = np.sqrt(x * x + y * y + z * z)
-            jac[0] = y * nz - z * ny
-            jac[1] = z * nx - x * nz
-            jac[2] = x * ny - y * nx
-            jac[3] = nx
-            jac[4] = ny
-            jac[5] = nz
+            point_plane_jacobian(jac, x, y, z, nx, ny, nz)
             variance = 0.0
             for j in range(6):
                 for k in range(6):
