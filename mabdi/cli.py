@@ -3,7 +3,7 @@
     mabdi run CONFIG [--frames N] [--out DIR] [--noise MODEL] [--seed N] [--surface NAME] [--set KEY=VALUE]
                      [--no-classifier] [--no-removal] [--no-registration] [--refinement] [--depth-images] [--h5] [--movie]
                      [--rerun [FILE.rrd]] [--backend B] [--overwrite] [--quiet] [--no-eval]
-    mabdi run --sequence PATH [CONFIG] [--camera fr1|fr2|fr3] [--depth-topic T] [--info-topic T] [--pose-topic T]
+    mabdi run --sequence PATH [CONFIG] [--camera PRESET|fx,fy,cx,cy,w,h] [--depth-scale UNITS] [--depth-topic T] ...
     mabdi run --resume OUT [--quiet] [--no-eval]   finish an interrupted run from its last checkpoint (its inputs
                                                    must be unchanged; the run's own options are kept)
     mabdi record CONFIG --format tum|rosbag2 --out PATH [--storage sqlite3|mcap] [--encoding 32FC1|16UC1]
@@ -96,15 +96,24 @@ def _parser() -> argparse.ArgumentParser:
     sequence = run.add_argument_group("recorded sequences (--sequence)")
     sequence.add_argument(
         "--sequence", type=Path,
-        help="run on a recorded sequence (a TUM RGB-D folder or a ROS 2 bag) instead of the simulated sensor; "
+        help="run on a recorded sequence (a TUM RGB-D folder, a ROS 2 bag, or a 3DMatch / 7-Scenes, Redwood / Open3D, "
+        "ScanNet or Replica (NICE-SLAM) folder, told apart by their files) instead of the simulated sensor; "
         "CONFIG then gives the classifier, surface and output settings (its [sensor] noise sets the thresholds)",
     )
-    sequence.add_argument("--camera", help="TUM intrinsics preset when the folder has no mabdi.toml: fr1, fr2 or fr3")
+    sequence.add_argument(
+        "--camera",
+        help="the camera when the sequence has none (or to replace it): a preset (TUM fr1, fr2, fr3, ros; 7scenes; "
+        "replica) or fx,fy,cx,cy,width,height in pixels (pixel centres at +0.5, as in mabdi.toml)",
+    )
+    sequence.add_argument(
+        "--depth-scale", type=float,
+        help="depth PNG units per metre, replacing the layout's own (TUM 5000, 3DMatch / Redwood / ScanNet 1000, Replica 6553.5)",
+    )
     sequence.add_argument("--depth-topic", help="ROS 2 bag: the depth image topic (when there are several)")
     sequence.add_argument("--info-topic", help="ROS 2 bag: the CameraInfo topic (when there are several)")
     sequence.add_argument("--pose-topic", help="ROS 2 bag: a PoseStamped topic for the poses (default: /tf when present)")
     sequence.add_argument(
-        "--tolerance", type=float, default=0.02, help="largest time between a depth frame and its pose, seconds (default 0.02)"
+        "--tolerance", type=float, help="TUM, ROS 2 bag: largest time between a depth frame and its pose, seconds (default 0.02)"
     )
 
     record = commands.add_parser("record", help="write a simulated run's depth frames as a TUM folder or a ROS 2 bag")
@@ -281,6 +290,7 @@ def cmd_run(args) -> int:
         name = config.run.name or args.sequence.resolve().name
         options = {
             "camera": args.camera,
+            "depth_scale": args.depth_scale,
             "depth_topic": args.depth_topic,
             "info_topic": args.info_topic,
             "pose_topic": args.pose_topic,
@@ -290,7 +300,7 @@ def cmd_run(args) -> int:
         recording = {"path": str(args.sequence.resolve()), "options": options}
         print(f"source: {simulation.source.description}")
     else:
-        for option in ("camera", "depth_topic", "info_topic", "pose_topic"):
+        for option in ("camera", "depth_scale", "depth_topic", "info_topic", "pose_topic", "tolerance"):
             if getattr(args, option) is not None:
                 raise ConfigError(f"run: --{option.replace('_', '-')} is for recorded sequences; use it with --sequence")
         if not config.scene.objects:
@@ -331,7 +341,7 @@ _RESUME_OPTIONS = ("quiet", "no_eval")
 
 def _resume_refused_options(args) -> list[str]:
     """The options given with --resume that it does not take, as the user wrote them (--frames, --set, ...)."""
-    defaults = {"tolerance": 0.02, "settings": []}
+    defaults = {"settings": []}
     given = []
     for name, value in vars(args).items():
         if name in ("command", "resume", "config", "sequence", *_RESUME_OPTIONS):

@@ -9,7 +9,10 @@ Layout (every filter reads and writes it so):
 * field data ``intrinsics`` (float64[8]: fx, fy, cx, cy, width, height, near,
   far), ``world_from_camera`` (float64[16], row-major), ``frame``
   (int64[1], the frame index, -1 when unknown) and ``timestamp`` (float64[1],
-  seconds, NaN when unknown).
+  seconds, NaN when unknown);
+* optionally the point array ``colour`` (uint8, 3 components, sRGB): the
+  colour image registered to the depth, pixel for pixel (the same index
+  v*W + u), when the source has one.
 
 **What counts as a return** is decided here, once, for every source and
 filter (:func:`returns`): a depth that is finite and inside the sensor's
@@ -35,6 +38,7 @@ INTRINSICS_ARRAY = "intrinsics"
 POSE_ARRAY = "world_from_camera"
 FRAME_ARRAY = "frame"
 TIMESTAMP_ARRAY = "timestamp"
+COLOUR_ARRAY = "colour"
 
 
 def returns(depth: np.ndarray, near: float, far: float) -> np.ndarray:
@@ -61,15 +65,27 @@ def only_returns(depth: np.ndarray, near: float, far: float) -> np.ndarray:
     return np.where(keep, depth, np.float32(np.nan))
 
 
+def check_colour(colour, shape: tuple[int, int]) -> np.ndarray | None:
+    """``colour`` as a (H, W, 3) uint8 array for a depth image of ``shape`` (H, W), or None; ValueError otherwise."""
+    if colour is None:
+        return None
+    colour = np.asarray(colour)
+    if colour.shape != (*shape, 3) or colour.dtype != np.uint8:
+        raise ValueError(f"colour image must be uint8 of shape {(*shape, 3)} (registered to the depth), got {colour.dtype} {colour.shape}")
+    return colour
+
+
 @dataclass
 class DepthFrame:
-    """A depth image as numpy: (H, W) float32 metres, its intrinsics, pose and frame index."""
+    """A depth image as numpy: (H, W) float32 metres, its intrinsics, pose and frame index, and optionally
+    ``colour``: (H, W, 3) uint8 RGB registered to the depth pixel for pixel (None when the source has none)."""
 
     depth: np.ndarray
     intrinsics: Intrinsics
     world_from_camera: np.ndarray
     frame: int = -1
     timestamp: float = float("nan")
+    colour: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.depth = np.asarray(self.depth, dtype=np.float32)
@@ -78,29 +94,38 @@ class DepthFrame:
                 f"depth image has shape {self.depth.shape}, but intrinsics say (height, width) = {self.intrinsics.shape}"
             )
         self.world_from_camera = check_pose(self.world_from_camera, "world_from_camera")
+        self.colour = check_colour(self.colour, self.intrinsics.shape)
 
     def to_image(self) -> vtkImageData:
         """This frame as a depth-image vtkImageData."""
-        return depth_image(self.depth, self.intrinsics, self.world_from_camera, self.frame, self.timestamp)
+        return depth_image(self.depth, self.intrinsics, self.world_from_camera, self.frame, self.timestamp, self.colour)
 
     @classmethod
     def from_image(cls, image) -> DepthFrame:
         """Read a depth-image vtkImageData (copies the depth array; non-returns become NaN)."""
         intrinsics = image_intrinsics(image)
+        colour = image_colour(image)
         return cls(
-            np.array(depth_array(image), copy=True), intrinsics, image_pose(image), image_frame(image), image_timestamp(image)
+            np.array(depth_array(image), copy=True), intrinsics, image_pose(image), image_frame(image), image_timestamp(image),
+            None if colour is None else colour.copy(),
         )
 
 
-def depth_image(depth, intrinsics: Intrinsics, world_from_camera, frame: int = -1, timestamp: float = float("nan")) -> vtkImageData:
-    """Build a depth-image vtkImageData from a (H, W) array of metres (v = 0 the top row); copies ``depth``."""
+def depth_image(
+    depth, intrinsics: Intrinsics, world_from_camera, frame: int = -1, timestamp: float = float("nan"), colour=None
+) -> vtkImageData:
+    """Build a depth-image vtkImageData from a (H, W) array of metres (v = 0 the top row); copies ``depth`` and ``colour``."""
     depth = np.array(depth, dtype=np.float32, order="C", copy=True)
     if depth.shape != intrinsics.shape:
         raise ValueError(
             f"depth image has shape {depth.shape}, but intrinsics say (height, width) = {intrinsics.shape}"
         )
+    colour = check_colour(colour, intrinsics.shape)
     image = vtkImageData()
-    fill_depth_image(image, depth, intrinsics, check_pose(world_from_camera, "world_from_camera"), frame, timestamp)
+    fill_depth_image(
+        image, depth, intrinsics, check_pose(world_from_camera, "world_from_camera"), frame, timestamp,
+        None if colour is None else colour.copy(),
+    )
     return image
 
 
@@ -111,10 +136,12 @@ def fill_depth_image(
     pose: np.ndarray,
     frame: int,
     timestamp: float = float("nan"),
+    colour: np.ndarray | None = None,
 ) -> None:
-    """Fill an existing vtkImageData (a filter's output) with a depth image. Inputs are trusted.
+    """Fill an existing vtkImageData (a filter's output) with a depth image (and its (H, W, 3) uint8
+    ``colour``, when given). Inputs are trusted.
 
-    The image shares ``depth``'s memory: hand over an array nobody else writes to.
+    The image shares ``depth``'s (and ``colour``'s) memory: hand over arrays nobody else writes to.
     """
     height, width = depth.shape
     image.SetExtent(0, width - 1, 0, height - 1, 0, 0)
@@ -126,6 +153,8 @@ def fill_depth_image(
     point_data = image.GetPointData()
     point_data.Initialize()
     point_data.SetScalars(array)
+    if colour is not None:
+        set_colour(image, colour)
     field = image.GetFieldData()
     field.Initialize()
     for name, values in (
@@ -171,6 +200,30 @@ def image_timestamp(image) -> float:
     """Timestamp (seconds) stored in a depth image's field data (NaN when absent)."""
     array = image.GetFieldData().GetArray(TIMESTAMP_ARRAY)
     return float(vtk_to_numpy(array)[0]) if array is not None and array.GetNumberOfTuples() else float("nan")
+
+
+def set_colour(image, colour: np.ndarray) -> None:
+    """Put (H, W, 3) uint8 ``colour`` into ``image`` as its point array ``colour`` (shared memory)."""
+    array = numpy_to_vtk(np.ascontiguousarray(colour, dtype=np.uint8).reshape(-1, 3), deep=False)
+    array.SetName(COLOUR_ARRAY)
+    image.GetPointData().AddArray(array)
+
+
+def image_colour(image) -> np.ndarray | None:
+    """(H, W, 3) uint8 colour of a depth image (a view), or None when it has none."""
+    array = image.GetPointData().GetArray(COLOUR_ARRAY) if image is not None else None
+    if array is None:
+        return None
+    intrinsics = image_intrinsics(image)
+    return vtk_to_numpy(array).reshape(intrinsics.height, intrinsics.width, 3)
+
+
+def copy_colour(source, target) -> None:
+    """Hand ``source``'s colour array (if any) to ``target``, a depth image of the same size (shared, not copied):
+    filters that rebuild a depth image from D (registration, the classifier) keep D's colour so."""
+    array = source.GetPointData().GetArray(COLOUR_ARRAY)
+    if array is not None:
+        target.GetPointData().AddArray(array)
 
 
 def depth_array(image, raw: bool = False) -> np.ndarray:

@@ -39,8 +39,12 @@ FORMATS = ("tum", "rosbag2")
 TRUE_POSES = "poses_true.npy"
 #: The reader options each format takes (the others are an error when given).
 READER_OPTIONS = {
-    "tum": ("camera", "tolerance"),
+    "tum": ("camera", "tolerance", "depth_scale"),
     "rosbag2": ("depth_topic", "info_topic", "pose_topic", "tolerance"),
+    "3dmatch": ("camera", "depth_scale"),
+    "redwood": ("camera", "depth_scale"),
+    "scannet": ("camera", "depth_scale"),
+    "replica": ("camera", "depth_scale"),
 }
 
 
@@ -95,14 +99,14 @@ def recorded_simulation(config: RunConfig, path, **options) -> tuple[Simulation,
     """A Simulation over the recording at ``path`` (``options`` go to the reader), and a note when
     the ground truth is unknown (the evaluation is then skipped)."""
     from mabdi.errors import ConfigError
-    from mabdi.sources.sequences import metadata_path, open_sequence, read_sequence_metadata, sequence_format
+    from mabdi.sources.sequences import FORMATS, metadata_path, open_sequence, read_sequence_metadata, sequence_format
 
     kind = sequence_format(path)
     wanted = READER_OPTIONS[kind]
     for name, value in options.items():
         if value is not None and name not in wanted:
             flag = "--" + name.replace("_", "-")
-            raise ConfigError(f"{path} is a {'TUM RGB-D folder' if kind == 'tum' else 'ROS 2 bag'}: {flag} does not apply to it")
+            raise ConfigError(f"{path} is a {FORMATS[kind][0]}: {flag} does not apply to it")
     source = open_sequence(path, **{k: v for k, v in options.items() if v is not None and k in wanted})
     recorded = read_sequence_metadata(path).get("recorded", {})
     scene = None

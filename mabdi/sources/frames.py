@@ -7,8 +7,12 @@ frame index and a timestamp (seconds). Kinds:
 
 * the simulated rig (scene + off-screen sensor + helical path),
   :class:`mabdi.simulate.rig.SimulatedRig`;
-* recorded sequences: TUM RGB-D folders (:mod:`mabdi.sources.tum`) and ROS 2
-  bags (:mod:`mabdi.sources.rosbag2`).
+* recorded sequences: TUM RGB-D folders (:mod:`mabdi.sources.tum`), ROS 2
+  bags (:mod:`mabdi.sources.rosbag2`) and the common RGB-D dataset layouts
+  (3DMatch / 7-Scenes, Redwood / Open3D, ScanNet, Replica:
+  :mod:`mabdi.sources.sequences` lists them).
+
+A frame may carry a colour image registered to its depth (``DepthFrame.colour``).
 
 Frames are read by index (``read(i)``, 0 <= i < ``len(source)``), so a run can
 start in the middle (``--resume``) and a benchmark can feed the same frame to
@@ -140,14 +144,15 @@ class FrameList(FrameSource):
 
     def read_frame(self, index: int) -> DepthFrame:
         frame = self._frames[index]
-        return DepthFrame(frame.depth, frame.intrinsics, frame.world_from_camera, index, frame.timestamp)
+        return DepthFrame(frame.depth, frame.intrinsics, frame.world_from_camera, index, frame.timestamp, frame.colour)
 
 
 class SourceDepthFrames(MabdiAlgorithm):
     """A :class:`FrameSource` as a VTK source: no input, the depth image of frame ``frame`` out.
 
     The output is D with field data ``intrinsics``, ``world_from_camera``,
-    ``frame`` and ``timestamp``; depths that are not returns are NaN.
+    ``frame`` and ``timestamp``, and the point array ``colour`` when the frame
+    has a colour image; depths that are not returns are NaN.
     """
 
     def __init__(self, source: FrameSource) -> None:
@@ -179,8 +184,9 @@ class SourceDepthFrames(MabdiAlgorithm):
 
     def RequestData(self, request, inInfo, outInfo):  # noqa: N802 (VTK API)
         frame = self._source.read(self._frame)
-        depth = frame.depth.copy()  # the output image owns its buffer
+        depth = frame.depth.copy()  # the output image owns its buffers
+        colour = None if frame.colour is None else frame.colour.copy()
         fill_depth_image(
-            vtkImageData.GetData(outInfo), depth, frame.intrinsics, frame.world_from_camera, self._frame, frame.timestamp
+            vtkImageData.GetData(outInfo), depth, frame.intrinsics, frame.world_from_camera, self._frame, frame.timestamp, colour
         )
         return 1

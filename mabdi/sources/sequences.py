@@ -1,13 +1,22 @@
 """Recorded depth sequences: open one whatever its format, and the ``mabdi.toml`` beside it.
 
-Two formats are read and written (each a :class:`~mabdi.sources.frames.FrameSource`):
+Formats read and written (each a :class:`~mabdi.sources.frames.FrameSource`):
 
 * a TUM RGB-D benchmark folder (``depth/*.png``, ``depth.txt``,
   ``groundtruth.txt``): :mod:`mabdi.sources.tum`;
 * a ROS 2 bag folder (``metadata.yaml`` with ``.db3`` or ``.mcap`` files), or a
-  single ``.db3`` / ``.mcap`` file: :mod:`mabdi.sources.rosbag2`.
+  single ``.db3`` / ``.mcap`` file: :mod:`mabdi.sources.rosbag2`;
+* the common RGB-D dataset layouts (:mod:`mabdi.sources.image_sequence` has
+  what they share): 3DMatch / 7-Scenes (:mod:`mabdi.sources.threedmatch`),
+  Redwood / Open3D (:mod:`mabdi.sources.redwood`), ScanNet's exporter
+  (:mod:`mabdi.sources.scannet`) and Replica as NICE-SLAM ships it
+  (:mod:`mabdi.sources.replica`).
 
-:func:`open_sequence` tells them apart. Either may carry a ``mabdi.toml``
+:func:`open_sequence` tells them apart, in the order of
+:func:`sequence_format`: ``depth.txt`` is TUM; ``metadata.yaml`` or a
+``.db3`` / ``.mcap`` is a bag; ``traj.txt`` with ``results/`` is Replica;
+``depth/`` with ``pose/`` is ScanNet; ``depth/`` with a ``.log`` is Redwood;
+``frame-*.depth.png`` (here or in ``seq-*`` folders) is 3DMatch. Any may carry a ``mabdi.toml``
 file in its folder with a ``[camera]`` table (intrinsics in mabdi's
 conventions: pixel (u, v) has its centre at (u + 0.5, v + 0.5); focal
 lengths and principal point in pixels, near and far in metres) and any other
@@ -163,47 +172,62 @@ def write_metadata(folder, intrinsics: Intrinsics, extra: dict | None = None) ->
 # Format detection
 
 
+#: The formats :func:`open_sequence` reads: name -> (description, module, reader class).
+FORMATS = {
+    "tum": ("TUM RGB-D folder", "mabdi.sources.tum", "TumSequence"),
+    "rosbag2": ("ROS 2 bag", "mabdi.sources.rosbag2", "Rosbag2Sequence"),
+    "3dmatch": ("3DMatch / 7-Scenes folder", "mabdi.sources.threedmatch", "ThreeDMatchSequence"),
+    "redwood": ("Redwood / Open3D folder", "mabdi.sources.redwood", "RedwoodSequence"),
+    "scannet": ("ScanNet folder", "mabdi.sources.scannet", "ScanNetSequence"),
+    "replica": ("Replica (NICE-SLAM) folder", "mabdi.sources.replica", "ReplicaSequence"),
+}
+
+_WHAT_IS_READ = (
+    "a TUM RGB-D folder (depth.txt), a ROS 2 bag (metadata.yaml, .db3 or .mcap), a 3DMatch / 7-Scenes folder "
+    "(frame-*.depth.png, or seq-* folders of them), a Redwood / Open3D folder (depth/ and trajectory.log), "
+    "a ScanNet folder (depth/ and pose/) or a Replica NICE-SLAM folder (results/ and traj.txt)"
+)
+
+
 def sequence_format(path) -> str:
-    """``"tum"`` or ``"rosbag2"`` for the sequence at ``path``, or a :class:`SequenceError` saying what was found."""
+    """The name in :data:`FORMATS` of the sequence at ``path``, or a :class:`SequenceError` saying what was found."""
+    from mabdi.sources.redwood import is_redwood
+    from mabdi.sources.replica import is_replica
+    from mabdi.sources.scannet import is_scannet
+    from mabdi.sources.threedmatch import is_3dmatch
+
     path = Path(path)
     if not path.exists():
         raise SequenceError(f"recorded sequence {path} does not exist")
     if path.is_file():
         if path.suffix in (".db3", ".mcap"):
             return "rosbag2"
-        raise SequenceError(
-            f"{path}: not a recorded sequence (expected a TUM RGB-D folder with depth.txt, "
-            "a ROS 2 bag folder with metadata.yaml, or a .db3 / .mcap file)"
-        )
+        raise SequenceError(f"{path}: not a recorded sequence (expected {_WHAT_IS_READ})")
     if (path / "depth.txt").is_file():
         return "tum"
     if (path / "metadata.yaml").is_file() or any(path.glob("*.db3")) or any(path.glob("*.mcap")):
         return "rosbag2"
-    raise SequenceError(
-        f"{path}: not a recorded sequence: no depth.txt (TUM RGB-D folder), "
-        "no metadata.yaml and no .db3 / .mcap file (ROS 2 bag)"
-    )
+    for name, test in (("replica", is_replica), ("scannet", is_scannet), ("redwood", is_redwood), ("3dmatch", is_3dmatch)):
+        if test(path):
+            return name
+    raise SequenceError(f"{path}: not a recorded sequence: expected {_WHAT_IS_READ}")
 
 
 def open_sequence(path, **options):
     """Open a recorded depth sequence as a :class:`~mabdi.sources.frames.FrameSource`, whatever its format.
 
-    A folder with ``depth.txt`` is a TUM RGB-D folder
-    (:class:`~mabdi.sources.tum.TumSequence`); a folder with
-    ``metadata.yaml`` or ``.db3`` / ``.mcap`` files, or such a file, is a ROS 2
-    bag (:class:`~mabdi.sources.rosbag2.Rosbag2Sequence`). ``options`` go to
-    that class (``camera=``, ``tolerance=`` for TUM; ``depth_topic=``,
-    ``pose_topic=``, ... for bags).
+    :func:`sequence_format` tells the formats apart (:data:`FORMATS`);
+    ``options`` go to that reader (``camera=``, ``depth_scale=``,
+    ``tolerance=`` for TUM; ``camera=``, ``depth_scale=`` for the dataset
+    layouts; ``depth_topic=``, ``pose_topic=``, ... for bags).
     """
+    import importlib
+
     kind = sequence_format(path)
-    if kind == "tum":
-        from mabdi.sources.tum import TumSequence
-
-        return TumSequence(path, **options)
-    from mabdi.sources.rosbag2 import Rosbag2Sequence
-
+    _, module, name = FORMATS[kind]
+    reader = getattr(importlib.import_module(module), name)
     path = Path(path)
-    if path.is_dir() and not (path / "metadata.yaml").is_file():
+    if kind == "rosbag2" and path.is_dir() and not (path / "metadata.yaml").is_file():
         files = sorted(path.glob("*.db3")) + sorted(path.glob("*.mcap"))
         if len(files) != 1:
             raise SequenceError(
@@ -211,7 +235,7 @@ def open_sequence(path, **options):
                 "open one of them, or restore metadata.yaml"
             )
         path = files[0]
-    return Rosbag2Sequence(path, **options)
+    return reader(path, **options)
 
 
 # ---------------------------------------------------------------------------
@@ -299,6 +323,20 @@ def poses_from_translations_quaternions(translations, quaternions):
         poses[:, :3, :3] = Rotation.from_quat(np.asarray(quaternions, dtype=np.float64).reshape(-1, 4)).as_matrix()
         poses[:, :3, 3] = translations
     return poses
+
+
+def prepare_folder(folder: Path, overwrite: bool, what: str) -> None:
+    """Create ``folder`` for a writer of ``what``; a file there, or a folder that is not empty (unless
+    ``overwrite``), is a :class:`SequenceError`."""
+    folder = Path(folder)
+    if folder.exists() and not folder.is_dir():
+        raise SequenceError(f"cannot write {what} to {folder}: it is a file")
+    if folder.is_dir() and any(folder.iterdir()) and not overwrite:
+        raise SequenceError(f"cannot write {what} to {folder}: the folder exists and is not empty (pass overwrite=True)")
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise SequenceError(f"cannot write {what} to {folder}: {exc}") from None
 
 
 def frame_timestamps(source) -> np.ndarray:

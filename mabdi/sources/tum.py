@@ -64,6 +64,7 @@ from mabdi.sources.sequences import (
     metadata_path,
     interpolate_poses,
     poses_from_translations_quaternions,
+    prepare_folder,
     quaternions_from_rotations,
     read_sequence_metadata,
     write_metadata,
@@ -229,8 +230,11 @@ def _decode_gray16_png(data: bytes) -> np.ndarray | None:
     return out.view(">u2")
 
 
-def read_depth_png(path: Path, intrinsics: Intrinsics, scale: float = DEPTH_SCALE) -> np.ndarray:
-    """(H, W) float32 depth in metres of a 16-bit depth PNG (``scale`` units per metre; 0 becomes NaN)."""
+def read_depth_units(path: Path, shape: tuple[int, int] | None) -> np.ndarray:
+    """(H, W) uint16 values of a 16-bit single-channel depth PNG, as stored; ``shape`` (H, W) checked when given.
+
+    A missing, damaged or differently shaped image is a :class:`SequenceError` naming it.
+    """
     try:
         with open(path, "rb") as stream:
             raw = _decode_gray16_png(stream.read())
@@ -238,36 +242,34 @@ def read_depth_png(path: Path, intrinsics: Intrinsics, scale: float = DEPTH_SCAL
         raise SequenceError(f"{path}: depth image missing") from None
     except (ValueError, struct.error) as exc:
         raise SequenceError(f"{path}: cannot read depth PNG: {exc}") from None
-    if raw is not None:
-        if raw.shape != intrinsics.shape:
-            raise SequenceError(
-                f"{path}: image is {raw.shape[1]}x{raw.shape[0]}, intrinsics say {intrinsics.width}x{intrinsics.height}"
-            )
-        return _depth_from_units(raw, scale)
-    try:
-        with Image.open(path) as image:
-            if image.format != "PNG" or image.mode not in ("I;16", "I;16B", "I;16L", "I"):
-                raise SequenceError(
-                    f"{path}: not a 16-bit single-channel PNG (format {image.format}, mode {image.mode})"
-                )
-            if image.size != (intrinsics.width, intrinsics.height):
-                raise SequenceError(
-                    f"{path}: image is {image.size[0]}x{image.size[1]}, intrinsics say {intrinsics.width}x{intrinsics.height}"
-                )
-            raw = np.asarray(image)
-    except FileNotFoundError:
-        raise SequenceError(f"{path}: depth image missing") from None
-    except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as exc:
-        if isinstance(exc, SequenceError):
-            raise
-        raise SequenceError(f"{path}: cannot read depth PNG: {exc}") from None
-    return _depth_from_units(raw, scale)
+    if raw is None:
+        try:
+            with Image.open(path) as image:
+                if image.format != "PNG" or image.mode not in ("I;16", "I;16B", "I;16L", "I"):
+                    raise SequenceError(
+                        f"{path}: not a 16-bit single-channel PNG (format {image.format}, mode {image.mode})"
+                    )
+                raw = np.asarray(image)
+        except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as exc:
+            if isinstance(exc, SequenceError):
+                raise
+            raise SequenceError(f"{path}: cannot read depth PNG: {exc}") from None
+    if shape is not None and raw.shape != tuple(shape):
+        raise SequenceError(f"{path}: image is {raw.shape[1]}x{raw.shape[0]}, intrinsics say {shape[1]}x{shape[0]}")
+    return raw
 
 
-def _depth_from_units(raw: np.ndarray, scale: float) -> np.ndarray:
+def read_depth_png(path: Path, intrinsics: Intrinsics, scale: float = DEPTH_SCALE, no_return=(0,)) -> np.ndarray:
+    """(H, W) float32 depth in metres of a 16-bit depth PNG (``scale`` units per metre; the ``no_return`` values become NaN)."""
+    return depth_from_units(read_depth_units(path, intrinsics.shape), scale, no_return)
+
+
+def depth_from_units(raw: np.ndarray, scale: float, no_return=(0,)) -> np.ndarray:
+    """float32 metres of uint16 depth ``raw`` at ``scale`` units per metre; the ``no_return`` values become NaN."""
     depth = raw.astype(np.float32)
     depth *= np.float32(1.0 / scale)
-    depth[raw == 0] = np.nan
+    for value in no_return:
+        depth[raw == value] = np.nan
     return depth
 
 
@@ -292,12 +294,15 @@ class TumSequence(FrameSource):
     Parameters: ``folder`` (the sequence folder), ``camera`` (an
     :class:`Intrinsics` or a preset name in :data:`PRESETS`; wins over the
     folder's ``mabdi.toml``), ``tolerance`` (seconds between a depth frame and
-    its ground-truth pose, default 0.02). Frames are the depth images that
+    its ground-truth pose, default 0.02), ``depth_scale`` (PNG units per
+    metre, default :data:`DEPTH_SCALE`). Frames are the depth images that
     have a pose, in ``depth.txt``'s order; ``skipped`` counts the others.
     ``read(i)`` decodes one PNG; timestamps and poses are known at open.
     """
 
-    def __init__(self, folder, camera: Intrinsics | str | None = None, tolerance: float = 0.02) -> None:
+    def __init__(
+        self, folder, camera: Intrinsics | str | None = None, tolerance: float = 0.02, depth_scale: float | None = None
+    ) -> None:
         self.folder = Path(folder)
         if not self.folder.is_dir():
             raise SequenceError(f"TUM folder {self.folder} does not exist or is not a folder")
@@ -306,6 +311,9 @@ class TumSequence(FrameSource):
         self.metadata = read_sequence_metadata(self.folder)
         self._intrinsics = self._resolve_camera(camera)
         self.tolerance = float(tolerance)
+        self.depth_scale = DEPTH_SCALE if depth_scale is None else depth_scale
+        if not (isinstance(self.depth_scale, (int, float)) and np.isfinite(self.depth_scale) and self.depth_scale > 0):
+            raise SequenceError(f"TUM folder {self.folder}: depth scale must be a positive number of units per metre, got {depth_scale!r}")
 
         depth_times, depth_rows = read_tum_list(self.folder / "depth.txt", 2)
         pose_times, poses = read_groundtruth(self.folder / "groundtruth.txt")
@@ -350,7 +358,7 @@ class TumSequence(FrameSource):
         return len(self._files)
 
     def read_frame(self, index: int) -> DepthFrame:
-        depth = read_depth_png(self._files[index], self._intrinsics)
+        depth = read_depth_png(self._files[index], self._intrinsics, self.depth_scale)
         return DepthFrame(depth, self._intrinsics, self._poses[index], index, float(self._timestamps[index]))
 
     @property
@@ -367,18 +375,9 @@ class TumSequence(FrameSource):
         return list(self._files)
 
 
-def _prepare_folder(folder: Path, overwrite: bool, what: str) -> None:
-    if folder.exists() and not folder.is_dir():
-        raise SequenceError(f"cannot write {what} to {folder}: it is a file")
-    if folder.is_dir() and any(folder.iterdir()) and not overwrite:
-        raise SequenceError(f"cannot write {what} to {folder}: the folder exists and is not empty (pass overwrite=True)")
-    try:
-        folder.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise SequenceError(f"cannot write {what} to {folder}: {exc}") from None
-
-
-def write_tum(source: FrameSource, folder, *, extra: dict | None = None, overwrite: bool = False) -> Path:
+def write_tum(
+    source: FrameSource, folder, *, extra: dict | None = None, overwrite: bool = False, depth_scale: float = DEPTH_SCALE
+) -> Path:
     """Write every frame of ``source`` as a TUM RGB-D folder; returns the folder.
 
     ``depth/<timestamp>.png`` (16-bit, round(depth * 5000), 0 where there is
@@ -387,13 +386,15 @@ def write_tum(source: FrameSource, folder, *, extra: dict | None = None, overwri
     they read back to within 1e-12 of the same matrices; quaternions scalar
     last with w >= 0) and ``mabdi.toml`` with the ``[camera]`` table and the
     ``extra`` tables (e.g. ``{"recorded": {"scene": "scenes/table.toml"}}``).
+    ``depth_scale`` other than 5000 writes PNGs that only a reader told so
+    (``depth_scale=``, ``--depth-scale``) reads right.
     Frames without a timestamp get ``index / 30`` s. Every file is written
     atomically. The folder is created; one that exists and is not empty is an
     error unless ``overwrite=True`` (files of the same name are replaced,
     others are left alone).
     """
     folder = Path(folder)
-    _prepare_folder(folder, overwrite, "a TUM sequence")
+    prepare_folder(folder, overwrite, "a TUM sequence")
     (folder / "depth").mkdir(exist_ok=True)
     intrinsics = source.intrinsics
     times = frame_timestamps(source)
@@ -405,7 +406,7 @@ def write_tum(source: FrameSource, folder, *, extra: dict | None = None, overwri
         frame = source.read(index)
         if frame.depth.shape != intrinsics.shape:
             raise SequenceError(f"cannot write frame {index} to {folder}: depth {frame.depth.shape} != intrinsics {intrinsics.shape}")
-        write_depth_png(folder / names[index], frame.depth)
+        write_depth_png(folder / names[index], frame.depth, depth_scale)
         poses[index] = frame.world_from_camera
     quaternions = quaternions_from_rotations(poses[:, :3, :3])
     header = "# mabdi recording: {}\n# timestamp {}\n"

@@ -1,0 +1,254 @@
+"""The common RGB-D dataset layouts (3DMatch / 7-Scenes, Redwood / Open3D, ScanNet, Replica): simulated frames
+written in each, read back, and run through `mabdi run --sequence` against the same frames as a TUM folder."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+from vtkmodules.util.numpy_support import vtk_to_numpy
+
+from mabdi.cli import main
+from mabdi.config import load_run_config
+from mabdi.io.vtk_files import read_mesh_file
+from mabdi.simulate.rig import SimulatedRig
+from mabdi.sources.frames import FrameList
+from mabdi.sources.image_sequence import colour_lookup
+from mabdi.sources import replica
+from mabdi.sources.redwood import write_redwood
+from mabdi.sources.replica import write_replica
+from mabdi.sources.scannet import ScanNetSequence, write_scannet
+from mabdi.sources.sequences import FORMATS, SequenceError, open_sequence, sequence_format
+from mabdi.sources.threedmatch import ThreeDMatchSequence, write_3dmatch
+from mabdi.sources.tum import write_tum
+
+#: A small table scene (160x120 sensor, 6 frames): fast, and every layout's quantisation shows.
+CONFIG = """
+[run]
+name = "small_table"
+frames = 6
+seed = 1
+
+[sensor]
+noise = "none"
+width = 160
+height = 120
+fx = 131.25
+fy = 131.25
+cx = 80.0
+cy = 60.0
+
+[path]
+center = [0.0, 0.0]
+radius_x = 2.2
+radius_y = 2.0
+z0 = 1.5
+z1 = 1.9
+look_from = [0.0, 0.0, 0.7]
+look_to = [0.0, 0.0, 0.9]
+
+[[scene.objects]]
+type = "plane"
+size = [6.0, 6.0]
+
+[[scene.objects]]
+type = "box"
+size = [1.2, 0.8, 0.04]
+position = [0.0, 0.0, 0.96]
+
+[[scene.objects]]
+type = "box"
+size = [0.05, 0.05, 0.96]
+position = [0.55, 0.35, 0.0]
+
+[[scene.objects]]
+type = "cylinder"
+radius = 0.08
+height = 0.2
+position = [-0.2, 0.1, 1.0]
+"""
+
+WRITERS = {"3dmatch": write_3dmatch, "redwood": write_redwood, "scannet": write_scannet, "replica": write_replica}
+#: Each layout's depth step (m): TUM 1/5000, millimetres, Replica 1/6553.5.
+STEPS = {"tum": 1 / 5000, "3dmatch": 1e-3, "redwood": 1e-3, "scannet": 1e-3, "replica": 1 / 6553.5}
+
+
+@pytest.fixture(scope="module")
+def recorded(tmp_path_factory):
+    """The simulated frames (in memory), the config, and the frames written as TUM and as every layout."""
+    root = tmp_path_factory.mktemp("datasets")
+    config_file = root / "small_table.toml"
+    config_file.write_text(CONFIG)
+    rig = SimulatedRig.from_config(load_run_config(config_file))
+    try:
+        frames = FrameList([rig.read(i) for i in range(len(rig))], "simulated small table")
+    finally:
+        rig.close()
+    folders = {"tum": write_tum(frames, root / "tum")}
+    for name, writer in WRITERS.items():
+        folders[name] = writer(frames, root / name)
+        if name == "replica":  # TUM's 1/5000 m steps cannot hold 1/6553.5 m ones: a TUM folder at Replica's scale
+            folders[f"tum_{name}"] = write_tum(frames, root / f"tum_{name}", depth_scale=replica.DEPTH_SCALE)
+        else:
+            folders[f"tum_{name}"] = write_tum(_quantised(frames, STEPS[name]), root / f"tum_{name}")
+    return frames, config_file, folders
+
+
+def _quantised(frames, step):
+    """The frames with depth rounded to ``step`` metres: what a layout of that step holds, made without its reader."""
+    out = []
+    for i in range(len(frames)):
+        frame = frames.read(i)
+        frame.depth = (np.rint(frame.depth.astype(np.float64) / step) * step).astype(np.float32)
+        out.append(frame)
+    return FrameList(out, "quantised")
+
+
+def _run(config, folder, out, *extra):
+    args = ["run", str(config), "--sequence", str(folder), "--no-registration", "--surface", "pixel_grid", "--no-eval"]
+    assert main([*args, "--out", str(out), "--quiet", *extra]) == 0
+    return read_mesh_file(out / "world_mesh.vtp")
+
+
+@pytest.mark.parametrize("layout", list(WRITERS))
+def test_each_layout_reads_back_the_frames(recorded, layout):
+    frames, _, folders = recorded
+    assert sequence_format(folders[layout]) == layout
+    source = open_sequence(folders[layout])
+    assert source.description.startswith(FORMATS[layout][0])
+    assert source.intrinsics == frames.intrinsics  # integer pixel centres in the files, +0.5 in mabdi
+    assert len(source) == len(frames)
+    for i in range(len(frames)):
+        got, expected = source.read(i), frames.read(i)
+        np.testing.assert_allclose(got.world_from_camera, expected.world_from_camera, rtol=0, atol=1e-12)
+        np.testing.assert_array_equal(np.isnan(got.depth), np.isnan(expected.depth))
+        np.testing.assert_allclose(got.depth, expected.depth, rtol=0, atol=STEPS[layout] / 2 + 1e-6, equal_nan=True)
+
+
+@pytest.mark.parametrize("layout", list(WRITERS))
+def test_each_layout_gives_the_map_the_tum_folder_gives(recorded, tmp_path, layout):
+    """The TUM folder holds the same frames (depth rounded to the layout's step, written without the layout's
+    reader or writer; for Replica, a TUM folder at its scale read with --depth-scale). Triangle count within 0.5%; vertices (one per pixel) within one depth step."""
+    _, config, folders = recorded
+    scale = ["--depth-scale", str(replica.DEPTH_SCALE)] if layout == "replica" else []
+    tum = _run(config, folders[f"tum_{layout}"], tmp_path / "tum", *scale)
+    other = _run(config, folders[layout], tmp_path / layout)
+    cells = tum.GetNumberOfCells(), other.GetNumberOfCells()
+    assert cells[0] > 10_000
+    assert abs(cells[1] - cells[0]) <= 0.005 * cells[0], cells
+    expected = vtk_to_numpy(tum.GetPoints().GetData()).astype(np.float64)
+    got = vtk_to_numpy(other.GetPoints().GetData()).astype(np.float64)
+    distance, _ = cKDTree(expected).query(got)
+    step = max(STEPS["tum"], STEPS[layout])
+    assert np.mean(distance <= step + 1e-5) >= 0.995, np.percentile(distance, [50, 99, 99.9])
+
+
+def test_3dmatch_scene_folder_reads_its_sequences_in_order(recorded, tmp_path):
+    frames, _, _ = recorded
+    scene = tmp_path / "scene"
+    write_3dmatch(FrameList([frames.read(i) for i in range(3)]), scene / "seq-01")
+    write_3dmatch(FrameList([frames.read(i) for i in range(3, 6)]), scene / "seq-02")
+    (scene / "seq-01" / "camera-intrinsics.txt").rename(scene / "camera-intrinsics.txt")  # in the parent: found there
+    (scene / "seq-02" / "camera-intrinsics.txt").unlink()
+    source = open_sequence(scene)
+    assert isinstance(source, ThreeDMatchSequence) and len(source) == 6
+    assert source.intrinsics == frames.intrinsics
+    np.testing.assert_allclose(source.poses, frames.poses, atol=1e-12)
+
+
+def test_scannet_lost_poses_are_skipped_and_counted(recorded, tmp_path):
+    frames, _, _ = recorded
+    folder = write_scannet(frames, tmp_path / "scannet", lost={1, 4})
+    source = ScanNetSequence(folder)
+    assert len(source) == 4 and source.skipped == 2
+    assert "2 with a NaN or infinite pose skipped" in source.description
+    np.testing.assert_allclose(source.poses, frames.poses[[0, 2, 3, 5]], atol=1e-12)
+
+
+def test_depth_scale_and_camera_options(recorded, tmp_path, capsys):
+    frames, config, folders = recorded
+    doubled = open_sequence(folders["redwood"], depth_scale=500.0)  # 500 units per metre: every depth twice as far
+    first = frames.read(0).depth
+    near = first < frames.intrinsics.far / 2 - 0.01
+    np.testing.assert_allclose(doubled.read(0).depth[near], 2 * first[near], atol=2e-3)
+    camera = "100,90,70.5,50.5,160,120"
+    assert open_sequence(folders["replica"], camera=camera).intrinsics.fx == 100.0
+    assert open_sequence(folders["3dmatch"], camera="7scenes").intrinsics.fx == 585.0
+    with pytest.raises(SequenceError, match="unknown camera 'fr9'"):
+        open_sequence(folders["scannet"], camera="fr9")
+    # the bag reader takes no depth scale: said at once
+    assert main(["run", "--sequence", str(folders["tum"]), "--tolerance", "0.01", "--no-eval", "--quiet",
+                 "--frames", "1", "--out", str(tmp_path / "t")]) == 0
+    assert main(["run", "--sequence", str(folders["replica"]), "--tolerance", "0.01", "--out", str(tmp_path / "r")]) == 2
+    assert "Replica (NICE-SLAM) folder: --tolerance does not apply" in capsys.readouterr().err
+
+
+def test_scannet_colour_of_another_size_is_sampled_along_each_ray():
+    from mabdi.camera import Intrinsics
+
+    depth = Intrinsics(fx=100.0, fy=100.0, cx=80.0, cy=60.0, width=160, height=120)
+    colour = Intrinsics(fx=300.0, fy=300.0, cx=240.0, cy=180.0, width=480, height=360)  # three times the resolution
+    rows, columns = colour_lookup(depth, colour)
+    # depth pixel centre u + 0.5 -> colour 3u + 1.5, the centre of colour pixel 3u + 1 (the middle of its three)
+    np.testing.assert_array_equal(columns, 3 * np.arange(160) + 1)
+    np.testing.assert_array_equal(rows, 3 * np.arange(120) + 1)
+
+
+def _damage(folder, layout):
+    """Break one file of the layout; returns the file's name and the words the error must have."""
+    if layout == "3dmatch":
+        file = folder / "frame-000002.pose.txt"
+        lines = file.read_text().splitlines()
+        lines[1] = "0 1 zero 0"
+        file.write_text("\n".join(lines) + "\n")
+        return f"{file}:2", "expected numbers"
+    if layout == "redwood":
+        file = folder / "trajectory.log"
+        file.write_text("\n".join(file.read_text().splitlines()[:-2]) + "\n")  # the last entry cut short
+        return str(file), "ends mid-entry"
+    if layout == "scannet":
+        file = folder / "intrinsic" / "intrinsic_depth.txt"
+        file.write_text("131 0 79.5 0\n0 131\n0 0 1 0\n0 0 0 1\n")
+        return f"{file}:2", "expected 3 numbers"
+    file = folder / "traj.txt"
+    lines = file.read_text().splitlines()
+    lines[3] = " ".join(lines[3].split()[:15])
+    file.write_text("\n".join(lines) + "\n")
+    return f"{file}:4", "expected 16 numbers"
+
+
+@pytest.mark.parametrize("layout", list(WRITERS))
+def test_a_malformed_file_of_each_layout_is_named(recorded, tmp_path, layout, capsys):
+    frames, _, _ = recorded
+    folder = WRITERS[layout](frames, tmp_path / layout)
+    where, words = _damage(folder, layout)
+    with pytest.raises(SequenceError, match=words) as error:
+        open_sequence(folder)
+    assert where in str(error.value)
+    assert main(["run", "--sequence", str(folder), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("mabdi: error: ") and where in err and err.count("\n") == 1
+
+
+def test_a_non_rigid_pose_and_a_missing_image_are_named(recorded, tmp_path):
+    frames, _, _ = recorded
+    folder = write_3dmatch(frames, tmp_path / "seq")
+    (folder / "frame-000001.pose.txt").write_text("2 0 0 0\n0 1 0 0\n0 0 1 0\n0 0 0 1\n")
+    with pytest.raises(SequenceError, match=r"frame-000001\.pose\.txt: .*rigid|orthonormal"):
+        open_sequence(folder)
+    folder = write_redwood(frames, tmp_path / "redwood")
+    (folder / "depth" / "000003.png").unlink()
+    with pytest.raises(SequenceError, match="trajectory.log: 6 poses, but depth/ holds 5 images"):
+        open_sequence(folder)
+    (folder / "depth" / "000003.png").write_bytes(b"not a png")
+    with pytest.raises(SequenceError, match="000003.png: cannot read"):
+        open_sequence(folder).read(3)
+
+
+def test_the_summary_names_the_layout(recorded, tmp_path):
+    _, config, folders = recorded
+    _run(config, folders["scannet"], tmp_path / "out")
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert summary["frames"] == 6
