@@ -9,7 +9,7 @@
     mabdi record CONFIG --format tum|rosbag2 --out PATH [--storage sqlite3|mcap] [--encoding 32FC1|16UC1]
     mabdi export IN OUT [--layout mesh_tools|lvr2]   convert a map between VTP, PLY, OBJ, STL and HDF5
     mabdi info MAP               counts, bounds, layers, labels and cluster sets of a map
-    mabdi view PATH [--colour frame|normal|LAYER] [--out PNG]   look at a map or a run folder
+    mabdi view PATH [--colour frame|normal|rgb|LAYER] [--out PNG] [--from-frame N]   look at a map or a run folder
     mabdi plan MAP --start x,y,z --goal x,y,z [--planner dijkstra|fmm] [--out path.vtp]
     mabdi bench [--scene NAME|CONFIG] [--methods M ...] [--frames N] [--out DIR] [--no-tune]
     mabdi sweep SWEEP.toml [--workers N] [--address ADDR] [--out DIR]
@@ -141,6 +141,10 @@ def _parser() -> argparse.ArgumentParser:
     view.add_argument("path", type=Path, help="map file (.vtp, .ply, .h5, ...) or run folder")
     view.add_argument("--colour", "--color", default="frame", help="frame (default), normal, or a layer name (cost, ...)")
     view.add_argument("--out", type=Path, help="write a PNG here instead of opening a window")
+    view.add_argument(
+        "--from-frame", type=int, metavar="N",
+        help="look from the sensor's pose of frame N (a run folder) instead of framing the whole map from above and aside",
+    )
 
     plan = commands.add_parser("plan", help="plan a path on a map (Dijkstra or fast marching)")
     plan.add_argument("map", type=Path, help="map file (.h5, .vtp, .ply, .obj, .stl)")
@@ -443,7 +447,7 @@ def cmd_record(args) -> int:
 def cmd_view(args) -> int:
     from mabdi.viz.viewer import view
 
-    written = view(args.path, colour=args.colour, screenshot=args.out)
+    written = view(args.path, colour=args.colour, screenshot=args.out, from_frame=args.from_frame)
     if written is not None:
         print(f"no display: wrote {written}" if args.out is None else f"wrote {written}")
     return 0

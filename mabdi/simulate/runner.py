@@ -116,6 +116,8 @@ class RunResult:
     folder: RunFolder | None = field(default=None, repr=False)
     #: ``noise = "auto"``: the calibrated sigma(z) (:meth:`mabdi.filters.noise_calibration.NoiseCalibration.summary`)
     noise_calibration: dict | None = None
+    #: The source's intrinsics (:class:`mabdi.camera.Intrinsics` as a dict): ``mabdi view --from-frame`` uses them.
+    intrinsics: dict | None = None
 
     @property
     def cells(self) -> np.ndarray:
@@ -147,6 +149,7 @@ class RunResult:
             "render": self.backend,
             "registration": registration_summary(records),
             "noise_calibration": self.noise_calibration,
+            "intrinsics": self.intrinsics,
         }
 
 
@@ -320,6 +323,7 @@ class Simulation:
             source=self.source.description,
             folder=folder,
             noise_calibration=self.loop.noise.calibration.summary() if self.loop.noise.calibration is not None else None,
+            intrinsics=asdict(self.source.intrinsics),
         )
         if folder is not None:
             try:

@@ -13,6 +13,20 @@ its path. Colour modes:
 
 A run folder shows ``world_mesh.vtp`` (or ``.h5``) with the scene
 (``scene.vtp``, grey, translucent) and the sensor path (``path.vtp``).
+
+**Framing.** By default the camera looks at the map's bounding box from
+above and aside (:data:`VIEW_AZIMUTH` degrees about z from the -y side,
+:data:`VIEW_ELEVATION` above the horizon) with a parallel projection, and is
+fitted to the box's eight corners so they fill :data:`FILL` of the picture's
+width or height, whichever binds: the map, not the scene or the path (which
+may reach far beyond it), sets the frame. A parallel projection has one
+scale over the whole picture, so the picture carries a scale bar (a round
+length, 1, 2 or 5 times a power of ten metres, near a fifth of the picture's
+width) and its title gives the map's name, triangles and size (the box's x,
+y and z extents, metres). ``from_frame=N`` (``--from-frame N``) looks
+instead from the pose the run meshed frame N with (``poses.npy`` of a run
+folder, with the intrinsics in its ``summary.json``), in perspective as the
+sensor saw it; there is no scale bar then.
 """
 
 from __future__ import annotations
@@ -62,8 +76,123 @@ def face_colours(mesh_map, colour: str) -> tuple[np.ndarray | None, np.ndarray |
     raise ConfigError(f"unknown colour {colour!r}: use frame, normal or a layer of this map ({', '.join(layers) or 'none'})")
 
 
-def view(path, colour: str = "frame", screenshot=None, window_size=(1280, 800), interactive: bool | None = None) -> Path | None:
-    """Show a map file or run folder; without a display (or with ``screenshot``) write a PNG and return its path."""
+#: The default view: degrees about world z (0 = looking from +x; -60: from the -y side, a little to +x) and above the horizon.
+VIEW_AZIMUTH = -60.0
+VIEW_ELEVATION = 35.0
+#: The share of the picture's width or height (whichever binds) the map's projected bounding box fills.
+FILL = 0.85
+
+
+def view_direction(azimuth: float = VIEW_AZIMUTH, elevation: float = VIEW_ELEVATION) -> np.ndarray:
+    """Unit vector from the map's centre towards the camera (world frame, z up)."""
+    a, e = np.radians(azimuth), np.radians(elevation)
+    return np.array([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)])
+
+
+def box_corners(bounds) -> np.ndarray:
+    """(8, 3) corners of a VTK bounds tuple (xmin, xmax, ymin, ymax, zmin, zmax)."""
+    x, y, z = bounds[0:2], bounds[2:4], bounds[4:6]
+    return np.array([[a, b, c] for a in x for b in y for c in z], dtype=np.float64)
+
+
+def fit_parallel_camera(camera, bounds, aspect: float, direction=None, fill: float = FILL) -> float:
+    """Point a parallel-projection ``vtkCamera`` along -``direction`` at the box ``bounds`` so its eight corners
+    fill ``fill`` of the picture's width or height (``aspect`` = width / height); returns metres per unit of
+    picture height (2 x the parallel scale)."""
+    direction = view_direction() if direction is None else np.asarray(direction, dtype=np.float64)
+    direction = direction / np.linalg.norm(direction)
+    up = np.array([0.0, 0.0, 1.0])
+    right = np.cross(up, direction)
+    right /= np.linalg.norm(right)
+    screen_up = np.cross(direction, right)
+    corners = box_corners(bounds)
+    centre = corners.mean(axis=0)
+    x, y = (corners - centre) @ right, (corners - centre) @ screen_up
+    # the picture's centre: the middle of the projected box (not the box's centre, which projects off it)
+    middle = centre + right * (x.max() + x.min()) / 2 + screen_up * (y.max() + y.min()) / 2
+    half_width, half_height = (x.max() - x.min()) / 2, (y.max() - y.min()) / 2
+    scale = max(half_height, half_width / aspect, 1e-6) / fill
+    depth = float(np.linalg.norm(corners - centre, axis=1).max()) + 1.0
+    camera.ParallelProjectionOn()
+    camera.SetFocalPoint(*middle)
+    camera.SetPosition(*(middle + direction * depth * 2))
+    camera.SetViewUp(*screen_up)
+    camera.SetParallelScale(scale)
+    return 2 * scale
+
+
+def scale_bar_length(metres_across: float) -> float:
+    """A round length (1, 2 or 5 x 10^k metres) near a fifth of ``metres_across``."""
+    target = metres_across / 5
+    power = 10.0 ** np.floor(np.log10(target))
+    return float(min((m * power for m in (1, 2, 5, 10)), key=lambda length: abs(np.log(length / target))))
+
+
+def _add_scale_bar(plotter, metres_per_height: float, window_size) -> None:
+    """A black bar of a round length in the picture's lower left corner, labelled in metres."""
+    from vtkmodules.vtkCommonCore import vtkPoints
+    from vtkmodules.vtkCommonDataModel import vtkCellArray, vtkPolyData
+    from vtkmodules.vtkRenderingCore import vtkActor2D, vtkPolyDataMapper2D
+
+    width, height = window_size
+    pixels_per_metre = height / metres_per_height
+    length = scale_bar_length(width / pixels_per_metre)
+    x0, y0 = 0.04 * width, 0.05 * height
+    points = vtkPoints()
+    for x, y in ((x0, y0), (x0 + length * pixels_per_metre, y0), (x0, y0 - 6), (x0, y0 + 6)):
+        points.InsertNextPoint(x, y, 0.0)
+    points.InsertNextPoint(x0 + length * pixels_per_metre, y0 - 6, 0.0)
+    points.InsertNextPoint(x0 + length * pixels_per_metre, y0 + 6, 0.0)
+    lines = vtkCellArray()
+    for a, b in ((0, 1), (2, 3), (4, 5)):
+        lines.InsertNextCell(2)
+        lines.InsertCellPoint(a)
+        lines.InsertCellPoint(b)
+    bar = vtkPolyData()
+    bar.SetPoints(points)
+    bar.SetLines(lines)
+    mapper = vtkPolyDataMapper2D()
+    mapper.SetInputData(bar)
+    actor = vtkActor2D()
+    actor.SetMapper(mapper)
+    actor.GetProperty().SetColor(0.0, 0.0, 0.0)
+    actor.GetProperty().SetLineWidth(3)
+    plotter.add_actor(actor, reset_camera=False)
+    label = f"{length:g} m" if length >= 1 else f"{length * 100:g} cm"
+    plotter.add_text(label, position=(int(x0), int(y0 + 10)), font_size=10, color="black")
+
+
+def _frame_pose(run_folder: Path | None, frame: int):
+    """(pose, intrinsics) of frame ``frame`` of a run folder: ``poses.npy`` and ``summary.json``'s intrinsics."""
+    import json
+
+    from mabdi.camera import Intrinsics
+
+    if run_folder is None:
+        raise ConfigError("view: --from-frame needs a run folder (its poses.npy), not a map file")
+    poses_file = run_folder / "poses.npy"
+    if not poses_file.is_file():
+        raise ConfigError(f"view: --from-frame: {poses_file} is missing")
+    poses = np.load(poses_file, allow_pickle=False)
+    if not 0 <= frame < len(poses):
+        raise ConfigError(f"view: --from-frame {frame}: {poses_file} holds frames 0 .. {len(poses) - 1}")
+    intrinsics = Intrinsics()
+    summary = run_folder / "summary.json"
+    if summary.is_file():
+        stored = json.loads(summary.read_text()).get("intrinsics")
+        if stored:
+            intrinsics = Intrinsics(**stored)
+    return poses[frame], intrinsics
+
+
+def view(
+    path, colour: str = "frame", screenshot=None, window_size=(1280, 800), interactive: bool | None = None,
+    from_frame: int | None = None,
+) -> Path | None:
+    """Show a map file or run folder; without a display (or with ``screenshot``) write a PNG and return its path.
+
+    The camera frames the map (see the module docs), or looks from the pose of frame ``from_frame`` of a run.
+    """
     import pyvista as pv
 
     path = Path(path)
@@ -73,6 +202,10 @@ def view(path, colour: str = "frame", screenshot=None, window_size=(1280, 800), 
     map_file = path
     if path.is_dir():
         map_file, scene_file, path_file = _run_files(path)
+    pose = None
+    if from_frame is not None:
+        pose, intrinsics = _frame_pose(path if path.is_dir() else None, from_frame)
+        window_size = (window_size[0], int(round(window_size[0] * intrinsics.height / intrinsics.width)))
     mesh_map = load_map(map_file)
     if mesh_map.number_of_faces == 0:
         raise ConfigError(f"view: {map_file} is an empty map (no triangles): nothing to show")
@@ -91,8 +224,21 @@ def view(path, colour: str = "frame", screenshot=None, window_size=(1280, 800), 
         plotter.add_mesh(pv.read(scene_file), color="lightgrey", opacity=0.2)
     if path_file is not None:
         plotter.add_mesh(pv.read(path_file), color="black", line_width=2)
-    plotter.add_text(f"{map_file.name}: {mesh_map.number_of_faces:,} triangles, colour by {colour}", font_size=10, color="black")
-    plotter.view_isometric()
+    bounds = mesh.bounds
+    size = " x ".join(f"{bounds[2 * i + 1] - bounds[2 * i]:.2f}" for i in range(3))
+    name = f"{path.name}/{map_file.name}" if path.is_dir() else map_file.name
+    title = f"{name}: {mesh_map.number_of_faces:,} triangles, {size} m (x y z), colour by {colour}"
+    if pose is not None:
+        from mabdi.camera import configure_vtk_camera
+
+        configure_vtk_camera(plotter.camera, intrinsics, pose)
+        plotter.renderer.ResetCameraClippingRange()
+        title += f", from frame {from_frame}"
+    else:
+        metres = fit_parallel_camera(plotter.camera, bounds, window_size[0] / window_size[1])
+        plotter.renderer.ResetCameraClippingRange()  # the scene and the path, where they reach past the map, too
+        _add_scale_bar(plotter, metres, window_size)
+    plotter.add_text(title, font_size=10, color="black")
     if interactive:
         plotter.show()
         return None
