@@ -55,7 +55,7 @@ from vtkmodules.vtkCommonDataModel import vtkImageData
 from vtkmodules.vtkCommonExecutionModel import vtkStreamingDemandDrivenPipeline
 
 from mabdi.algorithm import MabdiAlgorithm
-from mabdi.depth import depth_array, fill_depth_image, image_frame, image_intrinsics, image_pose, image_timestamp
+from mabdi.depth import copy_colour, depth_array, fill_depth_image, image_frame, image_intrinsics, image_pose, image_timestamp
 from mabdi.errors import ConfigError
 from mabdi.filters.depth_image import SensorNoise
 from mabdi.filters.registration import image_pose_covariance, pose_depth_sigma
@@ -249,6 +249,7 @@ class FilterClassifier(MabdiAlgorithm):
         depth = np.where(meshed, measured, np.float32(np.nan)).astype(np.float32)
         output = vtkImageData.GetData(outInfo)
         fill_depth_image(output, depth, intrinsics, pose, image_frame(measured_image), image_timestamp(measured_image))
+        copy_colour(measured_image, output)  # D's colour image, for the surface filters
         label_array = numpy_to_vtk(labels.ravel(), deep=False)
         label_array.SetName(LABEL_ARRAY)
         output.GetPointData().AddArray(label_array)

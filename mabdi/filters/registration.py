@@ -82,7 +82,7 @@ from vtkmodules.vtkCommonExecutionModel import vtkAlgorithm, vtkStreamingDemandD
 
 from mabdi.algorithm import MabdiAlgorithm
 from mabdi.camera import Intrinsics
-from mabdi.depth import depth_array, fill_depth_image, image_frame, image_intrinsics, image_pose, image_timestamp
+from mabdi.depth import copy_colour, depth_array, fill_depth_image, image_frame, image_intrinsics, image_pose, image_timestamp
 from mabdi.errors import ConfigError
 from mabdi.filters.depth_image import BACKENDS, DepthRenderer, SensorNoise
 from mabdi.filters.expected_image import MEASURED_PORT, map_input, render_expected
@@ -513,6 +513,7 @@ class FilterRegistration(MabdiAlgorithm):
         world_from_map = self.anchor.world_from_map
         output = vtkImageData.GetData(outInfo)
         fill_depth_image(output, measured.copy(), intrinsics, pose, frame, image_timestamp(measured_image))
+        copy_colour(measured_image, output)  # D's colour image goes on with it
         _add_field(output, GIVEN_POSE_ARRAY, given)
         _add_field(output, WORLD_FROM_MAP_ARRAY, world_from_map)
         # the correction in the world: the camera centre moved, and turned
