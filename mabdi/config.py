@@ -71,6 +71,11 @@ class ObjectConfig:
     Schedule: the object exists at frames ``appear_at <= i < disappear_at``.
     An integer is a frame number; a float in [0, 1] is a fraction of the run
     (0.5 = half way, rounded to the nearest frame).
+
+    Colour: ``colour`` = [r, g, b], integers 0-255 (sRGB): the simulated
+    sensor's colour image shows the object flat in that colour (no lighting),
+    so a coloured map can be checked pixel for pixel. Objects without it are
+    :data:`DEFAULT_COLOUR` grey.
     """
 
     type: str = "box"
@@ -88,6 +93,11 @@ class ObjectConfig:
     anchor: str = "bottom"
     appear_at: int | float | None = None
     disappear_at: int | float | None = None
+    colour: list[int] | None = None
+
+
+#: The colour (sRGB, 0-255) of a scene object without ``colour``.
+DEFAULT_COLOUR = (200, 200, 200)
 
 
 @dataclass
@@ -481,6 +491,10 @@ def validate_object(obj: ObjectConfig, where: str, key: str) -> None:
         r = np.array(obj.rotation)
         if np.abs(r.T @ r - np.eye(3)).max() > 1e-6 or np.linalg.det(r) < 0:
             raise ConfigError(f"{where}: key '{key}.rotation' is not a rotation matrix (orthonormal, det +1)")
+    if obj.colour is not None:
+        _check_length(obj.colour, 3, where, f"{key}.colour")
+        if any(not 0 <= c <= 255 for c in obj.colour):
+            raise ConfigError(f"{where}: key '{key}.colour' must be [r, g, b] with integers 0-255, got {obj.colour}")
     for name in ("appear_at", "disappear_at"):
         value = getattr(obj, name)
         if isinstance(value, float) and not 0.0 <= value <= 1.0:

@@ -226,6 +226,28 @@ def copy_colour(source, target) -> None:
         target.GetPointData().AddArray(array)
 
 
+def colours_at(colour: np.ndarray, intrinsics: Intrinsics, camera_points: np.ndarray) -> np.ndarray:
+    """(N, 3) uint8: the colour of the pixel each camera-frame point (N, 3, metres) projects into, (u, v) =
+    floor(f x / z + c), clipped to the image; points at z <= 0 take the nearest edge pixel."""
+    points = np.asarray(camera_points, dtype=np.float64).reshape(-1, 3)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = np.floor(intrinsics.fx * points[:, 0] / points[:, 2] + intrinsics.cx)
+        v = np.floor(intrinsics.fy * points[:, 1] / points[:, 2] + intrinsics.cy)
+    u = np.clip(np.nan_to_num(u, nan=0.0), 0, intrinsics.width - 1).astype(np.int64)
+    v = np.clip(np.nan_to_num(v, nan=0.0), 0, intrinsics.height - 1).astype(np.int64)
+    return colour[v, u]
+
+
+def colour_point_array(rgb: np.ndarray):
+    """A vtkUnsignedCharArray of (N, 3) uint8 RGB (a copy) named as a map's vertex colours
+    (:data:`mabdi.maps.mesh_map.COLOUR_LAYER`, Mesh Tools' ``rgb_colors``)."""
+    from mabdi.maps.mesh_map import COLOUR_LAYER
+
+    array = numpy_to_vtk(np.ascontiguousarray(rgb, dtype=np.uint8).reshape(-1, 3), deep=True)
+    array.SetName(COLOUR_LAYER)
+    return array
+
+
 def depth_array(image, raw: bool = False) -> np.ndarray:
     """(H, W) float32 depth of a depth image (row 0 is the top), non-returns as NaN (:func:`returns`).
 

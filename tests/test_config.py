@@ -49,8 +49,11 @@ def test_unknown_key_names_key_and_file(tmp_path):
 
 
 def test_unknown_key_in_an_object(tmp_path):
-    path = write(tmp_path, '[[scene.objects]]\ntype = "box"\nsize = [1, 1, 1]\ncolour = "red"\n')
-    with pytest.raises(ConfigError, match=r"unknown key 'colour' in \[scene.objects\[0\]\]"):
+    path = write(tmp_path, '[[scene.objects]]\ntype = "box"\nsize = [1, 1, 1]\nmaterial = "wood"\n')
+    with pytest.raises(ConfigError, match=r"unknown key 'material' in \[scene.objects\[0\]\]"):
+        load_run_config(path)
+    path = write(tmp_path, '[[scene.objects]]\ntype = "box"\nsize = [1, 1, 1]\ncolour = "red"\n')  # [r, g, b]
+    with pytest.raises(ConfigError, match=r"objects\[0\]\.colour' must be list"):
         load_run_config(path)
 
 

@@ -26,7 +26,9 @@ image's pose.
 Vectorised: the corner tests are slices of the (H, W) arrays, the vertex ids
 of a square follow from its top-left pixel id p (a = p, b = p + 1, c = p + W,
 d = p + W + 1), and the rays for an image size are computed once and cached.
-The output keeps the input's field data (intrinsics, pose, frame).
+The output keeps the input's field data (intrinsics, pose, frame). When the
+image carries a colour image (point array ``colour``), each vertex gets its
+pixel's colour (point array ``colour``, uint8 RGB).
 
 Before meshing, the depth image is smoothed by the sensor's noise model
 (``smooth_depth``, on by default: :mod:`mabdi.filters.depth_smoothing`, each
@@ -43,7 +45,7 @@ from vtkmodules.vtkCommonDataModel import vtkImageData, vtkPolyData
 
 from mabdi.algorithm import MabdiAlgorithm
 from mabdi.camera import Intrinsics
-from mabdi.depth import depth_array, image_intrinsics, image_pose
+from mabdi.depth import colour_point_array, depth_array, image_colour, image_intrinsics, image_pose
 from mabdi.errors import ConfigError
 from mabdi.filters.depth_image import SensorNoise
 from mabdi.filters.depth_smoothing import smooth_depth_by_noise
@@ -154,7 +156,11 @@ class FilterPixelGrid(MabdiAlgorithm):
         camera_points = self._cached_rays(intrinsics)[pixel_ids] * depth.ravel()[pixel_ids, None]
         world_points = camera_points @ pose[:3, :3].T + pose[:3, 3]
         output = vtkPolyData.GetData(outInfo)
-        output.ShallowCopy(triangles_polydata(world_points, renumber[triangles], dtype=np.float32))
+        mesh = triangles_polydata(world_points, renumber[triangles], dtype=np.float32)
+        colour = image_colour(image)
+        if colour is not None:  # each vertex is a pixel: its colour
+            mesh.GetPointData().AddArray(colour_point_array(colour.reshape(-1, 3)[pixel_ids]))
+        output.ShallowCopy(mesh)
         output.GetFieldData().ShallowCopy(image.GetFieldData())
         return 1
 

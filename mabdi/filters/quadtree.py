@@ -69,7 +69,10 @@ give the same leaves.
 
 Output: vtkPolyData of polygons (quads, or polygons with T-vertices) or
 triangles, cell data ``level`` (the face's size in input pixels) and
-``Normals`` (world frame), field data as the input (intrinsics, pose, frame).
+``Normals`` (world frame), field data as the input (intrinsics, pose, frame);
+when the image carries a colour image, point data ``colour`` (uint8 RGB): each
+vertex the colour of the pixel it projects into (a corner on a pixel border
+takes the pixel to its lower right).
 """
 
 from __future__ import annotations
@@ -83,7 +86,7 @@ from vtkmodules.vtkCommonDataModel import vtkCellArray, vtkImageData, vtkPolyDat
 
 from mabdi.algorithm import MabdiAlgorithm
 from mabdi.camera import Intrinsics
-from mabdi.depth import depth_array, image_intrinsics, image_pose
+from mabdi.depth import colour_point_array, colours_at, depth_array, image_colour, image_intrinsics, image_pose
 from mabdi.errors import ConfigError
 from mabdi.filters.depth_image import SensorNoise
 from mabdi.filters.depth_smoothing import smooth_depth_by_noise
@@ -622,6 +625,9 @@ class FilterQuadTree(MabdiAlgorithm):
             normals_world = numpy_to_vtk(np.ascontiguousarray(leaves.normal[face_leaf] @ pose[:3, :3].T, dtype=np.float32), deep=True)
             normals_world.SetName("Normals")
             mesh.GetCellData().SetNormals(normals_world)
+            colour = image_colour(image)
+            if colour is not None:  # each vertex: the colour of the pixel it projects into
+                mesh.GetPointData().AddArray(colour_point_array(colours_at(colour, intrinsics, vertices)))
         output.ShallowCopy(mesh)
         output.GetFieldData().ShallowCopy(image.GetFieldData())
         return 1

@@ -4,6 +4,12 @@ Meshes: VTP (binary, compressed, every array kept), PLY (binary; triangles),
 OBJ and STL. Images: VTI (field data kept). :func:`read_mesh_file` and
 :func:`write_mesh_file` pick the format from the suffix.
 
+Vertex colours (point array :data:`~mabdi.maps.mesh_map.COLOUR_LAYER`,
+uint8 RGB) go into PLY as the ``red``, ``green``, ``blue`` uchar vertex
+properties and into OBJ as ``v x y z r g b`` (colours 0-1, the extension
+MeshLab, Open3D, trimesh and VTK's own reader take); read back from either,
+they are that point array again. STL has no place for them.
+
 Both directions are checked (:mod:`mabdi.io.checks`): a file is checked to
 be whole before VTK reads it (a binary PLY cut short would crash VTK's
 reader), and what a VTK writer wrote is checked before the temporary file
@@ -15,6 +21,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
+from vtkmodules.util.numpy_support import vtk_to_numpy
 from vtkmodules.vtkCommonDataModel import vtkPolyData
 from vtkmodules.vtkFiltersCore import vtkTriangleFilter
 from vtkmodules.vtkIOGeometry import vtkOBJReader, vtkOBJWriter, vtkSTLReader, vtkSTLWriter
@@ -24,14 +32,16 @@ from vtkmodules.vtkIOXML import vtkXMLImageDataWriter, vtkXMLPolyDataReader, vtk
 from mabdi.errors import AssetNotFoundError, ConfigError, DamagedFileError, WriteError
 from mabdi.io.atomic import atomic_output
 from mabdi.io.checks import check_mesh_file
+from mabdi.maps.mesh_map import COLOUR_LAYER
 
 MESH_FORMATS = (".vtp", ".ply", ".obj", ".stl")
 
 
-def _write(writer, data, path, points: int | None = None, cells: int | None = None) -> Path:
+def _write(writer, data, path, points: int | None = None, cells: int | None = None, finish=None) -> Path:
     """Write ``data`` with a VTK ``writer`` to ``path`` atomically; check the file before renaming it.
 
-    ``points``/``cells``: the counts the file must hold (PLY, OBJ, STL).
+    ``points``/``cells``: the counts the file must hold (PLY, OBJ, STL); ``finish(temporary)`` amends the
+    written file before the check.
     """
     from mabdi.algorithm import vtk_messages_held
 
@@ -46,6 +56,8 @@ def _write(writer, data, path, points: int | None = None, cells: int | None = No
                 raise WriteError(f"cannot write {path}: the VTK writer failed (is the disk full?)" + (f": {said}" if said else ""))
         if not temporary.exists():
             raise WriteError(f"cannot write {path}: the VTK writer left no file (is the disk full?)")
+        if finish is not None:
+            finish(temporary)
         try:
             check_mesh_file(temporary, points=points, cells=cells)
         except DamagedFileError as error:
@@ -102,7 +114,31 @@ def write_mesh_file(mesh: vtkPolyData, path) -> Path:
     if mesh.GetNumberOfCells() == 0:
         return _write_empty_mesh(path, suffix)
     triangles = _triangles(mesh)
-    return _write(writer, triangles, path, points=triangles.GetNumberOfPoints(), cells=triangles.GetNumberOfCells())
+    colours = triangles.GetPointData().GetArray(COLOUR_LAYER)
+    finish = None
+    if colours is not None and suffix == ".ply":
+        writer.SetArrayName(COLOUR_LAYER)
+        writer.SetColorModeToDefault()
+    elif colours is not None and suffix == ".obj":
+
+        def finish(temporary):
+            _add_obj_colours(temporary, vtk_to_numpy(colours))
+
+    return _write(writer, triangles, path, points=triangles.GetNumberOfPoints(), cells=triangles.GetNumberOfCells(), finish=finish)
+
+
+def _add_obj_colours(file: Path, rgb: np.ndarray) -> None:
+    """Append each vertex's colour to the ``v`` lines of an OBJ file, in order: (c + 1/4) / 255 for c in 0-255
+    (1 for 255) with 5 decimals, which readers that round (x 255) and readers that truncate (VTK) both read as c."""
+    lines = Path(file).read_bytes().split(b"\n")
+    vertex_lines = [i for i, line in enumerate(lines) if line.startswith(b"v ")]
+    if len(vertex_lines) != len(rgb):
+        raise WriteError(f"cannot write {file}: {len(vertex_lines)} vertices written, {len(rgb)} colours")
+    text = np.char.mod("%.5f", np.minimum((np.asarray(rgb, dtype=np.float64) + 0.25) / 255.0, 1.0))
+    suffixes = np.char.add(np.char.add(np.char.add(" ", text[:, 0]), np.char.add(" ", text[:, 1])), np.char.add(" ", text[:, 2]))
+    for index, suffix in zip(vertex_lines, suffixes.tolist(), strict=True):
+        lines[index] = lines[index].rstrip() + suffix.encode()
+    Path(file).write_bytes(b"\n".join(lines))
 
 
 def _holds_no_mesh(path: Path) -> bool:
@@ -163,6 +199,9 @@ def read_mesh_file(path) -> vtkPolyData:
             raise DamagedFileError(f"{path}: no mesh could be read from this file" + (f" (VTK: {said})" if said else ""))
         if reader.GetErrorCode() != 0:
             raise DamagedFileError(f"{path}: VTK's reader failed on this file" + (f" (VTK: {said})" if said else ""))
+    rgb = mesh.GetPointData().GetArray("RGB") if path.suffix.lower() in (".ply", ".obj") else None
+    if rgb is not None and rgb.GetNumberOfComponents() == 3:  # PLY's red/green/blue, OBJ's v x y z r g b
+        rgb.SetName(COLOUR_LAYER)
     return mesh
 
 

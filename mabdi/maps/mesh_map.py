@@ -23,6 +23,10 @@ from vtkmodules.vtkCommonDataModel import vtkPolyData
 
 from mabdi.errors import MabdiError
 
+#: The vertex layer (and VTK point array) of a map's vertex colours: uint8 (N, 3) sRGB. The name is Mesh Tools'
+#: (``/attributes/rgb_colors`` in its HDF5 maps), so a coloured map is read there as coloured.
+COLOUR_LAYER = "rgb_colors"
+
 LABEL_ARRAY_PREFIX = "label:"
 #: Vertices closer than this (m) count as one for connectivity (labels, clusters, planning): a mabdi
 #: map is a set of patches (frames, voxel-plane polygons) whose borders meet within millimetres

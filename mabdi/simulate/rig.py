@@ -15,6 +15,12 @@ given poses, ``true_poses`` the true ones; without pose noise they are equal.
 
 Timestamps: the simulated sensor runs at :data:`FRAME_RATE` frames per
 second (frame i at i / 30 s), like the Kinect it imitates.
+
+Colour: when the scene has coloured objects (``colour`` in the config), or
+with ``colour=True``, every frame also carries a colour image registered to
+its depth: the same render draws each object flat in its colour (no
+lighting, no noise), read back from the render window's colour buffer; the
+background (no object) is black.
 """
 
 from __future__ import annotations
@@ -28,7 +34,7 @@ from mabdi.filters.depth_image import FilterDepthImage, SensorNoise
 from mabdi.pose_noise import PoseNoise
 from mabdi.simulate.path import path_from_config
 from mabdi.sources.frames import FrameSource
-from mabdi.sources.scene import SourceScene
+from mabdi.sources.scene import OBJECT_COLOUR_ARRAY, SourceScene
 
 #: Frames per second of the simulated sensor (sets the timestamps).
 FRAME_RATE = 30.0
@@ -47,6 +53,7 @@ class SimulatedRig(FrameSource):
         backend: str = "egl",
         description: str = "simulated sensor",
         pose_noise: PoseNoise | None = None,
+        colour: bool | None = None,
     ) -> None:
         self.scene = scene
         self._true_poses = np.asarray(poses, dtype=np.float64)
@@ -58,6 +65,10 @@ class SimulatedRig(FrameSource):
         self.sensor = FilterDepthImage(intrinsics=intrinsics, noise=noise, seed=seed, backend=backend)
         self.sensor.SetInputConnection(scene.GetOutputPort())
         self.description = description
+        #: Whether frames carry a colour image (None: when the scene has coloured objects).
+        self.colour = scene.coloured if colour is None else bool(colour)
+        if self.colour:  # the depth render draws each triangle in its object's colour: one render gives both
+            self.sensor.renderer.identity_array = OBJECT_COLOUR_ARRAY
 
     @classmethod
     def from_config(cls, config: RunConfig) -> SimulatedRig:
@@ -107,7 +118,11 @@ class SimulatedRig(FrameSource):
         self.sensor.Update()
         # Each render hands out a new array, so the frame may keep it.
         depth = depth_array(self.sensor.GetOutput(), raw=True)
-        return DepthFrame(depth, self.sensor.intrinsics, self._poses[index], index, index / FRAME_RATE)
+        colour = None
+        if self.colour:
+            packed = self.sensor.renderer.render_identity()  # 24-bit r | g << 8 | b << 16 of the last render
+            colour = np.stack([packed & 255, (packed >> 8) & 255, packed >> 16], axis=-1).astype(np.uint8)
+        return DepthFrame(depth, self.sensor.intrinsics, self._poses[index], index, index / FRAME_RATE, colour)
 
     def noise_free(self, index: int) -> DepthFrame:
         """Frame ``index`` without noise (for alignment checks), the rig's noise model left as it was."""

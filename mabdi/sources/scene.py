@@ -19,12 +19,14 @@ from vtkmodules.util.numpy_support import numpy_to_vtk
 from vtkmodules.vtkCommonDataModel import vtkPolyData
 
 from mabdi.algorithm import MabdiAlgorithm
-from mabdi.config import ObjectConfig, SceneConfig, load_run_config
+from mabdi.config import DEFAULT_COLOUR, ObjectConfig, SceneConfig, load_run_config
 from mabdi.sources import primitives
 from mabdi.polydata import polydata_arrays, triangles_polydata
 from mabdi.sources.assets import read_mesh, resolve_mesh
 
 OBJECT_ID_ARRAY = "object_id"
+#: Cell data: each triangle's object colour (uint8 RGB), what the simulated sensor's colour image shows.
+OBJECT_COLOUR_ARRAY = "object_colour"
 
 
 @dataclass
@@ -123,7 +125,8 @@ def build_objects(scene: SceneConfig, frames: int, base_dir: Path | None = None)
 
 
 class SourceScene(MabdiAlgorithm):
-    """The simulated world (0 inputs -> vtkPolyData with cell data ``object_id``).
+    """The simulated world (0 inputs -> vtkPolyData with cell data ``object_id`` and ``object_colour``, the
+    object's ``colour`` from the config, uint8 RGB).
 
     ``SourceScene(scene_config, frames=N)`` or ``SourceScene.from_file(path)``.
     ``frames`` is the run length, needed to resolve schedules given as
@@ -135,6 +138,10 @@ class SourceScene(MabdiAlgorithm):
         self._config = scene if scene is not None else SceneConfig()
         self._frames = int(frames)
         self.objects: list[SceneObject] = build_objects(self._config, self._frames, base_dir)
+        #: (objects, 3) uint8: each object's colour (``colour`` in the config, else DEFAULT_COLOUR).
+        self.colours = np.array(
+            [obj.colour if obj.colour is not None else DEFAULT_COLOUR for obj in self._config.objects], dtype=np.uint8
+        ).reshape(-1, 3)
         self._frame = 0
         self._active = self.active_objects(0)
 
@@ -181,7 +188,15 @@ class SourceScene(MabdiAlgorithm):
         array = numpy_to_vtk(object_id, deep=True)
         array.SetName(OBJECT_ID_ARRAY)
         mesh.GetCellData().AddArray(array)
+        colour = numpy_to_vtk(np.ascontiguousarray(self.colours[object_id]).reshape(-1, 3), deep=True)
+        colour.SetName(OBJECT_COLOUR_ARRAY)
+        mesh.GetCellData().AddArray(colour)
         return mesh
+
+    @property
+    def coloured(self) -> bool:
+        """Whether any object has a ``colour`` in the config."""
+        return any(obj.colour is not None for obj in self._config.objects)
 
     def bounds(self) -> np.ndarray:
         """(2, 3) axis-aligned bounds (min, max) of all objects over the whole run, metres."""

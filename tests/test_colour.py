@@ -1,0 +1,128 @@
+"""Colour: the simulated table with coloured objects gives a map whose vertices carry the colour of the object
+they lie on; the colour survives PLY, OBJ and HDF5; config checks; recorded colour; the viewer shows it."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from vtkmodules.util.numpy_support import vtk_to_numpy
+
+from conftest import REPO
+from mabdi.config import load_run_config
+from mabdi.errors import ConfigError
+from mabdi.evaluate.distance import distances_within
+from mabdi.io.hdf5 import read_map
+from mabdi.io.map_files import load_map, save_map
+from mabdi.io.vtk_files import read_mesh_file, write_mesh_file
+from mabdi.maps.mesh_map import COLOUR_LAYER, MeshMap
+from mabdi.polydata import triangles_polydata
+from mabdi.simulate import Simulation
+from mabdi.sources.scene import SourceScene
+
+#: Each object of Run 1's table its own colour (no two alike), so a vertex's colour names its object.
+COLOURS = {
+    "floor": [90, 140, 60],
+    "table_top": [150, 100, 50],
+    "leg_1": [40, 40, 200],
+    "leg_2": [40, 200, 200],
+    "leg_3": [200, 40, 200],
+    "leg_4": [200, 200, 40],
+    "cup_1": [220, 30, 30],
+    "cup_2": [250, 250, 250],
+}
+SMALL_SENSOR = 'noise = "{noise}"\nwidth = 320\nheight = 240\nfx = 262.5\nfy = 262.5\ncx = 160.0\ncy = 120.0\n'
+
+
+def coloured_table(folder, noise="none", frames=8):
+    """Run 1's table with COLOURS, a 320x240 sensor and ``frames`` frames, as a config file in ``folder``."""
+    text = (REPO / "scenes" / "table.toml").read_text()
+    text = text.replace('noise = "none"\n', SMALL_SENSOR.format(noise=noise)).replace("frames = 30", f"frames = {frames}")
+    for name, colour in COLOURS.items():
+        text = text.replace(f'name = "{name}"\n', f'name = "{name}"\ncolour = {colour}\n')
+    path = folder / "coloured_table.toml"
+    path.write_text(text)
+    return path
+
+
+def object_of_vertices(scene: SourceScene, vertices: np.ndarray, cap: float = 0.02) -> np.ndarray:
+    """Index of the object each vertex lies on (the nearest within ``cap`` m), -1 where none is that near."""
+    distances = np.stack(
+        [distances_within(vertices, triangles_polydata(o.points, o.triangles), cap) for o in scene.objects]
+    )
+    nearest = distances.argmin(axis=0)
+    return np.where(distances.min(axis=0) <= cap, nearest, -1)
+
+
+@pytest.fixture(scope="module")
+def coloured_runs(tmp_path_factory):
+    """The coloured table run with each surface (pixel grid, quad-tree), Kinect noise: (simulation, result)."""
+    folder = tmp_path_factory.mktemp("colour")
+    path = coloured_table(folder, noise="kinect")
+    runs = {}
+    for surface in ("pixel_grid", "quadtree"):
+        config = load_run_config(path)
+        config.surface.method = surface
+        simulation = Simulation(config)
+        runs[surface] = (simulation, simulation.run(folder / surface))
+    return runs
+
+
+@pytest.mark.parametrize("surface, near", [("pixel_grid", 0.95), ("quadtree", 0.8)])
+def test_map_vertices_carry_the_colour_of_their_object(coloured_runs, surface, near):
+    """Of the vertices that lie on an object (within 2 cm), 95% have exactly its colour. Most vertices lie on
+    one: a pixel-grid vertex is a pixel's return; a quad-tree corner can stand off a surface by more than 2 cm
+    with Kinect noise at 4 m (``near``: the share within 2 cm)."""
+    simulation, result = coloured_runs[surface]
+    mesh = result.mesh
+    colours = vtk_to_numpy(mesh.GetPointData().GetArray(COLOUR_LAYER))
+    vertices = vtk_to_numpy(mesh.GetPoints().GetData()).astype(np.float64)
+    assert len(colours) == len(vertices) > 1000
+    owner = object_of_vertices(simulation.scene, vertices)
+    on_an_object = owner >= 0
+    expected = simulation.scene.colours[owner[on_an_object]]
+    right = (colours[on_an_object] == expected).all(axis=1)
+    print(surface, "within 2 cm", on_an_object.mean(), "right colour", right.mean())
+    assert on_an_object.mean() > near, on_an_object.mean()
+    assert right.mean() >= 0.95, right.mean()
+    # the small objects too, not only the floor: each coloured cup's colour is on its own vertices
+    for name in ("cup_1", "table_top", "leg_1"):
+        index = [o.name for o in simulation.scene.objects].index(name)
+        mine = owner == index
+        assert mine.sum() > 20 and (colours[mine] == COLOURS[name]).all(axis=1).mean() > 0.8, name
+
+
+def test_colour_survives_ply_obj_vtp_and_hdf5(coloured_runs, tmp_path):
+    simulation, result = coloured_runs["pixel_grid"]
+    mesh_map = MeshMap.from_polydata(result.mesh)
+    colours = mesh_map.vertex_layers[COLOUR_LAYER]
+    assert colours.dtype == np.uint8 and colours.shape == (mesh_map.number_of_vertices, 3)
+    for suffix in (".ply", ".obj", ".vtp"):
+        write_mesh_file(result.mesh, tmp_path / f"map{suffix}")
+        back = read_mesh_file(tmp_path / f"map{suffix}")
+        np.testing.assert_array_equal(vtk_to_numpy(back.GetPointData().GetArray(COLOUR_LAYER)), colours, err_msg=suffix)
+    for layout in ("mesh_tools", "lvr2"):
+        save_map(mesh_map, tmp_path / f"{layout}.h5", layout=layout)
+        np.testing.assert_array_equal(read_map(tmp_path / f"{layout}.h5").vertex_layers[COLOUR_LAYER], colours)
+    import h5py
+
+    with h5py.File(tmp_path / "mesh_tools.h5") as file:  # where Mesh Tools' reader looks: flat uint8 r g b ...
+        stored = file["attributes/rgb_colors"]
+        assert stored.dtype == np.uint8 and stored.shape == (3 * len(colours),)
+        np.testing.assert_array_equal(stored[:6], colours[:2].ravel())
+    # the run's own files
+    folder = result.out_dir
+    np.testing.assert_array_equal(load_map(folder / "world_mesh.ply").vertex_layers[COLOUR_LAYER], colours)
+
+
+def test_colour_key_is_checked(tmp_path):
+    path = coloured_table(tmp_path)
+    text = path.read_text()
+    path.write_text(text.replace("colour = [220, 30, 30]", "colour = [220, 30, 300]"))
+    with pytest.raises(ConfigError, match=r"cup_1|objects\[6\]\.colour.*0-255"):
+        load_run_config(path)
+    path.write_text(text.replace("colour = [220, 30, 30]", "color = [220, 30, 30]"))
+    with pytest.raises(ConfigError, match="color"):
+        load_run_config(path)
+    path.write_text(text.replace("colour = [220, 30, 30]", "colour = [220, 30]"))
+    with pytest.raises(ConfigError, match="colour"):
+        load_run_config(path)
