@@ -139,7 +139,7 @@ def _parser() -> argparse.ArgumentParser:
 
     view = commands.add_parser("view", help="show a map or a run folder (a PNG when there is no display)")
     view.add_argument("path", type=Path, help="map file (.vtp, .ply, .h5, ...) or run folder")
-    view.add_argument("--colour", "--color", default="frame", help="frame (default), normal, or a layer name (cost, ...)")
+    view.add_argument("--colour", "--color", default="frame", help="frame (default), normal, rgb (the map's vertex colours), or a layer name (cost, ...)")
     view.add_argument("--out", type=Path, help="write a PNG here instead of opening a window")
     view.add_argument(
         "--from-frame", type=int, metavar="N",

@@ -126,3 +126,68 @@ def test_colour_key_is_checked(tmp_path):
     path.write_text(text.replace("colour = [220, 30, 30]", "colour = [220, 30]"))
     with pytest.raises(ConfigError, match="colour"):
         load_run_config(path)
+
+
+@pytest.fixture(scope="module")
+def coloured_frames(tmp_path_factory):
+    """Three frames of the coloured table, with their colour images, in memory."""
+    from mabdi.simulate.rig import SimulatedRig
+    from mabdi.sources.frames import FrameList
+
+    folder = tmp_path_factory.mktemp("frames")
+    rig = SimulatedRig.from_config(load_run_config(coloured_table(folder, frames=3)))
+    try:
+        return FrameList([rig.read(i) for i in range(3)], "coloured table"), folder
+    finally:
+        rig.close()
+
+
+def test_the_rig_renders_each_objects_colour(coloured_frames):
+    frames, _ = coloured_frames
+    colour = frames.read(0).colour
+    assert colour.shape == (240, 320, 3) and colour.dtype == np.uint8
+    seen = {tuple(c) for c in np.unique(colour.reshape(-1, 3), axis=0)}
+    assert seen <= {tuple(c) for c in COLOURS.values()} | {(0, 0, 0)}  # flat colours only: no shading, no blending
+    assert tuple(COLOURS["floor"]) in seen and tuple(COLOURS["table_top"]) in seen
+    returns = np.isfinite(frames.read(0).depth)
+    assert (colour[returns] != 0).any(axis=1).all()  # every return shows an object, in its colour
+
+
+@pytest.mark.parametrize("layout", ["tum", "3dmatch", "redwood", "scannet", "replica"])
+def test_every_layout_writes_and_reads_colour(coloured_frames, tmp_path, layout):
+    from mabdi.sources import write_3dmatch, write_redwood, write_replica, write_scannet, write_tum
+    from mabdi.sources.sequences import open_sequence
+
+    frames, _ = coloured_frames
+    writer = {"tum": write_tum, "3dmatch": write_3dmatch, "redwood": write_redwood, "scannet": write_scannet, "replica": write_replica}
+    source = open_sequence(writer[layout](frames, tmp_path / layout))
+    assert "with colour" in source.description
+    for i in range(3):
+        np.testing.assert_array_equal(source.read(i).colour, frames.read(i).colour)
+
+
+def test_a_coloured_recording_gives_a_coloured_map_and_the_viewer_shows_it(coloured_frames, tmp_path, capsys):
+    from PIL import Image
+
+    from mabdi.cli import main
+    from mabdi.sources import write_tum
+
+    frames, folder = coloured_frames
+    recording = write_tum(frames, tmp_path / "tum")
+    out = tmp_path / "run"
+    assert main(["run", str(folder / "coloured_table.toml"), "--sequence", str(recording), "--out", str(out), "--quiet", "--no-eval"]) == 0
+    assert "with colour" in capsys.readouterr().out
+    colours = load_map(out / "world_mesh.vtp").vertex_layers[COLOUR_LAYER]
+    assert len({tuple(c) for c in colours}) >= 5  # floor, table top, legs, cups
+    png = tmp_path / "rgb.png"
+    assert main(["view", str(out / "world_mesh.vtp"), "--colour", "rgb", "--out", str(png)]) == 0
+    picture = np.asarray(Image.open(png).convert("RGB")).astype(int)
+    greenish = (picture[..., 1] > picture[..., 0] + 30) & (picture[..., 1] > picture[..., 2] + 30)  # the floor, lit
+    assert greenish.mean() > 0.05
+    assert main(["view", str(out / "world_mesh.vtp"), "--colour", "rgb", "--out", str(png)]) == 0
+    bare = tmp_path / "bare.vtp"
+    mesh = read_mesh_file(out / "world_mesh.vtp")
+    mesh.GetPointData().RemoveArray(COLOUR_LAYER)
+    write_mesh_file(mesh, bare)
+    assert main(["view", str(bare), "--colour", "rgb", "--out", str(png)]) == 2
+    assert "has no vertex colours" in capsys.readouterr().err

@@ -43,7 +43,15 @@ from mabdi.camera import Intrinsics, check_pose
 from mabdi.depth import DepthFrame
 from mabdi.errors import PoseError
 from mabdi.sources.frames import FrameSource
-from mabdi.sources.sequences import SequenceError, camera_table, intrinsics_with, metadata_path, read_sequence_metadata
+from mabdi.sources.sequences import (  # noqa: F401 (read_colour_image, write_colour_png: the readers' and writers' own)
+    SequenceError,
+    camera_table,
+    intrinsics_with,
+    metadata_path,
+    read_colour_image,
+    read_sequence_metadata,
+    write_colour_png,
+)
 from mabdi.sources.tum import PRESETS as TUM_PRESETS
 from mabdi.sources.tum import depth_from_units, read_depth_units
 
@@ -160,32 +168,6 @@ def resolve_intrinsics(folder: Path, found: Intrinsics | None, camera, presets: 
                 f"or fx,fy,cx,cy,width,height) or put a [camera] table (fx, fy, cx, cy, width, height) in {file}"
             )
     return intrinsics_with(base, table, file)
-
-
-def read_colour_image(path: Path) -> np.ndarray:
-    """(H, W, 3) uint8 RGB of an 8-bit colour image (PNG, JPEG, ...; grey or RGBA converted), or a
-    :class:`SequenceError` naming it."""
-    try:
-        with Image.open(path) as image:
-            if image.mode != "RGB":
-                if image.mode not in ("L", "RGBA", "P", "RGBX", "CMYK", "YCbCr"):
-                    raise SequenceError(f"{path}: not an 8-bit colour image (mode {image.mode})")
-                image = image.convert("RGB")
-            return np.asarray(image)
-    except FileNotFoundError:
-        raise SequenceError(f"{path}: colour image missing") from None
-    except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as exc:
-        if isinstance(exc, SequenceError):
-            raise
-        raise SequenceError(f"{path}: cannot read colour image: {exc}") from None
-
-
-def write_colour_png(path, colour: np.ndarray, compress_level: int = 1) -> None:
-    """Write (H, W, 3) uint8 RGB as an 8-bit PNG, atomically."""
-    from mabdi.io.atomic import atomic_output
-
-    with atomic_output(path) as temporary:
-        Image.fromarray(np.ascontiguousarray(colour, dtype=np.uint8), "RGB").save(temporary, format="PNG", compress_level=compress_level)
 
 
 def matrix_text(matrix: np.ndarray) -> str:

@@ -32,11 +32,12 @@ import tomllib
 from pathlib import Path
 
 import numpy as np
+from PIL import Image, UnidentifiedImageError
 from scipy.spatial.transform import Rotation
 
 from mabdi.camera import Intrinsics
 from mabdi.errors import ConfigError
-from mabdi.io.atomic import write_text
+from mabdi.io.atomic import atomic_output, write_text
 
 #: The metadata file a recorded sequence may carry in its folder.
 METADATA_FILE = "mabdi.toml"
@@ -337,6 +338,30 @@ def prepare_folder(folder: Path, overwrite: bool, what: str) -> None:
         folder.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise SequenceError(f"cannot write {what} to {folder}: {exc}") from None
+
+
+def read_colour_image(path: Path) -> np.ndarray:
+    """(H, W, 3) uint8 RGB of an 8-bit colour image (PNG, JPEG, ...; grey or RGBA converted), or a
+    :class:`SequenceError` naming it."""
+    try:
+        with Image.open(path) as image:
+            if image.mode != "RGB":
+                if image.mode not in ("L", "RGBA", "P", "RGBX", "CMYK", "YCbCr"):
+                    raise SequenceError(f"{path}: not an 8-bit colour image (mode {image.mode})")
+                image = image.convert("RGB")
+            return np.asarray(image)
+    except FileNotFoundError:
+        raise SequenceError(f"{path}: colour image missing") from None
+    except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as exc:
+        if isinstance(exc, SequenceError):
+            raise
+        raise SequenceError(f"{path}: cannot read colour image: {exc}") from None
+
+
+def write_colour_png(path, colour: np.ndarray, compress_level: int = 1) -> None:
+    """Write (H, W, 3) uint8 RGB as an 8-bit PNG, atomically."""
+    with atomic_output(path) as temporary:
+        Image.fromarray(np.ascontiguousarray(colour, dtype=np.uint8), "RGB").save(temporary, format="PNG", compress_level=compress_level)
 
 
 def frame_timestamps(source) -> np.ndarray:

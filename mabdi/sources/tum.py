@@ -6,6 +6,8 @@ The layout (https://cvg.cit.tum.de/data/datasets/rgbd-dataset/file_formats):
   metre (0.2 mm steps, at most 65535 / 5000 = 13.107 m), 0 = no return;
 * ``depth.txt``: lines ``timestamp filename`` (seconds; filename relative to
   the folder), ``#`` starts a comment;
+* ``rgb/<timestamp>.png`` and ``rgb.txt`` (lines ``timestamp filename``),
+  optional: the colour images, registered to the depth images;
 * ``groundtruth.txt``: lines ``timestamp tx ty tz qx qy qz qw``: the position
   (metres) and orientation (unit quaternion, scalar last) of the camera's
   optical centre in the world (the motion-capture frame), ``#`` comments.
@@ -27,6 +29,12 @@ to 5 ms off); otherwise (the ends of the ground truth, a gap in it) the
 nearest sample within ``tolerance`` is taken as it is. Frames with neither
 are skipped and counted (:attr:`TumSequence.skipped`, and in
 ``description``).
+
+**Colour.** When the folder has ``rgb.txt``, each depth frame carries the
+colour image nearest to it in time (the benchmark's ``associate.py`` pairs
+them so; the two cameras run at 30 Hz, a few milliseconds apart), read as
+8-bit RGB; frames whose nearest colour image is more than ``tolerance``
+away still get it, and are counted in ``description``.
 
 **Intrinsics** come from the ``camera=`` argument (an :class:`Intrinsics`
 or a preset name), else from the ``[camera]`` table of a ``mabdi.toml`` in
@@ -63,10 +71,13 @@ from mabdi.sources.sequences import (
     intrinsics_with,
     metadata_path,
     interpolate_poses,
+    nearest_within,
     poses_from_translations_quaternions,
     prepare_folder,
     quaternions_from_rotations,
+    read_colour_image,
     read_sequence_metadata,
+    write_colour_png,
     write_metadata,
 )
 
@@ -323,7 +334,20 @@ class TumSequence(FrameSource):
         self._timestamps = depth_times[keep]
         self._poses = matched[keep]
         self._files = [self.folder / depth_rows[i][0] for i in np.flatnonzero(keep)]
+        self._colour_files = None
+        far_colour = 0
+        if (self.folder / "rgb.txt").is_file():
+            rgb_times, rgb_rows = read_tum_list(self.folder / "rgb.txt", 2)
+            if not len(rgb_times):
+                raise SequenceError(f"{self.folder / 'rgb.txt'}: no colour image listed")
+            nearest = nearest_within(self._timestamps, rgb_times, np.inf)
+            far_colour = int((np.abs(rgb_times[nearest] - self._timestamps) > self.tolerance).sum())
+            self._colour_files = [self.folder / rgb_rows[i][0] for i in nearest]
         self.description = f"TUM folder {self.folder} ({len(self._files)} frames"
+        if self._colour_files is not None:
+            self.description += ", with colour"
+            if far_colour:
+                self.description += f" ({far_colour} more than {self.tolerance * 1000:g} ms from their colour image)"
         self.description += f", {self.skipped} without a pose within {self.tolerance * 1000:g} ms skipped)" if self.skipped else ")"
         if not self._files:
             raise SequenceError(
@@ -359,7 +383,15 @@ class TumSequence(FrameSource):
 
     def read_frame(self, index: int) -> DepthFrame:
         depth = read_depth_png(self._files[index], self._intrinsics, self.depth_scale)
-        return DepthFrame(depth, self._intrinsics, self._poses[index], index, float(self._timestamps[index]))
+        colour = None
+        if self._colour_files is not None:
+            colour = read_colour_image(self._colour_files[index])
+            if colour.shape[:2] != self._intrinsics.shape:
+                raise SequenceError(
+                    f"{self._colour_files[index]}: colour image is {colour.shape[1]}x{colour.shape[0]}, the depth "
+                    f"{self._intrinsics.width}x{self._intrinsics.height}: TUM's colour and depth images are registered"
+                )
+        return DepthFrame(depth, self._intrinsics, self._poses[index], index, float(self._timestamps[index]), colour)
 
     @property
     def poses(self) -> np.ndarray:
@@ -386,6 +418,8 @@ def write_tum(
     they read back to within 1e-12 of the same matrices; quaternions scalar
     last with w >= 0) and ``mabdi.toml`` with the ``[camera]`` table and the
     ``extra`` tables (e.g. ``{"recorded": {"scene": "scenes/table.toml"}}``).
+    Frames with colour images also get ``rgb/<timestamp>.png`` (8-bit RGB)
+    and ``rgb.txt``, at the depth frames' times.
     ``depth_scale`` other than 5000 writes PNGs that only a reader told so
     (``depth_scale=``, ``--depth-scale``) reads right.
     Frames without a timestamp get ``index / 30`` s. Every file is written
@@ -402,12 +436,22 @@ def write_tum(
     if len(set(names)) != len(names):
         raise SequenceError(f"cannot write a TUM sequence to {folder}: two frames share a timestamp (to the microsecond)")
     poses = np.empty((len(source), 4, 4))
+    coloured = []
     for index in range(len(source)):
         frame = source.read(index)
         if frame.depth.shape != intrinsics.shape:
             raise SequenceError(f"cannot write frame {index} to {folder}: depth {frame.depth.shape} != intrinsics {intrinsics.shape}")
         write_depth_png(folder / names[index], frame.depth, depth_scale)
         poses[index] = frame.world_from_camera
+        if frame.colour is not None:
+            (folder / "rgb").mkdir(exist_ok=True)
+            write_colour_png(folder / names[index].replace("depth/", "rgb/", 1), frame.colour)
+            coloured.append(index)
+    if coloured:
+        if len(coloured) != len(source):
+            raise SequenceError(f"cannot write {folder}: {len(coloured)} of {len(source)} frames have a colour image (all or none)")
+        rgb_lines = [f"{t:.6f} {name.replace('depth/', 'rgb/', 1)}" for t, name in zip(times, names, strict=True)]
+        write_text(folder / "rgb.txt", f"# mabdi recording: {source.description}\n# timestamp filename\n" + "\n".join(rgb_lines) + "\n")
     quaternions = quaternions_from_rotations(poses[:, :3, :3])
     header = "# mabdi recording: {}\n# timestamp {}\n"
     depth_lines = [f"{t:.6f} {name}" for t, name in zip(times, names, strict=True)]

@@ -8,6 +8,8 @@ its path. Colour modes:
   last bright; :func:`mabdi.maps.colours.colours_by_frame`);
 * ``normal``: each face by its unoriented normal, seed 000 eqs. 5-7 with
   atan2 (:func:`mabdi.maps.colours.colours_by_normal`);
+* ``rgb``: the map's own vertex colours (the layer ``rgb_colors``: the
+  camera's colour, from a coloured source), blended across each face;
 * any vertex or face layer of the map by name (``cost``, ``roughness``, ...;
   an HDF5 map from ``mabdi run --h5`` has them), on the viridis ramp.
 
@@ -41,6 +43,7 @@ from mabdi.errors import ConfigError
 from mabdi.io.map_files import load_map
 from mabdi.maps.colours import colours_by_frame, colours_by_normal
 from mabdi.maps.layers import face_normals
+from mabdi.maps.mesh_map import COLOUR_LAYER
 
 
 def has_display() -> bool:
@@ -57,7 +60,7 @@ def _run_files(folder: Path) -> tuple[Path, Path | None, Path | None]:
 
 
 def face_colours(mesh_map, colour: str) -> tuple[np.ndarray | None, np.ndarray | None, str]:
-    """(cell RGB uint8, or None) and (point or cell scalars, or None) for a colour mode, plus where scalars live."""
+    """(RGB uint8, or None) and (scalars, or None) for a colour mode, plus where they live ("point" or "cell")."""
     if colour == "frame":
         frames = mesh_map.face_layers.get("frame")
         if frames is None:
@@ -66,6 +69,14 @@ def face_colours(mesh_map, colour: str) -> tuple[np.ndarray | None, np.ndarray |
     if colour == "normal":
         normals, _ = face_normals(mesh_map.vertices, mesh_map.faces)
         return colours_by_normal(normals), None, "cell"
+    if colour == "rgb":
+        rgb = mesh_map.vertex_layers.get(COLOUR_LAYER)
+        if rgb is None:
+            raise ConfigError(
+                f"colour 'rgb': this map has no vertex colours (layer {COLOUR_LAYER}; maps from a source with colour "
+                "images have them)"
+            )
+        return np.asarray(rgb, dtype=np.uint8), None, "point"
     if colour in mesh_map.vertex_layers:
         values = np.asarray(mesh_map.vertex_layers[colour])
         return None, values if values.ndim == 1 else np.linalg.norm(values, axis=1), "point"
@@ -215,8 +226,8 @@ def view(
     plotter = pv.Plotter(off_screen=not interactive, window_size=list(window_size))
     plotter.set_background("white")
     if rgb is not None:
-        mesh.cell_data["colour"] = rgb
-        plotter.add_mesh(mesh, scalars="colour", rgb=True, preference="cell")
+        (mesh.point_data if where == "point" else mesh.cell_data)["colour"] = rgb
+        plotter.add_mesh(mesh, scalars="colour", rgb=True, preference=where)
     else:
         mesh[colour] = scalars
         plotter.add_mesh(mesh, scalars=colour, preference=where, cmap="viridis", scalar_bar_args={"title": colour})
