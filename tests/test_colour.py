@@ -191,3 +191,37 @@ def test_a_coloured_recording_gives_a_coloured_map_and_the_viewer_shows_it(colou
     write_mesh_file(mesh, bare)
     assert main(["view", str(bare), "--colour", "rgb", "--out", str(png)]) == 2
     assert "has no vertex colours" in capsys.readouterr().err
+
+
+def test_the_dashboard_and_rerun_show_the_colours(tmp_path):
+    from mabdi.viz.dashboard import Dashboard
+
+    config = load_run_config(coloured_table(tmp_path, frames=3))
+    simulation = Simulation(config)
+    dashboard = Dashboard(simulation)
+    try:
+        for i in range(3):
+            simulation.step(i)
+        picture = dashboard.render(2).astype(int)
+    finally:
+        dashboard.close()
+    top_left = picture[30 : picture.shape[0] // 2, : picture.shape[1] // 3]
+    floor = (top_left[..., 1] > top_left[..., 0] + 25) & (top_left[..., 1] > top_left[..., 2] + 25)  # the green floor
+    assert floor.mean() > 0.02, floor.mean()
+
+    rr = pytest.importorskip("rerun")
+    from mabdi.viz.rerun_log import RerunLogger
+
+    simulation = Simulation(config)
+    logger = RerunLogger(tmp_path / "run.rrd", frames=1)
+    record = simulation.step(0)
+    logger.log_frame(simulation.loop, record)
+    logger.close()
+    from rerun.chunk import RrdReader
+
+    columns = {}
+    for chunk in RrdReader(tmp_path / "run.rrd").stream().to_chunks():
+        columns.setdefault(chunk.entity_path.lstrip("/"), set()).update(chunk.to_record_batch().schema.names)
+    assert any("vertex_colors" in c for name, cs in columns.items() if name.startswith("world/map/") for c in cs), columns
+    assert "world/camera/rgb" in columns
+    assert rr is not None

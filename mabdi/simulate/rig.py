@@ -93,6 +93,10 @@ class SimulatedRig(FrameSource):
         return self.sensor.intrinsics
 
     @property
+    def has_colour(self) -> bool:
+        return self.colour
+
+    @property
     def poses(self) -> np.ndarray:
         """(N, 4, 4) the given poses: those the frames carry (the true ones with the pose noise)."""
         return self._poses.copy()

@@ -85,6 +85,11 @@ class FrameSource:
         return np.array([self.read(i).timestamp for i in range(len(self))], dtype=np.float64)
 
     @property
+    def has_colour(self) -> bool:
+        """Whether the frames carry colour images (known without reading a frame; sources with colour say so)."""
+        return False
+
+    @property
     def true_poses(self) -> np.ndarray | None:
         """(N, 4, 4) the poses the sensor really had, when the source knows them (a simulation with pose
         noise: ``poses`` are the given ones), else None. Use them to judge what the sensor saw, or how far
@@ -141,6 +146,10 @@ class FrameList(FrameSource):
     @property
     def true_poses(self) -> np.ndarray | None:
         return None if self._true_poses is None else self._true_poses.copy()
+
+    @property
+    def has_colour(self) -> bool:
+        return self._frames[0].colour is not None
 
     def read_frame(self, index: int) -> DepthFrame:
         frame = self._frames[index]

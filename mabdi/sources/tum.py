@@ -406,6 +406,10 @@ class TumSequence(FrameSource):
         """The depth PNG of every frame."""
         return list(self._files)
 
+    @property
+    def has_colour(self) -> bool:
+        return self._colour_files is not None
+
 
 def write_tum(
     source: FrameSource, folder, *, extra: dict | None = None, overwrite: bool = False, depth_scale: float = DEPTH_SCALE

@@ -16,7 +16,8 @@ for video encoders). The third-person camera frames the scene and the whole
 path, from their bounds, looking from the side of the path's first pose.
 The map is drawn straight from the world mesh's blocks (a composite mapper:
 a frame uploads only its new blocks), coloured on the viridis ramp from the
-first frame (dark) to the last (bright), :func:`mabdi.maps.colours.colours_by_frame`.
+first frame (dark) to the last (bright), :func:`mabdi.maps.colours.colours_by_frame`,
+or, when the source has colour images, in its vertex colours (the camera's).
 Depth images share one colour range, fixed from the first frame's D
 (2nd to 98th percentile), so frames compare.
 
@@ -37,6 +38,7 @@ from vtkmodules.vtkRenderingCore import vtkActor, vtkCompositePolyDataMapper, vt
 
 from mabdi.camera import Intrinsics
 from mabdi.depth import depth_array, image_pose
+from mabdi.maps.mesh_map import COLOUR_LAYER
 from mabdi.polydata import polyline
 
 SIZE = (1296, 720)
@@ -139,8 +141,10 @@ class Dashboard:
             reach = self._intrinsics.far
             low, high = path_points.min(axis=0) - reach, path_points.max(axis=0) + reach
 
+        coloured = bool(getattr(simulation.source, "has_colour", False))
         self._scene_actors = []
-        for column, title in ((0, "map by creation frame"), (1, "novel surface (orange), removed (red)")):
+        first = "map in the camera's colours" if coloured else "map by creation frame"
+        for column, title in ((0, first), (1, "novel surface (orange), removed (red)")):
             plotter.subplot(0, column)
             plotter.set_background("white")
             actor = self._polydata_actor(scene, (0.75, 0.75, 0.75), opacity=0.35 if column == 1 else 0.25)
@@ -167,11 +171,16 @@ class Dashboard:
         lut.Build()
         mapper = vtkCompositePolyDataMapper()
         mapper.SetInputDataObject(self.loop.world.map)
-        mapper.SetScalarModeToUseCellFieldData()
-        mapper.SelectColorArray("frame")
-        mapper.SetLookupTable(lut)
-        mapper.SetScalarRange(0, max(frames - 1, 1))
-        mapper.SetUseLookupTableScalarRange(False)
+        if coloured:
+            mapper.SetScalarModeToUsePointFieldData()
+            mapper.SelectColorArray(COLOUR_LAYER)
+            mapper.SetColorModeToDirectScalars()
+        else:
+            mapper.SetScalarModeToUseCellFieldData()
+            mapper.SelectColorArray("frame")
+            mapper.SetLookupTable(lut)
+            mapper.SetScalarRange(0, max(frames - 1, 1))
+            mapper.SetUseLookupTableScalarRange(False)
         mapper.ScalarVisibilityOn()
         map_actor = vtkActor()
         map_actor.SetMapper(mapper)

@@ -10,12 +10,14 @@
   ``world/camera/E`` (expected depth; only with the classifier on) and
   ``world/camera/labels`` (segmentation image: 0 no return, 1 known, 2
   novel, 3 contradicted, with the dashboard's colours; only with the
-  classifier on); no return is depth 0, Rerun's "no data";
+  classifier on), ``world/camera/rgb`` (the colour image, when the source
+  has one); no return is depth 0, Rerun's "no data";
 * ``world/novel``: this frame's novel surface (triangles, world coordinates);
 * ``world/map/<block name>``: the map, one entity per block of the world
   mesh's vtkMultiBlockDataSet (``frame_<i>``, ``patch_<key>``): only blocks
   that are new or were replaced are sent, and blocks that left the map are
-  cleared; each block is coloured by the frame that made it;
+  cleared; each block in its vertex colours (the camera's, from a source
+  with colour images), else coloured by the frame that made it;
 * ``world/path``: the sensor's path up to this frame;
 * ``metrics/...``: the frame's record as time series: ``novel_fraction``,
   ``cells_total``, ``cells_added``, and ``metrics/time_ms`` with one line per
@@ -39,8 +41,9 @@ import numpy as np
 from vtkmodules.util.numpy_support import vtk_to_numpy
 from vtkmodules.vtkCommonDataModel import vtkCompositeDataSet, vtkPolyData
 
-from mabdi.depth import depth_array, image_pose
+from mabdi.depth import depth_array, image_colour, image_pose
 from mabdi.errors import MabdiError
+from mabdi.maps.mesh_map import COLOUR_LAYER
 
 TIMELINE = "frame"
 #: Colours of the classified image (RGB), as the dashboard draws it.
@@ -170,6 +173,9 @@ class RerunLogger:
             )
         if self.images:
             log("world/camera/D", rr.DepthImage(np.fmax(depth_array(measured), np.float32(0.0)), meter=1.0))
+            colour = image_colour(measured)
+            if colour is not None:
+                log("world/camera/rgb", rr.Image(colour, color_model="RGB"))
             expected = loop.expected_image()
             if expected is not None:
                 log("world/camera/E", rr.DepthImage(np.fmax(depth_array(expected), np.float32(0.0)), meter=1.0))
@@ -218,7 +224,12 @@ class RerunLogger:
             points, triangles = triangles_of(block)
             frames = block.GetCellData().GetArray("frame")
             made = int(frames.GetTuple1(0)) if frames is not None and frames.GetNumberOfTuples() else frame
-            log(f"world/map/{name}", rr.Mesh3D(vertex_positions=points, triangle_indices=triangles, albedo_factor=self._colour(made)))
+            colours = block.GetPointData().GetArray(COLOUR_LAYER)
+            if colours is not None:  # the camera's colours, per vertex
+                mesh = rr.Mesh3D(vertex_positions=points, triangle_indices=triangles, vertex_colors=vtk_to_numpy(colours))
+            else:
+                mesh = rr.Mesh3D(vertex_positions=points, triangle_indices=triangles, albedo_factor=self._colour(made))
+            log(f"world/map/{name}", mesh)
         for name in [n for n in self._blocks if n not in seen]:
             del self._blocks[name]
             log(f"world/map/{name}", rr.Clear(recursive=True))
