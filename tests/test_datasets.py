@@ -252,3 +252,43 @@ def test_the_summary_names_the_layout(recorded, tmp_path):
     _run(config, folders["scannet"], tmp_path / "out")
     summary = json.loads((tmp_path / "out" / "summary.json").read_text())
     assert summary["frames"] == 6
+
+
+def test_scannet_colour_of_another_size_is_registered_to_the_depth(recorded, tmp_path):
+    """A colour camera three times the depth camera's resolution (same centre and axes): each depth pixel takes
+    the middle one of its 3x3 colour pixels, so a colour image made by repeating each pixel 3x3 reads back as
+    the original. A JPEG six times larger is decoded reduced (JPEG's DCT scaling, never below the depth
+    image's size) and sampled with its intrinsics scaled alike: it matches within JPEG's error."""
+    from PIL import Image
+
+    from mabdi.camera import Intrinsics
+
+    frames, _, _ = recorded
+    folder = write_scannet(FrameList([frames.read(i) for i in range(2)]), tmp_path / "scannet")
+    depth = frames.intrinsics
+    colour_camera = Intrinsics(fx=3 * depth.fx, fy=3 * depth.fy, cx=3 * depth.cx, cy=3 * depth.cy, width=3 * depth.width, height=3 * depth.height)
+    (folder / "intrinsic" / "intrinsic_color.txt").write_text(
+        f"{colour_camera.fx} 0 {colour_camera.cx - 0.5} 0\n0 {colour_camera.fy} {colour_camera.cy - 0.5} 0\n0 0 1 0\n0 0 0 1\n"
+    )
+    rng = np.random.default_rng(3)
+    v, u = np.mgrid[0 : depth.height, 0 : depth.width]
+    originals = []
+    (folder / "color").mkdir()
+    for i in range(2):
+        original = rng.integers(0, 256, (depth.height, depth.width, 3), dtype=np.uint8)
+        originals.append(original)
+        Image.fromarray(original.repeat(3, axis=0).repeat(3, axis=1)).save(folder / "color" / f"{i}.png")
+    source = ScanNetSequence(folder)
+    for i in range(2):
+        np.testing.assert_array_equal(source.read(i).colour, originals[i])
+    smooth = np.stack([u * 255 // depth.width, v * 255 // depth.height, (u + v) % 256], axis=-1).astype(np.uint8)
+    for i in range(2):
+        (folder / "color" / f"{i}.png").unlink()
+        Image.fromarray(smooth.repeat(6, axis=0).repeat(6, axis=1)).save(folder / "color" / f"{i}.jpg", quality=95)
+    big = Intrinsics(fx=6 * depth.fx, fy=6 * depth.fy, cx=6 * depth.cx, cy=6 * depth.cy, width=6 * depth.width, height=6 * depth.height)
+    (folder / "intrinsic" / "intrinsic_color.txt").write_text(
+        f"{big.fx} 0 {big.cx - 0.5} 0\n0 {big.fy} {big.cy - 0.5} 0\n0 0 1 0\n0 0 0 1\n"
+    )
+    colour = ScanNetSequence(folder).read(1).colour  # a 960x720 JPEG, decoded at a quarter (240x180 >= 160x120)
+    error = np.abs(colour.astype(int) - smooth.astype(int))
+    assert np.median(error) <= 3 and np.percentile(error, 99) <= 40, (np.median(error), np.percentile(error, 99))

@@ -26,6 +26,8 @@ background (no object) is black.
 from __future__ import annotations
 
 import numpy as np
+from vtkmodules.util.numpy_support import vtk_to_numpy
+from vtkmodules.vtkCommonCore import vtkUnsignedCharArray
 
 from mabdi.camera import Intrinsics
 from mabdi.config import RunConfig
@@ -67,6 +69,7 @@ class SimulatedRig(FrameSource):
         self.description = description
         #: Whether frames carry a colour image (None: when the scene has coloured objects).
         self.colour = scene.coloured if colour is None else bool(colour)
+        self._rgb = vtkUnsignedCharArray()
         if self.colour:  # the depth render draws each triangle in its object's colour: one render gives both
             self.sensor.renderer.identity_array = OBJECT_COLOUR_ARRAY
 
@@ -122,11 +125,14 @@ class SimulatedRig(FrameSource):
         self.sensor.Update()
         # Each render hands out a new array, so the frame may keep it.
         depth = depth_array(self.sensor.GetOutput(), raw=True)
-        colour = None
-        if self.colour:
-            packed = self.sensor.renderer.render_identity()  # 24-bit r | g << 8 | b << 16 of the last render
-            colour = np.stack([packed & 255, (packed >> 8) & 255, packed >> 16], axis=-1).astype(np.uint8)
+        colour = self._read_colour() if self.colour else None
         return DepthFrame(depth, self.sensor.intrinsics, self._poses[index], index, index / FRAME_RATE, colour)
+
+    def _read_colour(self) -> np.ndarray:
+        """(H, W, 3) uint8 colour buffer of the last render (each object flat in its colour), top row first."""
+        width, height = self.sensor.intrinsics.width, self.sensor.intrinsics.height
+        self.sensor.renderer.window.GetPixelData(0, 0, width - 1, height - 1, 0, self._rgb, 0)
+        return vtk_to_numpy(self._rgb).reshape(height, width, 3)[::-1].copy()
 
     def noise_free(self, index: int) -> DepthFrame:
         """Frame ``index`` without noise (for alignment checks), the rig's noise model left as it was."""

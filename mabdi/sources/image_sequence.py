@@ -247,6 +247,7 @@ class ImageSequence(FrameSource):
         self._colour_files = None if colour_files is None else [Path(colour_files[i]) for i in keep]
         self._colour_intrinsics = colour_intrinsics
         self._lookup = None
+        self._lookup_size = None
         times = np.full(len(depth_files), np.nan) if timestamps is None else np.asarray(timestamps, dtype=np.float64)
         self._timestamps = times[keep]
         colour = ", with colour" if self._colour_files is not None else ""
@@ -286,18 +287,27 @@ class ImageSequence(FrameSource):
     def read_colour(self, index: int) -> np.ndarray:
         """(H, W, 3) uint8 colour of frame ``index``, registered to its depth pixel for pixel."""
         file = self._colour_files[index]
-        colour = read_colour_image(file)
+        camera = self._colour_intrinsics
+        colour = read_colour_image(file, None if camera is None else (self._intrinsics.width, self._intrinsics.height))
         if colour.shape[:2] == self._intrinsics.shape:
             return colour
-        camera = self._colour_intrinsics
-        if camera is None or colour.shape[:2] != camera.shape:
-            said = f", its intrinsics say {camera.width}x{camera.height}" if camera is not None else ""
+        if camera is None:
             raise SequenceError(
                 f"{file}: colour image is {colour.shape[1]}x{colour.shape[0]}, the depth {self._intrinsics.width}x"
-                f"{self._intrinsics.height}{said}: cannot register it to the depth"
+                f"{self._intrinsics.height}, and there are no colour intrinsics to register it to the depth"
             )
-        if self._lookup is None:
-            self._lookup = colour_lookup(self._intrinsics, camera)
+        if (colour.shape[1], colour.shape[0]) != (self._lookup_size if self._lookup is not None else None):
+            scale = colour.shape[1] / camera.width  # 1, or JPEG's 1/2, 1/4, 1/8 when decoded smaller
+            if abs(colour.shape[0] - camera.height * scale) > 1:
+                raise SequenceError(
+                    f"{file}: colour image is {colour.shape[1]}x{colour.shape[0]}, its intrinsics say {camera.width}x{camera.height}"
+                )
+            scaled = Intrinsics(
+                fx=camera.fx * scale, fy=camera.fy * scale, cx=camera.cx * scale, cy=camera.cy * scale,
+                width=colour.shape[1], height=colour.shape[0],
+            )
+            self._lookup = colour_lookup(self._intrinsics, scaled)
+            self._lookup_size = (colour.shape[1], colour.shape[0])
         rows, columns = self._lookup
         return colour[rows[:, None], columns[None, :]]
 

@@ -27,6 +27,7 @@ sequence came from, for example); :func:`read_sequence_metadata` returns them.
 from __future__ import annotations
 
 import dataclasses
+import io
 import math
 import tomllib
 from pathlib import Path
@@ -340,11 +341,22 @@ def prepare_folder(folder: Path, overwrite: bool, what: str) -> None:
         raise SequenceError(f"cannot write {what} to {folder}: {exc}") from None
 
 
-def read_colour_image(path: Path) -> np.ndarray:
+def read_colour_image(path: Path, size: tuple[int, int] | None = None) -> np.ndarray:
     """(H, W, 3) uint8 RGB of an 8-bit colour image (PNG, JPEG, ...; grey or RGBA converted), or a
-    :class:`SequenceError` naming it."""
+    :class:`SequenceError` naming it. RGB PNGs are decoded by mabdi's own PNG reader (as depth PNGs are);
+    a JPEG larger than ``size`` (width, height) may be decoded at a half, quarter or eighth of its size,
+    no smaller than ``size`` (JPEG's own DCT scaling: much faster)."""
+    from mabdi.sources.tum import decode_rgb8_png
+
     try:
-        with Image.open(path) as image:
+        with open(path, "rb") as stream:
+            data = stream.read()
+        rgb = decode_rgb8_png(data)
+        if rgb is not None:
+            return rgb
+        with Image.open(io.BytesIO(data)) as image:
+            if size is not None and image.format == "JPEG":
+                image.draft("RGB", size)
             if image.mode != "RGB":
                 if image.mode not in ("L", "RGBA", "P", "RGBX", "CMYK", "YCbCr"):
                     raise SequenceError(f"{path}: not an 8-bit colour image (mode {image.mode})")
