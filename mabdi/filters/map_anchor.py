@@ -33,6 +33,17 @@ take part, spread evenly over the run (the first always).
 ``world_from_map`` is A's inverse: the loop builds the map in the map frame
 (E, the classifier and the surfaces all work there) and turns the map and
 the trajectory into the world with it when they are handed out.
+
+**How good the given poses are** (:meth:`MapAnchor.given_variance`): the
+same fit says how far a given pose, moved into the map frame, is from the
+truth: sigma^2 + q s per component (rotation in rad^2, translation in m^2).
+The offsets are registered minus given, so their spread holds the
+registration's own error too; each frame brings its registration's variance
+(the mean of the pose covariance's diagonal, per block), and their mean is
+taken off the white part. Exact poses then read as exact however noisy the
+registration (a structured-light camera's correlated error moves each
+registered pose a millimetre or more), and the registration can weigh the
+given pose against its own result (:func:`mabdi.filters.registration.fuse_with_given`).
 """
 
 from __future__ import annotations
@@ -89,7 +100,9 @@ class MapAnchor:
         self._translations = np.zeros((0, 3))  # dt (m)
         self._positions = np.zeros((0, 3))  # t_G (m)
         self._travelled = np.zeros(0)  # s (m)
+        self._registration_variances = np.zeros((0, 2))  # the registration's variance per frame (rad^2, m^2)
         self._map_from_world = np.eye(4)
+        self._fits = ((1.0, 0.0), (1.0, 0.0))  # (sigma^2, q) of the rotations and the translations
 
     def __len__(self) -> int:
         return len(self._travelled)
@@ -104,9 +117,12 @@ class MapAnchor:
         """A's inverse: map coordinates to world coordinates (4x4)."""
         return np.linalg.inv(self._map_from_world)
 
-    def add(self, given: np.ndarray, registered: np.ndarray, travelled: float) -> None:
-        """One frame that fits the map: its given pose (world), its registered pose (map frame), and the
-        distance (m) the given poses travelled from the first frame to it. Updates the estimate."""
+    def add(self, given: np.ndarray, registered: np.ndarray, travelled: float, covariance: np.ndarray | None = None) -> None:
+        """One frame that fits the map: its given pose (world), its registered pose (map frame), the
+        distance (m) the given poses travelled from the first frame to it, and the registration's 6x6
+        pose covariance (rotation vector in rad, then translation in m; None: exact). Updates the estimate."""
+        variances = np.zeros(2) if covariance is None else np.array([np.trace(covariance[:3, :3]), np.trace(covariance[3:, 3:])]) / 3.0
+        self._registration_variances = np.vstack([self._registration_variances, variances])
         rotation = Rotation.from_matrix(registered[:3, :3] @ given[:3, :3].T).as_rotvec()
         self._rotations = np.vstack([self._rotations, rotation])
         self._translations = np.vstack([self._translations, registered[:3, 3] - given[:3, 3]])
@@ -119,18 +135,34 @@ class MapAnchor:
         use = np.unique(np.round(np.linspace(0, n - 1, min(n, MAX_FRAMES))).astype(int))
         s = self._travelled[use]
         rotations = self._rotations[use]
-        weights = _blue_weights(*_variogram_fit(rotations, s), s)
+        fit_rotation = _variogram_fit(rotations, s)
+        weights = _blue_weights(*fit_rotation, s)
         rotation = Rotation.from_rotvec(weights @ rotations).as_matrix()
         residual = self._translations[use] - (self._positions[use] @ (rotation - np.eye(3)).T)
-        weights = _blue_weights(*_variogram_fit(residual, s), s)
+        fit_translation = _variogram_fit(residual, s)
+        weights = _blue_weights(*fit_translation, s)
+        self._fits = (fit_rotation, fit_translation)
         anchor = np.eye(4)
         anchor[:3, :3] = rotation
         anchor[:3, 3] = weights @ residual
         self._map_from_world = anchor
 
+    def given_variance(self, travelled: float) -> tuple[float, float] | None:
+        """The variance (rad^2, m^2 per component) of a given pose's error in the map frame at ``travelled``
+        metres, with the registration's own variance taken off (see the module docs); None while fewer
+        than :data:`MIN_FRAMES_FOR_DRIFT` frames say how the given poses behave."""
+        if len(self._travelled) < MIN_FRAMES_FOR_DRIFT:
+            return None
+        registration = self._registration_variances.mean(axis=0)
+        return tuple(
+            max(sigma2 - own, 0.0) + q * max(float(travelled), 0.0)
+            for (sigma2, q), own in zip(self._fits, registration, strict=True)
+        )
+
     def state(self) -> dict:
         """Plain arrays (for checkpoints)."""
         return {
+            "registration_variances": self._registration_variances.copy(),
             "rotations": self._rotations.copy(),
             "translations": self._translations.copy(),
             "positions": self._positions.copy(),
@@ -142,6 +174,9 @@ class MapAnchor:
         self._translations = np.array(state["translations"], dtype=np.float64).reshape(-1, 3)
         self._positions = np.array(state["positions"], dtype=np.float64).reshape(-1, 3)
         self._travelled = np.array(state["travelled"], dtype=np.float64).ravel()
+        variances = state.get("registration_variances", np.zeros((len(self._travelled), 2)))
+        self._registration_variances = np.array(variances, dtype=np.float64).reshape(-1, 2)
         self._map_from_world = np.eye(4)
+        self._fits = ((1.0, 0.0), (1.0, 0.0))
         if len(self._travelled):
             self._estimate()

@@ -52,6 +52,14 @@ corrects the pose the way KinectFusion's frame-to-model tracking does
    drift the given pose alone may be degrees off), its correction is not
    carried on, and the loop lets it cast no removal votes.
 
+6. **Weighed against the given pose**: the ICP's pose and the given one
+   are two estimates of the same pose. Once the anchor has seen enough
+   frames to say how good the given poses are
+   (:meth:`~mabdi.filters.map_anchor.MapAnchor.given_variance`: their
+   spread about the map frame, less the registration's own), the
+   correction is shrunk by the two covariances (:func:`fuse_with_given`):
+   exact poses stay exact, jittery ones follow the registration.
+
 Output: D with the registered pose (in the map's frame) as its
 ``world_from_camera`` and in field data ``given_world_from_camera`` (the
 pose the source gave, float64[16]), ``world_from_map`` (the anchor's
@@ -60,8 +68,10 @@ estimate, float64[16]),
 correction from the given pose in metres and degrees, the RMS residual of the
 pairs in metres, the inlier share, the iterations) and, when registered,
 ``pose_covariance`` (float64[36]: the 6x6 covariance of the pose in the
-camera frame, rotation vector in radians then translation in metres, from
-the normal equations scaled by the residuals' chi-square). The classifier
+camera frame, rotation vector in radians then translation in metres: the
+larger of the normal equations' and a tile-robust estimate that counts
+correlated pixels once, :func:`pose_covariance`; after step 6 the fused
+pose's). The classifier
 turns that covariance into each pixel's depth uncertainty
 (:func:`pose_depth_sigma`).
 
@@ -104,6 +114,9 @@ REGISTERED = 0
 #: Normals of E: central differences over this many pixels; none across a relative depth jump above this.
 NORMAL_STEP = 2
 NORMAL_MAX_JUMP = 0.05
+#: Tiles (pixels a side) whose residuals the pose covariance takes as one unit (:func:`pose_covariance`):
+#: wider than the correlations of a camera's matching window (about 9 pixels for a Kinect v1).
+COVARIANCE_TILE = 32
 #: The last step of a registered frame is below these (m, degrees).
 CONVERGED_TRANSLATION = 1e-3
 CONVERGED_ROTATION = 0.05
@@ -169,9 +182,10 @@ class RegistrationResult:
         return self.status == STATUSES[REGISTERED]
 
 
-def sample_points(measured: np.ndarray, intrinsics: Intrinsics, stride: int) -> tuple[np.ndarray, np.ndarray]:
+def sample_points(measured: np.ndarray, intrinsics: Intrinsics, stride: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
     """D's points (N, 3, camera frame, m) at every ``stride``-th pixel (the centre pixel of each
-    stride x stride cell) that has a return, and their depths (N,)."""
+    stride x stride cell) that has a return, their depths (N,), the :data:`COVARIANCE_TILE` tile of the
+    image each lies in (N,) and the number of tiles."""
     offset = stride // 2
     depth = measured[offset::stride, offset::stride].astype(np.float64)
     rows, cols = np.nonzero(np.isfinite(depth))
@@ -179,7 +193,10 @@ def sample_points(measured: np.ndarray, intrinsics: Intrinsics, stride: int) -> 
     u = cols * stride + offset + 0.5
     v = rows * stride + offset + 0.5
     points = np.stack([(u - intrinsics.cx) / intrinsics.fx * z, (v - intrinsics.cy) / intrinsics.fy * z, z], axis=1)
-    return points, z
+    tiles_across = -(-measured.shape[1] // COVARIANCE_TILE)
+    tiles = ((rows * stride + offset) // COVARIANCE_TILE) * tiles_across + (cols * stride + offset) // COVARIANCE_TILE
+    n_tiles = tiles_across * -(-measured.shape[0] // COVARIANCE_TILE)
+    return points, z, tiles.astype(np.int64), n_tiles
 
 
 def _rigid(rotation_vector: np.ndarray, translation: np.ndarray) -> np.ndarray:
@@ -235,22 +252,22 @@ def register_depth(
     reach = p.max_distance  # the gate beyond the noise: shrinks with the residuals as the pose converges
     start = transform.copy()
     for level in range(p.levels):
-        points, z = sample_points(measured, intrinsics, p.stride * 2 ** (p.levels - 1 - level))
+        points, z, tiles, n_tiles = sample_points(measured, intrinsics, p.stride * 2 ** (p.levels - 1 - level))
         scale = np.sqrt(noise.sigma(z, intrinsics.near, intrinsics.far) ** 2 + p.model_sigma**2)
         scale = np.maximum(scale, 1e-4)
         for _ in range(p.iterations):
             gate = np.maximum(reach, p.gate_k * scale)
             if iterations == 0:
                 # how far off the prediction is, before the first step: pairs beyond that are other surfaces
-                *_, candidates, residuals, _ = point_to_plane_system(
-                    points, scale, gate, transform[:3, :3], np.ascontiguousarray(transform[:3, 3]), expected,
+                *_, candidates, residuals, _, _ = point_to_plane_system(
+                    points, tiles, n_tiles, scale, gate, transform[:3, :3], np.ascontiguousarray(transform[:3, 3]), expected,
                     intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy, NORMAL_STEP, NORMAL_MAX_JUMP, p.huber,
                 )  # fmt: skip
                 if candidates:
                     reach = min(reach, p.gate_k * MAD_TO_SIGMA * float(np.median(residuals)))
                 gate = np.maximum(reach, p.gate_k * scale)
-            a, b, chi2, pairs, candidates, residuals, support = point_to_plane_system(
-                points, scale, gate, transform[:3, :3], np.ascontiguousarray(transform[:3, 3]), expected,
+            a, b, chi2, pairs, candidates, residuals, support, tile_gradients = point_to_plane_system(
+                points, tiles, n_tiles, scale, gate, transform[:3, :3], np.ascontiguousarray(transform[:3, 3]), expected,
                 intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy, NORMAL_STEP, NORMAL_MAX_JUMP, p.huber,
             )  # fmt: skip
             iterations += 1
@@ -266,8 +283,7 @@ def register_depth(
             if step_size[0] < 1e-5 and step_size[1] < 1e-4:
                 break
     _, inverse = _solve(a, b)
-    dof = max(pairs - 6, 1)
-    covariance = inverse * max(1.0, chi2 / dof)
+    covariance = pose_covariance(inverse, chi2, pairs, tile_gradients)
     residual = float(np.sqrt(chi2 / max(pairs, 1)))  # in units of the noise; metres below
     share = pairs / max(candidates, 1)
     translation, angle = transform_size(np.linalg.inv(start) @ transform)
@@ -289,6 +305,29 @@ def register_depth(
         iterations=iterations,
         covariance=covariance if status == "registered" else None,
     )
+
+
+def pose_covariance(inverse: np.ndarray, chi2: float, pairs: int, tile_gradients: np.ndarray) -> np.ndarray:
+    """The 6x6 pose covariance of a converged ICP: the larger, direction by direction, of two estimates.
+
+    * **Independent residuals**: A^-1 scaled by the residuals' chi-square per degree of freedom (at
+      least 1), what the normal equations say when every pixel's error is its own.
+    * **Correlated residuals** (a tile-robust "sandwich"): A^-1 M A^-1 with M = sum over image tiles of
+      g_t g_t^T, g_t the gradient b summed over the tile's pairs. Neighbouring pixels of a
+      structured-light or stereo camera err together (they share a matching window) and a map's
+      faces are chords of curved surfaces; the normal equations count such pixels as independent and
+      the covariance comes out several times too small. Summing within tiles of
+      :data:`COVARIANCE_TILE` pixels, wider than such correlations, and taking the spread of the tile
+      sums counts each tile once, whatever the correlation inside it (the cluster-robust covariance of
+      regression, clusters = tiles); for independent errors it agrees with the first estimate.
+
+    The result is the first estimate plus the positive part of their difference (so it is never below
+    either in any direction).
+    """
+    independent = inverse * max(1.0, chi2 / max(pairs - 6, 1))
+    sandwich = inverse @ (tile_gradients.T @ tile_gradients) @ inverse
+    values, vectors = np.linalg.eigh(sandwich - independent)
+    return independent + (vectors * np.maximum(values, 0.0)) @ vectors.T
 
 
 def constraint_support(support: np.ndarray, depths: np.ndarray) -> float:
@@ -317,13 +356,13 @@ def _best_start(measured, expected, intrinsics: Intrinsics, starts, noise: Senso
     (a count, not a median: a heading error leaves the floor where it was and moves only the objects)."""
     if len(starts) == 1:
         return starts[0].copy()
-    points, z = sample_points(measured, intrinsics, p.stride * 2 ** (p.levels - 1))
+    points, z, tiles, n_tiles = sample_points(measured, intrinsics, p.stride * 2 ** (p.levels - 1))
     scale = np.maximum(np.sqrt(noise.sigma(z, intrinsics.near, intrinsics.far) ** 2 + p.model_sigma**2), 1e-4)
     gate = p.gate_k * scale
     best, best_pairs = starts[0], -1
     for transform in starts:
         _, _, _, pairs, *_ = point_to_plane_system(
-            points, scale, gate, transform[:3, :3], np.ascontiguousarray(transform[:3, 3]), expected,
+            points, tiles, n_tiles, scale, gate, transform[:3, :3], np.ascontiguousarray(transform[:3, 3]), expected,
             intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy, NORMAL_STEP, NORMAL_MAX_JUMP, p.huber,
         )  # fmt: skip
         if pairs > best_pairs:
@@ -393,6 +432,33 @@ def apply_correction(correction: np.ndarray, given: np.ndarray) -> np.ndarray:
     pose[:3, :3] = correction[:3, :3] @ given[:3, :3]
     pose[:3, 3] = given[:3, 3] + correction[:3, 3]
     return pose
+
+
+def fuse_with_given(
+    given: np.ndarray, registered: np.ndarray, covariance: np.ndarray, given_variance: tuple[float, float]
+) -> tuple[np.ndarray, np.ndarray]:
+    """The registered pose weighed against the given one: (pose, its 6x6 covariance in the camera frame).
+
+    ``given``: the given pose in the map frame; ``registered``: the ICP's pose, with ``covariance`` (rotation
+    vector in rad, then translation in m, camera frame); ``given_variance``: the variance (rad^2, m^2 per
+    component) of the given pose's error (:meth:`MapAnchor.given_variance`). Both are estimates of the
+    same pose: the correction c from the given pose (a rotation about the camera centre and a world
+    translation, :func:`correction_between`) is shrunk to K c with K = V (V + S)^-1, V the given pose's
+    covariance and S the registration's in the same terms, and the result's covariance is V - K V. An
+    exact given pose (V = 0) is kept as it is however the registration wanders; a jittery one
+    (V >> S) gives way to the registration.
+    """
+    frame = np.zeros((6, 6))
+    frame[:3, :3] = frame[3:, 3:] = given[:3, :3]  # camera-frame perturbations to world-frame ones
+    observed = frame @ covariance @ frame.T
+    correction = correction_between(given, registered)
+    values = np.concatenate([Rotation.from_matrix(correction[:3, :3]).as_rotvec(), correction[:3, 3]])
+    prior = np.diag([given_variance[0]] * 3 + [given_variance[1]] * 3)
+    gain = prior @ np.linalg.pinv(prior + observed)
+    fused = gain @ values
+    posterior = prior - gain @ prior
+    pose = apply_correction(_rigid(fused[:3], fused[3:]), given)
+    return pose, frame.T @ (0.5 * (posterior + posterior.T)) @ frame
 
 
 def _add_field(image, name: str, values) -> None:
@@ -501,10 +567,15 @@ class FilterRegistration(MabdiAlgorithm):
             carried = np.linalg.inv(given_in_map) @ apply_correction(self._correction, given_in_map)
             result = register_depth(measured, expected, intrinsics, self._noise, p, starts=(carried,))
         pose = given_in_map @ result.transform
+        covariance = result.covariance
+        if result.registered:
+            variance = self.anchor.given_variance(self._travelled)
+            if variance is not None:
+                pose, covariance = fuse_with_given(given_in_map, pose, result.covariance, variance)
         if p.enabled and new_frame:
             if result.registered:
                 self._correction = correction_between(given_in_map, pose)
-                self.anchor.add(given, pose, self._travelled)
+                self.anchor.add(given, given_in_map @ result.transform, self._travelled, result.covariance)
             elif result.status == "no_map" and len(self.anchor) == 0:
                 self.anchor.add(given, pose, self._travelled)  # the first frame starts the map where it is given
         if new_frame:
@@ -522,6 +593,6 @@ class FilterRegistration(MabdiAlgorithm):
             STATUSES.index(result.status), translation, angle, result.residual, result.inlier_share, result.support, result.iterations
         )  # fmt: skip
         _add_field(output, REGISTRATION_ARRAY, values)
-        if result.covariance is not None:
-            _add_field(output, POSE_COVARIANCE_ARRAY, result.covariance)
+        if covariance is not None:
+            _add_field(output, POSE_COVARIANCE_ARRAY, covariance)
         return 1

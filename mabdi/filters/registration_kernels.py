@@ -71,10 +71,11 @@ def point_plane_jacobian(jac, x, y, z, nx, ny, nz):
 
 
 @njit(cache=True)
-def point_to_plane_system(points, scale, gate, rotation, translation, e_depth, fx, fy, cx, cy, step, max_jump, huber):
+def point_to_plane_system(points, tiles, n_tiles, scale, gate, rotation, translation, e_depth, fx, fy, cx, cy, step, max_jump, huber):
     """Normal equations of one ICP step in E's camera frame.
 
-    ``points`` (N, 3): D's sampled points in D's camera frame (m); ``scale``
+    ``points`` (N, 3): D's sampled points in D's camera frame (m); ``tiles``
+    (N,): the image tile (0 .. ``n_tiles`` - 1) each point was sampled in; ``scale``
     (N,): each point's noise (m), the unit of its residual; ``gate`` (N,):
     the largest residual (m) a pair may have; ``rotation``, ``translation``:
     the current estimate of E-camera from D-camera; ``e_depth`` (H, W): E,
@@ -84,8 +85,9 @@ def point_to_plane_system(points, scale, gate, rotation, translation, e_depth, f
     gate). Parameters are (rotation vector, translation), a left
     perturbation of the estimate.
 
-    Returns (A (6, 6), b (6,), chi2, pairs, candidates, residuals, support):
-    A x = -b is the step; chi2 is the weighted sum of squared normalised
+    Returns (A (6, 6), b (6,), chi2, pairs, candidates, residuals, support,
+    tile_gradients): A x = -b is the step; tile_gradients (n_tiles, 6) is b
+    summed per tile (its spread says how correlated the residuals are); chi2 is the weighted sum of squared normalised
     residuals; pairs the points within their gate; candidates the points that
     landed on a pixel of E with a normal; residuals (candidates,) their
     absolute residuals (m); support (2, 6, 6) the information J^T J / s^2 of
@@ -101,6 +103,7 @@ def point_to_plane_system(points, scale, gate, rotation, translation, e_depth, f
     candidates = 0
     residuals = np.empty(n)
     support = np.zeros((2, 6, 6))
+    tile_gradients = np.zeros((n_tiles, 6))
     jac = np.zeros(6)
     for i in range(n):
         x = rotation[0, 0] * points[i, 0] + rotation[0, 1] * points[i, 1] + rotation[0, 2] * points[i, 2] + translation[0]
@@ -141,6 +144,7 @@ def point_to_plane_system(points, scale, gate, rotation, translation, e_depth, f
         for j in range(6):
             wj = w * jac[j]
             b[j] += wj * r
+            tile_gradients[tiles[i], j] += wj * r
             for k in range(j, 6):
                 a[j, k] += wj * jac[k]
         chi2 += w * r * r
@@ -149,7 +153,7 @@ def point_to_plane_system(points, scale, gate, rotation, translation, e_depth, f
             a[j, k] = a[k, j]
             support[0, j, k] = support[0, k, j]
             support[1, j, k] = support[1, k, j]
-    return a, b, chi2, pairs, candidates, residuals[:candidates], support
+    return a, b, chi2, pairs, candidates, residuals[:candidates], support, tile_gradients
 
 
 @njit(cache=True)
