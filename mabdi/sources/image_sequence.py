@@ -309,7 +309,7 @@ class ImageSequence(FrameSource):
             self._lookup = colour_lookup(self._intrinsics, scaled)
             self._lookup_size = (colour.shape[1], colour.shape[0])
         rows, columns = self._lookup
-        return colour[rows[:, None], columns[None, :]]
+        return colour.take(rows, axis=0).take(columns, axis=1)  # separable: two takes, not a 2-D fancy index
 
 
 def matching_files(folder: Path, stems: list[str], suffixes: tuple[str, ...]) -> list[Path] | None:
