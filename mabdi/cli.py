@@ -112,6 +112,7 @@ def _parser() -> argparse.ArgumentParser:
     sequence.add_argument("--depth-topic", help="ROS 2 bag: the depth image topic (when there are several)")
     sequence.add_argument("--info-topic", help="ROS 2 bag: the CameraInfo topic (when there are several)")
     sequence.add_argument("--pose-topic", help="ROS 2 bag: a PoseStamped topic for the poses (default: /tf when present)")
+    sequence.add_argument("--colour-topic", help="ROS 2 bag: the rgb8 / bgr8 colour image topic registered to the depth (when there are several)")
     sequence.add_argument(
         "--tolerance", type=float, help="TUM, ROS 2 bag: largest time between a depth frame and its pose, seconds (default 0.02)"
     )
@@ -298,13 +299,14 @@ def cmd_run(args) -> int:
             "depth_topic": args.depth_topic,
             "info_topic": args.info_topic,
             "pose_topic": args.pose_topic,
+            "colour_topic": args.colour_topic,
             "tolerance": args.tolerance,
         }
         simulation, note = recorded_simulation(config, args.sequence, **options)
         recording = {"path": str(args.sequence.resolve()), "options": options}
         print(f"source: {simulation.source.description}")
     else:
-        for option in ("camera", "depth_scale", "depth_topic", "info_topic", "pose_topic", "tolerance"):
+        for option in ("camera", "depth_scale", "depth_topic", "info_topic", "pose_topic", "colour_topic", "tolerance"):
             if getattr(args, option) is not None:
                 raise ConfigError(f"run: --{option.replace('_', '-')} is for recorded sequences; use it with --sequence")
         if not config.scene.objects:

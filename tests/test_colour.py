@@ -225,3 +225,25 @@ def test_the_dashboard_and_rerun_show_the_colours(tmp_path):
     assert any("vertex_colors" in c for name, cs in columns.items() if name.startswith("world/map/") for c in cs), columns
     assert "world/camera/rgb" in columns
     assert rr is not None
+
+
+@pytest.mark.parametrize("storage", ["sqlite3", "mcap"])
+def test_a_bag_carries_colour_rgb8_and_bgr8(coloured_frames, tmp_path, storage):
+    from types import SimpleNamespace
+
+    from mabdi.sources import Rosbag2Sequence, write_rosbag2
+
+    frames, _ = coloured_frames
+    bag = Rosbag2Sequence(write_rosbag2(frames, tmp_path / "bag", storage=storage))
+    assert bag.colour_topic == "/camera/color/image_raw" and "colour from /camera/color/image_raw" in bag.description
+    for i in range(3):
+        np.testing.assert_array_equal(bag.read(i).colour, frames.read(i).colour)
+    rgb = frames.read(1).colour
+    padded = np.zeros((240, 320 * 3 + 8), dtype=np.uint8)  # rows padded to a step of 968 bytes
+    padded[:, : 320 * 3] = rgb[..., ::-1].reshape(240, -1)  # bgr8
+    message = SimpleNamespace(height=240, width=320, step=320 * 3 + 8, encoding="bgr8", data=padded.ravel())
+    np.testing.assert_array_equal(bag.decode_colour(message), rgb)
+    small = SimpleNamespace(height=120, width=160, step=480, encoding="rgb8", data=np.zeros(120 * 480, np.uint8))
+    with pytest.raises(Exception, match="registered to the depth"):
+        bag.decode_colour(small)
+    bag.close()

@@ -40,7 +40,7 @@ TRUE_POSES = "poses_true.npy"
 #: The reader options each format takes (the others are an error when given).
 READER_OPTIONS = {
     "tum": ("camera", "tolerance", "depth_scale"),
-    "rosbag2": ("depth_topic", "info_topic", "pose_topic", "tolerance"),
+    "rosbag2": ("depth_topic", "info_topic", "pose_topic", "tolerance", "colour_topic"),
     "3dmatch": ("camera", "depth_scale"),
     "redwood": ("camera", "depth_scale"),
     "scannet": ("camera", "depth_scale"),

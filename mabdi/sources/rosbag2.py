@@ -10,6 +10,13 @@ later distributions).
 padded (``step``) and big-endian. Any other encoding is an error naming the
 topic.
 
+**Colour** (optional): a ``sensor_msgs/msg/Image`` topic in ``rgb8`` or
+``bgr8`` (the only one, or ``colour_topic=`` / ``--colour-topic``),
+registered to the depth (the same size, as a camera driver's
+``depth_registered`` images are); each depth frame carries the colour
+image nearest in header stamp (those further than ``tolerance`` are counted
+in ``description``).
+
 **Intrinsics**: the first ``sensor_msgs/msg/CameraInfo`` message: fx = K[0],
 fy = K[4], cx = K[2] + 0.5, cy = K[5] + 0.5 (ROS puts pixel centres at
 integers, mabdi at u + 0.5), width and height; distortion is ignored. near
@@ -99,9 +106,12 @@ COMPRESSED_IMAGE = "sensor_msgs/msg/CompressedImage"
 
 #: Depth encodings read: name -> (dtype of one pixel, metres per unit).
 DEPTH_ENCODINGS = {"16UC1": (np.uint16, 1e-3), "32FC1": (np.float32, 1.0)}
+#: Colour encodings read: name -> the channel order that gives R, G, B.
+COLOUR_ENCODINGS = {"rgb8": [0, 1, 2], "bgr8": [2, 1, 0]}
 
 #: Topics and frames :func:`write_rosbag2` uses.
 DEPTH_TOPIC = "/camera/depth/image"
+COLOUR_TOPIC = "/camera/color/image_raw"
 INFO_TOPIC = "/camera/depth/camera_info"
 POSE_TOPIC = "/camera/pose"
 WORLD_FRAME = "world"
@@ -176,6 +186,7 @@ class Rosbag2Sequence(FrameSource):
         pose_topic: str | None = None,
         frame_id: str | None = None,
         tolerance: float = 0.02,
+        colour_topic: str | None = None,
     ) -> None:
         self.path = Path(path)
         if not self.path.exists():
@@ -201,7 +212,13 @@ class Rosbag2Sequence(FrameSource):
         self._stamps = stamps[keep]
         self._log_times = self._all_log_times[keep]
         self._occurrence = self._all_occurrence[keep]
+        self.colour_topic = self._choose_colour_topic(colour_topic)
+        far_colour = self._index_colour() if self.colour_topic is not None else 0
         self.description = f"ROS 2 bag {self.path} ({self.depth_topic}, poses from {self.pose_source}, {len(self._poses)} frames"
+        if self.colour_topic is not None:
+            self.description += f", colour from {self.colour_topic}"
+            if far_colour:
+                self.description += f" ({far_colour} more than {self.tolerance * 1000:g} ms from their colour image)"
         self.description += (
             f", {self.skipped} without a pose within {self.tolerance * 1000:g} ms skipped)" if self.skipped else ")"
         )
@@ -285,6 +302,49 @@ class Rosbag2Sequence(FrameSource):
                 + ")"
             )
         return candidates[0]
+
+    def _choose_colour_topic(self, topic: str | None) -> str | None:
+        """The colour Image topic: ``colour_topic``, else the only Image topic whose first message is rgb8 / bgr8
+        (None when there is none; several are an error naming them)."""
+        if topic is not None:
+            return self._check_topic(topic, IMAGE, _option("colour_topic"))
+        candidates = []
+        for name in self._of_type(IMAGE):
+            first = next(self._messages(name), None) if name != self.depth_topic else None
+            if first is not None and first[1].encoding in COLOUR_ENCODINGS:
+                candidates.append(name)
+        if len(candidates) > 1:
+            raise SequenceError(
+                f"ROS 2 bag {self.path}: several colour image topics ({_list(candidates)}); choose one with {_option('colour_topic')}"
+            )
+        return candidates[0] if candidates else None
+
+    def _index_colour(self) -> int:
+        """Pair each frame with the colour image nearest in header stamp; returns how many are further than the tolerance."""
+        stamps, log_times, occurrence = [], [], []
+        previous, count = None, 0
+        for log_time, message in self._messages(self.colour_topic):
+            if message.encoding not in COLOUR_ENCODINGS:
+                raise SequenceError(
+                    f"ROS 2 bag {self.path}: topic {self.colour_topic}: colour encoding {message.encoding!r} is not read "
+                    f"(known: {', '.join(COLOUR_ENCODINGS)})"
+                )
+            count = count + 1 if log_time == previous else 0
+            previous = log_time
+            stamps.append(_stamp_ns(message.header.stamp))
+            log_times.append(log_time)
+            occurrence.append(count)
+        if not stamps:
+            raise SequenceError(f"ROS 2 bag {self.path}: topic {self.colour_topic} has no messages")
+        stamps = np.array(stamps, dtype=np.int64)
+        nearest = nearest_within(self._seconds(self._stamps), self._seconds(stamps), np.inf)
+        self._colour_log_times = np.array(log_times, dtype=np.int64)[nearest]
+        self._colour_occurrence = np.array(occurrence, dtype=np.int64)[nearest]
+        return int((np.abs(stamps[nearest] - self._stamps) > self.tolerance * 1e9).sum())
+
+    @property
+    def has_colour(self) -> bool:
+        return self.colour_topic is not None
 
     def _choose_info_topic(self, topic: str | None) -> str:
         if topic is not None:
@@ -524,8 +584,34 @@ class Rosbag2Sequence(FrameSource):
         for position, (_, message) in enumerate(self._messages(self.depth_topic, start=log_time, stop=log_time + 1)):
             if position == wanted:
                 depth = self.decode_depth(message)
-                return DepthFrame(depth, self._intrinsics, self._poses[index], index, float(ns_to_seconds(self._stamps[index])))
+                colour = self._read_colour(index) if self.colour_topic is not None else None
+                stamp = float(ns_to_seconds(self._stamps[index]))
+                return DepthFrame(depth, self._intrinsics, self._poses[index], index, stamp, colour)
         raise SequenceError(f"ROS 2 bag {self.path}: topic {self.depth_topic}: image {index} vanished since the bag was opened")
+
+    def _read_colour(self, index: int) -> np.ndarray:
+        log_time, wanted = int(self._colour_log_times[index]), int(self._colour_occurrence[index])
+        for position, (_, message) in enumerate(self._messages(self.colour_topic, start=log_time, stop=log_time + 1)):
+            if position == wanted:
+                return self.decode_colour(message)
+        raise SequenceError(f"ROS 2 bag {self.path}: topic {self.colour_topic}: image for frame {index} vanished since the bag was opened")
+
+    def decode_colour(self, message) -> np.ndarray:
+        """(H, W, 3) uint8 RGB of an rgb8 / bgr8 Image message, which must be registered to the depth (its size)."""
+        height, width, step = int(message.height), int(message.width), int(message.step)
+        if (width, height) != (self._intrinsics.width, self._intrinsics.height):
+            raise SequenceError(
+                f"ROS 2 bag {self.path}: topic {self.colour_topic}: colour image {width}x{height}, depth "
+                f"{self._intrinsics.width}x{self._intrinsics.height}: the colour must be registered to the depth"
+            )
+        data = np.asarray(message.data, dtype=np.uint8)
+        if step < 3 * width or data.size < step * (height - 1) + 3 * width:
+            raise SequenceError(
+                f"ROS 2 bag {self.path}: topic {self.colour_topic}: image of {width}x{height} {message.encoding} "
+                f"with step {step} has only {data.size} bytes"
+            )
+        pixels = np.ndarray((height, width, 3), dtype=np.uint8, buffer=data, strides=(step, 3, 1))
+        return np.ascontiguousarray(pixels[..., COLOUR_ENCODINGS[message.encoding]])
 
     def decode_depth(self, message) -> np.ndarray:
         """(H, W) float32 metres of a depth Image message; no return (0, NaN) as NaN."""
@@ -603,6 +689,8 @@ def write_rosbag2(
     * ``/camera/depth/camera_info``: ``CameraInfo`` per frame, K with ROS's
       integer pixel centres (cx - 0.5, cy - 0.5), no distortion;
     * ``/camera/pose``: ``PoseStamped`` of the optical frame in ``world``;
+    * ``/camera/color/image_raw``: ``rgb8`` Image of the frame's colour, when
+      frames have colour (registered to the depth: same size and frame);
     * ``/tf``: world -> ``camera_link`` (the camera body, x forward, z up) per
       frame, and ``/tf_static``: ``camera_link`` -> ``camera_depth_optical_frame``
       (REP 103's optical rotation), so that chaining /tf gives the same pose as
@@ -650,6 +738,7 @@ def write_rosbag2(
             add = lambda topic, msgtype: writer.add_connection(topic, msgtype, typestore=_TYPESTORE)  # noqa: E731
             image_conn, info_conn = add(DEPTH_TOPIC, IMAGE), add(INFO_TOPIC, CAMERA_INFO)
             pose_conn, tf_conn, static_conn = add(POSE_TOPIC, POSE_STAMPED), add("/tf", TF_MESSAGE), add("/tf_static", TF_MESSAGE)
+            colour_conn = None
             Transform, TransformStamped = types["geometry_msgs/msg/Transform"], types["geometry_msgs/msg/TransformStamped"]
             static = types[TF_MESSAGE](transforms=[
                 TransformStamped(
@@ -690,6 +779,14 @@ def write_rosbag2(
                         )
                     ])),
                 ]
+                if frame.colour is not None:
+                    if colour_conn is None:
+                        colour_conn = add(COLOUR_TOPIC, IMAGE)
+                    messages.append((colour_conn, IMAGE, types[IMAGE](
+                        header=_header(stamp, OPTICAL_FRAME), height=intrinsics.height, width=intrinsics.width,
+                        encoding="rgb8", is_bigendian=0, step=3 * intrinsics.width,
+                        data=np.ascontiguousarray(frame.colour, dtype=np.uint8).ravel(),
+                    )))
                 for connection, msgtype, message in messages:
                     writer.write(connection, stamp, _TYPESTORE.serialize_cdr(message, msgtype))
         except BaseException:
