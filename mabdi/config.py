@@ -28,6 +28,7 @@ a config are resolved against the config file's folder.
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import math
 import tomllib
 import types
@@ -37,6 +38,7 @@ from pathlib import Path
 
 from mabdi.camera import Intrinsics
 from mabdi.errors import ConfigError
+from mabdi.io.toml_writer import toml_lines
 from mabdi.filters.classifier import ClassifierParameters
 from mabdi.filters.refinement import RefinementParameters
 from mabdi.filters.registration import RegistrationParameters
@@ -505,10 +507,19 @@ def validate_object(obj: ObjectConfig, where: str, key: str) -> None:
             raise ConfigError(f"{where}: key '{key}.{name}' must be a frame number >= 0, got {value}")
 
 
+def schedule_frame(value, frames: int) -> int | None:
+    """An object's ``appear_at`` / ``disappear_at`` as a frame number (the one rule, used by the scene and the checks):
+    ints are frames, floats fractions of ``frames`` (nearest frame).
+    """
+    if value is None:
+        return None
+    if isinstance(value, float):
+        return int(math.floor(value * frames + 0.5))
+    return int(value)
+
+
 def _check_schedule(obj: ObjectConfig, frames: int, where: str, key: str) -> None:
     """An object must exist at some frame of the run: ``appear_at < disappear_at`` once resolved."""
-    from mabdi.sources.scene import schedule_frame  # the one rule for fractions -> frames
-
     appear = schedule_frame(obj.appear_at, frames) or 0
     disappear = schedule_frame(obj.disappear_at, frames)
     if appear >= frames:
@@ -564,30 +575,17 @@ def validate_run_config(config: RunConfig, where: str = "<config>") -> None:
 # Writing (the resolved config saved with a run)
 
 
-def _toml_value(value) -> str:
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, int):
-        return str(value)
-    if isinstance(value, float):
-        return repr(value) if math.isfinite(value) else ("nan" if math.isnan(value) else ("inf" if value > 0 else "-inf"))
-    if isinstance(value, str):
-        return '"' + value.replace("\\", "\\\\").replace('"', '\\"').replace("\n", "\\n") + '"'
-    if isinstance(value, list):
-        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
-    raise TypeError(f"cannot write {value!r} to TOML")
-
-
-def _toml_table(obj, prefix: str, lines: list[str]) -> None:
+def _toml_table(obj) -> dict:
+    """A config dataclass as the dict :func:`mabdi.io.toml_writer.toml_lines` writes: fields in order, ``None``
+    (the default of an absent key) and fields marked ``toml=False`` left out; a surface section holds its method and
+    the parameters of every surface filter it names."""
     if isinstance(obj, SurfaceConfig):
-        lines.append(f"method = {_toml_value(obj.method)}")
+        table = {"method": obj.method}
         for name in sorted(set(obj.parameters) | {obj.method}):
             if name in surface_filter_names():
-                lines.append("")
-                lines.append(f"[{prefix}{name}]")
-                _toml_table(obj.parameters_of(name), f"{prefix}{name}.", lines)
-        return
-    scalars, tables, arrays = [], [], []
+                table[name] = _toml_table(obj.parameters_of(name))
+        return table
+    table = {}
     for f in dataclasses.fields(obj):
         if not f.metadata.get("toml", True):
             continue
@@ -595,25 +593,21 @@ def _toml_table(obj, prefix: str, lines: list[str]) -> None:
         if value is None:
             continue  # absent key = default None
         if dataclasses.is_dataclass(value):
-            tables.append((f.name, value))
+            table[f.name] = _toml_table(value)
         elif isinstance(value, list) and value and dataclasses.is_dataclass(value[0]):
-            arrays.append((f.name, value))
+            table[f.name] = [_toml_table(item) for item in value]
         else:
-            scalars.append(f"{f.name} = {_toml_value(value)}")
-    lines.extend(scalars)
-    for name, value in tables:
-        lines.append("")
-        lines.append(f"[{prefix}{name}]")
-        _toml_table(value, f"{prefix}{name}.", lines)
-    for name, items in arrays:
-        for item in items:
-            lines.append("")
-            lines.append(f"[[{prefix}{name}]]")
-            _toml_table(item, f"{prefix}{name}.", lines)
+            table[f.name] = value
+    return table
+
+
+def scene_digest(scene: SceneConfig, frames: int) -> str:
+    """SHA-256 of a scene's resolved TOML and the run length its schedules are resolved against (a recording names
+    the scene it came from by it)."""
+    text = dump_toml(scene) + f"frames = {int(frames)}\n"
+    return hashlib.sha256(text.encode()).hexdigest()
 
 
 def dump_toml(config) -> str:
     """A config dataclass as TOML text that :func:`run_config_from_dict` reads back to an equal config."""
-    lines: list[str] = []
-    _toml_table(config, "", lines)
-    return "\n".join(lines).lstrip("\n") + "\n"
+    return "\n".join(toml_lines(_toml_table(config))).lstrip("\n") + "\n"

@@ -8,6 +8,12 @@ from vtkmodules.vtkCommonCore import vtkPoints
 from vtkmodules.vtkCommonDataModel import vtkCellArray, vtkPolyData
 from vtkmodules.vtkFiltersCore import vtkTriangleFilter
 
+#: Cell data of every block of the map: the face's 24-bit identity as uint8 RGB (red = low byte), drawn by the
+#: expected-image renderer so that E says which face each pixel shows. Written by
+#: :class:`mabdi.filters.world_mesh.FilterWorldMesh`, read by :class:`mabdi.filters.expected_image.FilterExpectedImage`;
+#: not part of :meth:`FilterWorldMesh.mesh`.
+FACE_RGB_ARRAY = "face_rgb"
+
 
 def _cell_array(offsets: np.ndarray, connectivity: np.ndarray) -> vtkCellArray:
     cells = vtkCellArray()

@@ -365,12 +365,12 @@ def _png_with_every_filter(values: np.ndarray) -> bytes:
 
 
 def test_fast_png_decoder_equals_pillow_for_every_row_filter(tmp_path):
-    from mabdi.sources.tum import _decode_gray16_png
+    from mabdi.sources.png import decode_gray16_png
 
     values = np.random.default_rng(3).integers(0, 65536, (23, 37)).astype(np.uint16)
     values[5:9] = 4000  # flat rows, as depth has
     data = _png_with_every_filter(values)
     (tmp_path / "x.png").write_bytes(data)
     np.testing.assert_array_equal(np.asarray(Image.open(tmp_path / "x.png")), values)  # the test's encoder is right
-    np.testing.assert_array_equal(_decode_gray16_png(data), values)
-    assert _decode_gray16_png(data.replace(b"IHDR", b"IHDX")) is None  # not ours: Pillow decides
+    np.testing.assert_array_equal(decode_gray16_png(data), values)
+    assert decode_gray16_png(data.replace(b"IHDR", b"IHDX")) is None  # not ours: Pillow decides

@@ -29,7 +29,7 @@ from vtkmodules.vtkCommonExecutionModel import vtkAlgorithm, vtkStreamingDemandD
 from mabdi.algorithm import MabdiAlgorithm
 from mabdi.depth import fill_depth_image, image_frame, image_intrinsics, image_pose, image_timestamp
 from mabdi.filters.depth_image import DepthRenderer, SensorNoise
-from mabdi.filters.world_mesh import FACE_RGB_ARRAY
+from mabdi.polydata import FACE_RGB_ARRAY
 
 MAP_PORT, MEASURED_PORT = 0, 1
 #: Point data of E with identity: the map face seen at each pixel (int32, 0 = none).

@@ -32,14 +32,12 @@ from vtkmodules.vtkFiltersCore import vtkAppendPolyData
 
 from mabdi.algorithm import MabdiAlgorithm
 from mabdi.depth import FRAME_ARRAY
-from mabdi.polydata import extract_polys, polydata_from_state, polydata_to_state
+from mabdi.filters.removal import update_log_odds
+from mabdi.polydata import FACE_RGB_ARRAY, extract_polys, polydata_from_state, polydata_to_state
 
 FRAME_CELL_ARRAY = "frame"
 PATCH_KEY_ARRAY = "patch_key"
 REMOVED_KEYS_ARRAY = "removed_patch_keys"
-#: Cell data of every block: the face's 24-bit identity as uint8 RGB (red = low byte), drawn by the
-#: expected-image renderer so that E says which face each pixel shows. Not part of :meth:`FilterWorldMesh.mesh`.
-FACE_RGB_ARRAY = "face_rgb"
 #: Identities are 1 .. 2^24 - 1 (0 = no face): a map holds at most that many faces at once.
 MAX_FACE_ID = 2**24 - 1
 
@@ -424,8 +422,6 @@ class FilterWorldMesh(MabdiAlgorithm):
         ``ids``: faces voted on this frame; ``contradicted`` / ``confirmed``: their pixel votes. The rule is
         :func:`mabdi.filters.removal.update_log_odds` (``parameters``: :class:`~mabdi.filters.removal.RemovalParameters`).
         """
-        from mabdi.filters.removal import update_log_odds
-
         ids = np.asarray(ids, dtype=np.int64)
         block, _, _ = self._ids.lookup(ids)
         live = block >= 0

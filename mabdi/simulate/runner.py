@@ -5,7 +5,9 @@ scene, sensor, helical path) feeding the MABDI loop
 (:class:`~mabdi.simulate.loop.MabdiLoop`: expected image, classifier,
 surface, world mesh), plus the outputs. ``Simulation(config, source=...)``
 runs the same loop on any other :class:`~mabdi.sources.frames.FrameSource`
-(a recorded sequence), with ``scene=`` the ground truth when it is known.
+(a recorded sequence), with ``scene=`` the ground truth when it is known;
+:func:`recorded_simulation` builds one over a recording on disk (and
+:meth:`Simulation.resume` reopens it so).
 
 ``run(out_dir)`` steps through every frame of the source and returns a
 :class:`RunResult`; with an output folder it writes (each file to a
@@ -58,7 +60,8 @@ from pathlib import Path
 import numpy as np
 from vtkmodules.vtkCommonDataModel import vtkPolyData
 
-from mabdi.config import RunConfig, dump_toml, run_config_from_dict
+from mabdi.config import RunConfig, dump_toml, run_config_from_dict, scene_digest
+from mabdi.errors import ConfigError
 from mabdi.io.atomic import atomic_output, write_text
 from mabdi.io.checkpoint import VERSION as CHECKPOINT_FORMAT_VERSION
 from mabdi.io.checkpoint import CheckpointError, read_tree, write_tree
@@ -76,9 +79,13 @@ from mabdi.simulate.loop import FrameRecord, MabdiLoop
 from mabdi.simulate.rig import SimulatedRig
 from mabdi.sources.frames import FrameSource
 from mabdi.sources.scene import SourceScene
+from mabdi.sources.sequences import FORMATS, READER_OPTIONS, metadata_path, open_sequence, read_sequence_metadata, sequence_format
 from mabdi.sources.tum import write_tum_trajectory
 
 #: The loop's state every ``output.checkpoint_every`` frames (data only: :mod:`mabdi.io.checkpoint`).
+#: The true poses, (N, 4, 4): in a run's folder (when the source knows them), and beside a recording made by
+#: :func:`mabdi.simulate.recorded.record` (read back by :func:`recorded_simulation`).
+TRUE_POSES = "poses_true.npy"
 CHECKPOINT = "checkpoint.npz"
 CHECKPOINT_VERSION = CHECKPOINT_FORMAT_VERSION
 #: The pickled checkpoint of mabdi before format version 2: refused, never loaded.
@@ -264,8 +271,6 @@ class Simulation:
             if recording is None:
                 simulation = cls(config)
             else:
-                from mabdi.simulate.recorded import recorded_simulation  # above this module: imported when needed
-
                 simulation, simulation_note = recorded_simulation(config, recording["path"], **recording["options"])
                 simulation.recording_note = simulation_note  # why the evaluation is skipped, if it is
             first = int(checkpoint["next_frame"])
@@ -428,7 +433,7 @@ def write_run_outputs(result: RunResult, simulation: Simulation) -> None:
         np.save(temporary, simulation.poses)
     write_tum_trajectory(folder.path("trajectory.txt"), simulation.source.timestamps, meshed, simulation.source.description)
     if getattr(simulation, "true_poses", None) is not None:
-        with atomic_output(folder.path("poses_true.npy")) as temporary:
+        with atomic_output(folder.path(TRUE_POSES)) as temporary:
             np.save(temporary, simulation.true_poses)
     write_polydata(polyline(meshed[:, :3, 3]), folder.path("path.vtp"))
     if simulation.scene is not None:
@@ -493,3 +498,35 @@ def read_checkpoint(folder: Path) -> dict:
     if missing:
         raise OutputError(f"cannot resume {folder.parent}: {path} lacks {', '.join(missing)}")
     return state
+
+
+def recorded_simulation(config: RunConfig, path, **options) -> tuple[Simulation, str | None]:
+    """A Simulation over the recording at ``path`` (``options`` go to the reader), and a note when
+    the ground truth is unknown (the evaluation is then skipped)."""
+    kind = sequence_format(path)
+    wanted = READER_OPTIONS[kind]
+    for name, value in options.items():
+        if value is not None and name not in wanted:
+            flag = "--" + name.replace("_", "-")
+            raise ConfigError(f"{path} is a {FORMATS[kind][0]}: {flag} does not apply to it")
+    source = open_sequence(path, **{k: v for k, v in options.items() if v is not None and k in wanted})
+    recorded = read_sequence_metadata(path).get("recorded", {})
+    scene = None
+    note = None
+    if not config.scene.objects:
+        note = f"{path}: no scene in the config, so no ground truth: the evaluation is skipped"
+    elif recorded.get("scene_digest") != scene_digest(config.scene, recorded.get("frames", len(source))):
+        note = (
+            f"{path}: the recording does not say it came from this config's scene "
+            "(its mabdi.toml [recorded] scene_digest differs or is absent): the evaluation is skipped"
+        )
+    else:
+        base_dir = config.source.parent if config.source is not None else None
+        scene = SourceScene(config.scene, frames=int(recorded["frames"]), base_dir=base_dir)
+    simulation = Simulation(config, source=source, scene=scene)
+    true_file = metadata_path(path).with_name(TRUE_POSES)  # beside the recording's mabdi.toml
+    if scene is not None and true_file.is_file():
+        true_poses = np.load(true_file, allow_pickle=False)
+        if true_poses.shape == simulation.poses.shape:
+            simulation.true_poses = true_poses
+    return simulation, note

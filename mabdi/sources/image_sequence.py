@@ -43,7 +43,7 @@ from mabdi.camera import Intrinsics, check_pose
 from mabdi.depth import DepthFrame
 from mabdi.errors import PoseError
 from mabdi.sources.frames import FrameSource
-from mabdi.sources.sequences import (  # noqa: F401 (read_colour_image, write_colour_png: the readers' and writers' own)
+from mabdi.sources.sequence_files import (  # noqa: F401 (read_colour_image, write_colour_png: the readers' and writers' own)
     SequenceError,
     camera_table,
     intrinsics_with,

@@ -28,7 +28,7 @@ from mabdi.camera import Intrinsics
 from mabdi.io.atomic import write_text
 from mabdi.sources.frames import FrameSource
 from mabdi.sources.image_sequence import ImageSequence, matching_files, read_number_rows, resolve_intrinsics, write_colour_png
-from mabdi.sources.sequences import SequenceError, prepare_folder, write_metadata
+from mabdi.sources.sequence_files import SequenceError, prepare_folder, write_metadata
 from mabdi.sources.tum import write_depth_png
 
 #: Depth units per metre (NICE-SLAM's ``png_depth_scale``).

@@ -83,7 +83,7 @@ from rosbags.typesys import Stores, get_typestore
 from mabdi.camera import Intrinsics
 from mabdi.depth import DepthFrame
 from mabdi.sources.frames import FrameSource
-from mabdi.sources.sequences import (
+from mabdi.sources.sequence_files import (
     SequenceError,
     bad_quaternions,
     camera_table,

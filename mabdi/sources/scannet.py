@@ -39,7 +39,7 @@ from mabdi.sources.image_sequence import (
     write_colour_png,
     write_range_metadata,
 )
-from mabdi.sources.sequences import SequenceError, prepare_folder
+from mabdi.sources.sequence_files import SequenceError, prepare_folder
 from mabdi.sources.tum import write_depth_png
 
 #: Depth units per metre: millimetres.

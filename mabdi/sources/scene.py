@@ -19,7 +19,7 @@ from vtkmodules.util.numpy_support import numpy_to_vtk
 from vtkmodules.vtkCommonDataModel import vtkPolyData
 
 from mabdi.algorithm import MabdiAlgorithm
-from mabdi.config import DEFAULT_COLOUR, ObjectConfig, SceneConfig, load_run_config
+from mabdi.config import DEFAULT_COLOUR, ObjectConfig, SceneConfig, load_run_config, schedule_frame
 from mabdi.sources import primitives
 from mabdi.polydata import polydata_arrays, triangles_polydata
 from mabdi.sources.assets import read_mesh, resolve_mesh
@@ -64,15 +64,6 @@ def yaw_rotation(degrees: float) -> np.ndarray:
     """3x3 rotation about world z by ``degrees`` (counter-clockwise seen from above)."""
     c, s = math.cos(math.radians(degrees)), math.sin(math.radians(degrees))
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-
-
-def schedule_frame(value, frames: int) -> int | None:
-    """A schedule value as a frame number: ints are frames, floats fractions of ``frames`` (nearest frame)."""
-    if value is None:
-        return None
-    if isinstance(value, float):
-        return int(math.floor(value * frames + 0.5))
-    return int(value)
 
 
 def object_geometry(obj: ObjectConfig, base_dir: Path | None = None) -> tuple[np.ndarray, np.ndarray]:

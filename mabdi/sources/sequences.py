@@ -1,4 +1,4 @@
-"""Recorded depth sequences: open one whatever its format, and the ``mabdi.toml`` beside it.
+"""Recorded depth sequences: open one whatever its format.
 
 Formats read and written (each a :class:`~mabdi.sources.frames.FrameSource`):
 
@@ -16,159 +16,68 @@ Formats read and written (each a :class:`~mabdi.sources.frames.FrameSource`):
 :func:`sequence_format`: ``depth.txt`` is TUM; ``metadata.yaml`` or a
 ``.db3`` / ``.mcap`` is a bag; ``traj.txt`` with ``results/`` is Replica;
 ``depth/`` with ``pose/`` is ScanNet; ``depth/`` with a ``.log`` is Redwood;
-``frame-*.depth.png`` (here or in ``seq-*`` folders) is 3DMatch. Any may carry a ``mabdi.toml``
-file in its folder with a ``[camera]`` table (intrinsics in mabdi's
-conventions: pixel (u, v) has its centre at (u + 0.5, v + 0.5); focal
-lengths and principal point in pixels, near and far in metres) and any other
-tables a writer put there (``[recorded]`` with the scene a simulated
-sequence came from, for example); :func:`read_sequence_metadata` returns them.
+``frame-*.depth.png`` (here or in ``seq-*`` folders) is 3DMatch.
+
+This module sits above the format modules. What they share (the
+``mabdi.toml`` a sequence may carry beside it, :class:`SequenceError`, pose
+interpolation, colour images, ...) is in :mod:`mabdi.sources.sequence_files`,
+below them all, and re-exported here.
 """
 
 from __future__ import annotations
 
-import dataclasses
-import io
-import math
-import tomllib
+import importlib
 from pathlib import Path
 
-import numpy as np
-from PIL import Image, UnidentifiedImageError
-from scipy.spatial.transform import Rotation
+from mabdi.sources.redwood import is_redwood
+from mabdi.sources.replica import is_replica
+from mabdi.sources.scannet import is_scannet
+from mabdi.sources.sequence_files import (  # re-exported: the helpers every format shares live there
+    CAMERA_KEYS,
+    METADATA_FILE,
+    SequenceError,
+    bad_quaternions,
+    camera_table,
+    frame_timestamps,
+    interpolate_poses,
+    intrinsics_with,
+    metadata_path,
+    metadata_toml,
+    nearest_within,
+    poses_from_translations_quaternions,
+    prepare_folder,
+    quaternions_from_rotations,
+    read_colour_image,
+    read_sequence_metadata,
+    write_colour_png,
+    write_metadata,
+)
+from mabdi.sources.threedmatch import is_3dmatch
 
-from mabdi.camera import Intrinsics
-from mabdi.errors import ConfigError
-from mabdi.io.atomic import atomic_output, write_text
-
-#: The metadata file a recorded sequence may carry in its folder.
-METADATA_FILE = "mabdi.toml"
-
-#: Keys of the ``[camera]`` table: the intrinsics' fields (``preset`` is the TUM reader's extra key).
-CAMERA_KEYS = tuple(f.name for f in dataclasses.fields(Intrinsics))
-
-
-class SequenceError(ConfigError):
-    """A recorded sequence (a TUM folder, a ROS 2 bag) cannot be read or written; the message names the file or topic."""
-
-
-def metadata_path(path) -> Path:
-    """Where the ``mabdi.toml`` of a sequence at ``path`` (a folder, or a bag file) lives."""
-    path = Path(path)
-    return (path.parent if path.is_file() else path) / METADATA_FILE
-
-
-def read_sequence_metadata(path) -> dict:
-    """The tables of the ``mabdi.toml`` beside a sequence (a folder or a bag file); ``{}`` when there is none.
-
-    A file that is not valid TOML is a :class:`SequenceError` naming it.
-    """
-    file = metadata_path(path)
-    if not file.is_file():
-        return {}
-    try:
-        with open(file, "rb") as stream:
-            return tomllib.load(stream)
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-        raise SequenceError(f"{file}: not valid TOML: {exc}") from None
-
-
-def camera_table(metadata: dict, file, allowed=CAMERA_KEYS) -> dict:
-    """The ``[camera]`` table of ``metadata`` (``{}`` if absent), checked: known keys, numbers where numbers go."""
-    table = metadata.get("camera", {})
-    if not isinstance(table, dict):
-        raise SequenceError(f"{file}: 'camera' must be a table")
-    for key, value in table.items():
-        if key not in allowed:
-            raise SequenceError(f"{file}: unknown key 'camera.{key}' (known: {', '.join(allowed)})")
-        if key in CAMERA_KEYS and (isinstance(value, bool) or not isinstance(value, (int, float))):
-            raise SequenceError(f"{file}: 'camera.{key}' must be a number, got {value!r}")
-    return table
-
-
-def intrinsics_with(base: Intrinsics | None, table: dict, file) -> Intrinsics:
-    """``base`` (or the :class:`Intrinsics` defaults) with the keys of a ``[camera]`` table replaced."""
-    values = dataclasses.asdict(base) if base is not None else {}
-    values.update({k: v for k, v in table.items() if k in CAMERA_KEYS})
-    try:
-        return Intrinsics(**values)
-    except (ConfigError, TypeError) as exc:
-        raise SequenceError(f"{file}: [camera]: {exc}") from None
-
-
-# ---------------------------------------------------------------------------
-# Writing mabdi.toml
-
-
-def _toml_key(key) -> str:
-    key = str(key)
-    if key and all(c.isalnum() or c in "-_" for c in key):
-        return key
-    return '"' + key.replace("\\", "\\\\").replace('"', '\\"') + '"'
-
-
-def _toml_value(value, where: str) -> str:
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, int):
-        return str(value)
-    if isinstance(value, float):
-        if math.isfinite(value):
-            return repr(value)
-        return "nan" if math.isnan(value) else ("inf" if value > 0 else "-inf")
-    if isinstance(value, str):
-        escaped = value.replace("\\", "\\\\").replace('"', '\\"').replace("\n", "\\n").replace("\t", "\\t")
-        return f'"{escaped}"'
-    if isinstance(value, (list, tuple)):
-        return "[" + ", ".join(_toml_value(v, where) for v in value) + "]"
-    if hasattr(value, "item") and getattr(value, "shape", None) == ():  # numpy scalars
-        return _toml_value(value.item(), where)
-    if hasattr(value, "tolist"):  # numpy arrays
-        return _toml_value(value.tolist(), where)
-    raise SequenceError(f"cannot write {where} = {value!r} ({type(value).__name__}) to {METADATA_FILE}")
-
-
-def _toml_tables(table: dict, prefix: str, lines: list[str]) -> None:
-    subtables = []
-    for key, value in table.items():
-        if isinstance(value, dict):
-            subtables.append((key, value))
-        else:
-            lines.append(f"{_toml_key(key)} = {_toml_value(value, prefix + str(key))}")
-    for key, value in subtables:
-        name = f"{prefix}{_toml_key(key)}"
-        lines.append("")
-        lines.append(f"[{name}]")
-        _toml_tables(value, name + ".", lines)
-
-
-def metadata_toml(intrinsics: Intrinsics, extra: dict | None = None) -> str:
-    """TOML text: a ``[camera]`` table with ``intrinsics`` (mabdi's pixel centres) and the tables of ``extra``.
-
-    ``extra`` maps table names to dicts (nested dicts become sub-tables); a
-    ``camera`` entry in it is refused (the camera table is written from the intrinsics).
-    """
-    extra = dict(extra or {})
-    if "camera" in extra:
-        raise SequenceError(f"extra tables for {METADATA_FILE} may not include 'camera' (written from the intrinsics)")
-    for key, value in extra.items():
-        if not isinstance(value, dict):
-            raise SequenceError(f"extra entry {key!r} for {METADATA_FILE} must be a table (a dict), got {type(value).__name__}")
-    lines = [
-        "# Intrinsics in mabdi's conventions: pixel (u, v) has its centre at (u + 0.5, v + 0.5);",
-        "# fx, fy, cx, cy in pixels; near, far in metres.",
-    ]
-    camera = {name: getattr(intrinsics, name) for name in CAMERA_KEYS}
-    camera = {k: (float(v) if k not in ("width", "height") else int(v)) for k, v in camera.items()}
-    _toml_tables({"camera": camera, **extra}, "", lines)
-    return "\n".join(lines) + "\n"
-
-
-def write_metadata(folder, intrinsics: Intrinsics, extra: dict | None = None) -> Path:
-    """Write ``mabdi.toml`` into ``folder`` atomically; returns its path."""
-    file = Path(folder) / METADATA_FILE
-    write_text(file, metadata_toml(intrinsics, extra))
-    return file
-
+__all__ = [
+    "CAMERA_KEYS",
+    "FORMATS",
+    "METADATA_FILE",
+    "READER_OPTIONS",
+    "SequenceError",
+    "bad_quaternions",
+    "camera_table",
+    "frame_timestamps",
+    "interpolate_poses",
+    "intrinsics_with",
+    "metadata_path",
+    "metadata_toml",
+    "nearest_within",
+    "open_sequence",
+    "poses_from_translations_quaternions",
+    "prepare_folder",
+    "quaternions_from_rotations",
+    "read_colour_image",
+    "read_sequence_metadata",
+    "sequence_format",
+    "write_colour_png",
+    "write_metadata",
+]
 
 # ---------------------------------------------------------------------------
 # Format detection
@@ -184,6 +93,16 @@ FORMATS = {
     "replica": ("Replica (NICE-SLAM) folder", "mabdi.sources.replica", "ReplicaSequence"),
 }
 
+#: The keyword options each format's reader takes (``open_sequence(path, **options)``; the CLI refuses the others).
+READER_OPTIONS = {
+    "tum": ("camera", "tolerance", "depth_scale"),
+    "rosbag2": ("depth_topic", "info_topic", "pose_topic", "tolerance", "colour_topic"),
+    "3dmatch": ("camera", "depth_scale"),
+    "redwood": ("camera", "depth_scale"),
+    "scannet": ("camera", "depth_scale"),
+    "replica": ("camera", "depth_scale"),
+}
+
 _WHAT_IS_READ = (
     "a TUM RGB-D folder (depth.txt), a ROS 2 bag (metadata.yaml, .db3 or .mcap), a 3DMatch / 7-Scenes folder "
     "(frame-*.depth.png, or seq-* folders of them), a Redwood / Open3D folder (depth/ and trajectory.log), "
@@ -193,11 +112,6 @@ _WHAT_IS_READ = (
 
 def sequence_format(path) -> str:
     """The name in :data:`FORMATS` of the sequence at ``path``, or a :class:`SequenceError` saying what was found."""
-    from mabdi.sources.redwood import is_redwood
-    from mabdi.sources.replica import is_replica
-    from mabdi.sources.scannet import is_scannet
-    from mabdi.sources.threedmatch import is_3dmatch
-
     path = Path(path)
     if not path.exists():
         raise SequenceError(f"recorded sequence {path} does not exist")
@@ -223,8 +137,6 @@ def open_sequence(path, **options):
     ``tolerance=`` for TUM; ``camera=``, ``depth_scale=`` for the dataset
     layouts; ``depth_topic=``, ``pose_topic=``, ... for bags).
     """
-    import importlib
-
     kind = sequence_format(path)
     _, module, name = FORMATS[kind]
     reader = getattr(importlib.import_module(module), name)
@@ -238,151 +150,3 @@ def open_sequence(path, **options):
             )
         path = files[0]
     return reader(path, **options)
-
-
-# ---------------------------------------------------------------------------
-# Helpers shared by the readers and writers
-
-
-def nearest_within(query, reference, tolerance: float):
-    """For each time in ``query``, the index of the nearest time in ``reference`` (any order), or -1 if none is within ``tolerance``.
-
-    Times in seconds (or any one unit, the same for all three). Ties go to the earlier reference time.
-    """
-    query = np.asarray(query, dtype=np.float64)
-    reference = np.asarray(reference, dtype=np.float64)
-    if reference.size == 0:
-        return np.full(query.shape, -1, dtype=np.int64)
-    order = np.argsort(reference, kind="stable")
-    ordered = reference[order]
-    right = np.minimum(np.searchsorted(ordered, query), len(ordered) - 1)
-    left = np.maximum(right - 1, 0)
-    take_right = np.abs(ordered[right] - query) < np.abs(query - ordered[left])
-    best = np.where(take_right, right, left)
-    found = np.abs(ordered[best] - query) <= tolerance
-    return np.where(found, order[best], -1).astype(np.int64)
-
-
-def interpolate_poses(query, times, poses, tolerance: float, bridge_gaps: bool = False) -> np.ndarray:
-    """(Q, 4, 4) poses at the ``query`` times, interpolated between the two samples around each (linear in
-    position, slerp in rotation); NaN where there is none. Times in seconds, ``poses`` (N, 4, 4) rigid.
-
-    A query between two samples that are both within ``tolerance`` of it is interpolated; with
-    ``bridge_gaps`` (a transform published slowly, as tf2 treats it) any two samples around it are.
-    Otherwise (past the ends, or in a gap) the nearest sample is held if it is within ``tolerance``.
-    A query at a sample's own time gets that sample exactly.
-    """
-    query = np.asarray(query, dtype=np.float64)
-    times = np.asarray(times, dtype=np.float64)
-    poses = np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)
-    out = np.full((len(query), 4, 4), np.nan)
-    if not len(times):
-        return out
-    order = np.argsort(times, kind="stable")
-    times, poses = times[order], poses[order]
-    nearest = nearest_within(query, times, tolerance)
-    held = nearest >= 0
-    out[held] = poses[nearest[held]]
-    right = np.searchsorted(times, query, side="right")  # times[right - 1] <= query < times[right]
-    left = right - 1
-    inside = (left >= 0) & (right < len(times))
-    left, right = np.clip(left, 0, len(times) - 1), np.clip(right, 0, len(times) - 1)
-    span = times[right] - times[left]
-    near = (query - times[left] <= tolerance) & (times[right] - query <= tolerance)
-    blend = inside & (span > 0) & (query > times[left]) & (near | bridge_gaps)
-    if blend.any():
-        a, b = left[blend], right[blend]
-        alpha = (query[blend] - times[a]) / span[blend]
-        out[blend] = np.eye(4)
-        out[blend, :3, 3] = (1.0 - alpha)[:, None] * poses[a, :3, 3] + alpha[:, None] * poses[b, :3, 3]
-        start = Rotation.from_matrix(poses[a, :3, :3])
-        step = (start.inv() * Rotation.from_matrix(poses[b, :3, :3])).as_rotvec()
-        out[blend, :3, :3] = (start * Rotation.from_rotvec(alpha[:, None] * step)).as_matrix()
-    exact = held & (np.abs(query - times[np.maximum(nearest, 0)]) == 0)
-    out[exact] = poses[nearest[exact]]
-    return out
-
-
-def bad_quaternions(quaternions) -> np.ndarray:
-    """(N,) True where an (x, y, z, w) quaternion is not finite or has (nearly) zero norm."""
-    q = np.asarray(quaternions, dtype=np.float64).reshape(-1, 4)
-    with np.errstate(invalid="ignore"):
-        return ~np.isfinite(q).all(axis=1) | ~(np.linalg.norm(q, axis=1) > 1e-9)
-
-
-def quaternions_from_rotations(rotations):
-    """(N, 4) unit quaternions (x, y, z, w) of (N, 3, 3) rotation matrices (w >= 0; the nearest rotation if not exact)."""
-    q = Rotation.from_matrix(np.asarray(rotations, dtype=np.float64).reshape(-1, 3, 3)).as_quat()
-    q *= np.where(q[:, 3:4] < 0, -1.0, 1.0)
-    return q
-
-
-def poses_from_translations_quaternions(translations, quaternions):
-    """(N, 4, 4) poses from (N, 3) translations (m) and (N, 4) quaternions (x, y, z, w), normalised here."""
-    translations = np.asarray(translations, dtype=np.float64).reshape(-1, 3)
-    poses = np.tile(np.eye(4), (len(translations), 1, 1))
-    if len(translations):
-        poses[:, :3, :3] = Rotation.from_quat(np.asarray(quaternions, dtype=np.float64).reshape(-1, 4)).as_matrix()
-        poses[:, :3, 3] = translations
-    return poses
-
-
-def prepare_folder(folder: Path, overwrite: bool, what: str) -> None:
-    """Create ``folder`` for a writer of ``what``; a file there, or a folder that is not empty (unless
-    ``overwrite``), is a :class:`SequenceError`."""
-    folder = Path(folder)
-    if folder.exists() and not folder.is_dir():
-        raise SequenceError(f"cannot write {what} to {folder}: it is a file")
-    if folder.is_dir() and any(folder.iterdir()) and not overwrite:
-        raise SequenceError(f"cannot write {what} to {folder}: the folder exists and is not empty (pass overwrite=True)")
-    try:
-        folder.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise SequenceError(f"cannot write {what} to {folder}: {exc}") from None
-
-
-def read_colour_image(path: Path, size: tuple[int, int] | None = None) -> np.ndarray:
-    """(H, W, 3) uint8 RGB of an 8-bit colour image (PNG, JPEG, ...; grey or RGBA converted), or a
-    :class:`SequenceError` naming it. RGB PNGs are decoded by mabdi's own PNG reader (as depth PNGs are);
-    a JPEG larger than ``size`` (width, height) may be decoded at a half, quarter or eighth of its size,
-    no smaller than ``size`` (JPEG's own DCT scaling: much faster)."""
-    from mabdi.sources.tum import decode_rgb8_png
-
-    try:
-        with open(path, "rb") as stream:
-            data = stream.read()
-        rgb = decode_rgb8_png(data)
-        if rgb is not None:
-            return rgb
-        with Image.open(io.BytesIO(data)) as image:
-            if size is not None and image.format == "JPEG":
-                image.draft("RGB", size)
-            if image.mode != "RGB":
-                if image.mode not in ("L", "RGBA", "P", "RGBX", "CMYK", "YCbCr"):
-                    raise SequenceError(f"{path}: not an 8-bit colour image (mode {image.mode})")
-                image = image.convert("RGB")
-            return np.asarray(image)
-    except FileNotFoundError:
-        raise SequenceError(f"{path}: colour image missing") from None
-    except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as exc:
-        if isinstance(exc, SequenceError):
-            raise
-        raise SequenceError(f"{path}: cannot read colour image: {exc}") from None
-
-
-def write_colour_png(path, colour: np.ndarray, compress_level: int = 1) -> None:
-    """Write (H, W, 3) uint8 RGB as an 8-bit PNG, atomically."""
-    with atomic_output(path) as temporary:
-        Image.fromarray(np.ascontiguousarray(colour, dtype=np.uint8), "RGB").save(temporary, format="PNG", compress_level=compress_level)
-
-
-def frame_timestamps(source) -> np.ndarray:
-    """Timestamps (s) to write for every frame of ``source``: its own, or ``index / 30`` where it has none (NaN).
-
-    Recorded formats need a time for every frame; a source without them
-    (simulated frames) is written as if it ran at 30 frames per second.
-    """
-    times = np.asarray(source.timestamps, dtype=np.float64)
-    missing = ~np.isfinite(times)
-    times[missing] = np.flatnonzero(missing) / 30.0
-    return times
