@@ -207,3 +207,55 @@ def test_config_key_loads_and_bad_values_name_the_key(tmp_path):
     path.write_text('[sensor]\nnoise = "structured_lite"\n')
     with pytest.raises(ConfigError, match="structured_light"):
         load_run_config(path)
+
+
+def test_a_camera_that_loses_returns_casts_no_free_space_votes_from_them():
+    """A pixel without a return is free space only for a sensor that returns every surface in range: the
+    structured-light model (edge and grazing dropouts) and a real camera ("auto") lose returns on real
+    surfaces, so the loop does not let those pixels vote faces out; without its dropouts the
+    structured-light model loses none, and the simulator's other models never do."""
+    import mabdi
+    from mabdi.sources.frames import FrameList
+
+    assert SensorNoise("structured_light").loses_returns
+    assert SensorNoise("auto").loses_returns
+    assert not SensorNoise("structured_light", edge_dropout=0, max_incidence=90.0).loses_returns
+    assert not any(SensorNoise(model).loses_returns for model in ("none", "zbuffer", "kinect"))
+    depth = np.full((48, 64), 2.0, dtype=np.float32)
+    frames = FrameList([DepthFrame(depth, Intrinsics(width=64, height=48, fx=50, fy=50, cx=32, cy=24), np.eye(4), 0, 0.0)])
+    for noise, free in (("structured_light", False), ("auto", False), ("zbuffer", True)):
+        assert mabdi.MabdiLoop(frames, noise=noise).removal_parameters.no_return_is_free is free, noise
+
+
+def test_refinement_auto_follows_whether_the_noise_is_correlated(tmp_path):
+    """``classifier.refinement = "auto"`` (the default) refines where one look's errors are correlated
+    (structured light, a real camera under "auto"), not where each pixel errs on its own; true and false
+    decide outright; anything else names the key."""
+    import mabdi
+    from mabdi.filters.classifier import ClassifierParameters
+    from mabdi.sources.frames import FrameList
+
+    assert SensorNoise("structured_light").correlated and SensorNoise("auto").correlated
+    assert not SensorNoise("structured_light", correlation_length=0.0, disparity_step=0.0).correlated
+    assert not any(SensorNoise(model).correlated for model in ("none", "zbuffer", "kinect"))
+    depth = np.full((48, 64), 2.0, dtype=np.float32)
+    frames = FrameList([DepthFrame(depth, Intrinsics(width=64, height=48, fx=50, fy=50, cx=32, cy=24), np.eye(4), 0, 0.0)])
+    for noise, setting, refining in (
+        ("structured_light", "auto", True),
+        ("auto", "auto", True),
+        ("kinect", "auto", False),
+        ("structured_light", False, False),
+        ("kinect", True, True),
+        ("none", True, False),  # nothing to average without noise
+    ):
+        loop = mabdi.MabdiLoop(frames, classifier=ClassifierParameters(refinement=setting), noise=noise)
+        assert bool(loop.refining) is refining, (noise, setting)
+    assert ClassifierParameters().refinement == "auto"
+    with pytest.raises(ConfigError, match="refinement"):
+        ClassifierParameters(refinement="sometimes")
+    path = tmp_path / "run.toml"
+    path.write_text('[classifier]\nrefinement = "auto"\n')
+    assert load_run_config(path).classifier.refinement == "auto"
+    path.write_text("[classifier]\nrefinement = 1\n")
+    with pytest.raises(ConfigError, match="refinement"):
+        load_run_config(path)

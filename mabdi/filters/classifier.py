@@ -78,19 +78,25 @@ class ClassifierParameters:
     The ``[classifier]`` section of a run config. ``enabled = false`` is the
     loop's "black box": the surface filter meshes every valid pixel of D,
     every frame. ``removal = true``: contradicted pixels remove the map faces
-    they see through (:mod:`mabdi.filters.removal`). ``refinement = true``
-    (off by default): pixels on the surface of a map face refine it, and
-    faces made from a much noisier look are replaced
-    (:mod:`mabdi.filters.refinement`; nothing happens with a noise-free
-    sensor). On the smoothed depth the surfaces mesh by default it raises
-    F@1cm by at most 0.001 on the noisy runs (up to 0.006 on the raw depth)
-    and costs 25-100 ms a frame on a 2-core machine, so it is not on by default. The
-    classifier filter itself reads none of these switches: the loop does.
+    they see through (:mod:`mabdi.filters.removal`). ``refinement``: pixels
+    on the surface of a map face refine it, and faces made from a much
+    noisier look are replaced (:mod:`mabdi.filters.refinement`; nothing
+    happens with a noise-free sensor). ``"auto"`` (the default) turns it on
+    where the noise model says neighbouring pixels err together
+    (:attr:`~mabdi.filters.depth_image.SensorNoise.correlated`: a
+    structured-light or stereo camera, a real camera under ``noise =
+    "auto"``): smoothing cannot take such errors out of one look, so later
+    looks must be averaged in; with independent noise the smoothed first
+    look is nearly as good as refinement makes it, for 25-100 ms a frame
+    (docs/benchmarks.md, "Depth smoothing before meshing" and "Real poses
+    and real cameras"). ``true`` or ``false`` decide
+    outright. The classifier filter itself reads none of these switches: the
+    loop does.
     """
 
     enabled: bool = True
     removal: bool = True
-    refinement: bool = False
+    refinement: bool | str = "auto"
     tau_min: float = 0.01
     k_sigma: float = 3.0
     min_width: int = 3
@@ -98,6 +104,8 @@ class ClassifierParameters:
     rim: int = 1
 
     def __post_init__(self) -> None:
+        if self.refinement not in (True, False, "auto") or not isinstance(self.refinement, (bool, str)):
+            raise ConfigError(f"refinement must be true, false or \"auto\", got {self.refinement!r}")
         if not self.tau_min > 0:
             raise ConfigError(f"tau_min must be > 0 metres, got {self.tau_min}")
         if self.k_sigma < 0:

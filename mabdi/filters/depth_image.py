@@ -176,6 +176,27 @@ class SensorNoise:
         )
 
     @property
+    def correlated(self) -> bool:
+        """Whether neighbouring pixels err together: ``structured_light`` with its correlated field or its
+        disparity quantisation (a surface facing the camera comes as one terrace), and ``auto`` (a real
+        camera: block matching and the device's own filtering correlate its errors). The simulator's
+        ``zbuffer`` and ``kinect`` draw every pixel's error on its own."""
+        if self.model == "structured_light":
+            return (self.correlation_length > 0 and self.disparity_sigma > 0) or self.disparity_step > 0
+        return self.model == "auto"
+
+    @property
+    def loses_returns(self) -> bool:
+        """Whether the camera loses returns on surfaces within its range, so that a pixel without a return
+        says nothing about free space: ``structured_light`` with its edge or grazing-incidence dropouts
+        on, and ``auto`` (a real camera: they all lose returns at depth edges, at grazing incidence and
+        on dark or shiny surfaces). The simulator's ``none``, ``zbuffer`` and ``kinect`` return every
+        surface within the range."""
+        if self.model == "structured_light":
+            return self.edge_dropout > 0 or self.max_incidence < 90.0
+        return self.model == "auto"
+
+    @property
     def disparity_sigma_effective(self) -> float:
         """``structured_light``: the disparity error (pixels) with the quantisation, sqrt(sigma_d^2 + step^2 / 12)."""
         return math.sqrt(self.disparity_sigma**2 + self.disparity_step**2 / 12.0)

@@ -49,8 +49,12 @@ except
   nothing within the range, and behind a departed object there is often
   nothing within 4 m. Only where E is at least ``far_margin`` (0.5 m) inside
   the range: near the far limit noise alone pushes returns out of it. (A
-  real sensor also loses returns on black or shiny surfaces: turn it off for
-  such data.) The edge of a no-return region is a silhouette like any other;
+  real sensor also loses returns at depth edges, at grazing incidence and on
+  black or shiny surfaces: the loop turns it off when the noise model says
+  the camera loses returns,
+  :attr:`~mabdi.filters.depth_image.SensorNoise.loses_returns`, as
+  ``structured_light`` and ``auto`` do; set it false for any other such data.)
+  The edge of a no-return region is a silhouette like any other;
 * within the noise: a contradiction counts only when D is beyond E by more
   than ``k_sigma`` (3) times the noise of the *difference*, sqrt(sigma(D)^2 +
   sigma(E)^2) (the map was itself made from a measurement as noisy as D,

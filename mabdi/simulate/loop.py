@@ -136,11 +136,18 @@ class MabdiLoop:
         self.noise = SensorNoise.of(noise)
         self.surface_name = surface
 
-        #: Object removal and refinement run when the classifier does and they are on (the default);
-        #: refinement only with a noisy sensor (a noise-free measurement is exact the first time).
+        #: Object removal runs when the classifier does and it is on (the default); refinement when it is
+        #: on ("auto": with noise correlated between pixels), only with a noisy sensor (a noise-free
+        #: measurement is exact the first time).
         self.removal = self.classifier_parameters.enabled and self.classifier_parameters.removal
         self.removal_parameters = removal if removal is not None else RemovalParameters()
-        self.refining = self.classifier_parameters.enabled and self.classifier_parameters.refinement and self.noise.model != "none"
+        if self.removal_parameters.no_return_is_free and self.noise.loses_returns:
+            # a camera that loses returns on real surfaces: a pixel without one is not free space
+            self.removal_parameters = replace(self.removal_parameters, no_return_is_free=False)
+        refinement_on = self.classifier_parameters.refinement
+        if refinement_on == "auto":
+            refinement_on = self.noise.correlated  # errors one look's smoothing cannot remove: average later looks in
+        self.refining = self.classifier_parameters.enabled and refinement_on and self.noise.model != "none"
         self.refinement = MapRefinement(refinement if refinement is not None else RefinementParameters())
         self.measured = SourceDepthFrames(source)
         self.world = FilterWorldMesh()
