@@ -55,11 +55,11 @@ def object_of_vertices(scene: SourceScene, vertices: np.ndarray, cap: float = 0.
 
 @pytest.fixture(scope="module")
 def coloured_runs(tmp_path_factory):
-    """The coloured table run with each surface (pixel grid, quad-tree), Kinect noise: (simulation, result)."""
+    """The coloured table run with each surface (pixel grid, quad-tree, voxel planes), Kinect noise: (simulation, result)."""
     folder = tmp_path_factory.mktemp("colour")
     path = coloured_table(folder, noise="kinect")
     runs = {}
-    for surface in ("pixel_grid", "quadtree"):
+    for surface in ("pixel_grid", "quadtree", "voxel_planes"):
         config = load_run_config(path)
         config.surface.method = surface
         simulation = Simulation(config)
@@ -67,11 +67,16 @@ def coloured_runs(tmp_path_factory):
     return runs
 
 
-@pytest.mark.parametrize("surface, near", [("pixel_grid", 0.95), ("quadtree", 0.8)])
-def test_map_vertices_carry_the_colour_of_their_object(coloured_runs, surface, near):
+@pytest.mark.parametrize("surface, near, small", [("pixel_grid", 0.95, 0.8), ("quadtree", 0.8, 0.8), ("voxel_planes", 0.95, 0.3)])
+def test_map_vertices_carry_the_colour_of_their_object(coloured_runs, surface, near, small):
     """Of the vertices that lie on an object (within 2 cm), 95% have exactly its colour. Most vertices lie on
     one: a pixel-grid vertex is a pixel's return; a quad-tree corner can stand off a surface by more than 2 cm
-    with Kinect noise at 4 m (``near``: the share within 2 cm)."""
+    with Kinect noise at 4 m (``near``: the share within 2 cm).
+
+    Voxel planes (measured: 99.4% right overall) colour a vertex with the mean colour of its 5 cm voxel, so
+    where a voxel holds two objects' points the vertex has their blend: a leg's lowest voxel holds floor
+    points (70-78% of a leg's vertices right) and a cup's lowest the table top's (about 40% of a cup's;
+    ``small``: the share asked of the cup, a leg and the table top)."""
     simulation, result = coloured_runs[surface]
     mesh = result.mesh
     colours = vtk_to_numpy(mesh.GetPointData().GetArray(COLOUR_LAYER))
@@ -88,7 +93,12 @@ def test_map_vertices_carry_the_colour_of_their_object(coloured_runs, surface, n
     for name in ("cup_1", "table_top", "leg_1"):
         index = [o.name for o in simulation.scene.objects].index(name)
         mine = owner == index
-        assert mine.sum() > 20 and (colours[mine] == COLOURS[name]).all(axis=1).mean() > 0.8, name
+        assert mine.sum() > 20 and (colours[mine] == COLOURS[name]).all(axis=1).mean() > small, name
+    if surface == "voxel_planes":  # a leg's blends lie in the voxel layers it shares with the floor or the table top
+        legs = np.isin(owner, [i for i, o in enumerate(simulation.scene.objects) if o.name.startswith("leg")])
+        blended = legs & ~(colours == simulation.scene.colours[np.maximum(owner, 0)]).all(axis=1)
+        z = vertices[blended, 2]
+        assert blended.any() and ((z <= 0.05 + 1e-6) | (z >= 0.95)).all(), np.sort(z)
 
 
 def test_colour_survives_ply_obj_vtp_and_hdf5(coloured_runs, tmp_path):

@@ -23,6 +23,20 @@ accumulated by three compiled passes over the points (numba) when the
 touched blocks fit a dense box of a million blocks, else (and without
 numba) by numpy bincounts.
 
+Colour: when points come with colours (uint8 RGB, :meth:`VoxelMap.add_points`'s
+``colours``), the map keeps beside the statistics, per voxel, the number of
+coloured points and the sums of their red, green and blue (float32: the sums
+of uint8 values are exact up to 2^24, 65,000 white points in one voxel, and
+within 1e-7 of it beyond). The mean colour of a voxel is sum / count; colour is
+stored only once coloured points arrive (a map fed without colour has none
+and costs nothing more). The colour sums are a parallel array
+(``_colour``, slots x voxels x 4) rather than more columns of the
+statistics, so the numba accumulate kernel of the statistics and the
+free-space kernels that read them are unchanged; a second compiled pass (the
+same walk, four sums) adds the colours, or numpy bincounts where the
+statistics use them. Clearing a voxel clears its colour; :meth:`VoxelMap.state`
+carries the sums, and :meth:`VoxelMap.from_state` reads states without them.
+
 Free space (object removal): where the sensor sees through a surface of the
 map, the voxels its rays cross are empty now. :meth:`VoxelMap.clear_free_space`
 walks those rays (:mod:`mabdi.filters.voxel_traversal`, Amanatides & Woo,
@@ -55,6 +69,8 @@ except ImportError:  # pragma: no cover - numba is a dependency; add_points has 
 
 #: Statistics per voxel: n, S1 (x, y, z), S2 (xx, xy, xz, yy, yz, zz).
 STATS = 10
+#: Colour sums per voxel: number of coloured points, sum of red, green, blue.
+COLOUR_STATS = 4
 _PACK_BITS = 21
 _PACK_OFFSET = 1 << (_PACK_BITS - 1)
 #: Largest dense table of blocks :meth:`VoxelMap.clear_free_space` builds over its rays' bounding box.
@@ -160,10 +176,27 @@ def _accumulate(px, py, pz, s, b, low, box, compact_of_box, slot_of_compact, sta
         touched[compact, flat] = True
 
 
+def _accumulate_colour(px, py, pz, rgb, s, b, low, box, compact_of_box, slot_of_compact, colour):
+    """Add each point's colour (``rgb``, (M, 3) uint8) and one to its voxel's colour sums (the walk of :func:`_accumulate`)."""
+    for i in range(px.shape[0]):
+        vx = np.int64(np.floor(px[i] / s))
+        vy = np.int64(np.floor(py[i] / s))
+        vz = np.int64(np.floor(pz[i] / s))
+        bx, by, bz = vx // b, vy // b, vz // b
+        compact = compact_of_box[((bx - low[0]) * box[1] + (by - low[1])) * box[2] + (bz - low[2])]
+        flat = ((vx - bx * b) * b + (vy - by * b)) * b + (vz - bz * b)
+        row = colour[slot_of_compact[compact], flat]
+        row[0] += 1.0
+        row[1] += rgb[i, 0]
+        row[2] += rgb[i, 1]
+        row[3] += rgb[i, 2]
+
+
 if njit is not None:
     _block_range = njit(cache=True)(_block_range)
     _mark_blocks = njit(cache=True)(_mark_blocks)
     _accumulate = njit(cache=True)(_accumulate)
+    _accumulate_colour = njit(cache=True)(_accumulate_colour)
 
 
 @dataclass(frozen=True)
@@ -211,12 +244,14 @@ class VoxelMap:
         self._keys = np.zeros(0, dtype=np.int64)  # sorted block keys
         self._slots = np.zeros(0, dtype=np.int64)  # slot of each key in _stats
         self._stats = np.zeros((0, b3, STATS), dtype=np.float64)
+        self._colour: np.ndarray | None = None  # (capacity, b3, COLOUR_STATS) float32 once coloured points arrive
         self._used = 0
         self.last_changed = np.zeros((0, 3), dtype=np.int64)
 
     def state(self) -> dict:
-        """The statistics as plain data (sizes in metres, the used blocks' arrays, the store's capacity), for checkpoints."""
-        return {
+        """The statistics as plain data (sizes in metres, the used blocks' arrays, the store's capacity), for
+        checkpoints; ``colour``, the colour sums, only when the map has colour."""
+        state = {
             "voxel_size": self.voxel_size,
             "block_size": self.block_size,
             "keys": self._keys.copy(),
@@ -225,6 +260,9 @@ class VoxelMap:
             "capacity": int(len(self._stats)),
             "last_changed": np.asarray(self.last_changed, dtype=np.int64).copy(),
         }
+        if self._colour is not None:
+            state["colour"] = self._colour[: self._used].copy()
+        return state
 
     @classmethod
     def from_state(cls, state: dict) -> VoxelMap:
@@ -234,6 +272,12 @@ class VoxelMap:
         voxels._stats = np.zeros((max(int(state["capacity"]), len(stats)),) + voxels._stats.shape[1:], dtype=np.float64)
         voxels._stats[: len(stats)] = stats
         voxels._used = len(stats)
+        if state.get("colour") is not None:  # states written before colour have none
+            colour = np.asarray(state["colour"], dtype=np.float32)
+            if colour.shape != stats.shape[:2] + (COLOUR_STATS,):
+                raise ValueError(f"VoxelMap state: colour sums of shape {colour.shape} do not match statistics of shape {stats.shape}")
+            voxels._colour = np.zeros(voxels._stats.shape[:2] + (COLOUR_STATS,), dtype=np.float32)
+            voxels._colour[: len(colour)] = colour
         voxels._keys = np.asarray(state["keys"], dtype=np.int64).copy()
         voxels._slots = np.asarray(state["slots"], dtype=np.int64).copy()
         voxels.last_changed = np.asarray(state["last_changed"], dtype=np.int64).reshape(-1, 3).copy()
@@ -244,12 +288,19 @@ class VoxelMap:
         return int(len(self._keys))
 
     @property
+    def has_colour(self) -> bool:
+        """Whether coloured points have been added (the map keeps colour sums)."""
+        return self._colour is not None
+
+    @property
     def number_of_points(self) -> int:
         return int(round(self._stats[: self._used, :, 0].sum()))
 
     def memory_bytes(self) -> int:
         """Bytes held by the allocated blocks (statistics and the block table)."""
         per_block = self._stats[0].nbytes if len(self._stats) else self.block_voxels**3 * STATS * 8
+        if self._colour is not None:
+            per_block += self._colour[0].nbytes if len(self._colour) else self.block_voxels**3 * COLOUR_STATS * 4
         return int(self._used * per_block + self._keys.nbytes + self._slots.nbytes)
 
     def block_slots(self, block_keys: np.ndarray) -> np.ndarray:
@@ -272,6 +323,10 @@ class VoxelMap:
             grown = np.zeros((capacity,) + self._stats.shape[1:], dtype=np.float64)
             grown[: self._used] = self._stats[: self._used]
             self._stats = grown
+            if self._colour is not None:
+                colour = np.zeros(grown.shape[:2] + (COLOUR_STATS,), dtype=np.float32)
+                colour[: self._used] = self._colour[: self._used]
+                self._colour = colour
         slots = np.arange(self._used, needed, dtype=np.int64)
         self._used = needed
         keys = np.concatenate([self._keys, new])
@@ -292,14 +347,22 @@ class VoxelMap:
         return pack_keys(blocks), (local[:, 0] * b + local[:, 1]) * b + local[:, 2]
 
     # -- updates -----------------------------------------------------------
-    def add_points(self, points: np.ndarray) -> np.ndarray:
-        """Add (M, 3) world points (metres); returns the (K, 3) indices of the voxels that changed.
+    def add_points(self, points: np.ndarray, colours: np.ndarray | None = None) -> np.ndarray:
+        """Add (M, 3) world points (metres), and their (M, 3) uint8 RGB ``colours`` when given; returns the
+        (K, 3) indices of the voxels that changed.
 
         Non-finite points are an error (drop invalid pixels before).
         """
         points = np.asarray(points, dtype=np.float64)
         if points.ndim != 2 or points.shape[1] != 3:
             raise ValueError(f"VoxelMap.add_points: points must have shape (M, 3), got {points.shape}")
+        if colours is not None:
+            colours = np.asarray(colours)
+            if colours.shape != points.shape or colours.dtype != np.uint8:
+                raise ValueError(
+                    f"VoxelMap.add_points: colours must be uint8 of shape {points.shape} (one RGB per point), got {colours.dtype} {colours.shape}"
+                )
+            colours = np.ascontiguousarray(colours)
         if len(points) == 0:
             self.last_changed = np.zeros((0, 3), dtype=np.int64)
             return self.last_changed
@@ -307,10 +370,12 @@ class VoxelMap:
             raise ValueError("VoxelMap.add_points: points contain NaN or infinite coordinates")
         b = self.block_voxels
         s = self.voxel_size
+        if colours is not None and self._colour is None:
+            self._colour = np.zeros(self._stats.shape[:2] + (COLOUR_STATS,), dtype=np.float32)
         # per axis, contiguous: column arithmetic on (M, 3) arrays is strided and several times slower
         columns = [np.ascontiguousarray(points[:, axis]) for axis in range(3)]
         if njit is not None:
-            changed = self._add_compiled(columns)
+            changed = self._add_compiled(columns, colours)
             if changed is not None:
                 self.last_changed = changed
                 return changed
@@ -347,6 +412,12 @@ class VoxelMap:
             sums[0] = np.bincount(flat, minlength=size)
             for column, values in enumerate(weights, start=1):
                 sums[column] = np.bincount(flat, weights=values, minlength=size)
+            if colours is not None:
+                colour_sums = np.empty((COLOUR_STATS, size))
+                colour_sums[0] = sums[0]
+                for channel in range(3):
+                    colour_sums[1 + channel] = np.bincount(flat, weights=colours[:, channel], minlength=size)
+                self._colour[slots] += colour_sums.reshape(COLOUR_STATS, len(touched), b3).transpose(1, 2, 0)
             sums = sums.reshape(STATS, len(touched), b3).transpose(1, 2, 0)
             self._stats[slots] += sums
             changed = np.flatnonzero(sums[:, :, 0].ravel() > 0)
@@ -358,12 +429,18 @@ class VoxelMap:
             for column, values in enumerate(weights, start=1):
                 sums[:, column] = np.bincount(inverse, weights=values, minlength=len(changed))
             self._stats[slots[changed // b3], changed % b3] += sums
+            if colours is not None:
+                colour_sums = np.empty((len(changed), COLOUR_STATS))
+                colour_sums[:, 0] = sums[:, 0]
+                for channel in range(3):
+                    colour_sums[:, 1 + channel] = np.bincount(inverse, weights=colours[:, channel], minlength=len(changed))
+                self._colour[slots[changed // b3], changed % b3] += colour_sums
         self.last_changed = self._voxels_of(touched[changed // b3], changed % b3)
         return self.last_changed
 
-    def _add_compiled(self, columns) -> np.ndarray | None:
-        """:meth:`add_points` in three compiled passes over the points (range, blocks, sums); None
-        when the points' blocks are too spread for a dense box (the numpy path handles those)."""
+    def _add_compiled(self, columns, colours: np.ndarray | None = None) -> np.ndarray | None:
+        """:meth:`add_points` in three compiled passes over the points (range, blocks, sums; a fourth for
+        colours); None when the points' blocks are too spread for a dense box (the numpy path handles those)."""
         b, s = self.block_voxels, self.voxel_size
         low, high = _block_range(*columns, s, b)
         if max(np.abs(low).max(), np.abs(high).max()) >= _PACK_OFFSET:
@@ -381,7 +458,10 @@ class VoxelMap:
         compact_of_box = np.full(volume, -1, dtype=np.int64)
         compact_of_box[boxes] = np.arange(len(boxes))
         marks = np.zeros((len(boxes), b**3), dtype=np.bool_)
-        _accumulate(*columns, s, b, low, box, compact_of_box, self.block_slots(touched), self._stats, marks)
+        slots = self.block_slots(touched)
+        _accumulate(*columns, s, b, low, box, compact_of_box, slots, self._stats, marks)
+        if colours is not None:
+            _accumulate_colour(*columns, colours, s, b, low, box, compact_of_box, slots, self._colour)
         compact, flat = np.nonzero(marks)
         return self._voxels_of(touched[compact], flat)
 
@@ -457,6 +537,8 @@ class VoxelMap:
         """Zero the statistics of distinct voxels (their slots and flat indices); the result, sorted."""
         points = int(round(self._stats[slots, flat, 0].sum()))
         self._stats[slots, flat] = 0.0
+        if self._colour is not None:
+            self._colour[slots, flat] = 0.0
         order = np.lexsort(voxels.T[::-1])
         voxels = voxels[order]
         self.last_changed = voxels
@@ -477,6 +559,25 @@ class VoxelMap:
         found = slots >= 0
         out[found] = self._stats[slots[found], local[found]]
         return out
+
+    def colour_sums(self, voxels: np.ndarray) -> np.ndarray:
+        """(M, 4) float64 colour sums of (M, 3) voxel indices: coloured points, sum of red, green, blue (zeros for
+        voxels without coloured points, and everywhere in a map without colour)."""
+        voxels = np.asarray(voxels, dtype=np.int64).reshape(-1, 3)
+        out = np.zeros((len(voxels), COLOUR_STATS))
+        if self._colour is None:
+            return out
+        block_keys, local = self._locate(voxels)
+        slots = self.block_slots(block_keys)
+        found = slots >= 0
+        out[found] = self._colour[slots[found], local[found]]
+        return out
+
+    def colours(self, voxels: np.ndarray) -> np.ndarray:
+        """(M, 3) float64 mean RGB (0-255) of the coloured points of (M, 3) voxels; NaN where there are none."""
+        sums = self.colour_sums(voxels)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return sums[:, 1:] / sums[:, :1]
 
     def counts(self, voxels: np.ndarray) -> np.ndarray:
         """Number of points in each of the (M, 3) voxels."""

@@ -45,10 +45,36 @@ points), a mesh of small planar polygons out. The filter keeps a
    lost all their faces, so the world mesh replaces a re-meshed block
    instead of stacking a layer on it.
 
+5. **Colour**: when the input carries colour (a depth image's point array
+   ``colour``, registered to the depth; a point set's uint8 RGB point array
+   ``colour`` or ``rgb_colors``), every point's colour goes into its voxel
+   with its statistics: the map keeps per voxel the number of coloured points
+   and the sums of their red, green and blue (:class:`VoxelMap`: a float32
+   array beside the statistics, filled by its own compiled pass, so the
+   statistics kernel is untouched; cleared with the voxel when free space or
+   removal empties it; in :meth:`VoxelMap.state`, so checkpoints and
+   ``--resume`` keep it). Each polygon vertex gets the **mean colour of the
+   voxel it lies in** (:func:`vertex_colours`): a polygon is cut from the
+   voxel-sized cube of its anchor, which for even windows straddles the
+   2 x 2 x 2 voxels around the anchor vertex, so its vertices lie in
+   different voxels, and each takes the colour of the points there: colour at
+   the voxel's 5 cm rather than the window's 10 cm. Where the vertex's voxel
+   holds no coloured point (the plane reaches into an empty voxel), it takes
+   the polygon's colour, the count-weighted mean of the voxels its cube
+   overlaps (:func:`cube_colours`: those 2 x 2 x 2 voxels, the whole window
+   at the default 2; for odd windows the centre voxel), then the window's,
+   then :data:`NO_COLOUR`. Colours are recomputed with their polygon (new
+   points or cleared voxels in its window). A voxel that holds two objects'
+   points (the lowest 5 cm of a table leg, with the floor) gives its vertices
+   their blend. Without colour input the map keeps no colour and the output
+   has no colour array.
+
 Output cell data: ``Normals`` (unit, oriented by eq. 5 with n_z >= 0: the
 points do not say which side is out), ``rgb`` (uint8, seed 000 eqs. 5-7,
-:func:`mabdi.maps.colours.colours_by_normal`) and ``patch_key``. Field data
-of a depth-image input (intrinsics, pose, frame) is passed on.
+:func:`mabdi.maps.colours.colours_by_normal`) and ``patch_key``; point data,
+with colour input, ``rgb_colors`` (uint8 RGB, step 5; the world mesh keeps it
+as the map's vertex colours). Field data of a depth-image input (intrinsics,
+pose, frame) is passed on.
 """
 
 from __future__ import annotations
@@ -62,14 +88,17 @@ from vtkmodules.util.numpy_support import numpy_to_vtk
 from vtkmodules.vtkCommonDataModel import vtkDataObject, vtkImageData, vtkPointSet, vtkPolyData
 
 from mabdi.algorithm import MabdiAlgorithm
-from mabdi.depth import FRAME_ARRAY, depth_array, image_intrinsics, image_pose
+from mabdi.depth import COLOUR_ARRAY, FRAME_ARRAY, colour_point_array, depth_array, image_colour, image_intrinsics, image_pose
 from mabdi.errors import ConfigError
 from mabdi.filters.voxel_map import VoxelMap, moments_to_gaussian, pack_keys, unpack_keys
 from mabdi.filters.world_mesh import PATCH_KEY_ARRAY, REMOVED_KEYS_ARRAY
 from mabdi.maps.colours import colours_by_normal
+from mabdi.maps.mesh_map import COLOUR_LAYER
 from mabdi.polydata import triangles_polydata
 
 OUTPUTS = ("changed", "full")
+#: The colour of a polygon whose voxels hold no coloured point (in a map that has colour: points added without it).
+NO_COLOUR = (128, 128, 128)
 
 # The cube's 8 corners (unit offsets in {-1, 1}) and its 12 edges as corner pairs.
 _CORNERS = np.array(list(itertools.product((-1.0, 1.0), repeat=3)))
@@ -144,6 +173,51 @@ def plane_patches(voxels: VoxelMap, anchors: np.ndarray, parameters: VoxelPlanes
     return PlanePatches(anchors[keep], normals, centroids, centres, n[keep].astype(np.int64))
 
 
+def cube_colours(voxels: VoxelMap, anchors: np.ndarray, window: int) -> np.ndarray:
+    """(M, 3) uint8: the colour of the polygons of neighbourhoods anchored at (M, 3) ``anchors``.
+
+    A polygon lies in the voxel-sized cube of its anchor, so it takes the count-weighted mean colour of the
+    points in the voxels that cube overlaps: for even windows the 2 x 2 x 2 voxels around the anchor vertex
+    (the whole window at the default 2), for odd windows the centre voxel. Where those hold no coloured point,
+    the whole window's; where it holds none either, :data:`NO_COLOUR`.
+    """
+    anchors = np.asarray(anchors, dtype=np.int64).reshape(-1, 3)
+
+    def summed(lowest: np.ndarray, side: int) -> np.ndarray:
+        return sum(voxels.colour_sums(lowest + np.array(step, dtype=np.int64)) for step in np.ndindex(side, side, side))
+
+    sums = summed(anchors - 1, 2) if window % 2 == 0 else voxels.colour_sums(anchors)
+    empty = sums[:, 0] == 0
+    if empty.any() and window > 2:
+        sums[empty] = summed(anchors[empty] + anchor_range(window), window)
+    colours = np.empty((len(anchors), 3), dtype=np.uint8)
+    coloured = sums[:, 0] > 0
+    colours[coloured] = np.clip(np.rint(sums[coloured, 1:] / sums[coloured, :1]), 0, 255).astype(np.uint8)
+    colours[~coloured] = NO_COLOUR
+    return colours
+
+
+def vertex_colours(voxels: VoxelMap, vertices: np.ndarray, sizes: np.ndarray, polygon_colours: np.ndarray) -> np.ndarray:
+    """(K, 3) uint8: each polygon vertex's colour, the mean colour of the voxel it lies in, or its polygon's
+    (``polygon_colours``, (P, 3), :func:`cube_colours`) where that voxel holds no coloured point.
+
+    ``vertices`` (K, 3) are the rings of :func:`cube_polygons` (``sizes`` vertices each). A vertex on a
+    voxel face is taken a hair towards its polygon's centre, into the voxel the polygon covers there.
+    """
+    sizes = np.asarray(sizes, dtype=np.int64)
+    polygon = np.repeat(np.arange(len(sizes)), sizes)
+    centres = np.zeros((len(sizes), 3))
+    for axis in range(3):
+        centres[:, axis] = np.bincount(polygon, weights=vertices[:, axis], minlength=len(sizes))
+    centres /= np.maximum(sizes, 1)[:, None]
+    inside = vertices + 1e-6 * (centres[polygon] - vertices)
+    sums = voxels.colour_sums(voxels.voxel_indices(inside))
+    colours = np.asarray(polygon_colours, dtype=np.uint8)[polygon].copy()
+    coloured = sums[:, 0] > 0
+    colours[coloured] = np.clip(np.rint(sums[coloured, 1:] / sums[coloured, :1]), 0, 255).astype(np.uint8)
+    return colours
+
+
 def cube_polygons(normals: np.ndarray, points: np.ndarray, centres: np.ndarray, half: float):
     """Convex polygons where planes cut axis-aligned cubes (seed 000 eq. 4).
 
@@ -206,13 +280,15 @@ class BlockPolygons:
     """The polygons of one block, sorted by anchor key: one per planar neighbourhood anchored in it.
 
     ``anchors`` (P,) packed anchor keys, ``sizes`` (P,) vertex counts, ``vertices`` (sum sizes, 3)
-    the rings one after another, ``normals`` (P, 3).
+    the rings one after another, ``normals`` (P, 3), ``colours`` (sum sizes, 3) uint8, one per vertex
+    (:func:`vertex_colours`; :data:`NO_COLOUR` in a map without colour).
     """
 
     anchors: np.ndarray
     sizes: np.ndarray
     vertices: np.ndarray
     normals: np.ndarray
+    colours: np.ndarray
 
     @property
     def number_of_triangles(self) -> int:
@@ -221,7 +297,13 @@ class BlockPolygons:
     def without(self, anchor_keys: np.ndarray) -> BlockPolygons:
         """The polygons whose anchors are not in ``anchor_keys``."""
         keep = ~np.isin(self.anchors, anchor_keys)
-        return BlockPolygons(self.anchors[keep], self.sizes[keep], self.vertices[np.repeat(keep, self.sizes)], self.normals[keep])
+        return BlockPolygons(
+            self.anchors[keep],
+            self.sizes[keep],
+            self.vertices[np.repeat(keep, self.sizes)],
+            self.normals[keep],
+            self.colours[np.repeat(keep, self.sizes)],
+        )
 
     @staticmethod
     def merged(*parts: BlockPolygons) -> BlockPolygons:
@@ -230,8 +312,9 @@ class BlockPolygons:
         sizes = np.concatenate([part.sizes for part in parts])
         vertices = np.concatenate([part.vertices for part in parts])
         normals = np.concatenate([part.normals for part in parts])
+        colours = np.concatenate([part.colours for part in parts])
         order = np.argsort(anchors, kind="stable")
-        return BlockPolygons(anchors[order], sizes[order], vertices[ring_indices(sizes, order)], normals[order])
+        return BlockPolygons(anchors[order], sizes[order], vertices[ring_indices(sizes, order)], normals[order], colours[ring_indices(sizes, order)])
 
 
 def ring_indices(sizes: np.ndarray, selected: np.ndarray) -> np.ndarray:
@@ -311,6 +394,7 @@ class FilterVoxelPlanes(MabdiAlgorithm):
                 "sizes": joined("sizes", (0,), np.int64),
                 "vertices": joined("vertices", (0, 3), np.float64),
                 "normals": joined("normals", (0, 3), np.float64),
+                "colours": joined("colours", (0, 3), np.uint8),
             },
             "meshed_with": dataclasses.asdict(self._meshed_with),
             "pending": self._pending_cleared.copy(),
@@ -323,15 +407,18 @@ class FilterVoxelPlanes(MabdiAlgorithm):
         polygons = np.asarray(blocks["polygons"], dtype=np.int64)
         sizes = np.asarray(blocks["sizes"])
         cuts = np.cumsum(polygons)[:-1]
+        colours = blocks.get("colours")  # states written before colour have none
+        colours = np.full((int(sizes.sum()), 3), NO_COLOUR, dtype=np.uint8) if colours is None else np.asarray(colours, dtype=np.uint8)
         vertex_cuts = np.concatenate([[0], np.cumsum(sizes)])[np.cumsum(polygons)][:-1]
         self._blocks = {} if not len(polygons) else {
-            int(key): BlockPolygons(anchors, block_sizes, vertices, normals)
-            for key, anchors, block_sizes, vertices, normals in zip(
+            int(key): BlockPolygons(anchors, block_sizes, vertices, normals, block_colours)
+            for key, anchors, block_sizes, vertices, normals, block_colours in zip(
                 blocks["keys"],
                 np.split(np.asarray(blocks["anchors"]), cuts),
                 np.split(sizes, cuts),
                 np.split(np.asarray(blocks["vertices"]), vertex_cuts),
                 np.split(np.asarray(blocks["normals"]), cuts),
+                np.split(colours, vertex_cuts),
                 strict=True,
             )
         }
@@ -399,10 +486,11 @@ class FilterVoxelPlanes(MabdiAlgorithm):
         voxels = (anchors[:, None, :] + steps[None]).reshape(-1, 3)
         return self._cleared(self.map.clear_voxels(voxels))
 
-    def add_points(self, points: np.ndarray) -> np.ndarray:
-        """Add (M, 3) world points and re-mesh the blocks they touch (and those emptied by
-        :meth:`clear_free_space` since the last call); returns the re-meshed block keys."""
-        changed = self.map.add_points(points)
+    def add_points(self, points: np.ndarray, colours: np.ndarray | None = None) -> np.ndarray:
+        """Add (M, 3) world points (with their (M, 3) uint8 RGB ``colours``, when known) and re-mesh the blocks
+        they touch (and those emptied by :meth:`clear_free_space` since the last call); returns the re-meshed
+        block keys."""
+        changed = self.map.add_points(points, colours)
         if len(self._pending_cleared):
             changed = np.concatenate([np.asarray(changed, dtype=np.int64).reshape(-1, 3), self._pending_cleared])
             self._pending_cleared = np.zeros((0, 3), dtype=np.int64)
@@ -453,6 +541,11 @@ class FilterVoxelPlanes(MabdiAlgorithm):
         patches = plane_patches(self.map, anchors, p)
         vertices, sizes, owner = cube_polygons(patches.normals, patches.centroids, patches.centres, 0.5 * p.voxel_size)
         polygon_anchor = patches.anchors[owner]
+        if self.map.has_colour:
+            colours = vertex_colours(self.map, vertices, sizes, cube_colours(self.map, polygon_anchor, p.window))
+        else:
+            colours = np.empty((len(vertices), 3), dtype=np.uint8)
+            colours[:] = NO_COLOUR
         polygon_block = self.map.block_of(polygon_anchor)
         polygon_key = pack_keys(polygon_anchor)
         anchor_block = self.map.block_of(anchors)
@@ -460,7 +553,9 @@ class FilterVoxelPlanes(MabdiAlgorithm):
         blocks = np.unique(anchor_block)
         for key in blocks.tolist():
             mine = np.flatnonzero(polygon_block == key)
-            fresh = BlockPolygons(polygon_key[mine], sizes[mine], vertices[ring_indices(sizes, mine)], patches.normals[owner[mine]])
+            fresh = BlockPolygons(
+                polygon_key[mine], sizes[mine], vertices[ring_indices(sizes, mine)], patches.normals[owner[mine]], colours[ring_indices(sizes, mine)]
+            )
             old = self._blocks.get(key)
             if old is not None:
                 fresh = BlockPolygons.merged(old.without(np.sort(anchor_key[anchor_block == key])), fresh)
@@ -492,6 +587,9 @@ class FilterVoxelPlanes(MabdiAlgorithm):
         keys_array = numpy_to_vtk(patch, deep=True)
         keys_array.SetName(PATCH_KEY_ARRAY)
         mesh.GetCellData().AddArray(keys_array)
+        if self.map.has_colour:  # each vertex: the mean colour of its voxel (vertex_colours)
+            colours = np.concatenate([m.colours for _, m in meshes])
+            mesh.GetPointData().AddArray(colour_point_array(colours))
         return mesh
 
     def mesh(self) -> vtkPolyData:
@@ -513,7 +611,7 @@ class FilterVoxelPlanes(MabdiAlgorithm):
         stamp = (data.GetAddressAsString("vtkObject"), data.GetMTime())
         if stamp != self._last_input:  # a re-execution with the same input adds no points twice
             self._last_input = stamp
-            self.add_points(self._input_points(data))
+            self.add_points(*self._input_points(data))
         elif self._meshed_with != self._parameters:
             self.remesh_all()
         output = vtkPolyData.GetData(outInfo)
@@ -526,7 +624,10 @@ class FilterVoxelPlanes(MabdiAlgorithm):
         return 1
 
     @staticmethod
-    def _input_points(data) -> np.ndarray:
+    def _input_points(data) -> tuple[np.ndarray, np.ndarray | None]:
+        """World points (M, 3) of the input and their uint8 RGB colours (M, 3), None when it has no colour:
+        a depth image's point array ``colour`` at the valid pixels; a point set's ``colour`` (or
+        ``rgb_colors``) point array, uint8 with 3 components."""
         if isinstance(data, vtkImageData):
             depth = depth_array(data)
             k = image_intrinsics(data)
@@ -534,13 +635,21 @@ class FilterVoxelPlanes(MabdiAlgorithm):
             v, u = np.nonzero(np.isfinite(depth))  # only the valid (novel) pixels: often a few percent
             z = depth[v, u].astype(np.float64)
             camera = np.stack([(u + 0.5 - k.cx) / k.fx * z, (v + 0.5 - k.cy) / k.fy * z, z], axis=1)
-            return camera @ pose[:3, :3].T + pose[:3, 3]
+            colour = image_colour(data)
+            return camera @ pose[:3, :3].T + pose[:3, 3], None if colour is None else colour[v, u]
         if isinstance(data, vtkPointSet):
             if data.GetNumberOfPoints() == 0:
-                return np.zeros((0, 3))
+                return np.zeros((0, 3)), None
             from vtkmodules.util.numpy_support import vtk_to_numpy
 
-            return vtk_to_numpy(data.GetPoints().GetData()).astype(np.float64)
+            points = vtk_to_numpy(data.GetPoints().GetData()).astype(np.float64)
+            colour = None
+            for name in (COLOUR_ARRAY, COLOUR_LAYER):
+                array = data.GetPointData().GetArray(name)
+                if array is not None and array.GetNumberOfComponents() == 3 and array.GetDataTypeAsString() == "unsigned char":
+                    colour = vtk_to_numpy(array).reshape(-1, 3)
+                    break
+            return points, colour
         raise TypeError(
             f"FilterVoxelPlanes: input must be a depth image (vtkImageData) or points (vtkPolyData), got {data.GetClassName()}"
         )
