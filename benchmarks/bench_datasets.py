@@ -8,11 +8,13 @@ as JPEG (quality 95); ScanNet's colour at its own 1296x968 with ``intrinsic_colo
 depth ray when read). ``read(i)`` is timed over every frame (a few passes, shuffled), once with the colour
 images hidden (depth alone) and once with them.
 
-The loop: Run 1 (the table, pixel grid and quad-tree, ``kinect`` noise) with and without colours on its
-objects, ms per frame by stage (the simulated sensor renders colour in the same pass as depth and reads the
-colour buffer back; the surfaces colour their vertices).
+The loop: Run 1 (the table, pixel grid, quad-tree and voxel planes, ``kinect`` noise) with and without
+colours on its objects, ms per frame by stage (the simulated sensor renders colour in the same pass as depth
+and reads the colour buffer back; the surfaces colour their vertices, voxel planes through per-voxel colour
+sums; and VoxelMap.add_points alone with and without colours).
 
-    .venv/bin/python benchmarks/bench_datasets.py [--frames 40] [--passes 3] [--loop-frames 12]
+    .venv/bin/python benchmarks/bench_datasets.py [--frames 40] [--passes 3] [--loop-frames 12] [--surfaces ...]
+    .venv/bin/python benchmarks/bench_datasets.py --frames 0 --surfaces voxel_planes   # one surface's loop rows
 
 Prints markdown tables for docs/benchmarks.md.
 """
@@ -118,7 +120,7 @@ def bench_reading(frames: int, passes: int) -> None:
         print(f"| {name} | {depth:.2f} | {colour:.2f} | {depth95:.2f} | {colour95:.2f} | {mb:.1f} |")
 
 
-def bench_loop(frames: int, repeats: int = 2) -> None:
+def bench_loop(frames: int, repeats: int = 2, surfaces=("pixel_grid", "quadtree", "voxel_planes")) -> None:
     from mabdi.config import load_run_config, set_value
     from mabdi.simulate import Simulation
 
@@ -135,7 +137,7 @@ def bench_loop(frames: int, repeats: int = 2) -> None:
     print("| surface | colour | " + " | ".join(s[2:-3] for s in stages) + " | triangles |")
     print("|---|---|" + "---:|" * (len(stages) + 1))
     readback = []
-    for surface in ("pixel_grid", "quadtree"):
+    for surface in surfaces:
         best = {}
         for _ in range(repeats):
             for name in ("plain", "coloured"):
@@ -162,15 +164,46 @@ def bench_loop(frames: int, repeats: int = 2) -> None:
     shutil.rmtree(folder)
 
 
+def bench_voxel_colour(repeats: int = 15) -> None:
+    """VoxelMap.add_points with and without colours: a floor of 300k and of 20k points over 4 m x 4 m, added
+    to a map that holds them already (its blocks allocated, as in a running loop); median of ``repeats``, the
+    lower of two rounds."""
+    from mabdi.filters.voxel_map import VoxelMap
+
+    rng = np.random.default_rng(0)
+    print("\nVoxelMap.add_points (5 cm voxels, blocks allocated), ms: median of each round, the lower of 2\n")
+    print("| points | no colour | with colour |")
+    print("|---:|---:|---:|")
+    for count in (300_000, 20_000):
+        points = np.column_stack([rng.uniform(-2, 2, (count, 2)), rng.normal(0, 0.005, count)])
+        colours = rng.integers(0, 256, (count, 3), dtype=np.uint8)
+        best = {}
+        for _ in range(2):
+            for name, rgb in (("plain", None), ("colour", colours)):
+                voxels = VoxelMap()
+                voxels.add_points(points, rgb)
+                times = []
+                for _ in range(repeats):
+                    start = time.perf_counter()
+                    voxels.add_points(points, rgb)
+                    times.append(time.perf_counter() - start)
+                best[name] = min(best.get(name, np.inf), float(np.median(times)) * 1e3)
+        print(f"| {count:,} | {best['plain']:.2f} | {best['colour']:.2f} |")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--frames", type=int, default=40)
     parser.add_argument("--passes", type=int, default=3)
     parser.add_argument("--loop-frames", type=int, default=12)
+    parser.add_argument("--surfaces", nargs="+", default=["pixel_grid", "quadtree", "voxel_planes"], help="surfaces of the loop table")
     args = parser.parse_args()
-    bench_reading(args.frames, args.passes)
+    if args.frames:  # --frames 0: the loop table only
+        bench_reading(args.frames, args.passes)
     if args.loop_frames:
-        bench_loop(args.loop_frames)
+        bench_loop(args.loop_frames, surfaces=args.surfaces)
+    if "voxel_planes" in args.surfaces:
+        bench_voxel_colour()
 
 
 if __name__ == "__main__":

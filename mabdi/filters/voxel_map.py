@@ -27,14 +27,17 @@ Colour: when points come with colours (uint8 RGB, :meth:`VoxelMap.add_points`'s
 ``colours``), the map keeps beside the statistics, per voxel, the number of
 coloured points and the sums of their red, green and blue (float32: the sums
 of uint8 values are exact up to 2^24, 65,000 white points in one voxel, and
-within 1e-7 of it beyond). The mean colour of a voxel is sum / count; colour is
+within a relative 1e-7 beyond; 128 kB per block of 20^3 voxels beside the
+statistics' 640 kB). The mean colour of a voxel is sum / count; colour is
 stored only once coloured points arrive (a map fed without colour has none
 and costs nothing more). The colour sums are a parallel array
 (``_colour``, slots x voxels x 4) rather than more columns of the
-statistics, so the numba accumulate kernel of the statistics and the
-free-space kernels that read them are unchanged; a second compiled pass (the
-same walk, four sums) adds the colours, or numpy bincounts where the
-statistics use them. Clearing a voxel clears its colour; :meth:`VoxelMap.state`
+statistics, so the free-space kernels that read the statistics are
+unchanged; the compiled accumulate pass adds them in the same walk over the
+points when colours are given (numba compiles that case apart, so adding
+points without colour runs the kernel as before; with colour it costs up to
+a fifth more, docs/benchmarks.md), and the numpy path adds them by
+bincounts as it does the statistics. Clearing a voxel clears its colour; :meth:`VoxelMap.state`
 carries the sums, and :meth:`VoxelMap.from_state` reads states without them.
 
 Free space (object removal): where the sensor sees through a surface of the
@@ -152,8 +155,10 @@ def _mark_blocks(px, py, pz, s, b, low, box, present):
         present[(bx * box[1] + by) * box[2] + bz] = True
 
 
-def _accumulate(px, py, pz, s, b, low, box, compact_of_box, slot_of_compact, stats, touched):
-    """Add each point's moments to its voxel (relative to the voxel's corner); mark the voxel touched."""
+def _accumulate(px, py, pz, s, b, low, box, compact_of_box, slot_of_compact, stats, touched, rgb=None, colour=None):
+    """Add each point's moments to its voxel (relative to the voxel's corner); mark the voxel touched. With
+    ``rgb`` ((M, 3) uint8) add one and the point's colour to the voxel's ``colour`` sums too (numba compiles
+    the two cases apart: without colour the branch is pruned)."""
     for i in range(px.shape[0]):
         vx = np.int64(np.floor(px[i] / s))
         vy = np.int64(np.floor(py[i] / s))
@@ -174,29 +179,18 @@ def _accumulate(px, py, pz, s, b, low, box, compact_of_box, slot_of_compact, sta
         row[8] += y * z
         row[9] += z * z
         touched[compact, flat] = True
-
-
-def _accumulate_colour(px, py, pz, rgb, s, b, low, box, compact_of_box, slot_of_compact, colour):
-    """Add each point's colour (``rgb``, (M, 3) uint8) and one to its voxel's colour sums (the walk of :func:`_accumulate`)."""
-    for i in range(px.shape[0]):
-        vx = np.int64(np.floor(px[i] / s))
-        vy = np.int64(np.floor(py[i] / s))
-        vz = np.int64(np.floor(pz[i] / s))
-        bx, by, bz = vx // b, vy // b, vz // b
-        compact = compact_of_box[((bx - low[0]) * box[1] + (by - low[1])) * box[2] + (bz - low[2])]
-        flat = ((vx - bx * b) * b + (vy - by * b)) * b + (vz - bz * b)
-        row = colour[slot_of_compact[compact], flat]
-        row[0] += 1.0
-        row[1] += rgb[i, 0]
-        row[2] += rgb[i, 1]
-        row[3] += rgb[i, 2]
+        if rgb is not None:
+            sums = colour[slot_of_compact[compact], flat]
+            sums[0] += 1.0
+            sums[1] += rgb[i, 0]
+            sums[2] += rgb[i, 1]
+            sums[3] += rgb[i, 2]
 
 
 if njit is not None:
     _block_range = njit(cache=True)(_block_range)
     _mark_blocks = njit(cache=True)(_mark_blocks)
     _accumulate = njit(cache=True)(_accumulate)
-    _accumulate_colour = njit(cache=True)(_accumulate_colour)
 
 
 @dataclass(frozen=True)
@@ -439,8 +433,8 @@ class VoxelMap:
         return self.last_changed
 
     def _add_compiled(self, columns, colours: np.ndarray | None = None) -> np.ndarray | None:
-        """:meth:`add_points` in three compiled passes over the points (range, blocks, sums; a fourth for
-        colours); None when the points' blocks are too spread for a dense box (the numpy path handles those)."""
+        """:meth:`add_points` in three compiled passes over the points (range, blocks, sums and colours); None
+        when the points' blocks are too spread for a dense box (the numpy path handles those)."""
         b, s = self.block_voxels, self.voxel_size
         low, high = _block_range(*columns, s, b)
         if max(np.abs(low).max(), np.abs(high).max()) >= _PACK_OFFSET:
@@ -459,9 +453,7 @@ class VoxelMap:
         compact_of_box[boxes] = np.arange(len(boxes))
         marks = np.zeros((len(boxes), b**3), dtype=np.bool_)
         slots = self.block_slots(touched)
-        _accumulate(*columns, s, b, low, box, compact_of_box, slots, self._stats, marks)
-        if colours is not None:
-            _accumulate_colour(*columns, colours, s, b, low, box, compact_of_box, slots, self._colour)
+        _accumulate(*columns, s, b, low, box, compact_of_box, slots, self._stats, marks, colours, self._colour)
         compact, flat = np.nonzero(marks)
         return self._voxels_of(touched[compact], flat)
 

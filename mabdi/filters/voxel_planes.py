@@ -50,11 +50,11 @@ points), a mesh of small planar polygons out. The filter keeps a
    ``colour`` or ``rgb_colors``), every point's colour goes into its voxel
    with its statistics: the map keeps per voxel the number of coloured points
    and the sums of their red, green and blue (:class:`VoxelMap`: a float32
-   array beside the statistics, filled by its own compiled pass, so the
-   statistics kernel is untouched; cleared with the voxel when free space or
-   removal empties it; in :meth:`VoxelMap.state`, so checkpoints and
-   ``--resume`` keep it). Each polygon vertex gets the **mean colour of the
-   voxel it lies in** (:func:`vertex_colours`): a polygon is cut from the
+   array beside the statistics, filled in the same compiled pass; cleared
+   with the voxel when free space or removal empties it; in
+   :meth:`VoxelMap.state`, so checkpoints and ``--resume`` keep it). Each
+   polygon vertex gets the **mean colour of the voxel it lies in**
+   (:func:`vertex_colours`): a polygon is cut from the
    voxel-sized cube of its anchor, which for even windows straddles the
    2 x 2 x 2 voxels around the anchor vertex, so its vertices lie in
    different voxels, and each takes the colour of the points there: colour at
