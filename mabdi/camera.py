@@ -17,10 +17,12 @@ Conventions (every module follows them):
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from mabdi.errors import ConfigError, PoseError
 
@@ -136,6 +138,40 @@ def check_pose(pose, name: str = "pose") -> np.ndarray:
     if np.linalg.det(r) < 0:
         raise PoseError(f"{name} is not rigid: rotation block is a reflection (det < 0)")
     return m
+
+
+@functools.lru_cache(maxsize=8)
+def _cached_rays(intrinsics: Intrinsics, unit: bool, dtype: str) -> tuple[np.ndarray, np.ndarray]:
+    rays = intrinsics.rays()  # ((u + 0.5 - cx) / fx, (v + 0.5 - cy) / fy, 1)
+    length = np.linalg.norm(rays, axis=-1)
+    out = (rays / length[..., None] if unit else rays).astype(dtype, copy=False)
+    out.setflags(write=False)
+    length.setflags(write=False)
+    return out, length
+
+
+def pixel_rays(intrinsics: Intrinsics) -> np.ndarray:
+    """(H, W, 3) float64 camera-frame rays through pixel centres with z = 1 (:meth:`Intrinsics.rays`), computed
+    once per intrinsics and shared: read-only."""
+    return _cached_rays(intrinsics, False, "float64")[0]
+
+
+def unit_rays(intrinsics: Intrinsics, dtype=np.float64) -> tuple[np.ndarray, np.ndarray]:
+    """(H, W, 3) unit camera-frame rays through pixel centres (as ``dtype``), and (H, W) float64 their length per
+    metre of z-depth (a point at depth z lies ``z * length`` along its unit ray). Computed once per intrinsics and
+    dtype and shared (the pipeline's one ray cache): read-only."""
+    return _cached_rays(intrinsics, True, np.dtype(dtype).name)
+
+
+def quaternions_from_rotations(rotations) -> np.ndarray:
+    """(N, 4) unit quaternions (x, y, z, w) of (N, 3, 3) rotation matrices (w >= 0; the nearest rotation if not exact).
+
+    The one conversion mabdi uses (scipy's :class:`~scipy.spatial.transform.Rotation`): TUM trajectories, ROS 2
+    transforms, goal poses on a map.
+    """
+    q = Rotation.from_matrix(np.asarray(rotations, dtype=np.float64).reshape(-1, 3, 3)).as_quat()
+    q *= np.where(q[:, 3:4] < 0, -1.0, 1.0)
+    return q
 
 
 def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:

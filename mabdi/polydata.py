@@ -140,6 +140,33 @@ def polydata_from_state(state: dict) -> vtkPolyData:
     return mesh
 
 
+def triangle_normals(points: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(unit normals (M, 3), areas (M,)) of triangles ``triangles`` (M, 3) into ``points`` (N, 3), right-hand rule.
+
+    The one face-normal rule of the package (the map's faces, cost layers, labels, picking, surface sampling).
+    Computed in the points' dtype (float32 points give float32 normals); a degenerate triangle has normal 0 and
+    area 0.
+    """
+    a = points[triangles[:, 0]]
+    cross = np.cross(points[triangles[:, 1]] - a, points[triangles[:, 2]] - a)
+    length = np.linalg.norm(cross, axis=1)
+    return cross / np.where(length > 0, length, length.dtype.type(1.0))[:, None], 0.5 * length
+
+
+def vertex_normals(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """(N, 3) float64 unit vertex normals, the area-weighted mean of the normals of the triangles around each vertex
+    (0 where a vertex has none)."""
+    normals, areas = triangle_normals(np.asarray(points, dtype=np.float64), triangles)
+    weighted = normals * areas[:, None]
+    out = np.zeros((len(points), 3))
+    for corner in range(3):
+        for axis in range(3):
+            out[:, axis] += np.bincount(triangles[:, corner], weights=weighted[:, axis], minlength=len(points))
+    length = np.linalg.norm(out, axis=1, keepdims=True)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(length > 0, out / length, 0.0)
+
+
 def polydata_area(mesh: vtkPolyData) -> float:
     """Total area (m^2) of a mesh's polygons (triangulated)."""
     if mesh.GetNumberOfCells() == 0:

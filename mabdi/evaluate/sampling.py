@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 from vtkmodules.vtkCommonDataModel import vtkPolyData
 
-from mabdi.polydata import polydata_arrays
+from mabdi.polydata import polydata_arrays, triangle_normals
 
 #: Seed of every evaluation's samples.
 SAMPLE_SEED = 20261122
@@ -27,12 +27,10 @@ class SurfaceSamples:
 
 
 def triangle_geometry(points: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(areas (M,), unit normals (M, 3)) of triangles; degenerate ones get area 0 and normal 0."""
-    a, b, c = (points[triangles[:, k]] for k in range(3))
-    cross = np.cross(b - a, c - a)
-    norm = np.linalg.norm(cross, axis=1)
-    normals = np.divide(cross, norm[:, None], out=np.zeros_like(cross), where=norm[:, None] > 0)
-    return 0.5 * norm, normals
+    """(areas (M,), unit normals (M, 3)) of triangles; degenerate ones get area 0 and normal 0
+    (:func:`mabdi.polydata.triangle_normals`)."""
+    normals, areas = triangle_normals(points, triangles)
+    return areas, normals
 
 
 def sample_surface(mesh: vtkPolyData, count: int, seed: int = SAMPLE_SEED) -> SurfaceSamples:

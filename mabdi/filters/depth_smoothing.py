@@ -27,10 +27,8 @@ sensor's noise model (:meth:`mabdi.filters.depth_image.SensorNoise.sigma`):
   keep their depth, NaN stays NaN, and a noise-free sensor (sigma = 0)
   leaves the image as it is.
 
-Measured (2026-11-23, 2-core machine; docs/benchmarks.md "Depth smoothing"):
-pixel grid F@1cm on the table with ``kinect`` noise 0.970 -> 0.995 (P@1cm
-0.965 -> 0.999), on Run 2 0.958 -> 0.987; quad-tree 0.981 -> 0.988 and
-0.975 -> 0.983.
+What it gains (F@1cm and P@1cm of both surfaces on the noisy runs, raw against
+smoothed): docs/benchmarks.md, section "Depth smoothing before meshing".
 
 Real sensors' noise is partly correlated between neighbouring pixels (a
 Kinect's disparity is matched over a window), so the gain on recorded data

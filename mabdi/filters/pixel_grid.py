@@ -13,11 +13,10 @@ seen at about 79 degrees from its normal makes (tan = 0.01 f with a 525 px
 focal length). Steeper triangles are mostly bridges across a silhouette or
 chords of a surface seen edge-on, and with sensor noise the corners of far
 triangles spread too: both are left out, their pixels stay novel, and a later,
-better look meshes them. Measured (50-frame Run 2, `zbuffer` noise; 30-frame
-table, `kinect` noise and none), 0.05 against 0.01: F@1cm 0.952 -> 0.958,
-0.958 -> 0.970 and 0.998 -> 0.999 with 4%, 19% and 0% fewer triangles; and
-object removal no longer finds bridges to take out of the static runs (Run 2:
-0.58% of the map removed with 0.05, 0.098% with 0.01).
+better look meshes them. Against the looser 0.05 this gives a higher F@1cm with
+fewer triangles, and object removal no longer finds bridges to take out of the
+static runs (the figures: docs/benchmarks.md, sections "Against the ground
+truth" and "Object removal").
 
 Triangles are wound so their normals face the sensor. Vertex positions are
 the pixel-centre rays scaled by the depth and moved into the world by the
@@ -25,7 +24,8 @@ image's pose.
 
 Vectorised: the corner tests are slices of the (H, W) arrays, the vertex ids
 of a square follow from its top-left pixel id p (a = p, b = p + 1, c = p + W,
-d = p + W + 1), and the rays for an image size are computed once and cached.
+d = p + W + 1), and the rays for an image size are computed once and cached
+(:func:`mabdi.camera.pixel_rays`).
 The output keeps the input's field data (intrinsics, pose, frame). When the
 image carries a colour image (point array ``colour``), each vertex gets its
 pixel's colour (point array ``colour``, uint8 RGB).
@@ -44,7 +44,7 @@ import numpy as np
 from vtkmodules.vtkCommonDataModel import vtkImageData, vtkPolyData
 
 from mabdi.algorithm import MabdiAlgorithm
-from mabdi.camera import Intrinsics
+from mabdi.camera import pixel_rays
 from mabdi.depth import colour_point_array, depth_array, image_colour, image_intrinsics, image_pose
 from mabdi.errors import ConfigError
 from mabdi.filters.depth_image import SensorNoise
@@ -114,7 +114,6 @@ class FilterPixelGrid(MabdiAlgorithm):
             parameters = PixelGridParameters(max_jump=float(parameters))
         self._parameters = parameters
         self._noise = SensorNoise.of(noise)
-        self._rays: tuple[Intrinsics, np.ndarray] | None = None
 
     @property
     def parameters(self) -> PixelGridParameters:
@@ -135,11 +134,6 @@ class FilterPixelGrid(MabdiAlgorithm):
     def max_jump(self, value: float) -> None:
         self.parameters = replace(self._parameters, max_jump=value)
 
-    def _cached_rays(self, intrinsics: Intrinsics) -> np.ndarray:
-        if self._rays is None or self._rays[0] != intrinsics:
-            self._rays = (intrinsics, intrinsics.rays().reshape(-1, 3))
-        return self._rays[1]
-
     def RequestData(self, request, inInfo, outInfo):  # noqa: N802 (VTK API)
         image = vtkImageData.GetData(inInfo[0])
         intrinsics = image_intrinsics(image)
@@ -153,7 +147,7 @@ class FilterPixelGrid(MabdiAlgorithm):
         used[triangles.ravel()] = True
         pixel_ids = np.flatnonzero(used)
         renumber = np.cumsum(used) - 1
-        camera_points = self._cached_rays(intrinsics)[pixel_ids] * depth.ravel()[pixel_ids, None]
+        camera_points = pixel_rays(intrinsics).reshape(-1, 3)[pixel_ids] * depth.ravel()[pixel_ids, None]
         world_points = camera_points @ pose[:3, :3].T + pose[:3, 3]
         output = vtkPolyData.GetData(outInfo)
         mesh = triangles_polydata(world_points, renumber[triangles], dtype=np.float32)

@@ -57,9 +57,8 @@ Beyond the seed (its own "future work"):
 Small or accurate: the defaults (the seed's 3x3 reduction, n_t = 0.1) make
 the small map. With a noisy sensor, ``reduction = 2`` and ``n_t = 0.2`` (and
 the classifier's ``min_width = 1``, refinement on with ``replace = false``)
-trade about 1.6 times the triangles for recall: F@1cm on Run 2 0.983 ->
-0.989, at the tuned TSDF with a fifth of its triangles (docs/benchmarks.md,
-"Depth smoothing before meshing").
+trade more triangles for recall (the figures, beside the tuned TSDF:
+docs/benchmarks.md, section "Depth smoothing before meshing").
 
 Speed: stages 1-5 and the small-leaf plane test run as numba kernels
 (:mod:`mabdi.filters.quadtree_kernels`, one pass per pixel or node) when

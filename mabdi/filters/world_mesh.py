@@ -33,7 +33,7 @@ from vtkmodules.vtkFiltersCore import vtkAppendPolyData
 from mabdi.algorithm import MabdiAlgorithm
 from mabdi.depth import FRAME_ARRAY
 from mabdi.filters.removal import update_log_odds
-from mabdi.polydata import FACE_RGB_ARRAY, extract_polys, polydata_from_state, polydata_to_state
+from mabdi.polydata import FACE_RGB_ARRAY, extract_polys, polydata_from_state, polydata_to_state, triangle_normals
 
 FRAME_CELL_ARRAY = "frame"
 PATCH_KEY_ARRAY = "patch_key"
@@ -139,15 +139,8 @@ def face_normals(patch: vtkPolyData) -> np.ndarray:
     polys = patch.GetPolys()
     offsets = vtk_to_numpy(polys.GetOffsetsArray())[:-1]
     connectivity = vtk_to_numpy(polys.GetConnectivityArray())
-    a = points[connectivity[offsets]]
-    ab = points[connectivity[offsets + 1]] - a
-    ac = points[connectivity[offsets + 2]] - a
-    normals = np.empty_like(a)
-    normals[:, 0] = ab[:, 1] * ac[:, 2] - ab[:, 2] * ac[:, 1]
-    normals[:, 1] = ab[:, 2] * ac[:, 0] - ab[:, 0] * ac[:, 2]
-    normals[:, 2] = ab[:, 0] * ac[:, 1] - ab[:, 1] * ac[:, 0]
-    length = np.sqrt((normals * normals).sum(axis=1, keepdims=True))
-    return normals / np.where(length > 0, length, np.float32(1.0))
+    corners = np.stack([connectivity[offsets], connectivity[offsets + 1], connectivity[offsets + 2]], axis=1)
+    return triangle_normals(points, corners)[0]
 
 
 def face_centres(patch: vtkPolyData) -> tuple[np.ndarray, np.ndarray]:
@@ -395,10 +388,7 @@ class FilterWorldMesh(MabdiAlgorithm):
             moved = np.zeros(len(current), dtype=bool)
             moved[vertex_ids] = True
             faces = np.flatnonzero(moved[triangles].any(axis=1))
-            a = current[triangles[faces, 0]].astype(np.float32)
-            normals = np.cross(current[triangles[faces, 1]] - a, current[triangles[faces, 2]] - a).astype(np.float32)
-            length = np.linalg.norm(normals, axis=1, keepdims=True)
-            self._face_normals[base + faces] = normals / np.where(length > 0, length, np.float32(1.0))
+            self._face_normals[base + faces] = triangle_normals(current.astype(np.float32, copy=False), triangles[faces])[0]
         self._map.Modified()
         self._merged = None
 

@@ -4,14 +4,14 @@ Sethian's fast marching: vertices are *known* (their arrival time is final),
 *trial* (a tentative time, in a binary heap) or *far*. The trial vertex with
 the smallest time becomes known, and each triangle around it updates its
 other corners from their known neighbours with the first-order triangle
-update of :func:`mabdi.maps.planning._triangle_update` (the same formula,
-written for one triangle; non-causal updates, as in obtuse triangles, fall
-back to the edge updates). The heap allows stale entries (a vertex pushed
+update (:func:`_update`, the package's one copy: :mod:`mabdi.maps.planning`'s
+iterative solver calls it too, through :func:`triangle_updates`; non-causal
+updates, as in obtuse triangles, fall back to the edge updates). The heap allows stale entries (a vertex pushed
 again with a smaller time; the old entry is skipped when popped).
 
-The loop is sequential by nature, so it is compiled with numba (about 1 s
-for a million vertices here; a few seconds to compile on the first call,
-cached on disk after). :func:`fast_marching_available` tells whether numba is
+The loop is sequential by nature, so it is compiled with numba (compiled on
+the first call, cached on disk after; its cost on a million vertices:
+docs/benchmarks.md, section "Mesh maps"). :func:`fast_marching_available` tells whether numba is
 installed; without it :mod:`mabdi.maps.planning` uses its vectorised
 iterative solver, which gives the same times much more slowly.
 """
@@ -31,6 +31,8 @@ def fast_marching_available() -> bool:
 
 
 def _update(c, a, b, ta, tb, s):
+    """The first-order triangle update (the only copy; the rule is in :mod:`mabdi.maps.planning`'s docs): the time at
+    corner ``c`` from corners ``a``, ``b`` (3-vectors) reached at ``ta``, ``tb`` (inf: not reached), slowness ``s``."""
     e1x, e1y, e1z = a[0] - c[0], a[1] - c[1], a[2] - c[2]
     e2x, e2y, e2z = b[0] - c[0], b[1] - c[1], b[2] - c[2]
     g11 = e1x * e1x + e1y * e1y + e1z * e1z
@@ -54,6 +56,14 @@ def _update(c, a, b, ta, tb, s):
     if alpha >= 0.0 and beta >= 0.0 and t >= max(ta, tb):
         return min(t, edge)
     return edge
+
+
+def _updates(c, a, b, ta, tb, s):
+    """:func:`_update` for K triangles at once: (K, 3) corners, (K,) times and slowness; (K,) new times at ``c``."""
+    out = np.empty(len(ta))
+    for k in range(len(ta)):
+        out[k] = _update(c[k], a[k], b[k], ta[k], tb[k], s[k])
+    return out
 
 
 def _march(vertices, faces, starts, incident, slowness, blocked, source):
@@ -126,7 +136,21 @@ def _march(vertices, faces, starts, incident, slowness, blocked, source):
 
 if njit is not None:
     _update = njit(cache=True, fastmath=False)(_update)
+    _updates = njit(cache=True)(_updates)
     _march = njit(cache=True)(_march)
+
+
+def triangle_updates(c, a, b, t_a, t_b, s) -> np.ndarray:
+    """First-order update of T at corners ``c`` from ``a``, ``b`` (all (K, 3) points, (K,) times and slowness):
+    the update the heap uses, for the iterative solver of :mod:`mabdi.maps.planning`."""
+    return _updates(
+        np.ascontiguousarray(c, dtype=np.float64),
+        np.ascontiguousarray(a, dtype=np.float64),
+        np.ascontiguousarray(b, dtype=np.float64),
+        np.ascontiguousarray(t_a, dtype=np.float64),
+        np.ascontiguousarray(t_b, dtype=np.float64),
+        np.ascontiguousarray(s, dtype=np.float64),
+    )
 
 
 def fast_marching(vertices, faces, starts, incident, slowness, blocked, source: int) -> np.ndarray:

@@ -41,6 +41,7 @@ from scipy.spatial import cKDTree
 
 from mabdi.errors import ConfigError
 from mabdi.maps.mesh_map import MeshMap
+from mabdi.polydata import triangle_normals, vertex_normals
 
 try:
     from mabdi.maps.neighbourhood import radius_statistics
@@ -79,26 +80,9 @@ class CostParameters:
 
 
 def face_normals(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Unit normals (M, 3) of the triangles (right-hand rule) and their areas (M,)."""
-    v = np.asarray(vertices, dtype=np.float64)
-    cross = np.cross(v[faces[:, 1]] - v[faces[:, 0]], v[faces[:, 2]] - v[faces[:, 0]])
-    length = np.linalg.norm(cross, axis=1)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        normals = np.where(length[:, None] > 0, cross / length[:, None], 0.0)
-    return normals, 0.5 * length
-
-
-def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """(N, 3) unit vertex normals, the area-weighted mean of the faces around each vertex (0 if none)."""
-    normals, areas = face_normals(vertices, faces)
-    weighted = normals * areas[:, None]
-    out = np.zeros((len(vertices), 3))
-    for corner in range(3):
-        for axis in range(3):
-            out[:, axis] += np.bincount(faces[:, corner], weights=weighted[:, axis], minlength=len(vertices))
-    length = np.linalg.norm(out, axis=1, keepdims=True)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where(length > 0, out / length, 0.0)
+    """Unit normals (M, 3) of the triangles (right-hand rule) and their areas (M,), in float64
+    (:func:`mabdi.polydata.triangle_normals`)."""
+    return triangle_normals(np.asarray(vertices, dtype=np.float64), faces)
 
 
 def neighbourhoods(vertices: np.ndarray, radius: float, max_neighbours: int) -> np.ndarray:

@@ -19,6 +19,7 @@ import numpy as np
 from vtkmodules.vtkCommonCore import reference
 from vtkmodules.vtkCommonDataModel import vtkGenericCell, vtkPolyData, vtkStaticCellLocator
 
+from mabdi.camera import quaternions_from_rotations
 from mabdi.maps.layers import face_normals
 from mabdi.maps.mesh_map import MeshMap
 
@@ -87,22 +88,5 @@ def goal_pose(point, normal, direction) -> tuple[np.ndarray, np.ndarray]:
 
 
 def rotation_to_quaternion(rotation: np.ndarray) -> np.ndarray:
-    """Unit quaternion (x, y, z, w), w >= 0, of a 3x3 rotation matrix."""
-    r = np.asarray(rotation, dtype=np.float64)
-    trace = np.trace(r)
-    if trace > 0:
-        s = 2.0 * np.sqrt(trace + 1.0)
-        q = np.array([(r[2, 1] - r[1, 2]) / s, (r[0, 2] - r[2, 0]) / s, (r[1, 0] - r[0, 1]) / s, 0.25 * s])
-    else:
-        i = int(np.argmax(np.diag(r)))
-        j, k = (i + 1) % 3, (i + 2) % 3
-        s = 2.0 * np.sqrt(1.0 + r[i, i] - r[j, j] - r[k, k])
-        q = np.empty(4)
-        q[i] = 0.25 * s
-        q[j] = (r[j, i] + r[i, j]) / s
-        q[k] = (r[k, i] + r[i, k]) / s
-        q[3] = (r[k, j] - r[j, k]) / s
-    q /= np.linalg.norm(q)
-    return -q if q[3] < 0 else q
-
-
+    """Unit quaternion (x, y, z, w), w >= 0, of a 3x3 rotation matrix (:func:`mabdi.camera.quaternions_from_rotations`)."""
+    return quaternions_from_rotations(rotation)[0]

@@ -43,7 +43,7 @@ from scipy.sparse.csgraph import dijkstra
 from scipy.spatial import cKDTree
 
 from mabdi.errors import MabdiError
-from mabdi.maps.fast_marching import fast_marching, fast_marching_available
+from mabdi.maps.fast_marching import fast_marching, fast_marching_available, triangle_updates
 from mabdi.maps.mesh_map import WELD, MeshMap, unique_pairs, welded_map
 
 PLANNERS = ("dijkstra", "fmm")
@@ -178,39 +178,6 @@ def _vertex_faces(faces: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
     return starts, owner[order]
 
 
-def _triangle_update(c, a, b, t_a, t_b, s):
-    """First-order update of T at corners c from a, b (all (K, 3) points, (K,) times and slowness)."""
-    e1, e2 = a - c, b - c
-    g11 = np.einsum("ij,ij->i", e1, e1)
-    g12 = np.einsum("ij,ij->i", e1, e2)
-    g22 = np.einsum("ij,ij->i", e2, e2)
-    det = g11 * g22 - g12 * g12
-    edge = np.minimum(t_a + s * np.sqrt(g11), t_b + s * np.sqrt(g22))
-    both = np.isfinite(t_a) & np.isfinite(t_b) & (det > 1e-20 * (g11 * g22))
-    out = edge.copy()
-    if not both.any():
-        return out
-    # Q = (P^T P)^-1 with P = [e1 e2]; solve (T - t)^T Q (T - t) = s^2 with t = (t_a, t_b) for T
-    idx = np.flatnonzero(both)
-    d = det[idx]
-    q11, q12, q22 = g22[idx] / d, -g12[idx] / d, g11[idx] / d
-    ta, tb, sl = t_a[idx], t_b[idx], s[idx]
-    qa = q11 + 2 * q12 + q22
-    qb = -2 * ((q11 + q12) * ta + (q12 + q22) * tb)
-    qc = q11 * ta * ta + 2 * q12 * ta * tb + q22 * tb * tb - sl * sl
-    disc = qb * qb - 4 * qa * qc
-    ok = disc >= 0
-    with np.errstate(invalid="ignore"):
-        t = np.where(ok, (-qb + np.sqrt(np.maximum(disc, 0))) / (2 * qa), np.inf)
-        # causality: the front reaches c from inside the triangle: -(Q (t_ab - T)) >= 0 componentwise
-        da, db = ta - t, tb - t
-        alpha = -(q11 * da + q12 * db)
-        beta = -(q12 * da + q22 * db)
-        causal = ok & (alpha >= 0) & (beta >= 0) & (t >= np.maximum(ta, tb))
-    out[idx] = np.where(causal, np.minimum(t, edge[idx]), edge[idx])
-    return out
-
-
 def arrival_times(
     mesh_map: MeshMap, source: int, slowness: np.ndarray, blocked: np.ndarray, method: str = "auto"
 ) -> np.ndarray:
@@ -241,7 +208,7 @@ def arrival_times(
             update = ~blocked[c] & (c != source)
             c, a, b = c[update], a[update], b[update]
             targets.append(c)
-            new_times.append(_triangle_update(vertices[c], vertices[a], vertices[b], times[a], times[b], slowness[c]))
+            new_times.append(triangle_updates(vertices[c], vertices[a], vertices[b], times[a], times[b], slowness[c]))
         targets = np.concatenate(targets)
         new_times = np.concatenate(new_times)
         before = times.copy()

@@ -42,7 +42,7 @@ import numpy as np
 from vtkmodules.vtkCommonDataModel import vtkImageData, vtkPolyData
 
 from mabdi.algorithm import raise_pipeline_errors
-from mabdi.camera import Intrinsics
+from mabdi.camera import Intrinsics, unit_rays
 from mabdi.depth import depth_array, image_pose
 from mabdi.filters.classifier import (
     CONTRADICTED,
@@ -177,7 +177,6 @@ class MabdiLoop:
         self._poses = np.full((len(source), 4, 4), np.nan)
         self._removed = vtkPolyData()
         self._refined = None
-        self._ray_cache: tuple[Intrinsics, np.ndarray] | None = None
 
     @classmethod
     def from_config(cls, config, source: FrameSource) -> MabdiLoop:
@@ -327,12 +326,7 @@ class MabdiLoop:
 
     def _unit_rays(self) -> tuple[np.ndarray, np.ndarray]:
         """(H, W, 3) unit pixel rays in the camera frame, and (H, W) their length per metre of depth (cached)."""
-        intrinsics = self.intrinsics
-        if self._ray_cache is None or self._ray_cache[0] != intrinsics:
-            rays = intrinsics.rays()  # ((u + 0.5 - cx) / fx, (v + 0.5 - cy) / fy, 1)
-            length = np.linalg.norm(rays, axis=-1)
-            self._ray_cache = (intrinsics, (rays / length[..., None]).astype(np.float32), length)
-        return self._ray_cache[1], self._ray_cache[2]
+        return unit_rays(self.intrinsics, np.float32)
 
     def _remove_contradicted(self, replaced: np.ndarray, votes: bool) -> int:
         """Vote with this frame's contradicted and known pixels (when ``votes``), remove the faces the

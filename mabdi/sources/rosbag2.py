@@ -80,7 +80,7 @@ import numpy as np
 from rosbags.rosbag2 import Reader, ReaderError, StoragePlugin, Writer, WriterError
 from rosbags.typesys import Stores, get_typestore
 
-from mabdi.camera import Intrinsics
+from mabdi.camera import Intrinsics, quaternions_from_rotations
 from mabdi.depth import DepthFrame
 from mabdi.sources.frames import FrameSource
 from mabdi.sources.sequence_files import (
@@ -92,7 +92,6 @@ from mabdi.sources.sequence_files import (
     metadata_path,
     nearest_within,
     poses_from_translations_quaternions,
-    quaternions_from_rotations,
     read_sequence_metadata,
     write_metadata,
 )

@@ -192,13 +192,6 @@ def bad_quaternions(quaternions) -> np.ndarray:
         return ~np.isfinite(q).all(axis=1) | ~(np.linalg.norm(q, axis=1) > 1e-9)
 
 
-def quaternions_from_rotations(rotations):
-    """(N, 4) unit quaternions (x, y, z, w) of (N, 3, 3) rotation matrices (w >= 0; the nearest rotation if not exact)."""
-    q = Rotation.from_matrix(np.asarray(rotations, dtype=np.float64).reshape(-1, 3, 3)).as_quat()
-    q *= np.where(q[:, 3:4] < 0, -1.0, 1.0)
-    return q
-
-
 def poses_from_translations_quaternions(translations, quaternions):
     """(N, 4, 4) poses from (N, 3) translations (m) and (N, 4) quaternions (x, y, z, w), normalised here."""
     translations = np.asarray(translations, dtype=np.float64).reshape(-1, 3)

@@ -29,6 +29,7 @@ from __future__ import annotations
 import importlib
 from pathlib import Path
 
+from mabdi.camera import quaternions_from_rotations  # re-exported (it was defined here)
 from mabdi.sources.redwood import is_redwood
 from mabdi.sources.replica import is_replica
 from mabdi.sources.scannet import is_scannet
@@ -46,7 +47,6 @@ from mabdi.sources.sequence_files import (  # re-exported: the helpers every for
     nearest_within,
     poses_from_translations_quaternions,
     prepare_folder,
-    quaternions_from_rotations,
     read_colour_image,
     read_sequence_metadata,
     write_colour_png,

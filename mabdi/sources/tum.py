@@ -57,7 +57,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image, UnidentifiedImageError
 
-from mabdi.camera import Intrinsics
+from mabdi.camera import Intrinsics, quaternions_from_rotations
 from mabdi.depth import DepthFrame
 from mabdi.io.atomic import atomic_output, write_text
 from mabdi.sources.frames import FrameSource
@@ -73,7 +73,6 @@ from mabdi.sources.sequence_files import (
     nearest_within,
     poses_from_translations_quaternions,
     prepare_folder,
-    quaternions_from_rotations,
     read_colour_image,
     read_sequence_metadata,
     write_colour_png,
