@@ -130,9 +130,10 @@ def classify(measured: np.ndarray, expected: np.ndarray, tau: np.ndarray) -> np.
     return labels
 
 
-def _shifted_3x3(mask: np.ndarray, combine) -> np.ndarray:
-    """Combine (np.logical_and / np.logical_or) each pixel's 3x3 neighbourhood; outside the image is False."""
-    padded = np.pad(mask, 1, constant_values=False)
+def neighbourhood_3x3(values: np.ndarray, combine, outside=None) -> np.ndarray:
+    """``combine`` (np.logical_and / np.logical_or / np.minimum / np.maximum) over each pixel's 3x3
+    neighbourhood, as array slices; outside the image counts as ``outside`` (None: the border's own values)."""
+    padded = np.pad(values, 1, mode="edge") if outside is None else np.pad(values, 1, constant_values=outside)
     rows = combine(combine(padded[:, :-2], padded[:, 1:-1]), padded[:, 2:])
     return combine(combine(rows[:-2], rows[1:-1]), rows[2:])
 
@@ -140,14 +141,14 @@ def _shifted_3x3(mask: np.ndarray, combine) -> np.ndarray:
 def erode(mask: np.ndarray, radius: int) -> np.ndarray:
     """Binary erosion by a (2 radius + 1) square, as ``radius`` 3x3 steps of array slices."""
     for _ in range(radius):
-        mask = _shifted_3x3(mask, np.logical_and)
+        mask = neighbourhood_3x3(mask, np.logical_and, outside=False)
     return mask
 
 
 def dilate(mask: np.ndarray, radius: int) -> np.ndarray:
     """Binary dilation by a (2 radius + 1) square, as ``radius`` 3x3 steps of array slices."""
     for _ in range(radius):
-        mask = _shifted_3x3(mask, np.logical_or)
+        mask = neighbourhood_3x3(mask, np.logical_or, outside=False)
     return mask
 
 

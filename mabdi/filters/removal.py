@@ -94,7 +94,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from mabdi.errors import ConfigError
-from mabdi.filters.classifier import CONTRADICTED, KNOWN, NO_RETURN, dilate
+from mabdi.filters.classifier import CONTRADICTED, KNOWN, NO_RETURN, dilate, neighbourhood_3x3
 
 
 @dataclass(frozen=True)
@@ -134,18 +134,11 @@ def depth_edges(depth: np.ndarray, jump: float) -> np.ndarray:
     (the image's own border is not an edge). Separable 3x3 min and max; NaN counts as no return."""
     missing = np.isnan(depth)
     filled = np.where(missing, np.float32(np.inf), depth)
-    low = _three_by_three(filled, np.minimum)
-    high = _three_by_three(np.where(missing, np.float32(-np.inf), depth), np.maximum)
-    near_missing = _three_by_three(missing, np.logical_or)
+    low = neighbourhood_3x3(filled, np.minimum)
+    high = neighbourhood_3x3(np.where(missing, np.float32(-np.inf), depth), np.maximum)
+    near_missing = neighbourhood_3x3(missing, np.logical_or)
     with np.errstate(invalid="ignore"):
         return near_missing | (high > np.float32(1.0 + jump) * low)
-
-
-def _three_by_three(values: np.ndarray, combine) -> np.ndarray:
-    """``combine`` (np.minimum / np.maximum) over each pixel's 3x3 neighbourhood, edges repeated."""
-    padded = np.pad(values, 1, mode="edge")
-    rows = combine(combine(padded[:, :-2], padded[:, 1:-1]), padded[:, 2:])
-    return combine(combine(rows[:-2], rows[1:-1]), rows[2:])
 
 
 def removal_votes(
