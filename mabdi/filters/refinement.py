@@ -68,23 +68,21 @@ the loop removes them (``world.remove_faces``), and their pixels are novel in
 the next frame and meshed from that better look: the surface is replaced,
 never doubled by a layer beside it. Pixels of replaced faces do not refine.
 
-**Status: off by default.** Since the pixel grid and the quad-tree smooth
-the depth before meshing (:mod:`mabdi.filters.depth_smoothing`), a first look
-is about three times less noisy and refinement adds at most 0.001 F@1cm on
-the noisy runs (quad-tree on Run 2 0.9825 -> 0.9831). On the raw depth
-(``smooth_depth = false``) it improves the maps a little and costs time:
-F@1cm of the quad-tree map on the ``kinect`` table 0.9805 -> 0.9818, on
-Run 2 0.9752 -> 0.9786 with ``replace = false`` (0.9751 with replacement:
-a quad-tree face is a plane fitted to many pixels, better than the one-pixel
-sigma(z_create) its prior assumes, so good faces are replaced and come back
-with gaps; recall falls 0.970 -> 0.962); the pixel grid on Run 2
-0.958 -> 0.964 (the replacement does it: P 0.948 -> 0.962), on the
-``kinect`` table 0.9704 -> 0.9713. For the quad-tree, ``replace = false``
-is the better setting. On a 2-core machine it adds about 30 ms a frame to
-the quad-tree loop (goal: 5 ms). The first version (label-based
-observations from anywhere on a face) made every map worse (quad-tree,
-``kinect`` table 0.981 -> 0.887). The measurements are in
-``docs/benchmarks.md``.
+**When it runs** (``[classifier] refinement``): ``"auto"``, the default,
+turns it on where the noise model says neighbouring pixels err together
+(:attr:`~mabdi.filters.depth_image.SensorNoise.correlated`: a
+structured-light or stereo camera, a real camera under ``noise = "auto"``).
+There a first look's error is a terrace or a patch that smoothing the depth
+(:mod:`mabdi.filters.depth_smoothing`) cannot take out, and only later looks
+average it away. With independent noise the smoothed first look is already
+about three times less noisy, refinement adds little, and replacement can
+cost a quad-tree map recall: a quad-tree face is a plane fitted to many
+pixels, better than the one-pixel sigma(z_create) its prior assumes, so good
+faces are replaced and come back with gaps (``replace = false`` is the
+better setting there). The first version (label-based observations from
+anywhere on a face) made every map worse. The measurements, and what it
+costs a frame, are in ``docs/benchmarks.md`` ("Depth smoothing before
+meshing", "Real poses and real cameras").
 
 **No noise** (noise model ``none``, sigma = 0): every measurement is exact,
 and so is every vertex as it was made; there is nothing to average, and the

@@ -26,12 +26,11 @@ except
   pixels (5). A map object's silhouette in E lies within a few pixels of
   the same object's silhouette in D (big quad-tree faces on a curved surface
   overhang it by up to 4 px), so this keeps a misplaced edge from voting
-  against the surface beside it: with 2 px, 0.2% of Run 2's quad-tree map
-  went over a run, with 5 px 0.09%. A surface whose faces overhang real
+  against the surface beside it (docs/benchmarks.md, "Object removal", has
+  what the margin saves). A surface whose faces overhang real
   edges by more states it as ``face_overhang`` (metres; voxel planes: a face
   fills its voxel, 5 cm), and the loop widens the margin to that length in
-  pixels at the median depth of E (up to ``max_edge_margin``, 20): on Run 1
-  the voxel-plane map lost 0.13% with 5 px, 0.06% with 10. A *contradiction*
+  pixels at the median depth of E (up to ``max_edge_margin``, 20). A *contradiction*
   is masked only where E has a silhouette within the margin too: an
   overhang lies between the map's edge and the sensor's, so both are near,
   while a ghost beside a real edge at its depth (the closed door's panel
