@@ -26,9 +26,8 @@ sigma^2 + q |s_i - s_j| / 2 (the variogram of white noise plus a random
 walk in s) and fitted by the method of moments (:func:`_variogram_fit`), and A is the best linear unbiased
 estimate of a constant under the covariance sigma^2 I + q min(s_i, s_j):
 the mean for pure jitter, the first frame for pure drift, in between for
-both. Rotation first (its components, sharpened by the shape of the path
-while the positions' errors are white: :func:`_with_positions`), then the
-translation (what is left of dt once (R_A - I) t_G is taken off). At most :data:`MAX_FRAMES` frames
+both. Rotation first (its components), then the translation (what is left
+of dt once (R_A - I) t_G is taken off). At most :data:`MAX_FRAMES` frames
 take part, spread evenly over the run (the first always).
 
 ``world_from_map`` is A's inverse: the loop builds the map in the map frame
@@ -90,47 +89,6 @@ def _blue_weights(sigma2: float, q: float, travelled: np.ndarray) -> np.ndarray:
     return solved / solved.sum()
 
 
-def _with_positions(
-    from_rotations: Rotation,
-    fit_rotation: tuple[float, float],
-    rotation_weights: np.ndarray,
-    given_positions: np.ndarray,
-    map_positions: np.ndarray,
-    travelled: np.ndarray,
-) -> np.ndarray:
-    """The map frame's rotation from both of what the frames say about it (3x3).
-
-    The rotation offsets say it directly, each with the given orientation's error; the camera centres say
-    it too, through the shape of the path: the registered centres are the given ones turned and moved
-    (t_C = R_A t_G + t_A), and a path metres across fixes that turn better than jittery orientations do
-    (50 frames on a 7 x 5 m ellipse: 2 mm of position jitter gives 0.005-0.009 degrees per axis, 0.15
-    degrees of orientation jitter 0.021). Both estimates are combined by their information: the positions' is
-    sum_i (|p_i|^2 I - p_i p_i^T) / sigma_t^2 (p_i the centred given positions), the offsets' the inverse
-    variance of their best linear unbiased mean. The positions count only while their errors are white:
-    under drift (the random walk's variance over the run above the white part) a path's shape is bent
-    by the drift itself, and the rotation offsets alone are used.
-    """
-    n = len(travelled)
-    if n < MIN_FRAMES_FOR_DRIFT:
-        return from_rotations.as_matrix()
-    p = given_positions - given_positions.mean(axis=0)
-    c = map_positions - map_positions.mean(axis=0)
-    u, _, vt = np.linalg.svd(p.T @ c)
-    flip = np.diag([1.0, 1.0, np.sign(np.linalg.det(vt.T @ u.T))])
-    from_positions = Rotation.from_matrix(vt.T @ flip @ u.T)
-    # how the centres scatter about the path turned by that rotation: white, or a drift
-    sigma2_t, q_t = _variogram_fit(map_positions - given_positions @ from_positions.as_matrix().T, travelled)
-    if sigma2_t <= 0 or q_t * float(travelled[-1] - travelled[0]) > sigma2_t:
-        return from_rotations.as_matrix()
-    information_positions = (np.sum(p * p) * np.eye(3) - p.T @ p) / sigma2_t
-    sigma2_r, q_r = fit_rotation
-    covariance = q_r * np.minimum(travelled[:, None], travelled[None, :]) + max(sigma2_r, 1e-12) * np.eye(n)
-    information_rotations = np.eye(3) / max(float(rotation_weights @ covariance @ rotation_weights), 1e-300)
-    towards = (from_positions * from_rotations.inv()).as_rotvec()
-    step = np.linalg.solve(information_rotations + information_positions, information_positions @ towards)
-    return (Rotation.from_rotvec(step) * from_rotations).as_matrix()
-
-
 class MapAnchor:
     """The map frame's place in the world, estimated from (given, registered) pose pairs (see the module docs)."""
 
@@ -177,12 +135,10 @@ class MapAnchor:
         use = np.unique(np.round(np.linspace(0, n - 1, min(n, MAX_FRAMES))).astype(int))
         s = self._travelled[use]
         rotations = self._rotations[use]
-        positions = self._positions[use]
         fit_rotation = _variogram_fit(rotations, s)
         weights = _blue_weights(*fit_rotation, s)
-        from_rotations = Rotation.from_rotvec(weights @ rotations)
-        rotation = _with_positions(from_rotations, fit_rotation, weights, positions, positions + self._translations[use], s)
-        residual = self._translations[use] - (positions @ (rotation - np.eye(3)).T)
+        rotation = Rotation.from_rotvec(weights @ rotations).as_matrix()
+        residual = self._translations[use] - (self._positions[use] @ (rotation - np.eye(3)).T)
         fit_translation = _variogram_fit(residual, s)
         weights = _blue_weights(*fit_translation, s)
         self._fits = (fit_rotation, fit_translation)
