@@ -69,7 +69,8 @@ def _parser() -> argparse.ArgumentParser:
     )
     run.add_argument(
         "--refinement", action="store_true",
-        help="experimental: later, better looks refine or replace known faces (classifier.refinement = true)",
+        help="later, better looks refine or replace known faces with any noise model (classifier.refinement = true; "
+        "the default \"auto\" refines where the noise model's errors are correlated between pixels)",
     )
     run.add_argument(
         "--rerun", nargs="?", const="", metavar="FILE.rrd",
