@@ -135,15 +135,15 @@ def test_faces_lie_on_the_noise_free_table():
 @pytest.mark.parametrize("noise", ["none", "kinect"])
 def test_compiled_stages_give_the_numpy_leaves(noise):
     """The numba kernels (reduce, normals, pyramid, plane test) against the numpy reference, on Run 1."""
+    from reference_kernels import quadtree_leaves_of_image
+
     from mabdi.config import load_run_config
     from mabdi.depth import depth_array
     from mabdi.filters.depth_image import FilterDepthImage, SensorNoise
-    from mabdi.filters.quadtree import kernels, leaves_of_image
+    from mabdi.filters.quadtree import leaves_of_image
     from mabdi.simulate.path import path_from_config
     from mabdi.sources.scene import SourceScene
 
-    if kernels is None:
-        pytest.skip("numba is not installed")
     config = load_run_config(REPO / "scenes" / "table.toml")
     scene = SourceScene(config.scene, frames=config.run.frames)
     sensor = FilterDepthImage(noise=noise, seed=3)
@@ -153,8 +153,8 @@ def test_compiled_stages_give_the_numpy_leaves(noise):
         sensor.pose = pose
         sensor.Update()
         depth = depth_array(sensor.GetOutput())
-        fast = leaves_of_image(depth, sensor.intrinsics, parameters, SensorNoise(noise), compiled=True)
-        slow = leaves_of_image(depth, sensor.intrinsics, parameters, SensorNoise(noise), compiled=False)
+        fast = leaves_of_image(depth, sensor.intrinsics, parameters, SensorNoise(noise))
+        slow = quadtree_leaves_of_image(depth, sensor.intrinsics, parameters, SensorNoise(noise))
         # block medians: the same depth (a tie may pick another pixel of that depth)
         np.testing.assert_array_equal(np.isfinite(fast[0][..., 2]), np.isfinite(slow[0][..., 2]))
         np.testing.assert_array_equal(fast[0][..., 2], slow[0][..., 2])

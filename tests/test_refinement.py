@@ -242,12 +242,10 @@ def test_moved_vertices_of_the_kinect_table_do_not_drift():
 @pytest.mark.parametrize("surface", ["pixel_grid", "quadtree"])
 def test_the_compiled_kernel_computes_what_the_numpy_reference_computes(surface, monkeypatch):
     """Every block call of a far-then-near plate run (replacement and refinement both happen), handed to both."""
-    from mabdi.filters import refinement as refinement_module
-    from mabdi.filters.refinement import observe_block
+    from reference_kernels import observe_block
 
-    kernels = refinement_module.kernels
-    if kernels is None:
-        pytest.skip("numba is not installed")
+    from mabdi.filters import refinement_kernels as kernels
+
     calls = []
     compiled = kernels.observe_block_kernel
 
@@ -281,7 +279,7 @@ def test_the_compiled_kernel_computes_what_the_numpy_reference_computes(surface,
 def test_a_rebuilt_block_finds_its_kept_points():
     """A block rebuilt with faces removed keeps the rest of its points in order: each is found in the old block
     (compiled walk and numpy reference agree); points that were not there are -1 (reference) or refused."""
-    from mabdi.filters import refinement as refinement_module
+    from mabdi.filters import refinement_kernels as kernels
     from mabdi.filters.refinement import _match_rows
 
     rng = np.random.default_rng(0)
@@ -290,9 +288,6 @@ def test_a_rebuilt_block_finds_its_kept_points():
     np.testing.assert_array_equal(_match_rows(old, old[kept]), kept)
     stranger = np.vstack([old[kept[:10]], [[9.0, 9.0, 9.0]]]).astype(np.float32)
     np.testing.assert_array_equal(_match_rows(old, stranger), np.append(kept[:10], -1))
-    kernels = refinement_module.kernels
-    if kernels is None:
-        pytest.skip("numba is not installed")
     np.testing.assert_array_equal(kernels.match_kept_points_kernel(old, old[kept]), kept)
     assert kernels.match_kept_points_kernel(old, stranger) is None
     assert kernels.match_kept_points_kernel(old, old[kept[::-1]]) is None  # out of order: not a rebuilt block

@@ -61,10 +61,9 @@ trade more triangles for recall (the figures, beside the tuned TSDF:
 docs/benchmarks.md, section "Depth smoothing before meshing").
 
 Speed: stages 1-5 and the small-leaf plane test run as numba kernels
-(:mod:`mabdi.filters.quadtree_kernels`, one pass per pixel or node) when
-numba is installed; the numpy functions here are the reference and the
-fallback (``FilterQuadTree.compiled = False``), and a test checks that both
-give the same leaves.
+(:mod:`mabdi.filters.quadtree_kernels`, one pass per pixel or node); their
+numpy reference versions live with the test that checks both give the same
+leaves (tests/reference_kernels.py).
 
 Output: vtkPolyData of polygons (quads, or polygons with T-vertices) or
 triangles, cell data ``level`` (the face's size in input pixels) and
@@ -90,10 +89,7 @@ from mabdi.errors import ConfigError
 from mabdi.filters.depth_image import SensorNoise
 from mabdi.filters.depth_smoothing import smooth_depth_by_noise
 
-try:
-    from mabdi.filters import quadtree_kernels as kernels
-except ImportError:  # pragma: no cover - numba is a dependency; the numpy stages below work without it
-    kernels = None
+from mabdi.filters import quadtree_kernels as kernels
 
 
 #: A leaf of one or two pixels a side whose plane misses one of its own or its neighbouring
@@ -130,81 +126,7 @@ class QuadTreeParameters:
 
 
 # ---------------------------------------------------------------------------
-# 1-3: filter and reduce, transform, convert
-
-
-def reduce_points(depth: np.ndarray, intrinsics: Intrinsics, reduction: int) -> tuple[np.ndarray, Intrinsics]:
-    """Camera-frame points of the ``reduction``-square blocks (NaN-aware median), and the reduced intrinsics.
-
-    Each block's point is the pixel holding the block's (lower) median depth
-    (among equal depths, in pixel order), back-projected through that pixel's own centre: noise-free surfaces stay
-    exactly on the surface, even in blocks that straddle an edge (a block
-    centre ray at a median depth would float between the two surfaces). A
-    block needs a valid majority.
-    """
-    depth = np.asarray(depth, dtype=np.float64)
-    r = reduction
-    k = intrinsics
-    if r == 1:
-        return k.rays() * depth[..., None], k
-    h, w = depth.shape[0] // r, depth.shape[1] // r
-    values = depth[: h * r, : w * r].reshape(h, r, w, r).swapaxes(1, 2).reshape(h, w, r * r)
-    finite = np.isfinite(values)
-    count = finite.sum(axis=-1)
-    keyed = np.where(finite, values, np.inf)  # NaN sorts last
-    full = count == r * r
-    partial = ~full & (count * 2 > r * r)
-    # a stable sort: among equal depths the median is taken in pixel order (as the compiled kernel does)
-    order = np.argsort(keyed, axis=-1, kind="stable")
-    slot = np.take_along_axis(order, np.maximum((count - 1) // 2, 0)[..., None], axis=-1)[..., 0]
-    slot[~full & ~partial] = 0
-    median_depth = np.take_along_axis(values, slot[..., None], axis=-1)[..., 0]
-    rows, cols = np.mgrid[0:h, 0:w]
-    u = cols * r + slot % r + 0.5
-    v = rows * r + slot // r + 0.5
-    points = np.stack([(u - k.cx) / k.fx * median_depth, (v - k.cy) / k.fy * median_depth, median_depth], axis=-1)
-    points[~(full | partial)] = np.nan
-    return points, Intrinsics(k.fx / r, k.fy / r, k.cx / r, k.cy / r, w, h, k.near, k.far)
-
-
-def point_normals(points: np.ndarray, max_jump: float = 0.05) -> np.ndarray:
-    """(H, W, 3) unit normals of a camera-frame point map (NaN where invalid), facing the camera.
-
-    A neighbour across a depth jump (more than ``max_jump`` of the depth) counts as missing, so
-    pixels beside a discontinuity take the one-sided difference on their own surface.
-    """
-    valid = np.isfinite(points[..., 2])
-    z = points[..., 2]
-
-    def difference(axis: int) -> np.ndarray:
-        forward = np.full_like(points, np.nan)
-        backward = np.full_like(points, np.nan)
-        if axis == 1:
-            forward[:, :-1] = points[:, 1:]
-            backward[:, 1:] = points[:, :-1]
-        else:
-            forward[:-1] = points[1:]
-            backward[1:] = points[:-1]
-        with np.errstate(invalid="ignore"):
-            has_forward = np.abs(forward[..., 2] - z) <= max_jump * z
-            has_backward = np.abs(backward[..., 2] - z) <= max_jump * z
-        central = forward - backward
-        one_sided = np.where(has_forward[..., None], forward - points, points - backward)
-        return np.where((has_forward & has_backward)[..., None], central, one_sided)
-
-    du, dv = difference(1), difference(0)
-    normals = -np.cross(du, dv)
-    length = np.linalg.norm(normals, axis=-1, keepdims=True)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        normals = normals / length
-    facing = np.einsum("...i,...i->...", normals, points) > 0
-    normals[facing] *= -1.0
-    normals[~valid | ~np.isfinite(length[..., 0]) | (length[..., 0] == 0)] = np.nan
-    return normals
-
-
-# ---------------------------------------------------------------------------
-# 4-5: build and locate
+# 1-5: filter and reduce, transform, convert, build and locate (numba kernels: mabdi.filters.quadtree_kernels)
 
 
 @dataclass
@@ -221,82 +143,6 @@ class Leaves:
     @property
     def size(self) -> np.ndarray:
         return 1 << self.level
-
-
-def _pad_even(array: np.ndarray, fill) -> np.ndarray:
-    """``array`` padded with ``fill`` at the bottom and right to even height and width."""
-    h, w = array.shape[:2]
-    if h % 2 == 0 and w % 2 == 0:
-        return array
-    padded = np.full((h + h % 2, w + w % 2, *array.shape[2:]), fill, dtype=array.dtype)
-    padded[:h, :w] = array
-    return padded
-
-
-def build_leaves(points: np.ndarray, normals: np.ndarray, n_t: float, d_t: float) -> tuple[Leaves, int]:
-    """Merge bottom-up (seed invariant 1, eq. 14 and the plane-distance test); return leaves and the root's region count.
-
-    Each level is padded with invalid pixels to even sides before its parents are
-    formed (the same as padding the image to a power of two, without the work).
-    """
-    valid = np.isfinite(normals[..., 0]) & np.isfinite(points[..., 2])
-    single = [valid]
-    count = [valid.astype(np.int64)]
-    ns = [np.where(valid[..., None], normals, 0.0).astype(np.float32)]
-    ps = [np.where(valid[..., None], points, 0.0).astype(np.float32)]
-    while single[-1].size > 1:
-        s, c = _pad_even(single[-1], False), _pad_even(count[-1], 0)
-        nn, pp = _pad_even(ns[-1], 0.0), _pad_even(ps[-1], 0.0)
-        children = ((slice(0, None, 2), slice(0, None, 2)), (slice(0, None, 2), slice(1, None, 2)),
-                    (slice(1, None, 2), slice(0, None, 2)), (slice(1, None, 2), slice(1, None, 2)))
-        all_single = s[children[0]] & s[children[1]] & s[children[2]] & s[children[3]]
-        n_avg = (nn[children[0]] + nn[children[1]] + nn[children[2]] + nn[children[3]]) * np.float32(0.25)
-        p_avg = (pp[children[0]] + pp[children[1]] + pp[children[2]] + pp[children[3]]) * np.float32(0.25)
-        length = np.linalg.norm(n_avg, axis=-1, keepdims=True)
-        unit = np.divide(n_avg, length, out=np.zeros_like(n_avg), where=length > 0)
-        merged = all_single.copy()
-        for k in children:
-            merged &= np.abs(n_avg - nn[k]).max(axis=-1) < n_t
-            merged &= np.abs(np.einsum("...i,...i->...", unit, pp[k] - p_avg)) < d_t
-        single.append(merged)
-        if not merged.any():
-            # nothing merges here, so nothing can above: the regions are the children's
-            total = np.zeros(merged.shape, dtype=np.int64)
-            total.flat[0] = int(c.sum())
-            count.append(total)
-            ns.append(n_avg)
-            ps.append(p_avg)
-            break
-        count.append(np.where(merged, 1, c[children[0]] + c[children[1]] + c[children[2]] + c[children[3]]))
-        ns.append(np.where(merged[..., None], n_avg, np.float32(0.0)))
-        ps.append(np.where(merged[..., None], p_avg, np.float32(0.0)))
-    levels, rows, cols, normal_list, point_list = [], [], [], [], []
-    for level, s in enumerate(single):
-        if level + 1 < len(single):
-            parent = np.repeat(np.repeat(single[level + 1], 2, axis=0), 2, axis=1)[: s.shape[0], : s.shape[1]]
-            leaf = s & ~parent
-        else:
-            leaf = s
-        r, c = np.nonzero(leaf)
-        if len(r) == 0:
-            continue
-        nv = ns[level][r, c].astype(np.float64)
-        normal_list.append(nv / np.linalg.norm(nv, axis=1, keepdims=True))
-        point_list.append(ps[level][r, c].astype(np.float64))
-        levels.append(np.full(len(r), level))
-        rows.append(r)
-        cols.append(c)
-    if not levels:
-        empty = np.zeros(0, dtype=np.int64)
-        return Leaves(empty, empty, empty, np.zeros((0, 3)), np.zeros((0, 3))), 0
-    leaves = Leaves(
-        np.concatenate(levels),
-        np.concatenate(rows),
-        np.concatenate(cols),
-        np.concatenate(normal_list),
-        np.concatenate(point_list),
-    )
-    return leaves, int(count[-1].sum())
 
 
 # ---------------------------------------------------------------------------
@@ -317,30 +163,6 @@ def _on_plane(rays: np.ndarray, normal: np.ndarray, point: np.ndarray) -> np.nda
     fallback = np.broadcast_to(point[..., 2], t.shape)
     t = np.where(np.isfinite(t) & (t > 0), t, fallback)
     return rays * t[..., None]
-
-
-def plane_residual(points: np.ndarray, leaves: Leaves, max_jump: float, largest: int = 2) -> np.ndarray:
-    """For leaves of up to ``largest`` pixels a side: the largest distance (m) of a same-surface pixel
-    of the leaf or its one-pixel ring from the leaf's plane (0 for bigger leaves, whose planes rest on
-    enough pixels)."""
-    residual = np.zeros(len(leaves.level))
-    h, w = points.shape[:2]
-    for side in (s for s in (1, 2, 4, 8) if s <= largest):
-        small = np.flatnonzero(leaves.size == side)
-        if len(small) == 0:
-            continue
-        top, left = leaves.row[small] * side, leaves.col[small] * side
-        own = leaves.point[small]
-        for dr in range(-1, side + 1):
-            for dc in range(-1, side + 1):
-                r, c = top + dr, left + dc
-                inside = (r >= 0) & (r < h) & (c >= 0) & (c < w)
-                neighbour = points[np.clip(r, 0, h - 1), np.clip(c, 0, w - 1)]
-                with np.errstate(invalid="ignore"):
-                    same = inside & (np.abs(neighbour[:, 2] - own[:, 2]) <= max_jump * own[:, 2])
-                    distance = np.abs(np.einsum("ij,ij->i", neighbour - own, leaves.normal[small]))
-                residual[small] = np.maximum(residual[small], np.where(same, distance, 0.0))
-    return residual
 
 
 def select(leaves: Leaves, keep: np.ndarray) -> Leaves:
@@ -538,34 +360,27 @@ def _gather(members: np.ndarray, starts: np.ndarray, faces: np.ndarray) -> np.nd
 
 
 def leaves_of_image(
-    depth: np.ndarray, intrinsics: Intrinsics, p: QuadTreeParameters, noise: SensorNoise, compiled: bool = True
+    depth: np.ndarray, intrinsics: Intrinsics, p: QuadTreeParameters, noise: SensorNoise
 ) -> tuple[np.ndarray, Intrinsics, Leaves]:
     """Smoothing, stages 1-5 and the small-leaf plane test: (reduced points, reduced intrinsics, kept leaves).
 
-    ``compiled``: the numba kernels of :mod:`mabdi.filters.quadtree_kernels` (when installed)
-    instead of the numpy functions above; both compute the same leaves. The leaves carry
-    ``regions``, the pyramid root's region count.
+    Stages 1-5 and the plane test are the numba kernels of :mod:`mabdi.filters.quadtree_kernels`.
+    The leaves carry ``regions``, the pyramid root's region count.
     """
     if p.smooth_depth:
         depth = smooth_depth_by_noise(depth, noise, intrinsics)
-    fast = compiled and kernels is not None
-    if fast and p.reduction > 1:
-        k = intrinsics
-        r = p.reduction
+    k = intrinsics
+    r = p.reduction
+    if r > 1:
         points = kernels.reduce_points_kernel(np.ascontiguousarray(depth, dtype=np.float64), r, k.fx, k.fy, k.cx, k.cy)
         h, w = points.shape[:2]
         reduced = Intrinsics(k.fx / r, k.fy / r, k.cx / r, k.cy / r, w, h, k.near, k.far)
-    else:
-        points, reduced = reduce_points(depth, intrinsics, p.reduction)
-    if fast:
-        normals = kernels.point_normals_kernel(np.ascontiguousarray(points), p.max_jump)
-        level, row, col, normal, point, regions = kernels.pyramid_kernel(points, normals, p.n_t, p.d_t)
-        leaves = Leaves(level, row, col, normal, point)
-        residual = kernels.plane_residual_kernel(points, level, row, col, normal, point, p.max_jump, 2)
-    else:
-        normals = point_normals(points, p.max_jump)
-        leaves, regions = build_leaves(points, normals, p.n_t, p.d_t)
-        residual = plane_residual(points, leaves, p.max_jump)
+    else:  # no reduction: every pixel back-projected through its centre
+        points, reduced = k.rays() * np.asarray(depth, dtype=np.float64)[..., None], k
+    normals = kernels.point_normals_kernel(np.ascontiguousarray(points), p.max_jump)
+    level, row, col, normal, point, regions = kernels.pyramid_kernel(points, normals, p.n_t, p.d_t)
+    leaves = Leaves(level, row, col, normal, point)
+    residual = kernels.plane_residual_kernel(points, level, row, col, normal, point, p.max_jump, 2)
     # a small leaf whose plane misses its own pixels or neighbours (a crease, a corner) gets no face
     depth_of_leaf = leaves.point[:, 2]
     allowed = np.maximum(
@@ -588,8 +403,6 @@ class FilterQuadTree(MabdiAlgorithm):
         self._noise = SensorNoise.of(noise)
         #: Region count of the last image (the pyramid root's, seed invariant 1).
         self.regions = 0
-        #: Run the per-pixel stages compiled (numba) when available; False: the numpy reference.
-        self.compiled = kernels is not None
 
     @property
     def parameters(self) -> QuadTreeParameters:
@@ -604,7 +417,7 @@ class FilterQuadTree(MabdiAlgorithm):
         intrinsics = image_intrinsics(image)
         pose = image_pose(image)
         p = self._parameters
-        points, reduced, leaves = leaves_of_image(depth_array(image), intrinsics, p, self._noise, compiled=self.compiled)
+        points, reduced, leaves = leaves_of_image(depth_array(image), intrinsics, p, self._noise)
         self.regions = leaves.regions
         output = vtkPolyData.GetData(outInfo)
         mesh = vtkPolyData()

@@ -1,10 +1,11 @@
 """Compiled (numba) versions of FilterQuadTree's per-pixel stages: reduce, normals, pyramid, residual.
 
-Each function computes what its numpy twin in :mod:`mabdi.filters.quadtree`
-computes (same rules, same float32 pyramid), one pixel or node at a time
-instead of whole-array passes: the numpy versions spend most of their time
-allocating and re-reading 640x480 temporaries. The numpy versions stay as
-the reference (a test compares the two) and as the fallback without numba.
+Each function computes what its numpy reference computes (same rules, same
+float32 pyramid), one pixel or node at a time instead of whole-array passes:
+the numpy versions spend most of their time allocating and re-reading 640x480
+temporaries. The numpy versions are kept with the tests, not in the package
+(tests/reference_kernels.py: ``reduce_points``, ``point_normals``,
+``build_leaves``, ``plane_residual``); a test compares the two on Run 1.
 """
 
 from __future__ import annotations
@@ -52,7 +53,7 @@ def reduce_points_kernel(depth, r, fx, fy, cx, cy):
 
 @njit(cache=True)
 def point_normals_kernel(points, max_jump):
-    """(H, W, 3) unit normals facing the camera, as :func:`mabdi.filters.quadtree.point_normals`."""
+    """(H, W, 3) unit normals facing the camera, as the numpy reference ``point_normals`` (tests/reference_kernels.py)."""
     height, width = points.shape[0], points.shape[1]
     normals = np.full((height, width, 3), np.nan)
     du = np.empty(3)
@@ -96,7 +97,7 @@ def point_normals_kernel(points, max_jump):
 
 @njit(cache=True)
 def pyramid_kernel(points, normals, n_t, d_t):
-    """Leaves of the merge pyramid, as :func:`mabdi.filters.quadtree.build_leaves`.
+    """Leaves of the merge pyramid, as the numpy reference ``build_leaves`` (tests/reference_kernels.py).
 
     Returns (level, row, col, normal (float64, unit), point, root region count).
     """
@@ -215,7 +216,7 @@ def pyramid_kernel(points, normals, n_t, d_t):
 
 @njit(cache=True)
 def plane_residual_kernel(points, level, row, col, normal, point, max_jump, largest):
-    """As :func:`mabdi.filters.quadtree.plane_residual`: for leaves up to ``largest`` pixels a side, the
+    """As the numpy reference ``plane_residual`` (tests/reference_kernels.py): for leaves up to ``largest`` pixels a side, the
     largest distance of a same-surface pixel of the leaf or its ring from the leaf's plane."""
     height, width = points.shape[0], points.shape[1]
     residual = np.zeros(level.shape[0])

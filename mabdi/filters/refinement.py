@@ -98,8 +98,8 @@ Cost: ``stride`` samples every stride-th pixel in u and v (2: a quarter of the
 pixels; the samples of successive frames fall on different surface points as
 the camera moves). The per-pixel work on each block in view runs in one
 numba kernel (:mod:`mabdi.filters.refinement_kernels`) that adds straight
-into the block's sums; :func:`observe_block` is its numpy reference and the
-fallback (``MapRefinement.compiled = False``). Per block only the state
+into the block's sums (its numpy reference lives with the test that compares
+the two, tests/reference_kernels.py). Per block only the state
 arrays are kept (original positions, normals, prior, sums, offsets); a block
 rebuilt with faces removed keeps its points in order, so its state is
 carried over by one in-order walk. Measured on a 2-core machine (``kinect``
@@ -124,10 +124,7 @@ from mabdi.filters.classifier import NO_RETURN
 from mabdi.filters.expected_image import FACE_ID_ARRAY, face_id_array
 from mabdi.filters.world_mesh import FRAME_CELL_ARRAY, patch_triangles
 
-try:
-    from mabdi.filters import refinement_kernels as kernels
-except ImportError:  # pragma: no cover - numba is a dependency; the numpy reference works without it
-    kernels = None
+from mabdi.filters import refinement_kernels as kernels
 
 #: Blocks of these key prefixes are refined (pixel grid and quad-tree patches); voxel planes use ``patch_``.
 REFINED_PREFIX = "frame_"
@@ -239,9 +236,6 @@ class MapRefinement:
 
     def __init__(self, parameters: RefinementParameters | None = None) -> None:
         self.parameters = parameters if parameters is not None else RefinementParameters()
-        #: the per-pixel work in the numba kernel (:mod:`mabdi.filters.refinement_kernels`) when installed;
-        #: False: the numpy reference (:func:`observe_block`)
-        self.compiled = True
         self._blocks: dict[str, _BlockState] = {}
         self._poses: dict[int, np.ndarray] = {}
         self._source_poses: np.ndarray | None = None
@@ -317,11 +311,11 @@ class MapRefinement:
         return np.maximum(sigma, sigma.dtype.type(self.parameters.min_sigma))
 
     def _match_points(self, old: np.ndarray, new: np.ndarray) -> np.ndarray:
-        """For each point of a rebuilt block, its index in the old block (-1: none)."""
-        if self.compiled and kernels is not None:
-            where = kernels.match_kept_points_kernel(old, np.ascontiguousarray(new, dtype=old.dtype))
-            if where is not None:
-                return where
+        """For each point of a rebuilt block, its index in the old block (-1: none): the compiled in-order walk,
+        or where the block gained points or changed their order, :func:`_match_rows`."""
+        where = kernels.match_kept_points_kernel(old, np.ascontiguousarray(new, dtype=old.dtype))
+        if where is not None:
+            return where
         return _match_rows(old, new)
 
     def _register(self, key: str, patch: vtkPolyData, loop, pose: np.ndarray) -> _BlockState:
@@ -423,10 +417,7 @@ class MapRefinement:
                 sigma_d[chosen], centre, focal, cos_grazing, p.gate_k, p.replace, p.replace_ratio,
                 p.replace_share, p.radius_px,
             )  # fmt: skip
-            if self.compiled and kernels is not None:
-                gone, count, vertices = kernels.observe_block_kernel(*arguments)
-            else:
-                gone, count, vertices = observe_block(*arguments)
+            gone, count, vertices = kernels.observe_block_kernel(*arguments)
             if gone.any():
                 replaced.append(ids[chosen][gone])
             observed += int(count)
@@ -455,79 +446,3 @@ class MapRefinement:
             result.replaced = np.unique(np.concatenate(replaced))
         result.t_ms = 1000.0 * (time.perf_counter() - start)
         return result
-
-
-def observe_block(
-    triangles, points, original, normal, prior, weight, total,
-    cells, rays, measured, expected, length, sd, centre,
-    focal, cos_grazing, gate_k, replace, replace_ratio, replace_share, radius_px,
-):  # fmt: skip
-    """One block's pixels (``cells``: the face each shows; ``rays`` unit world rays, ``measured`` and
-    ``expected`` z-depths D and E, ``length`` ray metres per metre of z-depth, ``sd`` sigma(D), ``centre`` the
-    camera's position, ``focal`` in pixels): adds the observations to the block's ``weight`` and ``total`` in
-    place (see the module docs); returns (per pixel: its face is replaced, pixels that observed, vertices whose
-    weight grew). The numpy reference of :func:`mabdi.filters.refinement_kernels.observe_block_kernel`."""
-    tri = triangles[cells]
-    corners = points[tri].astype(np.float64)  # (n, 3, 3) current positions
-    a = corners[:, 0]
-    e1, e2 = corners[:, 1] - a, corners[:, 2] - a
-    face_normal = np.cross(e1, e2)
-    norm = np.linalg.norm(face_normal, axis=1)
-    cosine = np.abs(np.einsum("ij,ij->i", rays, face_normal)) / np.where(norm > 0, norm, 1.0)
-    facing = (norm > 0) & (cosine >= cos_grazing)
-
-    # same surface: D within the gate around E that both uncertainties allow (the face's and the pixel's)
-    face_var = (1.0 / (prior[tri] + weight[tri])).mean(axis=1)
-    same = facing & (np.abs(measured - expected) <= gate_k * np.sqrt(sd**2 + face_var))
-
-    # replacement: faces made from a much noisier look than this one
-    better = same & (face_var >= (replace_ratio * sd) ** 2)
-    gone = np.zeros(len(cells), dtype=bool)
-    if replace and better.any():
-        _, face_of_pixel = np.unique(cells, return_inverse=True)  # the block's faces in view, compacted
-        votes = np.bincount(face_of_pixel, weights=better)
-        counts = np.bincount(face_of_pixel, weights=facing)
-        gone = ((votes >= replace_share * counts) & (votes > 0))[face_of_pixel]
-
-    # refinement: pixels on the same surface as faces that stay
-    use = same & ~gone
-    if not use.any():
-        return gone, 0, np.zeros(0, dtype=np.int64)
-    tri, w, sd = tri[use], rays[use], sd[use]
-    e_ray = expected[use] * length[use]
-    d_ray = measured[use] * length[use]
-    hit = centre + w * e_ray[:, None]
-    beta = _barycentric(hit - a[use], e1[use], e2[use])
-    # the measured point, on the pixel's ray at D: the hit point moved by the residual along the ray
-    measured_point = hit + w * (d_ray - e_ray)[:, None]
-    # each corner's observation: the measured point's offset from the corner's original position along the
-    # corner's normal, from pixels within radius_px footprints of the corner across that normal only
-    toward = measured_point[:, None, :] - original[tri]  # (n, 3 corners, 3)
-    corner_normal = normal[tri]
-    offset = np.einsum("ikj,ikj->ik", corner_normal, toward)
-    across = np.linalg.norm(toward - offset[..., None] * corner_normal, axis=2)
-    radius = radius_px * measured[use] / focal
-    contribution = np.where(across <= radius[:, None], beta * (cosine[use] / sd**2)[:, None], 0.0)
-    # sums per corner vertex, over the block's vertices in view only (compacted; a block may hold a whole
-    # frame's 300k vertices)
-    vertices, corner_of = np.unique(tri.ravel(), return_inverse=True)
-    gained = np.bincount(corner_of, weights=contribution.ravel())
-    weight[vertices] += gained
-    total[vertices] += np.bincount(corner_of, weights=(contribution * offset).ravel())
-    return gone, int(use.sum()), vertices[gained > 0]
-
-
-def _barycentric(v: np.ndarray, e1: np.ndarray, e2: np.ndarray) -> np.ndarray:
-    """(n, 3) barycentric weights of points a + v on triangles (a, a + e1, a + e2), clipped to the triangle
-    (a hit a rounding error outside its face counts on the nearest side) and normalised."""
-    d00 = np.einsum("ij,ij->i", e1, e1)
-    d01 = np.einsum("ij,ij->i", e1, e2)
-    d11 = np.einsum("ij,ij->i", e2, e2)
-    d20 = np.einsum("ij,ij->i", v, e1)
-    d21 = np.einsum("ij,ij->i", v, e2)
-    denominator = d00 * d11 - d01 * d01
-    denominator = np.where(denominator > 0, denominator, 1.0)
-    b1 = (d11 * d20 - d01 * d21) / denominator
-    b2 = (d00 * d21 - d01 * d20) / denominator
-    beta = np.clip(np.stack([1.0 - b1 - b2, b1, b2], axis=1), 0.0, 1.0)
-    return beta / np.maximum(beta.sum(axis=1, keepdims=True), 1e-12)

@@ -1,11 +1,12 @@
 """Compiled (numba) version of the refinement's per-pixel work on one block.
 
-:func:`observe_block_kernel` computes what
-:func:`mabdi.filters.refinement.observe_block` computes (same rules, see
-:mod:`mabdi.filters.refinement`), one pixel at a time and straight into the
+:func:`observe_block_kernel` applies the rules of
+:mod:`mabdi.filters.refinement` one pixel at a time and straight into the
 block's sums, instead of whole-array passes with (pixels, 3 corners, 3)
-temporaries and a sort of the vertices in view. The numpy function stays as
-the reference and the fallback without numba; a test checks that both agree.
+temporaries and a sort of the vertices in view. The numpy version it was
+written from, ``observe_block``, is kept with the tests
+(tests/reference_kernels.py), and a test checks that both agree on every
+block call of a run.
 """
 
 from __future__ import annotations
@@ -20,8 +21,11 @@ def observe_block_kernel(
     cells, rays, measured, expected, length, sd, centre,
     focal, cos_grazing, gate_k, replace, replace_ratio, replace_share, radius_px,
 ):  # fmt: skip
-    """One block's pixels (``cells``: the face each shows): adds the observations to ``weight`` and ``total``
-    in place; returns (per pixel: its face is replaced, pixels that observed, vertices whose weight grew)."""
+    """One block's pixels (``cells``: the face each shows; ``rays`` unit world rays, ``measured`` and
+    ``expected`` z-depths D and E, ``length`` ray metres per metre of z-depth, ``sd`` sigma(D), ``centre`` the
+    camera's position, ``focal`` in pixels): adds the observations to the block's ``weight`` and ``total`` in
+    place (see :mod:`mabdi.filters.refinement`); returns (per pixel: its face is replaced, pixels that
+    observed, vertices whose weight grew)."""
     n = len(cells)
     facing = np.zeros(n, dtype=np.bool_)
     same = np.zeros(n, dtype=np.bool_)
