@@ -11,6 +11,8 @@ that a test can hand both the same inputs and check that they agree:
   with these stages); tests/test_quadtree.py.
 * refinement's per-block work (:mod:`mabdi.filters.refinement_kernels`):
   :func:`observe_block`; tests/test_refinement.py.
+* voxel traversal (:mod:`mabdi.filters.voxel_traversal`): :func:`reference_voxels`
+  and :func:`reference_pairs`; tests/test_voxel_traversal.py.
 """
 
 from __future__ import annotations
@@ -20,6 +22,7 @@ import numpy as np
 from mabdi.camera import Intrinsics
 from mabdi.filters.depth_smoothing import smooth_depth_by_noise
 from mabdi.filters.quadtree import RESIDUAL_FOOTPRINTS, Leaves, select
+from mabdi.filters.voxel_traversal import prepare_rays
 
 # ---------------------------------------------------------------------------
 # quad-tree (mabdi.filters.quadtree_kernels)
@@ -291,3 +294,64 @@ def _barycentric(v: np.ndarray, e1: np.ndarray, e2: np.ndarray) -> np.ndarray:
     b2 = (d00 * d21 - d01 * d20) / denominator
     beta = np.clip(np.stack([1.0 - b1 - b2, b1, b2], axis=1), 0.0, 1.0)
     return beta / np.maximum(beta.sum(axis=1, keepdims=True), 1e-12)
+
+
+# ---------------------------------------------------------------------------
+# voxel traversal (mabdi.filters.voxel_traversal)
+
+
+def reference_voxels(origins, ends, voxel_size: float, margins=0.0, *, include_end: bool = True) -> np.ndarray:
+    """:func:`mabdi.filters.voxel_traversal.traverse_voxels` in numpy, exactly (the tests' reference).
+
+    Candidates: the voxels of samples every s/4 along each segment (its end included) and their 26
+    neighbours (between two samples each coordinate moves less than a voxel, so every crossed voxel is
+    among them); each candidate is kept when the slab intersection of the voxel with [0, T) has
+    positive length (and, without ``include_end``, the ray leaves the voxel at t <= T).
+    """
+    _, voxels = reference_pairs(origins, ends, voxel_size, margins, include_end=include_end)
+    return np.unique(voxels, axis=0) if len(voxels) else voxels
+
+
+def reference_pairs(origins, ends, voxel_size: float, margins=0.0, *, include_end: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`mabdi.filters.voxel_traversal.ray_voxels` in numpy (see :func:`reference_voxels`): ray indices (K,) and voxels (K, 3),
+    by ray and along it."""
+    origins, ends, margins = prepare_rays(origins, ends, margins)
+    s = float(voxel_size)
+    delta = ends - origins
+    length = np.linalg.norm(delta, axis=1)
+    limit = length - margins
+    rays = np.flatnonzero(limit > 0)
+    found_rays, found_voxels = [np.zeros(0, dtype=np.int64)], [np.zeros((0, 3), dtype=np.int64)]
+    neighbours = np.stack(np.meshgrid(*[np.arange(-1, 2)] * 3, indexing="ij"), axis=-1).reshape(-1, 3)
+    step = s / 4
+    chunks = max(1, int(np.ceil((limit[rays] / step + 2).sum() / 100_000))) if len(rays) else 1
+    for chunk in np.array_split(rays, chunks):
+        if len(chunk) == 0:
+            continue
+        u = delta[chunk] / length[chunk, None]
+        samples = np.ceil(limit[chunk] / step).astype(np.int64) + 1
+        ray = np.repeat(np.arange(len(chunk)), samples)
+        k = np.arange(samples.sum()) - np.repeat(np.cumsum(samples) - samples, samples)
+        t = np.minimum(k * step, limit[chunk][ray])
+        points = origins[chunk][ray] + t[:, None] * u[ray]
+        voxels = np.floor(points / s).astype(np.int64)
+        candidates = (voxels[:, None, :] + neighbours[None]).reshape(-1, 3)
+        owner = np.repeat(ray, len(neighbours))
+        pairs = np.unique(np.column_stack([owner, candidates]), axis=0)
+        owner, candidates = pairs[:, 0], pairs[:, 1:]
+        o, d = origins[chunk][owner], u[owner]
+        lower, upper = candidates * s, (candidates + 1) * s
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t1, t2 = (lower - o) / d, (upper - o) / d
+        moving = d != 0
+        inside = (lower <= o) & (o < upper)
+        enter = np.where(moving, np.minimum(t1, t2), np.where(inside, -np.inf, np.inf)).max(axis=1)
+        leave = np.where(moving, np.maximum(t1, t2), np.where(inside, np.inf, -np.inf)).min(axis=1)
+        end = limit[chunk][owner]
+        crossed = np.maximum(enter, 0.0) < np.minimum(leave, end)
+        if not include_end:
+            crossed &= leave <= end
+        order = np.lexsort((enter[crossed], owner[crossed]))
+        found_rays.append(chunk[owner[crossed][order]])
+        found_voxels.append(candidates[crossed][order])
+    return np.concatenate(found_rays), np.concatenate(found_voxels)

@@ -2,12 +2,13 @@
 
 import numpy as np
 import pytest
+from reference_kernels import reference_pairs, reference_voxels
 
 import mabdi.filters.voxel_map as voxel_map
 import mabdi.filters.voxel_traversal as voxel_traversal
 from mabdi.filters.voxel_map import VoxelMap
 from mabdi.filters.voxel_planes import FilterVoxelPlanes
-from mabdi.filters.voxel_traversal import ray_voxels, reference_pairs, reference_voxels, traverse_voxels
+from mabdi.filters.voxel_traversal import ray_voxels, traverse_voxels
 
 
 def _along_x(xs):
@@ -74,12 +75,11 @@ def test_traversal_matches_the_exact_reference_on_random_rays(include_end, monke
         np.testing.assert_array_equal(voxels, ref_voxels)
         steps = np.abs(np.diff(voxels, axis=0)).sum(axis=1)[np.diff(rays) == 0]
         assert steps.max() == 1  # consecutive voxels of a ray share a face
-    # the sort path (a bounding box too big for the mask) and the numpy fallback agree
+    # the sort path (a bounding box too big for the mask) agrees with the mask and the numpy reference
     compiled = traverse_voxels(origins, ends, 0.1, margins, include_end=include_end)
     monkeypatch.setattr(voxel_traversal, "MASK_VOXELS", 0)
     np.testing.assert_array_equal(traverse_voxels(origins, ends, 0.1, margins, include_end=include_end), compiled)
-    monkeypatch.setattr(voxel_traversal, "njit", None)
-    np.testing.assert_array_equal(traverse_voxels(origins, ends, 0.1, margins, include_end=include_end), compiled)
+    np.testing.assert_array_equal(reference_voxels(origins, ends, 0.1, margins, include_end=include_end), compiled)
 
 
 def test_traversal_inputs():
@@ -162,9 +162,11 @@ def test_compiled_and_numpy_clearing_agree(monkeypatch):
     ends = rng.normal([0.5, 1.0, 0.2], 1.0, (800, 3))
     margins = rng.uniform(0.0, 0.05, 800)
     results = []
-    for patch in (None, ("CLEAR_BLOCKS", voxel_map), ("njit", voxel_traversal)):
+    # the compiled pass; the numpy path around the compiled traversal (CLEAR_BLOCKS 0); that path with the
+    # numpy reference traversal
+    for patch in (None, ("CLEAR_BLOCKS", voxel_map, 0), ("ray_voxels", voxel_traversal, reference_pairs)):
         if patch is not None:
-            monkeypatch.setattr(patch[1], patch[0], 0 if patch[0] == "CLEAR_BLOCKS" else None)
+            monkeypatch.setattr(patch[1], patch[0], patch[2])
         voxels = VoxelMap()
         voxels.add_points(points)
         cleared = voxels.clear_free_space(origins, ends, margins)

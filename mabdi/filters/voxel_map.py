@@ -20,8 +20,8 @@ centroid is corner + S1 / n and the covariance S2 / n - (S1 / n)(S1 / n)^T.
 Adding points only adds to these sums, so the map is incremental and the
 order of the points does not matter (up to float64 rounding). The sums are
 accumulated by three compiled passes over the points (numba) when the
-touched blocks fit a dense box of a million blocks, else (and without
-numba) by numpy bincounts.
+touched blocks fit a dense box of a million blocks, else by numpy
+bincounts.
 
 Colour: when points come with colours (uint8 RGB, :meth:`VoxelMap.add_points`'s
 ``colours``), the map keeps beside the statistics, per voxel, the number of
@@ -65,10 +65,7 @@ import numpy as np
 from mabdi.errors import ConfigError
 from mabdi.filters import voxel_traversal
 
-try:
-    from numba import njit
-except ImportError:  # pragma: no cover - numba is a dependency; add_points has a numpy path
-    njit = None
+from numba import njit
 
 #: Statistics per voxel: n, S1 (x, y, z), S2 (xx, xy, xz, yy, yz, zz).
 STATS = 10
@@ -187,10 +184,9 @@ def _accumulate(px, py, pz, s, b, low, box, compact_of_box, slot_of_compact, sta
             sums[3] += rgb[i, 2]
 
 
-if njit is not None:
-    _block_range = njit(cache=True)(_block_range)
-    _mark_blocks = njit(cache=True)(_mark_blocks)
-    _accumulate = njit(cache=True)(_accumulate)
+_block_range = njit(cache=True)(_block_range)
+_mark_blocks = njit(cache=True)(_mark_blocks)
+_accumulate = njit(cache=True)(_accumulate)
 
 
 @dataclass(frozen=True)
@@ -368,31 +364,16 @@ class VoxelMap:
             self._colour = np.zeros(self._stats.shape[:2] + (COLOUR_STATS,), dtype=np.float32)
         # per axis, contiguous: column arithmetic on (M, 3) arrays is strided and several times slower
         columns = [np.ascontiguousarray(points[:, axis]) for axis in range(3)]
-        if njit is not None:
-            changed = self._add_compiled(columns, colours)
-            if changed is not None:
-                self.last_changed = changed
-                return changed
+        changed = self._add_compiled(columns, colours)
+        if changed is not None:
+            self.last_changed = changed
+            return changed
+        # the points' blocks are too spread for the compiled passes' dense box: numpy sums over the touched blocks
         voxel = [np.floor(c / s).astype(np.int64) for c in columns]
         block = [v // b for v in voxel]
-        low = np.array([c.min() for c in block])
-        high = np.array([c.max() for c in block])
-        if max(np.abs(low).max(), np.abs(high).max()) >= _PACK_OFFSET:
-            raise ValueError("VoxelMap.add_points: points lie outside the +-1000 km the block keys can address")
         local_flat = ((voxel[0] - block[0] * b) * b + (voxel[1] - block[1] * b)) * b + (voxel[2] - block[2] * b)
-        box = high - low + 1
-        if int(np.prod(box)) <= 1 << 20:
-            # the frame's blocks fit a small dense box: find the touched ones without sorting
-            box_flat = ((block[0] - low[0]) * box[1] + (block[1] - low[1])) * box[2] + (block[2] - low[2])
-            present = np.flatnonzero(np.bincount(box_flat, minlength=int(np.prod(box))))
-            compact_of_box = np.empty(int(np.prod(box)), dtype=np.int64)
-            compact_of_box[present] = np.arange(len(present))
-            compact = compact_of_box[box_flat]
-            coords = np.stack([present // (box[1] * box[2]), (present // box[2]) % box[1], present % box[2]], axis=1)
-            touched = pack_keys(coords + low)
-        else:
-            touched, compact = np.unique(pack_keys(np.stack(block, axis=1)), return_inverse=True)
-            compact = compact.ravel()
+        touched, compact = np.unique(pack_keys(np.stack(block, axis=1)), return_inverse=True)
+        compact = compact.ravel()
         self._allocate(np.sort(touched))
         slots = self.block_slots(touched)
         b3 = b**3
@@ -489,8 +470,8 @@ class VoxelMap:
         through its points (:func:`mabdi.filters.voxel_traversal.seen_through`: it passes within
         3 sigma of their Gaussian before the pulled-back end), so a ray that grazes the surface it
         measures, or passes beside points in a voxel it crosses, leaves them. One compiled pass walks the rays and flags the crossed voxels that hold points (when the
-        rays' blocks fit a dense table of :data:`CLEAR_BLOCKS` blocks); otherwise, and without
-        numba, :meth:`clear_voxels` of the traversal.
+        rays' blocks fit a dense table of :data:`CLEAR_BLOCKS` blocks); otherwise :meth:`clear_voxels`
+        of the traversal.
         """
         origins, ends, margins = voxel_traversal.prepare_rays(origins, ends, margins)
         s, b = self.voxel_size, self.block_voxels
@@ -499,7 +480,7 @@ class VoxelMap:
         low, dims = voxel_traversal.voxel_box(origins, ends, margins, s)
         block_low = np.floor_divide(low, b)
         block_dims = np.floor_divide(low + dims - 1, b) - block_low + 1
-        if voxel_traversal.njit is None or float(np.prod(block_dims.astype(np.float64))) > CLEAR_BLOCKS:
+        if float(np.prod(block_dims.astype(np.float64))) > CLEAR_BLOCKS:
             return self.clear_voxels(self._seen_through(origins, ends, margins))
         coords = unpack_keys(self._keys) - block_low
         inside = np.flatnonzero(((coords >= 0) & (coords < block_dims)).all(axis=1))
@@ -513,7 +494,8 @@ class VoxelMap:
         return self._clear(self._voxels_of(self._keys[inside][compact], flat), slots[compact], flat)
 
     def _seen_through(self, origins: np.ndarray, ends: np.ndarray, margins: np.ndarray) -> np.ndarray:
-        """The voxels :meth:`clear_free_space` empties, from every (ray, voxel) crossing (numpy; the reference)."""
+        """The voxels :meth:`clear_free_space` empties, from every (ray, voxel) crossing: for rays whose blocks
+        do not fit the compiled pass's table (a test checks that both give the same map)."""
         rays, voxels = voxel_traversal.ray_voxels(origins, ends, self.voxel_size, margins, include_end=False)
         moments = self.moments(voxels)
         occupied = moments[:, 0] > 0

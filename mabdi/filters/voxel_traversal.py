@@ -35,9 +35,9 @@ next boundary crossing from the voxel index (no accumulated tDelta drift).
 Rays run in parallel threads (numba ``prange``). The voxels of all rays are
 de-duplicated by a byte mask over their bounding box when it holds at most
 :data:`MASK_VOXELS` voxels (a frame's rays from one camera), else by a
-count-then-fill pass and a sort. Without numba, :func:`reference_voxels`
-(numpy, exact slab tests around samples at s/4 steps) is the fallback; it is
-also the tests' reference.
+count-then-fill pass and a sort. The tests' reference, ``reference_voxels``
+and ``reference_pairs`` (numpy, exact slab tests around samples at s/4 steps),
+is kept with them (tests/reference_kernels.py).
 """
 
 from __future__ import annotations
@@ -46,14 +46,11 @@ import os
 
 import numpy as np
 
-try:
-    from numba import config, njit, prange
-except ImportError:  # pragma: no cover - numba is a dependency; reference_voxels is the fallback
-    njit = None
-else:
-    if "NUMBA_THREADING_LAYER" not in os.environ:
-        # numba's own thread pool (as mabdi.maps.neighbourhood): no warning about another package's old TBB
-        config.THREADING_LAYER = "workqueue"
+from numba import config, njit, prange
+
+if "NUMBA_THREADING_LAYER" not in os.environ:
+    # numba's own thread pool (as mabdi.maps.neighbourhood): no warning about another package's old TBB
+    config.THREADING_LAYER = "workqueue"
 
 #: Largest bounding box (in voxels) de-duplicated by a byte mask; beyond it, a sort.
 MASK_VOXELS = 1 << 25
@@ -272,14 +269,13 @@ def flag_occupied(origins, ends, margins, voxel_size, include_end, block_voxels,
     _flag_kernel(origins, ends, margins, float(voxel_size), include_end, np.int64(block_voxels), block_low, block_dims, compact_of_box, slots, stats, flags)
 
 
-if njit is not None:
-    seen_through = njit(cache=True, inline="always")(seen_through)
-    _compact = njit(cache=True, inline="always")(_compact)
-    _walk = njit(cache=True, inline="always")(_walk)
-    _count_kernel = njit(cache=True, parallel=True)(_count_kernel)
-    _fill_kernel = njit(cache=True, parallel=True)(_fill_kernel)
-    _mask_kernel = njit(cache=True, parallel=True)(_mask_kernel)
-    _flag_kernel = njit(cache=True, parallel=True)(_flag_kernel)
+seen_through = njit(cache=True, inline="always")(seen_through)
+_compact = njit(cache=True, inline="always")(_compact)
+_walk = njit(cache=True, inline="always")(_walk)
+_count_kernel = njit(cache=True, parallel=True)(_count_kernel)
+_fill_kernel = njit(cache=True, parallel=True)(_fill_kernel)
+_mask_kernel = njit(cache=True, parallel=True)(_mask_kernel)
+_flag_kernel = njit(cache=True, parallel=True)(_flag_kernel)
 
 
 def prepare_rays(origins, ends, margins=0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -338,8 +334,6 @@ def traverse_voxels(origins, ends, voxel_size: float, margins=0.0, *, include_en
     s = float(voxel_size)
     if len(ends) == 0:
         return np.zeros((0, 3), dtype=np.int64)
-    if njit is None:
-        return reference_voxels(origins, ends, s, margins, include_end=include_end)
     low, dims = voxel_box(origins, ends, margins, s)
     volume = float(np.prod(dims.astype(np.float64)))
     if volume <= MASK_VOXELS:
@@ -366,68 +360,8 @@ def _pairs(origins, ends, margins, s, include_end):
 
 def ray_voxels(origins, ends, voxel_size: float, margins=0.0, *, include_end: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """Every (ray, voxel) crossing: ray indices (K,) and voxel indices (K, 3) int64, by ray, each ray's
-    voxels in order along it; arguments as :func:`traverse_voxels`. Compiled count-then-fill passes
-    (:func:`reference_voxels`' pairs without numba)."""
+    voxels in order along it; arguments as :func:`traverse_voxels`. Compiled count-then-fill passes."""
     if not voxel_size > 0:
         raise ValueError(f"voxel traversal: voxel_size must be > 0 m, got {voxel_size}")
     origins, ends, margins = prepare_rays(origins, ends, margins)
-    if njit is None:
-        return reference_pairs(origins, ends, float(voxel_size), margins, include_end=include_end)
     return _pairs(origins, ends, margins, float(voxel_size), include_end)
-
-
-def reference_voxels(origins, ends, voxel_size: float, margins=0.0, *, include_end: bool = True) -> np.ndarray:
-    """:func:`traverse_voxels` in numpy, exactly (the tests' reference and the fallback without numba).
-
-    Candidates: the voxels of samples every s/4 along each segment (its end included) and their 26
-    neighbours (between two samples each coordinate moves less than a voxel, so every crossed voxel is
-    among them); each candidate is kept when the slab intersection of the voxel with [0, T) has
-    positive length (and, without ``include_end``, the ray leaves the voxel at t <= T).
-    """
-    _, voxels = reference_pairs(origins, ends, voxel_size, margins, include_end=include_end)
-    return np.unique(voxels, axis=0) if len(voxels) else voxels
-
-
-def reference_pairs(origins, ends, voxel_size: float, margins=0.0, *, include_end: bool = True) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`ray_voxels` in numpy (see :func:`reference_voxels`): ray indices (K,) and voxels (K, 3),
-    by ray and along it."""
-    origins, ends, margins = prepare_rays(origins, ends, margins)
-    s = float(voxel_size)
-    delta = ends - origins
-    length = np.linalg.norm(delta, axis=1)
-    limit = length - margins
-    rays = np.flatnonzero(limit > 0)
-    found_rays, found_voxels = [np.zeros(0, dtype=np.int64)], [np.zeros((0, 3), dtype=np.int64)]
-    neighbours = np.stack(np.meshgrid(*[np.arange(-1, 2)] * 3, indexing="ij"), axis=-1).reshape(-1, 3)
-    step = s / 4
-    chunks = max(1, int(np.ceil((limit[rays] / step + 2).sum() / 100_000))) if len(rays) else 1
-    for chunk in np.array_split(rays, chunks):
-        if len(chunk) == 0:
-            continue
-        u = delta[chunk] / length[chunk, None]
-        samples = np.ceil(limit[chunk] / step).astype(np.int64) + 1
-        ray = np.repeat(np.arange(len(chunk)), samples)
-        k = np.arange(samples.sum()) - np.repeat(np.cumsum(samples) - samples, samples)
-        t = np.minimum(k * step, limit[chunk][ray])
-        points = origins[chunk][ray] + t[:, None] * u[ray]
-        voxels = np.floor(points / s).astype(np.int64)
-        candidates = (voxels[:, None, :] + neighbours[None]).reshape(-1, 3)
-        owner = np.repeat(ray, len(neighbours))
-        pairs = np.unique(np.column_stack([owner, candidates]), axis=0)
-        owner, candidates = pairs[:, 0], pairs[:, 1:]
-        o, d = origins[chunk][owner], u[owner]
-        lower, upper = candidates * s, (candidates + 1) * s
-        with np.errstate(divide="ignore", invalid="ignore"):
-            t1, t2 = (lower - o) / d, (upper - o) / d
-        moving = d != 0
-        inside = (lower <= o) & (o < upper)
-        enter = np.where(moving, np.minimum(t1, t2), np.where(inside, -np.inf, np.inf)).max(axis=1)
-        leave = np.where(moving, np.maximum(t1, t2), np.where(inside, np.inf, -np.inf)).min(axis=1)
-        end = limit[chunk][owner]
-        crossed = np.maximum(enter, 0.0) < np.minimum(leave, end)
-        if not include_end:
-            crossed &= leave <= end
-        order = np.lexsort((enter[crossed], owner[crossed]))
-        found_rays.append(chunk[owner[crossed][order]])
-        found_voxels.append(candidates[crossed][order])
-    return np.concatenate(found_rays), np.concatenate(found_voxels)
