@@ -4,30 +4,23 @@ Sethian's fast marching: vertices are *known* (their arrival time is final),
 *trial* (a tentative time, in a binary heap) or *far*. The trial vertex with
 the smallest time becomes known, and each triangle around it updates its
 other corners from their known neighbours with the first-order triangle
-update (:func:`_update`, the package's one copy: :mod:`mabdi.maps.planning`'s
-iterative solver calls it too, through :func:`triangle_updates`; non-causal
+update (:func:`_update`, the one copy: the numpy fast iterative solver the
+tests compare against calls it too, through :func:`triangle_updates`; non-causal
 updates, as in obtuse triangles, fall back to the edge updates). The heap allows stale entries (a vertex pushed
 again with a smaller time; the old entry is skipped when popped).
 
 The loop is sequential by nature, so it is compiled with numba (compiled on
 the first call, cached on disk after; its cost on a million vertices:
-docs/benchmarks.md, section "Mesh maps"). :func:`fast_marching_available` tells whether numba is
-installed; without it :mod:`mabdi.maps.planning` uses its vectorised
-iterative solver, which gives the same times much more slowly.
+docs/benchmarks.md, section "Mesh maps"). The vectorised fast iterative
+solver in numpy, which gives the same times much more slowly, is kept with
+the tests as the reference (tests/reference_kernels.py).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-try:
-    from numba import njit
-except ImportError:  # pragma: no cover - numba is a dependency; the planner falls back without it
-    njit = None
-
-
-def fast_marching_available() -> bool:
-    return njit is not None
+from numba import njit
 
 
 def _update(c, a, b, ta, tb, s):
@@ -134,15 +127,14 @@ def _march(vertices, faces, starts, incident, slowness, blocked, source):
     return times
 
 
-if njit is not None:
-    _update = njit(cache=True, fastmath=False)(_update)
-    _updates = njit(cache=True)(_updates)
-    _march = njit(cache=True)(_march)
+_update = njit(cache=True, fastmath=False)(_update)
+_updates = njit(cache=True)(_updates)
+_march = njit(cache=True)(_march)
 
 
 def triangle_updates(c, a, b, t_a, t_b, s) -> np.ndarray:
     """First-order update of T at corners ``c`` from ``a``, ``b`` (all (K, 3) points, (K,) times and slowness):
-    the update the heap uses, for the iterative solver of :mod:`mabdi.maps.planning`."""
+    the update the heap uses, for the numpy fast iterative solver (the tests' reference)."""
     return _updates(
         np.ascontiguousarray(c, dtype=np.float64),
         np.ascontiguousarray(a, dtype=np.float64),
@@ -155,8 +147,6 @@ def triangle_updates(c, a, b, t_a, t_b, s) -> np.ndarray:
 
 def fast_marching(vertices, faces, starts, incident, slowness, blocked, source: int) -> np.ndarray:
     """Arrival times (N,) from vertex ``source``; ``starts``/``incident``: the faces around each vertex (CSR)."""
-    if njit is None:
-        raise RuntimeError("fast_marching needs numba (pip install numba)")
     return _march(
         np.ascontiguousarray(vertices, dtype=np.float64),
         np.ascontiguousarray(faces, dtype=np.int64),

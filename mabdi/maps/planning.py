@@ -20,10 +20,8 @@ triangle (its direction at C lies between CA and CB, and T_C >= T_A, T_B);
 otherwise, as for obtuse triangles where that fails, the triangle gives the
 edge updates T_A + |CA| s and T_B + |CB| s. The front advances one vertex
 at a time from a heap (Sethian's fast marching, compiled with numba:
-:mod:`mabdi.maps.fast_marching`); without numba, by the fast iterative
-method (a band of active vertices updated all at once with numpy until no
-time improves by more than 1e-9 of the domain size), the same update and
-solution, much slower on big maps. T is stored as the vertex layer
+:mod:`mabdi.maps.fast_marching`; a test checks it against the fast iterative
+method in numpy, kept with the tests). T is stored as the vertex layer
 ``arrival_time``. The path follows
 -grad T from the goal back to the start, in steps of half the mean edge
 length, each step projected back onto the mesh; it cuts across triangles,
@@ -43,7 +41,7 @@ from scipy.sparse.csgraph import dijkstra
 from scipy.spatial import cKDTree
 
 from mabdi.errors import MabdiError
-from mabdi.maps.fast_marching import fast_marching, fast_marching_available, triangle_updates
+from mabdi.maps.fast_marching import fast_marching
 from mabdi.maps.mesh_map import WELD, MeshMap, unique_pairs, welded_map
 
 PLANNERS = ("dijkstra", "fmm")
@@ -178,43 +176,14 @@ def _vertex_faces(faces: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
     return starts, owner[order]
 
 
-def arrival_times(
-    mesh_map: MeshMap, source: int, slowness: np.ndarray, blocked: np.ndarray, method: str = "auto"
-) -> np.ndarray:
-    """Arrival time T (N,) of the wave front from vertex ``source`` (inf where it never arrives).
-
-    ``method``: ``"heap"`` (fast marching compiled with numba, :mod:`mabdi.maps.fast_marching`),
-    ``"iterative"`` (the vectorised fast iterative method), or ``"auto"`` (heap when numba is there).
-    """
+def arrival_times(mesh_map: MeshMap, source: int, slowness: np.ndarray, blocked: np.ndarray) -> np.ndarray:
+    """Arrival time T (N,) of the wave front from vertex ``source`` (inf where it never arrives), by fast
+    marching compiled with numba (:mod:`mabdi.maps.fast_marching`)."""
     vertices = mesh_map.vertices.astype(np.float64)
     faces = mesh_map.faces
     n = len(vertices)
     starts, incident = _vertex_faces(faces, n)
-    if method == "heap" or (method == "auto" and fast_marching_available()):
-        return fast_marching(vertices, faces, starts, incident, slowness, blocked, source)
-    times = np.full(n, np.inf)
-    times[source] = 0.0
-    active = np.array([source])
-    low, high = mesh_map.bounds()
-    tolerance = 1e-9 * max(float(np.linalg.norm(high - low)), 1e-9)
-    while len(active):
-        counts = starts[active + 1] - starts[active]
-        index = np.repeat(starts[active] - np.concatenate([[0], np.cumsum(counts)[:-1]]), counts) + np.arange(counts.sum())
-        band = np.unique(incident[index])
-        tri = faces[band]
-        targets, new_times = [], []
-        for k in range(3):
-            c, a, b = tri[:, k], tri[:, (k + 1) % 3], tri[:, (k + 2) % 3]
-            update = ~blocked[c] & (c != source)
-            c, a, b = c[update], a[update], b[update]
-            targets.append(c)
-            new_times.append(triangle_updates(vertices[c], vertices[a], vertices[b], times[a], times[b], slowness[c]))
-        targets = np.concatenate(targets)
-        new_times = np.concatenate(new_times)
-        before = times.copy()
-        np.minimum.at(times, targets, new_times)
-        active = np.flatnonzero(times < before - tolerance)
-    return times
+    return fast_marching(vertices, faces, starts, incident, slowness, blocked, source)
 
 
 def _plan_fmm(mesh_map: MeshMap, s: int, g: int, slowness: np.ndarray, blocked: np.ndarray) -> PlanResult:
