@@ -15,6 +15,10 @@ be whole before VTK reads it (a binary PLY cut short would crash VTK's
 reader), and what a VTK writer wrote is checked before the temporary file
 takes the target's name (VTK's writers report success on a full disk).
 Either failure is a :class:`~mabdi.errors.MabdiError` naming the file.
+
+VTK's IO modules (vtkIOXML, vtkIOPLY, vtkIOGeometry: about 4 MB resident)
+are imported inside the functions that read or write, not with the module (a
+start-up memory choice: ``import mabdi`` loads this module).
 """
 
 from __future__ import annotations
@@ -25,9 +29,6 @@ import numpy as np
 from vtkmodules.util.numpy_support import vtk_to_numpy
 from vtkmodules.vtkCommonDataModel import vtkPolyData
 from vtkmodules.vtkFiltersCore import vtkTriangleFilter
-from vtkmodules.vtkIOGeometry import vtkOBJReader, vtkOBJWriter, vtkSTLReader, vtkSTLWriter
-from vtkmodules.vtkIOPLY import vtkPLYReader, vtkPLYWriter
-from vtkmodules.vtkIOXML import vtkXMLImageDataWriter, vtkXMLPolyDataReader, vtkXMLPolyDataWriter
 
 from mabdi.errors import AssetNotFoundError, ConfigError, DamagedFileError, WriteError
 from mabdi.io.atomic import atomic_output
@@ -68,6 +69,8 @@ def _write(writer, data, path, points: int | None = None, cells: int | None = No
 
 def write_polydata(mesh, path) -> Path:
     """Write a vtkPolyData as binary, compressed VTP (with all its arrays)."""
+    from vtkmodules.vtkIOXML import vtkXMLPolyDataWriter
+
     writer = vtkXMLPolyDataWriter()
     writer.SetDataModeToAppended()
     writer.SetCompressorTypeToZLib()
@@ -76,6 +79,8 @@ def write_polydata(mesh, path) -> Path:
 
 def write_image(image, path) -> Path:
     """Write a vtkImageData (e.g. a depth image, field data included) as VTI."""
+    from vtkmodules.vtkIOXML import vtkXMLImageDataWriter
+
     writer = vtkXMLImageDataWriter()
     writer.SetDataModeToAppended()
     writer.SetCompressorTypeToZLib()
@@ -102,11 +107,17 @@ def write_mesh_file(mesh: vtkPolyData, path) -> Path:
     if suffix == ".vtp":
         return write_polydata(mesh, path)
     if suffix == ".ply":
+        from vtkmodules.vtkIOPLY import vtkPLYWriter
+
         writer = vtkPLYWriter()
         writer.SetFileTypeToBinary()
     elif suffix == ".obj":
+        from vtkmodules.vtkIOGeometry import vtkOBJWriter
+
         writer = vtkOBJWriter()
     elif suffix == ".stl":
+        from vtkmodules.vtkIOGeometry import vtkSTLWriter
+
         writer = vtkSTLWriter()
         writer.SetFileTypeToBinary()
     else:
@@ -178,6 +189,10 @@ def read_mesh_file(path) -> vtkPolyData:
     for a missing file and :class:`DamagedFileError` for a file that is empty,
     cut short or gives no mesh.
     """
+    from vtkmodules.vtkIOGeometry import vtkOBJReader, vtkSTLReader
+    from vtkmodules.vtkIOPLY import vtkPLYReader
+    from vtkmodules.vtkIOXML import vtkXMLPolyDataReader
+
     from mabdi.algorithm import vtk_messages_held
 
     path = Path(path)

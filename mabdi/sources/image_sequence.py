@@ -28,6 +28,9 @@ the rules below are written once:
 
 Bad input (a missing file, a line that is not numbers, a matrix of the wrong
 size) is a :class:`SequenceError` naming the file and line.
+
+Pillow is imported inside the functions that use it (a start-up memory
+choice: ``import mabdi`` and a run of a simulated scene do not load it).
 """
 
 from __future__ import annotations
@@ -37,7 +40,6 @@ import struct
 from pathlib import Path
 
 import numpy as np
-from PIL import Image, UnidentifiedImageError
 
 from mabdi.camera import Intrinsics, check_pose
 from mabdi.depth import DepthFrame
@@ -92,6 +94,8 @@ def read_matrix_file(path: Path, rows: int, columns: int, what: str = "matrix") 
 
 def png_size(path: Path) -> tuple[int, int]:
     """(width, height) of an image file (the PNG header; Pillow for others), or a :class:`SequenceError` naming it."""
+    from PIL import Image, UnidentifiedImageError  # on first use: a start-up memory choice (module docs)
+
     try:
         with open(path, "rb") as stream:
             head = stream.read(24)

@@ -67,18 +67,24 @@ bag time and position among messages of the same bag time; messages are
 deserialised as views, the pixels are not decoded); ``read(i)`` asks the bag
 for the messages at frame i's bag time only (an indexed query in sqlite3, the
 one chunk that holds it in MCAP) and decodes that image.
+
+**Start-up memory**: ``rosbags`` (and the sqlite, MCAP, YAML and compression
+packages it brings, about 10 MB resident) is imported when a bag is first
+opened or written (:func:`_rosbags`), not when ``mabdi`` is imported: a run of
+a simulated scene never reads a bag. The message type store is built then too
+(``_TYPESTORE`` stays readable as a module attribute).
 """
 
 from __future__ import annotations
 
+import functools
 import os
 import shutil
 import tempfile
+from types import SimpleNamespace
 from pathlib import Path
 
 import numpy as np
-from rosbags.rosbag2 import Reader, ReaderError, StoragePlugin, Writer, WriterError
-from rosbags.typesys import Stores, get_typestore
 
 from mabdi.camera import Intrinsics, quaternions_from_rotations
 from mabdi.depth import DepthFrame
@@ -122,7 +128,27 @@ LINK_FROM_OPTICAL = np.array(
     [[0.0, 0.0, 1.0, 0.0], [-1.0, 0.0, 0.0, 0.0], [0.0, -1.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]]
 )
 
-_TYPESTORE = get_typestore(Stores.ROS2_HUMBLE)
+
+@functools.cache
+def _rosbags() -> SimpleNamespace:
+    """The ``rosbags`` names this module uses and the ROS 2 Humble type store, imported on first use."""
+    from rosbags.rosbag2 import Reader, ReaderError, StoragePlugin, Writer, WriterError
+    from rosbags.typesys import Stores, get_typestore
+
+    return SimpleNamespace(
+        Reader=Reader,
+        ReaderError=ReaderError,
+        StoragePlugin=StoragePlugin,
+        Writer=Writer,
+        WriterError=WriterError,
+        typestore=get_typestore(Stores.ROS2_HUMBLE),
+    )
+
+
+def __getattr__(name: str):
+    if name == "_TYPESTORE":
+        return _rosbags().typestore
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def _stamp_ns(stamp) -> int:
@@ -193,7 +219,7 @@ class Rosbag2Sequence(FrameSource):
         if not (np.isfinite(tolerance) and tolerance >= 0):
             raise SequenceError(f"ROS 2 bag {self.path}: tolerance must be >= 0 seconds, got {tolerance!r}")
         self.tolerance = float(tolerance)
-        self._reader: Reader | None = None
+        self._reader = None  # a rosbags Reader once open
         reader = self._open()
         self.topics = {c.topic: c.msgtype for c in reader.connections}
         self.metadata = read_sequence_metadata(self.path)
@@ -233,12 +259,13 @@ class Rosbag2Sequence(FrameSource):
 
     # -- opening --------------------------------------------------------------
 
-    def _open(self) -> Reader:
+    def _open(self):
         if self._reader is None:
+            rosbags = _rosbags()
             try:
-                reader = Reader(self.path)
+                reader = rosbags.Reader(self.path)
                 reader.open()
-            except (ReaderError, FileNotFoundError, OSError, ValueError, KeyError) as exc:
+            except (rosbags.ReaderError, FileNotFoundError, OSError, ValueError, KeyError) as exc:
                 raise SequenceError(f"ROS 2 bag {self.path}: cannot open: {exc}") from None
             self._reader = reader
         return self._reader
@@ -253,9 +280,10 @@ class Rosbag2Sequence(FrameSource):
 
     def _messages(self, topic: str, start: int | None = None, stop: int | None = None):
         """(bag time ns, deserialised message) of ``topic``, in bag-time order."""
+        typestore = _rosbags().typestore
         for connection, log_time, raw in self._open().messages(self._connections(topic), start=start, stop=stop):
             try:
-                yield log_time, _TYPESTORE.deserialize_cdr(raw, connection.msgtype)
+                yield log_time, typestore.deserialize_cdr(raw, connection.msgtype)
             except Exception as exc:  # noqa: BLE001 (rosbags raises several kinds for a corrupt message)
                 raise SequenceError(f"ROS 2 bag {self.path}: topic {topic}: cannot decode a message: {exc}") from None
 
@@ -636,16 +664,16 @@ class Rosbag2Sequence(FrameSource):
 
 
 def _time(stamp_ns: int):
-    Time = _TYPESTORE.types["builtin_interfaces/msg/Time"]
+    Time = _rosbags().typestore.types["builtin_interfaces/msg/Time"]
     return Time(sec=int(stamp_ns // 1_000_000_000), nanosec=int(stamp_ns % 1_000_000_000))
 
 
 def _header(stamp_ns: int, frame: str):
-    return _TYPESTORE.types["std_msgs/msg/Header"](stamp=_time(stamp_ns), frame_id=frame)
+    return _rosbags().typestore.types["std_msgs/msg/Header"](stamp=_time(stamp_ns), frame_id=frame)
 
 
 def _transform_msgs(pose: np.ndarray, quaternion: np.ndarray):
-    types = _TYPESTORE.types
+    types = _rosbags().typestore.types
     translation = types["geometry_msgs/msg/Vector3"](x=float(pose[0, 3]), y=float(pose[1, 3]), z=float(pose[2, 3]))
     point = types["geometry_msgs/msg/Point"](x=float(pose[0, 3]), y=float(pose[1, 3]), z=float(pose[2, 3]))
     rotation = types["geometry_msgs/msg/Quaternion"](
@@ -702,7 +730,9 @@ def write_rosbag2(
     ``path`` must not exist (an empty folder is replaced).
     """
     path = Path(path)
-    plugins = {"sqlite3": StoragePlugin.SQLITE3, "mcap": StoragePlugin.MCAP}
+    rosbags = _rosbags()
+    typestore = rosbags.typestore
+    plugins = {"sqlite3": rosbags.StoragePlugin.SQLITE3, "mcap": rosbags.StoragePlugin.MCAP}
     if storage not in plugins:
         raise SequenceError(f"cannot write ROS 2 bag {path}: unknown storage {storage!r} (known: {', '.join(plugins)})")
     if encoding not in DEPTH_ENCODINGS:
@@ -717,7 +747,7 @@ def write_rosbag2(
     stamps = seconds_to_ns(frame_timestamps(source))
     if (stamps < 0).any():
         raise SequenceError(f"cannot write ROS 2 bag {path}: negative timestamps")
-    types = _TYPESTORE.types
+    types = typestore.types
     fx, fy, cx, cy = intrinsics.fx, intrinsics.fy, intrinsics.cx - 0.5, intrinsics.cy - 0.5
     k = np.array([fx, 0.0, cx, 0.0, fy, cy, 0.0, 0.0, 1.0])
     p = np.array([fx, 0.0, cx, 0.0, 0.0, fy, cy, 0.0, 0.0, 0.0, 1.0, 0.0])
@@ -729,12 +759,12 @@ def write_rosbag2(
     bag = temporary / "bag"
     try:
         try:
-            writer = Writer(bag, version=Writer.VERSION_LATEST, storage_plugin=plugins[storage])
+            writer = rosbags.Writer(bag, version=rosbags.Writer.VERSION_LATEST, storage_plugin=plugins[storage])
             writer.open()
-        except WriterError as exc:
+        except rosbags.WriterError as exc:
             raise SequenceError(f"cannot write ROS 2 bag {path} ({storage}): {exc}") from None
         try:
-            add = lambda topic, msgtype: writer.add_connection(topic, msgtype, typestore=_TYPESTORE)  # noqa: E731
+            add = lambda topic, msgtype: writer.add_connection(topic, msgtype, typestore=typestore)  # noqa: E731
             image_conn, info_conn = add(DEPTH_TOPIC, IMAGE), add(INFO_TOPIC, CAMERA_INFO)
             pose_conn, tf_conn, static_conn = add(POSE_TOPIC, POSE_STAMPED), add("/tf", TF_MESSAGE), add("/tf_static", TF_MESSAGE)
             colour_conn = None
@@ -746,7 +776,7 @@ def write_rosbag2(
                     transform=Transform(translation=types["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0), rotation=optical_rotation),
                 )
             ])
-            writer.write(static_conn, int(stamps[0]), _TYPESTORE.serialize_cdr(static, TF_MESSAGE))
+            writer.write(static_conn, int(stamps[0]), typestore.serialize_cdr(static, TF_MESSAGE))
             for index in range(len(source)):
                 frame = source.read(index)
                 if frame.depth.shape != intrinsics.shape:
@@ -787,7 +817,7 @@ def write_rosbag2(
                         data=np.ascontiguousarray(frame.colour, dtype=np.uint8).ravel(),
                     )))
                 for connection, msgtype, message in messages:
-                    writer.write(connection, stamp, _TYPESTORE.serialize_cdr(message, msgtype))
+                    writer.write(connection, stamp, typestore.serialize_cdr(message, msgtype))
         except BaseException:
             writer.abort()
             raise

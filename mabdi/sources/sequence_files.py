@@ -12,6 +12,9 @@ table (intrinsics in mabdi's conventions: pixel (u, v) has its centre at
 in metres) and any other tables a writer put there (``[recorded]`` with the
 scene a simulated sequence came from, for example);
 :func:`read_sequence_metadata` returns them.
+
+Pillow is imported inside the functions that use it (a start-up memory
+choice: ``import mabdi`` and a run of a simulated scene do not load it).
 """
 
 from __future__ import annotations
@@ -22,7 +25,6 @@ import tomllib
 from pathlib import Path
 
 import numpy as np
-from PIL import Image, UnidentifiedImageError
 from scipy.spatial.transform import Rotation
 
 from mabdi.camera import Intrinsics
@@ -221,6 +223,8 @@ def read_colour_image(path: Path, size: tuple[int, int] | None = None) -> np.nda
     :class:`SequenceError` naming it. RGB PNGs are decoded by mabdi's own PNG reader (as depth PNGs are);
     a JPEG larger than ``size`` (width, height) may be decoded at a half, quarter or eighth of its size,
     no smaller than ``size`` (JPEG's own DCT scaling: much faster)."""
+    from PIL import Image, UnidentifiedImageError  # on first use: a start-up memory choice (module docs)
+
     try:
         with open(path, "rb") as stream:
             data = stream.read()
@@ -245,6 +249,8 @@ def read_colour_image(path: Path, size: tuple[int, int] | None = None) -> np.nda
 
 def write_colour_png(path, colour: np.ndarray, compress_level: int = 1) -> None:
     """Write (H, W, 3) uint8 RGB as an 8-bit PNG, atomically."""
+    from PIL import Image  # on first use: a start-up memory choice (module docs)
+
     with atomic_output(path) as temporary:
         Image.fromarray(np.ascontiguousarray(colour, dtype=np.uint8), "RGB").save(temporary, format="PNG", compress_level=compress_level)
 

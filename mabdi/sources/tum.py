@@ -46,6 +46,9 @@ centres at integers, so principal points copied from it need cx + 0.5 and
 cy + 0.5; the presets below have it applied. near and far default to
 :class:`Intrinsics`' defaults. Lens distortion is ignored (fr3 images come
 undistorted; fr1/fr2 have small radial distortion).
+
+Pillow is imported inside the functions that use it (a start-up memory
+choice: ``import mabdi`` and a run of a simulated scene do not load it).
 """
 
 from __future__ import annotations
@@ -55,7 +58,6 @@ import struct
 from pathlib import Path
 
 import numpy as np
-from PIL import Image, UnidentifiedImageError
 
 from mabdi.camera import Intrinsics, quaternions_from_rotations
 from mabdi.depth import DepthFrame
@@ -169,6 +171,8 @@ def read_depth_units(path: Path, shape: tuple[int, int] | None) -> np.ndarray:
     except (ValueError, struct.error) as exc:
         raise SequenceError(f"{path}: cannot read depth PNG: {exc}") from None
     if raw is None:
+        from PIL import Image, UnidentifiedImageError  # only where mabdi's own PNG reader cannot: start-up memory (module docs)
+
         try:
             with Image.open(path) as image:
                 if image.format != "PNG" or image.mode not in ("I;16", "I;16B", "I;16L", "I"):
@@ -209,6 +213,8 @@ def depth_png_values(depth: np.ndarray, scale: float = DEPTH_SCALE) -> np.ndarra
 
 def write_depth_png(path, depth: np.ndarray, scale: float = DEPTH_SCALE, compress_level: int = 1) -> None:
     """Write (H, W) depth in metres as a 16-bit PNG (:func:`depth_png_values`), atomically."""
+    from PIL import Image  # on first use: a start-up memory choice (module docs)
+
     values = depth_png_values(depth, scale)
     with atomic_output(path) as temporary:
         Image.fromarray(values).save(temporary, format="PNG", compress_level=compress_level)
