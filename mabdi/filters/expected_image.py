@@ -36,13 +36,9 @@ MAP_PORT, MEASURED_PORT = 0, 1
 FACE_ID_ARRAY = "face_id"
 
 
-class FilterExpectedImage(MabdiAlgorithm):
-    """Render the map (port 0) from the pose of the depth image on port 1 (map + D -> E)."""
-
-    def __init__(self, backend: str = "egl", identity: bool = False) -> None:
-        super().__init__(nInputPorts=2, nOutputPorts=1, outputType="vtkImageData")
-        self.identity = identity
-        self.renderer = DepthRenderer(backend, identity_array=FACE_RGB_ARRAY if identity else None)
+class MapAndImageAlgorithm(MabdiAlgorithm):
+    """A filter of the map (port 0, any data object) and a depth image (port 1) whose output is an image
+    of the depth image's extent (E, or D registered to the map)."""
 
     def FillInputPortInformation(self, port, info):  # noqa: N802 (VTK API)
         kind = "vtkImageData" if port == MEASURED_PORT else "vtkDataObject"
@@ -55,6 +51,15 @@ class FilterExpectedImage(MabdiAlgorithm):
         if extent is not None:
             outInfo.GetInformationObject(0).Set(vtkStreamingDemandDrivenPipeline.WHOLE_EXTENT(), extent, 6)
         return 1
+
+
+class FilterExpectedImage(MapAndImageAlgorithm):
+    """Render the map (port 0) from the pose of the depth image on port 1 (map + D -> E)."""
+
+    def __init__(self, backend: str = "egl", identity: bool = False) -> None:
+        super().__init__(nInputPorts=2, nOutputPorts=1, outputType="vtkImageData")
+        self.identity = identity
+        self.renderer = DepthRenderer(backend, identity_array=FACE_RGB_ARRAY if identity else None)
 
     def RequestData(self, request, inInfo, outInfo):  # noqa: N802 (VTK API)
         world = map_input(inInfo, "FilterExpectedImage")

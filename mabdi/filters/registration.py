@@ -88,14 +88,12 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 from vtkmodules.util.numpy_support import numpy_to_vtk, vtk_to_numpy
 from vtkmodules.vtkCommonDataModel import vtkImageData
-from vtkmodules.vtkCommonExecutionModel import vtkAlgorithm, vtkStreamingDemandDrivenPipeline
 
-from mabdi.algorithm import MabdiAlgorithm
 from mabdi.camera import Intrinsics
 from mabdi.depth import copy_colour, depth_array, fill_depth_image, image_frame, image_intrinsics, image_pose, image_timestamp
 from mabdi.errors import ConfigError
 from mabdi.filters.depth_image import BACKENDS, DepthRenderer, SensorNoise
-from mabdi.filters.expected_image import MEASURED_PORT, map_input, render_expected
+from mabdi.filters.expected_image import MEASURED_PORT, MapAndImageAlgorithm, map_input, render_expected
 from mabdi.filters.map_anchor import MapAnchor
 from mabdi.filters.noise_calibration import MAD_TO_SIGMA
 from mabdi.filters.registration_kernels import point_to_plane_system, pose_sigma_image
@@ -467,7 +465,7 @@ def _add_field(image, name: str, values) -> None:
     image.GetFieldData().AddArray(array)
 
 
-class FilterRegistration(MabdiAlgorithm):
+class FilterRegistration(MapAndImageAlgorithm):
     """Register D (port 1) to the map (port 0): D out with the registered pose (see the module docs).
 
     ``renderer``: the :class:`DepthRenderer` that draws the map (share the
@@ -534,18 +532,6 @@ class FilterRegistration(MabdiAlgorithm):
         self._last_frame = int(state["last_frame"])
         self.anchor.set_state(state["anchor"])
         self.Modified()
-
-    def FillInputPortInformation(self, port, info):  # noqa: N802 (VTK API)
-        kind = "vtkImageData" if port == MEASURED_PORT else "vtkDataObject"
-        info.Set(vtkAlgorithm.INPUT_REQUIRED_DATA_TYPE(), kind)
-        return 1
-
-    def RequestInformation(self, request, inInfo, outInfo):  # noqa: N802 (VTK API)
-        measured = inInfo[MEASURED_PORT].GetInformationObject(0)
-        extent = measured.Get(vtkStreamingDemandDrivenPipeline.WHOLE_EXTENT())
-        if extent is not None:
-            outInfo.GetInformationObject(0).Set(vtkStreamingDemandDrivenPipeline.WHOLE_EXTENT(), extent, 6)
-        return 1
 
     def RequestData(self, request, inInfo, outInfo):  # noqa: N802 (VTK API)
         world = map_input(inInfo, "FilterRegistration")
