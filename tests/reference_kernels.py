@@ -23,7 +23,7 @@ import numpy as np
 
 from mabdi.camera import Intrinsics
 from mabdi.filters.depth_smoothing import smooth_depth_by_noise
-from mabdi.filters.quadtree import RESIDUAL_FOOTPRINTS, Leaves, select
+from mabdi.filters.quadtree import Leaves, fitting_leaves
 from mabdi.filters.voxel_traversal import prepare_rays
 from mabdi.maps.fast_marching import triangle_updates
 from mabdi.maps.planning import _vertex_faces
@@ -210,11 +210,7 @@ def quadtree_leaves_of_image(depth: np.ndarray, intrinsics: Intrinsics, p, noise
     normals = point_normals(points, p.max_jump)
     leaves, regions = build_leaves(points, normals, p.n_t, p.d_t)
     residual = plane_residual(points, leaves, p.max_jump)
-    depth_of_leaf = leaves.point[:, 2]
-    allowed = np.maximum(
-        RESIDUAL_FOOTPRINTS * depth_of_leaf / reduced.fx, 3.0 * noise.sigma(depth_of_leaf, reduced.near, reduced.far)
-    )
-    leaves = select(leaves, residual <= allowed)
+    leaves = fitting_leaves(leaves, residual, reduced, noise)
     leaves.regions = regions
     return points, reduced, leaves
 

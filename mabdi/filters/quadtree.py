@@ -381,14 +381,20 @@ def leaves_of_image(
     level, row, col, normal, point, regions = kernels.pyramid_kernel(points, normals, p.n_t, p.d_t)
     leaves = Leaves(level, row, col, normal, point)
     residual = kernels.plane_residual_kernel(points, level, row, col, normal, point, p.max_jump, 2)
-    # a small leaf whose plane misses its own pixels or neighbours (a crease, a corner) gets no face
+    leaves = fitting_leaves(leaves, residual, reduced, noise)
+    leaves.regions = regions
+    return points, reduced, leaves
+
+
+def fitting_leaves(leaves: Leaves, residual: np.ndarray, reduced: Intrinsics, noise: SensorNoise) -> Leaves:
+    """The leaves whose plane fits their own and their neighbouring same-surface pixels: a small leaf whose
+    plane misses one by more than :data:`RESIDUAL_FOOTPRINTS` pixel footprints and 3 sigma of the noise
+    (``residual``, metres) sits on a crease or a corner and gets no face."""
     depth_of_leaf = leaves.point[:, 2]
     allowed = np.maximum(
         RESIDUAL_FOOTPRINTS * depth_of_leaf / reduced.fx, 3.0 * noise.sigma(depth_of_leaf, reduced.near, reduced.far)
     )
-    leaves = select(leaves, residual <= allowed)
-    leaves.regions = regions
-    return points, reduced, leaves
+    return select(leaves, residual <= allowed)
 
 
 class FilterQuadTree(MabdiAlgorithm):
