@@ -348,25 +348,17 @@ class Rosbag2Sequence(FrameSource):
 
     def _index_colour(self) -> int:
         """Pair each frame with the colour image nearest in header stamp; returns how many are further than the tolerance."""
-        stamps, log_times, occurrence = [], [], []
-        previous, count = None, 0
-        for log_time, message in self._messages(self.colour_topic):
+        def check(message) -> None:
             if message.encoding not in COLOUR_ENCODINGS:
                 raise SequenceError(
                     f"ROS 2 bag {self.path}: topic {self.colour_topic}: colour encoding {message.encoding!r} is not read "
                     f"(known: {', '.join(COLOUR_ENCODINGS)})"
                 )
-            count = count + 1 if log_time == previous else 0
-            previous = log_time
-            stamps.append(_stamp_ns(message.header.stamp))
-            log_times.append(log_time)
-            occurrence.append(count)
-        if not stamps:
-            raise SequenceError(f"ROS 2 bag {self.path}: topic {self.colour_topic} has no messages")
-        stamps = np.array(stamps, dtype=np.int64)
+
+        stamps, log_times, occurrence = self._index_images(self.colour_topic, check)
         nearest = nearest_within(self._seconds(self._stamps), self._seconds(stamps), np.inf)
-        self._colour_log_times = np.array(log_times, dtype=np.int64)[nearest]
-        self._colour_occurrence = np.array(occurrence, dtype=np.int64)[nearest]
+        self._colour_log_times = log_times[nearest]
+        self._colour_occurrence = occurrence[nearest]
         return int((np.abs(stamps[nearest] - self._stamps) > self.tolerance * 1e9).sum())
 
     @property
@@ -416,30 +408,38 @@ class Rosbag2Sequence(FrameSource):
 
     def _index_depth(self) -> None:
         """One pass over the depth topic: header stamps, bag times, position among equal bag times, frame id."""
-        stamps, log_times, occurrence, frame_ids = [], [], [], set()
-        previous, count = None, 0
-        for log_time, message in self._messages(self.depth_topic):
+        frame_ids = set()
+
+        def check(message) -> None:
             if message.encoding not in DEPTH_ENCODINGS:
                 raise SequenceError(
                     f"ROS 2 bag {self.path}: topic {self.depth_topic}: unknown depth encoding {message.encoding!r} "
                     f"(known: {', '.join(DEPTH_ENCODINGS)})"
                 )
+            frame_ids.add(message.header.frame_id)
+            self._image_size = (int(message.width), int(message.height))
+
+        self._all_stamps, self._all_log_times, self._all_occurrence = self._index_images(self.depth_topic, check)
+        if len(frame_ids) != 1:
+            raise SequenceError(f"ROS 2 bag {self.path}: topic {self.depth_topic}: images in several frames ({_list(frame_ids)})")
+        self.camera_frame = frame_ids.pop()
+        self._time_origin = int(self._all_stamps.min())
+
+    def _index_images(self, topic: str, check) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """One pass over an image topic, ``check(message)`` on each: (header stamps (ns), bag times (ns),
+        position among messages of equal bag time), int64 arrays; an error when the topic has none."""
+        stamps, log_times, occurrence = [], [], []
+        previous, count = None, 0
+        for log_time, message in self._messages(topic):
+            check(message)
             count = count + 1 if log_time == previous else 0
             previous = log_time
             stamps.append(_stamp_ns(message.header.stamp))
             log_times.append(log_time)
             occurrence.append(count)
-            frame_ids.add(message.header.frame_id)
-            self._image_size = (int(message.width), int(message.height))
         if not stamps:
-            raise SequenceError(f"ROS 2 bag {self.path}: topic {self.depth_topic} has no messages")
-        if len(frame_ids) != 1:
-            raise SequenceError(f"ROS 2 bag {self.path}: topic {self.depth_topic}: images in several frames ({_list(frame_ids)})")
-        self.camera_frame = frame_ids.pop()
-        self._all_stamps = np.array(stamps, dtype=np.int64)
-        self._all_log_times = np.array(log_times, dtype=np.int64)
-        self._all_occurrence = np.array(occurrence, dtype=np.int64)
-        self._time_origin = int(self._all_stamps.min())
+            raise SequenceError(f"ROS 2 bag {self.path}: topic {topic} has no messages")
+        return (np.array(stamps, dtype=np.int64), np.array(log_times, dtype=np.int64), np.array(occurrence, dtype=np.int64))
 
     def _seconds(self, stamps_ns) -> np.ndarray:
         """Seconds since the first depth stamp (float64 keeps nanoseconds there), for matching."""
