@@ -7,7 +7,10 @@ Layout (every filter reads and writes it so):
   NaN where there is no return, row-major with index v*W + u and v = 0 the
   **top** row of the image;
 * field data ``intrinsics`` (float64[8]: fx, fy, cx, cy, width, height, near,
-  far), ``world_from_camera`` (float64[16], row-major), ``frame``
+  far) for a camera, or ``spherical`` (float64[6], and optionally
+  ``beam_elevations``) for a LiDAR's range image (:mod:`mabdi.spherical`:
+  then the point array holds range along the beam, not z-depth),
+  ``world_from_camera`` (float64[16], row-major), ``frame``
   (int64[1], the frame index, -1 when unknown) and ``timestamp`` (float64[1],
   seconds, NaN when unknown);
 * optionally the point array ``colour`` (uint8, 3 components, sRGB): the
@@ -32,6 +35,10 @@ from vtkmodules.util.numpy_support import numpy_to_vtk, vtk_to_numpy
 from vtkmodules.vtkCommonDataModel import vtkImageData
 
 from mabdi.camera import Intrinsics, check_pose
+from mabdi.spherical import BEAM_ELEVATIONS_ARRAY, SPHERICAL_ARRAY, SphericalGeometry
+
+#: What a depth image's pixels are: a pinhole camera's (z-depth) or a spinning LiDAR's (range).
+SensorGeometry = Intrinsics | SphericalGeometry
 
 DEPTH_ARRAY = "depth"
 INTRINSICS_ARRAY = "intrinsics"
@@ -81,7 +88,7 @@ class DepthFrame:
     ``colour``: (H, W, 3) uint8 RGB registered to the depth pixel for pixel (None when the source has none)."""
 
     depth: np.ndarray
-    intrinsics: Intrinsics
+    intrinsics: SensorGeometry
     world_from_camera: np.ndarray
     frame: int = -1
     timestamp: float = float("nan")
@@ -112,7 +119,7 @@ class DepthFrame:
 
 
 def depth_image(
-    depth, intrinsics: Intrinsics, world_from_camera, frame: int = -1, timestamp: float = float("nan"), colour=None
+    depth, intrinsics: SensorGeometry, world_from_camera, frame: int = -1, timestamp: float = float("nan"), colour=None
 ) -> vtkImageData:
     """Build a depth-image vtkImageData from a (H, W) array of metres (v = 0 the top row); copies ``depth`` and ``colour``."""
     depth = np.array(depth, dtype=np.float32, order="C", copy=True)
@@ -132,7 +139,7 @@ def depth_image(
 def fill_depth_image(
     image: vtkImageData,
     depth: np.ndarray,
-    intrinsics: Intrinsics,
+    intrinsics: SensorGeometry,
     pose: np.ndarray,
     frame: int,
     timestamp: float = float("nan"),
@@ -157,8 +164,13 @@ def fill_depth_image(
         set_colour(image, colour)
     field = image.GetFieldData()
     field.Initialize()
+    geometry = [(INTRINSICS_ARRAY, intrinsics.to_array())]
+    if isinstance(intrinsics, SphericalGeometry):
+        geometry = [(SPHERICAL_ARRAY, intrinsics.to_array())]
+        if intrinsics.beam_elevations:
+            geometry.append((BEAM_ELEVATIONS_ARRAY, np.asarray(intrinsics.beam_elevations, dtype=np.float64)))
     for name, values in (
-        (INTRINSICS_ARRAY, intrinsics.to_array()),
+        *geometry,
         (POSE_ARRAY, np.asarray(pose, dtype=np.float64).ravel()),
         (FRAME_ARRAY, np.array([frame], dtype=np.int64)),
         (TIMESTAMP_ARRAY, np.array([timestamp], dtype=np.float64)),
@@ -177,9 +189,18 @@ def _field_array(image, name: str) -> np.ndarray:
     return vtk_to_numpy(array)
 
 
-def image_intrinsics(image) -> Intrinsics:
-    """Intrinsics stored in a depth image's field data."""
+def image_intrinsics(image) -> SensorGeometry:
+    """The sensor geometry stored in a depth image's field data: a camera's :class:`~mabdi.camera.Intrinsics`, or a
+    LiDAR range image's :class:`~mabdi.spherical.SphericalGeometry` (both give shape, near, far and rays)."""
+    if image is not None and hasattr(image, "GetFieldData") and image.GetFieldData().GetArray(SPHERICAL_ARRAY) is not None:
+        table = image.GetFieldData().GetArray(BEAM_ELEVATIONS_ARRAY)
+        return SphericalGeometry.from_array(_field_array(image, SPHERICAL_ARRAY), None if table is None else vtk_to_numpy(table))
     return Intrinsics.from_array(_field_array(image, INTRINSICS_ARRAY))
+
+
+def is_range_image(image) -> bool:
+    """True when a depth image is a LiDAR's range image (spherical geometry), False for a camera's."""
+    return isinstance(image_intrinsics(image), SphericalGeometry)
 
 
 def image_pose(image) -> np.ndarray:
