@@ -75,13 +75,14 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from vtkmodules.util.numpy_support import vtk_to_numpy
+from vtkmodules.util.numpy_support import numpy_to_vtk, vtk_to_numpy
 from vtkmodules.vtkCommonCore import vtkFloatArray, vtkUnsignedCharArray
 from vtkmodules.vtkCommonDataModel import (
     vtkCompositeDataSet,
     vtkDataObject,
     vtkDataObjectTreeIterator,
     vtkImageData,
+    vtkMultiBlockDataSet,
     vtkPolyData,
 )
 from vtkmodules.vtkCommonExecutionModel import vtkStreamingDemandDrivenPipeline
@@ -89,10 +90,20 @@ from vtkmodules.vtkRenderingCore import vtkActor, vtkMapper, vtkPolyDataMapper, 
 
 import vtkmodules.vtkRenderingOpenGL2  # noqa: F401  (registers the OpenGL implementations)
 from mabdi.algorithm import MabdiAlgorithm
-from mabdi.camera import Intrinsics, check_pose, configure_vtk_camera, zbuffer_depth_derivative, zbuffer_to_depth
+from mabdi.camera import (
+    Intrinsics,
+    boxes_outside,
+    check_pose,
+    configure_vtk_camera,
+    frustum_planes,
+    zbuffer_depth_derivative,
+    zbuffer_to_depth,
+)
 from mabdi.depth import fill_depth_image
 from mabdi.errors import ConfigError
+from mabdi.face_identity import FaceCodes, FaceIdTable, face_rgb
 from mabdi.filters.noise_calibration import NoiseCalibration
+from mabdi.polydata import FACE_RGB_ARRAY
 
 #: Depth noise models (see the module docs).
 NOISE_MODELS = ("none", "zbuffer", "kinect", "structured_light", "auto")
@@ -409,26 +420,68 @@ def _check_backend_library(backend: str) -> None:
 
 def polydata_leaves(data) -> list[vtkPolyData]:
     """The vtkPolyData of ``data``: itself, or the non-empty leaves of a composite dataset."""
+    return [leaf for _, leaf in named_leaves(data)]
+
+
+def named_leaves(data, planes: np.ndarray | None = None) -> list[tuple[str, vtkPolyData]]:
+    """(name, polydata) of the non-empty leaves of ``data`` (a vtkPolyData is one leaf named ``""``).
+
+    A leaf's name is its block's metadata NAME (the world mesh's patch key), else its path of block numbers.
+    With ``planes`` (:func:`mabdi.camera.frustum_planes`), a block whose metadata holds a BOUNDING_BOX wholly
+    outside them is skipped with everything under it (the world map's chunks carry theirs).
+    """
     if isinstance(data, vtkPolyData):
-        return [data]
+        return [("", data)] if data.GetNumberOfCells() else []
     if not isinstance(data, vtkCompositeDataSet):
         raise TypeError(
             "expected a vtkPolyData or a composite dataset of polydata, "
             f"got {data.GetClassName() if data is not None else None}"
         )
-    leaves = []
-    iterator = vtkDataObjectTreeIterator()
-    iterator.SetDataSet(data)
-    iterator.SkipEmptyNodesOn()
-    iterator.VisitOnlyLeavesOn()
-    iterator.InitTraversal()
-    while not iterator.IsDoneWithTraversal():
-        leaf = iterator.GetCurrentDataObject()
-        if not isinstance(leaf, vtkPolyData):
-            raise TypeError(f"composite dataset has a {leaf.GetClassName()} block; only vtkPolyData can be rendered")
-        leaves.append(leaf)
-        iterator.GoToNextItem()
+    leaves: list[tuple[str, vtkPolyData]] = []
+    _collect_leaves(data, "", planes, leaves)
     return leaves
+
+
+def _collect_leaves(tree, prefix: str, planes, leaves: list) -> None:
+    if not isinstance(tree, vtkMultiBlockDataSet):  # other composites: every leaf, by iterator
+        iterator = vtkDataObjectTreeIterator()
+        iterator.SetDataSet(tree)
+        iterator.SkipEmptyNodesOn()
+        iterator.VisitOnlyLeavesOn()
+        iterator.InitTraversal()
+        while not iterator.IsDoneWithTraversal():
+            leaf = iterator.GetCurrentDataObject()
+            if not isinstance(leaf, vtkPolyData):
+                raise TypeError(f"composite dataset has a {leaf.GetClassName()} block; only vtkPolyData can be rendered")
+            if leaf.GetNumberOfCells():
+                leaves.append((f"{prefix}{iterator.GetCurrentFlatIndex()}", leaf))
+            iterator.GoToNextItem()
+        return
+    for index in range(tree.GetNumberOfBlocks()):
+        block = tree.GetBlock(index)
+        if block is None:
+            continue
+        meta = tree.GetMetaData(index) if tree.HasMetaData(index) else None
+        name = meta.Get(vtkCompositeDataSet.NAME()) if meta is not None and meta.Has(vtkCompositeDataSet.NAME()) else None
+        if planes is not None and meta is not None and meta.Has(vtkDataObject.BOUNDING_BOX()):
+            if boxes_outside(meta.Get(vtkDataObject.BOUNDING_BOX()), planes)[0]:
+                continue
+        if isinstance(block, vtkPolyData):
+            if block.GetNumberOfCells():
+                leaves.append((name if name is not None else f"{prefix}{index}", block))
+        elif isinstance(block, vtkCompositeDataSet):
+            _collect_leaves(block, f"{prefix}{index}/", planes, leaves)
+        else:
+            raise TypeError(f"composite dataset has a {block.GetClassName()} block; only vtkPolyData can be rendered")
+
+
+@dataclass
+class _Drawn:
+    """A leaf being drawn: the actor, and with face identity the copy that carries its codes."""
+
+    leaf: vtkPolyData
+    actor: vtkActor
+    copy: vtkPolyData | None = None
 
 
 class DepthRenderer:
@@ -436,54 +489,97 @@ class DepthRenderer:
 
     ``render_zbuffer(data, intrinsics, pose)`` returns the (H, W) float32
     z-buffer, top row first, values in [0, 1] (1 = background). ``data`` is a
-    vtkPolyData or a composite dataset of them (the map's blocks). Each
-    polydata gets its own mapper and actor, kept for as long as the polydata
-    is part of the input: a mapper uploads its geometry when it first draws it
-    or when it changes, so a map that grows by new blocks uploads only those.
+    vtkPolyData or a composite dataset of them (the map's chunks of blocks).
+    Only the blocks in view are drawn: a block whose metadata has a
+    BOUNDING_BOX outside the frustum is skipped with its children. Each drawn
+    polydata gets its own mapper and actor, kept while it stays in view: a
+    mapper uploads its geometry when it first draws it or when it changes, so
+    a map that grows by new blocks uploads only those, and a block that leaves
+    the view releases its copy.
+
+    Colour: ``identity_array`` names a uint8 RGB cell array each leaf draws in
+    (flat, no lighting; the simulator's object colours), or ``face_identity``
+    draws each face in the colour of a 24-bit code the renderer assigns
+    (:mod:`mabdi.face_identity`): :meth:`render_identity` reads the codes back
+    and :attr:`identities` says which block each range of codes belongs to.
     """
 
-    def __init__(self, backend: str = "egl", identity_array: str | None = None) -> None:
+    def __init__(self, backend: str = "egl", identity_array: str | None = None, face_identity: bool = False) -> None:
         if backend not in BACKENDS:
             raise ConfigError(f"unknown render backend {backend!r} (known: {', '.join(BACKENDS)})")
         self.backend = backend
-        #: With a name: draw each cell in the colour of its uint8 RGB cell array of that name (flat, no
-        #: lighting), so the colour buffer says which face each pixel shows (:meth:`render_identity`).
-        self.identity_array = identity_array
+        self.identity_array = FACE_RGB_ARRAY if face_identity else identity_array
+        self.face_identity = face_identity
         self._window = None
         self._size: tuple[int, int] | None = None
         self._renderer = vtkRenderer()
         self._renderer.SetBackground(0.0, 0.0, 0.0)  # identity 0: no face
-        self._actors: dict[int, tuple[vtkPolyData, vtkActor]] = {}
+        self._actors: dict[int, _Drawn] = {}
+        self._codes = FaceCodes()
+        self._names: dict[int, str] = {}
         self._zbuffer = vtkFloatArray()
         self._rgb = vtkUnsignedCharArray()
 
-    def _sync_actors(self, data) -> None:
-        """One actor per polydata of ``data``; actors of polydata no longer there are dropped."""
-        current: dict[int, tuple[vtkPolyData, vtkActor]] = {}
-        for leaf in polydata_leaves(data):
-            entry = self._actors.get(id(leaf))
-            if entry is None:
-                mapper = vtkPolyDataMapper()
-                mapper.SetInputData(leaf)
-                if self.identity_array is not None and leaf.GetCellData().GetArray(self.identity_array) is not None:
-                    mapper.ScalarVisibilityOn()
-                    mapper.SetScalarModeToUseCellFieldData()
-                    mapper.SelectColorArray(self.identity_array)
-                    mapper.SetColorModeToDirectScalars()
-                else:
-                    mapper.ScalarVisibilityOff()
-                actor = vtkActor()
-                actor.SetMapper(mapper)
-                actor.GetProperty().LightingOff()
-                if self.identity_array is not None:
-                    actor.GetProperty().SetColor(0.0, 0.0, 0.0)  # a block without identities reads as "no face"
-                self._renderer.AddActor(actor)
-                entry = (leaf, actor)
-            current[id(leaf)] = entry
-        for key, (_, actor) in self._actors.items():
+    def _sync_actors(self, leaves: list[tuple[str, vtkPolyData]]) -> None:
+        """One actor per polydata of ``leaves``; actors of polydata no longer drawn are dropped (and their codes)."""
+        current: dict[int, _Drawn] = {}
+        for name, leaf in leaves:
+            key = id(leaf)
+            entry = self._actors.get(key)
+            if entry is None or (entry.copy is not None and entry.copy.GetNumberOfCells() != leaf.GetNumberOfCells()):
+                if entry is not None:
+                    self._renderer.RemoveActor(entry.actor)
+                entry = self._new_actor(leaf)
+            current[key] = entry
+            self._names[key] = name
+        for key, entry in self._actors.items():
             if key not in current:
-                self._renderer.RemoveActor(actor)
+                self._renderer.RemoveActor(entry.actor)
+                self._codes.release(key)
+                self._names.pop(key, None)
         self._actors = current
+
+    def _new_actor(self, leaf: vtkPolyData) -> _Drawn:
+        drawn = leaf
+        copy = None
+        if self.face_identity:
+            # the codes live on a shallow copy (points and cells shared, so moved points still show), never
+            # on the map's own block
+            count = leaf.GetNumberOfCells()
+            base = self._codes.allocate(id(leaf), count)
+            copy = vtkPolyData()
+            copy.ShallowCopy(leaf)
+            rgb = numpy_to_vtk(face_rgb(base, count), deep=True)
+            rgb.SetName(FACE_RGB_ARRAY)
+            copy.GetCellData().AddArray(rgb)
+            drawn = copy
+        mapper = vtkPolyDataMapper()
+        mapper.SetInputData(drawn)
+        if self.identity_array is not None and drawn.GetCellData().GetArray(self.identity_array) is not None:
+            mapper.ScalarVisibilityOn()
+            mapper.SetScalarModeToUseCellFieldData()
+            mapper.SelectColorArray(self.identity_array)
+            mapper.SetColorModeToDirectScalars()
+        else:
+            mapper.ScalarVisibilityOff()
+        actor = vtkActor()
+        actor.SetMapper(mapper)
+        actor.GetProperty().LightingOff()
+        if self.identity_array is not None:
+            actor.GetProperty().SetColor(0.0, 0.0, 0.0)  # a block without identities reads as "no face"
+        self._renderer.AddActor(actor)
+        return _Drawn(leaf, actor, copy)
+
+    @property
+    def identities(self) -> FaceIdTable:
+        """What the codes of the last :meth:`render_identity` mean (``face_identity`` renderers): block names,
+        first codes and face counts of the blocks drawn."""
+        names, bases, counts = [], [], []
+        for key, (base, count) in self._codes.ranges.items():
+            names.append(self._names[key])
+            bases.append(base)
+            counts.append(count)
+        return FaceIdTable(names, np.array(bases, dtype=np.int64), np.array(counts, dtype=np.int64))
 
     def _make_window(self, width: int, height: int):
         _check_backend_library(self.backend)
@@ -512,7 +608,7 @@ class DepthRenderer:
                 self._window.Finalize()
             self._window = self._make_window(*size)
             self._size = size
-        self._sync_actors(data)
+        self._sync_actors(named_leaves(data, frustum_planes(intrinsics, world_from_camera)))
         configure_vtk_camera(self._renderer.GetActiveCamera(), intrinsics, world_from_camera)
         # Polygon offsets would bias depth; the setting is global in VTK, so restore it after.
         coincident = vtkMapper.GetResolveCoincidentTopology()

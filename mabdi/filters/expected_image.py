@@ -12,11 +12,16 @@ The rendering is :class:`~mabdi.filters.depth_image.DepthRenderer`'s: one
 off-screen window reused across frames, multisampling off, one mapper per
 map block so a frame uploads only the blocks that changed.
 
+Only the map's chunks in the view frustum are drawn (the renderer skips a
+block whose bounding box lies outside it), so E's cost follows what is in
+view, not the size of the map.
+
 **Face identity** (``identity=True``, the loop's default): the same render
-draws every face in the colour of its 24-bit identity (the world mesh's cell
-data ``face_rgb``), and the output gains the int32 point array ``face_id``:
-per pixel, the identity of the map face seen there (0 = none). Object
-removal (:mod:`mabdi.filters.removal`) votes on faces through it.
+draws every face in the colour of a 24-bit code, and the output gains the
+int32 point array ``face_id`` (per pixel, the code of the map face seen
+there; 0 = none) and the field data that says which block and cell each code
+is (:class:`mabdi.face_identity.FaceIdTable`). Object removal
+(:mod:`mabdi.filters.removal`) and refinement vote on faces through it.
 """
 
 from __future__ import annotations
@@ -29,7 +34,6 @@ from vtkmodules.vtkCommonExecutionModel import vtkAlgorithm, vtkStreamingDemandD
 from mabdi.algorithm import MabdiAlgorithm
 from mabdi.depth import fill_depth_image, image_frame, image_intrinsics, image_pose, image_timestamp
 from mabdi.filters.depth_image import DepthRenderer, SensorNoise
-from mabdi.polydata import FACE_RGB_ARRAY
 
 MAP_PORT, MEASURED_PORT = 0, 1
 #: Point data of E with identity: the map face seen at each pixel (int32, 0 = none).
@@ -59,7 +63,7 @@ class FilterExpectedImage(MapAndImageAlgorithm):
     def __init__(self, backend: str = "egl", identity: bool = False) -> None:
         super().__init__(nInputPorts=2, nOutputPorts=1, outputType="vtkImageData")
         self.identity = identity
-        self.renderer = DepthRenderer(backend, identity_array=FACE_RGB_ARRAY if identity else None)
+        self.renderer = DepthRenderer(backend, face_identity=identity)
 
     def RequestData(self, request, inInfo, outInfo):  # noqa: N802 (VTK API)
         world = map_input(inInfo, "FilterExpectedImage")
@@ -75,6 +79,7 @@ class FilterExpectedImage(MapAndImageAlgorithm):
             array = numpy_to_vtk(ids.ravel(), deep=True)
             array.SetName(FACE_ID_ARRAY)
             output.GetPointData().AddArray(array)
+            self.renderer.identities.write(output.GetFieldData())
         return 1
 
 
@@ -97,7 +102,8 @@ def render_expected(renderer: DepthRenderer, world, intrinsics, world_from_camer
 
 
 def face_id_array(image) -> np.ndarray:
-    """(H, W) int32 face identities of an expected image rendered with identity (0 = no face)."""
+    """(H, W) int32 face codes of an expected image rendered with identity (0 = no face); what they mean is
+    :meth:`mabdi.face_identity.FaceIdTable.read` of the same image."""
     array = image.GetPointData().GetArray(FACE_ID_ARRAY)
     if array is None:
         raise ValueError(f"expected image has no point array '{FACE_ID_ARRAY}' (rendered without identity?)")

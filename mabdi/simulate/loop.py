@@ -44,6 +44,7 @@ from vtkmodules.vtkCommonDataModel import vtkImageData, vtkPolyData
 from mabdi.algorithm import raise_pipeline_errors
 from mabdi.camera import Intrinsics, unit_rays
 from mabdi.depth import depth_array, image_pose
+from mabdi.face_identity import FaceIdTable
 from mabdi.filters.classifier import (
     CONTRADICTED,
     NO_RETURN,
@@ -342,7 +343,7 @@ class MabdiLoop:
             gone = np.union1d(gone, condemned)
         if not len(gone):
             return 0
-        self._removed = self.world.remove_faces(gone)
+        self._removed = self.world.remove_faces(gone, FaceIdTable.read(self.expected.GetOutput()))
         if hasattr(self.surface, "clear_faces_at") and self._removed.GetNumberOfCells():
             # voxel planes: the statistics that made the removed faces go with them (else re-meshing brings
             # them back), and the voxels the voting rays crossed in free space
@@ -366,6 +367,7 @@ class MabdiLoop:
         measured_image = self.measured_image()
         measured = depth_array(measured_image)
         face_ids = face_id_array(self.expected.GetOutput())
+        table = FaceIdTable.read(self.expected.GetOutput())
         pose = image_pose(measured_image)
         unit_rays, _ = self._unit_rays()
         expected = depth_array(self.expected.GetOutput())
@@ -376,16 +378,16 @@ class MabdiLoop:
             face_ids,
             unit_rays,
             pose,
-            self.world.face_normals_of,
+            lambda codes: self.world.face_normals_of(codes, table),
             self._removal_parameters_for(expected),
-            evidence_of=self.world.face_evidence_of,
+            evidence_of=lambda codes: self.world.face_evidence_of(codes, table),
             sigma=lambda depth: self.noise.sigma(depth, self.intrinsics.near, self.intrinsics.far),
             far=self.intrinsics.far,
             pose_sigma=pose_sigma_array(self.classifier.GetOutput()),
         )
         if not len(faces):
             return voting, np.zeros(0, dtype=np.int64)
-        return voting, self.world.update_evidence(faces, contradicted, confirmed, self.removal_parameters)
+        return voting, self.world.update_evidence(faces, contradicted, confirmed, self.removal_parameters, table)
 
     def _removal_parameters_for(self, expected: np.ndarray) -> RemovalParameters:
         """The removal rules for this frame: the edge margin widened to the surface's ``face_overhang``

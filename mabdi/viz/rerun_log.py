@@ -39,10 +39,11 @@ from pathlib import Path
 
 import numpy as np
 from vtkmodules.util.numpy_support import vtk_to_numpy
-from vtkmodules.vtkCommonDataModel import vtkCompositeDataSet, vtkPolyData
+from vtkmodules.vtkCommonDataModel import vtkPolyData
 
 from mabdi.depth import depth_array, image_colour, image_pose
 from mabdi.errors import MabdiError
+from mabdi.filters.depth_image import named_leaves
 from mabdi.maps.mesh_map import COLOUR_LAYER
 
 TIMELINE = "frame"
@@ -210,12 +211,8 @@ class RerunLogger:
         """Send the blocks that are new or replaced since the last frame; clear the ones that left."""
         rr, log = self.rr, self.stream.log
         seen = set()
-        for index in range(blocks.GetNumberOfBlocks()):
-            block = blocks.GetBlock(index)
-            if block is None:
-                continue
-            meta = blocks.GetMetaData(index) if blocks.HasMetaData(index) else None
-            name = meta.Get(vtkCompositeDataSet.NAME()) if meta is not None and meta.Has(vtkCompositeDataSet.NAME()) else f"block_{index}"
+        for name, block in named_leaves(blocks):
+            name = name or "map"
             seen.add(name)
             stamp = (block.GetAddressAsString("vtkObject"), block.GetMTime())
             if self._blocks.get(name) == stamp:
