@@ -333,8 +333,15 @@ class WorldMap:
                 self._merge_frame_patches(chunk)
 
     def _merge_frame_patches(self, chunk: Chunk) -> None:
-        """Merge a chunk's frame patches into one."""
+        """Merge a chunk's frame patches into one, size-tiered: the largest stays apart while it holds more
+        faces than all the others together, so a known place that keeps receiving small patches does not copy
+        (and re-upload) its whole chunk every few frames; each face is copied O(log n) times over a run."""
         parts = [p for p in chunk.patches.values() if not p.keyed]
+        largest = max(parts, key=lambda p: p.cells)
+        if 2 * largest.cells > sum(p.cells for p in parts):
+            parts = [p for p in parts if p is not largest]
+        if len(parts) < 2:
+            return
         merged = Patch(
             f"merged_{self._merges}",
             _append([p.polydata for p in parts]),
@@ -520,13 +527,16 @@ class WorldMap:
 
     # -- checkpoints --------------------------------------------------------
     def state(self) -> dict:
-        """The map as plain data (patches in order with their chunk and per-face evidence), for checkpoints."""
+        """The map as plain data (patches chunk by chunk, in order, with their chunk and per-face evidence), for
+        checkpoints: :meth:`set_state` rebuilds the same chunks in the same order, so a resumed run's map is
+        byte-identical."""
         return {
             "chunk_size": self.chunk_size,
             "merges": self._merges,
             "patches": [
                 [key, polydata_to_state(p.polydata), list(p.chunk), p.evidence.copy(), p.contradicted.copy(), p.keyed]
-                for key, p in self._patches.items()
+                for chunk in self.chunks.values()
+                for key, p in chunk.patches.items()
             ],
         }
 

@@ -184,3 +184,19 @@ def test_a_view_of_more_faces_than_codes_is_a_clear_error():
     world.add_patch("frame_0", plane_mesh([0.5, 0.5, 0], [0, 0, 1], size=1.0, subdivisions=4), frame=0)
     with pytest.raises(MemoryError, match="in view"):
         renderer.render_zbuffer(world.multiblock, SMALL, look_at([0.5, 0.5, 1.0], [0.5, 0.5001, 0.0]))
+
+
+def test_merging_leaves_a_large_patch_apart_until_the_small_ones_add_up_to_it():
+    world = WorldMap(patches_per_chunk=4)
+    world.add_patch("frame_0", plane_mesh([0.5, 0.5, 0], [0, 0, 1], size=1.0, subdivisions=10), frame=0)  # 200 faces
+    for frame in range(1, 6):
+        world.add_patch(f"frame_{frame}", plane_mesh([0.5, 0.5, 0.1 * frame], [0, 0, 1], size=1.0, subdivisions=2), frame=frame)
+    world.compact()
+    chunk = world.chunks[(0, 0, 0)]
+    assert [(key, p.cells) for key, p in chunk.patches.items()] == [("frame_0", 200), ("merged_0", 40)]
+    for frame in range(6, 30):  # small patches keep coming: merged among themselves, then into the large one
+        world.add_patch(f"frame_{frame}", plane_mesh([0.5, 0.5, 0.1 * frame], [0, 0, 1], size=1.0, subdivisions=5), frame=frame)
+        world.compact()
+        assert chunk.frame_patches <= 5
+    assert world.number_of_cells == 200 + 40 + 24 * 50
+    assert "frame_0" not in world.patch_keys  # once the small ones outweighed it

@@ -120,7 +120,9 @@ def test_expected_image_from_blocks_equals_the_merged_mesh_and_keeps_block_actor
     assert np.isfinite(from_blocks).mean() > 0.5
 
 
-def test_removed_blocks_lose_their_actors():
+def test_removed_blocks_are_hidden_then_lose_their_actors():
+    from mabdi.filters.depth_image import KEEP_HIDDEN_RENDERS
+
     world = FilterWorldMesh()
     world.add_patch("a", plane_mesh([0, 0, 0], [0, 0, 1]), 0)
     world.add_patch("b", plane_mesh([0, 0, 1], [0, 0, 1]), 0)
@@ -131,6 +133,11 @@ def test_removed_blocks_lose_their_actors():
     assert len(expected.renderer._actors) == 2
     assert world.remove_patch("a") == -2
     expected.Update()
+    visible = [entry for entry in expected.renderer._actors.values() if entry.actor.GetVisibility()]
+    assert len(visible) == 1
+    for _ in range(KEEP_HIDDEN_RENDERS):
+        expected.Modified()
+        expected.Update()
     assert len(expected.renderer._actors) == 1
 
 

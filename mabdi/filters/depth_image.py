@@ -482,6 +482,11 @@ class _Drawn:
     leaf: vtkPolyData
     actor: vtkActor
     copy: vtkPolyData | None = None
+    last_render: int = 0
+
+
+#: Renders a block may go undrawn before its actor, upload and face codes are dropped.
+KEEP_HIDDEN_RENDERS = 8
 
 
 class DepthRenderer:
@@ -494,8 +499,8 @@ class DepthRenderer:
     BOUNDING_BOX outside the frustum is skipped with its children. Each drawn
     polydata gets its own mapper and actor, kept while it stays in view: a
     mapper uploads its geometry when it first draws it or when it changes, so
-    a map that grows by new blocks uploads only those, and a block that leaves
-    the view releases its copy.
+    a map that grows by new blocks uploads only those; a block that leaves the
+    view is hidden, and released after :data:`KEEP_HIDDEN_RENDERS` renders.
 
     Colour: ``identity_array`` names a uint8 RGB cell array each leaf draws in
     (flat, no lighting; the simulator's object colours), or ``face_identity``
@@ -517,27 +522,43 @@ class DepthRenderer:
         self._actors: dict[int, _Drawn] = {}
         self._codes = FaceCodes()
         self._names: dict[int, str] = {}
+        self._renders = 0
+        self._drawn: set[int] = set()
         self._zbuffer = vtkFloatArray()
         self._rgb = vtkUnsignedCharArray()
 
     def _sync_actors(self, leaves: list[tuple[str, vtkPolyData]]) -> None:
-        """One actor per polydata of ``leaves``; actors of polydata no longer drawn are dropped (and their codes)."""
-        current: dict[int, _Drawn] = {}
+        """One actor per polydata of ``leaves``, shown; actors of polydata not drawn are hidden, and dropped
+        (with their codes and upload) after :data:`KEEP_HIDDEN_RENDERS` renders without them, so a block at
+        the edge of the view (seen by one of two nearby poses) is not uploaded again and again."""
+        self._renders += 1
+        drawn: set[int] = set()
         for name, leaf in leaves:
             key = id(leaf)
             entry = self._actors.get(key)
-            if entry is None or (entry.copy is not None and entry.copy.GetNumberOfCells() != leaf.GetNumberOfCells()):
-                if entry is not None:
-                    self._renderer.RemoveActor(entry.actor)
-                entry = self._new_actor(leaf)
-            current[key] = entry
+            if entry is not None and entry.copy is not None and entry.copy.GetNumberOfCells() != leaf.GetNumberOfCells():
+                self._drop(key)
+                entry = None
+            if entry is None:
+                entry = self._actors[key] = self._new_actor(leaf)
+            entry.actor.VisibilityOn()
+            entry.last_render = self._renders
             self._names[key] = name
-        for key, entry in self._actors.items():
-            if key not in current:
-                self._renderer.RemoveActor(entry.actor)
-                self._codes.release(key)
-                self._names.pop(key, None)
-        self._actors = current
+            drawn.add(key)
+        for key, entry in list(self._actors.items()):
+            if key in drawn:
+                continue
+            if self._renders - entry.last_render > KEEP_HIDDEN_RENDERS:
+                self._drop(key)
+            else:
+                entry.actor.VisibilityOff()
+        self._drawn = drawn
+
+    def _drop(self, key: int) -> None:
+        entry = self._actors.pop(key)
+        self._renderer.RemoveActor(entry.actor)
+        self._codes.release(key)
+        self._names.pop(key, None)
 
     def _new_actor(self, leaf: vtkPolyData) -> _Drawn:
         drawn = leaf
@@ -576,6 +597,8 @@ class DepthRenderer:
         first codes and face counts of the blocks drawn."""
         names, bases, counts = [], [], []
         for key, (base, count) in self._codes.ranges.items():
+            if key not in self._drawn:
+                continue
             names.append(self._names[key])
             bases.append(base)
             counts.append(count)
