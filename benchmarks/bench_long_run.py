@@ -50,11 +50,11 @@ def main() -> None:
     simulation = mabdi.Simulation(config)
     samples = []
     start = time.perf_counter()
-    last = [start]
+    last = [start, time.process_time()]
 
     def progress(record):
         if record.frame % 100 == 0 or record.frame == args.frames - 1:
-            now = time.perf_counter()
+            now, cpu = time.perf_counter(), time.process_time()
             samples.append(
                 {
                     "frame": record.frame,
@@ -63,11 +63,15 @@ def main() -> None:
                     "cells": record.cells_total,
                     "seconds": now - start,
                     "fps_window": 100.0 / (now - last[0]) if record.frame else None,
+                    # CPU seconds of this process per frame over the window: the cost, whatever else runs beside
+                    "cpu_ms_per_frame": 1000.0 * (cpu - last[1]) / 100.0 if record.frame else None,
                 }
             )
-            last[0] = now
+            last[0], last[1] = now, cpu
             s = samples[-1]
-            print(f"frame {s['frame']:6d}  RSS {s['rss_mb']:7.1f} MB  map {s['map_mb']:6.1f} MB  {s['cells']:,} triangles", flush=True)
+            cpu_ms = f"{s['cpu_ms_per_frame']:6.1f}" if s["cpu_ms_per_frame"] is not None else "     -"
+            print(f"frame {s['frame']:6d}  RSS {s['rss_mb']:7.1f} MB  map {s['map_mb']:6.1f} MB  {s['cells']:,} triangles  "
+                  f"CPU {cpu_ms} ms/frame", flush=True)
 
     import shutil
 
