@@ -120,7 +120,10 @@ def _parser() -> argparse.ArgumentParser:
 
     record = commands.add_parser("record", help="write a simulated run's depth frames as a TUM folder or a ROS 2 bag")
     record.add_argument("config", type=Path, help="run config (TOML), e.g. scenes/table.toml")
-    record.add_argument("--format", required=True, choices=("tum", "rosbag2"), help="tum (TUM RGB-D folder) or rosbag2")
+    record.add_argument(
+        "--format", required=True, choices=("tum", "rosbag2", "kitti"),
+        help="tum (TUM RGB-D folder), rosbag2, or kitti (a LiDAR's scans as a KITTI-style folder)",
+    )
     record.add_argument("--out", type=Path, required=True, help="folder to create (must not exist or be empty)")
     record.add_argument("--storage", default="sqlite3", choices=("sqlite3", "mcap"), help="ROS 2 bag storage (default sqlite3)")
     record.add_argument(

@@ -1,8 +1,9 @@
 """Recorded sequences in the loop: record a simulated run, and run the loop on a recording.
 
 ``record(config, out, format)`` writes the simulated rig's frames as a TUM
-RGB-D folder (:mod:`mabdi.sources.tum`) or a ROS 2 bag
-(:mod:`mabdi.sources.rosbag2`), with a ``[recorded]`` table in the
+RGB-D folder (:mod:`mabdi.sources.tum`), a ROS 2 bag
+(:mod:`mabdi.sources.rosbag2`) or, for a LiDAR's range images, a KITTI-style
+folder (:mod:`mabdi.sources.kitti`), with a ``[recorded]`` table in the
 recording's ``mabdi.toml`` that names the scene it came from (the digest of
 the config's ``[scene]`` and frame count, :func:`scene_digest`). The
 recording's poses are the rig's given poses (with the config's
@@ -37,7 +38,7 @@ from mabdi.sources.sequences import READER_OPTIONS
 __all__ = ["FORMATS", "READER_OPTIONS", "TRUE_POSES", "record", "recorded_simulation", "scene_digest"]
 
 #: The formats :func:`record` writes.
-FORMATS = ("tum", "rosbag2")
+FORMATS = ("tum", "rosbag2", "kitti")
 
 
 def record(config: RunConfig, out, format: str, storage: str = "sqlite3", encoding: str = "32FC1", overwrite: bool = False) -> Path:
@@ -70,6 +71,10 @@ def record(config: RunConfig, out, format: str, storage: str = "sqlite3", encodi
             from mabdi.sources.tum import write_tum
 
             write_tum(rig, out, extra=extra)
+        elif format == "kitti":
+            from mabdi.sources.kitti import write_kitti
+
+            write_kitti(rig, out, extra=extra)
         else:
             from mabdi.sources.rosbag2 import write_rosbag2
 
