@@ -2,8 +2,8 @@
 
 ``record(config, out, format)`` writes the simulated rig's frames as a TUM
 RGB-D folder (:mod:`mabdi.sources.tum`), a ROS 2 bag
-(:mod:`mabdi.sources.rosbag2`) or, for a LiDAR's range images, a KITTI-style
-folder (:mod:`mabdi.sources.kitti`), with a ``[recorded]`` table in the
+(:mod:`mabdi.sources.rosbag2`; a LiDAR's scans as PointCloud2) or, for a
+LiDAR, a KITTI-style folder (:mod:`mabdi.sources.kitti`), with a ``[recorded]`` table in the
 recording's ``mabdi.toml`` that names the scene it came from (the digest of
 the config's ``[scene]`` and frame count, :func:`scene_digest`). The
 recording's poses are the rig's given poses (with the config's
@@ -76,9 +76,13 @@ def record(config: RunConfig, out, format: str, storage: str = "sqlite3", encodi
 
             write_kitti(rig, out, extra=extra)
         else:
-            from mabdi.sources.rosbag2 import write_rosbag2
+            from mabdi.sources.rosbag2 import write_lidar_rosbag2, write_rosbag2
+            from mabdi.spherical import SphericalGeometry
 
-            write_rosbag2(rig, out, storage=storage, encoding=encoding, extra=extra)
+            if isinstance(rig.intrinsics, SphericalGeometry):  # a LiDAR's scans: PointCloud2 (encoding is for images)
+                write_lidar_rosbag2(rig, out, storage=storage, extra=extra)
+            else:
+                write_rosbag2(rig, out, storage=storage, encoding=encoding, extra=extra)
         with atomic_output(Path(out) / TRUE_POSES) as temporary:
             np.save(temporary, rig.true_poses)
     finally:

@@ -41,7 +41,7 @@ from mabdi.errors import PoseError
 from mabdi.io.atomic import atomic_output, write_text
 from mabdi.io.toml_writer import toml_lines
 from mabdi.sources.frames import FrameSource
-from mabdi.sources.range_images import KITTI_GEOMETRY, geometry_from_table, lidar_table, range_image
+from mabdi.sources.range_images import KITTI_GEOMETRY, geometry_from_table, lidar_table, range_image, range_image_points
 from mabdi.sources.sequence_files import SequenceError, metadata_path, prepare_folder, read_sequence_metadata
 from mabdi.spherical import SphericalGeometry
 
@@ -181,16 +181,6 @@ def _read_times(path: Path) -> np.ndarray:
     return np.array(times, dtype=np.float64)
 
 
-def scan_points(frame: DepthFrame) -> np.ndarray:
-    """(N, 3) sensor-frame points (m) of a range-image frame's returns: range times each pixel's unit ray."""
-    geometry = frame.intrinsics
-    if not isinstance(geometry, SphericalGeometry):
-        raise ValueError(f"a LiDAR recording needs range images (a SphericalGeometry), got {type(geometry).__name__}")
-    depth = frame.depth
-    hit = np.isfinite(depth)
-    return geometry.rays()[hit] * depth[hit, None].astype(np.float64)
-
-
 def write_kitti(source: FrameSource, folder, *, overwrite: bool = False, extra: dict | None = None) -> Path:
     """Write every frame of a LiDAR ``source`` (range images) as a KITTI-style folder; returns the folder.
 
@@ -213,7 +203,7 @@ def write_kitti(source: FrameSource, folder, *, overwrite: bool = False, extra: 
     for index in range(len(source)):
         frame = source.read(index)
         geometry = frame.intrinsics if geometry is None else geometry
-        xyz = scan_points(frame)
+        xyz = range_image_points(frame.depth, frame.intrinsics)[0]
         points = np.zeros((len(xyz), POINT_FIELDS), dtype="<f4")
         points[:, :3] = xyz
         with atomic_output(folder / SCAN_FOLDER / f"{index:06d}.bin") as temporary:
@@ -229,4 +219,4 @@ def write_kitti(source: FrameSource, folder, *, overwrite: bool = False, extra: 
     return folder
 
 
-__all__ = ["KittiSequence", "is_kitti", "read_calibration", "read_scan", "scan_points", "write_kitti"]
+__all__ = ["KittiSequence", "is_kitti", "read_calibration", "read_scan", "write_kitti"]

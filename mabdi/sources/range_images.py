@@ -81,6 +81,18 @@ def range_image(points, geometry: SphericalGeometry, rows=None) -> np.ndarray:
     return image.reshape(geometry.shape)
 
 
+def range_image_points(depth, geometry: SphericalGeometry) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The returns of a range image as sensor-frame points: (N, 3) float64 range times each pixel's unit ray
+    (m), and (N,) their rows and columns (row-major order); the inverse of :func:`range_image` for points at
+    pixel centres."""
+    depth = np.asarray(depth)
+    if depth.shape != geometry.shape:
+        raise ValueError(f"range image has shape {depth.shape}, the geometry says {geometry.shape}")
+    rows, columns = np.nonzero(np.isfinite(depth))
+    points = geometry.rays()[rows, columns] * depth[rows, columns, None].astype(np.float64)
+    return points, rows, columns
+
+
 def rows_from_rings(rings, points, beams: int) -> np.ndarray:
     """(N,) image rows (0 = the top beam) of points by their ring index (N,) and sensor-frame ``points`` (N, 3).
 
@@ -134,4 +146,12 @@ def geometry_from_table(table, file, default: SphericalGeometry | None = None) -
         raise SequenceError(f"{file}: [lidar]: {exc}") from None
 
 
-__all__ = ["KITTI_GEOMETRY", "LIDAR_KEYS", "geometry_from_table", "lidar_table", "range_image", "rows_from_rings"]
+__all__ = [
+    "KITTI_GEOMETRY",
+    "LIDAR_KEYS",
+    "geometry_from_table",
+    "lidar_table",
+    "range_image",
+    "range_image_points",
+    "rows_from_rings",
+]

@@ -100,7 +100,7 @@ FORMATS = {
 #: The keyword options each format's reader takes (``open_sequence(path, **options)``; the CLI refuses the others).
 READER_OPTIONS = {
     "tum": ("camera", "tolerance", "depth_scale"),
-    "rosbag2": ("depth_topic", "info_topic", "pose_topic", "tolerance", "colour_topic"),
+    "rosbag2": ("depth_topic", "info_topic", "pose_topic", "tolerance", "colour_topic", "cloud_topic"),
     "3dmatch": ("camera", "depth_scale"),
     "redwood": ("camera", "depth_scale"),
     "scannet": ("camera", "depth_scale"),
@@ -141,7 +141,7 @@ def open_sequence(path, **options):
     :func:`sequence_format` tells the formats apart (:data:`FORMATS`);
     ``options`` go to that reader (``camera=``, ``depth_scale=``,
     ``tolerance=`` for TUM; ``camera=``, ``depth_scale=`` for the dataset
-    layouts; ``depth_topic=``, ``pose_topic=``, ... for bags).
+    layouts; ``depth_topic=``, ``pose_topic=``, ``cloud_topic=``, ... for bags).
     """
     kind = sequence_format(path)
     _, module, name = FORMATS[kind]
