@@ -95,3 +95,21 @@ def test_map_history_gathers_distinct_vertices_of_every_map():
     # The crate's vertices are all dynamic (its bottom corners sit on the floor: static).
     labels = label_points(history.points, FLOOR, [CRATE])
     assert (labels == DYNAMIC).sum() == 4 and (labels == STATIC).sum() == 8
+
+
+def test_bench_table_shows_the_accuracies():
+    from mabdi.evaluate.bench import dynamic_table
+
+    row = {
+        "method": "mabdi",
+        "triangles_per_frame": [10, 12],
+        "dynamic": {
+            "ghost_share_end": 0.005,
+            "frames_to_clear": {"crate": 2},
+            "static_loss": {"area_m2": 0.0},
+            "removal": {"static_accuracy": 0.995, "dynamic_accuracy": None, "associated_accuracy": None},
+        },
+    }
+    table = dynamic_table({"methods": [row]})
+    assert "| SA | DA | AA |" in table
+    assert table.splitlines()[-1] == "| mabdi | 0.50% | crate: 2 | 0.0000 | 0.9950 | - | - |"
