@@ -109,6 +109,17 @@ def test_a_camera_source_is_refused(tmp_path):
 
     camera = Intrinsics(fx=10.0, fy=10.0, cx=4.0, cy=3.0, width=8, height=6)
     source = FrameList([DepthFrame(np.ones((6, 8), np.float32), camera, np.eye(4))])
-    with pytest.raises(ValueError, match="a KITTI folder holds a LiDAR's scans, but these frames are a camera's"):
+    with pytest.raises(SequenceError, match="a KITTI folder holds a LiDAR's scans, but these frames are a camera's"):
         write_kitti(source, tmp_path / "seq")
+    assert not (tmp_path / "seq").exists()
+
+
+def test_recording_a_camera_as_kitti_names_the_problem(tmp_path, capsys):
+    from pathlib import Path
+
+    from mabdi.cli import main
+
+    scene = Path(__file__).resolve().parents[1] / "scenes" / "table.toml"
+    assert main(["record", str(scene), "--format", "kitti", "--frames", "2", "--out", str(tmp_path / "seq")]) != 0
+    assert "a KITTI folder holds a LiDAR's scans, but these frames are a camera's" in capsys.readouterr().err
     assert not (tmp_path / "seq").exists()

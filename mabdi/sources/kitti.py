@@ -190,7 +190,7 @@ def write_kitti(source: FrameSource, folder, *, overwrite: bool = False, extra: 
     unknown), and ``mabdi.toml`` the ``[lidar]`` geometry and the tables of ``extra``. Atomic file by file.
     """
     if not isinstance(source.intrinsics, SphericalGeometry):
-        raise ValueError(
+        raise SequenceError(
             f"{source.description}: a KITTI folder holds a LiDAR's scans, but these frames are a camera's depth images "
             "(use [sensor] kind = \"lidar\", or another format)"
         )
