@@ -82,7 +82,7 @@ class SimulatedRig(FrameSource):
         sensor = config.sensor
         return cls(
             scene,
-            path_from_config(frames, config.path),
+            path_from_config(frames, config.path, base_dir),
             intrinsics=sensor.intrinsics(),
             noise=sensor.sensor_noise(),
             seed=config.run.seed,
