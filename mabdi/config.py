@@ -413,16 +413,16 @@ def _set_dotted(data: dict, key: str, value, where: str) -> None:
             raise ConfigError(f"{where}: unknown key '{key}': '{here}' is a value, not a table")
 
 
-def _overridden(config: RunConfig, overrides: dict, where: str) -> RunConfig:
+def _overridden(config: RunConfig, overrides: dict, where: str, whole: bool) -> RunConfig:
     data = tomllib.loads(dump_toml(config))
     for key, value in overrides.items():
         _set_dotted(data, key, value, where)
-    resolved = run_config_from_dict(data, where=where)
+    resolved = run_config_from_dict(data, where=where) if whole else _build(RunConfig, data, where, "")
     resolved.source = config.source
     return resolved
 
 
-def with_overrides(config: RunConfig, overrides: dict, where: str = "<overrides>") -> RunConfig:
+def with_overrides(config: RunConfig, overrides: dict, where: str = "<overrides>", whole: bool = True) -> RunConfig:
     """A new RunConfig: ``config`` with the values of ``overrides`` (dotted key -> value) set, the whole checked.
 
     The one way a config is changed after it is read (``mabdi run``'s options
@@ -438,15 +438,17 @@ def with_overrides(config: RunConfig, overrides: dict, where: str = "<overrides>
     needs to know the config's layout. An error is a :class:`ConfigError`
     naming ``where`` and the key that caused it. ``config`` is not changed;
     the new one keeps its ``source`` (relative mesh paths stay resolved
-    against the same folder).
+    against the same folder). ``whole=False`` leaves out the checks across
+    sections (:func:`validate_run_config`: a principal point inside the image
+    width, say), for a config changed one value at a time.
     """
     try:
-        return _overridden(config, overrides, where)
+        return _overridden(config, overrides, where, whole)
     except ConfigError as exc:
         error, culprit = exc, None
     for key, value in overrides.items():  # the key that fails on its own, when one does
         try:
-            _overridden(config, {key: value}, where)
+            _overridden(config, {key: value}, where, whole)
         except ConfigError as alone:
             error, culprit = alone, key
             break
@@ -460,9 +462,12 @@ def with_overrides(config: RunConfig, overrides: dict, where: str = "<overrides>
 def set_value(config: RunConfig, key: str, value, where: str = "command line") -> None:
     """Set one value of ``config`` in place by its dotted key: :func:`with_overrides` applied to ``config`` itself.
 
+    The value's type and its section's own checks run; the checks across
+    sections wait for :func:`validate_run_config` (a config may pass through
+    such a state while its values are set one by one: the width, then cx).
     Raises :class:`ConfigError` naming the key; ``config`` is unchanged then.
     """
-    resolved = with_overrides(config, {key: value}, where)
+    resolved = with_overrides(config, {key: value}, where, whole=False)
     for f in dataclasses.fields(RunConfig):
         setattr(config, f.name, getattr(resolved, f.name))
 

@@ -143,6 +143,8 @@ def test_one_override_mechanism_for_the_command_line_the_sweep_and_set_value():
         with_overrides(base, {"surface.quadtree.n_tt": 1.0}, where="here")
     with pytest.raises(ConfigError, match=r"'scene.objects' is a list of \d+ items, '9' is not an index in it"):
         with_overrides(base, {"scene.objects.9.position": [0, 0, 0]}, where="here")
+    with pytest.raises(ConfigError, match="key 'classifier.tau_min': tau_min must be > 0"):
+        set_value(in_place, "classifier.tau_min", 0.0)
+    assert in_place == new  # a refused value leaves the config as it was
     with pytest.raises(ConfigError, match="key 'run.frames' must be at least 1"):
-        set_value(in_place, "run.frames", 0)
-    assert in_place.run.frames == 7  # a refused value leaves the config as it was
+        with_overrides(in_place, {"run.frames": 0})  # the checks across sections: the whole config
