@@ -148,3 +148,17 @@ def test_one_override_mechanism_for_the_command_line_the_sweep_and_set_value():
     assert in_place == new  # a refused value leaves the config as it was
     with pytest.raises(ConfigError, match="key 'run.frames' must be at least 1"):
         with_overrides(in_place, {"run.frames": 0})  # the checks across sections: the whole config
+
+
+def test_the_readme_run_pipeline_example_runs(tmp_path, monkeypatch):
+    import mabdi
+
+    text = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    code = text.split("<!-- example: run pipeline -->")[1].split("```python")[1].split("```")[0]
+    monkeypatch.chdir(tmp_path)
+    namespace = {"mabdi": mabdi, "config": table(2)}
+    exec(code, namespace)
+    result, ghosts = namespace["result"], namespace["ghosts"].ghosts
+    assert 0.99 < result.scores.fscore_1cm <= 1.0  # a noise-free table: the map is the table
+    assert ghosts.final_share < 0.01 and [f for f, _ in ghosts.shares] == [0, 1]
+    assert json.loads((tmp_path / "runs" / "mine" / "summary.json").read_text())["metrics"]["triangles"] == result.mesh.GetNumberOfCells()

@@ -153,7 +153,7 @@ class ResumePoint:
     inputs: dict | None = None
 
 
-@dataclass
+@dataclass(eq=False)
 class RunPipeline:
     """One run: ``simulation`` (source + loop) through the steps of the module docs, watched by ``observers``.
 
