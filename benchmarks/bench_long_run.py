@@ -21,6 +21,7 @@ os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
 import mabdi  # noqa: E402
 from mabdi.config import load_run_config, set_value  # noqa: E402
 from mabdi.evaluate.bench import machine_info  # noqa: E402
+from mabdi.simulate.run_pipeline import FrameCallback, RunPipeline  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -76,16 +77,17 @@ def main() -> None:
     import shutil
 
     shutil.rmtree(args.out, ignore_errors=True)
-    original_write = simulation._write_checkpoint
+    pipeline = RunPipeline(simulation, args.out, [FrameCallback(progress)])
+    original_write = pipeline.write_checkpoint
     checkpoint_ms = []
 
-    def timed_checkpoint(*a, **k):
+    def timed_checkpoint(next_frame):
         t = time.perf_counter()
-        original_write(*a, **k)
+        original_write(next_frame)
         checkpoint_ms.append(1000.0 * (time.perf_counter() - t))
 
-    simulation._write_checkpoint = timed_checkpoint
-    result = simulation.run(args.out, progress=progress)
+    pipeline.write_checkpoint = timed_checkpoint  # what the pipeline's Checkpoints observer calls
+    result = pipeline.run()
     seconds = time.perf_counter() - start
     first = next(s for s in samples if s["frame"] >= 100)
     end = samples[-1]
