@@ -198,6 +198,14 @@ def image_intrinsics(image) -> SensorGeometry:
     return Intrinsics.from_array(_field_array(image, INTRINSICS_ARRAY))
 
 
+def pixels_per_radian(geometry: SensorGeometry) -> float:
+    """How many pixels one radian of view spans: a camera's ``fx`` (at the image centre), a LiDAR's columns per
+    radian of azimuth (what turns a length seen at a distance into pixels, for either geometry)."""
+    if isinstance(geometry, SphericalGeometry):
+        return geometry.columns / (2.0 * np.pi)
+    return geometry.fx
+
+
 def is_range_image(image) -> bool:
     """True when a depth image is a LiDAR's range image (spherical geometry), False for a camera's."""
     return isinstance(image_intrinsics(image), SphericalGeometry)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from vtkmodules.util.numpy_support import numpy_to_vtk, numpy_to_vtkIdTypeArray, vtk_to_numpy
 from vtkmodules.vtkCommonCore import vtkPoints
-from vtkmodules.vtkCommonDataModel import vtkCellArray, vtkPolyData
+from vtkmodules.vtkCommonDataModel import vtkCellArray, vtkCompositeDataSet, vtkDataObjectTreeIterator, vtkPolyData
 from vtkmodules.vtkFiltersCore import vtkTriangleFilter
 
 #: Cell data of every block of the map: the face's 24-bit identity as uint8 RGB (red = low byte), drawn by the
@@ -199,3 +199,27 @@ def transformed_polydata(mesh: vtkPolyData, matrix: np.ndarray) -> vtkPolyData:
             turned.SetName(array.GetName())
             data.AddArray(turned)
     return out
+
+
+def polydata_leaves(data) -> list[vtkPolyData]:
+    """The vtkPolyData of ``data``: itself, or the non-empty leaves of a composite dataset."""
+    if isinstance(data, vtkPolyData):
+        return [data]
+    if not isinstance(data, vtkCompositeDataSet):
+        raise TypeError(
+            "expected a vtkPolyData or a composite dataset of polydata, "
+            f"got {data.GetClassName() if data is not None else None}"
+        )
+    leaves = []
+    iterator = vtkDataObjectTreeIterator()
+    iterator.SetDataSet(data)
+    iterator.SkipEmptyNodesOn()
+    iterator.VisitOnlyLeavesOn()
+    iterator.InitTraversal()
+    while not iterator.IsDoneWithTraversal():
+        leaf = iterator.GetCurrentDataObject()
+        if not isinstance(leaf, vtkPolyData):
+            raise TypeError(f"composite dataset has a {leaf.GetClassName()} block; only vtkPolyData can be rendered")
+        leaves.append(leaf)
+        iterator.GoToNextItem()
+    return leaves

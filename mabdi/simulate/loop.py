@@ -27,6 +27,13 @@ the previous frame: the world mesh appends frame i's surface only at the end
 of frame i. With the classifier off (``enabled = false``, the "black box")
 the surface filter meshes D itself: every valid pixel, every frame.
 
+A LiDAR's range images (:mod:`mabdi.spherical`) run through the same loop:
+E is the map's range image (:mod:`mabdi.filters.range_rendering`), the
+classifier compares ranges with tau of the range noise, and removal votes
+along the beams. Registration and refinement are camera-only for now (their
+kernels use the pinhole projection): with a LiDAR both are off and the
+poses are taken as given (the rule is :func:`lidar_rules`).
+
 ``loop.step(i)`` runs frame i and returns its :class:`FrameRecord`. What a
 frame produced is read through public accessors (:meth:`measured_image`,
 :meth:`expected_image`, :meth:`labels`, :meth:`novel_surface`, :meth:`mesh`,
@@ -43,7 +50,8 @@ from vtkmodules.vtkCommonDataModel import vtkImageData, vtkPolyData
 
 from mabdi.algorithm import raise_pipeline_errors
 from mabdi.camera import Intrinsics, unit_rays
-from mabdi.depth import depth_array, image_pose
+from mabdi.spherical import SphericalGeometry
+from mabdi.depth import depth_array, image_pose, pixels_per_radian
 from mabdi.filters.classifier import (
     CONTRADICTED,
     NO_RETURN,
@@ -108,6 +116,15 @@ class FrameRecord:
         return self.registration == "registered"
 
 
+def lidar_rules(geometry, refining: bool, registration: RegistrationParameters) -> tuple[bool, RegistrationParameters]:
+    """(refining, registration) for a sensor of ``geometry``: unchanged for a camera; for a LiDAR's range
+    images (:class:`~mabdi.spherical.SphericalGeometry`) refinement off and registration off (their kernels
+    are the pinhole camera's): the loop takes a LiDAR's poses as given."""
+    if isinstance(geometry, SphericalGeometry):
+        return False, replace(registration, enabled=False)
+    return refining, registration
+
+
 class MabdiLoop:
     """Expected image, classifier, surface and world mesh over a :class:`FrameSource` (see the module docs).
 
@@ -148,11 +165,12 @@ class MabdiLoop:
         if refinement_on == "auto":
             refinement_on = self.noise.correlated  # errors one look's smoothing cannot remove: average later looks in
         self.refining = self.classifier_parameters.enabled and refinement_on and self.noise.model != "none"
+        self.registration_parameters = registration if registration is not None else RegistrationParameters()
+        self.refining, self.registration_parameters = lidar_rules(source.intrinsics, self.refining, self.registration_parameters)
         self.refinement = MapRefinement(refinement if refinement is not None else RefinementParameters())
         self.measured = SourceDepthFrames(source)
         self.world = FilterWorldMesh()
         self.expected = FilterExpectedImage(backend=backend, identity=self.removal or self.refining)
-        self.registration_parameters = registration if registration is not None else RegistrationParameters()
         #: D as the classifier sees it: registered to the map (the renderer of E is shared: one upload of the map)
         self.registration: FilterRegistration | None = None
         measured_port = self.measured.GetOutputPort()
@@ -398,7 +416,7 @@ class MabdiLoop:
         shown = shown[np.isfinite(shown)]
         if not len(shown):
             return parameters
-        margin = int(np.ceil(overhang * self.intrinsics.fx / float(np.median(shown))))
+        margin = int(np.ceil(overhang * pixels_per_radian(self.intrinsics) / float(np.median(shown))))
         margin = min(max(margin, parameters.edge_margin), parameters.max_edge_margin)
         return replace(parameters, edge_margin=margin)
 
