@@ -657,3 +657,28 @@ class FilterDepthImage(MabdiAlgorithm):
             depth = self._noise.depth_from_zbuffer(zbuffer, intr.near, intr.far, rng, intrinsics=intr)
         fill_depth_image(vtkImageData.GetData(outInfo), depth, intr, self._pose, self._frame)
         return 1
+
+
+class SensorRenderer:
+    """Noise-free images of a mesh for either sensor geometry, one window reused across frames:
+    ``render(data, geometry, world_from_sensor)`` gives a camera's metric depth (:class:`DepthRenderer`)
+    or a LiDAR's range image (:class:`~mabdi.filters.range_rendering.RangeRenderer`), (H, W) float32, NaN
+    where no surface lies within the range."""
+
+    def __init__(self, backend: str = "egl") -> None:
+        self.backend = backend
+        self.camera = DepthRenderer(backend)
+        self.lidar: RangeRenderer | None = None
+
+    def render(self, data, geometry: Intrinsics | SphericalGeometry, world_from_sensor) -> np.ndarray:
+        if isinstance(geometry, SphericalGeometry):
+            if self.lidar is None:
+                self.lidar = RangeRenderer(DepthRenderer(self.backend, identity_array=TRIANGLE_RGB_ARRAY))
+            return self.lidar.render(data, geometry, world_from_sensor)
+        zbuffer = self.camera.render_zbuffer(data, geometry, world_from_sensor)
+        return zbuffer_to_depth(zbuffer, geometry.near, geometry.far)
+
+    def close(self) -> None:
+        self.camera.close()
+        if self.lidar is not None:
+            self.lidar.close()

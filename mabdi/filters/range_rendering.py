@@ -14,10 +14,10 @@ two steps:
    :mod:`mabdi.filters.range_rendering_kernels`) and takes the nearest it hits inside. So the range is exact
    at every beam, on planes at any slant and at silhouettes (a beam that passes a box's edge by a fraction
    of a pixel reads the wall behind it, or no return), whenever the triangle the beam hits is drawn at one
-   of the 9 render pixels around it: always, unless the triangle is smaller than a render pixel. Then the
-   beam takes the plane of the triangle drawn at its own render pixel, when that triangle is small too
-   (shorter than ``SMALL_TRIANGLE`` render-pixel footprints at the hit's range): a sub-pixel extrapolation
-   on a finely tessellated surface.
+   of the 9 render pixels around it: always, unless the triangle is thinner than a render pixel. A fine
+   mesh (a scanned object, a cylinder's facets) has such triangles: there the beam takes the plane of a
+   thin candidate that it misses by less than a render pixel's footprint, if that is nearer than any
+   inside hit (a sub-pixel extrapolation of the surface next to the one hit).
 
 Returns are ranges strictly between ``range_min`` and ``range_max``; anything else is NaN (a surface nearer
 than ``range_min`` hides what is behind it, as on a real sensor). The renderer keeps, per triangle, the map
@@ -49,9 +49,7 @@ TRIANGLE_RGB_ARRAY = "range_triangle_rgb"
 #: Perspective renders around the azimuth.
 SECTORS = 4
 #: Render pixels per beam step.
-OVERSAMPLE = 2.0
-#: A triangle shorter than this many render-pixel footprints is "small" (see the module docs).
-SMALL_TRIANGLE = 4.0
+OVERSAMPLE = 3.0
 #: Largest beam elevation the sector renders cover (degrees from the horizon).
 MAX_ELEVATION = 60.0
 #: Barycentric tolerance of the inside test (a beam on an edge between two triangles hits either).
@@ -125,7 +123,7 @@ def _identity_rgb(first: int, count: int) -> np.ndarray:
 class _TriangleTable:
     """The triangles drawn for the range renderer, by identity: a triangulated copy of each polydata (kept
     while the polydata is unchanged) with cell data :data:`TRIANGLE_RGB_ARRAY`, and per identity the
-    triangle's corner, two edges, longest edge and the map face it belongs to (``face_rgb``; 0 if none)."""
+    triangle's corner, two edges, width (its height over its longest edge) and the map face it belongs to (``face_rgb``; 0 if none)."""
 
     def __init__(self) -> None:
         self.clear()
@@ -136,14 +134,14 @@ class _TriangleTable:
         self.corner = np.zeros((1, 3))
         self.edge1 = np.zeros((1, 3))
         self.edge2 = np.zeros((1, 3))
-        self.longest = np.zeros(1)
+        self.width = np.zeros(1)
         self.face = np.zeros(1, dtype=np.int64)
 
     def _grow(self, size: int) -> None:
         if size <= len(self.face):
             return
         size = max(size, 2 * len(self.face))
-        for name in ("corner", "edge1", "edge2", "longest", "face"):
+        for name in ("corner", "edge1", "edge2", "width", "face"):
             old = getattr(self, name)
             new = np.zeros((size, *old.shape[1:]), dtype=old.dtype)
             new[: len(old)] = old
@@ -191,7 +189,9 @@ class _TriangleTable:
         self.corner[rows] = a
         self.edge1[rows] = b - a
         self.edge2[rows] = c - a
-        self.longest[rows] = np.sqrt(np.maximum.reduce([((b - a) ** 2).sum(1), ((c - a) ** 2).sum(1), ((c - b) ** 2).sum(1)]))
+        longest = np.sqrt(np.maximum.reduce([((b - a) ** 2).sum(1), ((c - a) ** 2).sum(1), ((c - b) ** 2).sum(1)]))
+        doubled_area = np.linalg.norm(np.cross(b - a, c - a), axis=1)
+        self.width[rows] = np.divide(doubled_area, longest, out=np.zeros(count), where=longest > 0)
         faces = copy.GetCellData().GetArray(FACE_RGB_ARRAY)
         if faces is not None:
             rgb = vtk_to_numpy(faces).astype(np.int64).reshape(-1, 3)
@@ -232,7 +232,7 @@ class RangeRenderer:
         table = self._table
         ranges, hits = cast_beams_kernel(
             np.ascontiguousarray(pose[:3, 3]), np.ascontiguousarray(directions), candidates, table.corner, table.edge1,
-            table.edge2, table.longest, SMALL_TRIANGLE * views.footprint, BARYCENTRIC_TOLERANCE,
+            table.edge2, table.width, views.footprint, BARYCENTRIC_TOLERANCE,
         )
         outside = ~((ranges > geometry.range_min) & (ranges < geometry.range_max))
         ranges[outside] = np.nan
