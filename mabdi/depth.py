@@ -227,12 +227,12 @@ def jump_scale(geometry: SensorGeometry) -> float:
 
 
 def sensor_values(sensor_points, geometry: SensorGeometry) -> np.ndarray:
-    """(N,) what an image of ``geometry`` holds for sensor-frame points (N, 3): a camera's z-depth, a LiDAR's
+    """(...) what an image of ``geometry`` holds for sensor-frame points (..., 3): a camera's z-depth, a LiDAR's
     range (metres)."""
-    points = np.asarray(sensor_points, dtype=np.float64).reshape(-1, 3)
+    points = np.asarray(sensor_points)
     if isinstance(geometry, SphericalGeometry):
-        return np.linalg.norm(points, axis=1)
-    return points[:, 2]
+        return np.linalg.norm(points, axis=-1)
+    return points[..., 2]
 
 
 def project_to_image(points, geometry: SensorGeometry, world_from_sensor) -> tuple[np.ndarray, np.ndarray]:

@@ -208,3 +208,37 @@ def test_composite_map_renders_as_one():
     blocks.SetBlock(0, wall)
     blocks.SetBlock(1, floor)
     np.testing.assert_array_equal(depth_array(render(blocks, GEOMETRY, np.eye(4))), depth_array(render(merged(wall, floor), GEOMETRY, np.eye(4))))
+
+
+@pytest.mark.parametrize("reduction", [1, 3])
+def test_quadtree_meshes_a_straight_wall_from_the_range_image_flat(reduction):
+    # seed 002 §3.2's case: a wall in front of the sensor is curved in the range image; the quad-tree's
+    # spherical transform makes it flat again, merges it into big faces, with the wall's normal
+    from vtkmodules.util.numpy_support import vtk_to_numpy
+
+    from mabdi.filters.quadtree import FilterQuadTree, QuadTreeParameters
+
+    geometry = SphericalGeometry(32, 512, 10.0, -20.0, 0.5, 50.0)
+    wall = plane((4.0, -8.0, -3.0), (4.0, 8.0, -3.0), (4.0, -8.0, 3.0))
+    image = render(wall, geometry, np.eye(4))
+    ranges = depth_array(image)
+    assert np.nanmax(ranges) - np.nanmin(ranges) > 1.0  # curved in the range image: 4 m ahead, more aside
+    quadtree = FilterQuadTree(QuadTreeParameters(reduction=reduction))
+    quadtree.SetInputDataObject(image)
+    quadtree.Update()
+    mesh = quadtree.GetOutput()
+    points = vtk_to_numpy(mesh.GetPoints().GetData()).astype(np.float64)
+    assert np.abs(points[:, 0] - 4.0).max() < 0.002  # every vertex on the wall
+    normals = vtk_to_numpy(mesh.GetCellData().GetNormals()).astype(np.float64)
+    angle = np.degrees(np.arccos(np.clip(normals @ np.array([-1.0, 0.0, 0.0]), -1.0, 1.0)))
+    assert angle.max() < 1.0  # facing the sensor, within a degree of the wall's normal
+    level = vtk_to_numpy(mesh.GetCellData().GetArray("level"))
+    beams_on_wall = int(np.isfinite(ranges).sum())
+    assert level.max() >= 8 and mesh.GetNumberOfCells() < beams_on_wall / 8  # large merged faces
+    # the faces cover the wall's seen part about as the pixel grid's triangles between the beams do
+    from mabdi.polydata import polydata_area
+
+    grid = FilterPixelGrid()
+    grid.SetInputDataObject(image)
+    grid.Update()
+    assert polydata_area(mesh) > 0.8 * polydata_area(grid.GetOutput()) > 30.0
