@@ -242,3 +242,89 @@ def test_quadtree_meshes_a_straight_wall_from_the_range_image_flat(reduction):
     grid.SetInputDataObject(image)
     grid.Update()
     assert polydata_area(mesh) > 0.8 * polydata_area(grid.GetOutput()) > 30.0
+
+
+LIDAR_SCENE = """
+[run]
+name = "lidar_boxes"
+frames = {frames}
+seed = 2
+
+[sensor]
+kind = "lidar"
+beams = 32
+columns = 512
+fov_up = 15.0
+fov_down = -45.0
+range_min = 0.3
+range_max = 20.0
+noise = "{noise}"
+
+[path]
+radius_x = 2.5
+radius_y = 2.2
+z0 = 1.4
+z1 = 1.6
+look_from = [0.0, 0.0, 0.5]
+look_to = [0.0, 0.0, 0.6]
+
+[surface]
+method = "{surface}"
+
+[surface.quadtree]
+reduction = 1  # a LiDAR's beams are already further apart than a camera's 3 x 3 pixel blocks
+
+[[scene.objects]]
+name = "floor"
+type = "plane"
+size = [8.0, 8.0]
+
+[[scene.objects]]
+name = "stays"
+type = "box"
+size = [0.6, 0.6, 0.8]
+position = [-0.8, 0.0, 0.0]
+
+[[scene.objects]]
+name = "leaves"
+type = "box"
+size = [0.6, 0.6, 0.8]
+position = [0.8, 0.0, 0.0]
+disappear_at = {leave}
+"""
+
+
+def lidar_run(tmp_path, surface="pixel_grid", noise="none", frames=16, leave=1.0):
+    from mabdi.simulate import Simulation
+
+    path = tmp_path / f"lidar_{surface}_{noise}.toml"
+    path.write_text(LIDAR_SCENE.format(frames=frames, noise=noise, surface=surface, leave=leave if leave < 1.0 else frames + 1))
+    config = load_run_config(path)
+    simulation = Simulation(config)
+    return simulation, simulation.run()
+
+
+@pytest.mark.parametrize("surface", ["pixel_grid", "quadtree"])
+def test_lidar_loop_maps_the_scene_and_stops_growing(tmp_path, surface):
+    from mabdi.evaluate import distances_to_mesh
+    from mabdi.evaluate.metrics import evaluate_run
+
+    simulation, result = lidar_run(tmp_path, surface)
+    assert isinstance(simulation.source.intrinsics, SphericalGeometry)
+    added = np.array([r.cells_added for r in result.records])
+    assert added[8:].sum() <= 0.15 * added[:8].sum()  # the second circle adds little
+    vertices, _ = polydata_arrays(result.mesh)
+    assert np.median(distances_to_mesh(vertices[::5], simulation.scene.mesh_at(0))) < 1e-3
+    scores = evaluate_run(simulation, result)
+    assert scores.fscore_2cm > 0.9, scores
+
+
+def test_lidar_loop_removes_a_box_that_leaves(tmp_path):
+    simulation, result = lidar_run(tmp_path, frames=24, leave=0.5)
+    points, triangles = polydata_arrays(result.mesh)
+    centres = points[triangles].mean(axis=1)
+    inside = np.all(np.abs(centres - (0.8, 0.0, 0.4)) < (0.32, 0.32, 0.42), axis=1) & (centres[:, 2] > 0.02)
+    kept = np.all(np.abs(centres - (-0.8, 0.0, 0.4)) < (0.32, 0.32, 0.42), axis=1) & (centres[:, 2] > 0.02)
+    assert sum(r.cells_removed for r in result.records) > 0
+    assert inside.sum() <= 0.05 * kept.sum()  # the box that left is gone from the map, the other stays
+    assert kept.sum() > 100

@@ -61,9 +61,14 @@ sensor-frame point range x unit ray (where a straight wall, curved in the
 range image, is flat again), §3.3's normals are the differences of those
 points, the depth tests compare ranges, corners are the unit rays through
 the block corners (:meth:`~mabdi.spherical.SphericalGeometry.rays_at`) on the
-leaf's plane, and ``max_jump`` is per beam step (scaled by
-:func:`mabdi.depth.jump_scale`, as the pixel grid's). The azimuth seam is not
-joined.
+leaf's plane, and neighbouring beams are on one surface when their ranges
+differ by no more than a surface seen at ``LIDAR_INCIDENCE`` (79) degrees
+makes between them (the pixel grid's rule; corners shared by leaves still
+merge within ``max_jump``). A leaf whose plane puts a
+corner further from its range than that allows (a surface seen nearly
+edge-on between two beams) gets no face, rather than the camera's corners
+at the leaf's depth, which between beams that far apart float off the
+surface. The azimuth seam is not joined.
 
 Small or accurate: the defaults (the seed's 3x3 reduction, n_t = 0.1) make
 the small map. With a noisy sensor, ``reduction = 2`` and ``n_t = 0.2`` (and
@@ -86,7 +91,8 @@ takes the pixel to its lower right).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+import math
+from dataclasses import dataclass, field
 
 import numpy as np
 from vtkmodules.util.numpy_support import numpy_to_vtk, numpy_to_vtkIdTypeArray
@@ -102,7 +108,6 @@ from mabdi.depth import (
     image_colour,
     image_intrinsics,
     image_pose,
-    jump_scale,
     pixel_angle,
     sensor_values,
 )
@@ -118,6 +123,9 @@ from mabdi.filters import quadtree_kernels as kernels
 #: same-surface pixels by more than this many pixel footprints gets no face (it sits on a crease
 #: or a corner, where no plane fits).
 RESIDUAL_FOOTPRINTS = 0.4
+#: A LiDAR's neighbouring beams are on one surface when their ranges differ by no more than a surface
+#: seen this far from its normal (degrees) makes: the pixel grid's rule (its 1% at 525 px).
+LIDAR_INCIDENCE = 79.0
 #: Corners of leaves whose normals differ by more than 45 degrees are not merged (a crease).
 CREASE_COSINE = float(np.cos(np.radians(45.0)))
 
@@ -211,6 +219,16 @@ def _ray(u: np.ndarray, v: np.ndarray, k: Grid) -> np.ndarray:
     return np.stack([(u - k.cx) / k.fx, (v - k.cy) / k.fy, np.ones_like(u, dtype=np.float64)], axis=-1)
 
 
+def _step_jump(p: QuadTreeParameters, k: Grid) -> float:
+    """The largest relative depth change between neighbouring pixels of one surface: ``max_jump`` for a
+    camera; for a LiDAR, whose beams lie much further apart, what a surface seen at :data:`LIDAR_INCIDENCE`
+    degrees makes between neighbouring (reduced) beams, tan(incidence) times their angle. The rules that
+    compare two estimates of one point (corners shared by leaves) keep ``max_jump`` as given."""
+    if isinstance(k, ReducedSpherical):
+        return math.tan(math.radians(LIDAR_INCIDENCE)) * k.footprint
+    return p.max_jump
+
+
 def _depth(points: np.ndarray, k: Grid) -> np.ndarray:
     """What the image holds for sensor-frame points (..., 3): a camera's z, a LiDAR's range."""
     return sensor_values(points, k.geometry if isinstance(k, ReducedSpherical) else k)
@@ -248,11 +266,11 @@ def _on_silhouette(pixel_depth: np.ndarray, corner_u: np.ndarray, corner_v: np.n
     return outside
 
 
-def quad_mesh(
+def leaf_corners(
     leaves: Leaves, k: Grid, p: QuadTreeParameters, points: np.ndarray | None = None
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Faces of the leaves: (vertices (V, 3) camera frame, offsets, connectivity, face leaf index, face normals)."""
-    count = len(leaves.level)
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The leaves' quad corners: (corner_u, corner_v (L, 4) lattice points, corners (L, 4, 3) sensor frame,
+    wild (L, 4): corners the leaf's plane put too far from its depth, put at its depth instead)."""
     size = leaves.size
     u0, v0 = leaves.col * size, leaves.row * size
     corner_u = np.stack([u0, u0, u0 + size, u0 + size], axis=1)  # TL, BL, BR, TR (faces the sensor)
@@ -261,7 +279,7 @@ def quad_mesh(
     if points is not None:
         # On a silhouette the surface ends inside the border pixel: the corner moves half a pixel
         # in, to the border pixels' centres (where the samples are), instead of hanging past it.
-        rim = _on_silhouette(_depth(points, k), corner_u, corner_v, _depth(leaves.point, k)[:, None], p.max_jump)
+        rim = _on_silhouette(_depth(points, k), corner_u, corner_v, _depth(leaves.point, k)[:, None], _step_jump(p, k))
         centre_u = ((leaves.col + 0.5) * size)[:, None]
         centre_v = ((leaves.row + 0.5) * size)[:, None]
         ray_u = np.where(rim, ray_u + 0.5 * np.sign(centre_u - ray_u), ray_u)
@@ -274,9 +292,20 @@ def quad_mesh(
     # at most max_jump per pixel, so a corner further than max_jump * z * 0.71 * size (its
     # distance from the centre in pixels) from the leaf's depth falls back the same way.
     centre_depth = _depth(leaves.point, k)[:, None]
-    allowed = p.max_jump * centre_depth * (0.71 * size)[:, None]
-    wild = np.abs(_depth(corners, k) - centre_depth) > allowed
+    allowed = _step_jump(p, k) * centre_depth * (0.71 * size)[:, None]
+    with np.errstate(invalid="ignore"):
+        misses = np.einsum("...i,...i->...", leaves.normal[:, None, :], corner_rays) * np.einsum("...i,...i->...", leaves.normal, leaves.point)[:, None] <= 0
+    wild = (np.abs(_depth(corners, k) - centre_depth) > allowed) | misses  # (a ray that misses the plane: at its depth too)
     corners[wild] = corner_rays[wild] * np.broadcast_to(centre_depth, wild.shape)[wild][:, None]
+    return corner_u, corner_v, corners, wild
+
+
+def quad_mesh(
+    leaves: Leaves, k: Grid, p: QuadTreeParameters, points: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Faces of the leaves: (vertices (V, 3) camera frame, offsets, connectivity, face leaf index, face normals)."""
+    count = len(leaves.level)
+    corner_u, corner_v, corners, _ = leaf_corners(leaves, k, p, points)
     # one vertex per lattice point and depth cluster
     stride = int(max(k.width, k.height)) * 2 + 4
     keys = (corner_v * stride + corner_u).ravel()
@@ -464,10 +493,11 @@ def _range_leaves(ranges: np.ndarray, geometry: SphericalGeometry, p: QuadTreePa
         points = rays * np.asarray(ranges, dtype=np.float64)[..., None]
     reduced = ReducedSpherical(geometry, r, points.shape[1], points.shape[0])
     depth = np.ascontiguousarray(_depth(points, reduced))
-    normals = kernels.point_normals_depth_kernel(np.ascontiguousarray(points), depth, p.max_jump)
+    jump = _step_jump(p, reduced)
+    normals = kernels.point_normals_depth_kernel(np.ascontiguousarray(points), depth, jump)
     level, row, col, normal, point, regions = kernels.pyramid_kernel(points, normals, p.n_t, p.d_t)
     leaves = Leaves(level, row, col, normal, point)
-    residual = kernels.plane_residual_depth_kernel(points, depth, level, row, col, normal, point, _depth(point, reduced), p.max_jump, 2)
+    residual = kernels.plane_residual_depth_kernel(points, depth, level, row, col, normal, point, _depth(point, reduced), jump, 2)
     leaves = fitting_leaves(leaves, residual, reduced, noise)
     leaves.regions = regions
     return points, reduced, leaves
@@ -509,10 +539,12 @@ class FilterQuadTree(MabdiAlgorithm):
         intrinsics = image_intrinsics(image)
         pose = image_pose(image)
         p = self._parameters
-        if isinstance(intrinsics, SphericalGeometry):  # a LiDAR's beams lie further apart: max_jump per beam step
-            p = replace(p, max_jump=p.max_jump * jump_scale(intrinsics))
         points, reduced, leaves = leaves_of_image(depth_array(image), intrinsics, p, self._noise)
         self.regions = leaves.regions
+        if isinstance(reduced, ReducedSpherical) and len(leaves.level):
+            # a LiDAR's beams lie far apart: a leaf whose plane puts a corner far from its range is a surface
+            # seen edge-on between two beams, and its corners at its own range would float off it: no face
+            leaves = select(leaves, ~leaf_corners(leaves, reduced, p, points)[3].any(axis=1))
         output = vtkPolyData.GetData(outInfo)
         mesh = vtkPolyData()
         if len(leaves.level):

@@ -67,7 +67,7 @@ from mabdi.filters.expected_image import MAP_PORT, MEASURED_PORT, FilterExpected
 from mabdi.filters.refinement import MapRefinement, RefinementParameters
 from mabdi.filters.registration import FilterRegistration, RegistrationParameters, registration_values
 from mabdi.filters.registry import make_surface_filter
-from mabdi.filters.removal import RemovalParameters, depth_edges, removal_votes
+from mabdi.filters.removal import RemovalParameters, depth_edges, for_geometry, removal_votes
 from mabdi.filters.world_mesh import FilterWorldMesh
 from mabdi.polydata import polydata_area, polydata_arrays, transformed_polydata
 from mabdi.sources.frames import FrameSource, SourceDepthFrames
@@ -408,7 +408,7 @@ class MabdiLoop:
     def _removal_parameters_for(self, expected: np.ndarray) -> RemovalParameters:
         """The removal rules for this frame: the edge margin widened to the surface's ``face_overhang``
         (metres, voxel planes) in pixels at the median depth of E (see :mod:`mabdi.filters.removal`)."""
-        parameters = self.removal_parameters
+        parameters = for_geometry(self.removal_parameters, self.intrinsics)
         overhang = getattr(self.surface, "face_overhang", 0.0)
         if overhang <= 0:
             return parameters
