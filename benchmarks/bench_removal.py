@@ -13,6 +13,9 @@ Per method (definitions in :mod:`mabdi.evaluate.dynamic`):
 * frames to clear each departed object's ghost (from the first frame that
   sees its place until its ghost is below 1 % of the map's area);
 * static loss (m^2, and as a share of the static surface the map covered);
+* static and dynamic accuracy (SA, DA) and their geometric mean (AA), the
+  KTH DynamicMap benchmark's scores (:mod:`mabdi.evaluate.removal_accuracy`),
+  on the vertices of every measured map;
 * F@1cm of the final map against the final scene (observed samples);
 * frames per second of the method alone (MABDI: the loop's steps; TSDF:
   reading + integrating, without the extractions done for the measuring).
@@ -125,6 +128,7 @@ def bench_scene(name, path, methods, every, tsdf_every, static_every, removal=Tr
             "departures": {d.name: {"left_at": d.frame, "seen_at": d.seen_at} for d in run.departures},
             "frames_to_clear": clear,
             "static_loss": run.static.as_dict(),
+            "removal_accuracy": run.removal.as_dict() if run.removal is not None else None,
             "f1cm": f_at_1cm(mesh, final_scene, observed),
             "triangles": int(mesh.GetNumberOfCells()),
             "fps": fps,
@@ -141,8 +145,8 @@ def bench_scene(name, path, methods, every, tsdf_every, static_every, removal=Tr
 def markdown(results: list[dict]) -> str:
     lines = [
         "| run | method | removal | ghost at end | ghost max | departed object's ghost at end | frames to clear (seen at) "
-        "| static loss m^2 (share) | F@1cm | triangles | fps |",
-        "|---|---|---|---:|---:|---|---|---:|---:|---:|---:|",
+        "| static loss m^2 (share) | SA | DA | AA | F@1cm | triangles | fps |",
+        "|---|---|---|---:|---:|---|---|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for scene in results:
         for row in scene["methods"]:
@@ -155,9 +159,14 @@ def markdown(results: list[dict]) -> str:
                 or "-"
             )
             loss = row["static_loss"]
+            accuracy = row.get("removal_accuracy") or {}
+            scores = " | ".join(
+                "-" if accuracy.get(k) is None or accuracy[k] != accuracy[k] else f"{accuracy[k]:.4f}"
+                for k in ("static_accuracy", "dynamic_accuracy", "associated_accuracy")
+            )
             lines.append(
                 f"| {scene['scene']} | {row['method']} | {'-' if row['removal'] is None else ('on' if row['removal'] else 'off')} | {100 * row['ghost_final']:.1f}% | {100 * row['ghost_max']:.1f}% "
-                f"| {objects} | {clear} | {loss['area_m2']:.3f} ({100 * loss['share']:.1f}%) | {row['f1cm']:.3f} "
+                f"| {objects} | {clear} | {loss['area_m2']:.3f} ({100 * loss['share']:.1f}%) | {scores} | {row['f1cm']:.3f} "
                 f"| {row['triangles']:,} | {row['fps']:.2f} |"
             )
     return "\n".join(lines) + "\n"

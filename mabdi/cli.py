@@ -98,7 +98,7 @@ def _parser() -> argparse.ArgumentParser:
     sequence.add_argument(
         "--sequence", type=Path,
         help="run on a recorded sequence (a TUM RGB-D folder, a ROS 2 bag, or a 3DMatch / 7-Scenes, Redwood / Open3D, "
-        "ScanNet or Replica (NICE-SLAM) folder, told apart by their files) instead of the simulated sensor; "
+        "ScanNet, Replica (NICE-SLAM) or KITTI-style LiDAR folder, told apart by their files) instead of the simulated sensor; "
         "CONFIG then gives the classifier, surface and output settings (its [sensor] noise sets the thresholds)",
     )
     sequence.add_argument(
@@ -113,6 +113,7 @@ def _parser() -> argparse.ArgumentParser:
     sequence.add_argument("--depth-topic", help="ROS 2 bag: the depth image topic (when there are several)")
     sequence.add_argument("--info-topic", help="ROS 2 bag: the CameraInfo topic (when there are several)")
     sequence.add_argument("--pose-topic", help="ROS 2 bag: a PoseStamped topic for the poses (default: /tf when present)")
+    sequence.add_argument("--cloud-topic", help="ROS 2 bag: a PointCloud2 topic of LiDAR scans to read instead of depth images")
     sequence.add_argument("--colour-topic", help="ROS 2 bag: the rgb8 / bgr8 colour image topic registered to the depth (when there are several)")
     sequence.add_argument(
         "--tolerance", type=float, help="TUM, ROS 2 bag: largest time between a depth frame and its pose, seconds (default 0.02)"
@@ -120,7 +121,10 @@ def _parser() -> argparse.ArgumentParser:
 
     record = commands.add_parser("record", help="write a simulated run's depth frames as a TUM folder or a ROS 2 bag")
     record.add_argument("config", type=Path, help="run config (TOML), e.g. scenes/table.toml")
-    record.add_argument("--format", required=True, choices=("tum", "rosbag2"), help="tum (TUM RGB-D folder) or rosbag2")
+    record.add_argument(
+        "--format", required=True, choices=("tum", "rosbag2", "kitti"),
+        help="tum (TUM RGB-D folder), rosbag2, or kitti (a LiDAR's scans as a KITTI-style folder)",
+    )
     record.add_argument("--out", type=Path, required=True, help="folder to create (must not exist or be empty)")
     record.add_argument("--storage", default="sqlite3", choices=("sqlite3", "mcap"), help="ROS 2 bag storage (default sqlite3)")
     record.add_argument(
@@ -301,13 +305,14 @@ def cmd_run(args) -> int:
             "info_topic": args.info_topic,
             "pose_topic": args.pose_topic,
             "colour_topic": args.colour_topic,
+            "cloud_topic": args.cloud_topic,
             "tolerance": args.tolerance,
         }
         simulation, note = recorded_simulation(config, args.sequence, **options)
         recording = {"path": str(args.sequence.resolve()), "options": options}
         print(f"source: {simulation.source.description}")
     else:
-        for option in ("camera", "depth_scale", "depth_topic", "info_topic", "pose_topic", "colour_topic", "tolerance"):
+        for option in ("camera", "depth_scale", "depth_topic", "info_topic", "pose_topic", "colour_topic", "cloud_topic", "tolerance"):
             if getattr(args, option) is not None:
                 raise ConfigError(f"run: --{option.replace('_', '-')} is for recorded sequences; use it with --sequence")
         if not config.scene.objects:

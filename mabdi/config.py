@@ -2,7 +2,7 @@
 
 A file in ``scenes/`` is a whole run config: ``[run]`` (frames, seed),
 ``[scene]`` (the objects), ``[sensor]`` (intrinsics, noise, backend),
-``[path]`` (the helix), ``[classifier]`` (on/off and thresholds),
+``[path]`` (a helix, waypoints or a trajectory), ``[classifier]`` (on/off and thresholds),
 ``[removal]`` and ``[refinement]`` (their rules, when the classifier turns
 them on), ``[registration]`` (frame-to-map registration of each frame's
 pose, :mod:`mabdi.filters.registration`), ``[surface]`` (which surface filter, and ``[surface.<name>]`` its
@@ -139,9 +139,8 @@ class SensorConfig:
     Velodyne HDL-64E's). A LiDAR's ``noise`` is ``none`` or ``range``
     (Gaussian of ``range_sigma`` metres along the beam; the default 0.02 m is
     the HDL-64E S2 datasheet's accuracy, see
-    :mod:`mabdi.filters.depth_image`). The path's poses are the camera's:
-    the LiDAR's x axis (forward) is the camera's optical axis and its z axis
-    (up) the image's up (:func:`mabdi.spherical.sensor_pose_from_camera`).
+    :mod:`mabdi.filters.depth_image`). The path gives a LiDAR's poses in its
+    own axes (:func:`mabdi.simulate.path.path_from_config`, ``axes="lidar"``).
 
     ``[sensor.pose_noise]`` (:class:`mabdi.pose_noise.PoseNoise`): jitter and
     drift of the poses the frames carry, while the sensor renders from the
@@ -199,14 +198,30 @@ class SensorConfig:
 
 @dataclass
 class PathConfig:
-    """The helical sensor path (see :func:`mabdi.simulate.helical_path`, which takes its defaults from here).
+    """The sensor's path: a helix (the default), waypoints a robot drives, or a recorded trajectory.
 
-    Metres and degrees: ``center`` (x, y) of the ellipse with radii
-    ``radius_x``, ``radius_y``; heights from ``z0`` to ``z1``; the sensor looks
-    at a point moving from ``look_from`` to ``look_to``; ``turns`` circles
-    starting at ``start_angle`` (-90 = on the -y side of the centre).
+    ``kind = "helix"`` (:func:`mabdi.simulate.helical_path`, which takes its
+    defaults from here), metres and degrees: ``center`` (x, y) of the ellipse
+    with radii ``radius_x``, ``radius_y``; heights from ``z0`` to ``z1``; the
+    sensor looks at a point moving from ``look_from`` to ``look_to``;
+    ``turns`` circles starting at ``start_angle`` (-90 = on the -y side of the
+    centre). ``run.frames`` frames span the whole helix.
+
+    ``kind = "waypoints"``: ``points`` is a polyline driven at ``speed`` (m/s),
+    one frame every 1 / ``rate`` seconds, starting on the first point. Rows
+    are ``[x, y, z]`` (the heading follows the direction of travel),
+    ``[x, y, z, heading]`` (heading in degrees, counter-clockwise from +x,
+    turned through the shorter angle between waypoints) or full poses
+    ``[x, y, z, qx, qy, qz, qw]`` (world_from_sensor, rotation slerped).
+    ``kind = "trajectory"``: ``file`` is a TUM trajectory (``timestamp tx ty
+    tz qx qy qz qw`` per line, world_from_sensor; relative to the config
+    file), one frame per pose. Without ``run.frames`` in the config, a run
+    takes every frame of such a path (waypoints: floor(length * rate / speed)
+    + 1); with it, the first ``run.frames`` of them
+    (:mod:`mabdi.simulate.path` has the details).
     """
 
+    kind: str = "helix"
     center: list[float] = field(default_factory=lambda: [0.0, 0.0])
     radius_x: float = 2.5
     radius_y: float = 2.5
@@ -216,6 +231,10 @@ class PathConfig:
     look_to: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.8])
     turns: float = 2.0
     start_angle: float = -90.0
+    points: list[list[float]] = field(default_factory=list)
+    speed: float = 1.0
+    rate: float = 10.0
+    file: str = ""
 
 
 @dataclass(eq=False)
@@ -302,6 +321,9 @@ class RunConfig:
     output: OutputConfig = field(default_factory=OutputConfig)
     #: The file this config was read from (not a TOML key).
     source: Path | None = field(default=None, compare=False, repr=False, metadata={"toml": False})
+    #: Whether ``run.frames`` was taken from a waypoint or trajectory path (the config left it out): changing a
+    #: ``path`` key with :func:`set_value` then takes it again (not a TOML key).
+    frames_from_path: bool = field(default=False, compare=False, repr=False, metadata={"toml": False})
 
 
 # ---------------------------------------------------------------------------
@@ -318,16 +340,38 @@ def load_run_config(path) -> RunConfig:
             data = tomllib.load(handle)
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: not valid TOML: {exc}") from None
-    config = run_config_from_dict(data, where=str(path))
+    config = run_config_from_dict(data, where=str(path), base_dir=path.resolve().parent)
     config.source = path.resolve()
     return config
 
 
-def run_config_from_dict(data: dict, where: str = "<config>") -> RunConfig:
-    """Build and validate a :class:`RunConfig` from parsed TOML (``where`` names the file in errors)."""
+def run_config_from_dict(data: dict, where: str = "<config>", base_dir=None) -> RunConfig:
+    """Build and validate a :class:`RunConfig` from parsed TOML (``where`` names the file in errors).
+
+    A waypoint or trajectory ``[path]`` without ``run.frames`` sets it to the path's own number of frames
+    (:func:`mabdi.simulate.path.path_frame_count`; a trajectory ``file`` is relative to ``base_dir``).
+    """
+    from mabdi.simulate.path import check_path_keys
+
     config = _build(RunConfig, data, where, "")
+    path_table = data.get("path", {})
+    check_path_keys(config.path, list(path_table) if isinstance(path_table, dict) else [], where)
+    run_table = data.get("run", {})
+    if config.path.kind != "helix" and not (isinstance(run_table, dict) and "frames" in run_table):
+        config.frames_from_path = True
+        _frames_from_path(config, where, base_dir)
     validate_run_config(config, where)
     return config
+
+
+def _frames_from_path(config: RunConfig, where: str, base_dir=None) -> None:
+    """Set ``run.frames`` to the number of frames of the config's waypoint or trajectory path."""
+    from mabdi.simulate.path import path_frame_count
+
+    try:
+        config.run.frames = path_frame_count(config.path, base_dir)
+    except ConfigError as exc:
+        raise ConfigError(f"{where}: {exc}") from None
 
 
 def _type_name(tp) -> str:
@@ -448,6 +492,13 @@ def set_value(config: RunConfig, key: str, value, where: str = "command line") -
             else:
                 setattr(section, parts[1], replaced)
             return
+    if len(parts) == 2 and parts[0] == "run" and parts[1] == "frames":
+        config.frames_from_path = False
+    if len(parts) == 2 and parts[0] == "path" and config.frames_from_path:
+        _replace_checked(config.path, parts[1], value, where, key, PathConfig)
+        base_dir = config.source.parent if config.source is not None else None
+        _frames_from_path(config, where, base_dir)
+        return
     if len(parts) != 2 or parts[0] not in {f.name for f in dataclasses.fields(RunConfig) if f.metadata.get("toml", True)}:
         raise ConfigError(f"{where}: unknown key '{key}' (a dotted key: section.key, or surface.<filter>.key)")
     section_name, attribute = parts
@@ -594,6 +645,16 @@ def validate_run_config(config: RunConfig, where: str = "<config>") -> None:
     except ConfigError as exc:
         raise ConfigError(f"{where}: [sensor] {exc}") from None
     path = config.path
+    from mabdi.simulate.path import PATH_KINDS, waypoint_distances
+
+    _check_choice(path.kind, PATH_KINDS, where, "path.kind")
+    if path.kind == "waypoints":
+        try:
+            waypoint_distances(path)
+        except ConfigError as exc:
+            raise ConfigError(f"{where}: {exc}") from None
+    if path.kind == "trajectory" and not path.file:
+        raise ConfigError(f"{where}: key 'path.file' is required for kind = \"trajectory\" (a TUM trajectory file)")
     _check_length(path.center, 2, where, "path.center")
     _check_length(path.look_from, 3, where, "path.look_from")
     _check_length(path.look_to, 3, where, "path.look_to")
@@ -625,6 +686,8 @@ def _toml_table(obj) -> dict:
     for f in dataclasses.fields(obj):
         if not f.metadata.get("toml", True):
             continue
+        if isinstance(obj, PathConfig) and not _path_key_written(obj, f.name):
+            continue
         value = getattr(obj, f.name)
         if value is None:
             continue  # absent key = default None
@@ -635,6 +698,15 @@ def _toml_table(obj) -> dict:
         else:
             table[f.name] = value
     return table
+
+
+def _path_key_written(path: PathConfig, name: str) -> bool:
+    """Whether a ``[path]`` key is written: those of its kind (``kind`` itself unless it is the default helix)."""
+    from mabdi.simulate.path import KIND_KEYS
+
+    if name == "kind":
+        return path.kind != "helix"
+    return name in KIND_KEYS.get(path.kind, ())
 
 
 def scene_digest(scene: SceneConfig, frames: int) -> str:

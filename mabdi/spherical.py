@@ -179,16 +179,3 @@ class SphericalGeometry:
             raise ConfigError(f"spherical geometry array must have 6 values (beams, columns, fov_up, fov_down, range_min, range_max), got shape {a.shape}")
         table = () if beam_elevations is None else tuple(float(x) for x in np.asarray(beam_elevations).ravel())
         return cls(int(round(a[0])), int(round(a[1])), float(a[2]), float(a[3]), float(a[4]), float(a[5]), table)
-
-
-#: The LiDAR's axes in a camera frame (OpenCV: x right, y down, z forward), columns x, y, z: the LiDAR's x
-#: (forward) is the optical axis, its y (left) the image's left, its z (up) the image's up.
-CAMERA_FROM_SENSOR = np.array([[0.0, -1.0, 0.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0]])
-
-
-def sensor_pose_from_camera(world_from_camera) -> np.ndarray:
-    """``world_from_sensor`` (x forward, y left, z up) of a LiDAR mounted as a camera at ``world_from_camera``
-    looks: forward along the optical axis, up along the image's up. Accepts (4, 4) or (N, 4, 4) poses."""
-    poses = np.array(world_from_camera, dtype=np.float64)
-    poses[..., :3, :3] = poses[..., :3, :3] @ CAMERA_FROM_SENSOR
-    return poses

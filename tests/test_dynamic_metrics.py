@@ -170,6 +170,10 @@ def test_run_with_ghosts_steps_and_measures_a_run():
     assert all(0.0 <= s <= 1.0 for _, s in shares)
     assert set(run.frames_to_clear()) == {"crate"}
     assert run.static.covered_end_m2 > 0
+    removal = run.removal  # nothing static lost; the crate's ghost is part gone, part left (4 frames after it left)
+    assert removal.static_points > 0 and removal.dynamic_points > 0 and removal.unlabelled == 0
+    assert removal.static_accuracy >= 0.99
+    assert 0.0 < removal.dynamic_accuracy < 1.0 and crate[-1][1] > 0.0
 
 
 def test_scenes_of_runs_4_and_5_schedule_their_departures():

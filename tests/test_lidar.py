@@ -18,7 +18,7 @@ from mabdi.filters.expected_image import FilterExpectedImage, face_id_array
 from mabdi.filters.pixel_grid import FilterPixelGrid
 from mabdi.filters.world_mesh import FilterWorldMesh
 from mabdi.polydata import polydata_arrays
-from mabdi.spherical import SphericalGeometry, sensor_pose_from_camera
+from mabdi.spherical import SphericalGeometry
 
 #: A small LiDAR for the tests: 16 beams over 30 degrees, 256 columns.
 GEOMETRY = SphericalGeometry(16, 256, 15.0, -15.0, 0.5, 50.0)
@@ -184,13 +184,20 @@ def test_lidar_sensor_config(tmp_path):
         load_run_config(path)
 
 
-def test_sensor_pose_from_camera_looks_along_the_optical_axis():
-    from mabdi.camera import look_at
+def test_simulated_lidar_poses_look_where_the_path_looks(tmp_path):
+    from mabdi.simulate.path import path_from_config
+    from mabdi.simulate.rig import SimulatedRig
 
-    camera = look_at((0.0, 0.0, 1.0), (2.0, 0.0, 1.0))
-    sensor = sensor_pose_from_camera(camera)
-    np.testing.assert_allclose(sensor[:3, :3], np.eye(3), atol=1e-12)  # x forward, y left, z up
-    np.testing.assert_allclose(sensor[:3, 3], (0.0, 0.0, 1.0))
+    path = tmp_path / "lidar.toml"
+    path.write_text('[run]\nframes = 4\n[sensor]\nkind = "lidar"\nbeams = 8\ncolumns = 64\n')
+    config = load_run_config(path)
+    rig = SimulatedRig.from_config(config)
+    camera = path_from_config(4, config.path)
+    np.testing.assert_allclose(rig.true_poses[:, :3, 0], camera[:, :3, 2], atol=1e-12)  # x forward = optical axis
+    np.testing.assert_allclose(rig.true_poses[:, :3, 2], -camera[:, :3, 1], atol=1e-12)  # z up = image up
+    frame = rig.read(0)
+    assert frame.intrinsics == config.sensor.geometry() and frame.colour is None
+    rig.close()
 
 
 def test_depth_frame_round_trip_keeps_the_spherical_geometry():

@@ -17,13 +17,16 @@ from mabdi.evaluate.dynamic import (
 )
 from mabdi.evaluate.metrics import MapMetrics, evaluate_map, evaluate_run, observed_ground_truth
 from mabdi.evaluate.redundancy import redundancy
+from mabdi.evaluate.removal_accuracy import MapHistory, RemovalAccuracy, label_points, removal_accuracy
 from mabdi.evaluate.sampling import SurfaceSamples, sample_surface
 
 __all__ = [
     "Departure",
     "GhostRun",
     "GhostTracker",
+    "MapHistory",
     "MapMetrics",
+    "RemovalAccuracy",
     "StaticCoverage",
     "StaticLoss",
     "departures",
@@ -38,6 +41,8 @@ __all__ = [
     "evaluate_map",
     "evaluate_run",
     "observed_ground_truth",
+    "label_points",
     "redundancy",
+    "removal_accuracy",
     "sample_surface",
 ]

@@ -110,6 +110,9 @@ def _dynamic(ghosts) -> dict:
         "ghost_share_per_frame": [[int(f), float(v)] for f, v in ghosts.shares],
         "frames_to_clear": ghosts.frames_to_clear(),
         "static_loss": ghosts.static.as_dict(),
+        "removal": None
+        if ghosts.removal is None
+        else {k: (None if isinstance(v, float) and v != v else v) for k, v in ghosts.removal.as_dict().items()},  # NaN: null
     }
 
 
@@ -275,17 +278,28 @@ def markdown_table(bench: dict) -> str:
 
 
 def dynamic_table(bench: dict) -> str:
-    """Ghost share at the end, frames to clear and static loss, one row per method (dynamic scenes)."""
+    """Ghost share at the end, frames to clear, static loss and the static / dynamic accuracy (SA, DA, AA:
+    :mod:`mabdi.evaluate.removal_accuracy`), one row per method (dynamic scenes)."""
     rows = [r for r in bench["methods"] if "dynamic" in r]
     if not rows:
         return ""
-    lines = ["| method | ghost share at the end | frames to clear | static loss (m^2) |", "|---|---:|---|---:|"]
+    lines = [
+        "| method | ghost share at the end | frames to clear | static loss (m^2) | SA | DA | AA |",
+        "|---|---:|---|---:|---:|---:|---:|",
+    ]
     for row in rows:
         d = row["dynamic"]
         clear = ", ".join(f"{k}: {'-' if v is None else v}" for k, v in d["frames_to_clear"].items()) or "-"
         if not row.get("triangles_per_frame"):
             clear = "(final mesh only)"
-        lines.append(f"| {row['method']} | {100.0 * d['ghost_share_end']:.2f}% | {clear} | {d['static_loss']['area_m2']:.4f} |")
+        removal = d.get("removal") or {}
+        accuracy = " | ".join(
+            "-" if removal.get(key) is None else f"{removal[key]:.4f}"
+            for key in ("static_accuracy", "dynamic_accuracy", "associated_accuracy")
+        )
+        lines.append(
+            f"| {row['method']} | {100.0 * d['ghost_share_end']:.2f}% | {clear} | {d['static_loss']['area_m2']:.4f} | {accuracy} |"
+        )
     return "\n".join(lines) + "\n"
 
 

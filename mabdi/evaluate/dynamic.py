@@ -38,6 +38,11 @@ it stands at each frame (:meth:`mabdi.sources.scene.SourceScene.mesh_at`).
   only grows has a loss of exactly 0. Caveat: a static sample within 2 cm of
   a departed object's map (the floor under a bunny's feet) counts as covered
   by it, so removing that ghost may show as a few cm^2 of loss.
+* **static and dynamic accuracy** (the KTH DynamicMap benchmark's SA, DA and
+  their geometric mean, :mod:`mabdi.evaluate.removal_accuracy`): on the
+  vertices of every measured map, labelled against the scene as it stands
+  at the end and the departed objects, the share of static ones the final
+  map keeps and of dynamic ones it removed (``GhostRun.removal``).
 
 :func:`run_with_ghosts` steps a :class:`mabdi.simulate.Simulation`'s loop
 frame by frame and measures all of this; :class:`GhostTracker` does the
@@ -54,6 +59,7 @@ from vtkmodules.vtkCommonDataModel import vtkPolyData
 
 from mabdi.camera import Intrinsics
 from mabdi.evaluate.distance import distances_within
+from mabdi.evaluate.removal_accuracy import MapHistory, RemovalAccuracy, removal_accuracy
 from mabdi.evaluate.sampling import SAMPLE_SEED, sample_surface
 from mabdi.filters.depth_image import SensorRenderer
 from mabdi.polydata import triangles_polydata
@@ -302,6 +308,8 @@ class GhostRun:
     ``departures`` with their ``seen_at``; ``result``: the
     :class:`~mabdi.simulate.runner.RunResult` (None for a map not made by the loop).
     ``loop_seconds``: time in the loop's steps alone (not the measuring).
+    ``removal``: static and dynamic accuracy of the final map
+    (:mod:`mabdi.evaluate.removal_accuracy`), None when no map was measured.
     """
 
     records: list
@@ -313,6 +321,7 @@ class GhostRun:
     loop_seconds: float = 0.0
     measure_seconds: float = 0.0
     areas: list[tuple[int, float]] = field(default_factory=list)
+    removal: RemovalAccuracy | None = None
 
     def __iter__(self):
         return iter((self.records, self.shares))
@@ -363,6 +372,9 @@ class GhostTracker:
         self._scenes: dict[tuple, vtkPolyData] = {}
         self._count = 0
         self.seconds = 0.0
+        #: The vertices of every measured map (the raw map of the static and dynamic accuracy).
+        self.history = MapHistory()
+        self._last: tuple[int, vtkPolyData] | None = None
 
     def scene_at(self, frame: int) -> vtkPolyData:
         key = self.scene.active_objects(frame)
@@ -387,11 +399,23 @@ class GhostTracker:
             self.by_object[d.name].append((int(frame), float((ghost & near).mean())))
         if final or self._count % self.static_every == 0:
             self.coverage.update(mesh)
+        self.history.add(mesh)
+        self._last = (int(frame), mesh)
         self._count += 1
         self.seconds += time.perf_counter() - start
         return share
 
+    def removal(self) -> RemovalAccuracy | None:
+        """Static and dynamic accuracy of the last measured map on the vertices of all of them (None before any)."""
+        if self._last is None:
+            return None
+        frame, mesh = self._last
+        return removal_accuracy(self.history.points, mesh, self.scene_at(frame), [d.mesh for d in self.departures])
+
     def finish(self, records=None, result=None, loop_seconds: float = 0.0) -> GhostRun:
+        start = time.perf_counter()
+        removal = self.removal()
+        self.seconds += time.perf_counter() - start
         return GhostRun(
             records=list(records or []),
             shares=list(self.shares),
@@ -402,6 +426,7 @@ class GhostTracker:
             loop_seconds=loop_seconds,
             measure_seconds=self.seconds,
             areas=list(self.areas),
+            removal=removal,
         )
 
 

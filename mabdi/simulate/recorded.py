@@ -1,8 +1,9 @@
 """Recorded sequences in the loop: record a simulated run, and run the loop on a recording.
 
 ``record(config, out, format)`` writes the simulated rig's frames as a TUM
-RGB-D folder (:mod:`mabdi.sources.tum`) or a ROS 2 bag
-(:mod:`mabdi.sources.rosbag2`), with a ``[recorded]`` table in the
+RGB-D folder (:mod:`mabdi.sources.tum`), a ROS 2 bag
+(:mod:`mabdi.sources.rosbag2`; a LiDAR's scans as PointCloud2) or, for a
+LiDAR, a KITTI-style folder (:mod:`mabdi.sources.kitti`), with a ``[recorded]`` table in the
 recording's ``mabdi.toml`` that names the scene it came from (the digest of
 the config's ``[scene]`` and frame count, :func:`scene_digest`). The
 recording's poses are the rig's given poses (with the config's
@@ -37,7 +38,7 @@ from mabdi.sources.sequences import READER_OPTIONS
 __all__ = ["FORMATS", "READER_OPTIONS", "TRUE_POSES", "record", "recorded_simulation", "scene_digest"]
 
 #: The formats :func:`record` writes.
-FORMATS = ("tum", "rosbag2")
+FORMATS = ("tum", "rosbag2", "kitti")
 
 
 def record(config: RunConfig, out, format: str, storage: str = "sqlite3", encoding: str = "32FC1", overwrite: bool = False) -> Path:
@@ -70,10 +71,18 @@ def record(config: RunConfig, out, format: str, storage: str = "sqlite3", encodi
             from mabdi.sources.tum import write_tum
 
             write_tum(rig, out, extra=extra)
-        else:
-            from mabdi.sources.rosbag2 import write_rosbag2
+        elif format == "kitti":
+            from mabdi.sources.kitti import write_kitti
 
-            write_rosbag2(rig, out, storage=storage, encoding=encoding, extra=extra)
+            write_kitti(rig, out, extra=extra)
+        else:
+            from mabdi.sources.rosbag2 import write_lidar_rosbag2, write_rosbag2
+            from mabdi.spherical import SphericalGeometry
+
+            if isinstance(rig.intrinsics, SphericalGeometry):  # a LiDAR's scans: PointCloud2 (encoding is for images)
+                write_lidar_rosbag2(rig, out, storage=storage, extra=extra)
+            else:
+                write_rosbag2(rig, out, storage=storage, encoding=encoding, extra=extra)
         with atomic_output(Path(out) / TRUE_POSES) as temporary:
             np.save(temporary, rig.true_poses)
     finally:

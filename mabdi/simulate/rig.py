@@ -5,8 +5,8 @@ off by their schedules) + off-screen depth sensor
 (:class:`~mabdi.filters.depth_image.FilterDepthImage`, with its noise model)
 + path (the helix of the run config's ``[path]``). A LiDAR (``[sensor] kind =
 "lidar"``) renders range images (:mod:`mabdi.filters.range_rendering`), its
-x axis along the path's view direction and z along the image's up
-(:func:`mabdi.spherical.sensor_pose_from_camera`); its frames carry no colour. Frame i is the scene as it
+x axis along the path's view direction and z up
+(:func:`mabdi.simulate.path.path_from_config` with ``axes="lidar"``); its frames carry no colour. Frame i is the scene as it
 stands at frame i, seen from pose i, with noise drawn from the stream of
 (seed, i): reading a frame twice, or out of order, gives the same image.
 
@@ -40,7 +40,7 @@ from mabdi.pose_noise import PoseNoise
 from mabdi.simulate.path import path_from_config
 from mabdi.sources.frames import FrameSource
 from mabdi.sources.scene import OBJECT_COLOUR_ARRAY, SourceScene
-from mabdi.spherical import SphericalGeometry, sensor_pose_from_camera
+from mabdi.spherical import SphericalGeometry
 
 #: Frames per second of the simulated sensor (sets the timestamps).
 FRAME_RATE = 30.0
@@ -88,12 +88,11 @@ class SimulatedRig(FrameSource):
         scene = SourceScene(config.scene, frames=frames, base_dir=base_dir)
         sensor = config.sensor
         geometry = sensor.geometry()
-        poses = path_from_config(frames, config.path)
-        if isinstance(geometry, SphericalGeometry):  # the path says where the sensor looks; a LiDAR's x looks there
-            poses = sensor_pose_from_camera(poses)
+        # a LiDAR's poses in its own axes (x forward, z up): the path says where the sensor looks
+        axes = "lidar" if isinstance(geometry, SphericalGeometry) else "camera"
         return cls(
             scene,
-            poses,
+            path_from_config(frames, config.path, base_dir, axes=axes),
             intrinsics=geometry,
             noise=sensor.sensor_noise(),
             seed=config.run.seed,

@@ -10,6 +10,27 @@ later distributions).
 padded (``step``) and big-endian. Any other encoding is an error naming the
 topic.
 
+**LiDAR** (instead of depth images): ``sensor_msgs/msg/PointCloud2`` scans
+(``cloud_topic=`` / ``--cloud-topic``; found by type when the bag has no
+depth image topic and one cloud topic), each turned into a range image by
+:func:`mabdi.sources.range_images.range_image`. Fields read: ``x``, ``y``,
+``z`` (float32 or float64, metres, in the cloud's ``header.frame_id``) and
+``ring`` (any integer type) when present; the others (``intensity``,
+``t`` / ``time``, ``range``, ``reflectivity``, ...) are not used (points
+are placed where the scan's x, y, z put them: no motion compensation within
+a scan). The row of a point is its ring (Velodyne numbers rings from the
+bottom, Ouster from the top: :func:`~mabdi.sources.range_images.rows_from_rings`
+tells them apart), else the row of an organised cloud (``height`` > 1: the
+Ouster layout, row 0 = the top beam), else its elevation; points at the
+origin or NaN (no return) are left out. The geometry is the ``[lidar]``
+table of a ``mabdi.toml`` in the bag folder where it has one
+(:mod:`mabdi.sources.range_images`); the keys it leaves out come from the
+first scan: ``beams`` = the number of rings (or the organised cloud's
+height), their elevations (``beam_elevations``: each ring's mean elevation
+in that scan), ``columns`` = an organised cloud's width, else 1024. An
+unorganised cloud without rings needs ``beams``, ``fov_up`` and
+``fov_down`` there. Poses as for depth images, of the cloud's frame.
+
 **Colour** (optional): a ``sensor_msgs/msg/Image`` topic in ``rgb8`` or
 ``bgr8`` (the only one, or ``colour_topic=`` / ``--colour-topic``),
 registered to the depth (the same size, as a camera driver's
@@ -77,6 +98,7 @@ a simulated scene never reads a bag. The message type store is built then too
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import os
 import shutil
@@ -88,7 +110,11 @@ import numpy as np
 
 from mabdi.camera import Intrinsics, quaternions_from_rotations
 from mabdi.depth import DepthFrame
+from mabdi.io.atomic import write_text
+from mabdi.io.toml_writer import toml_lines
+from mabdi.spherical import SphericalGeometry
 from mabdi.sources.frames import FrameSource
+from mabdi.sources.range_images import geometry_from_table, lidar_table, range_image, range_image_points, rows_from_rings
 from mabdi.sources.sequence_files import (
     SequenceError,
     bad_quaternions,
@@ -98,14 +124,16 @@ from mabdi.sources.sequence_files import (
     metadata_path,
     nearest_within,
     poses_from_translations_quaternions,
+    METADATA_FILE,
+    metadata_toml,
     read_sequence_metadata,
-    write_metadata,
 )
 
 IMAGE = "sensor_msgs/msg/Image"
 CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
 POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
 TF_MESSAGE = "tf2_msgs/msg/TFMessage"
+POINT_CLOUD2 = "sensor_msgs/msg/PointCloud2"
 #: Compressed images (image_transport's compressed / compressedDepth): named in errors, not read.
 COMPRESSED_IMAGE = "sensor_msgs/msg/CompressedImage"
 
@@ -122,6 +150,15 @@ POSE_TOPIC = "/camera/pose"
 WORLD_FRAME = "world"
 CAMERA_LINK_FRAME = "camera_link"
 OPTICAL_FRAME = "camera_depth_optical_frame"
+
+#: Topics and frames :func:`write_lidar_rosbag2` uses.
+CLOUD_TOPIC = "/lidar/points"
+LIDAR_POSE_TOPIC = "/lidar/pose"
+LIDAR_FRAME = "lidar"
+#: Columns of the range image of an unorganised cloud whose ``mabdi.toml`` does not say.
+DEFAULT_COLUMNS = 1024
+#: PointField datatypes (sensor_msgs/msg/PointField constants) as numpy types.
+POINT_FIELD_TYPES = {1: np.int8, 2: np.uint8, 3: np.int16, 4: np.uint16, 5: np.int32, 6: np.uint32, 7: np.float32, 8: np.float64}
 
 #: camera_link (x forward, y left, z up) from the optical frame (x right, y down, z forward), REP 103.
 LINK_FROM_OPTICAL = np.array(
@@ -192,12 +229,57 @@ def _list(names) -> str:
     return ", ".join(names) if names else "(none)"
 
 
+def cloud_array(message, where: str) -> np.ndarray:
+    """(height, width) structured view of a PointCloud2's points, one field per PointField of a known datatype
+    (byte order, offsets, padding and ``row_step`` as the message says); a message that lacks x, y, z or
+    holds too few bytes is a :class:`SequenceError` naming ``where``."""
+    order = ">" if message.is_bigendian else "<"
+    names, formats, offsets = [], [], []
+    for field in message.fields:
+        if field.datatype in POINT_FIELD_TYPES and field.name not in names:
+            dtype = np.dtype(POINT_FIELD_TYPES[field.datatype]).newbyteorder(order)
+            count = max(int(field.count), 1)
+            names.append(field.name)
+            formats.append(dtype if count == 1 else np.dtype((dtype, (count,))))
+            offsets.append(int(field.offset))
+    missing = [n for n in ("x", "y", "z") if n not in names]
+    if missing:
+        raise SequenceError(f"{where}: a point cloud needs fields x, y, z; it has {_list(f.name for f in message.fields)}")
+    for name in ("x", "y", "z"):
+        if formats[names.index(name)].kind != "f":
+            raise SequenceError(f"{where}: field {name} is {formats[names.index(name)]}, expected float32 or float64")
+    height, width = int(message.height), int(message.width)
+    point_step, row_step = int(message.point_step), int(message.row_step)
+    end = max(offset + dtype.itemsize for offset, dtype in zip(offsets, formats, strict=True))
+    if end > point_step or row_step < width * point_step:
+        raise SequenceError(f"{where}: fields end at byte {end} of a point_step of {point_step} (row_step {row_step}, width {width})")
+    data = np.asarray(message.data, dtype=np.uint8)
+    if height * width and data.size < row_step * (height - 1) + width * point_step:
+        raise SequenceError(f"{where}: {height}x{width} points of {point_step} bytes, but only {data.size} bytes of data")
+    dtype = np.dtype({"names": names, "formats": formats, "offsets": offsets, "itemsize": point_step})
+    return np.ndarray((height, width), dtype=dtype, buffer=data, strides=(row_step, point_step))
+
+
+def cloud_points(message, where: str) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """A PointCloud2's points (N, 3) float64 (metres, its frame), their ``ring`` (N,) int64 (None without the
+    field) and, for an organised cloud (height > 1), their row in it (N,) (else None)."""
+    cloud = cloud_array(message, where)
+    points = np.stack([cloud["x"], cloud["y"], cloud["z"]], axis=-1).reshape(-1, 3).astype(np.float64)
+    rings = None
+    if "ring" in cloud.dtype.names and cloud.dtype["ring"].kind in "iu" and cloud.dtype["ring"].shape == ():
+        rings = cloud["ring"].reshape(-1).astype(np.int64)
+    height, width = cloud.shape
+    organised = np.repeat(np.arange(height, dtype=np.int64), width) if height > 1 else None
+    return points, rings, organised
+
+
 class Rosbag2Sequence(FrameSource):
     """A ROS 2 bag (a bag folder, or one ``.db3`` / ``.mcap`` file) as a :class:`FrameSource` (see the module docs).
 
     Parameters: ``depth_topic``, ``info_topic``, ``pose_topic`` (a
     PoseStamped topic, or ``"/tf"`` for the transform tree), each found by type
-    when left out; ``frame_id``: the world frame (the root of the chain for
+    when left out; ``cloud_topic``: a PointCloud2 topic to read instead of
+    depth images (LiDAR scans as range images); ``frame_id``: the world frame (the root of the chain for
     /tf; for a PoseStamped topic, the ``header.frame_id`` its messages must
     have); ``tolerance``: seconds between a depth image and its pose (and each
     dynamic transform).
@@ -212,6 +294,7 @@ class Rosbag2Sequence(FrameSource):
         frame_id: str | None = None,
         tolerance: float = 0.02,
         colour_topic: str | None = None,
+        cloud_topic: str | None = None,
     ) -> None:
         self.path = Path(path)
         if not self.path.exists():
@@ -224,10 +307,21 @@ class Rosbag2Sequence(FrameSource):
         self.topics = {c.topic: c.msgtype for c in reader.connections}
         self.metadata = read_sequence_metadata(self.path)
 
-        self.depth_topic = self._choose_depth_topic(depth_topic)
-        self.info_topic = self._choose_info_topic(info_topic)
-        self._index_depth()
-        self._intrinsics = self._read_intrinsics()
+        #: The PointCloud2 topic of a LiDAR's scans (None: the frames are depth images).
+        self.cloud_topic = self._choose_cloud_topic(cloud_topic, depth_topic)
+        if self.cloud_topic is None:
+            self.depth_topic = self._choose_depth_topic(depth_topic)
+            self.info_topic = self._choose_info_topic(info_topic)
+            self._index_depth()
+            self._intrinsics = self._read_intrinsics()
+        else:
+            for name, value in (("info_topic", info_topic), ("colour_topic", colour_topic)):
+                if value is not None:
+                    raise SequenceError(f"ROS 2 bag {self.path}: {_option(name)} is for depth images, not the point clouds of {self.cloud_topic}")
+            self.depth_topic = self.cloud_topic  # the topic the frames come from
+            self.info_topic = None
+            first = self._index_clouds()
+            self._intrinsics = self._cloud_geometry(first)
         self.pose_source = self._choose_pose_source(pose_topic)
         stamps, poses = self._poses_from_tf(frame_id) if self.pose_source == "/tf" else self._poses_from_topic(frame_id)
 
@@ -237,7 +331,7 @@ class Rosbag2Sequence(FrameSource):
         self._stamps = stamps[keep]
         self._log_times = self._all_log_times[keep]
         self._occurrence = self._all_occurrence[keep]
-        self.colour_topic = self._choose_colour_topic(colour_topic)
+        self.colour_topic = self._choose_colour_topic(colour_topic) if self.cloud_topic is None else None
         far_colour = self._index_colour() if self.colour_topic is not None else 0
         self.description = f"ROS 2 bag {self.path} ({self.depth_topic}, poses from {self.pose_source}, {len(self._poses)} frames"
         if self.colour_topic is not None:
@@ -301,6 +395,70 @@ class Rosbag2Sequence(FrameSource):
 
     def _of_type(self, msgtype: str) -> list[str]:
         return sorted(t for t, m in self.topics.items() if m == msgtype)
+
+    def _choose_cloud_topic(self, topic: str | None, depth_topic: str | None) -> str | None:
+        """The PointCloud2 topic: ``cloud_topic``; else, when ``depth_topic`` is not given and no Image topic holds
+        depth, the only PointCloud2 topic (several are an error naming them); else None (depth images)."""
+        if topic is not None:
+            if depth_topic is not None:
+                raise SequenceError(f"ROS 2 bag {self.path}: give {_option('depth_topic')} or {_option('cloud_topic')}, not both")
+            return self._check_topic(topic, POINT_CLOUD2, _option("cloud_topic"))
+        clouds = self._of_type(POINT_CLOUD2)
+        if depth_topic is not None or not clouds:
+            return None
+        for name in self._of_type(IMAGE):
+            first = next(self._messages(name), None)
+            if first is not None and first[1].encoding in DEPTH_ENCODINGS:
+                return None
+        if len(clouds) > 1:
+            raise SequenceError(f"ROS 2 bag {self.path}: several point cloud topics ({_list(clouds)}); choose one with {_option('cloud_topic')}")
+        return clouds[0]
+
+    def _index_clouds(self):
+        """One pass over the cloud topic (as :meth:`_index_depth` for images); returns its first message."""
+        frame_ids, first = set(), []
+
+        def check(message) -> None:
+            frame_ids.add(message.header.frame_id)
+            if not first:
+                first.append(message)
+
+        self._all_stamps, self._all_log_times, self._all_occurrence = self._index_images(self.cloud_topic, check)
+        if len(frame_ids) != 1:
+            raise SequenceError(f"ROS 2 bag {self.path}: topic {self.cloud_topic}: clouds in several frames ({_list(frame_ids)})")
+        self.camera_frame = frame_ids.pop()
+        self._time_origin = int(self._all_stamps.min())
+        return first[0]
+
+    def _cloud_geometry(self, message) -> SphericalGeometry:
+        """The range images' geometry: the ``[lidar]`` table of ``mabdi.toml``, the rest from the first scan (module docs)."""
+        file = metadata_path(self.path)
+        table = self.metadata.get("lidar", {})
+        if not isinstance(table, dict):
+            raise SequenceError(f"{file}: 'lidar' must be a table")
+        where = f"ROS 2 bag {self.path}: topic {self.cloud_topic}"
+        points, rings, organised = cloud_points(message, f"{where}: first message")
+        index = rings if rings is not None else organised
+        derived: dict = {"columns": int(message.width) if organised is not None else DEFAULT_COLUMNS}
+        if index is None:
+            missing = [k for k in ("beams", "fov_up", "fov_down") if k not in table]
+            if missing:
+                raise SequenceError(
+                    f"{where}: an unorganised cloud without a ring field is binned by elevation: give the LiDAR's "
+                    f"{', '.join(missing)} in a [lidar] table of {file}"
+                )
+        else:
+            beams = table.get("beams", int(index.max()) + 1 if len(index) else 1)
+            derived["beams"] = beams
+            if "beam_elevations" not in table and not ("fov_up" in table or "fov_down" in table) and isinstance(beams, int):
+                derived.update(_beam_table(points, self._rows(index, points, beams, f"{where}: first message"), beams))
+        return geometry_from_table({**derived, **table}, file)
+
+    def _rows(self, index: np.ndarray, points: np.ndarray, beams: int, where: str) -> np.ndarray:
+        try:
+            return rows_from_rings(index, points, beams)
+        except ValueError as exc:
+            raise SequenceError(f"{where}: {exc}") from None
 
     def _choose_depth_topic(self, topic: str | None) -> str:
         if topic is not None:
@@ -590,7 +748,8 @@ class Rosbag2Sequence(FrameSource):
     # -- frames ---------------------------------------------------------------
 
     @property
-    def intrinsics(self) -> Intrinsics:
+    def intrinsics(self) -> Intrinsics | SphericalGeometry:
+        """The depth images' intrinsics, or the range images' geometry for a point cloud topic."""
         return self._intrinsics
 
     def __len__(self) -> int:
@@ -609,6 +768,9 @@ class Rosbag2Sequence(FrameSource):
         log_time = int(self._log_times[index])
         wanted = int(self._occurrence[index])
         for position, (_, message) in enumerate(self._messages(self.depth_topic, start=log_time, stop=log_time + 1)):
+            if position == wanted and self.cloud_topic is not None:
+                stamp = float(ns_to_seconds(self._stamps[index]))
+                return DepthFrame(self.decode_cloud(message, stamp), self._intrinsics, self._poses[index], index, stamp)
             if position == wanted:
                 depth = self.decode_depth(message)
                 colour = self._read_colour(index) if self.colour_topic is not None else None
@@ -640,6 +802,15 @@ class Rosbag2Sequence(FrameSource):
         pixels = np.ndarray((height, width, 3), dtype=np.uint8, buffer=data, strides=(step, 3, 1))
         return np.ascontiguousarray(pixels[..., COLOUR_ENCODINGS[message.encoding]])
 
+    def decode_cloud(self, message, stamp: float = float("nan")) -> np.ndarray:
+        """(beams, columns) float32 range image (m, NaN = no return) of a PointCloud2 message (module docs)."""
+        where = f"ROS 2 bag {self.path}: topic {self.cloud_topic}: the cloud at stamp {stamp:.9f} s"
+        points, rings, organised = cloud_points(message, where)
+        index = rings if rings is not None else organised
+        geometry = self._intrinsics
+        rows = None if index is None else self._rows(index, points, geometry.beams, where)
+        return range_image(points, geometry, rows)
+
     def decode_depth(self, message) -> np.ndarray:
         """(H, W) float32 metres of a depth Image message; no return (0, NaN) as NaN."""
         dtype, scale = DEPTH_ENCODINGS[message.encoding]
@@ -657,6 +828,26 @@ class Rosbag2Sequence(FrameSource):
             depth *= np.float32(scale)
         depth[depth == 0] = np.nan
         return depth
+
+
+def _beam_table(points: np.ndarray, rows: np.ndarray, beams: int) -> dict:
+    """``beam_elevations`` (each row's mean elevation in degrees, rows no point reached interpolated) with
+    ``fov_up`` / ``fov_down`` half a spacing beyond the outer beams; ``{}`` when they do not decrease strictly
+    down the rows or fewer than two rows have points (a uniform geometry then)."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        elevation = np.degrees(np.arctan2(points[:, 2], np.hypot(points[:, 0], points[:, 1])))
+        valid = np.isfinite(elevation) & (np.linalg.norm(points, axis=1) > 0) & (rows >= 0) & (rows < beams)
+    sums = np.bincount(rows[valid], elevation[valid], minlength=beams)[:beams]
+    counts = np.bincount(rows[valid], minlength=beams)[:beams]
+    seen = counts > 0
+    if seen.sum() < 2 or beams < 2:
+        return {}
+    table = np.interp(np.arange(beams), np.nonzero(seen)[0], sums[seen] / counts[seen])
+    if np.any(np.diff(table) >= 0):
+        return {}
+    up = min(90.0, table[0] + 0.5 * (table[0] - table[1]))
+    down = max(-90.0, table[-1] - 0.5 * (table[-2] - table[-1]))
+    return {"beam_elevations": [float(a) for a in table], "fov_up": float(up), "fov_down": float(down)}
 
 
 # ---------------------------------------------------------------------------
@@ -698,6 +889,46 @@ def depth_image_bytes(depth: np.ndarray, encoding: str) -> np.ndarray:
     return np.ascontiguousarray(values).view(np.uint8).ravel()
 
 
+@contextlib.contextmanager
+def _new_bag(path: Path, storage: str):
+    """A rosbags Writer on a new bag for ``path`` (see :func:`write_rosbag2`): yields a namespace with ``writer``,
+    ``add(topic, msgtype)`` (a connection) and ``metadata`` (the text of the bag's ``mabdi.toml``, set by the
+    body); when the body completes the bag is closed, ``mabdi.toml`` written, and the folder renamed to ``path``."""
+    rosbags = _rosbags()
+    plugins = {"sqlite3": rosbags.StoragePlugin.SQLITE3, "mcap": rosbags.StoragePlugin.MCAP}
+    if storage not in plugins:
+        raise SequenceError(f"cannot write ROS 2 bag {path}: unknown storage {storage!r} (known: {', '.join(plugins)})")
+    if path.exists() and not (path.is_dir() and not any(path.iterdir())):
+        raise SequenceError(f"cannot write ROS 2 bag {path}: it exists already (rosbags writes only new bags)")
+    parent = path.parent if str(path.parent) else Path(".")
+    if not parent.is_dir():
+        raise SequenceError(f"cannot write ROS 2 bag {path}: folder {parent} does not exist")
+    temporary = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".tmp", dir=parent))
+    folder = temporary / "bag"
+    try:
+        try:
+            writer = rosbags.Writer(folder, version=rosbags.Writer.VERSION_LATEST, storage_plugin=plugins[storage])
+            writer.open()
+        except rosbags.WriterError as exc:
+            raise SequenceError(f"cannot write ROS 2 bag {path} ({storage}): {exc}") from None
+        bag = SimpleNamespace(
+            writer=writer, add=lambda topic, msgtype: writer.add_connection(topic, msgtype, typestore=rosbags.typestore), metadata=None
+        )
+        try:
+            yield bag
+        except BaseException:
+            writer.abort()
+            raise
+        writer.close()
+        if bag.metadata is not None:
+            write_text(folder / METADATA_FILE, bag.metadata)
+        if path.is_dir():
+            path.rmdir()
+        os.replace(folder, path)
+    finally:
+        shutil.rmtree(temporary, ignore_errors=True)
+
+
 def write_rosbag2(
     source: FrameSource,
     path,
@@ -730,19 +961,11 @@ def write_rosbag2(
     ``path`` must not exist (an empty folder is replaced).
     """
     path = Path(path)
-    rosbags = _rosbags()
-    typestore = rosbags.typestore
-    plugins = {"sqlite3": rosbags.StoragePlugin.SQLITE3, "mcap": rosbags.StoragePlugin.MCAP}
-    if storage not in plugins:
-        raise SequenceError(f"cannot write ROS 2 bag {path}: unknown storage {storage!r} (known: {', '.join(plugins)})")
     if encoding not in DEPTH_ENCODINGS:
         raise SequenceError(f"cannot write ROS 2 bag {path}: unknown depth encoding {encoding!r} (known: {', '.join(DEPTH_ENCODINGS)})")
-    if path.exists() and not (path.is_dir() and not any(path.iterdir())):
-        raise SequenceError(f"cannot write ROS 2 bag {path}: it exists already (rosbags writes only new bags)")
-    parent = path.parent if str(path.parent) else Path(".")
-    if not parent.is_dir():
-        raise SequenceError(f"cannot write ROS 2 bag {path}: folder {parent} does not exist")
-
+    if isinstance(source.intrinsics, SphericalGeometry):
+        raise SequenceError(f"cannot write ROS 2 bag {path}: the frames are a LiDAR's range images: write them with write_lidar_rosbag2")
+    typestore = _rosbags().typestore
     intrinsics = source.intrinsics
     stamps = seconds_to_ns(frame_timestamps(source))
     if (stamps < 0).any():
@@ -755,80 +978,159 @@ def write_rosbag2(
     _, _, optical_rotation = _transform_msgs(LINK_FROM_OPTICAL, quaternions_from_rotations(LINK_FROM_OPTICAL[:3, :3])[0])
     optical_from_link = np.linalg.inv(LINK_FROM_OPTICAL)
 
-    temporary = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".tmp", dir=parent))
-    bag = temporary / "bag"
-    try:
-        try:
-            writer = rosbags.Writer(bag, version=rosbags.Writer.VERSION_LATEST, storage_plugin=plugins[storage])
-            writer.open()
-        except rosbags.WriterError as exc:
-            raise SequenceError(f"cannot write ROS 2 bag {path} ({storage}): {exc}") from None
-        try:
-            add = lambda topic, msgtype: writer.add_connection(topic, msgtype, typestore=typestore)  # noqa: E731
-            image_conn, info_conn = add(DEPTH_TOPIC, IMAGE), add(INFO_TOPIC, CAMERA_INFO)
-            pose_conn, tf_conn, static_conn = add(POSE_TOPIC, POSE_STAMPED), add("/tf", TF_MESSAGE), add("/tf_static", TF_MESSAGE)
-            colour_conn = None
-            Transform, TransformStamped = types["geometry_msgs/msg/Transform"], types["geometry_msgs/msg/TransformStamped"]
-            static = types[TF_MESSAGE](transforms=[
-                TransformStamped(
-                    header=_header(int(stamps[0]), CAMERA_LINK_FRAME),
-                    child_frame_id=OPTICAL_FRAME,
-                    transform=Transform(translation=types["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0), rotation=optical_rotation),
-                )
-            ])
-            writer.write(static_conn, int(stamps[0]), typestore.serialize_cdr(static, TF_MESSAGE))
-            for index in range(len(source)):
-                frame = source.read(index)
-                if frame.depth.shape != intrinsics.shape:
-                    raise SequenceError(f"cannot write frame {index} to {path}: depth {frame.depth.shape} != intrinsics {intrinsics.shape}")
-                stamp = int(stamps[index])
-                pose = frame.world_from_camera
-                link = pose @ optical_from_link
-                quaternions = quaternions_from_rotations(np.stack([pose[:3, :3], link[:3, :3]]))
-                _, point, rotation = _transform_msgs(pose, quaternions[0])
-                link_translation, _, link_rotation = _transform_msgs(link, quaternions[1])
-                messages = [
-                    (image_conn, IMAGE, types[IMAGE](
-                        header=_header(stamp, OPTICAL_FRAME), height=intrinsics.height, width=intrinsics.width,
-                        encoding=encoding, is_bigendian=0, step=intrinsics.width * np.dtype(DEPTH_ENCODINGS[encoding][0]).itemsize,
-                        data=depth_image_bytes(frame.depth, encoding),
-                    )),
-                    (info_conn, CAMERA_INFO, types[CAMERA_INFO](
-                        header=_header(stamp, OPTICAL_FRAME), height=intrinsics.height, width=intrinsics.width,
-                        distortion_model="plumb_bob", d=np.zeros(5), k=k, r=np.eye(3).ravel(), p=p,
-                        binning_x=0, binning_y=0, roi=roi,
-                    )),
-                    (pose_conn, POSE_STAMPED, types[POSE_STAMPED](
-                        header=_header(stamp, WORLD_FRAME), pose=types["geometry_msgs/msg/Pose"](position=point, orientation=rotation),
-                    )),
-                    (tf_conn, TF_MESSAGE, types[TF_MESSAGE](transforms=[
-                        TransformStamped(
-                            header=_header(stamp, WORLD_FRAME), child_frame_id=CAMERA_LINK_FRAME,
-                            transform=Transform(translation=link_translation, rotation=link_rotation),
-                        )
-                    ])),
-                ]
-                if frame.colour is not None:
-                    if colour_conn is None:
-                        colour_conn = add(COLOUR_TOPIC, IMAGE)
-                    messages.append((colour_conn, IMAGE, types[IMAGE](
-                        header=_header(stamp, OPTICAL_FRAME), height=intrinsics.height, width=intrinsics.width,
-                        encoding="rgb8", is_bigendian=0, step=3 * intrinsics.width,
-                        data=np.ascontiguousarray(frame.colour, dtype=np.uint8).ravel(),
-                    )))
-                for connection, msgtype, message in messages:
-                    writer.write(connection, stamp, typestore.serialize_cdr(message, msgtype))
-        except BaseException:
-            writer.abort()
-            raise
-        writer.close()
-        write_metadata(bag, intrinsics, extra)
-        if path.is_dir():
-            path.rmdir()
-        os.replace(bag, path)
-    finally:
-        shutil.rmtree(temporary, ignore_errors=True)
+    with _new_bag(path, storage) as bag:
+        writer, add = bag.writer, bag.add
+        image_conn, info_conn = add(DEPTH_TOPIC, IMAGE), add(INFO_TOPIC, CAMERA_INFO)
+        pose_conn, tf_conn, static_conn = add(POSE_TOPIC, POSE_STAMPED), add("/tf", TF_MESSAGE), add("/tf_static", TF_MESSAGE)
+        colour_conn = None
+        Transform, TransformStamped = types["geometry_msgs/msg/Transform"], types["geometry_msgs/msg/TransformStamped"]
+        static = types[TF_MESSAGE](transforms=[
+            TransformStamped(
+                header=_header(int(stamps[0]), CAMERA_LINK_FRAME),
+                child_frame_id=OPTICAL_FRAME,
+                transform=Transform(translation=types["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0), rotation=optical_rotation),
+            )
+        ])
+        writer.write(static_conn, int(stamps[0]), typestore.serialize_cdr(static, TF_MESSAGE))
+        for index in range(len(source)):
+            frame = source.read(index)
+            if frame.depth.shape != intrinsics.shape:
+                raise SequenceError(f"cannot write frame {index} to {path}: depth {frame.depth.shape} != intrinsics {intrinsics.shape}")
+            stamp = int(stamps[index])
+            pose = frame.world_from_camera
+            link = pose @ optical_from_link
+            quaternions = quaternions_from_rotations(np.stack([pose[:3, :3], link[:3, :3]]))
+            _, point, rotation = _transform_msgs(pose, quaternions[0])
+            link_translation, _, link_rotation = _transform_msgs(link, quaternions[1])
+            messages = [
+                (image_conn, IMAGE, types[IMAGE](
+                    header=_header(stamp, OPTICAL_FRAME), height=intrinsics.height, width=intrinsics.width,
+                    encoding=encoding, is_bigendian=0, step=intrinsics.width * np.dtype(DEPTH_ENCODINGS[encoding][0]).itemsize,
+                    data=depth_image_bytes(frame.depth, encoding),
+                )),
+                (info_conn, CAMERA_INFO, types[CAMERA_INFO](
+                    header=_header(stamp, OPTICAL_FRAME), height=intrinsics.height, width=intrinsics.width,
+                    distortion_model="plumb_bob", d=np.zeros(5), k=k, r=np.eye(3).ravel(), p=p,
+                    binning_x=0, binning_y=0, roi=roi,
+                )),
+                (pose_conn, POSE_STAMPED, types[POSE_STAMPED](
+                    header=_header(stamp, WORLD_FRAME), pose=types["geometry_msgs/msg/Pose"](position=point, orientation=rotation),
+                )),
+                (tf_conn, TF_MESSAGE, types[TF_MESSAGE](transforms=[
+                    TransformStamped(
+                        header=_header(stamp, WORLD_FRAME), child_frame_id=CAMERA_LINK_FRAME,
+                        transform=Transform(translation=link_translation, rotation=link_rotation),
+                    )
+                ])),
+            ]
+            if frame.colour is not None:
+                if colour_conn is None:
+                    colour_conn = add(COLOUR_TOPIC, IMAGE)
+                messages.append((colour_conn, IMAGE, types[IMAGE](
+                    header=_header(stamp, OPTICAL_FRAME), height=intrinsics.height, width=intrinsics.width,
+                    encoding="rgb8", is_bigendian=0, step=3 * intrinsics.width,
+                    data=np.ascontiguousarray(frame.colour, dtype=np.uint8).ravel(),
+                )))
+            for connection, msgtype, message in messages:
+                writer.write(connection, stamp, typestore.serialize_cdr(message, msgtype))
+        bag.metadata = metadata_toml(intrinsics, extra)
     return path
 
 
-__all__ = ["DEPTH_ENCODINGS", "Rosbag2Sequence", "write_rosbag2"]
+#: Point layouts :func:`write_lidar_rosbag2` writes: fields (name, PointField datatype) in order.
+CLOUD_LAYOUTS = {
+    "velodyne": (("x", 7), ("y", 7), ("z", 7), ("intensity", 7), ("ring", 4), ("time", 7)),
+    "ouster": (("x", 7), ("y", 7), ("z", 7), ("intensity", 7), ("t", 6), ("reflectivity", 4), ("ring", 4), ("range", 6)),
+}
+#: Seconds a simulated scan takes (the ``time`` / ``t`` fields a writer gives each column).
+SCAN_PERIOD = 0.1
+
+
+def cloud_bytes(depth: np.ndarray, geometry: SphericalGeometry, layout: str) -> tuple[np.ndarray, int, int]:
+    """A range image as PointCloud2 data in ``layout`` (:data:`CLOUD_LAYOUTS`): (bytes, height, width).
+
+    ``velodyne``: an unorganised cloud of the returns (height 1), ``ring`` counted from the lowest beam (0) up,
+    ``time`` (float32 s) through the turn by column. ``ouster``: an organised cloud (height = beams, width =
+    columns, row 0 the top beam), no return as x = y = z = 0 with ``range`` 0, ``ring`` = the row, ``t`` (uint32
+    ns) by column, ``range`` in millimetres. Points at the pixel centres' directions; little-endian, packed.
+    """
+    fields = CLOUD_LAYOUTS[layout]
+    dtype = np.dtype([(name, np.dtype(POINT_FIELD_TYPES[kind]).newbyteorder("<")) for name, kind in fields])
+    if layout == "velodyne":
+        points, rows, columns = range_image_points(depth, geometry)
+        cloud = np.zeros(len(points), dtype=dtype)
+        cloud["ring"] = geometry.beams - 1 - rows
+        cloud["time"] = columns / geometry.columns * SCAN_PERIOD
+        height, width = 1, len(points)
+    else:
+        rows, columns = np.indices(geometry.shape).reshape(2, -1)
+        values = np.asarray(depth, dtype=np.float64).reshape(-1)
+        hit = np.isfinite(values)
+        points = geometry.rays().reshape(-1, 3) * np.where(hit, values, 0.0)[:, None]
+        cloud = np.zeros(len(points), dtype=dtype)
+        cloud["ring"] = rows
+        cloud["t"] = np.rint(columns / geometry.columns * SCAN_PERIOD * 1e9).astype(np.uint32)
+        cloud["range"] = np.rint(np.where(hit, values, 0.0) * 1000.0).astype(np.uint32)
+        height, width = geometry.beams, geometry.columns
+    cloud["x"], cloud["y"], cloud["z"] = points[:, 0], points[:, 1], points[:, 2]
+    return cloud.view(np.uint8).reshape(-1), height, width
+
+
+def write_lidar_rosbag2(
+    source: FrameSource, path, *, storage: str = "sqlite3", layout: str = "velodyne", extra: dict | None = None
+) -> Path:
+    """Write every frame of a LiDAR ``source`` (range images) as a ROS 2 bag folder at ``path``; returns it.
+
+    Topics (stamps as :func:`write_rosbag2`'s): ``/lidar/points``, ``sensor_msgs/msg/PointCloud2`` in frame
+    ``lidar`` with the fields of ``layout`` (:func:`cloud_bytes`: ``"velodyne"`` or ``"ouster"``);
+    ``/lidar/pose``, ``PoseStamped`` of ``lidar`` in ``world``; ``/tf``, world -> lidar per frame. A
+    ``mabdi.toml`` with the ``[lidar]`` geometry and the ``extra`` tables goes into the folder. ``storage`` and
+    the atomic write as for :func:`write_rosbag2`.
+    """
+    path = Path(path)
+    geometry = source.intrinsics
+    if not isinstance(geometry, SphericalGeometry):
+        raise SequenceError(f"cannot write ROS 2 bag {path}: point clouds come from a LiDAR's range images, these frames are a camera's")
+    if layout not in CLOUD_LAYOUTS:
+        raise SequenceError(f"cannot write ROS 2 bag {path}: unknown point layout {layout!r} (known: {', '.join(CLOUD_LAYOUTS)})")
+    stamps = seconds_to_ns(frame_timestamps(source))
+    if (stamps < 0).any():
+        raise SequenceError(f"cannot write ROS 2 bag {path}: negative timestamps")
+    typestore = _rosbags().typestore
+    types = typestore.types
+    PointField = types["sensor_msgs/msg/PointField"]
+    offsets = np.cumsum([0] + [np.dtype(POINT_FIELD_TYPES[kind]).itemsize for _, kind in CLOUD_LAYOUTS[layout]])
+    fields = [PointField(name=name, offset=int(offset), datatype=kind, count=1) for (name, kind), offset in zip(CLOUD_LAYOUTS[layout], offsets, strict=False)]
+    point_step = int(offsets[-1])
+    Transform, TransformStamped = types["geometry_msgs/msg/Transform"], types["geometry_msgs/msg/TransformStamped"]
+    with _new_bag(path, storage) as bag:
+        cloud_conn, pose_conn, tf_conn = bag.add(CLOUD_TOPIC, POINT_CLOUD2), bag.add(LIDAR_POSE_TOPIC, POSE_STAMPED), bag.add("/tf", TF_MESSAGE)
+        for index in range(len(source)):
+            frame = source.read(index)
+            stamp = int(stamps[index])
+            data, height, width = cloud_bytes(frame.depth, geometry, layout)
+            pose = frame.world_from_camera
+            translation, point, rotation = _transform_msgs(pose, quaternions_from_rotations(pose[:3, :3])[0])
+            messages = [
+                (cloud_conn, POINT_CLOUD2, types[POINT_CLOUD2](
+                    header=_header(stamp, LIDAR_FRAME), height=height, width=width, fields=fields, is_bigendian=False,
+                    point_step=point_step, row_step=point_step * width, data=data, is_dense=layout == "velodyne",
+                )),
+                (pose_conn, POSE_STAMPED, types[POSE_STAMPED](
+                    header=_header(stamp, WORLD_FRAME), pose=types["geometry_msgs/msg/Pose"](position=point, orientation=rotation),
+                )),
+                (tf_conn, TF_MESSAGE, types[TF_MESSAGE](transforms=[
+                    TransformStamped(
+                        header=_header(stamp, WORLD_FRAME), child_frame_id=LIDAR_FRAME,
+                        transform=Transform(translation=translation, rotation=rotation),
+                    )
+                ])),
+            ]
+            for connection, msgtype, message in messages:
+                bag.writer.write(connection, stamp, typestore.serialize_cdr(message, msgtype))
+        text = "# The range image's geometry (mabdi.spherical): beams, columns, fov (degrees), range (m).\n"
+        bag.metadata = text + "\n".join(toml_lines({"lidar": lidar_table(geometry), **(extra or {})})).lstrip("\n") + "\n"
+    return path
+
+
+__all__ = ["CLOUD_LAYOUTS", "DEPTH_ENCODINGS", "Rosbag2Sequence", "cloud_points", "write_lidar_rosbag2", "write_rosbag2"]

@@ -10,11 +10,13 @@ Formats read and written (each a :class:`~mabdi.sources.frames.FrameSource`):
   what they share): 3DMatch / 7-Scenes (:mod:`mabdi.sources.threedmatch`),
   Redwood / Open3D (:mod:`mabdi.sources.redwood`), ScanNet's exporter
   (:mod:`mabdi.sources.scannet`) and Replica as NICE-SLAM ships it
-  (:mod:`mabdi.sources.replica`).
+  (:mod:`mabdi.sources.replica`);
+* a KITTI-style LiDAR folder (``velodyne/*.bin``, ``poses.txt``, ``calib.txt``):
+  :mod:`mabdi.sources.kitti`, its scans turned into range images.
 
 :func:`open_sequence` tells them apart, in the order of
 :func:`sequence_format`: ``depth.txt`` is TUM; ``metadata.yaml`` or a
-``.db3`` / ``.mcap`` is a bag; ``traj.txt`` with ``results/`` is Replica;
+``.db3`` / ``.mcap`` is a bag; ``velodyne/`` with ``poses.txt`` is KITTI; ``traj.txt`` with ``results/`` is Replica;
 ``depth/`` with ``pose/`` is ScanNet; ``depth/`` with a ``.log`` is Redwood;
 ``frame-*.depth.png`` (here or in ``seq-*`` folders) is 3DMatch.
 
@@ -30,6 +32,7 @@ import importlib
 from pathlib import Path
 
 from mabdi.camera import quaternions_from_rotations  # re-exported (it was defined here)
+from mabdi.sources.kitti import is_kitti
 from mabdi.sources.redwood import is_redwood
 from mabdi.sources.replica import is_replica
 from mabdi.sources.scannet import is_scannet
@@ -91,22 +94,25 @@ FORMATS = {
     "redwood": ("Redwood / Open3D folder", "mabdi.sources.redwood", "RedwoodSequence"),
     "scannet": ("ScanNet folder", "mabdi.sources.scannet", "ScanNetSequence"),
     "replica": ("Replica (NICE-SLAM) folder", "mabdi.sources.replica", "ReplicaSequence"),
+    "kitti": ("KITTI-style LiDAR folder", "mabdi.sources.kitti", "KittiSequence"),
 }
 
 #: The keyword options each format's reader takes (``open_sequence(path, **options)``; the CLI refuses the others).
 READER_OPTIONS = {
     "tum": ("camera", "tolerance", "depth_scale"),
-    "rosbag2": ("depth_topic", "info_topic", "pose_topic", "tolerance", "colour_topic"),
+    "rosbag2": ("depth_topic", "info_topic", "pose_topic", "tolerance", "colour_topic", "cloud_topic"),
     "3dmatch": ("camera", "depth_scale"),
     "redwood": ("camera", "depth_scale"),
     "scannet": ("camera", "depth_scale"),
     "replica": ("camera", "depth_scale"),
+    "kitti": (),
 }
 
 _WHAT_IS_READ = (
     "a TUM RGB-D folder (depth.txt), a ROS 2 bag (metadata.yaml, .db3 or .mcap), a 3DMatch / 7-Scenes folder "
     "(frame-*.depth.png, or seq-* folders of them), a Redwood / Open3D folder (depth/ and trajectory.log), "
-    "a ScanNet folder (depth/ and pose/) or a Replica NICE-SLAM folder (results/ and traj.txt)"
+    "a ScanNet folder (depth/ and pose/), a Replica NICE-SLAM folder (results/ and traj.txt) "
+    "or a KITTI-style LiDAR folder (velodyne/ and poses.txt)"
 )
 
 
@@ -123,7 +129,7 @@ def sequence_format(path) -> str:
         return "tum"
     if (path / "metadata.yaml").is_file() or any(path.glob("*.db3")) or any(path.glob("*.mcap")):
         return "rosbag2"
-    for name, test in (("replica", is_replica), ("scannet", is_scannet), ("redwood", is_redwood), ("3dmatch", is_3dmatch)):
+    for name, test in (("kitti", is_kitti), ("replica", is_replica), ("scannet", is_scannet), ("redwood", is_redwood), ("3dmatch", is_3dmatch)):
         if test(path):
             return name
     raise SequenceError(f"{path}: not a recorded sequence: expected {_WHAT_IS_READ}")
@@ -135,7 +141,7 @@ def open_sequence(path, **options):
     :func:`sequence_format` tells the formats apart (:data:`FORMATS`);
     ``options`` go to that reader (``camera=``, ``depth_scale=``,
     ``tolerance=`` for TUM; ``camera=``, ``depth_scale=`` for the dataset
-    layouts; ``depth_topic=``, ``pose_topic=``, ... for bags).
+    layouts; ``depth_topic=``, ``pose_topic=``, ``cloud_topic=``, ... for bags).
     """
     kind = sequence_format(path)
     _, module, name = FORMATS[kind]

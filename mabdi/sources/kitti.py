@@ -1,0 +1,222 @@
+"""KITTI-style LiDAR folders: read them as a frame source of range images, write any LiDAR frame source so.
+
+The layout (KITTI odometry's ``sequences/NN`` folders, with the sequence's
+poses file copied in as ``poses.txt``):
+
+* ``velodyne/NNNNNN.bin``: one scan a file, float32 ``x y z intensity`` per
+  point (sensor frame: x forward, y left, z up; metres); frames are the
+  files in name order. The intensity is not used.
+* ``poses.txt``: one line a scan, the 12 numbers of a 3x4 matrix row-major:
+  the pose of KITTI's camera 0 (x right, y down, z forward) in the frame of
+  the first camera 0 (KITTI's ground truth, ``poses/NN.txt``).
+* ``calib.txt`` (optional): lines ``KEY: numbers``; ``Tr:`` is the 3x4
+  matrix from the Velodyne frame to camera 0 (``camera0_from_velodyne``).
+  Without ``calib.txt`` the poses are the LiDAR's own (Tr = identity).
+* ``times.txt`` (optional): one timestamp (s) a scan; without it the
+  timestamps are unknown (NaN).
+* ``mabdi.toml`` (optional): a ``[lidar]`` table, the range image's
+  geometry (:mod:`mabdi.sources.range_images`: beams, columns, fov_up,
+  fov_down, range_min, range_max, beam_elevations); without it
+  :data:`~mabdi.sources.range_images.KITTI_GEOMETRY` (the HDL-64E).
+
+The pose of scan i is ``world_from_sensor = Tr^-1 P_i Tr`` (SemanticKITTI's
+reading of the poses): the LiDAR's motion in a world that is the first
+camera 0 frame turned back into the LiDAR's axes, so the world has z up
+(the first scan's LiDAR frame when P_0 is the identity, as in KITTI).
+Each scan becomes a range image by
+:func:`~mabdi.sources.range_images.range_image` (rows by elevation: KITTI's
+files have no ring index).
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import numpy as np
+
+from mabdi.camera import check_pose
+from mabdi.depth import DepthFrame
+from mabdi.errors import PoseError
+from mabdi.io.atomic import atomic_output, write_text
+from mabdi.io.toml_writer import toml_lines
+from mabdi.sources.frames import FrameSource
+from mabdi.sources.range_images import KITTI_GEOMETRY, geometry_from_table, lidar_table, range_image, range_image_points
+from mabdi.sources.sequence_files import SequenceError, metadata_path, prepare_folder, read_sequence_metadata
+from mabdi.spherical import SphericalGeometry
+
+SCAN_FOLDER = "velodyne"
+POSES_FILE = "poses.txt"
+CALIB_FILE = "calib.txt"
+TIMES_FILE = "times.txt"
+#: float32 values per point in a scan file: x, y, z, intensity.
+POINT_FIELDS = 4
+#: The Tr of the folders :func:`write_kitti` writes: KITTI's axes (camera 0 = x right, y down, z forward from the
+#: LiDAR's x forward, y left, z up) and a lever arm (m) like KITTI's, so a reader that skips Tr is caught by a test.
+WRITTEN_TR = np.array([[0.0, -1.0, 0.0, -0.004], [0.0, 0.0, -1.0, -0.076], [1.0, 0.0, 0.0, -0.272], [0.0, 0.0, 0.0, 1.0]])
+
+
+def is_kitti(path) -> bool:
+    path = Path(path)
+    return path.is_dir() and (path / SCAN_FOLDER).is_dir() and (path / POSES_FILE).is_file()
+
+
+def read_matrix_rows(path: Path, what: str) -> np.ndarray:
+    """(N, 4, 4) poses of a file of 3x4 row-major matrices, one a line (blank lines skipped), or a SequenceError
+    naming the file and line."""
+    matrices = []
+    with open(path, encoding="utf-8", errors="replace") as stream:
+        for number, line in enumerate(stream, start=1):
+            fields = line.split()
+            if not fields:
+                continue
+            try:
+                values = [float(f) for f in fields]
+            except ValueError:
+                raise SequenceError(f"{path}:{number}: {what}: a field is not a number: {line.strip()!r}") from None
+            if len(values) != 12 or not np.isfinite(values).all():
+                raise SequenceError(f"{path}:{number}: {what}: expected 12 finite numbers (a 3x4 matrix row-major), got {len(values)}")
+            matrices.append(_homogeneous(values, f"{path}:{number}"))
+    return np.array(matrices, dtype=np.float64).reshape(-1, 4, 4)
+
+
+def read_calibration(path: Path) -> np.ndarray:
+    """The 4x4 ``Tr`` (Velodyne to camera 0) of a KITTI ``calib.txt``, or a SequenceError naming the file."""
+    with open(path, encoding="utf-8", errors="replace") as stream:
+        for number, line in enumerate(stream, start=1):
+            key, colon, rest = line.partition(":")
+            if colon and key.strip() == "Tr":
+                try:
+                    values = [float(f) for f in rest.split()]
+                except ValueError:
+                    raise SequenceError(f"{path}:{number}: Tr: a field is not a number") from None
+                if len(values) != 12:
+                    raise SequenceError(f"{path}:{number}: Tr: expected 12 numbers (a 3x4 matrix row-major), got {len(values)}")
+                return _homogeneous(values, f"{path}:{number}: Tr")
+    raise SequenceError(f"{path}: no 'Tr:' line (the Velodyne-to-camera-0 transform)")
+
+
+def _homogeneous(values, where: str) -> np.ndarray:
+    matrix = np.eye(4)
+    matrix[:3, :] = np.asarray(values, dtype=np.float64).reshape(3, 4)
+    try:
+        return check_pose(matrix, where)
+    except PoseError as exc:
+        raise SequenceError(f"{where}: not a rigid transform: {exc}") from None
+
+
+def read_scan(path: Path) -> np.ndarray:
+    """(N, 3) float32 sensor-frame points of a KITTI ``.bin`` scan (float32 x y z intensity), or a SequenceError."""
+    try:
+        raw = np.fromfile(path, dtype="<f4")
+    except OSError as exc:
+        raise SequenceError(f"{path}: cannot read the scan: {exc}") from None
+    if raw.size % POINT_FIELDS:
+        raise SequenceError(f"{path}: {raw.size * 4} bytes is not a whole number of points (16 bytes: float32 x y z intensity)")
+    return raw.reshape(-1, POINT_FIELDS)[:, :3]
+
+
+class KittiSequence(FrameSource):
+    """A KITTI-style folder (module docs) as range-image frames; ``geometry`` replaces the ``[lidar]`` table's."""
+
+    def __init__(self, path, geometry: SphericalGeometry | None = None) -> None:
+        path = Path(path)
+        if not is_kitti(path):
+            raise SequenceError(f"KITTI folder {path}: needs a {SCAN_FOLDER}/ folder of .bin scans and {POSES_FILE}")
+        self.path = path
+        self.description = f"KITTI folder {path}"
+        self._scans = sorted(p for p in (path / SCAN_FOLDER).iterdir() if p.suffix == ".bin")
+        if not self._scans:
+            raise SequenceError(f"KITTI folder {path}: no .bin scan in {SCAN_FOLDER}/")
+        names = [p.stem for p in self._scans]
+        odd = [n for n in names if not re.fullmatch(r"\d+", n)]
+        if odd:
+            raise SequenceError(f"{path / SCAN_FOLDER / (odd[0] + '.bin')}: a scan's name must be its number (NNNNNN.bin)")
+        poses = read_matrix_rows(path / POSES_FILE, "pose")
+        if len(poses) != len(self._scans):
+            raise SequenceError(f"{path / POSES_FILE}: {len(poses)} poses, but {SCAN_FOLDER}/ holds {len(self._scans)} scans")
+        tr = read_calibration(path / CALIB_FILE) if (path / CALIB_FILE).is_file() else np.eye(4)
+        self._poses = np.linalg.inv(tr) @ poses @ tr
+        self._times = np.full(len(self._scans), np.nan)
+        if (path / TIMES_FILE).is_file():
+            times = _read_times(path / TIMES_FILE)
+            if len(times) != len(self._scans):
+                raise SequenceError(f"{path / TIMES_FILE}: {len(times)} timestamps, but {SCAN_FOLDER}/ holds {len(self._scans)} scans")
+            self._times = times
+        if geometry is None:
+            table = read_sequence_metadata(path).get("lidar")
+            geometry = KITTI_GEOMETRY if table is None else geometry_from_table(table, metadata_path(path), KITTI_GEOMETRY)
+        self.geometry = geometry
+
+    @property
+    def intrinsics(self) -> SphericalGeometry:
+        return self.geometry
+
+    def __len__(self) -> int:
+        return len(self._scans)
+
+    @property
+    def poses(self) -> np.ndarray:
+        return self._poses.copy()
+
+    @property
+    def timestamps(self) -> np.ndarray:
+        return self._times.copy()
+
+    def read_frame(self, index: int) -> DepthFrame:
+        depth = range_image(read_scan(self._scans[index]), self.geometry)
+        return DepthFrame(depth, self.geometry, self._poses[index], index, float(self._times[index]))
+
+
+def _read_times(path: Path) -> np.ndarray:
+    times = []
+    with open(path, encoding="utf-8", errors="replace") as stream:
+        for number, line in enumerate(stream, start=1):
+            if not line.strip():
+                continue
+            try:
+                times.append(float(line))
+            except ValueError:
+                raise SequenceError(f"{path}:{number}: timestamp {line.strip()!r} is not a number") from None
+    return np.array(times, dtype=np.float64)
+
+
+def write_kitti(source: FrameSource, folder, *, overwrite: bool = False, extra: dict | None = None) -> Path:
+    """Write every frame of a LiDAR ``source`` (range images) as a KITTI-style folder; returns the folder.
+
+    Each frame's returns go to ``velodyne/NNNNNN.bin`` as points (float32 x y z, intensity 0) at the pixel
+    centres' directions, ``poses.txt`` holds ``Tr P Tr^-1`` with ``Tr`` = :data:`WRITTEN_TR` in ``calib.txt``
+    (so :class:`KittiSequence` reads the source's poses back), ``times.txt`` the timestamps (index / 10 where
+    unknown), and ``mabdi.toml`` the ``[lidar]`` geometry and the tables of ``extra``. Atomic file by file.
+    """
+    if not isinstance(source.intrinsics, SphericalGeometry):
+        raise SequenceError(
+            f"{source.description}: a KITTI folder holds a LiDAR's scans, but these frames are a camera's depth images "
+            "(use [sensor] kind = \"lidar\", or another format)"
+        )
+    folder = Path(folder)
+    prepare_folder(folder, overwrite, "a KITTI folder")
+    (folder / SCAN_FOLDER).mkdir(exist_ok=True)
+    lines, times = [], []
+    tr, tr_inverse = WRITTEN_TR, np.linalg.inv(WRITTEN_TR)
+    geometry = None
+    for index in range(len(source)):
+        frame = source.read(index)
+        geometry = frame.intrinsics if geometry is None else geometry
+        xyz = range_image_points(frame.depth, frame.intrinsics)[0]
+        points = np.zeros((len(xyz), POINT_FIELDS), dtype="<f4")
+        points[:, :3] = xyz
+        with atomic_output(folder / SCAN_FOLDER / f"{index:06d}.bin") as temporary:
+            points.tofile(temporary)
+        pose = tr @ frame.world_from_camera @ tr_inverse
+        lines.append(" ".join(f"{v:.17g}" for v in pose[:3].ravel()))
+        times.append(frame.timestamp if np.isfinite(frame.timestamp) else index / 10.0)
+    write_text(folder / POSES_FILE, "\n".join(lines) + "\n")
+    write_text(folder / CALIB_FILE, "Tr: " + " ".join(f"{v:.17g}" for v in tr[:3].ravel()) + "\n")
+    write_text(folder / TIMES_FILE, "".join(f"{t:.6f}\n" for t in times))
+    text = "# The range image's geometry (mabdi.spherical): beams, columns, fov (degrees), range (m).\n"
+    write_text(folder / "mabdi.toml", text + "\n".join(toml_lines({"lidar": lidar_table(geometry), **(extra or {})})).lstrip("\n") + "\n")
+    return folder
+
+
+__all__ = ["KittiSequence", "is_kitti", "read_calibration", "read_scan", "write_kitti"]
