@@ -45,11 +45,14 @@ from mabdi.filters.classifier import ClassifierParameters
 from mabdi.filters.refinement import RefinementParameters
 from mabdi.filters.registration import RegistrationParameters
 from mabdi.filters.removal import RemovalParameters
-from mabdi.filters.depth_image import BACKENDS, NOISE_MODELS, SensorNoise
+from mabdi.filters.depth_image import BACKENDS, NOISE_MODELS, RANGE_NOISE_MODELS, SensorNoise
 from mabdi.filters.registry import surface_filter, surface_filter_names
 from mabdi.pose_noise import PoseNoise
+from mabdi.spherical import SphericalGeometry
 
 PRIMITIVES = ("box", "cylinder", "sphere", "plane")
+#: ``[sensor] kind``: a depth camera (the default) or a spinning LiDAR (range images).
+SENSOR_KINDS = ("pinhole", "lidar")
 OBJECT_TYPES = (*PRIMITIVES, "mesh")
 ANCHORS = ("bottom", "center", "origin")
 AXES = ("x", "y", "z", "-x", "-y", "-z", "+x", "+y", "+z")
@@ -129,6 +132,18 @@ class SensorConfig:
     of incidence; :mod:`mabdi.filters.depth_image` says where each default
     comes from).
 
+    ``kind`` is ``pinhole`` (the default: a depth camera with the intrinsics
+    above) or ``lidar``: a spinning LiDAR whose images are range images
+    (:class:`mabdi.spherical.SphericalGeometry`: ``beams`` rows by ``columns``
+    azimuth steps over 360 degrees, beams from ``fov_up`` to ``fov_down``
+    degrees of elevation, or at the ``beam_elevations`` given, returns between
+    ``range_min`` and ``range_max`` metres; the defaults are a 64-beam
+    Velodyne HDL-64E's). A LiDAR's ``noise`` is ``none`` or ``range``
+    (Gaussian of ``range_sigma`` metres along the beam; the default 0.02 m is
+    the HDL-64E S2 datasheet's accuracy, see
+    :mod:`mabdi.filters.depth_image`). The path gives a LiDAR's poses in its
+    own axes (:func:`mabdi.simulate.path.path_from_config`, ``axes="lidar"``).
+
     ``[sensor.pose_noise]`` (:class:`mabdi.pose_noise.PoseNoise`): jitter and
     drift of the poses the frames carry, while the sensor renders from the
     true ones (``jitter_translation`` m, ``jitter_rotation`` degrees per frame;
@@ -136,6 +151,7 @@ class SensorConfig:
     one metre travelled, growing with sqrt(distance)); zero: exact poses.
     """
 
+    kind: str = "pinhole"
     width: int = Intrinsics.width
     height: int = Intrinsics.height
     fx: float = Intrinsics.fx
@@ -154,11 +170,29 @@ class SensorConfig:
     edge_dropout: int = SensorNoise.edge_dropout
     edge_jump: float = SensorNoise.edge_jump
     max_incidence: float = SensorNoise.max_incidence
+    beams: int = SphericalGeometry.beams
+    columns: int = SphericalGeometry.columns
+    fov_up: float = SphericalGeometry.fov_up
+    fov_down: float = SphericalGeometry.fov_down
+    range_min: float = SphericalGeometry.range_min
+    range_max: float = SphericalGeometry.range_max
+    beam_elevations: list[float] = field(default_factory=list)
+    range_sigma: float = SensorNoise.range_sigma
     backend: str = BACKENDS[0]
     pose_noise: PoseNoise = field(default_factory=PoseNoise)
 
     def intrinsics(self) -> Intrinsics:
         return Intrinsics(self.fx, self.fy, self.cx, self.cy, self.width, self.height, self.near, self.far)
+
+    def spherical(self) -> SphericalGeometry:
+        """The LiDAR's range-image geometry (the ``lidar`` keys)."""
+        return SphericalGeometry(
+            self.beams, self.columns, self.fov_up, self.fov_down, self.range_min, self.range_max, tuple(self.beam_elevations)
+        )
+
+    def geometry(self) -> Intrinsics | SphericalGeometry:
+        """The sensor's geometry: the camera's intrinsics (``kind = "pinhole"``) or the LiDAR's range image (``"lidar"``)."""
+        return self.spherical() if self.kind == "lidar" else self.intrinsics()
 
     def sensor_noise(self) -> SensorNoise:
         return SensorNoise.from_config(self)
@@ -630,10 +664,11 @@ def validate_run_config(config: RunConfig, where: str = "<config>") -> None:
         validate_object(obj, where, f"scene.objects[{i}]")
         _check_schedule(obj, config.run.frames, where, f"scene.objects[{i}]")
     sensor = config.sensor
-    _check_choice(sensor.noise, NOISE_MODELS, where, "sensor.noise")
+    _check_choice(sensor.kind, SENSOR_KINDS, where, "sensor.kind")
+    _check_choice(sensor.noise, RANGE_NOISE_MODELS if sensor.kind == "lidar" else tuple(m for m in NOISE_MODELS if m != "range"), where, "sensor.noise")
     _check_choice(sensor.backend, BACKENDS, where, "sensor.backend")
     try:
-        sensor.intrinsics()
+        sensor.geometry()
         sensor.sensor_noise()
     except ConfigError as exc:
         raise ConfigError(f"{where}: [sensor] {exc}") from None

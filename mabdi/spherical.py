@@ -126,6 +126,22 @@ class SphericalGeometry:
         rays[..., 2] = np.broadcast_to(np.sin(elevation), (self.beams, self.columns))
         return rays
 
+    def rays_at(self, u, v) -> np.ndarray:
+        """(..., 3) unit sensor-frame rays at continuous pixel coordinates (u column, v row; pixel corners at
+        integers, centres at + 0.5, as :meth:`pixels` returns them). With a beam table, the elevation is linear
+        between beam centres and beyond the outer ones."""
+        u = np.asarray(u, dtype=np.float64)
+        v = np.asarray(v, dtype=np.float64)
+        azimuth = math.pi * (1.0 - 2.0 * u / self.columns)
+        if self.beam_elevations and self.beams > 1:
+            centres = np.radians(np.asarray(self.beam_elevations))
+            index = np.clip(np.floor(v - 0.5).astype(np.int64), 0, self.beams - 2)
+            fraction = v - 0.5 - index
+            elevation = centres[index] + fraction * (centres[index + 1] - centres[index])
+        else:
+            elevation = np.radians(self.fov_up - v * (self.fov_up - self.fov_down) / self.beams)
+        return np.stack([np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth), np.sin(elevation)], axis=-1)
+
     def pixels(self, sensor_points) -> tuple[np.ndarray, np.ndarray]:
         """Continuous pixel coordinates of sensor-frame points (N, 3), and (N,) their range (m).
 

@@ -14,7 +14,8 @@ from scipy.spatial import cKDTree
 
 from mabdi.camera import Intrinsics, look_at
 from mabdi.face_identity import MAX_FACE_CODE, FaceIdTable
-from mabdi.filters.depth_image import DepthRenderer, named_leaves
+from mabdi.filters.depth_image import DepthRenderer
+from mabdi.polydata import named_leaves
 from mabdi.filters.removal import RemovalParameters
 from mabdi.polydata import polydata_arrays
 from mabdi.world_map import WorldMap, _chunked_state

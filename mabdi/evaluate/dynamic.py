@@ -62,7 +62,7 @@ from mabdi.camera import Intrinsics
 from mabdi.evaluate.distance import distances_within
 from mabdi.evaluate.removal_accuracy import MapHistory, RemovalAccuracy, removal_accuracy
 from mabdi.evaluate.sampling import SAMPLE_SEED, sample_surface
-from mabdi.filters.depth_image import DepthRenderer, SensorNoise
+from mabdi.filters.depth_image import SensorRenderer
 from mabdi.polydata import triangles_polydata
 from mabdi.simulate.run_pipeline import RunObserver, RunPipeline
 
@@ -175,19 +175,17 @@ def first_seen(
     None when no later pose does (see the module docs for the test).
     """
     poses = np.asarray(poses)
-    object_view, scene_view = DepthRenderer(backend), DepthRenderer(backend)
-    noise = SensorNoise("none")
-    near, far = intrinsics.near, intrinsics.far
+    object_view, scene_view = SensorRenderer(backend), SensorRenderer(backend)
     cache: dict[tuple, vtkPolyData] = {}
     try:
         for f in range(departure.frame, len(poses)):
             key = scene.active_objects(f)
             if key not in cache:
                 cache[key] = scene.mesh_at(f)
-            object_depth = noise.depth_from_zbuffer(object_view.render_zbuffer(departure.mesh, intrinsics, poses[f]), near, far, None)
+            object_depth = object_view.render(departure.mesh, intrinsics, poses[f])
             if np.count_nonzero(np.isfinite(object_depth)) < min_pixels:
                 continue
-            scene_depth = noise.depth_from_zbuffer(scene_view.render_zbuffer(cache[key], intrinsics, poses[f]), near, far, None)
+            scene_depth = scene_view.render(cache[key], intrinsics, poses[f])
             if seen_pixels(object_depth, scene_depth) >= min_pixels:
                 return f
     finally:

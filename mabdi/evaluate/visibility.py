@@ -17,17 +17,18 @@ from __future__ import annotations
 
 import numpy as np
 
-from mabdi.camera import Intrinsics, project
-from mabdi.filters.depth_image import DepthRenderer, SensorNoise
+from mabdi.depth import SensorGeometry, project_to_image
+from mabdi.filters.depth_image import SensorRenderer
 
 #: Depth slack of the visibility test: metres, and a fraction of the depth.
 VISIBILITY_SLACK_M = 0.005
 VISIBILITY_SLACK_RELATIVE = 0.005
 
 
-def visible_in_depth(samples: np.ndarray, depth: np.ndarray, intrinsics: Intrinsics, pose: np.ndarray) -> np.ndarray:
-    """Boolean mask of ``samples`` (N, 3) seen in a noise-free ``depth`` image (H, W) taken from ``pose``."""
-    uv, z = project(samples, intrinsics, pose)
+def visible_in_depth(samples: np.ndarray, depth: np.ndarray, intrinsics: SensorGeometry, pose: np.ndarray) -> np.ndarray:
+    """Boolean mask of ``samples`` (N, 3) seen in a noise-free ``depth`` image (H, W) taken from ``pose``
+    (a camera's z-depth or a LiDAR's range: z is then the range)."""
+    uv, z = project_to_image(samples, intrinsics, pose)
     w, h = intrinsics.width, intrinsics.height
     inside = (z >= intrinsics.near) & (z <= intrinsics.far) & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
     seen = np.zeros(len(samples), dtype=bool)
@@ -47,19 +48,17 @@ def visible_in_depth(samples: np.ndarray, depth: np.ndarray, intrinsics: Intrins
     return seen
 
 
-def observed_mask(samples: np.ndarray, scenes, poses: np.ndarray, intrinsics: Intrinsics, backend: str = "egl") -> np.ndarray:
+def observed_mask(samples: np.ndarray, scenes, poses: np.ndarray, intrinsics: SensorGeometry, backend: str = "egl") -> np.ndarray:
     """Which ``samples`` some pose saw. ``scenes`` is one mesh (a static world) or one mesh per pose."""
     poses = np.asarray(poses)
     samples = np.asarray(samples, dtype=np.float64).reshape(-1, 3)
     per_pose = isinstance(scenes, (list, tuple))
-    renderer = DepthRenderer(backend)
-    noise = SensorNoise("none")
+    renderer = SensorRenderer(backend)
     seen = np.zeros(len(samples), dtype=bool)
     try:
         for i, pose in enumerate(poses):
             scene = scenes[i] if per_pose else scenes
-            zbuffer = renderer.render_zbuffer(scene, intrinsics, pose)
-            depth = noise.depth_from_zbuffer(zbuffer, intrinsics.near, intrinsics.far, None)
+            depth = renderer.render(scene, intrinsics, pose)
             todo = ~seen
             if not todo.any():
                 break

@@ -59,6 +59,12 @@ Noise models (:class:`SensorNoise`):
   subpixel RMS error of about 0.08 px: ``baseline`` = 0.05,
   ``disparity_sigma`` = 0.08, a fine ``disparity_step`` (its disparity has
   sub-pixel resolution) and ``focal`` its fx.
+* ``range`` (a spinning LiDAR's range images, :mod:`mabdi.filters.range_rendering`):
+  Gaussian noise of ``range_sigma`` metres on the range along each beam,
+  the same at every range. The default, 0.02 m, is the figure Velodyne's
+  HDL-64E S2 datasheet gives for its 64 beams ("accuracy < 2 cm, one sigma
+  at 25 m"); Ouster's OS1 datasheets give a precision of 1-3 cm over most of
+  the range, the same order. Only ``none`` and ``range`` apply to a LiDAR.
 
 Noise is reproducible: frame i of a run with seed s always draws from the
 random stream ``numpy.random.default_rng([s, i])``, independent of every
@@ -77,14 +83,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from vtkmodules.util.numpy_support import numpy_to_vtk, vtk_to_numpy
 from vtkmodules.vtkCommonCore import vtkFloatArray, vtkUnsignedCharArray
-from vtkmodules.vtkCommonDataModel import (
-    vtkCompositeDataSet,
-    vtkDataObject,
-    vtkDataObjectTreeIterator,
-    vtkImageData,
-    vtkMultiBlockDataSet,
-    vtkPolyData,
-)
+from vtkmodules.vtkCommonDataModel import vtkCompositeDataSet, vtkDataObject, vtkImageData, vtkPolyData
 from vtkmodules.vtkCommonExecutionModel import vtkStreamingDemandDrivenPipeline
 from vtkmodules.vtkRenderingCore import vtkActor, vtkMapper, vtkPolyDataMapper, vtkRenderer
 
@@ -92,7 +91,6 @@ import vtkmodules.vtkRenderingOpenGL2  # noqa: F401  (registers the OpenGL imple
 from mabdi.algorithm import MabdiAlgorithm
 from mabdi.camera import (
     Intrinsics,
-    boxes_outside,
     check_pose,
     configure_vtk_camera,
     frustum_planes,
@@ -103,10 +101,14 @@ from mabdi.depth import fill_depth_image
 from mabdi.errors import ConfigError
 from mabdi.face_identity import FaceCodes, FaceIdTable, face_rgb
 from mabdi.filters.noise_calibration import NoiseCalibration
-from mabdi.polydata import FACE_RGB_ARRAY
+from mabdi.filters.range_rendering import TRIANGLE_RGB_ARRAY, RangeRenderer
+from mabdi.polydata import FACE_RGB_ARRAY, named_leaves
+from mabdi.spherical import SphericalGeometry
 
 #: Depth noise models (see the module docs).
-NOISE_MODELS = ("none", "zbuffer", "kinect", "structured_light", "auto")
+NOISE_MODELS = ("none", "zbuffer", "kinect", "structured_light", "auto", "range")
+#: The noise models a LiDAR's range images take (the others model a camera's depth).
+RANGE_NOISE_MODELS = ("none", "range")
 #: Off-screen render backends; the first is the default.
 BACKENDS = ("egl", "osmesa")
 
@@ -137,6 +139,8 @@ class SensorNoise:
     edge_dropout: int = 2
     edge_jump: float = 0.05
     max_incidence: float = 75.0
+    #: ``range``: the LiDAR's range noise, one sigma in metres (see the module docs).
+    range_sigma: float = 0.02
     #: ``auto``: the online calibration whose curve :meth:`sigma` reads (made with the model; shared by copies).
     calibration: NoiseCalibration | None = field(default=None, compare=False, repr=False)
 
@@ -155,6 +159,7 @@ class SensorNoise:
             ("correlation_length", self.correlation_length >= 0, ">= 0 (pixels; 0 = white noise)"),
             ("edge_jump", self.edge_jump > 0, "> 0 (a relative depth jump)"),
             ("max_incidence", 0 < self.max_incidence <= 90, "in (0, 90] degrees"),
+            ("range_sigma", self.range_sigma >= 0, ">= 0 (metres)"),
         )
         for name, ok, rule in checks:
             value = getattr(self, name)
@@ -184,6 +189,7 @@ class SensorNoise:
             edge_dropout=sensor.edge_dropout,
             edge_jump=sensor.edge_jump,
             max_incidence=sensor.max_incidence,
+            range_sigma=sensor.range_sigma,
         )
 
     @property
@@ -216,7 +222,8 @@ class SensorNoise:
         """Expected standard deviation (m) of a measurement at metric depth ``depth``.
 
         ``zbuffer``: sigma d |dz/dd| (first order); ``kinect``: c z^2;
-        ``structured_light``: z^2 sigma_eff / (f b); ``none``: 0.
+        ``structured_light``: z^2 sigma_eff / (f b); ``range``: ``range_sigma`` (``depth`` is a range);
+        ``none``: 0.
         Computed in float32 for float32 input, float64 otherwise.
         """
         z = np.asarray(depth)
@@ -231,7 +238,21 @@ class SensorNoise:
             return z * z * z.dtype.type(self.disparity_sigma_effective / (self.focal * self.baseline))
         if self.model == "auto":
             return self.calibration.sigma(z)
+        if self.model == "range":
+            return np.full_like(z, self.range_sigma)
         return np.zeros_like(z)
+
+    def ranges_with_noise(self, ranges: np.ndarray, rng: np.random.Generator | None) -> np.ndarray:
+        """A LiDAR's ranges (float32 metres, NaN = no return) with this model's noise drawn from ``rng``
+        (``range``: sigma = ``range_sigma``; ``none`` or no ``rng``: unchanged). Other models are a camera's."""
+        if self.model not in RANGE_NOISE_MODELS:
+            raise ConfigError(f"noise model {self.model!r} is a camera's; a LiDAR takes {' or '.join(RANGE_NOISE_MODELS)}")
+        ranges = np.asarray(ranges, dtype=np.float32)
+        if self.model == "range" and rng is not None and self.range_sigma > 0:
+            valid = np.isfinite(ranges)
+            ranges = ranges.copy()
+            ranges[valid] += np.float32(self.range_sigma) * rng.standard_normal(int(valid.sum()), dtype=np.float32)
+        return ranges
 
     def depth_from_zbuffer(
         self,
@@ -253,6 +274,8 @@ class SensorNoise:
                 "noise model 'auto' calibrates the thresholds to a recording's noise; a simulated sensor "
                 "needs a model to draw noise from (none, zbuffer, kinect, structured_light)"
             )
+        if self.model == "range" and rng is not None:
+            raise ConfigError("noise model 'range' is a LiDAR's (noise in range along each beam); a camera takes none, zbuffer, kinect or structured_light")
         d = np.asarray(zbuffer, dtype=np.float32)
         if self.model == "zbuffer" and rng is not None:
             valid = d < 1.0
@@ -416,63 +439,6 @@ def _check_backend_library(backend: str) -> None:
             f"render backend '{backend}' needs the system library lib{library}, which was not found; "
             f"on Debian/Ubuntu: apt-get install {package}"
         )
-
-
-def polydata_leaves(data) -> list[vtkPolyData]:
-    """The vtkPolyData of ``data``: itself, or the non-empty leaves of a composite dataset."""
-    return [leaf for _, leaf in named_leaves(data)]
-
-
-def named_leaves(data, planes: np.ndarray | None = None) -> list[tuple[str, vtkPolyData]]:
-    """(name, polydata) of the non-empty leaves of ``data`` (a vtkPolyData is one leaf named ``""``).
-
-    A leaf's name is its block's metadata NAME (the world mesh's patch key), else its path of block numbers.
-    With ``planes`` (:func:`mabdi.camera.frustum_planes`), a block whose metadata holds a BOUNDING_BOX wholly
-    outside them is skipped with everything under it (the world map's chunks carry theirs).
-    """
-    if isinstance(data, vtkPolyData):
-        return [("", data)] if data.GetNumberOfCells() else []
-    if not isinstance(data, vtkCompositeDataSet):
-        raise TypeError(
-            "expected a vtkPolyData or a composite dataset of polydata, "
-            f"got {data.GetClassName() if data is not None else None}"
-        )
-    leaves: list[tuple[str, vtkPolyData]] = []
-    _collect_leaves(data, "", planes, leaves)
-    return leaves
-
-
-def _collect_leaves(tree, prefix: str, planes, leaves: list) -> None:
-    if not isinstance(tree, vtkMultiBlockDataSet):  # other composites: every leaf, by iterator
-        iterator = vtkDataObjectTreeIterator()
-        iterator.SetDataSet(tree)
-        iterator.SkipEmptyNodesOn()
-        iterator.VisitOnlyLeavesOn()
-        iterator.InitTraversal()
-        while not iterator.IsDoneWithTraversal():
-            leaf = iterator.GetCurrentDataObject()
-            if not isinstance(leaf, vtkPolyData):
-                raise TypeError(f"composite dataset has a {leaf.GetClassName()} block; only vtkPolyData can be rendered")
-            if leaf.GetNumberOfCells():
-                leaves.append((f"{prefix}{iterator.GetCurrentFlatIndex()}", leaf))
-            iterator.GoToNextItem()
-        return
-    for index in range(tree.GetNumberOfBlocks()):
-        block = tree.GetBlock(index)
-        if block is None:
-            continue
-        meta = tree.GetMetaData(index) if tree.HasMetaData(index) else None
-        name = meta.Get(vtkCompositeDataSet.NAME()) if meta is not None and meta.Has(vtkCompositeDataSet.NAME()) else None
-        if planes is not None and meta is not None and meta.Has(vtkDataObject.BOUNDING_BOX()):
-            if boxes_outside(meta.Get(vtkDataObject.BOUNDING_BOX()), planes)[0]:
-                continue
-        if isinstance(block, vtkPolyData):
-            if block.GetNumberOfCells():
-                leaves.append((name if name is not None else f"{prefix}{index}", block))
-        elif isinstance(block, vtkCompositeDataSet):
-            _collect_leaves(block, f"{prefix}{index}/", planes, leaves)
-        else:
-            raise TypeError(f"composite dataset has a {block.GetClassName()} block; only vtkPolyData can be rendered")
 
 
 @dataclass
@@ -684,7 +650,7 @@ class FilterDepthImage(MabdiAlgorithm):
 
     def __init__(
         self,
-        intrinsics: Intrinsics | None = None,
+        intrinsics: Intrinsics | SphericalGeometry | None = None,
         noise: SensorNoise | str = "none",
         seed: int = 0,
         backend: str = "egl",
@@ -696,6 +662,8 @@ class FilterDepthImage(MabdiAlgorithm):
         self._frame = 0
         self._pose: np.ndarray | None = None
         self.renderer = DepthRenderer(backend)
+        #: A LiDAR's range images (:mod:`mabdi.filters.range_rendering`), made at the first one.
+        self.range_renderer: RangeRenderer | None = None
 
     # -- properties --------------------------------------------------------
     @property
@@ -707,13 +675,14 @@ class FilterDepthImage(MabdiAlgorithm):
         self._set("_pose", check_pose(value, "FilterDepthImage.pose"))
 
     @property
-    def intrinsics(self) -> Intrinsics:
+    def intrinsics(self) -> Intrinsics | SphericalGeometry:
+        """The sensor's geometry: a camera's intrinsics, or a LiDAR's :class:`~mabdi.spherical.SphericalGeometry`."""
         return self._intrinsics
 
     @intrinsics.setter
-    def intrinsics(self, value: Intrinsics) -> None:
-        if not isinstance(value, Intrinsics):
-            raise TypeError(f"intrinsics must be mabdi.camera.Intrinsics, got {type(value).__name__}")
+    def intrinsics(self, value: Intrinsics | SphericalGeometry) -> None:
+        if not isinstance(value, (Intrinsics, SphericalGeometry)):
+            raise TypeError(f"intrinsics must be mabdi.camera.Intrinsics or mabdi.spherical.SphericalGeometry, got {type(value).__name__}")
         self._set("_intrinsics", value)
 
     @property
@@ -761,8 +730,38 @@ class FilterDepthImage(MabdiAlgorithm):
         if self._pose is None:
             raise ValueError("FilterDepthImage: pose is not set (assign a 4x4 world_from_camera to .pose)")
         intr = self._intrinsics
-        zbuffer = self.renderer.render_zbuffer(data, intr, self._pose)
         rng = None if self._noise.model == "none" else noise_rng(self._seed, self._frame)
-        depth = self._noise.depth_from_zbuffer(zbuffer, intr.near, intr.far, rng, intrinsics=intr)
+        if isinstance(intr, SphericalGeometry):
+            if self.range_renderer is None:
+                self.range_renderer = RangeRenderer(DepthRenderer(self.renderer.backend, identity_array=TRIANGLE_RGB_ARRAY))
+            depth = self._noise.ranges_with_noise(self.range_renderer.render(data, intr, self._pose), rng)
+        else:
+            zbuffer = self.renderer.render_zbuffer(data, intr, self._pose)
+            depth = self._noise.depth_from_zbuffer(zbuffer, intr.near, intr.far, rng, intrinsics=intr)
         fill_depth_image(vtkImageData.GetData(outInfo), depth, intr, self._pose, self._frame)
         return 1
+
+
+class SensorRenderer:
+    """Noise-free images of a mesh for either sensor geometry, one window reused across frames:
+    ``render(data, geometry, world_from_sensor)`` gives a camera's metric depth (:class:`DepthRenderer`)
+    or a LiDAR's range image (:class:`~mabdi.filters.range_rendering.RangeRenderer`), (H, W) float32, NaN
+    where no surface lies within the range."""
+
+    def __init__(self, backend: str = "egl") -> None:
+        self.backend = backend
+        self.camera = DepthRenderer(backend)
+        self.lidar: RangeRenderer | None = None
+
+    def render(self, data, geometry: Intrinsics | SphericalGeometry, world_from_sensor) -> np.ndarray:
+        if isinstance(geometry, SphericalGeometry):
+            if self.lidar is None:
+                self.lidar = RangeRenderer(DepthRenderer(self.backend, identity_array=TRIANGLE_RGB_ARRAY))
+            return self.lidar.render(data, geometry, world_from_sensor)
+        zbuffer = self.camera.render_zbuffer(data, geometry, world_from_sensor)
+        return zbuffer_to_depth(zbuffer, geometry.near, geometry.far)
+
+    def close(self) -> None:
+        self.camera.close()
+        if self.lidar is not None:
+            self.lidar.close()

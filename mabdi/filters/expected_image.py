@@ -34,6 +34,8 @@ from vtkmodules.vtkCommonExecutionModel import vtkAlgorithm, vtkStreamingDemandD
 from mabdi.algorithm import MabdiAlgorithm
 from mabdi.depth import fill_depth_image, image_frame, image_intrinsics, image_pose, image_timestamp
 from mabdi.filters.depth_image import DepthRenderer, SensorNoise
+from mabdi.filters.range_rendering import TRIANGLE_RGB_ARRAY, RangeRenderer
+from mabdi.spherical import SphericalGeometry
 
 MAP_PORT, MEASURED_PORT = 0, 1
 #: Point data of E with identity: the map face seen at each pixel (int32, 0 = none).
@@ -64,23 +66,40 @@ class FilterExpectedImage(MapAndImageAlgorithm):
         super().__init__(nInputPorts=2, nOutputPorts=1, outputType="vtkImageData")
         self.identity = identity
         self.renderer = DepthRenderer(backend, face_identity=identity)
+        #: E of a LiDAR's range images (made at the first one).
+        self.range_renderer: RangeRenderer | None = None
 
     def RequestData(self, request, inInfo, outInfo):  # noqa: N802 (VTK API)
         world = map_input(inInfo, "FilterExpectedImage")
         measured = vtkImageData.GetData(inInfo[MEASURED_PORT], 0)
         intrinsics = image_intrinsics(measured)
         pose = image_pose(measured)
-        depth = render_expected(self.renderer, world, intrinsics, pose)
+        if isinstance(intrinsics, SphericalGeometry):  # a LiDAR's range image
+            depth, ids, table = self._range_image(world, intrinsics, pose)
+        else:
+            depth = render_expected(self.renderer, world, intrinsics, pose)
+            ids = self.renderer.render_identity().astype(np.int32) if self.identity else None
+            table = self.renderer.identities if self.identity else None
         output = vtkImageData.GetData(outInfo)
         fill_depth_image(output, depth, intrinsics, pose, image_frame(measured), image_timestamp(measured))
         if self.identity:
-            ids = self.renderer.render_identity().astype(np.int32)
             ids[np.isnan(depth)] = 0  # beyond the range: no face
             array = numpy_to_vtk(ids.ravel(), deep=True)
             array.SetName(FACE_ID_ARRAY)
             output.GetPointData().AddArray(array)
-            self.renderer.identities.write(output.GetFieldData())
+            table.write(output.GetFieldData())
         return 1
+
+    def _range_image(self, world, geometry: SphericalGeometry, pose):
+        """E of a LiDAR: the map's range image, the face code each beam hits and their table
+        (:mod:`mabdi.filters.range_rendering`); no codes without identity."""
+        if self.range_renderer is None:
+            self.range_renderer = RangeRenderer(DepthRenderer(self.renderer.backend, identity_array=TRIANGLE_RGB_ARRAY))
+        depth = self.range_renderer.render(world, geometry, pose)
+        if not self.identity:
+            return depth, None, None
+        codes, table = self.range_renderer.face_ids()
+        return depth, codes.astype(np.int32), table
 
 
 def map_input(inInfo, name: str):

@@ -18,6 +18,13 @@ fewer triangles, and object removal no longer finds bridges to take out of the
 static runs (the figures: docs/benchmarks.md, sections "Against the ground
 truth" and "Object removal").
 
+A LiDAR's range image (:mod:`mabdi.spherical`) is meshed the same way,
+range along unit rays for depth along z = 1 rays; its beams lie further
+apart than a camera's pixels, so ``max_jump`` is scaled by
+:func:`mabdi.depth.jump_scale` (its pixel angle over the default camera's:
+the same 79 degrees of incidence). The image's azimuth seam (the first and
+last columns) is not joined.
+
 Triangles are wound so their normals face the sensor. Vertex positions are
 the pixel-centre rays scaled by the depth and moved into the world by the
 image's pose.
@@ -45,7 +52,7 @@ from vtkmodules.vtkCommonDataModel import vtkImageData, vtkPolyData
 
 from mabdi.algorithm import MabdiAlgorithm
 from mabdi.camera import pixel_rays
-from mabdi.depth import colour_point_array, depth_array, image_colour, image_intrinsics, image_pose
+from mabdi.depth import colour_point_array, depth_array, image_colour, image_intrinsics, image_pose, jump_scale
 from mabdi.errors import ConfigError
 from mabdi.filters.depth_image import SensorNoise
 from mabdi.filters.depth_smoothing import smooth_depth_by_noise
@@ -141,7 +148,7 @@ class FilterPixelGrid(MabdiAlgorithm):
         depth = depth_array(image)
         if self._parameters.smooth_depth:
             depth = smooth_depth_by_noise(depth, self._noise, intrinsics)
-        triangles = pixel_grid_triangles(depth, self._parameters.max_jump)
+        triangles = pixel_grid_triangles(depth, self._parameters.max_jump * jump_scale(intrinsics))
         # Keep only the pixels the triangles use, renumbered in order.
         used = np.zeros(depth.size, dtype=bool)
         used[triangles.ravel()] = True

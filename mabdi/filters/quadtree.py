@@ -54,6 +54,22 @@ Beyond the seed (its own "future work"):
   ``triangles=True`` triangulates every face (the MABDI loop counts
   triangles).
 
+**A LiDAR's range image** (:mod:`mabdi.spherical`: range along unit rays by
+beam and azimuth) is meshed by the same stages with seed 002 §3.2's
+transform for a sensor of angles theta and phi: each block becomes the
+sensor-frame point range x unit ray (where a straight wall, curved in the
+range image, is flat again), §3.3's normals are the differences of those
+points, the depth tests compare ranges, corners are the unit rays through
+the block corners (:meth:`~mabdi.spherical.SphericalGeometry.rays_at`) on the
+leaf's plane, and neighbouring beams are on one surface when their ranges
+differ by no more than a surface seen at ``LIDAR_INCIDENCE`` (79) degrees
+makes between them (the pixel grid's rule; corners shared by leaves still
+merge within ``max_jump``). A leaf whose plane puts a
+corner further from its range than that allows (a surface seen nearly
+edge-on between two beams) gets no face, rather than the camera's corners
+at the leaf's depth, which between beams that far apart float off the
+surface. The azimuth seam is not joined.
+
 Small or accurate: the defaults (the seed's 3x3 reduction, n_t = 0.1) make
 the small map. With a noisy sensor, ``reduction = 2`` and ``n_t = 0.2`` (and
 the classifier's ``min_width = 1``, refinement on with ``replace = false``)
@@ -75,6 +91,7 @@ takes the pixel to its lower right).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -83,11 +100,21 @@ from vtkmodules.vtkCommonCore import vtkPoints
 from vtkmodules.vtkCommonDataModel import vtkCellArray, vtkImageData, vtkPolyData
 
 from mabdi.algorithm import MabdiAlgorithm
-from mabdi.camera import Intrinsics
-from mabdi.depth import colour_point_array, colours_at, depth_array, image_colour, image_intrinsics, image_pose
+from mabdi.camera import Intrinsics, unit_rays
+from mabdi.depth import (
+    colour_point_array,
+    colours_at,
+    depth_array,
+    image_colour,
+    image_intrinsics,
+    image_pose,
+    pixel_angle,
+    sensor_values,
+)
 from mabdi.errors import ConfigError
 from mabdi.filters.depth_image import SensorNoise
 from mabdi.filters.depth_smoothing import smooth_depth_by_noise
+from mabdi.spherical import SphericalGeometry
 
 from mabdi.filters import quadtree_kernels as kernels
 
@@ -96,6 +123,9 @@ from mabdi.filters import quadtree_kernels as kernels
 #: same-surface pixels by more than this many pixel footprints gets no face (it sits on a crease
 #: or a corner, where no plane fits).
 RESIDUAL_FOOTPRINTS = 0.4
+#: A LiDAR's neighbouring beams are on one surface when their ranges differ by no more than a surface
+#: seen this far from its normal (degrees) makes: the pixel grid's rule (its 1% at 525 px).
+LIDAR_INCIDENCE = 79.0
 #: Corners of leaves whose normals differ by more than 45 degrees are not merged (a crease).
 CREASE_COSINE = float(np.cos(np.radians(45.0)))
 
@@ -149,18 +179,68 @@ class Leaves:
 # 6: project, with shared vertices, T-vertices and planarity
 
 
-def _ray(u: np.ndarray, v: np.ndarray, k: Intrinsics) -> np.ndarray:
-    """Rays (z = 1) through continuous pixel coordinates (pixel corners at integers)."""
+@dataclass(frozen=True)
+class ReducedSpherical:
+    """A LiDAR range image's grid after the r x r reduction: block (row, col) covers beams [r row, r row + r)
+    and columns [r col, r col + r) of ``geometry`` (what the reduced intrinsics are for a camera)."""
+
+    geometry: SphericalGeometry
+    reduction: int
+    width: int
+    height: int
+
+    @property
+    def near(self) -> float:
+        return self.geometry.near
+
+    @property
+    def far(self) -> float:
+        return self.geometry.far
+
+    @property
+    def footprint(self) -> float:
+        """Radians per reduced pixel (the larger of the azimuth step and the beam spacing, times r)."""
+        return pixel_angle(self.geometry) * self.reduction
+
+    def rays_at(self, u, v) -> np.ndarray:
+        """Unit rays at continuous reduced-grid coordinates (block corners at integers)."""
+        return self.geometry.rays_at(np.asarray(u, dtype=np.float64) * self.reduction, np.asarray(v, dtype=np.float64) * self.reduction)
+
+
+#: The grid the quad-tree meshes: a camera's (reduced) intrinsics or a LiDAR's reduced range-image grid.
+Grid = Intrinsics | ReducedSpherical
+
+
+def _ray(u: np.ndarray, v: np.ndarray, k: Grid) -> np.ndarray:
+    """Rays through continuous pixel coordinates (pixel corners at integers): a camera's with z = 1, a LiDAR's
+    unit rays (seed 002 §3.2's transform: either way, the depth image's value times the ray is the point)."""
+    if isinstance(k, ReducedSpherical):
+        return k.rays_at(u, v)
     return np.stack([(u - k.cx) / k.fx, (v - k.cy) / k.fy, np.ones_like(u, dtype=np.float64)], axis=-1)
 
 
-def _on_plane(rays: np.ndarray, normal: np.ndarray, point: np.ndarray) -> np.ndarray:
+def _step_jump(p: QuadTreeParameters, k: Grid) -> float:
+    """The largest relative depth change between neighbouring pixels of one surface: ``max_jump`` for a
+    camera; for a LiDAR, whose beams lie much further apart, what a surface seen at :data:`LIDAR_INCIDENCE`
+    degrees makes between neighbouring (reduced) beams, tan(incidence) times their angle. The rules that
+    compare two estimates of one point (corners shared by leaves) keep ``max_jump`` as given."""
+    if isinstance(k, ReducedSpherical):
+        return math.tan(math.radians(LIDAR_INCIDENCE)) * k.footprint
+    return p.max_jump
+
+
+def _depth(points: np.ndarray, k: Grid) -> np.ndarray:
+    """What the image holds for sensor-frame points (..., 3): a camera's z, a LiDAR's range."""
+    return sensor_values(points, k.geometry if isinstance(k, ReducedSpherical) else k)
+
+
+def _on_plane(rays: np.ndarray, normal: np.ndarray, point: np.ndarray, k: Grid) -> np.ndarray:
     """Where the rays meet the planes (normal, point), row by row; the point's depth where the ray grazes."""
     denominator = np.einsum("...i,...i->...", normal, rays)
     numerator = np.einsum("...i,...i->...", normal, point)
     with np.errstate(divide="ignore", invalid="ignore"):
         t = numerator / denominator
-    fallback = np.broadcast_to(point[..., 2], t.shape)
+    fallback = np.broadcast_to(_depth(point, k), t.shape)
     t = np.where(np.isfinite(t) & (t > 0), t, fallback)
     return rays * t[..., None]
 
@@ -170,26 +250,27 @@ def select(leaves: Leaves, keep: np.ndarray) -> Leaves:
     return Leaves(*(getattr(leaves, name)[keep] for name in ("level", "row", "col", "normal", "point")))
 
 
-def _on_silhouette(points: np.ndarray, corner_u: np.ndarray, corner_v: np.ndarray, depth: np.ndarray, max_jump: float) -> np.ndarray:
-    """Whether a corner's four surrounding pixels are not all on the leaf's surface (valid, within max_jump)."""
-    h, w = points.shape[:2]
+def _on_silhouette(pixel_depth: np.ndarray, corner_u: np.ndarray, corner_v: np.ndarray, depth: np.ndarray, max_jump: float) -> np.ndarray:
+    """Whether a corner's four surrounding pixels (``pixel_depth``, (H, W)) are not all on the leaf's surface
+    (valid, within max_jump)."""
+    h, w = pixel_depth.shape[:2]
     outside = np.zeros(corner_u.shape, dtype=bool)
     for dv in (-1, 0):
         for du in (-1, 0):
             row, col = corner_v + dv, corner_u + du
             inside = (row >= 0) & (row < h) & (col >= 0) & (col < w)
-            z = points[np.clip(row, 0, h - 1), np.clip(col, 0, w - 1), 2]
+            z = pixel_depth[np.clip(row, 0, h - 1), np.clip(col, 0, w - 1)]
             with np.errstate(invalid="ignore"):
                 same = inside & (np.abs(z - depth) <= max_jump * depth)
             outside |= ~same
     return outside
 
 
-def quad_mesh(
-    leaves: Leaves, k: Intrinsics, p: QuadTreeParameters, points: np.ndarray | None = None
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Faces of the leaves: (vertices (V, 3) camera frame, offsets, connectivity, face leaf index, face normals)."""
-    count = len(leaves.level)
+def leaf_corners(
+    leaves: Leaves, k: Grid, p: QuadTreeParameters, points: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The leaves' quad corners: (corner_u, corner_v (L, 4) lattice points, corners (L, 4, 3) sensor frame,
+    wild (L, 4): corners the leaf's plane put too far from its depth, put at its depth instead)."""
     size = leaves.size
     u0, v0 = leaves.col * size, leaves.row * size
     corner_u = np.stack([u0, u0, u0 + size, u0 + size], axis=1)  # TL, BL, BR, TR (faces the sensor)
@@ -198,26 +279,37 @@ def quad_mesh(
     if points is not None:
         # On a silhouette the surface ends inside the border pixel: the corner moves half a pixel
         # in, to the border pixels' centres (where the samples are), instead of hanging past it.
-        rim = _on_silhouette(points, corner_u, corner_v, leaves.point[:, 2][:, None], p.max_jump)
+        rim = _on_silhouette(_depth(points, k), corner_u, corner_v, _depth(leaves.point, k)[:, None], _step_jump(p, k))
         centre_u = ((leaves.col + 0.5) * size)[:, None]
         centre_v = ((leaves.row + 0.5) * size)[:, None]
         ray_u = np.where(rim, ray_u + 0.5 * np.sign(centre_u - ray_u), ray_u)
         ray_v = np.where(rim, ray_v + 0.5 * np.sign(centre_v - ray_v), ray_v)
     corner_rays = _ray(ray_u, ray_v, k)
-    corners = _on_plane(corner_rays, leaves.normal[:, None, :], leaves.point[:, None, :])
+    corners = _on_plane(corner_rays, leaves.normal[:, None, :], leaves.point[:, None, :], k)
     # A single pixel's one-sided normal (beside an edge or a hole) is no plane to extrapolate: its
     # corners sit at its own depth, and shared corners average the pixels around them. Any
     # plane seen at a grazing angle can still put a corner far away; a surface changes depth by
     # at most max_jump per pixel, so a corner further than max_jump * z * 0.71 * size (its
     # distance from the centre in pixels) from the leaf's depth falls back the same way.
-    centre_depth = leaves.point[:, 2][:, None]
-    allowed = p.max_jump * centre_depth * (0.71 * size)[:, None]
-    wild = np.abs(corners[..., 2] - centre_depth) > allowed
+    centre_depth = _depth(leaves.point, k)[:, None]
+    allowed = _step_jump(p, k) * centre_depth * (0.71 * size)[:, None]
+    with np.errstate(invalid="ignore"):
+        misses = np.einsum("...i,...i->...", leaves.normal[:, None, :], corner_rays) * np.einsum("...i,...i->...", leaves.normal, leaves.point)[:, None] <= 0
+    wild = (np.abs(_depth(corners, k) - centre_depth) > allowed) | misses  # (a ray that misses the plane: at its depth too)
     corners[wild] = corner_rays[wild] * np.broadcast_to(centre_depth, wild.shape)[wild][:, None]
+    return corner_u, corner_v, corners, wild
+
+
+def quad_mesh(
+    leaves: Leaves, k: Grid, p: QuadTreeParameters, points: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Faces of the leaves: (vertices (V, 3) camera frame, offsets, connectivity, face leaf index, face normals)."""
+    count = len(leaves.level)
+    corner_u, corner_v, corners, _ = leaf_corners(leaves, k, p, points)
     # one vertex per lattice point and depth cluster
     stride = int(max(k.width, k.height)) * 2 + 4
     keys = (corner_v * stride + corner_u).ravel()
-    depth = corners[..., 2].ravel()
+    depth = _depth(corners, k).ravel()
     corner_normal = np.repeat(leaves.normal, 4, axis=0)
     order = np.lexsort((depth, keys))
     sorted_keys, sorted_depth, sorted_normal = keys[order], depth[order], corner_normal[order]
@@ -262,7 +354,7 @@ def quad_mesh(
             hi = np.searchsorted(vertex_key, key, side="right")
             host = np.repeat(hosts, s - 1)
             fraction = np.tile(steps / s, len(hosts))
-            expected = _on_plane(_ray(pu.ravel().astype(float), pv.ravel().astype(float), k), leaves.normal[host], leaves.point[host])[:, 2]
+            expected = _depth(_on_plane(_ray(pu.ravel().astype(float), pv.ravel().astype(float), k), leaves.normal[host], leaves.point[host], k), k)
             chosen = np.full(len(key), -1)
             for m in range(int((hi - lo).max()) if len(key) else 0):
                 candidate = lo + m
@@ -294,7 +386,7 @@ def quad_mesh(
     return vertices, starts, members, np.arange(count), sizes
 
 
-def _faces(vertices, starts, members, sizes, leaves: Leaves, k: Intrinsics, p: QuadTreeParameters):
+def _faces(vertices, starts, members, sizes, leaves: Leaves, k: Grid, p: QuadTreeParameters):
     """Polygons, split where not planar (or always with ``triangles``): (offsets, connectivity, leaf per face, vertices)."""
     count = len(sizes)
     # planarity: largest distance of a face's vertices from its leaf's plane
@@ -302,7 +394,7 @@ def _faces(vertices, starts, members, sizes, leaves: Leaves, k: Intrinsics, p: Q
     offset_from_plane = np.abs(np.einsum("ij,ij->i", vertices[members] - leaves.point[owner], leaves.normal[owner]))
     worst = np.zeros(count)
     np.maximum.at(worst, owner, offset_from_plane)
-    tolerance = np.maximum(0.001, p.planarity * leaves.point[:, 2])
+    tolerance = np.maximum(0.001, p.planarity * _depth(leaves.point, k))
     planar = worst <= tolerance
     keep = planar & ~p.triangles
     quad = (sizes == 4) & ~keep
@@ -328,7 +420,7 @@ def _faces(vertices, starts, members, sizes, leaves: Leaves, k: Intrinsics, p: Q
     if len(fans):
         centre_u = (leaves.col[fans] + 0.5) * leaves.size[fans]
         centre_v = (leaves.row[fans] + 0.5) * leaves.size[fans]
-        centres = _on_plane(_ray(centre_u, centre_v, k), leaves.normal[fans], leaves.point[fans])
+        centres = _on_plane(_ray(centre_u, centre_v, k), leaves.normal[fans], leaves.point[fans], k)
         centre_ids = len(vertices) + np.arange(len(fans))
         vertices = np.concatenate([vertices, centres])
         ring_sizes = sizes[fans]
@@ -360,15 +452,18 @@ def _gather(members: np.ndarray, starts: np.ndarray, faces: np.ndarray) -> np.nd
 
 
 def leaves_of_image(
-    depth: np.ndarray, intrinsics: Intrinsics, p: QuadTreeParameters, noise: SensorNoise
-) -> tuple[np.ndarray, Intrinsics, Leaves]:
-    """Smoothing, stages 1-5 and the small-leaf plane test: (reduced points, reduced intrinsics, kept leaves).
+    depth: np.ndarray, intrinsics: Intrinsics | SphericalGeometry, p: QuadTreeParameters, noise: SensorNoise
+) -> tuple[np.ndarray, Grid, Leaves]:
+    """Smoothing, stages 1-5 and the small-leaf plane test: (reduced points, reduced grid, kept leaves).
 
     Stages 1-5 and the plane test are the numba kernels of :mod:`mabdi.filters.quadtree_kernels`.
-    The leaves carry ``regions``, the pyramid root's region count.
+    The leaves carry ``regions``, the pyramid root's region count. A LiDAR's range image
+    (``intrinsics`` a :class:`~mabdi.spherical.SphericalGeometry`) goes through :func:`_range_leaves`.
     """
     if p.smooth_depth:
         depth = smooth_depth_by_noise(depth, noise, intrinsics)
+    if isinstance(intrinsics, SphericalGeometry):
+        return _range_leaves(depth, intrinsics, p, noise)
     k = intrinsics
     r = p.reduction
     if r > 1:
@@ -386,14 +481,35 @@ def leaves_of_image(
     return points, reduced, leaves
 
 
-def fitting_leaves(leaves: Leaves, residual: np.ndarray, reduced: Intrinsics, noise: SensorNoise) -> Leaves:
+def _range_leaves(ranges: np.ndarray, geometry: SphericalGeometry, p: QuadTreeParameters, noise: SensorNoise) -> tuple[np.ndarray, Grid, Leaves]:
+    """Stages 1-5 and the plane test on a LiDAR's range image: seed 002 §3.2's transform (every beam block to a
+    sensor-frame point: its median range times its unit ray, so a straight wall is flat again), §3.3's normals
+    from the point map's differences, with the depth tests on range instead of z."""
+    r = p.reduction
+    rays = unit_rays(geometry)[0]
+    if r > 1:
+        points = kernels.reduce_ranges_kernel(np.ascontiguousarray(ranges, dtype=np.float64), r, rays)
+    else:
+        points = rays * np.asarray(ranges, dtype=np.float64)[..., None]
+    reduced = ReducedSpherical(geometry, r, points.shape[1], points.shape[0])
+    depth = np.ascontiguousarray(_depth(points, reduced))
+    jump = _step_jump(p, reduced)
+    normals = kernels.point_normals_depth_kernel(np.ascontiguousarray(points), depth, jump)
+    level, row, col, normal, point, regions = kernels.pyramid_kernel(points, normals, p.n_t, p.d_t)
+    leaves = Leaves(level, row, col, normal, point)
+    residual = kernels.plane_residual_depth_kernel(points, depth, level, row, col, normal, point, _depth(point, reduced), jump, 2)
+    leaves = fitting_leaves(leaves, residual, reduced, noise)
+    leaves.regions = regions
+    return points, reduced, leaves
+
+
+def fitting_leaves(leaves: Leaves, residual: np.ndarray, reduced: Grid, noise: SensorNoise) -> Leaves:
     """The leaves whose plane fits their own and their neighbouring same-surface pixels: a small leaf whose
     plane misses one by more than :data:`RESIDUAL_FOOTPRINTS` pixel footprints and 3 sigma of the noise
     (``residual``, metres) sits on a crease or a corner and gets no face."""
-    depth_of_leaf = leaves.point[:, 2]
-    allowed = np.maximum(
-        RESIDUAL_FOOTPRINTS * depth_of_leaf / reduced.fx, 3.0 * noise.sigma(depth_of_leaf, reduced.near, reduced.far)
-    )
+    depth_of_leaf = _depth(leaves.point, reduced)
+    footprint = depth_of_leaf * reduced.footprint if isinstance(reduced, ReducedSpherical) else depth_of_leaf / reduced.fx
+    allowed = np.maximum(RESIDUAL_FOOTPRINTS * footprint, 3.0 * noise.sigma(depth_of_leaf, reduced.near, reduced.far))
     return select(leaves, residual <= allowed)
 
 
@@ -425,6 +541,10 @@ class FilterQuadTree(MabdiAlgorithm):
         p = self._parameters
         points, reduced, leaves = leaves_of_image(depth_array(image), intrinsics, p, self._noise)
         self.regions = leaves.regions
+        if isinstance(reduced, ReducedSpherical) and len(leaves.level):
+            # a LiDAR's beams lie far apart: a leaf whose plane puts a corner far from its range is a surface
+            # seen edge-on between two beams, and its corners at its own range would float off it: no face
+            leaves = select(leaves, ~leaf_corners(leaves, reduced, p, points)[3].any(axis=1))
         output = vtkPolyData.GetData(outInfo)
         mesh = vtkPolyData()
         if len(leaves.level):

@@ -15,6 +15,30 @@ from numba import njit
 
 
 @njit(cache=True)
+def _block_median(depth, r, row, col, values, slots):
+    """The lower median of block (row, col)'s valid values (r x r) and its slot a * r + b, or slot -1 without a
+    valid majority (``values`` and ``slots``: scratch of r * r)."""
+    count = 0
+    for a in range(r):
+        for b in range(r):
+            z = depth[row * r + a, col * r + b]
+            if np.isfinite(z):
+                # insertion sort by depth, then slot (stable)
+                k = count
+                while k > 0 and values[k - 1] > z:
+                    values[k] = values[k - 1]
+                    slots[k] = slots[k - 1]
+                    k -= 1
+                values[k] = z
+                slots[k] = a * r + b
+                count += 1
+    if 2 * count <= r * r:
+        return np.nan, -1
+    middle = (count - 1) // 2
+    return values[middle], slots[middle]
+
+
+@njit(cache=True)
 def reduce_points_kernel(depth, r, fx, fy, cx, cy):
     """(h, w, 3) camera points of r x r blocks: the block's lower median pixel, back-projected (NaN: no majority)."""
     height, width = depth.shape
@@ -24,25 +48,9 @@ def reduce_points_kernel(depth, r, fx, fy, cx, cy):
     slots = np.empty(r * r, dtype=np.int64)
     for row in range(h):
         for col in range(w):
-            count = 0
-            for a in range(r):
-                for b in range(r):
-                    z = depth[row * r + a, col * r + b]
-                    if np.isfinite(z):
-                        # insertion sort by depth, then slot (stable)
-                        k = count
-                        while k > 0 and values[k - 1] > z:
-                            values[k] = values[k - 1]
-                            slots[k] = slots[k - 1]
-                            k -= 1
-                        values[k] = z
-                        slots[k] = a * r + b
-                        count += 1
-            if 2 * count <= r * r:
+            z, slot = _block_median(depth, r, row, col, values, slots)
+            if slot < 0:
                 continue
-            middle = (count - 1) // 2
-            z = values[middle]
-            slot = slots[middle]
             u = col * r + slot % r + 0.5
             v = row * r + slot // r + 0.5
             out[row, col, 0] = (u - cx) / fx * z
@@ -52,15 +60,43 @@ def reduce_points_kernel(depth, r, fx, fy, cx, cy):
 
 
 @njit(cache=True)
+def reduce_ranges_kernel(ranges, r, rays):
+    """(h, w, 3) sensor points of a range image's r x r blocks: the block's lower median beam (by range) times
+    its unit ray ``rays`` (H, W, 3) (NaN: no majority), the rule :func:`reduce_points_kernel` has for a camera."""
+    height, width = ranges.shape
+    h, w = height // r, width // r
+    out = np.full((h, w, 3), np.nan)
+    values = np.empty(r * r)
+    slots = np.empty(r * r, dtype=np.int64)
+    for row in range(h):
+        for col in range(w):
+            z, slot = _block_median(ranges, r, row, col, values, slots)
+            if slot < 0:
+                continue
+            i = row * r + slot // r
+            j = col * r + slot % r
+            for c in range(3):
+                out[row, col, c] = z * rays[i, j, c]
+    return out
+
+
+@njit(cache=True)
 def point_normals_kernel(points, max_jump):
     """(H, W, 3) unit normals facing the camera, as the numpy reference ``point_normals`` (tests/reference_kernels.py)."""
+    return point_normals_depth_kernel(points, points[:, :, 2], max_jump)
+
+
+@njit(cache=True)
+def point_normals_depth_kernel(points, depth, max_jump):
+    """:func:`point_normals_kernel` with the depth tests on ``depth`` (H, W): a camera's z (the points' own), a
+    LiDAR's range."""
     height, width = points.shape[0], points.shape[1]
     normals = np.full((height, width, 3), np.nan)
     du = np.empty(3)
     dv = np.empty(3)
     for i in range(height):
         for j in range(width):
-            z = points[i, j, 2]
+            z = depth[i, j]
             if not np.isfinite(z):
                 continue
             for axis in range(2):
@@ -69,8 +105,8 @@ def point_normals_kernel(points, max_jump):
                 bi, bj = (i, j - 1) if axis == 0 else (i - 1, j)
                 forward_ok = fi < height and fj < width
                 backward_ok = bi >= 0 and bj >= 0
-                has_forward = forward_ok and abs(points[fi, fj, 2] - z) <= max_jump * z
-                has_backward = backward_ok and abs(points[bi, bj, 2] - z) <= max_jump * z
+                has_forward = forward_ok and abs(depth[fi, fj] - z) <= max_jump * z
+                has_backward = backward_ok and abs(depth[bi, bj] - z) <= max_jump * z
                 for c in range(3):
                     forward = points[fi, fj, c] if forward_ok else np.nan
                     backward = points[bi, bj, c] if backward_ok else np.nan
@@ -87,7 +123,7 @@ def point_normals_kernel(points, max_jump):
             if not np.isfinite(length) or length == 0.0:
                 continue
             nx, ny, nz = nx / length, ny / length, nz / length
-            if nx * points[i, j, 0] + ny * points[i, j, 1] + nz * z > 0:
+            if nx * points[i, j, 0] + ny * points[i, j, 1] + nz * points[i, j, 2] > 0:
                 nx, ny, nz = -nx, -ny, -nz
             normals[i, j, 0] = nx
             normals[i, j, 1] = ny
@@ -218,6 +254,13 @@ def pyramid_kernel(points, normals, n_t, d_t):
 def plane_residual_kernel(points, level, row, col, normal, point, max_jump, largest):
     """As the numpy reference ``plane_residual`` (tests/reference_kernels.py): for leaves up to ``largest`` pixels a side, the
     largest distance of a same-surface pixel of the leaf or its ring from the leaf's plane."""
+    return plane_residual_depth_kernel(points, points[:, :, 2], level, row, col, normal, point, point[:, 2], max_jump, largest)
+
+
+@njit(cache=True)
+def plane_residual_depth_kernel(points, depth, level, row, col, normal, point, point_depth, max_jump, largest):
+    """:func:`plane_residual_kernel` with the same-surface test on ``depth`` (H, W) and the leaves' ``point_depth``
+    (a camera's z, a LiDAR's range)."""
     height, width = points.shape[0], points.shape[1]
     residual = np.zeros(level.shape[0])
     for k in range(level.shape[0]):
@@ -225,20 +268,20 @@ def plane_residual_kernel(points, level, row, col, normal, point, max_jump, larg
         if side > largest:
             continue
         top, left = row[k] * side, col[k] * side
-        z0 = point[k, 2]
+        z0 = point_depth[k]
         worst = 0.0
         for dr in range(-1, side + 1):
             for dc in range(-1, side + 1):
                 r, c = top + dr, left + dc
                 if r < 0 or r >= height or c < 0 or c >= width:
                     continue
-                z = points[r, c, 2]
+                z = depth[r, c]
                 if not (abs(z - z0) <= max_jump * z0):
                     continue
                 distance = abs(
                     (points[r, c, 0] - point[k, 0]) * normal[k, 0]
                     + (points[r, c, 1] - point[k, 1]) * normal[k, 1]
-                    + (z - z0) * normal[k, 2]
+                    + (points[r, c, 2] - point[k, 2]) * normal[k, 2]
                 )
                 if distance > worst:
                     worst = distance

@@ -30,7 +30,9 @@ except
   what the margin saves). A surface whose faces overhang real
   edges by more states it as ``face_overhang`` (metres; voxel planes: a face
   fills its voxel, 5 cm), and the loop widens the margin to that length in
-  pixels at the median depth of E (up to ``max_edge_margin``, 20). A *contradiction*
+  pixels at the median depth of E (up to ``max_edge_margin``, 20). (A LiDAR's
+  beams lie further apart: :func:`for_geometry` scales the jump up and the
+  margins down to the same angles.) A *contradiction*
   is masked only where E has a silhouette within the margin too: an
   overhang lies between the map's edge and the sensor's, so both are near,
   while a ghost beside a real edge at its depth (the closed door's panel
@@ -88,10 +90,12 @@ through removed faces (:meth:`~mabdi.filters.voxel_planes.FilterVoxelPlanes.clea
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import math
+from dataclasses import dataclass, replace
 
 import numpy as np
 
+from mabdi.depth import jump_scale
 from mabdi.errors import ConfigError
 from mabdi.filters.classifier import CONTRADICTED, KNOWN, NO_RETURN, dilate, neighbourhood_3x3
 
@@ -126,6 +130,23 @@ class RemovalParameters:
             raise ConfigError(f"removal: min_gap must be >= 0 metres, got {self.min_gap}")
         if self.min_frames < 1 or self.edge_margin < 0 or self.max_edge_margin < self.edge_margin or not 0 < self.grazing_deg < 90 or self.edge_jump <= 0:
             raise ConfigError("removal: need min_frames >= 1, 0 <= edge_margin <= max_edge_margin, 0 < grazing_deg < 90, edge_jump > 0")
+
+
+def for_geometry(parameters: RemovalParameters, geometry) -> RemovalParameters:
+    """The rules as they apply to images of ``geometry``: a camera's as given; for a LiDAR's range images,
+    whose beams lie further apart (:func:`mabdi.depth.jump_scale` times a camera's pixel angle), ``edge_jump``
+    scaled up by that factor (the same surface at the same incidence jumps that much more between beams) and
+    the margins in pixels scaled down by it, to the same angle (at least one beam)."""
+    scale = jump_scale(geometry)
+    if scale == 1.0:
+        return parameters
+    margin = max(1, math.ceil(parameters.edge_margin / scale)) if parameters.edge_margin else 0
+    return replace(
+        parameters,
+        edge_jump=parameters.edge_jump * scale,
+        edge_margin=margin,
+        max_edge_margin=max(margin, math.ceil(parameters.max_edge_margin / scale)),
+    )
 
 
 def depth_edges(depth: np.ndarray, jump: float) -> np.ndarray:

@@ -88,6 +88,7 @@ from vtkmodules.util.numpy_support import numpy_to_vtk
 from vtkmodules.vtkCommonDataModel import vtkDataObject, vtkImageData, vtkPointSet, vtkPolyData
 
 from mabdi.algorithm import MabdiAlgorithm
+from mabdi.camera import pixel_rays
 from mabdi.depth import COLOUR_ARRAY, FRAME_ARRAY, colour_point_array, depth_array, image_colour, image_intrinsics, image_pose
 from mabdi.errors import ConfigError
 from mabdi.filters.voxel_map import VoxelMap, moments_to_gaussian, pack_keys, unpack_keys
@@ -95,6 +96,7 @@ from mabdi.filters.world_mesh import PATCH_KEY_ARRAY, REMOVED_KEYS_ARRAY
 from mabdi.maps.colours import colours_by_normal
 from mabdi.maps.mesh_map import COLOUR_LAYER
 from mabdi.polydata import triangles_polydata
+from mabdi.spherical import BEAM_ELEVATIONS_ARRAY, SPHERICAL_ARRAY
 
 OUTPUTS = ("changed", "full")
 #: The colour of a polygon whose voxels hold no coloured point (in a map that has colour: points added without it).
@@ -617,7 +619,7 @@ class FilterVoxelPlanes(MabdiAlgorithm):
         output = vtkPolyData.GetData(outInfo)
         output.ShallowCopy(self.mesh() if self._output == "full" else self.changed_mesh())
         if isinstance(data, vtkImageData):
-            for name in ("intrinsics", "world_from_camera", FRAME_ARRAY):
+            for name in ("intrinsics", SPHERICAL_ARRAY, BEAM_ELEVATIONS_ARRAY, "world_from_camera", FRAME_ARRAY):
                 array = data.GetFieldData().GetArray(name)
                 if array is not None:
                     output.GetFieldData().AddArray(array)
@@ -634,7 +636,7 @@ class FilterVoxelPlanes(MabdiAlgorithm):
             pose = image_pose(data)
             v, u = np.nonzero(np.isfinite(depth))  # only the valid (novel) pixels: often a few percent
             z = depth[v, u].astype(np.float64)
-            camera = np.stack([(u + 0.5 - k.cx) / k.fx * z, (v + 0.5 - k.cy) / k.fy * z, z], axis=1)
+            camera = pixel_rays(k)[v, u] * z[:, None]  # a camera's z = 1 rays times depth, or a LiDAR's unit rays times range
             colour = image_colour(data)
             return camera @ pose[:3, :3].T + pose[:3, 3], None if colour is None else colour[v, u]
         if isinstance(data, vtkPointSet):

@@ -27,6 +27,13 @@ the previous frame: the world mesh appends frame i's surface only at the end
 of frame i. With the classifier off (``enabled = false``, the "black box")
 the surface filter meshes D itself: every valid pixel, every frame.
 
+A LiDAR's range images (:mod:`mabdi.spherical`) run through the same loop:
+E is the map's range image (:mod:`mabdi.filters.range_rendering`), the
+classifier compares ranges with tau of the range noise, and removal votes
+along the beams. Registration and refinement are camera-only for now (their
+kernels use the pinhole projection): with a LiDAR both are off and the
+poses are taken as given (the rule is :func:`lidar_rules`).
+
 ``loop.step(i)`` runs frame i and returns its :class:`FrameRecord`. What a
 frame produced is read through public accessors (:meth:`measured_image`,
 :meth:`expected_image`, :meth:`labels`, :meth:`novel_surface`, :meth:`mesh`,
@@ -43,8 +50,9 @@ from vtkmodules.vtkCommonDataModel import vtkImageData, vtkPolyData
 
 from mabdi.algorithm import raise_pipeline_errors
 from mabdi.camera import Intrinsics, unit_rays
-from mabdi.depth import depth_array, image_pose
+from mabdi.depth import depth_array, image_pose, pixels_per_radian
 from mabdi.face_identity import FaceIdTable
+from mabdi.spherical import SphericalGeometry
 from mabdi.filters.classifier import (
     CONTRADICTED,
     NO_RETURN,
@@ -60,7 +68,7 @@ from mabdi.filters.expected_image import MAP_PORT, MEASURED_PORT, FilterExpected
 from mabdi.filters.refinement import MapRefinement, RefinementParameters
 from mabdi.filters.registration import FilterRegistration, RegistrationParameters, registration_values
 from mabdi.filters.registry import make_surface_filter
-from mabdi.filters.removal import RemovalParameters, depth_edges, removal_votes
+from mabdi.filters.removal import RemovalParameters, depth_edges, for_geometry, removal_votes
 from mabdi.filters.world_mesh import FilterWorldMesh
 from mabdi.polydata import polydata_area, polydata_arrays, transformed_polydata
 from mabdi.sources.frames import FrameSource, SourceDepthFrames
@@ -109,6 +117,15 @@ class FrameRecord:
         return self.registration == "registered"
 
 
+def lidar_rules(geometry, refining: bool, registration: RegistrationParameters) -> tuple[bool, RegistrationParameters]:
+    """(refining, registration) for a sensor of ``geometry``: unchanged for a camera; for a LiDAR's range
+    images (:class:`~mabdi.spherical.SphericalGeometry`) refinement off and registration off (their kernels
+    are the pinhole camera's): the loop takes a LiDAR's poses as given."""
+    if isinstance(geometry, SphericalGeometry):
+        return False, replace(registration, enabled=False)
+    return refining, registration
+
+
 class MabdiLoop:
     """Expected image, classifier, surface and world mesh over a :class:`FrameSource` (see the module docs).
 
@@ -149,11 +166,12 @@ class MabdiLoop:
         if refinement_on == "auto":
             refinement_on = self.noise.correlated  # errors one look's smoothing cannot remove: average later looks in
         self.refining = self.classifier_parameters.enabled and refinement_on and self.noise.model != "none"
+        self.registration_parameters = registration if registration is not None else RegistrationParameters()
+        self.refining, self.registration_parameters = lidar_rules(source.intrinsics, self.refining, self.registration_parameters)
         self.refinement = MapRefinement(refinement if refinement is not None else RefinementParameters())
         self.measured = SourceDepthFrames(source)
         self.world = FilterWorldMesh()
         self.expected = FilterExpectedImage(backend=backend, identity=self.removal or self.refining)
-        self.registration_parameters = registration if registration is not None else RegistrationParameters()
         #: D as the classifier sees it: registered to the map (the renderer of E is shared: one upload of the map)
         self.registration: FilterRegistration | None = None
         measured_port = self.measured.GetOutputPort()
@@ -392,7 +410,7 @@ class MabdiLoop:
     def _removal_parameters_for(self, expected: np.ndarray) -> RemovalParameters:
         """The removal rules for this frame: the edge margin widened to the surface's ``face_overhang``
         (metres, voxel planes) in pixels at the median depth of E (see :mod:`mabdi.filters.removal`)."""
-        parameters = self.removal_parameters
+        parameters = for_geometry(self.removal_parameters, self.intrinsics)
         overhang = getattr(self.surface, "face_overhang", 0.0)
         if overhang <= 0:
             return parameters
@@ -400,7 +418,7 @@ class MabdiLoop:
         shown = shown[np.isfinite(shown)]
         if not len(shown):
             return parameters
-        margin = int(np.ceil(overhang * self.intrinsics.fx / float(np.median(shown))))
+        margin = int(np.ceil(overhang * pixels_per_radian(self.intrinsics) / float(np.median(shown))))
         margin = min(max(margin, parameters.edge_margin), parameters.max_edge_margin)
         return replace(parameters, edge_margin=margin)
 

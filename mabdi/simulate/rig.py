@@ -3,7 +3,10 @@
 Scene (:class:`~mabdi.sources.scene.SourceScene`, objects switched on and
 off by their schedules) + off-screen depth sensor
 (:class:`~mabdi.filters.depth_image.FilterDepthImage`, with its noise model)
-+ path (the helix of the run config's ``[path]``). Frame i is the scene as it
++ path (the helix of the run config's ``[path]``). A LiDAR (``[sensor] kind =
+"lidar"``) renders range images (:mod:`mabdi.filters.range_rendering`), its
+x axis along the path's view direction and z up
+(:func:`mabdi.simulate.path.path_from_config` with ``axes="lidar"``); its frames carry no colour. Frame i is the scene as it
 stands at frame i, seen from pose i, with noise drawn from the stream of
 (seed, i): reading a frame twice, or out of order, gives the same image.
 
@@ -37,6 +40,7 @@ from mabdi.pose_noise import PoseNoise
 from mabdi.simulate.path import path_from_config
 from mabdi.sources.frames import FrameSource
 from mabdi.sources.scene import OBJECT_COLOUR_ARRAY, SourceScene
+from mabdi.spherical import SphericalGeometry
 
 #: Frames per second of the simulated sensor (sets the timestamps).
 FRAME_RATE = 30.0
@@ -49,7 +53,7 @@ class SimulatedRig(FrameSource):
         self,
         scene: SourceScene,
         poses: np.ndarray,
-        intrinsics: Intrinsics | None = None,
+        intrinsics: Intrinsics | SphericalGeometry | None = None,
         noise: SensorNoise | str = "none",
         seed: int = 0,
         backend: str = "egl",
@@ -67,8 +71,11 @@ class SimulatedRig(FrameSource):
         self.sensor = FilterDepthImage(intrinsics=intrinsics, noise=noise, seed=seed, backend=backend)
         self.sensor.SetInputConnection(scene.GetOutputPort())
         self.description = description
-        #: Whether frames carry a colour image (None: when the scene has coloured objects).
-        self.colour = scene.coloured if colour is None else bool(colour)
+        #: Whether frames carry a colour image (None: when the scene has coloured objects; never for a LiDAR).
+        lidar = isinstance(self.sensor.intrinsics, SphericalGeometry)
+        if lidar and colour:
+            raise ValueError("SimulatedRig: a LiDAR's range images carry no colour image")
+        self.colour = False if lidar else scene.coloured if colour is None else bool(colour)
         self._rgb = vtkUnsignedCharArray()
         if self.colour:  # the depth render draws each triangle in its object's colour: one render gives both
             self.sensor.renderer.identity_array = OBJECT_COLOUR_ARRAY
@@ -80,10 +87,13 @@ class SimulatedRig(FrameSource):
         frames = config.run.frames
         scene = SourceScene(config.scene, frames=frames, base_dir=base_dir)
         sensor = config.sensor
+        geometry = sensor.geometry()
+        # a LiDAR's poses in its own axes (x forward, z up): the path says where the sensor looks
+        axes = "lidar" if isinstance(geometry, SphericalGeometry) else "camera"
         return cls(
             scene,
-            path_from_config(frames, config.path, base_dir),
-            intrinsics=sensor.intrinsics(),
+            path_from_config(frames, config.path, base_dir, axes=axes),
+            intrinsics=geometry,
             noise=sensor.sensor_noise(),
             seed=config.run.seed,
             backend=sensor.backend,
@@ -92,7 +102,8 @@ class SimulatedRig(FrameSource):
         )
 
     @property
-    def intrinsics(self) -> Intrinsics:
+    def intrinsics(self) -> Intrinsics | SphericalGeometry:
+        """The sensor's geometry: a camera's intrinsics or a LiDAR's range image (:mod:`mabdi.spherical`)."""
         return self.sensor.intrinsics
 
     @property
@@ -145,7 +156,10 @@ class SimulatedRig(FrameSource):
 
     def render_backend(self) -> dict:
         """The render backend that drew the frames (:meth:`DepthRenderer.describe`)."""
-        return self.sensor.renderer.describe()
+        renderer = self.sensor.range_renderer or self.sensor.renderer
+        return renderer.describe()
 
     def close(self) -> None:
         self.sensor.renderer.close()
+        if self.sensor.range_renderer is not None:
+            self.sensor.range_renderer.close()

@@ -44,7 +44,7 @@ from vtkmodules.vtkCommonDataModel import vtkPolyData
 
 from mabdi.depth import depth_array, image_colour, image_pose
 from mabdi.errors import MabdiError
-from mabdi.filters.depth_image import named_leaves
+from mabdi.polydata import named_leaves
 from mabdi.maps.mesh_map import COLOUR_LAYER
 from mabdi.simulate.run_pipeline import RunObserver
 

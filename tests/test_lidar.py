@@ -1,0 +1,337 @@
+"""A spinning LiDAR: range images rendered exactly, E of the map, the loop and the surfaces on range images."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from vtkmodules.vtkCommonDataModel import vtkMultiBlockDataSet
+from vtkmodules.vtkFiltersCore import vtkAppendPolyData, vtkTriangleFilter
+from vtkmodules.vtkFiltersSources import vtkCubeSource, vtkPlaneSource
+
+from mabdi.config import RunConfig, load_run_config
+from mabdi.depth import DepthFrame, depth_array, image_intrinsics, is_range_image
+from mabdi.errors import ConfigError
+from mabdi.filters.depth_image import FilterDepthImage, SensorNoise
+from mabdi.filters.expected_image import FilterExpectedImage, face_id_array
+from mabdi.filters.pixel_grid import FilterPixelGrid
+from mabdi.filters.world_mesh import FilterWorldMesh
+from mabdi.polydata import polydata_arrays
+from mabdi.spherical import SphericalGeometry
+
+#: A small LiDAR for the tests: 16 beams over 30 degrees, 256 columns.
+GEOMETRY = SphericalGeometry(16, 256, 15.0, -15.0, 0.5, 50.0)
+
+
+def plane(origin, point1, point2):
+    source = vtkPlaneSource()
+    source.SetOrigin(*origin)
+    source.SetPoint1(*point1)
+    source.SetPoint2(*point2)
+    source.Update()
+    return source.GetOutput()
+
+
+def merged(*meshes):
+    append = vtkAppendPolyData()
+    for mesh in meshes:
+        append.AddInputData(mesh)
+    triangulate = vtkTriangleFilter()
+    triangulate.SetInputConnection(append.GetOutputPort())
+    triangulate.Update()
+    return triangulate.GetOutput()
+
+
+def box(center, size, yaw_deg):
+    cube = vtkCubeSource()
+    cube.SetXLength(size[0])
+    cube.SetYLength(size[1])
+    cube.SetZLength(size[2])
+    cube.Update()
+    points, triangles = polydata_arrays(cube.GetOutput())
+    a = math.radians(yaw_deg)
+    rotation = np.array([[math.cos(a), -math.sin(a), 0], [math.sin(a), math.cos(a), 0], [0, 0, 1]])
+    from mabdi.polydata import triangles_polydata
+
+    return triangles_polydata(points @ rotation.T + np.asarray(center), triangles)
+
+
+def ray_cast(mesh, geometry, pose):
+    """(H, W) ranges by brute force: every beam against every triangle (numpy, float64), NaN: none in range."""
+    points, triangles = polydata_arrays(mesh)
+    a = points[triangles[:, 0]]
+    e1 = points[triangles[:, 1]] - a
+    e2 = points[triangles[:, 2]] - a
+    d = geometry.rays().reshape(-1, 3) @ pose[:3, :3].T
+    o = pose[:3, 3]
+    p = np.cross(d[:, None, :], e2[None])
+    det = np.einsum("tk,ntk->nt", e1, p)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = 1.0 / det
+        s = o - a
+        u = np.einsum("tk,ntk->nt", s, p) * inv
+        q = np.cross(s, e1)
+        v = np.einsum("nk,tk->nt", d, q) * inv
+        t = np.einsum("tk,tk->t", e2, q)[None] * inv
+        hit = (u >= 0) & (v >= 0) & (u + v <= 1) & (t > 0)
+        t = np.where(hit, t, np.inf).min(axis=1)
+    t[~((t > geometry.range_min) & (t < geometry.range_max))] = np.nan
+    return t.reshape(geometry.shape)
+
+
+def render(mesh, geometry, pose, noise="none", seed=0):
+    sensor = FilterDepthImage(geometry, noise=noise, seed=seed)
+    sensor.SetInputDataObject(mesh)
+    sensor.pose = pose
+    sensor.Update()
+    return sensor.GetOutput()
+
+
+def test_range_image_of_a_plane_reads_the_exact_range_at_every_beam():
+    wall = plane((3.0, -5.0, -5.0), (3.0, 5.0, -5.0), (3.0, -5.0, 5.0))  # x = 3 m, 10 m square
+    image = render(wall, GEOMETRY, np.eye(4))
+    assert is_range_image(image) and image_intrinsics(image) == GEOMETRY
+    ranges = depth_array(image)
+    rays = GEOMETRY.rays()
+    with np.errstate(divide="ignore"):
+        expected = 3.0 / rays[..., 0]
+    hits = (rays[..., 0] > 0) & (np.abs(rays[..., 1] * expected) < 5) & (np.abs(rays[..., 2] * expected) < 5)
+    assert hits.sum() > 1000
+    np.testing.assert_array_equal(np.isfinite(ranges), hits)
+    assert np.abs(ranges[hits] - expected[hits]).max() < 1e-3  # within 1 mm at every beam (float32 metres)
+    # the points lie on the plane: range times unit ray, x = 3
+    points = ranges[hits][:, None] * rays[hits]
+    assert np.abs(points[:, 0] - 3.0).max() < 1e-3
+
+
+def test_range_image_of_a_box_reads_the_exact_range_at_every_beam():
+    # a box before a wall and a floor, the sensor moved and turned: every beam against a brute-force ray cast
+    scene = merged(
+        box((4.0, 0.7, 0.2), (1.2, 0.8, 1.4), 30.0),
+        plane((8.0, -20.0, -1.5), (8.0, 20.0, -1.5), (8.0, -20.0, 6.0)),
+        plane((-20.0, -20.0, -1.5), (20.0, -20.0, -1.5), (-20.0, 20.0, -1.5)),
+    )
+    pose = np.eye(4)
+    a = math.radians(10.0)
+    pose[:3, :3] = [[math.cos(a), -math.sin(a), 0], [math.sin(a), math.cos(a), 0], [0, 0, 1]]
+    pose[:3, 3] = (0.3, -0.2, 0.1)
+    geometry = SphericalGeometry(32, 512, 10.0, -30.0, 0.5, 40.0)
+    ranges = depth_array(render(scene, geometry, pose))
+    reference = ray_cast(scene, geometry, pose)
+    np.testing.assert_array_equal(np.isfinite(ranges), np.isfinite(reference))
+    both = np.isfinite(reference)
+    assert both.sum() > 0.5 * both.size
+    assert np.abs(ranges[both] - reference[both]).max() < 1e-3
+    # the box is seen, and its near faces read nearer than the wall
+    assert np.nanmin(ranges) < 3.8
+
+
+def test_range_noise_is_seeded_and_of_its_sigma():
+    wall = plane((3.0, -5.0, -5.0), (3.0, 5.0, -5.0), (3.0, -5.0, 5.0))
+    exact = depth_array(render(wall, GEOMETRY, np.eye(4)))
+    noisy = depth_array(render(wall, GEOMETRY, np.eye(4), SensorNoise("range", range_sigma=0.02), seed=3))
+    again = depth_array(render(wall, GEOMETRY, np.eye(4), SensorNoise("range", range_sigma=0.02), seed=3))
+    np.testing.assert_array_equal(noisy, again)
+    error = (noisy - exact)[np.isfinite(exact)]
+    assert abs(error.std() - 0.02) < 0.003 and abs(error.mean()) < 0.003
+    with pytest.raises(ConfigError, match="camera's"):
+        SensorNoise("kinect").ranges_with_noise(exact, np.random.default_rng(0))
+
+
+def test_expected_image_of_a_mapped_plane_matches_the_measured_one_within_a_millimetre():
+    wall = plane((3.0, -5.0, -2.0), (3.0, 5.0, -2.0), (3.0, -5.0, 5.0))
+    pose = np.eye(4)
+    measured = render(wall, GEOMETRY, pose)
+    surface = FilterPixelGrid()
+    surface.SetInputDataObject(measured)
+    world = FilterWorldMesh()
+    world.SetInputConnection(surface.GetOutputPort())
+    world.Update()
+    assert world.number_of_cells > 0
+    # E from a pose moved a little: the beams fall between the mapped ones
+    moved = np.eye(4)
+    moved[:3, 3] = (0.2, 0.05, 0.03)
+    measured_moved = render(wall, GEOMETRY, moved)
+    expected = FilterExpectedImage(identity=True)
+    expected.SetInputDataObject(0, world.map)
+    expected.SetInputDataObject(1, measured_moved)
+    expected.Update()
+    e = depth_array(expected.GetOutput())
+    d = depth_array(measured_moved)
+    both = np.isfinite(e) & np.isfinite(d)
+    assert both.sum() > 0.9 * np.isfinite(e).sum() and both.sum() > 300
+    assert np.abs(e[both] - d[both]).max() < 1e-3
+    ids = face_id_array(expected.GetOutput())
+    assert (ids[np.isfinite(e)] > 0).all() and (ids[~np.isfinite(e)] == 0).all()
+
+
+def test_lidar_sensor_config(tmp_path):
+    path = tmp_path / "lidar.toml"
+    path.write_text('[sensor]\nkind = "lidar"\nbeams = 32\ncolumns = 512\nfov_up = 10.0\nfov_down = -30.0\nnoise = "range"\nrange_sigma = 0.01\n')
+    config = load_run_config(path)
+    assert config.sensor.geometry() == SphericalGeometry(32, 512, 10.0, -30.0, 0.5, 80.0)
+    assert config.sensor.sensor_noise().sigma(np.array([5.0]), 0.5, 80.0)[0] == pytest.approx(0.01)
+    assert RunConfig().sensor.kind == "pinhole"
+    path.write_text('[sensor]\nkind = "lidar"\nnoise = "kinect"\n')
+    with pytest.raises(ConfigError, match="sensor.noise"):
+        load_run_config(path)
+    path.write_text('[sensor]\nkind = "sonar"\n')
+    with pytest.raises(ConfigError, match="sensor.kind"):
+        load_run_config(path)
+    path.write_text('[sensor]\nkind = "lidar"\nfov_up = -30.0\nfov_down = 10.0\n')
+    with pytest.raises(ConfigError, match="fov_down"):
+        load_run_config(path)
+
+
+def test_simulated_lidar_poses_look_where_the_path_looks(tmp_path):
+    from mabdi.simulate.path import path_from_config
+    from mabdi.simulate.rig import SimulatedRig
+
+    path = tmp_path / "lidar.toml"
+    path.write_text('[run]\nframes = 4\n[sensor]\nkind = "lidar"\nbeams = 8\ncolumns = 64\n')
+    config = load_run_config(path)
+    rig = SimulatedRig.from_config(config)
+    camera = path_from_config(4, config.path)
+    np.testing.assert_allclose(rig.true_poses[:, :3, 0], camera[:, :3, 2], atol=1e-12)  # x forward = optical axis
+    np.testing.assert_allclose(rig.true_poses[:, :3, 2], -camera[:, :3, 1], atol=1e-12)  # z up = image up
+    frame = rig.read(0)
+    assert frame.intrinsics == config.sensor.geometry() and frame.colour is None
+    rig.close()
+
+
+def test_depth_frame_round_trip_keeps_the_spherical_geometry():
+    ranges = np.full(GEOMETRY.shape, 4.0, dtype=np.float32)
+    frame = DepthFrame(ranges, GEOMETRY, np.eye(4), 3)
+    back = DepthFrame.from_image(frame.to_image())
+    assert back.intrinsics == GEOMETRY and back.frame == 3
+    np.testing.assert_array_equal(back.depth, ranges)
+
+
+def test_composite_map_renders_as_one():
+    wall = plane((3.0, -5.0, -5.0), (3.0, 5.0, -5.0), (3.0, -5.0, 5.0))
+    floor = plane((-20.0, -20.0, -1.5), (20.0, -20.0, -1.5), (-20.0, 20.0, -1.5))
+    blocks = vtkMultiBlockDataSet()
+    blocks.SetBlock(0, wall)
+    blocks.SetBlock(1, floor)
+    np.testing.assert_array_equal(depth_array(render(blocks, GEOMETRY, np.eye(4))), depth_array(render(merged(wall, floor), GEOMETRY, np.eye(4))))
+
+
+@pytest.mark.parametrize("reduction", [1, 3])
+def test_quadtree_meshes_a_straight_wall_from_the_range_image_flat(reduction):
+    # seed 002 §3.2's case: a wall in front of the sensor is curved in the range image; the quad-tree's
+    # spherical transform makes it flat again, merges it into big faces, with the wall's normal
+    from vtkmodules.util.numpy_support import vtk_to_numpy
+
+    from mabdi.filters.quadtree import FilterQuadTree, QuadTreeParameters
+
+    geometry = SphericalGeometry(32, 512, 10.0, -20.0, 0.5, 50.0)
+    wall = plane((4.0, -8.0, -3.0), (4.0, 8.0, -3.0), (4.0, -8.0, 3.0))
+    image = render(wall, geometry, np.eye(4))
+    ranges = depth_array(image)
+    assert np.nanmax(ranges) - np.nanmin(ranges) > 1.0  # curved in the range image: 4 m ahead, more aside
+    quadtree = FilterQuadTree(QuadTreeParameters(reduction=reduction))
+    quadtree.SetInputDataObject(image)
+    quadtree.Update()
+    mesh = quadtree.GetOutput()
+    points = vtk_to_numpy(mesh.GetPoints().GetData()).astype(np.float64)
+    assert np.abs(points[:, 0] - 4.0).max() < 0.002  # every vertex on the wall
+    normals = vtk_to_numpy(mesh.GetCellData().GetNormals()).astype(np.float64)
+    angle = np.degrees(np.arccos(np.clip(normals @ np.array([-1.0, 0.0, 0.0]), -1.0, 1.0)))
+    assert angle.max() < 1.0  # facing the sensor, within a degree of the wall's normal
+    level = vtk_to_numpy(mesh.GetCellData().GetArray("level"))
+    beams_on_wall = int(np.isfinite(ranges).sum())
+    assert level.max() >= 8 and mesh.GetNumberOfCells() < beams_on_wall / 8  # large merged faces
+    # the faces cover the wall's seen part about as the pixel grid's triangles between the beams do
+    from mabdi.polydata import polydata_area
+
+    grid = FilterPixelGrid()
+    grid.SetInputDataObject(image)
+    grid.Update()
+    assert polydata_area(mesh) > 0.8 * polydata_area(grid.GetOutput()) > 30.0
+
+
+LIDAR_SCENE = """
+[run]
+name = "lidar_boxes"
+frames = {frames}
+seed = 2
+
+[sensor]
+kind = "lidar"
+beams = 32
+columns = 512
+fov_up = 15.0
+fov_down = -45.0
+range_min = 0.3
+range_max = 20.0
+noise = "{noise}"
+
+[path]
+radius_x = 2.5
+radius_y = 2.2
+z0 = 1.4
+z1 = 1.6
+look_from = [0.0, 0.0, 0.5]
+look_to = [0.0, 0.0, 0.6]
+
+[surface]
+method = "{surface}"
+
+[surface.quadtree]
+reduction = 1  # a LiDAR's beams are already further apart than a camera's 3 x 3 pixel blocks
+
+[[scene.objects]]
+name = "floor"
+type = "plane"
+size = [8.0, 8.0]
+
+[[scene.objects]]
+name = "stays"
+type = "box"
+size = [0.6, 0.6, 0.8]
+position = [-0.8, 0.0, 0.0]
+
+[[scene.objects]]
+name = "leaves"
+type = "box"
+size = [0.6, 0.6, 0.8]
+position = [0.8, 0.0, 0.0]
+disappear_at = {leave}
+"""
+
+
+def lidar_run(tmp_path, surface="pixel_grid", noise="none", frames=16, leave=1.0):
+    from mabdi.simulate import Simulation
+
+    path = tmp_path / f"lidar_{surface}_{noise}.toml"
+    path.write_text(LIDAR_SCENE.format(frames=frames, noise=noise, surface=surface, leave=leave if leave < 1.0 else frames + 1))
+    config = load_run_config(path)
+    simulation = Simulation(config)
+    return simulation, simulation.run()
+
+
+@pytest.mark.parametrize("surface", ["pixel_grid", "quadtree"])
+def test_lidar_loop_maps_the_scene_and_stops_growing(tmp_path, surface):
+    from mabdi.evaluate import distances_to_mesh
+    from mabdi.evaluate.metrics import evaluate_run
+
+    simulation, result = lidar_run(tmp_path, surface)
+    assert isinstance(simulation.source.intrinsics, SphericalGeometry)
+    added = np.array([r.cells_added for r in result.records])
+    assert added[8:].sum() <= 0.15 * added[:8].sum()  # the second circle adds little
+    vertices, _ = polydata_arrays(result.mesh)
+    assert np.median(distances_to_mesh(vertices[::5], simulation.scene.mesh_at(0))) < 1e-3
+    scores = evaluate_run(simulation, result)
+    assert scores.fscore_2cm > 0.9, scores
+
+
+def test_lidar_loop_removes_a_box_that_leaves(tmp_path):
+    simulation, result = lidar_run(tmp_path, frames=24, leave=0.5)
+    points, triangles = polydata_arrays(result.mesh)
+    centres = points[triangles].mean(axis=1)
+    inside = np.all(np.abs(centres - (0.8, 0.0, 0.4)) < (0.32, 0.32, 0.42), axis=1) & (centres[:, 2] > 0.02)
+    kept = np.all(np.abs(centres - (-0.8, 0.0, 0.4)) < (0.32, 0.32, 0.42), axis=1) & (centres[:, 2] > 0.02)
+    assert sum(r.cells_removed for r in result.records) > 0
+    assert inside.sum() <= 0.05 * kept.sum()  # the box that left is gone from the map, the other stays
+    assert kept.sum() > 100
