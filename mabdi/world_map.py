@@ -324,9 +324,9 @@ class WorldMap:
     def compact(self) -> None:
         """Merge the frame patches of each chunk that holds more than ``patches_per_chunk`` into one.
 
-        Not done while a patch is added: face codes of an expected image rendered before the addition still
-        name the patches (the loop votes with them after appending), so the world mesh compacts before it
-        appends the next surface.
+        Not done while a patch is added: merged patches get new names, so face codes of an expected image
+        rendered before would name patches no longer there. The loop compacts at the end of each frame, once
+        its E's codes have been used (removal votes come after the append).
         """
         for chunk in self.chunks.values():
             if chunk.frame_patches > self.patches_per_chunk:

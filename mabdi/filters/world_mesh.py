@@ -56,10 +56,14 @@ def _input_frame(surface: vtkPolyData) -> int | None:
 class FilterWorldMesh(MabdiAlgorithm):
     """The map: appends each frame's surface as a patch (vtkPolyData -> vtkMultiBlockDataSet of chunks)."""
 
-    def __init__(self, chunk_size: float = CHUNK_SIZE, patches_per_chunk: int = PATCHES_PER_CHUNK) -> None:
+    def __init__(self, chunk_size: float = CHUNK_SIZE, patches_per_chunk: int = PATCHES_PER_CHUNK, compact_on_append: bool = True) -> None:
         super().__init__(nInputPorts=1, inputType="vtkPolyData", nOutputPorts=1, outputType="vtkMultiBlockDataSet")
         #: The store itself (chunks, patches, per-face evidence).
         self.store = WorldMap(chunk_size, patches_per_chunk)
+        #: Merge each chunk's frame patches (:meth:`WorldMap.compact`) before appending a surface. A loop that
+        #: uses an expected image's face codes after appending (removal votes) turns it off and calls
+        #: :meth:`compact` itself once the codes are used (merged patches get new names).
+        self.compact_on_append = compact_on_append
         self._last_input: tuple[str, int] | None = None
         self._next_frame = 0
         #: Net change in the number of cells made by the last update (replacements count net).
@@ -122,6 +126,10 @@ class FilterWorldMesh(MabdiAlgorithm):
         """The polydata of patch ``key`` (read it; change its points only through :meth:`move_points`)."""
         return self.store.block(key)
 
+    def compact(self) -> None:
+        """Merge each chunk's frame patches beyond the limit (:meth:`mabdi.world_map.WorldMap.compact`)."""
+        self.store.compact()
+
     def move_points(self, key: str, vertex_ids: np.ndarray, positions: np.ndarray) -> None:
         """Move vertices of patch ``key`` (see :meth:`mabdi.world_map.WorldMap.move_points`)."""
         self.store.move_points(key, vertex_ids, positions)
@@ -155,7 +163,8 @@ class FilterWorldMesh(MabdiAlgorithm):
             if frame is None:
                 frame = self._next_frame
             self._next_frame = frame + 1
-            self.store.compact()  # before, not after: the last E's face codes name the patches until now
+            if self.compact_on_append:
+                self.store.compact()
             self.cells_added = self._append(surface, frame)
         output = vtkMultiBlockDataSet.GetData(outInfo)
         output.ShallowCopy(self.store.multiblock)

@@ -170,7 +170,7 @@ class MabdiLoop:
         self.refining, self.registration_parameters = lidar_rules(source.intrinsics, self.refining, self.registration_parameters)
         self.refinement = MapRefinement(refinement if refinement is not None else RefinementParameters())
         self.measured = SourceDepthFrames(source)
-        self.world = FilterWorldMesh()
+        self.world = FilterWorldMesh(compact_on_append=False)  # compacted at the end of each frame (step)
         self.expected = FilterExpectedImage(backend=backend, identity=self.removal or self.refining)
         #: D as the classifier sees it: registered to the map (the renderer of E is shared: one upload of the map)
         self.registration: FilterRegistration | None = None
@@ -294,11 +294,12 @@ class MabdiLoop:
             self._refined = self.refinement.step(self)
             replaced, moved = self._refined.replaced, self._refined.moved_vertices
         t_refine = time.perf_counter()
-        t_remove = t_refine
         self._removed = vtkPolyData()
         if (self.removal and votes) or len(replaced):
             cells_removed = self._remove_contradicted(replaced, votes)
-            t_remove = time.perf_counter()
+        t_remove = time.perf_counter()
+        self.world.compact()  # now that this frame's E and its face codes have been used
+        compact_s = time.perf_counter() - t_remove  # counted with the append: both keep the map's blocks
 
         if self.classifier_enabled:
             counts = pixel_counts(self.classifier.GetOutput())
@@ -315,8 +316,8 @@ class MabdiLoop:
             t_expected_ms=ms * (t_expected - t_register),
             t_classify_ms=ms * (t_classify - t_expected),
             t_surface_ms=ms * (t_surface - t_classify),
-            t_append_ms=ms * (t_append - t_surface),
-            t_total_ms=ms * (t_remove - start),
+            t_append_ms=ms * (t_append - t_surface + compact_s),
+            t_total_ms=ms * (t_remove + compact_s - start),
             points_total=self.world.number_of_points,
             valid_pixels=counts["valid"],
             novel_pixels=counts["novel"],
