@@ -231,6 +231,8 @@ class WorldMap:
         self._patches: dict[str, Patch] = {}
         self._cells = 0
         self._merges = 0
+        #: merged patch key -> [(part key, its number of points)], in the order their points were concatenated
+        self._merged_from: dict[str, list[tuple[str, int]]] = {}
         self._merged: vtkPolyData | None = None
         self._rebuild_top()
 
@@ -328,9 +330,16 @@ class WorldMap:
         rendered before would name patches no longer there. The loop compacts at the end of each frame, once
         its E's codes have been used (removal votes come after the append).
         """
+        self._merged_from = {key: parts for key, parts in self._merged_from.items() if key in self._patches}
         for chunk in self.chunks.values():
             if chunk.frame_patches > self.patches_per_chunk:
                 self._merge_frame_patches(chunk)
+
+    def merged_parts(self, key: str) -> list[tuple[str, int]]:
+        """The patches merged into patch ``key`` at the last :meth:`compact` that made it, as (key, number of
+        points) in the order of its points; empty for a patch that was not made by merging (or merged earlier).
+        What was kept per vertex of the parts (refinement's state) can follow them so."""
+        return list(self._merged_from.get(key, ()))
 
     def _merge_frame_patches(self, chunk: Chunk) -> None:
         """Merge a chunk's frame patches into one, size-tiered: the largest stays apart while it holds more
@@ -351,6 +360,7 @@ class WorldMap:
             np.concatenate([p.contradicted for p in parts]),
         )
         self._merges += 1
+        self._merged_from[merged.key] = [(p.key, p.polydata.GetNumberOfPoints()) for p in parts]
         chunk.remove([part.key for part in parts])
         for part in parts:
             del self._patches[part.key]
@@ -533,6 +543,7 @@ class WorldMap:
         return {
             "chunk_size": self.chunk_size,
             "merges": self._merges,
+            "merged_from": {key: [[part, int(points)] for part, points in parts] for key, parts in self._merged_from.items()},
             "patches": [
                 [key, polydata_to_state(p.polydata), list(p.chunk), p.evidence.copy(), p.contradicted.copy(), p.keyed]
                 for chunk in self.chunks.values()
@@ -548,6 +559,7 @@ class WorldMap:
         self.reset()
         self.chunk_size = float(state["chunk_size"])
         self._merges = int(state["merges"])
+        self._merged_from = {key: [(str(part), int(points)) for part, points in parts] for key, parts in state.get("merged_from", {}).items()}
         for key, polydata, chunk, evidence, contradicted, keyed in state["patches"]:
             polydata = polydata_from_state(polydata)
             patch = Patch(key, polydata, tuple(int(i) for i in chunk), face_normals(polydata), evidence.copy(), contradicted.copy(), bool(keyed))
