@@ -67,7 +67,7 @@ from mabdi.filters.depth_image import BACKENDS, SensorNoise
 from mabdi.filters.expected_image import MAP_PORT, MEASURED_PORT, FilterExpectedImage, face_id_array
 from mabdi.filters.refinement import MapRefinement, RefinementParameters
 from mabdi.filters.registration import FilterRegistration, RegistrationParameters, registration_values
-from mabdi.filters.registry import make_surface_filter
+from mabdi.filters.registry import make_surface_filter, surface_filter
 from mabdi.filters.removal import RemovalParameters, depth_edges, for_geometry, removal_votes
 from mabdi.filters.world_mesh import FilterWorldMesh
 from mabdi.polydata import polydata_area, polydata_arrays, transformed_polydata
@@ -186,6 +186,8 @@ class MabdiLoop:
         self.classifier.SetInputConnection(0, measured_port)
         self.classifier.SetInputConnection(1, self.expected.GetOutputPort())
         self.surface = make_surface_filter(surface, surface_parameters, self.noise)
+        #: What the surface filter can do beyond meshing a frame (declared in its registry entry).
+        self.surface_capabilities = surface_filter(surface).capabilities
         upstream = self.classifier if self.classifier_parameters.enabled else self.measured
         self.surface.SetInputConnection(upstream.GetOutputPort())
         self.world.SetInputConnection(self.surface.GetOutputPort())
@@ -230,14 +232,14 @@ class MabdiLoop:
         if self.noise.calibration is not None:
             self.noise.calibration.reset()
         self._poses[:] = np.nan
-        if hasattr(self.surface, "reset"):
+        if self.surface_capabilities.keeps_state:
             self.surface.reset()
 
     def state(self) -> dict:
         """The loop's state between frames, for checkpoints: the map, refinement's and a stateful surface
         filter's memory. Plain data only (dicts, lists, numbers, strings, numpy arrays: :mod:`mabdi.io.checkpoint`)."""
         state = {"world": self.world.state(), "refinement": self.refinement.state(self.world), "poses": self._poses.copy()}
-        if hasattr(self.surface, "state"):
+        if self.surface_capabilities.keeps_state:
             state["surface"] = self.surface.state()
         if self.registration is not None:
             state["registration"] = self.registration.state()
@@ -363,12 +365,12 @@ class MabdiLoop:
         if not len(gone):
             return 0
         self._removed = self.world.remove_faces(gone, FaceIdTable.read(self.expected.GetOutput()))
-        if hasattr(self.surface, "clear_faces_at") and self._removed.GetNumberOfCells():
+        if self.surface_capabilities.clears_space and self._removed.GetNumberOfCells():
             # voxel planes: the statistics that made the removed faces go with them (else re-meshing brings
             # them back), and the voxels the voting rays crossed in free space
             points, triangles = polydata_arrays(self._removed)
             self.surface.clear_faces_at(points[triangles].mean(axis=1))
-        if voting is not None and hasattr(self.surface, "clear_free_space"):
+        if voting is not None and self.surface_capabilities.clears_space:
             self._clear_free_space(voting, gone)
         return int(self._removed.GetNumberOfCells())
 
@@ -412,7 +414,7 @@ class MabdiLoop:
         """The removal rules for this frame: the edge margin widened to the surface's ``face_overhang``
         (metres, voxel planes) in pixels at the median depth of E (see :mod:`mabdi.filters.removal`)."""
         parameters = for_geometry(self.removal_parameters, self.intrinsics)
-        overhang = getattr(self.surface, "face_overhang", 0.0)
+        overhang = self.surface.face_overhang if self.surface_capabilities.overhang else 0.0
         if overhang <= 0:
             return parameters
         shown = expected[::4, ::4]
