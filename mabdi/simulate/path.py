@@ -70,6 +70,7 @@ from mabdi.simulate.routes import (
     path_frame_count,
     path_poses,
     read_trajectory,
+    trajectory_file,
 )
 
 
@@ -124,6 +125,20 @@ def path_from_config(frames: int, config: PathConfig, base_dir=None, axes: str =
     return poses[:frames]
 
 
+def path_timestamps(frames: int, config: PathConfig, base_dir=None) -> np.ndarray | None:
+    """(frames,) seconds of each frame of a waypoint path (i / rate) or a trajectory (its file's timestamps);
+    None for the helix (the simulated sensor's own frame rate)."""
+    frames = _check_frames(frames)
+    if config.kind == "helix":
+        return None
+    if config.kind == "waypoints":
+        return np.arange(frames) / config.rate
+    times = read_trajectory(trajectory_file(config, base_dir))[0]
+    if frames > len(times):
+        raise ConfigError(f"run.frames = {frames} but the [path] (trajectory) gives {len(times)} frames (the poses of {config.file})")
+    return times[:frames]
+
+
 def _check_frames(frames) -> int:
     if isinstance(frames, bool) or not isinstance(frames, (int, np.integer)) or frames < 1:
         raise ConfigError(f"helical_path: frames must be a positive integer, got {frames!r}")
@@ -156,5 +171,6 @@ __all__ = [
     "path_from_config",
     "path_poses",
     "path_targets",
+    "path_timestamps",
     "read_trajectory",
 ]
