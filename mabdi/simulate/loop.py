@@ -71,7 +71,7 @@ from mabdi.polydata import polydata_area, transformed_polydata
 from mabdi.sources.frames import FrameSource, SourceDepthFrames
 
 
-@dataclass
+@dataclass(slots=True)  # one per frame, kept for the whole run: small
 class FrameRecord:
     """What one frame did. Counts of cells are triangles; ``cells_added`` is the map's net change. Times in ms."""
 
