@@ -15,7 +15,7 @@ from scipy.spatial import cKDTree
 from mabdi.camera import Intrinsics, look_at
 from mabdi.face_identity import MAX_FACE_CODE, FaceIdTable
 from mabdi.filters.depth_image import DepthRenderer
-from mabdi.polydata import named_leaves, polydata_arrays, triangles_polydata
+from mabdi.polydata import named_leaves, polydata_arrays
 from mabdi.filters.removal import RemovalParameters
 from mabdi.world_map import WorldMap, _chunked_state
 
@@ -202,25 +202,17 @@ def test_merging_leaves_a_large_patch_apart_until_the_small_ones_add_up_to_it():
     assert "frame_0" not in world.patch_keys  # once the small ones outweighed it
 
 
-def test_codes_drawn_before_a_keyed_patch_is_re_meshed_find_the_faces_at_their_place():
-    """Voxel planes re-mesh a block at the append that follows E: the old faces' codes lead to the new faces
-    where they stood (until the end of the frame), and to none where nothing stands any more."""
+def test_codes_drawn_before_a_patch_changed_its_number_of_faces_find_nothing():
+    """Voxel planes re-mesh a block at the append that follows E: the codes of the old faces find the new
+    patch's faces only while it holds as many (the same polygons re-fitted), never another patch's."""
     world = WorldMap()
     world.add_patch("patch_1", plane_mesh([0.5, 0.5, 0], [0, 0, 1], size=1.0, subdivisions=4), frame=0, keyed=True)
-    table = FaceIdTable(["patch_1"], [1], [32])  # E drew its 32 faces as codes 1..32
-    old_centres = polydata_arrays(world.block("patch_1"))
-    old_centres = old_centres[0][old_centres[1]].mean(axis=1)
-    # re-meshed: the left half as before (moved 1 mm), the right half gone
-    half = plane_mesh([0.25, 0.5, 0.001], [0, 0, 1], size=1.0, subdivisions=4)
-    points, triangles = polydata_arrays(half)
-    keep = points[triangles].mean(axis=1)[:, 0] < 0.5
-    world.add_patch("patch_1", triangles_polydata(points, triangles[keep]), frame=1, keyed=True)
-    block, local, _ = world.face_lookup(np.arange(1, 33), table)
-    new_points, new_triangles = polydata_arrays(world.block("patch_1"))
-    new_centres = new_points[new_triangles].mean(axis=1)
-    found = block >= 0
-    np.testing.assert_array_equal(found, old_centres[:, 0] < 0.5)  # the right half: nothing stands there now
-    np.testing.assert_allclose(new_centres[local[found]], old_centres[found] + [0, 0, 0.001], atol=1e-9)
-    world.compact()  # the end of the frame: the codes of the old faces mean nothing now
-    block, _, _ = world.face_lookup(np.arange(1, 33), table)
-    assert (block < 0).all()
+    world.add_patch("patch_2", plane_mesh([1.5, 0.5, 0], [0, 0, 1], size=1.0, subdivisions=4), frame=0, keyed=True)
+    table = FaceIdTable(["patch_1", "patch_2"], [1, 33], [32, 32])  # E drew both: codes 1..64
+    world.add_patch("patch_1", plane_mesh([0.5, 0.5, 0.001], [0, 0, 1], size=1.0, subdivisions=4), frame=1, keyed=True)
+    block, local, keys = world.face_lookup(np.arange(1, 65), table)
+    assert (block[:32] == 0).all() and local[:32].tolist() == list(range(32))  # re-fitted, the same 32 faces
+    world.add_patch("patch_1", plane_mesh([0.5, 0.5, 0.002], [0, 0, 1], size=1.0, subdivisions=2), frame=2, keyed=True)
+    block, local, keys = world.face_lookup(np.arange(1, 65), table)
+    assert (block[:32] == -1).all() and (local[:32] == -1).all()  # 8 faces now: the old codes mean nothing
+    assert [keys[b] for b in block[32:]] == ["patch_2"] * 32 and local[32:].tolist() == list(range(32))
