@@ -21,6 +21,7 @@ os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
 import mabdi  # noqa: E402
 from mabdi.config import load_run_config, set_value  # noqa: E402
 from mabdi.evaluate.bench import machine_info  # noqa: E402
+from mabdi.simulate.run_pipeline import FrameCallback, RunPipeline  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -50,11 +51,11 @@ def main() -> None:
     simulation = mabdi.Simulation(config)
     samples = []
     start = time.perf_counter()
-    last = [start]
+    last = [start, time.process_time()]
 
     def progress(record):
         if record.frame % 100 == 0 or record.frame == args.frames - 1:
-            now = time.perf_counter()
+            now, cpu = time.perf_counter(), time.process_time()
             samples.append(
                 {
                     "frame": record.frame,
@@ -63,25 +64,30 @@ def main() -> None:
                     "cells": record.cells_total,
                     "seconds": now - start,
                     "fps_window": 100.0 / (now - last[0]) if record.frame else None,
+                    # CPU seconds of this process per frame over the window: the cost, whatever else runs beside
+                    "cpu_ms_per_frame": 1000.0 * (cpu - last[1]) / 100.0 if record.frame else None,
                 }
             )
-            last[0] = now
+            last[0], last[1] = now, cpu
             s = samples[-1]
-            print(f"frame {s['frame']:6d}  RSS {s['rss_mb']:7.1f} MB  map {s['map_mb']:6.1f} MB  {s['cells']:,} triangles", flush=True)
+            cpu_ms = f"{s['cpu_ms_per_frame']:6.1f}" if s["cpu_ms_per_frame"] is not None else "     -"
+            print(f"frame {s['frame']:6d}  RSS {s['rss_mb']:7.1f} MB  map {s['map_mb']:6.1f} MB  {s['cells']:,} triangles  "
+                  f"CPU {cpu_ms} ms/frame", flush=True)
 
     import shutil
 
     shutil.rmtree(args.out, ignore_errors=True)
-    original_write = simulation._write_checkpoint
+    pipeline = RunPipeline(simulation, args.out, [FrameCallback(progress)])
+    original_write = pipeline.write_checkpoint
     checkpoint_ms = []
 
-    def timed_checkpoint(*a, **k):
+    def timed_checkpoint(next_frame):
         t = time.perf_counter()
-        original_write(*a, **k)
+        original_write(next_frame)
         checkpoint_ms.append(1000.0 * (time.perf_counter() - t))
 
-    simulation._write_checkpoint = timed_checkpoint
-    result = simulation.run(args.out, progress=progress)
+    pipeline.write_checkpoint = timed_checkpoint  # what the pipeline's Checkpoints observer calls
+    result = pipeline.run()
     seconds = time.perf_counter() - start
     first = next(s for s in samples if s["frame"] >= 100)
     end = samples[-1]

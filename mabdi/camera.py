@@ -290,6 +290,34 @@ def in_view(points, intrinsics: Intrinsics, world_from_camera) -> np.ndarray:
     )
 
 
+def frustum_planes(intrinsics: Intrinsics, world_from_camera) -> np.ndarray:
+    """(6, 4) world-frame planes (a, b, c, d) of the view frustum, inside where a x + b y + c z + d >= 0: the four
+    image edges (u = 0, u = width, v = 0, v = height) and near <= z <= far."""
+    i = intrinsics
+    camera = np.array([
+        [i.fx, 0.0, i.cx, 0.0],
+        [-i.fx, 0.0, i.width - i.cx, 0.0],
+        [0.0, i.fy, i.cy, 0.0],
+        [0.0, -i.fy, i.height - i.cy, 0.0],
+        [0.0, 0.0, 1.0, -i.near],
+        [0.0, 0.0, -1.0, i.far],
+    ])
+    pose = check_pose(world_from_camera, "world_from_camera")
+    normals = camera[:, :3] @ pose[:3, :3].T
+    return np.column_stack([normals, camera[:, 3] - normals @ pose[:3, 3]])
+
+
+def boxes_outside(bounds, planes) -> np.ndarray:
+    """(N,) bool: which axis-aligned boxes (N, 6: xmin, xmax, ymin, ymax, zmin, zmax) lie wholly outside one of
+    ``planes`` (from :func:`frustum_planes`). Conservative: a box reported inside may still miss the frustum."""
+    bounds = np.asarray(bounds, dtype=np.float64).reshape(-1, 6)
+    lower, upper = bounds[:, 0::2], bounds[:, 1::2]
+    planes = np.asarray(planes, dtype=np.float64)
+    # per box and plane, the corner farthest along the plane's normal
+    corner = np.where(planes[None, :, :3] > 0, upper[:, None, :], lower[:, None, :])
+    return ((corner * planes[None, :, :3]).sum(axis=2) + planes[None, :, 3] < 0).any(axis=1)
+
+
 # ---------------------------------------------------------------------------
 # VTK camera
 

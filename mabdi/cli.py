@@ -205,11 +205,12 @@ def _find_config(scene: str) -> Path:
     )
 
 
-def _apply_overrides(config, args) -> None:
-    """Command-line options onto the config, each through :func:`mabdi.config.set_value` (typed and checked)."""
+def _apply_overrides(config, args):
+    """The config with the command line's options and ``--set KEY=VALUE`` values on it, through
+    :func:`mabdi.config.with_overrides` (typed and checked as a config file is); returns the new config."""
     import tomllib
 
-    from mabdi.config import set_value, validate_run_config
+    from mabdi.config import with_overrides
     from mabdi.errors import ConfigError
 
     options = {
@@ -227,9 +228,7 @@ def _apply_overrides(config, args) -> None:
         "output.h5": True if getattr(args, "h5", False) else None,
         "output.movie": True if getattr(args, "movie", False) else None,
     }
-    for key, value in options.items():
-        if value is not None:
-            set_value(config, key, value, where="command line")
+    overrides = {key: value for key, value in options.items() if value is not None}
     for setting in getattr(args, "settings", []):
         key, equals, text = setting.partition("=")
         if not equals or not key.strip():
@@ -238,40 +237,20 @@ def _apply_overrides(config, args) -> None:
             value = tomllib.loads(f"value = {text}")["value"]
         except tomllib.TOMLDecodeError:
             value = text  # a bare word is a string: --set surface.method=quadtree
-        set_value(config, key.strip(), value, where="command line (--set)")
-    validate_run_config(config, where="command line")
-
-
-class ProgressBar:
-    """A one-line progress bar on stderr (only when stderr is a terminal)."""
-
-    def __init__(self, total: int | None, enabled: bool) -> None:
-        self.total = total  # None: not known (a resumed run)
-        self.enabled = enabled and sys.stderr.isatty()
-
-    def __call__(self, record) -> None:
-        if not self.enabled:
-            return
-        done = record.frame + 1
-        if self.total is None:
-            sys.stderr.write(f"\rframe {done}  map {record.cells_total:,} triangles ")
-            sys.stderr.flush()
-            return
-        width = 30
-        filled = int(width * done / self.total)
-        bar = "#" * filled + "." * (width - filled)
-        sys.stderr.write(f"\r[{bar}] frame {done}/{self.total}  map {record.cells_total:,} triangles ")
-        sys.stderr.flush()
-        if done == self.total:
-            sys.stderr.write("\n")
+        overrides[key.strip()] = value  # after the options: --set has the last word
+    return with_overrides(config, overrides, where="command line") if overrides else config
 
 
 def cmd_run(args) -> int:
+    """``mabdi run``: one :class:`~mabdi.simulate.run_pipeline.RunPipeline`, its observers chosen by the options."""
     from mabdi.config import RunConfig, load_run_config
     from mabdi.errors import ConfigError
     from mabdi.simulate import Simulation
+    from mabdi.simulate.run_pipeline import ProgressBar, RunPipeline
 
     if args.resume is not None:
+        from mabdi.simulate.runner import resume_run
+
         if args.config is not None or args.sequence is not None:
             raise ConfigError("run: --resume OUT takes the config and source of the run in OUT; give neither CONFIG nor --sequence")
         given = _resume_refused_options(args)
@@ -280,17 +259,15 @@ def cmd_run(args) -> int:
                 f"run: --resume OUT finishes the run in OUT with its own settings; {', '.join(given)} cannot be given "
                 "with it (only --quiet and --no-eval, which change no map); start a new run to change them"
             )
-        simulation, result = Simulation.resume(args.resume, progress=ProgressBar(None, not args.quiet), finish=False)
-        print(f"resumed {args.resume}")
-        if simulation.run_options.get("no_eval"):
-            args.no_eval = True  # the run was started with --no-eval: it stays unevaluated
-        elif args.no_eval:
-            print("note: --no-eval: the resumed run is not evaluated (its map is the same)")
-        return _report_run(args, simulation, result, getattr(simulation, "recording_note", None), None, None)
+        report = RunReport(heading=f"resumed {args.resume}")
+        pipeline = resume_run(args.resume, [ProgressBar(None, not args.quiet), report], evaluate=_evaluate, no_eval=args.no_eval or None)
+        if args.no_eval and not pipeline.run_options.get("no_eval"):
+            report.heading += "\nnote: --no-eval: the resumed run is not evaluated (its map is the same)"
+        return _report_run(pipeline, pipeline.run(), None)
     if args.config is None and args.sequence is None:
         raise ConfigError("run: give a run config (e.g. scenes/table.toml), or --sequence PATH")
     config = load_run_config(args.config) if args.config is not None else RunConfig()
-    _apply_overrides(config, args)
+    config = _apply_overrides(config, args)
     _check_run_options(args, config)
     note = None
     recording = None
@@ -322,29 +299,34 @@ def cmd_run(args) -> int:
         name = config.run.name or args.config.stem
         simulation = Simulation(config)
     out_dir = Path(config.output.dir) if config.output.dir else Path("runs") / name
-    progress = ProgressBar(simulation.frames, not args.quiet)
+    observers = [ProgressBar(simulation.frames, not args.quiet)]
     if args.rerun is not None:
         from mabdi.viz.rerun_log import rerun_progress
 
-        bar, logger = progress, rerun_progress(simulation, args.rerun or None)
-
-        def progress(record):
-            bar(record)
-            logger(record)
-
-    movie = dashboard_ms = None
+        observers.append(rerun_progress(simulation, args.rerun or None))
+    movie = None
     if config.output.movie:
-        from mabdi.viz.record import run_with_movie
+        from mabdi.viz.record import MovieObserver
 
-        result, movie, dashboard_ms = run_with_movie(
-            simulation, out_dir, config.output.snapshots or None, progress=progress, overwrite=args.overwrite, finish=False
-        )
-    else:
-        result = simulation.run(
-            out_dir, progress=progress, overwrite=args.overwrite, finish=False, recording=recording,
-            run_options={"no_eval": bool(args.no_eval)},
-        )
-    return _report_run(args, simulation, result, note, movie, dashboard_ms)
+        movie = MovieObserver(config.output.snapshots or None)
+        observers.append(movie)
+    observers.append(RunReport())
+    pipeline = RunPipeline(
+        simulation, out_dir, observers, evaluate=_evaluate, overwrite=args.overwrite, recording=recording,
+        run_options={"no_eval": bool(args.no_eval)}, note=note,
+    )
+    return _report_run(pipeline, pipeline.run(), movie)
+
+
+def _evaluate(simulation, result):
+    """``mabdi run``'s evaluation step: :func:`mabdi.evaluate.evaluate_run`, its warnings not shown."""
+    import warnings
+
+    from mabdi.evaluate import evaluate_run
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return evaluate_run(simulation, result)
 
 
 #: Options of ``mabdi run`` that --resume takes (the others could change the map, or are the run's own).
@@ -395,49 +377,42 @@ def registration_line(registration: dict) -> str:
     return line
 
 
-def _report_run(args, simulation, result, note, movie, dashboard_ms) -> int:
-    """Print a finished run, evaluate it (unless --no-eval), write summary.json last."""
-    import warnings
+class RunReport:
+    """Prints a run's totals as its loop ends, before the evaluation: an observer of the run's
+    :class:`~mabdi.simulate.run_pipeline.RunPipeline` (its one hook; the others are optional)."""
 
-    from mabdi.simulate.runner import finish_run
+    def __init__(self, heading: str | None = None) -> None:
+        self.heading = heading
 
-    summary = result.summary()
-    mode = "classifier on" if summary["classifier"] else "black box (classifier off)"
-    print(
-        f"{summary['frames']} frames in {summary['seconds']:.1f} s ({summary['frames_per_second']:.1f} frames/s), "
-        f"{mode}, surface {summary['surface']}"
-    )
-    print(f"map: {summary['cells']:,} triangles, {summary['points']:,} points, {summary['map_bytes'] / 2**20:.1f} MB")
-    print(registration_line(summary["registration"]))
-    metrics = None
-    evaluation = "skipped (--no-eval)" if args.no_eval else None
-    if note is not None and not args.no_eval:
-        print(f"note: {note}")
-        evaluation = f"skipped: {note}"
-    elif simulation.scene is None and not args.no_eval:
-        evaluation = "skipped: no ground-truth scene"
-    elif result.mesh.GetNumberOfCells() == 0 and not args.no_eval:
-        evaluation = "skipped: the map is empty"
-    elif not args.no_eval:
-        from mabdi.evaluate import evaluate_run
+    def on_loop_end(self, pipeline, result) -> None:
+        if self.heading:
+            print(self.heading)
+        summary = result.summary()
+        mode = "classifier on" if summary["classifier"] else "black box (classifier off)"
+        print(
+            f"{summary['frames']} frames in {summary['seconds']:.1f} s ({summary['frames_per_second']:.1f} frames/s), "
+            f"{mode}, surface {summary['surface']}"
+        )
+        print(f"map: {summary['cells']:,} triangles, {summary['points']:,} points, {summary['map_bytes'] / 2**20:.1f} MB")
+        print(registration_line(summary["registration"]))
+        if pipeline.note is not None and not pipeline.no_eval:
+            print(f"note: {pipeline.note}")
 
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            scores = evaluate_run(simulation, result)
-        metrics = scores.as_dict()
+
+def _report_run(pipeline, result, movie) -> int:
+    """Print a finished run's scores and where its files are (its totals were printed as its loop ended)."""
+    scores = result.scores
+    if scores is not None:
         growth = scores.growth_per_circle
         second = f", 2nd circle adds {100.0 * growth[1] / growth[0]:.1f}% of the 1st" if len(growth) > 1 and growth[0] else ""
         print(
             f"vs ground truth: F@1cm {scores.fscore_1cm:.3f}, F@2cm {scores.fscore_2cm:.3f}, "
             f"accuracy median {scores.accuracy_median_mm:.2f} mm, redundancy {100.0 * (scores.redundancy or 0.0):.1f}%{second}"
         )
-    finish_run(result, metrics, evaluation)
-    empty = result.mesh.GetNumberOfCells() == 0
-    if movie is not None:
-        movie = result.out_dir / Path(movie).name  # moved from the staging folder by finish_run
-        print(f"movie: {movie} ({simulation.frames} frames, dashboard {dashboard_ms:.0f} ms per frame)")
+    if movie is not None and movie.path is not None:
+        print(f"movie: {movie.path} ({pipeline.simulation.frames} frames, dashboard {movie.mean_ms:.0f} ms per frame)")
     print(f"results in {result.out_dir}/ (world_mesh.vtp, world_mesh.ply, metrics.csv, summary.json, elements.png)")
-    return 1 if empty else 0  # an empty map: the files are written (and valid), the warning above says why
+    return 1 if result.mesh.GetNumberOfCells() == 0 else 0  # an empty map: the files are written (valid), the warning says why
 
 
 def cmd_record(args) -> int:
@@ -445,7 +420,7 @@ def cmd_record(args) -> int:
     from mabdi.simulate.recorded import record
 
     config = load_run_config(args.config)
-    _apply_overrides(config, args)
+    config = _apply_overrides(config, args)
     written = record(config, args.out, args.format, storage=args.storage, encoding=args.encoding, overwrite=args.overwrite)
     kind = "TUM RGB-D folder" if args.format == "tum" else f"ROS 2 bag ({args.storage}, {args.encoding})"
     print(f"wrote {written} ({kind}, {config.run.frames} frames of {config.run.name or args.config.stem})")
@@ -467,7 +442,7 @@ def cmd_bench(args) -> int:
 
     path = _find_config(args.scene)
     config = load_run_config(path)
-    _apply_overrides(config, args)
+    config = _apply_overrides(config, args)
     out_dir = args.out if args.out is not None else Path("runs") / f"bench_{config.run.name or path.stem}"
     command = "mabdi " + " ".join(sys.argv[1:]) if sys.argv[1:2] == ["bench"] else None
     bench = run_bench(

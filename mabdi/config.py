@@ -17,8 +17,9 @@ section *is* that filter's parameter dataclass (``[classifier]`` is
 is :class:`~mabdi.filters.quadtree.QuadTreeParameters`, ...), whose defaults
 and checks are written once, in the filter's module; this module only reads
 TOML into them and adds the file and key to their error messages. Those
-dataclasses are frozen: change a value with :func:`set_value` (``"classifier.enabled"``,
-``"surface.quadtree.n_t"``), which also checks it.
+dataclasses are frozen: change values with :func:`with_overrides` (dotted keys such as
+``"classifier.enabled"``, ``"surface.quadtree.n_t"``; a new config, checked as a file is) or, in
+place, :func:`set_value`.
 
 ``load_run_config(path)`` reads a file; ``dump_toml(config)`` writes the
 resolved config back (saved next to a run's outputs). Relative mesh paths in
@@ -30,6 +31,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import math
+import re
 import tomllib
 import types
 import typing
@@ -345,11 +347,12 @@ def load_run_config(path) -> RunConfig:
     return config
 
 
-def run_config_from_dict(data: dict, where: str = "<config>", base_dir=None) -> RunConfig:
+def run_config_from_dict(data: dict, where: str = "<config>", base_dir=None, validate: bool = True) -> RunConfig:
     """Build and validate a :class:`RunConfig` from parsed TOML (``where`` names the file in errors).
 
     A waypoint or trajectory ``[path]`` without ``run.frames`` sets it to the path's own number of frames
     (:func:`mabdi.simulate.path.path_frame_count`; a trajectory ``file`` is relative to ``base_dir``).
+    ``validate=False`` leaves out the checks across sections (:func:`validate_run_config`).
     """
     from mabdi.simulate.path import check_path_keys
 
@@ -360,7 +363,8 @@ def run_config_from_dict(data: dict, where: str = "<config>", base_dir=None) -> 
     if config.path.kind != "helix" and not (isinstance(run_table, dict) and "frames" in run_table):
         config.frames_from_path = True
         _frames_from_path(config, where, base_dir)
-    validate_run_config(config, where)
+    if validate:
+        validate_run_config(config, where)
     return config
 
 
@@ -465,67 +469,91 @@ def _build_surface(data: dict, where: str, prefix: str) -> SurfaceConfig:
     return config
 
 
-def set_value(config: RunConfig, key: str, value, where: str = "command line") -> None:
-    """Set one value by its dotted key (``"run.frames"``, ``"classifier.enabled"``, ``"surface.quadtree.n_t"``).
-
-    The value is type-checked and converted as in a file; frozen parameter
-    sections are rebuilt with :func:`dataclasses.replace`, so their checks
-    run. Raises :class:`ConfigError` naming the key.
-    """
+def _set_dotted(data: dict, key: str, value, where: str) -> None:
+    """Set dotted ``key`` in parsed TOML ``data`` (tables by name, arrays of tables by index)."""
     parts = key.split(".")
-    if parts[0] == "surface" and len(parts) == 3:
-        name, attribute = parts[1], parts[2]
-        if name not in surface_filter_names():
-            raise ConfigError(f"{where}: unknown key '{key}' (surface filters: {', '.join(surface_filter_names())})")
-        cls = surface_filter(name).parameters
-        current = config.surface.parameters_of(name)
-        config.surface.parameters[name] = _replace_checked(current, attribute, value, where, key, cls)
-        return
-    if len(parts) == 3 and parts[0] in {f.name for f in dataclasses.fields(RunConfig) if f.metadata.get("toml", True)}:
-        section = getattr(config, parts[0])  # a sub-table of a section, e.g. sensor.pose_noise.jitter_rotation
-        sub_fields = {f.name for f in dataclasses.fields(section)} if dataclasses.is_dataclass(section) else set()
-        sub = getattr(section, parts[1]) if parts[1] in sub_fields else None
-        if dataclasses.is_dataclass(sub):
-            replaced = _replace_checked(sub, parts[2], value, where, key, type(sub))
-            if type(section).__dataclass_params__.frozen:
-                setattr(config, parts[0], dataclasses.replace(section, **{parts[1]: replaced}))
+    if not all(parts):
+        raise ConfigError(f"{where}: key '{key}' is not a dotted key (section.key, or surface.<filter>.key)")
+    node = data
+    for depth, part in enumerate(parts):
+        here = ".".join(parts[:depth]) or "the top level"
+        last = depth == len(parts) - 1
+        if isinstance(node, list):
+            if not part.isdigit() or int(part) >= len(node):
+                raise ConfigError(f"{where}: key '{key}': '{here}' is a list of {len(node)} items, '{part}' is not an index in it")
+            if last:
+                node[int(part)] = value
             else:
-                setattr(section, parts[1], replaced)
-            return
-    if len(parts) == 2 and parts[0] == "run" and parts[1] == "frames":
-        config.frames_from_path = False
-    if len(parts) == 2 and parts[0] == "path" and config.frames_from_path:
-        _replace_checked(config.path, parts[1], value, where, key, PathConfig)
-        base_dir = config.source.parent if config.source is not None else None
-        _frames_from_path(config, where, base_dir)
-        return
-    if len(parts) != 2 or parts[0] not in {f.name for f in dataclasses.fields(RunConfig) if f.metadata.get("toml", True)}:
-        raise ConfigError(f"{where}: unknown key '{key}' (a dotted key: section.key, or surface.<filter>.key)")
-    section_name, attribute = parts
-    section = getattr(config, section_name)
-    if isinstance(section, SurfaceConfig) and attribute == "method":
-        section.method = _convert(str, value, where, key)
-        return
-    if not dataclasses.is_dataclass(section) or isinstance(section, SceneConfig):
-        raise ConfigError(f"{where}: key '{key}' cannot be set this way")
-    replaced = _replace_checked(section, attribute, value, where, key, type(section))
-    if replaced is not section:
-        setattr(config, section_name, replaced)
+                node = node[int(part)]
+        elif isinstance(node, dict):
+            if last:
+                node[part] = value
+            else:
+                node = node.setdefault(part, {})
+        else:
+            raise ConfigError(f"{where}: unknown key '{key}': '{here}' is a value, not a table")
 
 
-def _replace_checked(section, attribute: str, value, where: str, key: str, cls):
-    fields = {f.name for f in dataclasses.fields(cls) if f.metadata.get("toml", True)}
-    if attribute not in fields:
-        raise ConfigError(f"{where}: unknown key '{key}' (known keys: {', '.join(sorted(fields))})")
-    converted = _convert(typing.get_type_hints(cls)[attribute], value, where, key)
-    params = getattr(cls, "__dataclass_params__", None)
-    if params is not None and params.frozen:
+def _overridden(config: RunConfig, overrides: dict, where: str, whole: bool) -> RunConfig:
+    data = tomllib.loads(dump_toml(config))
+    if config.frames_from_path:  # the frames follow a waypoint or trajectory path unless an override sets them
+        data.get("run", {}).pop("frames", None)
+    for key, value in overrides.items():
+        _set_dotted(data, key, value, where)
+    base_dir = config.source.parent if config.source is not None else None
+    resolved = run_config_from_dict(data, where=where, base_dir=base_dir, validate=whole)
+    resolved.source = config.source
+    return resolved
+
+
+def with_overrides(config: RunConfig, overrides: dict, where: str = "<overrides>", whole: bool = True) -> RunConfig:
+    """A new RunConfig: ``config`` with the values of ``overrides`` (dotted key -> value) set, the whole checked.
+
+    The one way a config is changed after it is read (``mabdi run``'s options
+    and ``--set``, a sweep's grid and ``[set]``, the bench's methods,
+    :func:`set_value`). Keys are dotted paths into the TOML of the config:
+    ``"run.frames"``, ``"classifier.enabled"``, a surface filter's parameter
+    ``"surface.quadtree.n_t"``, a sub-table's ``"sensor.pose_noise.jitter_rotation"``,
+    list items by index ``"scene.objects.0.position"``. The resolved config
+    is written as TOML (:func:`dump_toml`), the values are set at their paths,
+    and the result is read back by :func:`run_config_from_dict`: every check
+    a config file gets (unknown keys, types, ranges, the filters' own
+    parameter checks, the checks across sections) runs, and nothing else
+    needs to know the config's layout. An error is a :class:`ConfigError`
+    naming ``where`` and the key that caused it. ``config`` is not changed;
+    the new one keeps its ``source`` (relative mesh paths stay resolved
+    against the same folder). ``whole=False`` leaves out the checks across
+    sections (:func:`validate_run_config`: a principal point inside the image
+    width, say), for a config changed one value at a time.
+    """
+    try:
+        return _overridden(config, overrides, where, whole)
+    except ConfigError as exc:
+        error, culprit = exc, None
+    for key, value in overrides.items():  # the key that fails on its own, when one does
         try:
-            return dataclasses.replace(section, **{attribute: converted})
-        except ConfigError as exc:
-            raise ConfigError(f"{where}: key '{key}': {exc}") from None
-    setattr(section, attribute, converted)
-    return section
+            _overridden(config, {key: value}, where, whole)
+        except ConfigError as alone:
+            error, culprit = alone, key
+            break
+    detail = str(error).removeprefix(f"{where}: ")
+    if culprit is None or f"'{culprit}'" in detail:
+        raise ConfigError(f"{where}: {detail}") from None
+    detail = re.sub(r"^\[[^\]]*\] ", "", detail)  # the section: the key names it
+    raise ConfigError(f"{where}: key '{culprit}': {detail}") from None
+
+
+def set_value(config: RunConfig, key: str, value, where: str = "command line") -> None:
+    """Set one value of ``config`` in place by its dotted key: :func:`with_overrides` applied to ``config`` itself.
+
+    The value's type and its section's own checks run; the checks across
+    sections wait for :func:`validate_run_config` (a config may pass through
+    such a state while its values are set one by one: the width, then cx).
+    Raises :class:`ConfigError` naming the key; ``config`` is unchanged then.
+    """
+    resolved = with_overrides(config, {key: value}, where, whole=False)
+    for f in dataclasses.fields(RunConfig):
+        setattr(config, f.name, getattr(resolved, f.name))
 
 
 def _check_choice(value: str, choices, where: str, key: str) -> None:

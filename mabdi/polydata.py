@@ -5,13 +5,20 @@ from __future__ import annotations
 import numpy as np
 from vtkmodules.util.numpy_support import numpy_to_vtk, numpy_to_vtkIdTypeArray, vtk_to_numpy
 from vtkmodules.vtkCommonCore import vtkPoints
-from vtkmodules.vtkCommonDataModel import vtkCellArray, vtkCompositeDataSet, vtkDataObjectTreeIterator, vtkPolyData
+from vtkmodules.vtkCommonDataModel import (
+    vtkCellArray,
+    vtkCompositeDataSet,
+    vtkDataObject,
+    vtkDataObjectTreeIterator,
+    vtkMultiBlockDataSet,
+    vtkPolyData,
+)
 from vtkmodules.vtkFiltersCore import vtkTriangleFilter
 
-#: Cell data of every block of the map: the face's 24-bit identity as uint8 RGB (red = low byte), drawn by the
-#: expected-image renderer so that E says which face each pixel shows. Written by
-#: :class:`mabdi.filters.world_mesh.FilterWorldMesh`, read by :class:`mabdi.filters.expected_image.FilterExpectedImage`;
-#: not part of :meth:`FilterWorldMesh.mesh`.
+from mabdi.camera import boxes_outside
+
+#: Cell data the expected-image renderer draws each map face in: its 24-bit code as uint8 RGB (red = low byte), on
+#: the renderer's own copy of a block (:mod:`mabdi.face_identity`), never on the map.
 FACE_RGB_ARRAY = "face_rgb"
 
 
@@ -203,23 +210,56 @@ def transformed_polydata(mesh: vtkPolyData, matrix: np.ndarray) -> vtkPolyData:
 
 def polydata_leaves(data) -> list[vtkPolyData]:
     """The vtkPolyData of ``data``: itself, or the non-empty leaves of a composite dataset."""
+    return [leaf for _, leaf in named_leaves(data)]
+
+
+def named_leaves(data, planes: np.ndarray | None = None) -> list[tuple[str, vtkPolyData]]:
+    """(name, polydata) of the non-empty leaves of ``data`` (a vtkPolyData is one leaf named ``""``).
+
+    A leaf's name is its block's metadata NAME (the world map's patch key), else its path of block numbers.
+    With ``planes`` (:func:`mabdi.camera.frustum_planes`), a block whose metadata holds a BOUNDING_BOX wholly
+    outside them is skipped with everything under it (the world map's chunks carry theirs).
+    """
     if isinstance(data, vtkPolyData):
-        return [data]
+        return [("", data)] if data.GetNumberOfCells() else []
     if not isinstance(data, vtkCompositeDataSet):
         raise TypeError(
             "expected a vtkPolyData or a composite dataset of polydata, "
             f"got {data.GetClassName() if data is not None else None}"
         )
-    leaves = []
-    iterator = vtkDataObjectTreeIterator()
-    iterator.SetDataSet(data)
-    iterator.SkipEmptyNodesOn()
-    iterator.VisitOnlyLeavesOn()
-    iterator.InitTraversal()
-    while not iterator.IsDoneWithTraversal():
-        leaf = iterator.GetCurrentDataObject()
-        if not isinstance(leaf, vtkPolyData):
-            raise TypeError(f"composite dataset has a {leaf.GetClassName()} block; only vtkPolyData can be rendered")
-        leaves.append(leaf)
-        iterator.GoToNextItem()
+    leaves: list[tuple[str, vtkPolyData]] = []
+    _collect_leaves(data, "", planes, leaves)
     return leaves
+
+
+def _collect_leaves(tree, prefix: str, planes, leaves: list) -> None:
+    if not isinstance(tree, vtkMultiBlockDataSet):  # other composites: every leaf, by iterator
+        iterator = vtkDataObjectTreeIterator()
+        iterator.SetDataSet(tree)
+        iterator.SkipEmptyNodesOn()
+        iterator.VisitOnlyLeavesOn()
+        iterator.InitTraversal()
+        while not iterator.IsDoneWithTraversal():
+            leaf = iterator.GetCurrentDataObject()
+            if not isinstance(leaf, vtkPolyData):
+                raise TypeError(f"composite dataset has a {leaf.GetClassName()} block; only vtkPolyData can be rendered")
+            if leaf.GetNumberOfCells():
+                leaves.append((f"{prefix}{iterator.GetCurrentFlatIndex()}", leaf))
+            iterator.GoToNextItem()
+        return
+    for index in range(tree.GetNumberOfBlocks()):
+        block = tree.GetBlock(index)
+        if block is None:
+            continue
+        meta = tree.GetMetaData(index) if tree.HasMetaData(index) else None
+        name = meta.Get(vtkCompositeDataSet.NAME()) if meta is not None and meta.Has(vtkCompositeDataSet.NAME()) else None
+        if planes is not None and meta is not None and meta.Has(vtkDataObject.BOUNDING_BOX()):
+            if boxes_outside(meta.Get(vtkDataObject.BOUNDING_BOX()), planes)[0]:
+                continue
+        if isinstance(block, vtkPolyData):
+            if block.GetNumberOfCells():
+                leaves.append((name if name is not None else f"{prefix}{index}", block))
+        elif isinstance(block, vtkCompositeDataSet):
+            _collect_leaves(block, f"{prefix}{index}/", planes, leaves)
+        else:
+            raise TypeError(f"composite dataset has a {block.GetClassName()} block; only vtkPolyData can be rendered")

@@ -238,46 +238,13 @@ def load_sweep(path) -> SweepSpec:
 # Overrides
 
 
-def _set_key(data: dict, key: str, value, where: str) -> None:
-    """Set dotted ``key`` in parsed TOML ``data`` (tables by name, arrays of tables by index)."""
-    parts = key.split(".")
-    node = data
-    for depth, part in enumerate(parts):
-        here = ".".join(parts[:depth]) or "the top level"
-        last = depth == len(parts) - 1
-        if isinstance(node, list):
-            if not part.isdigit() or int(part) >= len(node):
-                raise ConfigError(f"{where}: key '{key}': '{here}' is a list of {len(node)} items, '{part}' is not an index in it")
-            if last:
-                node[int(part)] = value
-            else:
-                node = node[int(part)]
-        elif isinstance(node, dict):
-            if last:
-                node[part] = value
-            else:
-                node = node.setdefault(part, {})
-        else:
-            raise ConfigError(f"{where}: unknown key '{key}': '{here}' is a value, not a table")
-
-
 def apply_overrides(config, overrides: dict, where: str = "<overrides>"):
-    """A new RunConfig: ``config`` with dotted-key ``overrides`` applied and the whole validated.
+    """A new RunConfig: ``config`` with dotted-key ``overrides`` applied and the whole validated
+    (:func:`mabdi.config.with_overrides`, the one override mechanism; a :class:`ConfigError` names
+    ``where`` and the key)."""
+    from mabdi.config import with_overrides
 
-    Generic over the config's layout: the resolved config is written as TOML
-    (:func:`mabdi.config.dump_toml`), the values are set at their dotted
-    paths, and the config is read back by :func:`mabdi.config.run_config_from_dict`,
-    so unknown keys, types and ranges are checked by :mod:`mabdi.config`
-    itself (a :class:`ConfigError` naming ``where`` and the key).
-    """
-    from mabdi.config import dump_toml, run_config_from_dict
-
-    data = tomllib.loads(dump_toml(config))
-    for key, value in overrides.items():
-        _set_key(data, key, value, where)
-    resolved = run_config_from_dict(data, where=where)
-    resolved.source = config.source
-    return resolved
+    return with_overrides(config, overrides, where)
 
 
 def config_hash(config, samples: int) -> str:
@@ -330,17 +297,22 @@ def sweep_cells(spec: SweepSpec) -> list[Cell]:
 def run_cell(config, out_dir, samples: int | None = None) -> dict:
     """Run ``config`` into ``out_dir`` and score it: the measured columns of a row (:data:`MEASURES`).
 
-    What ``mabdi run`` does for one config; any error becomes ``{"error": ...}``.
+    What ``mabdi run`` does for one config (its :class:`~mabdi.simulate.run_pipeline.RunPipeline`, the
+    evaluation with ``samples`` a side); any error becomes ``{"error": ...}``.
     """
     try:
+        from functools import partial
+
         from mabdi.evaluate.metrics import SAMPLES, evaluate_run
         from mabdi.simulate import Simulation
+        from mabdi.simulate.run_pipeline import RunPipeline
 
-        simulation = Simulation(config)
-        result = simulation.run(Path(out_dir))
-        start = time.perf_counter()
-        metrics = evaluate_run(simulation, result, samples=samples or SAMPLES)
-        eval_seconds = time.perf_counter() - start
+        evaluate = partial(evaluate_run, samples=samples or SAMPLES)
+        result = RunPipeline(Simulation(config), Path(out_dir), evaluate=evaluate, evaluate_empty=True).run()
+        metrics = result.scores
+        if metrics is None:
+            raise ValueError(f"the run was not evaluated: {result.evaluation}")
+        eval_seconds = result.evaluation_seconds
         summary = result.summary()
         return {
             "fscore_1cm": metrics.fscore_1cm,

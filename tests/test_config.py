@@ -142,7 +142,7 @@ def test_set_value_checks_and_names_the_key(tmp_path):
     assert config.classifier.enabled is False and config.run.frames == 7
     with pytest.raises(ConfigError, match="key 'classifier.tau_min': tau_min must be > 0"):
         set_value(config, "classifier.tau_min", -1.0)
-    with pytest.raises(ConfigError, match="unknown key 'classifier.tau'"):
+    with pytest.raises(ConfigError, match="key 'classifier.tau': unknown key 'tau' in \\[classifier\\]"):
         set_value(config, "classifier.tau", 1.0)
     with pytest.raises(ConfigError, match="must be true or false"):
         set_value(config, "classifier.enabled", "yes")

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from vtkmodules.util.numpy_support import numpy_to_vtk
 from vtkmodules.vtkCommonDataModel import vtkCellLocator
 
 import mabdi
@@ -15,7 +14,7 @@ from mabdi.depth import DepthFrame, image_pose
 from mabdi.filters.depth_image import DepthRenderer
 from mabdi.filters.registration import RegistrationParameters
 from mabdi.filters.removal import RemovalParameters, depth_edges, update_log_odds
-from mabdi.filters.world_mesh import FACE_RGB_ARRAY, FaceIds, face_rgb
+from mabdi.face_identity import FaceCodes, FaceIdTable
 from mabdi.polydata import polydata_arrays
 from mabdi.sources.frames import FrameList
 
@@ -25,15 +24,16 @@ SMALL = Intrinsics(fx=160, fy=160, cx=80, cy=60, width=160, height=120)
 def test_identity_render_names_the_face_under_each_pixel_centre():
     mesh = plane_mesh([0, 0, 2], [0, 0, -1], size=4.0, subdivisions=40)
     count = mesh.GetNumberOfCells()
-    rgb = numpy_to_vtk(face_rgb(1000, count), deep=True)
-    rgb.SetName(FACE_RGB_ARRAY)
-    mesh.GetCellData().AddArray(rgb)
-    renderer = DepthRenderer(identity_array=FACE_RGB_ARRAY)
+    renderer = DepthRenderer(face_identity=True)
     intrinsics = Intrinsics()
     pose = np.eye(4)
     pose[:3, 3] = [0.013, -0.021, 0.0]  # pixel centres off the mesh's vertices
     renderer.render_zbuffer(mesh, intrinsics, pose)
     identity = renderer.render_identity()
+    table = renderer.identities
+    assert table.names == [""] and table.counts.tolist() == [count]  # one polydata drawn: one range of codes
+    assert mesh.GetCellData().GetArray("face_rgb") is None  # the codes live on the renderer's copy, not the map
+    block, local = table.lookup(identity)
     locator = vtkCellLocator()
     locator.SetDataSet(mesh)
     locator.BuildLocator()
@@ -41,19 +41,22 @@ def test_identity_render_names_the_face_under_each_pixel_centre():
     rng = np.random.default_rng(1)
     for v, u in zip(rng.integers(0, 480, 200), rng.integers(0, 640, 200), strict=True):
         point = rays[v, u] * 2.0 + pose[:3, 3]
-        assert identity[v, u] == 1000 + locator.FindCell(point), (v, u)
-    assert set(np.unique(identity)) <= set(range(1000, 1000 + count))
+        assert block[v, u] == 0 and local[v, u] == locator.FindCell(point), (v, u)
+    assert (block == 0).all()
 
 
-def test_face_ids_are_allocated_first_fit_and_looked_up():
-    ids = FaceIds()
-    assert ids.allocate("a", 10) == 1 and ids.allocate("b", 5) == 11 and ids.allocate("c", 3) == 16
-    ids.release("b")
-    assert ids.allocate("d", 4) == 11  # reuses the gap
-    block, local, keys = ids.lookup(np.array([1, 10, 11, 14, 15, 16, 18, 19, 0]))
-    named = [keys[b] if b >= 0 else None for b in block]
+def test_face_codes_are_allocated_first_fit_and_looked_up():
+    codes = FaceCodes()
+    assert codes.allocate("a", 10) == 1 and codes.allocate("b", 5) == 11 and codes.allocate("c", 3) == 16
+    codes.release("b")
+    assert codes.allocate("d", 4) == 11  # reuses the gap
+    table = FaceIdTable(list(codes.ranges), *np.array(list(codes.ranges.values())).T)
+    block, local = table.lookup(np.array([1, 10, 11, 14, 15, 16, 18, 19, 0]))
+    named = [table.names[b] if b >= 0 else None for b in block]
     assert named == ["a", "a", "d", "d", None, "c", "c", None, None]
     assert local[:7].tolist() == [0, 9, 0, 3, -1, 0, 2]
+    with pytest.raises(MemoryError, match="faces"):
+        codes.allocate("e", 2**24)
 
 
 def test_one_noisy_frame_never_removes_a_face():

@@ -10,6 +10,7 @@ from conftest import plane_mesh
 from mabdi.camera import Intrinsics, look_at
 from mabdi.depth import DepthFrame
 from mabdi.filters.depth_image import FilterDepthImage
+from mabdi.face_identity import FaceIdTable
 from mabdi.filters.world_mesh import FilterWorldMesh
 
 
@@ -109,7 +110,7 @@ def test_expected_image_from_blocks_equals_the_merged_mesh_and_keeps_block_actor
     expected.Update()
     from_blocks = DepthFrame.from_image(expected.GetOutput()).depth
     for key, entry in actors_before.items():
-        assert expected.renderer._actors[key][1] is entry[1]  # the first block's actor (and upload) is reused
+        assert expected.renderer._actors[key].actor is entry.actor  # the first block's actor (and upload) is reused
     assert len(expected.renderer._actors) == 2
     merged = FilterDepthImage(intrinsics=expected.intrinsics)
     merged.SetInputDataObject(world.mesh())
@@ -119,7 +120,9 @@ def test_expected_image_from_blocks_equals_the_merged_mesh_and_keeps_block_actor
     assert np.isfinite(from_blocks).mean() > 0.5
 
 
-def test_removed_blocks_lose_their_actors():
+def test_removed_blocks_are_hidden_then_lose_their_actors():
+    from mabdi.filters.depth_image import KEEP_HIDDEN_RENDERS
+
     world = FilterWorldMesh()
     world.add_patch("a", plane_mesh([0, 0, 0], [0, 0, 1]), 0)
     world.add_patch("b", plane_mesh([0, 0, 1], [0, 0, 1]), 0)
@@ -130,6 +133,11 @@ def test_removed_blocks_lose_their_actors():
     assert len(expected.renderer._actors) == 2
     assert world.remove_patch("a") == -2
     expected.Update()
+    visible = [entry for entry in expected.renderer._actors.values() if entry.actor.GetVisibility()]
+    assert len(visible) == 1
+    for _ in range(KEEP_HIDDEN_RENDERS):
+        expected.Modified()
+        expected.Update()
     assert len(expected.renderer._actors) == 1
 
 
@@ -154,22 +162,21 @@ def test_a_re_meshed_patch_keeps_the_removal_evidence_of_the_faces_it_replaces()
 
     world = FilterWorldMesh()
     world.add_patch("patch_7", plane_mesh((0, 0, 2), (0, 0, 1), size=1.0, subdivisions=4), frame=0)
-    base, count = world._ids._ranges["patch_7"]
-    ids = np.arange(base, base + count)
+    count = world.number_of_cells
+    table = FaceIdTable(["patch_7"], [100], [count])  # as an expected image that drew the patch at codes 100..
+    ids = np.arange(100, 100 + count)
     contradicted = np.zeros(count, dtype=bool)
     contradicted[:10] = True
-    assert not len(world.update_evidence(ids, contradicted, ~contradicted, RemovalParameters()))
-    before = world.face_evidence_of(ids)
+    assert not len(world.update_evidence(ids, contradicted, ~contradicted, RemovalParameters(), table))
+    before = world.face_evidence_of(ids, table)
     assert (before[:10] > 0).all() and (before[10:] <= 0).all()
 
     # the same faces, their vertices moved by a millimetre, and one new face 5 m away
     again = plane_mesh((0, 0, 2.001), (0, 0, 1), size=1.0, subdivisions=4)
     world.add_patch("patch_7", again, frame=1)
-    base, count = world._ids._ranges["patch_7"]
-    np.testing.assert_array_equal(world.face_evidence_of(np.arange(base, base + count)), before)
+    np.testing.assert_array_equal(world.face_evidence_of(ids, table), before)
     world.add_patch("patch_7", plane_mesh((5, 0, 2), (0, 0, 1), size=1.0, subdivisions=4), frame=2)
-    base, count = world._ids._ranges["patch_7"]
-    assert (world.face_evidence_of(np.arange(base, base + count)) == 0).all()
+    assert (world.face_evidence_of(ids, table) == 0).all()
 
 
 def test_moving_points_changes_the_block_and_its_face_normals_only():
@@ -179,15 +186,17 @@ def test_moving_points_changes_the_block_and_its_face_normals_only():
     append(world, with_frame(plane_mesh([0, 0, 0], [0, 0, 1], subdivisions=2), 0))
     block = world.block("frame_0")
     points = vtk_to_numpy(block.GetPoints().GetData()).copy()
-    ids = np.arange(1, world.number_of_cells + 1)  # the first block's faces: identities 1..8
-    assert np.allclose(world.face_normals_of(ids) @ [0, 0, 1], 1.0) or np.allclose(world.face_normals_of(ids) @ [0, 0, 1], -1.0)
+    table = FaceIdTable(["frame_0"], [1], [world.number_of_cells])
+    ids = np.arange(1, world.number_of_cells + 1)  # the block's faces drawn as codes 1..8
+    normals = world.face_normals_of(ids, table)
+    assert np.allclose(normals @ [0, 0, 1], 1.0) or np.allclose(normals @ [0, 0, 1], -1.0)
     centre = int(np.argmin(np.linalg.norm(points[:, :2] - points[:, :2].mean(axis=0), axis=1)))
     world.move_points("frame_0", [centre], [points[centre] + [0.0, 0.0, 5.0]])
     moved = vtk_to_numpy(block.GetPoints().GetData())
     np.testing.assert_allclose(moved[centre], points[centre] + [0.0, 0.0, 5.0], atol=1e-6)
     others = np.arange(len(points)) != centre
     np.testing.assert_array_equal(moved[others], points[others])
-    tilted = np.abs(world.face_normals_of(ids)[:, 2]) < 0.999
+    tilted = np.abs(world.face_normals_of(ids, table)[:, 2]) < 0.999
     assert tilted.sum() == 6  # the six triangles around the centre vertex of a 2x2 grid (diagonals one way)
     with pytest.raises(ValueError, match="frame_0"):
         world.move_points("frame_0", [0, 1], np.zeros((1, 3)))

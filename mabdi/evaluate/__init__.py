@@ -3,6 +3,7 @@
 from mabdi.evaluate.distance import distances_to_mesh
 from mabdi.evaluate.dynamic import (
     Departure,
+    GhostObserver,
     GhostRun,
     GhostTracker,
     StaticCoverage,
@@ -22,6 +23,7 @@ from mabdi.evaluate.sampling import SurfaceSamples, sample_surface
 
 __all__ = [
     "Departure",
+    "GhostObserver",
     "GhostRun",
     "GhostTracker",
     "MapHistory",

@@ -7,6 +7,10 @@ and every method reads them from there:
 
 * ``mabdi``: the MABDI loop with the config's surface filter and classifier;
 * ``black_box``: the same runner with the classifier off;
+
+  both are a :class:`~mabdi.simulate.run_pipeline.RunPipeline` (nothing
+  written; in a scene an object leaves, a
+  :class:`~mabdi.evaluate.dynamic.GhostObserver` watches it);
 * ``tsdf_1cm``, ``tsdf_2cm``: Open3D's VoxelBlockGrid TSDF (optional; see
   :mod:`mabdi.evaluate.tsdf`), skipped with a note when Open3D is missing.
   The peer runs at its best: with ``tune=True`` (the default of ``mabdi
@@ -25,20 +29,20 @@ numbers, the machine, the command), ``bench.md`` (the table) and
 
 from __future__ import annotations
 
-import copy
 import json
 import os
 import platform
 import shutil
 import subprocess
 import sys
+from functools import partial
 from pathlib import Path
 
 import numpy as np
 import vtkmodules
 
-from mabdi.config import RunConfig, set_value
-from mabdi.evaluate.dynamic import GhostTracker, departures, run_with_ghosts
+from mabdi.config import RunConfig, with_overrides
+from mabdi.evaluate.dynamic import GhostObserver, GhostTracker, departures
 from mabdi.evaluate.metrics import SAMPLES, evaluate_map, evaluate_run, observed_ground_truth, scenes_per_pose
 from mabdi.evaluate.tsdf import TsdfSettings, alignment_error, open3d_status, run_tsdf, tune_tsdf
 from mabdi.filters.depth_image import SensorNoise
@@ -46,6 +50,7 @@ from mabdi.io.atomic import write_text
 from mabdi.io.plots import write_elements_plot
 from mabdi.simulate.rig import SimulatedRig
 from mabdi.io.run_folder import prepare_output_dir
+from mabdi.simulate.run_pipeline import RunPipeline
 from mabdi.simulate.runner import Simulation
 from mabdi.sources.frames import FrameList
 
@@ -91,12 +96,17 @@ def machine_info(rig: SimulatedRig | None = None) -> dict:
     return info
 
 
-def _mabdi_row(name: str, simulation: Simulation, result, observed) -> dict:
-    metrics = evaluate_run(simulation, result, observed=observed)
+def _evaluate(simulation: Simulation, result, progress, method: str, observed):
+    """The bench's evaluation step of a run: the map against the samples every method is scored on."""
+    progress(f"{method}: evaluating {result.mesh.GetNumberOfCells():,} triangles")
+    return evaluate_run(simulation, result, observed=observed)
+
+
+def _mabdi_row(name: str, result) -> dict:
     summary = result.summary()
     return {
         "method": name,
-        "metrics": metrics.as_dict(),
+        "metrics": result.scores.as_dict(),
         "ms_per_frame": summary["mean_ms"],
         "seconds": summary["seconds"],
         "triangles_per_frame": [int(c) for c in result.cells],
@@ -166,20 +176,16 @@ def run_bench(
     rows, notes = [], []
     for method in methods:
         if method in ("mabdi", "black_box"):
-            method_config = copy.deepcopy(config)
-            set_value(method_config, "classifier.enabled", method == "mabdi")
+            method_config = with_overrides(config, {"classifier.enabled": method == "mabdi"}, where=f"bench method {method}")
             progress(f"{method}: running {len(frames)} frames")
             simulation = Simulation(method_config, source=frames, scene=rig.scene)
+            # in a scene an object leaves, the map after every few frames against the scene as it is then
+            ghosts = GhostObserver(every=max(1, len(frames) // 25)) if dynamic else None
+            evaluate = partial(_evaluate, progress=progress, method=method, observed=observed)
+            result = RunPipeline(simulation, observers=[ghosts] if ghosts else [], evaluate=evaluate, evaluate_empty=True).run()
+            rows.append(_mabdi_row(method, result))
             if dynamic:
-                # the map after every few frames against the scene as it is then (ghosts, static loss)
-                ghosts = run_with_ghosts(simulation, every=max(1, len(frames) // 25))
-                result = ghosts.result
-            else:
-                result = simulation.run()
-            progress(f"{method}: evaluating {result.mesh.GetNumberOfCells():,} triangles")
-            rows.append(_mabdi_row(method, simulation, result, observed))
-            if dynamic:
-                rows[-1]["dynamic"] = _dynamic(ghosts)
+                rows[-1]["dynamic"] = _dynamic(ghosts.ghosts)
             continue
         usable, reason = open3d_status()
         if not usable:

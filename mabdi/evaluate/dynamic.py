@@ -44,9 +44,10 @@ it stands at each frame (:meth:`mabdi.sources.scene.SourceScene.mesh_at`).
   at the end and the departed objects, the share of static ones the final
   map keeps and of dynamic ones it removed (``GhostRun.removal``).
 
-:func:`run_with_ghosts` steps a :class:`mabdi.simulate.Simulation`'s loop
-frame by frame and measures all of this; :class:`GhostTracker` does the
-measuring for any map one hands it (a TSDF's extracted mesh, say).
+:class:`GhostObserver` measures all of this as a run goes (an observer of
+:class:`mabdi.simulate.run_pipeline.RunPipeline`; :func:`run_with_ghosts`
+runs a Simulation with one); :class:`GhostTracker` does the measuring for
+any map one hands it (a TSDF's extracted mesh, say).
 """
 
 from __future__ import annotations
@@ -63,6 +64,7 @@ from mabdi.evaluate.removal_accuracy import MapHistory, RemovalAccuracy, removal
 from mabdi.evaluate.sampling import SAMPLE_SEED, sample_surface
 from mabdi.filters.depth_image import SensorRenderer
 from mabdi.polydata import triangles_polydata
+from mabdi.simulate.run_pipeline import RunObserver, RunPipeline
 
 #: A map point this far (m) from the scene as it is is a ghost.
 GHOST_THRESHOLD = 0.03
@@ -430,6 +432,64 @@ class GhostTracker:
         )
 
 
+class GhostObserver(RunObserver):
+    """Watches a run (:class:`~mabdi.simulate.run_pipeline.RunPipeline`) and measures its map every ``every``
+    frames and after the last, against the scene as it stands at that frame (a :class:`GhostTracker`).
+
+    The scene is the simulation's (or its rig's); the first sight of each
+    departed object is judged from the poses the sensor really had. After the
+    run, ``ghosts`` is the :class:`GhostRun` (its ``result`` the run's
+    :class:`~mabdi.simulate.run_outputs.RunResult`, ``loop_seconds`` the
+    loop's steps alone). ``progress(frame, share)`` is called after each
+    measurement.
+    """
+
+    def __init__(
+        self,
+        every: int = 1,
+        threshold: float = GHOST_THRESHOLD,
+        samples: int = GHOST_SAMPLES,
+        static_every: int = 1,
+        min_pixels: int = MIN_PIXELS,
+        progress=None,
+    ) -> None:
+        self.every = max(1, int(every))
+        self.threshold = threshold
+        self.samples = samples
+        self.static_every = static_every
+        self.min_pixels = min_pixels
+        self.progress = progress
+        self.tracker: GhostTracker | None = None
+        self.ghosts: GhostRun | None = None
+
+    def on_start(self, pipeline) -> None:
+        simulation = pipeline.simulation
+        scene = simulation.scene if simulation.scene is not None else simulation.rig.scene
+        true_poses = getattr(simulation, "true_poses", None)
+        self.tracker = GhostTracker(
+            scene,
+            simulation.frames,
+            simulation.poses if true_poses is None else true_poses,  # what the sensor saw
+            simulation.source.intrinsics,
+            threshold=self.threshold,
+            samples=self.samples,
+            static_every=self.static_every,
+            min_pixels=self.min_pixels,
+            backend=simulation.config.sensor.backend,
+        )
+
+    def on_frame(self, pipeline, record) -> None:
+        i = record.frame
+        last = i == pipeline.simulation.frames - 1
+        if i % self.every == 0 or last:
+            share = self.tracker.measure(i, pipeline.simulation.loop.mesh(), final=last)
+            if self.progress is not None:
+                self.progress(i, share)
+
+    def on_loop_end(self, pipeline, result) -> None:
+        self.ghosts = self.tracker.finish(result.records, result, result.seconds)
+
+
 def run_with_ghosts(
     simulation,
     every: int = 1,
@@ -439,42 +499,12 @@ def run_with_ghosts(
     min_pixels: int = MIN_PIXELS,
     progress=None,
 ) -> GhostRun:
-    """Run ``simulation``'s loop frame by frame, measuring the map every ``every`` frames and after the last.
+    """Run ``simulation`` (a :class:`~mabdi.simulate.run_pipeline.RunPipeline`, nothing written) with a
+    :class:`GhostObserver` measuring the map every ``every`` frames and after the last.
 
-    The loop is reset first. The scene is ``simulation.scene`` (or its rig's);
-    each map is judged against the scene as it stands at that frame. Returns
-    a :class:`GhostRun` (``records, shares = run_with_ghosts(sim)``) whose
-    ``result`` is the run's :class:`~mabdi.simulate.runner.RunResult`.
+    Returns a :class:`GhostRun` (``records, shares = run_with_ghosts(sim)``) whose ``result`` is the
+    run's :class:`~mabdi.simulate.run_outputs.RunResult`.
     """
-    from mabdi.simulate.runner import RunResult
-
-    scene = simulation.scene if simulation.scene is not None else simulation.rig.scene
-    frames = simulation.frames
-    tracker = GhostTracker(
-        scene,
-        frames,
-        simulation.poses if getattr(simulation, "true_poses", None) is None else simulation.true_poses,  # what the sensor saw
-        simulation.source.intrinsics,
-        threshold=threshold,
-        samples=samples,
-        static_every=static_every,
-        min_pixels=min_pixels,
-        backend=simulation.config.sensor.backend,
-    )
-    loop = simulation.loop
-    loop.reset()
-    records = []
-    loop_seconds = 0.0
-    every = max(1, int(every))
-    for i in range(frames):
-        start = time.perf_counter()
-        records.append(loop.step(i))
-        loop_seconds += time.perf_counter() - start
-        last = i == frames - 1
-        if i % every == 0 or last:
-            share = tracker.measure(i, loop.mesh(), final=last)
-            if progress is not None:
-                progress(i, share)
-    mesh = loop.mesh()
-    result = RunResult(simulation.config, records, mesh, loop.memory_bytes(), loop_seconds, source=simulation.source.description)
-    return tracker.finish(records, result, loop_seconds)
+    observer = GhostObserver(every, threshold, samples, static_every, min_pixels, progress)
+    RunPipeline(simulation, observers=[observer]).run()
+    return observer.ghosts

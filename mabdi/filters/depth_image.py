@@ -81,7 +81,7 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from vtkmodules.util.numpy_support import vtk_to_numpy
+from vtkmodules.util.numpy_support import numpy_to_vtk, vtk_to_numpy
 from vtkmodules.vtkCommonCore import vtkFloatArray, vtkUnsignedCharArray
 from vtkmodules.vtkCommonDataModel import vtkCompositeDataSet, vtkDataObject, vtkImageData, vtkPolyData
 from vtkmodules.vtkCommonExecutionModel import vtkStreamingDemandDrivenPipeline
@@ -89,12 +89,20 @@ from vtkmodules.vtkRenderingCore import vtkActor, vtkMapper, vtkPolyDataMapper, 
 
 import vtkmodules.vtkRenderingOpenGL2  # noqa: F401  (registers the OpenGL implementations)
 from mabdi.algorithm import MabdiAlgorithm
-from mabdi.camera import Intrinsics, check_pose, configure_vtk_camera, zbuffer_depth_derivative, zbuffer_to_depth
+from mabdi.camera import (
+    Intrinsics,
+    check_pose,
+    configure_vtk_camera,
+    frustum_planes,
+    zbuffer_depth_derivative,
+    zbuffer_to_depth,
+)
 from mabdi.depth import fill_depth_image
 from mabdi.errors import ConfigError
+from mabdi.face_identity import FaceCodes, FaceIdTable, face_rgb
 from mabdi.filters.noise_calibration import NoiseCalibration
 from mabdi.filters.range_rendering import TRIANGLE_RGB_ARRAY, RangeRenderer
-from mabdi.polydata import polydata_leaves
+from mabdi.polydata import FACE_RGB_ARRAY, named_leaves
 from mabdi.spherical import SphericalGeometry
 
 #: Depth noise models (see the module docs).
@@ -433,59 +441,134 @@ def _check_backend_library(backend: str) -> None:
         )
 
 
+@dataclass
+class _Drawn:
+    """A leaf being drawn: the actor, and with face identity the copy that carries its codes."""
+
+    leaf: vtkPolyData
+    actor: vtkActor
+    copy: vtkPolyData | None = None
+    last_render: int = 0
+
+
+#: Renders a block may go undrawn before its actor, upload and face codes are dropped.
+KEEP_HIDDEN_RENDERS = 8
+
+
 class DepthRenderer:
     """One reusable off-screen render window that renders z-buffers of a mesh.
 
     ``render_zbuffer(data, intrinsics, pose)`` returns the (H, W) float32
     z-buffer, top row first, values in [0, 1] (1 = background). ``data`` is a
-    vtkPolyData or a composite dataset of them (the map's blocks). Each
-    polydata gets its own mapper and actor, kept for as long as the polydata
-    is part of the input: a mapper uploads its geometry when it first draws it
-    or when it changes, so a map that grows by new blocks uploads only those.
+    vtkPolyData or a composite dataset of them (the map's chunks of blocks).
+    Only the blocks in view are drawn: a block whose metadata has a
+    BOUNDING_BOX outside the frustum is skipped with its children. Each drawn
+    polydata gets its own mapper and actor, kept while it stays in view: a
+    mapper uploads its geometry when it first draws it or when it changes, so
+    a map that grows by new blocks uploads only those; a block that leaves the
+    view is hidden, and released after :data:`KEEP_HIDDEN_RENDERS` renders.
+
+    Colour: ``identity_array`` names a uint8 RGB cell array each leaf draws in
+    (flat, no lighting; the simulator's object colours), or ``face_identity``
+    draws each face in the colour of a 24-bit code the renderer assigns
+    (:mod:`mabdi.face_identity`): :meth:`render_identity` reads the codes back
+    and :attr:`identities` says which block each range of codes belongs to.
     """
 
-    def __init__(self, backend: str = "egl", identity_array: str | None = None) -> None:
+    def __init__(self, backend: str = "egl", identity_array: str | None = None, face_identity: bool = False) -> None:
         if backend not in BACKENDS:
             raise ConfigError(f"unknown render backend {backend!r} (known: {', '.join(BACKENDS)})")
         self.backend = backend
-        #: With a name: draw each cell in the colour of its uint8 RGB cell array of that name (flat, no
-        #: lighting), so the colour buffer says which face each pixel shows (:meth:`render_identity`).
-        self.identity_array = identity_array
+        self.identity_array = FACE_RGB_ARRAY if face_identity else identity_array
+        self.face_identity = face_identity
         self._window = None
         self._size: tuple[int, int] | None = None
         self._renderer = vtkRenderer()
         self._renderer.SetBackground(0.0, 0.0, 0.0)  # identity 0: no face
-        self._actors: dict[int, tuple[vtkPolyData, vtkActor]] = {}
+        self._actors: dict[int, _Drawn] = {}
+        self._codes = FaceCodes()
+        self._names: dict[int, str] = {}
+        self._renders = 0
+        self._drawn: set[int] = set()
         self._zbuffer = vtkFloatArray()
         self._rgb = vtkUnsignedCharArray()
 
-    def _sync_actors(self, data) -> None:
-        """One actor per polydata of ``data``; actors of polydata no longer there are dropped."""
-        current: dict[int, tuple[vtkPolyData, vtkActor]] = {}
-        for leaf in polydata_leaves(data):
-            entry = self._actors.get(id(leaf))
+    def _sync_actors(self, leaves: list[tuple[str, vtkPolyData]]) -> None:
+        """One actor per polydata of ``leaves``, shown; actors of polydata not drawn are hidden, and dropped
+        (with their codes and upload) after :data:`KEEP_HIDDEN_RENDERS` renders without them, so a block at
+        the edge of the view (seen by one of two nearby poses) is not uploaded again and again."""
+        self._renders += 1
+        drawn: set[int] = set()
+        for name, leaf in leaves:
+            key = id(leaf)
+            entry = self._actors.get(key)
+            if entry is not None and entry.copy is not None and entry.copy.GetNumberOfCells() != leaf.GetNumberOfCells():
+                self._drop(key)
+                entry = None
             if entry is None:
-                mapper = vtkPolyDataMapper()
-                mapper.SetInputData(leaf)
-                if self.identity_array is not None and leaf.GetCellData().GetArray(self.identity_array) is not None:
-                    mapper.ScalarVisibilityOn()
-                    mapper.SetScalarModeToUseCellFieldData()
-                    mapper.SelectColorArray(self.identity_array)
-                    mapper.SetColorModeToDirectScalars()
-                else:
-                    mapper.ScalarVisibilityOff()
-                actor = vtkActor()
-                actor.SetMapper(mapper)
-                actor.GetProperty().LightingOff()
-                if self.identity_array is not None:
-                    actor.GetProperty().SetColor(0.0, 0.0, 0.0)  # a block without identities reads as "no face"
-                self._renderer.AddActor(actor)
-                entry = (leaf, actor)
-            current[id(leaf)] = entry
-        for key, (_, actor) in self._actors.items():
-            if key not in current:
-                self._renderer.RemoveActor(actor)
-        self._actors = current
+                entry = self._actors[key] = self._new_actor(leaf)
+            entry.actor.VisibilityOn()
+            entry.last_render = self._renders
+            self._names[key] = name
+            drawn.add(key)
+        for key, entry in list(self._actors.items()):
+            if key in drawn:
+                continue
+            if self._renders - entry.last_render > KEEP_HIDDEN_RENDERS:
+                self._drop(key)
+            else:
+                entry.actor.VisibilityOff()
+        self._drawn = drawn
+
+    def _drop(self, key: int) -> None:
+        entry = self._actors.pop(key)
+        self._renderer.RemoveActor(entry.actor)
+        self._codes.release(key)
+        self._names.pop(key, None)
+
+    def _new_actor(self, leaf: vtkPolyData) -> _Drawn:
+        drawn = leaf
+        copy = None
+        if self.face_identity:
+            # the codes live on a shallow copy (points and cells shared, so moved points still show), never
+            # on the map's own block
+            count = leaf.GetNumberOfCells()
+            base = self._codes.allocate(id(leaf), count)
+            copy = vtkPolyData()
+            copy.ShallowCopy(leaf)
+            rgb = numpy_to_vtk(face_rgb(base, count), deep=True)
+            rgb.SetName(FACE_RGB_ARRAY)
+            copy.GetCellData().AddArray(rgb)
+            drawn = copy
+        mapper = vtkPolyDataMapper()
+        mapper.SetInputData(drawn)
+        if self.identity_array is not None and drawn.GetCellData().GetArray(self.identity_array) is not None:
+            mapper.ScalarVisibilityOn()
+            mapper.SetScalarModeToUseCellFieldData()
+            mapper.SelectColorArray(self.identity_array)
+            mapper.SetColorModeToDirectScalars()
+        else:
+            mapper.ScalarVisibilityOff()
+        actor = vtkActor()
+        actor.SetMapper(mapper)
+        actor.GetProperty().LightingOff()
+        if self.identity_array is not None:
+            actor.GetProperty().SetColor(0.0, 0.0, 0.0)  # a block without identities reads as "no face"
+        self._renderer.AddActor(actor)
+        return _Drawn(leaf, actor, copy)
+
+    @property
+    def identities(self) -> FaceIdTable:
+        """What the codes of the last :meth:`render_identity` mean (``face_identity`` renderers): block names,
+        first codes and face counts of the blocks drawn."""
+        names, bases, counts = [], [], []
+        for key, (base, count) in self._codes.ranges.items():
+            if key not in self._drawn:
+                continue
+            names.append(self._names[key])
+            bases.append(base)
+            counts.append(count)
+        return FaceIdTable(names, np.array(bases, dtype=np.int64), np.array(counts, dtype=np.int64))
 
     def _make_window(self, width: int, height: int):
         _check_backend_library(self.backend)
@@ -514,7 +597,7 @@ class DepthRenderer:
                 self._window.Finalize()
             self._window = self._make_window(*size)
             self._size = size
-        self._sync_actors(data)
+        self._sync_actors(named_leaves(data, frustum_planes(intrinsics, world_from_camera)))
         configure_vtk_camera(self._renderer.GetActiveCamera(), intrinsics, world_from_camera)
         # Polygon offsets would bias depth; the setting is global in VTK, so restore it after.
         coincident = vtkMapper.GetResolveCoincidentTopology()

@@ -12,11 +12,16 @@ The rendering is :class:`~mabdi.filters.depth_image.DepthRenderer`'s: one
 off-screen window reused across frames, multisampling off, one mapper per
 map block so a frame uploads only the blocks that changed.
 
+Only the map's chunks in the view frustum are drawn (the renderer skips a
+block whose bounding box lies outside it), so E's cost follows what is in
+view, not the size of the map.
+
 **Face identity** (``identity=True``, the loop's default): the same render
-draws every face in the colour of its 24-bit identity (the world mesh's cell
-data ``face_rgb``), and the output gains the int32 point array ``face_id``:
-per pixel, the identity of the map face seen there (0 = none). Object
-removal (:mod:`mabdi.filters.removal`) votes on faces through it.
+draws every face in the colour of a 24-bit code, and the output gains the
+int32 point array ``face_id`` (per pixel, the code of the map face seen
+there; 0 = none) and the field data that says which block and cell each code
+is (:class:`mabdi.face_identity.FaceIdTable`). Object removal
+(:mod:`mabdi.filters.removal`) and refinement vote on faces through it.
 """
 
 from __future__ import annotations
@@ -30,7 +35,6 @@ from mabdi.algorithm import MabdiAlgorithm
 from mabdi.depth import fill_depth_image, image_frame, image_intrinsics, image_pose, image_timestamp
 from mabdi.filters.depth_image import DepthRenderer, SensorNoise
 from mabdi.filters.range_rendering import TRIANGLE_RGB_ARRAY, RangeRenderer
-from mabdi.polydata import FACE_RGB_ARRAY
 from mabdi.spherical import SphericalGeometry
 
 MAP_PORT, MEASURED_PORT = 0, 1
@@ -61,7 +65,7 @@ class FilterExpectedImage(MapAndImageAlgorithm):
     def __init__(self, backend: str = "egl", identity: bool = False) -> None:
         super().__init__(nInputPorts=2, nOutputPorts=1, outputType="vtkImageData")
         self.identity = identity
-        self.renderer = DepthRenderer(backend, identity_array=FACE_RGB_ARRAY if identity else None)
+        self.renderer = DepthRenderer(backend, face_identity=identity)
         #: E of a LiDAR's range images (made at the first one).
         self.range_renderer: RangeRenderer | None = None
 
@@ -71,10 +75,11 @@ class FilterExpectedImage(MapAndImageAlgorithm):
         intrinsics = image_intrinsics(measured)
         pose = image_pose(measured)
         if isinstance(intrinsics, SphericalGeometry):  # a LiDAR's range image
-            depth, ids = self._range_image(world, intrinsics, pose)
+            depth, ids, table = self._range_image(world, intrinsics, pose)
         else:
             depth = render_expected(self.renderer, world, intrinsics, pose)
             ids = self.renderer.render_identity().astype(np.int32) if self.identity else None
+            table = self.renderer.identities if self.identity else None
         output = vtkImageData.GetData(outInfo)
         fill_depth_image(output, depth, intrinsics, pose, image_frame(measured), image_timestamp(measured))
         if self.identity:
@@ -82,14 +87,19 @@ class FilterExpectedImage(MapAndImageAlgorithm):
             array = numpy_to_vtk(ids.ravel(), deep=True)
             array.SetName(FACE_ID_ARRAY)
             output.GetPointData().AddArray(array)
+            table.write(output.GetFieldData())
         return 1
 
-    def _range_image(self, world, geometry: SphericalGeometry, pose) -> tuple[np.ndarray, np.ndarray | None]:
-        """E of a LiDAR: the map's range image and the face each beam hits (:mod:`mabdi.filters.range_rendering`)."""
+    def _range_image(self, world, geometry: SphericalGeometry, pose):
+        """E of a LiDAR: the map's range image, the face code each beam hits and their table
+        (:mod:`mabdi.filters.range_rendering`); no codes without identity."""
         if self.range_renderer is None:
             self.range_renderer = RangeRenderer(DepthRenderer(self.renderer.backend, identity_array=TRIANGLE_RGB_ARRAY))
         depth = self.range_renderer.render(world, geometry, pose)
-        return depth, self.range_renderer.face_ids().astype(np.int32) if self.identity else None
+        if not self.identity:
+            return depth, None, None
+        codes, table = self.range_renderer.face_ids()
+        return depth, codes.astype(np.int32), table
 
 
 def map_input(inInfo, name: str):
@@ -111,7 +121,8 @@ def render_expected(renderer: DepthRenderer, world, intrinsics, world_from_camer
 
 
 def face_id_array(image) -> np.ndarray:
-    """(H, W) int32 face identities of an expected image rendered with identity (0 = no face)."""
+    """(H, W) int32 face codes of an expected image rendered with identity (0 = no face); what they mean is
+    :meth:`mabdi.face_identity.FaceIdTable.read` of the same image."""
     array = image.GetPointData().GetArray(FACE_ID_ARRAY)
     if array is None:
         raise ValueError(f"expected image has no point array '{FACE_ID_ARRAY}' (rendered without identity?)")

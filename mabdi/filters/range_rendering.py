@@ -21,9 +21,9 @@ two steps:
    extrapolation of the surface next to the one hit), or no return.
 
 Returns are ranges strictly between ``range_min`` and ``range_max``; anything else is NaN (a surface nearer
-than ``range_min`` hides what is behind it, as on a real sensor). The renderer keeps, per triangle, the map
-face identity it was drawn for (the world mesh's cell data ``face_rgb``), so E of a map says which face each
-beam shows (:meth:`RangeRenderer.face_ids`), as a camera's E does.
+than ``range_min`` hides what is behind it, as on a real sensor). The renderer keeps, per triangle, the block
+and cell it was drawn for, so E of a map says which face each beam shows with a code and its
+:class:`~mabdi.face_identity.FaceIdTable` (:meth:`RangeRenderer.face_ids`), as a camera's E does.
 
 Beams must lie within ``MAX_ELEVATION`` (60) degrees of the horizon: the sector renders look horizontally.
 """
@@ -42,11 +42,14 @@ from vtkmodules.vtkFiltersCore import vtkTriangleFilter
 from mabdi.camera import Intrinsics, unit_rays
 from mabdi.errors import ConfigError
 from mabdi.filters.range_rendering_kernels import cast_beams_kernel
-from mabdi.polydata import FACE_RGB_ARRAY, polydata_leaves
+from mabdi.face_identity import FaceIdTable
+from mabdi.polydata import named_leaves
 from mabdi.spherical import SphericalGeometry
 
 #: Cell data the range renderer draws: each triangle's 24-bit identity in its own table, as uint8 RGB.
 TRIANGLE_RGB_ARRAY = "range_triangle_rgb"
+#: Cell data of a drawn copy: the cell of the map block each of its triangles came from.
+_SOURCE_CELL_ARRAY = "range_source_cell"
 #: Perspective renders around the azimuth.
 SECTORS = 4
 #: Render pixels per beam step.
@@ -128,57 +131,81 @@ def _identity_rgb(first: int, count: int) -> np.ndarray:
 class _TriangleTable:
     """The triangles drawn for the range renderer, by identity: a triangulated copy of each polydata (kept
     while the polydata is unchanged) with cell data :data:`TRIANGLE_RGB_ARRAY`, and per identity the
-    triangle's corner, two edges, width (its height over its longest edge) and the map face it belongs to (``face_rgb``; 0 if none)."""
+    triangle's corner, two edges, width (its height over its longest edge), and the block (a serial number of
+    the drawn copy) and cell of the map it was drawn for."""
 
     def __init__(self) -> None:
         self.clear()
 
     def clear(self) -> None:
-        self._copies: dict[int, tuple[vtkPolyData, int, vtkPolyData]] = {}
+        #: id(leaf) -> (leaf, its MTime, the drawn copy, serial, name)
+        self._copies: dict[int, tuple[vtkPolyData, int, vtkPolyData, int, str]] = {}
         self._next = 1
+        self._serials = 0
         self.corner = np.zeros((1, 3))
         self.edge1 = np.zeros((1, 3))
         self.edge2 = np.zeros((1, 3))
         self.width = np.zeros(1)
-        self.face = np.zeros(1, dtype=np.int64)
+        self.block = np.full(1, -1, dtype=np.int64)
+        self.cell = np.zeros(1, dtype=np.int64)
 
     def _grow(self, size: int) -> None:
-        if size <= len(self.face):
+        if size <= len(self.cell):
             return
-        size = max(size, 2 * len(self.face))
-        for name in ("corner", "edge1", "edge2", "width", "face"):
+        size = max(size, 2 * len(self.cell))
+        for name in ("corner", "edge1", "edge2", "width", "block", "cell"):
             old = getattr(self, name)
-            new = np.zeros((size, *old.shape[1:]), dtype=old.dtype)
+            new = np.full((size, *old.shape[1:]), -1 if name == "block" else 0, dtype=old.dtype)
             new[: len(old)] = old
             setattr(self, name, new)
 
     def blocks(self, data) -> vtkMultiBlockDataSet:
         """A composite dataset of the drawn copies of ``data``'s polydata (new or changed ones added to the table)."""
-        leaves = [leaf for leaf in polydata_leaves(data) if leaf.GetNumberOfPolys()]
-        needed = sum(leaf.GetNumberOfPolys() for leaf in leaves if not self._current(leaf))
+        leaves = [(name, leaf) for name, leaf in named_leaves(data) if leaf.GetNumberOfPolys()]
+        needed = sum(leaf.GetNumberOfPolys() for _, leaf in leaves if not self._current(leaf))
         if self._next + 2 * needed > _MAX_IDENTITY:  # identities run out: start the table afresh
             self.clear()
         copies = {}
-        for leaf in leaves:
+        for name, leaf in leaves:
             entry = self._copies.get(id(leaf)) if self._current(leaf) else None
-            copies[id(leaf)] = entry if entry is not None else self._add(leaf)
+            copies[id(leaf)] = entry if entry is not None else self._add(leaf, name)
         self._copies = copies
         blocks = vtkMultiBlockDataSet()
-        for index, (_, _, copy) in enumerate(copies.values()):
-            blocks.SetBlock(index, copy)
+        for index, entry in enumerate(copies.values()):
+            blocks.SetBlock(index, entry[2])
         return blocks
+
+    def faces(self, triangles: np.ndarray) -> tuple[np.ndarray, FaceIdTable]:
+        """Face codes of the map cells that ``triangles`` (identities; 0 = none) were drawn for, and their table:
+        the blocks drawn last, numbered from code 1 in order."""
+        names, bases, counts = [], [], []
+        base_of = np.full(self._serials + 1, -1, dtype=np.int64)
+        start = 1
+        for leaf, _, _, serial, name in self._copies.values():
+            names.append(name)
+            bases.append(start)
+            counts.append(leaf.GetNumberOfCells())
+            base_of[serial] = start
+            start += leaf.GetNumberOfCells()
+        block = self.block[triangles]
+        known = (triangles > 0) & (block >= 0)
+        codes = np.where(known, base_of[np.maximum(block, 0)] + self.cell[triangles], 0)
+        codes[known & (base_of[np.maximum(block, 0)] < 0)] = 0
+        return codes, FaceIdTable(names, np.array(bases, dtype=np.int64), np.array(counts, dtype=np.int64))
 
     def _current(self, leaf: vtkPolyData) -> bool:
         entry = self._copies.get(id(leaf))
         return entry is not None and entry[0] is leaf and entry[1] == leaf.GetMTime()
 
-    def _add(self, leaf: vtkPolyData) -> tuple[vtkPolyData, int, vtkPolyData]:
-        if leaf.GetPolys().GetMaxCellSize() == 3 and not (leaf.GetNumberOfStrips() or leaf.GetNumberOfLines() or leaf.GetNumberOfVerts()):
-            copy = vtkPolyData()
-            copy.ShallowCopy(leaf)
-        else:
+    def _add(self, leaf: vtkPolyData, name: str) -> tuple[vtkPolyData, int, vtkPolyData, int, str]:
+        copy = vtkPolyData()
+        copy.ShallowCopy(leaf)
+        source_cells = numpy_to_vtk(np.arange(leaf.GetNumberOfCells(), dtype=np.int64), deep=True)
+        source_cells.SetName(_SOURCE_CELL_ARRAY)
+        copy.GetCellData().AddArray(source_cells)
+        if not (leaf.GetPolys().GetMaxCellSize() == 3 and not (leaf.GetNumberOfStrips() or leaf.GetNumberOfLines() or leaf.GetNumberOfVerts())):
             triangulate = vtkTriangleFilter()
-            triangulate.SetInputData(leaf)
+            triangulate.SetInputData(copy)
             triangulate.PassLinesOff()
             triangulate.PassVertsOff()
             triangulate.Update()
@@ -197,16 +224,13 @@ class _TriangleTable:
         longest = np.sqrt(np.maximum.reduce([((b - a) ** 2).sum(1), ((c - a) ** 2).sum(1), ((c - b) ** 2).sum(1)]))
         doubled_area = np.linalg.norm(np.cross(b - a, c - a), axis=1)
         self.width[rows] = np.divide(doubled_area, longest, out=np.zeros(count), where=longest > 0)
-        faces = copy.GetCellData().GetArray(FACE_RGB_ARRAY)
-        if faces is not None:
-            rgb = vtk_to_numpy(faces).astype(np.int64).reshape(-1, 3)
-            self.face[rows] = rgb[:, 0] | (rgb[:, 1] << 8) | (rgb[:, 2] << 16)
-        else:
-            self.face[rows] = 0
+        self._serials += 1
+        self.block[rows] = self._serials
+        self.cell[rows] = vtk_to_numpy(copy.GetCellData().GetArray(_SOURCE_CELL_ARRAY))
         array = numpy_to_vtk(_identity_rgb(first, count), deep=True)
         array.SetName(TRIANGLE_RGB_ARRAY)
         copy.GetCellData().AddArray(array)
-        return (leaf, leaf.GetMTime(), copy)
+        return (leaf, leaf.GetMTime(), copy, self._serials, name)
 
 
 class RangeRenderer:
@@ -245,12 +269,12 @@ class RangeRenderer:
         self._hits = hits.reshape(geometry.shape)
         return ranges.astype(np.float32).reshape(geometry.shape)
 
-    def face_ids(self) -> np.ndarray:
-        """(beams, columns) int64 the map face identity (``face_rgb``) each beam of the last render hit
-        (0: none, or a mesh without face identities)."""
+    def face_ids(self) -> tuple[np.ndarray, FaceIdTable]:
+        """(beams, columns) int64 the code of the map face each beam of the last render hit (0: none), and
+        the table that says which block and cell each code is."""
         if self._hits is None:
             raise ValueError("RangeRenderer.face_ids: nothing rendered yet")
-        return self._table.face[self._hits]
+        return self._table.faces(self._hits)
 
     def describe(self) -> dict:
         return self.depth_renderer.describe()

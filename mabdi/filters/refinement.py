@@ -121,8 +121,9 @@ from vtkmodules.vtkCommonDataModel import vtkPolyData
 from mabdi.depth import depth_array, image_frame, image_pose
 from mabdi.errors import ConfigError
 from mabdi.filters.classifier import NO_RETURN
+from mabdi.face_identity import FaceIdTable
 from mabdi.filters.expected_image import FACE_ID_ARRAY, face_id_array
-from mabdi.filters.world_mesh import FRAME_CELL_ARRAY, patch_triangles
+from mabdi.world_map import FRAME_CELL_ARRAY, patch_triangles
 
 from mabdi.filters import refinement_kernels as kernels
 
@@ -387,7 +388,7 @@ class MapRefinement:
             result.t_ms = 1000.0 * (time.perf_counter() - start)
             return result
         ids = face_ids[candidates].astype(np.int64)
-        block, local, keys = world.face_lookup(ids)
+        block, local, keys = world.face_lookup(ids, FaceIdTable.read(expected_image))
         measured = depth_array(measured_image)[::s, ::s].ravel()[candidates]
         expected = depth_array(expected_image)[::s, ::s].ravel()[candidates]
         unit_rays, length = self._unit_rays(loop.intrinsics)

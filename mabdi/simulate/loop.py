@@ -50,8 +50,9 @@ from vtkmodules.vtkCommonDataModel import vtkImageData, vtkPolyData
 
 from mabdi.algorithm import raise_pipeline_errors
 from mabdi.camera import Intrinsics, unit_rays
-from mabdi.spherical import SphericalGeometry
 from mabdi.depth import depth_array, image_pose, pixels_per_radian
+from mabdi.face_identity import FaceIdTable
+from mabdi.spherical import SphericalGeometry
 from mabdi.filters.classifier import (
     CONTRADICTED,
     NO_RETURN,
@@ -169,7 +170,7 @@ class MabdiLoop:
         self.refining, self.registration_parameters = lidar_rules(source.intrinsics, self.refining, self.registration_parameters)
         self.refinement = MapRefinement(refinement if refinement is not None else RefinementParameters())
         self.measured = SourceDepthFrames(source)
-        self.world = FilterWorldMesh()
+        self.world = FilterWorldMesh(compact_on_append=False)  # compacted at the end of each frame (step)
         self.expected = FilterExpectedImage(backend=backend, identity=self.removal or self.refining)
         #: D as the classifier sees it: registered to the map (the renderer of E is shared: one upload of the map)
         self.registration: FilterRegistration | None = None
@@ -293,11 +294,12 @@ class MabdiLoop:
             self._refined = self.refinement.step(self)
             replaced, moved = self._refined.replaced, self._refined.moved_vertices
         t_refine = time.perf_counter()
-        t_remove = t_refine
         self._removed = vtkPolyData()
         if (self.removal and votes) or len(replaced):
             cells_removed = self._remove_contradicted(replaced, votes)
-            t_remove = time.perf_counter()
+        t_remove = time.perf_counter()
+        self.world.compact()  # now that this frame's E and its face codes have been used
+        compact_s = time.perf_counter() - t_remove  # counted with the append: both keep the map's blocks
 
         if self.classifier_enabled:
             counts = pixel_counts(self.classifier.GetOutput())
@@ -314,8 +316,8 @@ class MabdiLoop:
             t_expected_ms=ms * (t_expected - t_register),
             t_classify_ms=ms * (t_classify - t_expected),
             t_surface_ms=ms * (t_surface - t_classify),
-            t_append_ms=ms * (t_append - t_surface),
-            t_total_ms=ms * (t_remove - start),
+            t_append_ms=ms * (t_append - t_surface + compact_s),
+            t_total_ms=ms * (t_remove + compact_s - start),
             points_total=self.world.number_of_points,
             valid_pixels=counts["valid"],
             novel_pixels=counts["novel"],
@@ -360,7 +362,7 @@ class MabdiLoop:
             gone = np.union1d(gone, condemned)
         if not len(gone):
             return 0
-        self._removed = self.world.remove_faces(gone)
+        self._removed = self.world.remove_faces(gone, FaceIdTable.read(self.expected.GetOutput()))
         if hasattr(self.surface, "clear_faces_at") and self._removed.GetNumberOfCells():
             # voxel planes: the statistics that made the removed faces go with them (else re-meshing brings
             # them back), and the voxels the voting rays crossed in free space
@@ -384,6 +386,7 @@ class MabdiLoop:
         measured_image = self.measured_image()
         measured = depth_array(measured_image)
         face_ids = face_id_array(self.expected.GetOutput())
+        table = FaceIdTable.read(self.expected.GetOutput())
         pose = image_pose(measured_image)
         unit_rays, _ = self._unit_rays()
         expected = depth_array(self.expected.GetOutput())
@@ -394,16 +397,16 @@ class MabdiLoop:
             face_ids,
             unit_rays,
             pose,
-            self.world.face_normals_of,
+            lambda codes: self.world.face_normals_of(codes, table),
             self._removal_parameters_for(expected),
-            evidence_of=self.world.face_evidence_of,
+            evidence_of=lambda codes: self.world.face_evidence_of(codes, table),
             sigma=lambda depth: self.noise.sigma(depth, self.intrinsics.near, self.intrinsics.far),
             far=self.intrinsics.far,
             pose_sigma=pose_sigma_array(self.classifier.GetOutput()),
         )
         if not len(faces):
             return voting, np.zeros(0, dtype=np.int64)
-        return voting, self.world.update_evidence(faces, contradicted, confirmed, self.removal_parameters)
+        return voting, self.world.update_evidence(faces, contradicted, confirmed, self.removal_parameters, table)
 
     def _removal_parameters_for(self, expected: np.ndarray) -> RemovalParameters:
         """The removal rules for this frame: the edge margin widened to the surface's ``face_overhang``

@@ -2,7 +2,7 @@
 
 from mabdi.viz.dashboard import Dashboard
 from mabdi.viz.movie import MovieWriter
-from mabdi.viz.record import run_with_movie
+from mabdi.viz.record import MovieObserver, run_with_movie
 from mabdi.viz.viewer import view
 
-__all__ = ["Dashboard", "MovieWriter", "run_with_movie", "view"]
+__all__ = ["Dashboard", "MovieObserver", "MovieWriter", "run_with_movie", "view"]

@@ -26,8 +26,9 @@
 
 ``RerunLogger(path)`` saves a recording to ``path`` (``.rrd``); without a
 path it spawns a viewer, or connects to one already running.
-:func:`rerun_progress` makes the progress callback that
-``Simulation.run(progress=...)`` calls after each frame. Needs the optional
+:func:`rerun_progress` makes the observer (:class:`RerunProgress`) that
+``mabdi run --rerun`` gives the run's pipeline; it also serves as the
+``progress`` callback of ``Simulation.run(progress=...)``. Needs the optional
 ``rerun`` extra (``pip install "mabdi[rerun]"``); rerun is imported only here.
 """
 
@@ -39,11 +40,13 @@ from pathlib import Path
 
 import numpy as np
 from vtkmodules.util.numpy_support import vtk_to_numpy
-from vtkmodules.vtkCommonDataModel import vtkCompositeDataSet, vtkPolyData
+from vtkmodules.vtkCommonDataModel import vtkPolyData
 
 from mabdi.depth import depth_array, image_colour, image_pose
 from mabdi.errors import MabdiError
+from mabdi.polydata import named_leaves
 from mabdi.maps.mesh_map import COLOUR_LAYER
+from mabdi.simulate.run_pipeline import RunObserver
 
 TIMELINE = "frame"
 #: Colours of the classified image (RGB), as the dashboard draws it.
@@ -210,12 +213,8 @@ class RerunLogger:
         """Send the blocks that are new or replaced since the last frame; clear the ones that left."""
         rr, log = self.rr, self.stream.log
         seen = set()
-        for index in range(blocks.GetNumberOfBlocks()):
-            block = blocks.GetBlock(index)
-            if block is None:
-                continue
-            meta = blocks.GetMetaData(index) if blocks.HasMetaData(index) else None
-            name = meta.Get(vtkCompositeDataSet.NAME()) if meta is not None and meta.Has(vtkCompositeDataSet.NAME()) else f"block_{index}"
+        for name, block in named_leaves(blocks):
+            name = name or "map"
             seen.add(name)
             stamp = (block.GetAddressAsString("vtkObject"), block.GetMTime())
             if self._blocks.get(name) == stamp:
@@ -250,8 +249,9 @@ class RerunLogger:
         self.close()
 
 
-class RerunProgress:
-    """A ``progress(record)`` callback that logs each frame of a Simulation; closes after its last frame."""
+class RerunProgress(RunObserver):
+    """Logs each frame of a Simulation's run: an observer of :class:`~mabdi.simulate.run_pipeline.RunPipeline`,
+    or a ``progress(record)`` callback; the recording is finished after the last frame (or when the run stops)."""
 
     def __init__(self, simulation, path=None, images: bool = True) -> None:
         frames = getattr(simulation, "frames", None) or len(simulation.poses)
@@ -264,6 +264,12 @@ class RerunProgress:
         self.logger.log_frame(self.simulation.loop, record)
         if record.frame + 1 >= self.frames:
             self.close()
+
+    def on_frame(self, pipeline, record) -> None:
+        self(record)
+
+    def on_abort(self, pipeline, error) -> None:
+        self.close()
 
     def close(self) -> None:
         self.logger.close()

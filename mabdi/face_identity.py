@@ -1,0 +1,128 @@
+"""Face identity in the expected image: which map face each pixel of E shows.
+
+The expected-image renderer draws every face of the map blocks in view in a
+flat colour that encodes a 24-bit code (red = low byte; 0 = no face). Codes
+are a rendering matter, not the faces' names: the renderer gives each block
+it draws a range of consecutive codes (:class:`FaceCodes`, first fit), keeps
+it while the block stays in view (so the block's colours are not uploaded
+again), and frees it when the block leaves the view. A map may therefore hold
+any number of faces; only the faces of the blocks drawn in one image share
+the 16.7M codes (:data:`MAX_FACE_CODE`), which a 640x480 view never nears.
+
+What a code means travels with E (:class:`FaceIdTable`, field data
+``face_id_blocks`` and ``face_id_ranges``): the name of each drawn block (the
+world mesh's patch key), its first code and its number of faces. A face is
+then (block name, local cell id), which is how the world mesh keeps its
+faces' removal evidence and normals (:mod:`mabdi.world_map`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from vtkmodules.util.numpy_support import numpy_to_vtk, vtk_to_numpy
+from vtkmodules.vtkCommonCore import vtkStringArray
+
+#: Codes are 1 .. 2^24 - 1 (0 = no face): the faces drawn in one image share them.
+MAX_FACE_CODE = 2**24 - 1
+#: Field data of E rendered with identity: the names of the blocks drawn, and (first code, faces) of each.
+FACE_ID_BLOCKS_ARRAY = "face_id_blocks"
+FACE_ID_RANGES_ARRAY = "face_id_ranges"
+
+
+def face_rgb(base: int, count: int) -> np.ndarray:
+    """(count, 3) uint8 RGB of the codes base .. base + count - 1 (red = low byte)."""
+    ids = np.arange(base, base + count, dtype=np.int64)
+    return np.stack([ids & 255, (ids >> 8) & 255, (ids >> 16) & 255], axis=1).astype(np.uint8)
+
+
+class FaceCodes:
+    """Ranges of consecutive 24-bit codes, one per drawn block (keyed by any hashable), first fit, reused."""
+
+    def __init__(self) -> None:
+        self.ranges: dict[object, tuple[int, int]] = {}  # block -> (base, size)
+        self._sorted: list[tuple[int, int]] | None = None
+
+    def allocate(self, block, size: int) -> int:
+        """A base code for ``size`` faces of ``block`` (its previous range is released); MemoryError when the
+        blocks drawn together hold more faces than there are codes."""
+        self.release(block)
+        if self._sorted is None:
+            self._sorted = sorted(self.ranges.values())
+        start = 1
+        for base, length in self._sorted:
+            if base - start >= size:
+                break
+            start = max(start, base + length)
+        if start + size - 1 > MAX_FACE_CODE:
+            raise MemoryError(
+                f"the map blocks in view hold more than {MAX_FACE_CODE:,} faces: an expected image can tell at most "
+                "that many faces apart (a shorter far range or a coarser surface keeps fewer faces in view)"
+            )
+        self.ranges[block] = (start, size)
+        self._sorted = None
+        return start
+
+    def release(self, block) -> None:
+        if self.ranges.pop(block, None) is not None:
+            self._sorted = None
+
+    def clear(self) -> None:
+        self.ranges.clear()
+        self._sorted = None
+
+
+@dataclass
+class FaceIdTable:
+    """What the codes of one expected image mean: block ``names[i]`` has codes ``bases[i]`` ..
+    ``bases[i] + counts[i] - 1`` for its cells 0 .. counts[i] - 1."""
+
+    names: list[str]
+    bases: np.ndarray
+    counts: np.ndarray
+
+    def __post_init__(self) -> None:
+        order = np.argsort(np.asarray(self.bases, dtype=np.int64), kind="stable")
+        self.names = [self.names[i] for i in order]
+        self.bases = np.asarray(self.bases, dtype=np.int64)[order]
+        self.counts = np.asarray(self.counts, dtype=np.int64)[order]
+
+    @classmethod
+    def empty(cls) -> FaceIdTable:
+        return cls([], np.zeros(0, np.int64), np.zeros(0, np.int64))
+
+    def lookup(self, codes) -> tuple[np.ndarray, np.ndarray]:
+        """(index into ``names``, local cell id) of each code; -1, -1 for 0 and codes no block has."""
+        codes = np.asarray(codes, dtype=np.int64)
+        if not len(self.bases):
+            none = np.full(codes.shape, -1, dtype=np.int64)
+            return none, none.copy()
+        block = np.searchsorted(self.bases, codes, side="right") - 1
+        clipped = np.maximum(block, 0)
+        local = codes - self.bases[clipped]
+        inside = (block >= 0) & (local < self.counts[clipped]) & (codes > 0)
+        return np.where(inside, block, -1), np.where(inside, local, -1)
+
+    # -- field data -----------------------------------------------------------
+    def write(self, field_data) -> None:
+        """Put the table into a vtkFieldData (E's)."""
+        names = vtkStringArray()
+        names.SetName(FACE_ID_BLOCKS_ARRAY)
+        for name in self.names:
+            names.InsertNextValue(name)
+        ranges = numpy_to_vtk(np.stack([self.bases, self.counts], axis=1).astype(np.int64).reshape(-1, 2), deep=True)
+        ranges.SetName(FACE_ID_RANGES_ARRAY)
+        field_data.AddArray(names)
+        field_data.AddArray(ranges)
+
+    @classmethod
+    def read(cls, image) -> FaceIdTable:
+        """The table of an expected image rendered with identity (ValueError if it has none)."""
+        field = image.GetFieldData()
+        names = field.GetAbstractArray(FACE_ID_BLOCKS_ARRAY)
+        ranges = field.GetArray(FACE_ID_RANGES_ARRAY)
+        if names is None or ranges is None:
+            raise ValueError(f"expected image has no field data '{FACE_ID_BLOCKS_ARRAY}' / '{FACE_ID_RANGES_ARRAY}' (rendered without identity?)")
+        values = vtk_to_numpy(ranges).reshape(-1, 2)
+        return cls([names.GetValue(i) for i in range(names.GetNumberOfValues())], values[:, 0].copy(), values[:, 1].copy())

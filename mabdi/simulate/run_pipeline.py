@@ -1,0 +1,339 @@
+"""A run, assembled once: :class:`RunPipeline` and the observers that watch it.
+
+Every way of running the loop goes through one object: ``mabdi run`` (and
+``--resume``), the movie (:mod:`mabdi.viz.record`), the dynamic-scene metrics
+(:func:`mabdi.evaluate.dynamic.run_with_ghosts`), the bench
+(:mod:`mabdi.evaluate.bench`), a sweep's cells (:mod:`mabdi.sweep`) and
+:meth:`Simulation.run <mabdi.simulate.runner.Simulation.run>`. Its steps,
+in order (:meth:`RunPipeline.run`)::
+
+    source      the frames and the loop: a Simulation (simulated rig or recording, MabdiLoop)
+    outputs     the run folder opened (refused if another run holds it), config.toml,
+                the input files' fingerprint (for --resume)
+    loop        frame by frame: MabdiLoop.step(i), then each observer's on_frame
+    results     the RunResult (map, records, timings) and the run's files (mabdi.simulate.run_outputs)
+    evaluation  the map scored against the ground truth by the ``evaluate`` callable, or why not
+    summary     summary.json written last, the checkpoint dropped, the folder complete
+
+Observers watch it without changing the map: any object with some of these
+hooks (:class:`RunObserver` has them all, doing nothing), called in the
+order the observers are given:
+
+* ``on_start(pipeline)``: the folder is open, no frame has run yet;
+* ``on_frame(pipeline, record)``: after every frame, in order (the loop's
+  state is that frame's: ``pipeline.simulation.loop``);
+* ``on_loop_end(pipeline, result)``: the last frame has run and the run's
+  files are written; before the evaluation and ``summary.json``;
+* ``on_finish(pipeline, result)``: the run is complete;
+* ``on_abort(pipeline, error)``: the run stopped on an error or Ctrl-C.
+
+The observers here: :class:`ProgressBar` (the command line's bar),
+:class:`FrameCallback` (a plain ``progress(record)`` function),
+:class:`DepthImages` (``output.depth_images``) and :class:`Checkpoints`
+(``output.checkpoint_every``; both added by the pipeline itself when it
+writes a folder). Elsewhere: :class:`mabdi.viz.record.MovieObserver`
+(``--movie``), :class:`mabdi.viz.rerun_log.RerunProgress` (``--rerun``),
+:class:`mabdi.evaluate.dynamic.GhostObserver` (ghosts and static loss).
+
+**Checkpoints** (``.mabdi-partial/checkpoint.npz``, :mod:`mabdi.io.checkpoint`
+format version 2: arrays and a JSON header, loaded without pickle, so a
+checkpoint from elsewhere runs no code). They hold the resolved config, the
+recording and its options, the run's own options (``run_options``: whether
+it is evaluated), the next frame, the seconds run so far, the frame records,
+:meth:`MabdiLoop.state <mabdi.simulate.loop.MabdiLoop.state>` and the
+fingerprint of every input file (:mod:`mabdi.io.fingerprint`). A resumed run
+(:func:`mabdi.simulate.runner.resume_run`) is the same pipeline started at
+the checkpoint's frame.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from dataclasses import asdict, dataclass, field
+
+from mabdi.config import dump_toml
+from mabdi.io.atomic import write_text
+from mabdi.io.checkpoint import write_tree
+from mabdi.io.fingerprint import fingerprint, run_inputs
+from mabdi.io.run_folder import RunFolder
+from mabdi.io.vtk_files import write_image
+from mabdi.simulate.run_outputs import CHECKPOINT, RunResult, finish_run, write_run_outputs
+
+#: The steps of a run, in order (see the module docs).
+STEPS = ("source", "outputs", "loop", "results", "evaluation", "summary")
+
+
+class RunObserver:
+    """Watches a run (see the module docs); every hook does nothing unless overridden."""
+
+    def on_start(self, pipeline: RunPipeline) -> None:
+        pass
+
+    def on_frame(self, pipeline: RunPipeline, record) -> None:
+        pass
+
+    def on_loop_end(self, pipeline: RunPipeline, result: RunResult) -> None:
+        pass
+
+    def on_finish(self, pipeline: RunPipeline, result: RunResult) -> None:
+        pass
+
+    def on_abort(self, pipeline: RunPipeline, error: BaseException) -> None:
+        pass
+
+
+class FrameCallback(RunObserver):
+    """A ``progress(record)`` function called after each frame."""
+
+    def __init__(self, progress) -> None:
+        self.progress = progress
+
+    def on_frame(self, pipeline: RunPipeline, record) -> None:
+        self.progress(record)
+
+
+class ProgressBar(RunObserver):
+    """A one-line progress bar on stderr (only when stderr is a terminal); ``total`` None: not known."""
+
+    def __init__(self, total: int | None, enabled: bool) -> None:
+        self.total = total
+        self.enabled = enabled and sys.stderr.isatty()
+
+    def on_frame(self, pipeline: RunPipeline, record) -> None:
+        self(record)
+
+    def __call__(self, record) -> None:
+        if not self.enabled:
+            return
+        done = record.frame + 1
+        if self.total is None:
+            sys.stderr.write(f"\rframe {done}  map {record.cells_total:,} triangles ")
+            sys.stderr.flush()
+            return
+        width = 30
+        filled = int(width * done / self.total)
+        bar = "#" * filled + "." * (width - filled)
+        sys.stderr.write(f"\r[{bar}] frame {done}/{self.total}  map {record.cells_total:,} triangles ")
+        sys.stderr.flush()
+        if done == self.total:
+            sys.stderr.write("\n")
+
+
+class DepthImages(RunObserver):
+    """``output.depth_images``: D, and with the classifier E and the labels, of every frame as VTI in ``depth/``."""
+
+    def on_frame(self, pipeline: RunPipeline, record) -> None:
+        loop, folder, i = pipeline.simulation.loop, pipeline.folder, record.frame
+        write_image(loop.measured_image(), folder.path(f"depth/D_{i:06d}.vti"))
+        if loop.classifier_enabled:
+            write_image(loop.expected_image(), folder.path(f"depth/E_{i:06d}.vti"))
+            write_image(loop.classified_image(), folder.path(f"depth/labels_{i:06d}.vti"))
+
+
+class Checkpoints(RunObserver):
+    """``output.checkpoint_every = N``: the run's state after every N frames (not after the last), atomically."""
+
+    def __init__(self, every: int) -> None:
+        self.every = int(every)
+
+    def on_frame(self, pipeline: RunPipeline, record) -> None:
+        done = record.frame + 1
+        if done % self.every == 0 and done < pipeline.simulation.frames:
+            pipeline.write_checkpoint(done)
+
+
+@dataclass
+class ResumePoint:
+    """Where an interrupted run goes on: its next frame, the records and loop seconds so far, the inputs' fingerprint."""
+
+    next_frame: int
+    records: list
+    seconds: float
+    inputs: dict | None = None
+
+
+@dataclass(eq=False)
+class RunPipeline:
+    """One run: ``simulation`` (source + loop) through the steps of the module docs, watched by ``observers``.
+
+    ``out_dir``: the run folder (a path or a prepared
+    :class:`~mabdi.io.run_folder.RunFolder`), None to write nothing.
+    ``evaluate(simulation, result)``: scores the map against the ground truth
+    (:func:`mabdi.evaluate.metrics.evaluate_run`); None: not evaluated. An
+    empty map is not scored (``mabdi run`` says so) unless ``evaluate_empty``
+    (a sweep's or the bench's row: F-score 0).
+    ``overwrite``: write into a folder holding files mabdi did not write.
+    ``recording``: a recorded source as ``{"path": ..., "options": {...}}``
+    (kept in checkpoints, so a resume can reopen it). ``run_options``: plain
+    data kept in checkpoints for the resumed run (``{"no_eval": True}``: the
+    run stays unevaluated). ``no_eval``: skip the evaluation (default: as
+    ``run_options`` says). ``note``: why the ground truth is unknown (the
+    evaluation is then skipped, saying so). ``finish``: write
+    ``summary.json`` and complete the folder (False: the caller does, with
+    :func:`mabdi.simulate.run_outputs.finish_run`). ``resume_from``: go on
+    from a checkpoint (:func:`mabdi.simulate.runner.resume_run`).
+    """
+
+    simulation: object
+    out_dir: object = None
+    observers: list = field(default_factory=list)
+    evaluate: object = None
+    evaluate_empty: bool = False
+    overwrite: bool = False
+    recording: dict | None = None
+    run_options: dict = field(default_factory=dict)
+    no_eval: bool | None = None
+    note: str | None = None
+    finish: bool = True
+    resume_from: ResumePoint | None = None
+
+    def __post_init__(self) -> None:
+        self.observers = list(self.observers)
+        self.run_options = dict(self.run_options or {})
+        if self.no_eval is None:
+            self.no_eval = bool(self.run_options.get("no_eval"))
+        self.folder: RunFolder | None = None
+        self.records: list = []
+        self.loop_seconds = 0.0
+        self.inputs: dict | None = None
+        self.result: RunResult | None = None
+
+    @property
+    def config(self):
+        return self.simulation.config
+
+    def run(self) -> RunResult:
+        """The steps of the module docs; returns the :class:`RunResult` (scores and all)."""
+        try:
+            self._open_outputs()
+            self._notify("on_start")
+            self._run_loop()
+            result = self.result = self._results()
+            self._notify("on_loop_end", result)
+            self._run_evaluation(result)
+            if self.folder is not None and self.finish:
+                finish_run(result, result.scores.as_dict() if result.scores is not None else None, result.evaluation)
+        except BaseException as error:
+            self._notify("on_abort", error)
+            if self.folder is not None:
+                self.folder.release()  # an interrupted run: its staged files stay for --resume, the folder is free
+            raise
+        self._notify("on_finish", result)
+        return result
+
+    # -- the steps ---------------------------------------------------------------------------------
+
+    def _open_outputs(self) -> None:
+        """The run folder, its config.toml and the input files' fingerprint; the built-in observers."""
+        out = self.out_dir
+        if out is None:
+            return
+        if isinstance(out, RunFolder):
+            self.folder = out
+        elif self.resume_from is not None:
+            raise ValueError("a resumed run goes on in its own RunFolder (mabdi.simulate.runner.resume_run)")
+        else:
+            self.folder = RunFolder.prepare(out, self.overwrite, self.config.source)
+        output = self.config.output
+        if self.resume_from is None:
+            write_text(self.folder.path("config.toml"), dump_toml(self.config))
+            if output.checkpoint_every:
+                self.inputs = fingerprint(self._input_files())
+        else:
+            self.inputs = self.resume_from.inputs
+        built_in = [DepthImages()] if output.depth_images else []
+        if output.checkpoint_every:
+            built_in.append(Checkpoints(output.checkpoint_every))
+        self.observers = built_in + self.observers  # the run's own files first, as frames are made
+
+    def _run_loop(self) -> None:
+        """Every frame from the first (or the checkpoint's), each observer told after it."""
+        loop = self.simulation.loop
+        first = 0
+        if self.resume_from is None:
+            loop.reset()
+        else:
+            first = self.resume_from.next_frame
+            self.records = list(self.resume_from.records)
+            self.loop_seconds = float(self.resume_from.seconds)
+        watching = self._hooks("on_frame")
+        for i in range(first, self.simulation.frames):
+            start = time.perf_counter()
+            record = loop.step(i)
+            self.loop_seconds += time.perf_counter() - start
+            self.records.append(record)
+            for on_frame in watching:
+                on_frame(self, record)
+
+    def _results(self) -> RunResult:
+        """The RunResult, and the run's files when there is a folder."""
+        simulation, loop = self.simulation, self.simulation.loop
+        calibration = loop.noise.calibration
+        result = RunResult(
+            config=self.config,
+            records=self.records,
+            mesh=loop.mesh(),
+            map_bytes=loop.memory_bytes(),
+            seconds=self.loop_seconds,
+            out_dir=self.folder.folder if self.folder is not None else None,
+            backend=simulation.render_backend(),
+            source=simulation.source.description,
+            folder=self.folder,
+            noise_calibration=calibration.summary() if calibration is not None else None,
+            intrinsics=asdict(simulation.source.intrinsics),
+        )
+        if self.folder is not None:
+            write_run_outputs(result, simulation)
+        return result
+
+    def _run_evaluation(self, result: RunResult) -> None:
+        """Score the map against the ground truth, or say why not (``result.evaluation``)."""
+        if self.no_eval:
+            result.evaluation = "skipped (--no-eval)"
+        elif self.evaluate is None:
+            result.evaluation = None  # summary.json: "not run (mabdi run evaluates unless --no-eval)"
+        elif self.note is not None:
+            result.evaluation = f"skipped: {self.note}"
+        elif self.simulation.scene is None:
+            result.evaluation = "skipped: no ground-truth scene"
+        elif result.mesh.GetNumberOfCells() == 0 and not self.evaluate_empty:
+            result.evaluation = "skipped: the map is empty"
+        else:
+            start = time.perf_counter()
+            result.scores = self.evaluate(self.simulation, result)
+            result.evaluation_seconds = time.perf_counter() - start
+
+    # -- what the steps share ----------------------------------------------------------------------
+
+    def _hooks(self, hook: str) -> list:
+        """The observers' ``hook`` methods, in the observers' order (an observer may leave any out)."""
+        return [method for method in (getattr(observer, hook, None) for observer in self.observers) if method is not None]
+
+    def _notify(self, hook: str, *args) -> None:
+        for method in self._hooks(hook):
+            method(self, *args)
+
+    def _input_files(self) -> dict[str, str]:
+        """The files this run reads (:func:`mabdi.io.fingerprint.run_inputs`)."""
+        recording = self.recording["path"] if self.recording else None
+        simulation = self.simulation
+        return run_inputs(self.config, recording, scene=simulation.scene is not None or simulation.rig is not None)
+
+    def write_checkpoint(self, next_frame: int) -> None:
+        """Save the run's state after ``next_frame`` frames (atomically; the previous checkpoint is replaced)."""
+        if self.inputs is None:
+            self.inputs = fingerprint(self._input_files())
+        config = self.config
+        state = {
+            "config": dump_toml(config),
+            "config_source": str(config.source) if config.source is not None else "",
+            "recording": self.recording,
+            "run_options": self.run_options,
+            "next_frame": next_frame,
+            "seconds": float(self.loop_seconds),
+            "records": [asdict(record) for record in self.records],
+            "inputs": self.inputs,
+            "loop": self.simulation.loop.state(),
+        }
+        write_tree(self.folder.path(CHECKPOINT), state)

@@ -1,0 +1,568 @@
+"""WorldMap: the map as a spatial store of fixed-size world-space chunks.
+
+The map is a set of **patches** (vtkPolyData of triangles, each under a key:
+``frame_<i>`` for the novel surface of frame i, ``patch_<k>`` for a surface
+filter's keyed patch that later replaces it, ``merged_<i>`` for frame
+patches merged). Each patch lives in the **chunk** (a cube of ``chunk_size``
+metres, indexed by floor(position / chunk_size)) that holds the centre of its
+bounding box when it is added. Per face, a patch keeps its normal (world), its
+removal evidence (log-odds) and the number of frames that contradicted it;
+cell data ``frame`` says which frame made each face.
+
+Why chunks:
+
+* **E draws what is in view.** :attr:`multiblock` is the map as VTK sees it:
+  one block per chunk, each holding its patches as named blocks (the patch
+  keys), with the chunk's bounding box (the union of its patches' boxes) in
+  the block metadata (``BOUNDING_BOX``). The expected-image renderer skips
+  chunks outside the view frustum, so its cost follows the view, not the
+  map (:func:`mabdi.filters.depth_image.named_leaves`).
+* **Bounded draw calls.** Once a chunk holds more than ``patches_per_chunk``
+  frame patches, they are merged into one (:meth:`WorldMap.compact`) (a concatenation: no vertex is
+  shared between former patches, so removal's edge-connected spread and
+  everything else sees the same faces as before). Keyed patches are never
+  merged: they are replaced whole.
+* **Bounded bookkeeping.** Adding or replacing a patch touches its chunk's
+  block only; nothing is proportional to the number of frames.
+
+A face is named by (patch key, cell id in the patch). The expected image
+says which face each pixel shows with codes that mean something for that
+image alone (:mod:`mabdi.face_identity`); the methods that take face codes
+take the image's :class:`~mabdi.face_identity.FaceIdTable` beside them. A
+block named in a table whose patch has since been replaced by one of another
+size counts as not in the map. There is no cap on the number of faces in the
+map.
+
+:class:`mabdi.filters.world_mesh.FilterWorldMesh` is the VTK adaptor that
+appends each frame's surface; checkpoints keep :meth:`state`.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+from vtkmodules.util.numpy_support import numpy_to_vtk, vtk_to_numpy
+from vtkmodules.vtkCommonDataModel import vtkCompositeDataSet, vtkDataObject, vtkMultiBlockDataSet, vtkPolyData
+from vtkmodules.vtkFiltersCore import vtkAppendPolyData
+
+from mabdi.face_identity import FaceIdTable
+from mabdi.filters.removal import update_log_odds
+from mabdi.polydata import extract_polys, polydata_from_state, polydata_to_state, triangle_normals
+
+FRAME_CELL_ARRAY = "frame"
+#: Edge of a chunk (metres): a few metres, about what a depth camera sees at once.
+CHUNK_SIZE = 4.0
+#: Frame patches a chunk holds before they are merged into one (keyed patches do not count).
+PATCHES_PER_CHUNK = 8
+
+ChunkIndex = tuple[int, int, int]
+
+
+@dataclass
+class Patch:
+    """One patch of the map: its polydata and, per face, normal (world), removal log-odds and contradicting frames."""
+
+    key: str
+    polydata: vtkPolyData
+    chunk: ChunkIndex
+    normals: np.ndarray  # (M, 3) float32
+    evidence: np.ndarray  # (M,) float32
+    contradicted: np.ndarray  # (M,) uint16
+    keyed: bool = False
+
+    @property
+    def cells(self) -> int:
+        return self.polydata.GetNumberOfCells()
+
+
+class Chunk:
+    """The patches of one chunk, in the order they came, and their VTK block (one named block per patch)."""
+
+    def __init__(self, index: ChunkIndex) -> None:
+        self.index = index
+        self.patches: dict[str, Patch] = {}
+        self.block = vtkMultiBlockDataSet()
+        self.frame_patches = 0  # unkeyed patches (merged beyond PATCHES_PER_CHUNK)
+        self._numbers: dict[str, int] = {}  # patch key -> block number
+
+    def set(self, patch: Patch) -> None:
+        """Add ``patch``, or replace the patch of its key in place."""
+        previous = self.patches.get(patch.key)
+        if previous is not None:
+            self.frame_patches -= 0 if previous.keyed else 1
+        self.frame_patches += 0 if patch.keyed else 1
+        self.patches[patch.key] = patch
+        number = self._numbers.get(patch.key)
+        if number is None:
+            number = self._numbers[patch.key] = self.block.GetNumberOfBlocks()
+            self.block.SetBlock(number, patch.polydata)
+            self.block.GetMetaData(number).Set(vtkCompositeDataSet.NAME(), patch.key)
+        else:
+            self.block.SetBlock(number, patch.polydata)
+        self.block.Modified()
+
+    def remove(self, keys) -> None:
+        """Drop the patches ``keys`` (the block is rebuilt from those left)."""
+        for key in keys:
+            patch = self.patches.pop(key)
+            self.frame_patches -= 0 if patch.keyed else 1
+        self.block.SetNumberOfBlocks(0)
+        self._numbers = {}
+        for number, (key, patch) in enumerate(self.patches.items()):
+            self._numbers[key] = number
+            self.block.SetBlock(number, patch.polydata)
+            self.block.GetMetaData(number).Set(vtkCompositeDataSet.NAME(), key)
+        self.block.Modified()
+
+    def bounds(self) -> tuple[float, ...]:
+        """(xmin, xmax, ymin, ymax, zmin, zmax) of its patches (metres)."""
+        boxes = np.array([p.polydata.GetBounds() for p in self.patches.values()])
+        return (boxes[:, 0].min(), boxes[:, 1].max(), boxes[:, 2].min(), boxes[:, 3].max(), boxes[:, 4].min(), boxes[:, 5].max())
+
+
+def patch_triangles(patch: vtkPolyData) -> np.ndarray | None:
+    """(M, 3) vertex ids of a patch's triangles, or None when it has other polygons."""
+    polys = patch.GetPolys()
+    offsets = vtk_to_numpy(polys.GetOffsetsArray())
+    if len(offsets) < 2 or np.any(np.diff(offsets) != 3):
+        return None
+    return vtk_to_numpy(polys.GetConnectivityArray()).reshape(-1, 3)
+
+
+def spread_removal(triangles: np.ndarray, points: int, gone: np.ndarray, followers: np.ndarray, steps: int | None = None) -> np.ndarray:
+    """``gone`` grown over the triangles of the mask ``followers`` that share an edge (two vertices) with a
+    removed one, ring by ring until nothing more joins (``steps``: at most that many rings)."""
+    gone = gone.copy()
+    if not followers.any():
+        return gone
+    marked = np.zeros(points, dtype=bool)
+    rings = 0
+    while steps is None or rings < steps:
+        marked[triangles[gone].ravel()] = True
+        new = (marked[triangles].sum(axis=1) >= 2) & followers & ~gone
+        if not new.any():
+            break
+        gone |= new
+        rings += 1
+    return gone
+
+
+def enclosed(triangles: np.ndarray, points: int, gone: np.ndarray) -> np.ndarray:
+    """Triangles not in ``gone`` whose three vertices all belong to removed triangles too (remnants left
+    inside a removed region)."""
+    touches = np.zeros(points, dtype=bool)
+    touches[triangles[gone].ravel()] = True
+    return ~gone & touches[triangles].all(axis=1)
+
+
+def face_normals(patch: vtkPolyData) -> np.ndarray:
+    """(M, 3) float32 unit normals of a patch's polygons (from their first three corners; triangles in the map)."""
+    if patch.GetNumberOfCells() == 0:
+        return np.zeros((0, 3), dtype=np.float32)
+    points = vtk_to_numpy(patch.GetPoints().GetData()).astype(np.float32, copy=False)
+    polys = patch.GetPolys()
+    offsets = vtk_to_numpy(polys.GetOffsetsArray())[:-1]
+    connectivity = vtk_to_numpy(polys.GetConnectivityArray())
+    corners = np.stack([connectivity[offsets], connectivity[offsets + 1], connectivity[offsets + 2]], axis=1)
+    return triangle_normals(points, corners)[0]
+
+
+def face_centres(patch: vtkPolyData) -> tuple[np.ndarray, np.ndarray]:
+    """(M, 3) corner-average centres of a patch's polygons and (M,) their radii (farthest corner), metres."""
+    if patch.GetNumberOfCells() == 0:
+        return np.zeros((0, 3)), np.zeros(0)
+    points = vtk_to_numpy(patch.GetPoints().GetData()).astype(np.float64)
+    polys = patch.GetPolys()
+    offsets = vtk_to_numpy(polys.GetOffsetsArray())
+    corners = points[vtk_to_numpy(polys.GetConnectivityArray())]
+    sizes = np.diff(offsets)
+    centres = np.add.reduceat(corners, offsets[:-1], axis=0) / sizes[:, None]
+    reach = np.linalg.norm(corners - np.repeat(centres, sizes, axis=0), axis=1)
+    return centres, np.maximum.reduceat(reach, offsets[:-1])
+
+
+def stamped(patch: vtkPolyData, frame: int, drop=()) -> vtkPolyData:
+    """A shallow copy of ``patch`` with cell data ``frame`` (kept if the patch has it already), no field data,
+    and without the cell arrays named in ``drop``."""
+    copy = vtkPolyData()
+    copy.ShallowCopy(patch)
+    copy.GetFieldData().Initialize()
+    if copy.GetCellData().GetArray(FRAME_CELL_ARRAY) is None:
+        frames = numpy_to_vtk(np.full(copy.GetNumberOfCells(), frame, dtype=np.int32), deep=True)
+        frames.SetName(FRAME_CELL_ARRAY)
+        copy.GetCellData().AddArray(frames)
+    for name in drop:
+        copy.GetCellData().RemoveArray(name)
+    return copy
+
+
+def _append(polydatas: list[vtkPolyData]) -> vtkPolyData:
+    merged = vtkPolyData()
+    if polydatas:
+        append = vtkAppendPolyData()
+        for polydata in polydatas:
+            append.AddInputData(polydata)
+        append.Update()
+        merged.ShallowCopy(append.GetOutput())
+    return merged
+
+
+class WorldMap:
+    """The map in chunks of ``chunk_size`` metres (see the module docs)."""
+
+    def __init__(self, chunk_size: float = CHUNK_SIZE, patches_per_chunk: int = PATCHES_PER_CHUNK) -> None:
+        if not (math.isfinite(chunk_size) and chunk_size > 0):
+            raise ValueError(f"WorldMap: chunk_size must be a positive number of metres, got {chunk_size!r}")
+        if isinstance(patches_per_chunk, bool) or not isinstance(patches_per_chunk, int) or patches_per_chunk < 1:
+            raise ValueError(f"WorldMap: patches_per_chunk must be a positive integer, got {patches_per_chunk!r}")
+        self.chunk_size = float(chunk_size)
+        self.patches_per_chunk = patches_per_chunk
+        self.multiblock = vtkMultiBlockDataSet()
+        self.reset()
+
+    # -- the map -----------------------------------------------------------
+    def reset(self) -> None:
+        """Empty the map."""
+        self.chunks: dict[ChunkIndex, Chunk] = {}
+        self._numbers: dict[ChunkIndex, int] = {}  # chunk -> its block number in multiblock
+        self._patches: dict[str, Patch] = {}
+        self._cells = 0
+        self._merges = 0
+        self._merged: vtkPolyData | None = None
+        self._rebuild_top()
+
+    @property
+    def number_of_cells(self) -> int:
+        return self._cells
+
+    @property
+    def number_of_points(self) -> int:
+        return sum(p.polydata.GetNumberOfPoints() for p in self._patches.values())
+
+    @property
+    def patch_keys(self) -> list[str]:
+        return list(self._patches)
+
+    def patch(self, key: str) -> Patch:
+        return self._patches[key]
+
+    def block(self, key: str) -> vtkPolyData:
+        """The polydata of patch ``key`` (read it; change its points only through :meth:`move_points`)."""
+        return self._patches[key].polydata
+
+    def memory_bytes(self) -> int:
+        """Memory held by the map: its patches (VTK's actual memory size) and their per-face arrays."""
+        total = 0
+        for p in self._patches.values():
+            total += 1024 * p.polydata.GetActualMemorySize() + p.normals.nbytes + p.evidence.nbytes + p.contradicted.nbytes
+        return total
+
+    def chunk_of(self, polydata: vtkPolyData) -> ChunkIndex:
+        """The chunk holding the centre of ``polydata``'s bounding box."""
+        b = polydata.GetBounds()
+        centre = np.array([b[0] + b[1], b[2] + b[3], b[4] + b[5]]) / 2.0
+        return tuple(int(i) for i in np.floor(centre / self.chunk_size))
+
+    def chunk_bounds(self) -> dict[ChunkIndex, tuple[float, ...]]:
+        """The bounding box of each chunk's patches (what the renderer culls with)."""
+        return {index: chunk.bounds() for index, chunk in self.chunks.items()}
+
+    def add_patch(self, key: str, polydata: vtkPolyData, frame: int, keyed: bool = False) -> int:
+        """Add ``polydata`` under ``key`` (replacing a patch of that key; a replaced keyed patch's faces keep the
+        removal evidence of the faces they replace); returns the net change in cells."""
+        polydata = stamped(polydata, frame)
+        old = self._patches.get(key)
+        patch = Patch(
+            key, polydata, self.chunk_of(polydata), face_normals(polydata),
+            np.zeros(polydata.GetNumberOfCells(), np.float32), np.zeros(polydata.GetNumberOfCells(), np.uint16), keyed,
+        )
+        if old is not None:
+            self._inherit_evidence(patch, old)
+        before = self._cells
+        self._put(patch, replacing=old)
+        self._changed()
+        return self._cells - before
+
+    def remove_patch(self, key: str) -> int:
+        """Remove the patch ``key`` if present; returns the net change in cells (<= 0)."""
+        old = self._patches.get(key)
+        if old is None:
+            return 0
+        self._take(old)
+        self._changed()
+        return -old.cells
+
+    def _put(self, patch: Patch, replacing: Patch | None = None) -> None:
+        if replacing is not None and replacing.chunk != patch.chunk:
+            self._take(replacing)
+            replacing = None
+        chunk = self.chunks.get(patch.chunk)
+        if chunk is None:
+            chunk = self.chunks[patch.chunk] = Chunk(patch.chunk)
+            self._place_chunk(chunk)
+        if replacing is not None:
+            self._cells -= replacing.cells
+        chunk.set(patch)
+        self._patches[patch.key] = patch
+        self._cells += patch.cells
+        self._set_bounds(chunk)
+
+    def _take(self, patch: Patch) -> None:
+        chunk = self.chunks[patch.chunk]
+        chunk.remove([patch.key])
+        del self._patches[patch.key]
+        self._cells -= patch.cells
+        if not chunk.patches:
+            del self.chunks[patch.chunk]
+            self._rebuild_top()
+        else:
+            self._set_bounds(chunk)
+
+    def compact(self) -> None:
+        """Merge the frame patches of each chunk that holds more than ``patches_per_chunk`` into one.
+
+        Not done while a patch is added: merged patches get new names, so face codes of an expected image
+        rendered before would name patches no longer there. The loop compacts at the end of each frame, once
+        its E's codes have been used (removal votes come after the append).
+        """
+        for chunk in self.chunks.values():
+            if chunk.frame_patches > self.patches_per_chunk:
+                self._merge_frame_patches(chunk)
+
+    def _merge_frame_patches(self, chunk: Chunk) -> None:
+        """Merge a chunk's frame patches into one, size-tiered: the largest stays apart while it holds more
+        faces than all the others together, so a known place that keeps receiving small patches does not copy
+        (and re-upload) its whole chunk every few frames; each face is copied O(log n) times over a run."""
+        parts = [p for p in chunk.patches.values() if not p.keyed]
+        largest = max(parts, key=lambda p: p.cells)
+        if 2 * largest.cells > sum(p.cells for p in parts):
+            parts = [p for p in parts if p is not largest]
+        if len(parts) < 2:
+            return
+        merged = Patch(
+            f"merged_{self._merges}",
+            _append([p.polydata for p in parts]),
+            chunk.index,
+            np.concatenate([p.normals for p in parts]),
+            np.concatenate([p.evidence for p in parts]),
+            np.concatenate([p.contradicted for p in parts]),
+        )
+        self._merges += 1
+        chunk.remove([part.key for part in parts])
+        for part in parts:
+            del self._patches[part.key]
+        chunk.set(merged)
+        self._patches[merged.key] = merged
+
+    def _place_chunk(self, chunk: Chunk) -> None:
+        number = self.multiblock.GetNumberOfBlocks()
+        self._numbers[chunk.index] = number
+        self.multiblock.SetBlock(number, chunk.block)
+        self.multiblock.GetMetaData(number).Set(vtkCompositeDataSet.NAME(), "chunk_{}_{}_{}".format(*chunk.index))
+
+    def _rebuild_top(self) -> None:
+        self.multiblock.SetNumberOfBlocks(0)
+        self._numbers = {}
+        for chunk in self.chunks.values():
+            self._place_chunk(chunk)
+            self._set_bounds(chunk)
+        self.multiblock.Modified()
+
+    def _set_bounds(self, chunk: Chunk) -> None:
+        self.multiblock.GetMetaData(self._numbers[chunk.index]).Set(vtkDataObject.BOUNDING_BOX(), chunk.bounds(), 6)
+
+    def _changed(self) -> None:
+        self.multiblock.Modified()
+        self._merged = None
+
+    def mesh(self) -> vtkPolyData:
+        """The whole map as one vtkPolyData (cell data ``frame``), chunk by chunk; cached until the map changes."""
+        if self._merged is None:
+            self._merged = _append([p.polydata for chunk in self.chunks.values() for p in chunk.patches.values()])
+        return self._merged
+
+    # -- faces: evidence, normals, removal ------------------------------------
+    def _inherit_evidence(self, patch: Patch, old: Patch) -> None:
+        """A re-meshed patch's faces keep the removal evidence of the face they replace.
+
+        Voxel planes re-mesh a block whenever a point lands in it: with fresh evidence, the ghost of a
+        departed object whose block keeps receiving points (the floor seen where it stood) would never
+        gather the frames removal asks for. A new face takes the evidence of the old face whose centre is
+        nearest to its own, if that centre lies within the new face (its radius); otherwise it starts at 0.
+        """
+        centres, _ = face_centres(old.polydata)
+        if not len(centres) or not patch.cells:
+            return
+        new_centres, radii = face_centres(patch.polydata)
+        distance, nearest = cKDTree(centres).query(new_centres, distance_upper_bound=float(radii.max()))
+        same = np.isfinite(distance) & (distance <= radii)
+        patch.evidence[same] = old.evidence[nearest[same]]
+        patch.contradicted[same] = old.contradicted[nearest[same]]
+
+    def face_lookup(self, codes, table: FaceIdTable) -> tuple[np.ndarray, np.ndarray, list[str]]:
+        """Where the faces of an expected image's ``codes`` live: (index into the returned patch keys, cell id in
+        the patch, keys); index -1 for codes of no face in the map."""
+        block, local = table.lookup(codes)
+        live = np.array([name in self._patches and self._patches[name].cells == count for name, count in zip(table.names, table.counts, strict=True)], dtype=bool)
+        if len(live):
+            gone = (block >= 0) & ~live[np.maximum(block, 0)]
+            block = np.where(gone, -1, block)
+            local = np.where(gone, -1, local)
+        return block, local, list(table.names)
+
+    def _per_face(self, codes, table: FaceIdTable, attribute: str, fill) -> np.ndarray:
+        codes = np.asarray(codes, dtype=np.int64)
+        block, local, keys = self.face_lookup(codes, table)
+        sample = getattr(next(iter(self._patches.values())), attribute) if self._patches else np.zeros(0, np.float32)
+        out = np.full((len(codes), *sample.shape[1:]), fill, dtype=sample.dtype)
+        for b in np.unique(block[block >= 0]):
+            rows = block == b
+            out[rows] = getattr(self._patches[keys[b]], attribute)[local[rows]]
+        return out
+
+    def face_normals_of(self, codes, table: FaceIdTable) -> np.ndarray:
+        """(N, 3) world normals of the faces ``codes``; NaN for codes of no face in the map."""
+        return self._per_face(codes, table, "normals", np.nan).reshape(-1, 3) if self._patches else np.full((len(codes), 3), np.nan, np.float32)
+
+    def face_evidence_of(self, codes, table: FaceIdTable) -> np.ndarray:
+        """The removal log-odds of faces ``codes`` (0 for codes of no face in the map)."""
+        return self._per_face(codes, table, "evidence", 0.0) if self._patches else np.zeros(len(codes), np.float32)
+
+    def update_evidence(self, codes, contradicted: np.ndarray, confirmed: np.ndarray, parameters, table: FaceIdTable) -> np.ndarray:
+        """Add one frame's votes and return the codes of the faces whose removal the evidence now calls for.
+
+        ``codes``: faces voted on this frame (of the expected image whose ``table`` is given);
+        ``contradicted`` / ``confirmed``: their pixel votes. The rule is
+        :func:`mabdi.filters.removal.update_log_odds` (``parameters``: :class:`~mabdi.filters.removal.RemovalParameters`).
+        """
+        codes = np.asarray(codes, dtype=np.int64)
+        block, local, keys = self.face_lookup(codes, table)
+        condemned = []
+        for b in np.unique(block[block >= 0]):
+            rows = np.flatnonzero(block == b)
+            patch = self._patches[keys[b]]
+            cells = local[rows]
+            evidence, frames, gone = update_log_odds(
+                patch.evidence[cells], patch.contradicted[cells], contradicted[rows], confirmed[rows], parameters
+            )
+            patch.evidence[cells] = evidence
+            patch.contradicted[cells] = frames
+            condemned.append(codes[rows[gone]])
+        return np.concatenate(condemned) if condemned else np.zeros(0, dtype=np.int64)
+
+    def remove_faces(self, codes, table: FaceIdTable) -> vtkPolyData:
+        """Remove the faces ``codes`` from their patches (each changed patch is rebuilt, so only it is re-uploaded).
+
+        Faces go with their edge-connected neighbours as :meth:`_removed_with` says. Returns the removed faces
+        as one vtkPolyData (for the dashboard).
+        """
+        block, local, keys = self.face_lookup(np.asarray(codes, dtype=np.int64), table)
+        removed_parts = []
+        for b in np.unique(block[block >= 0]):
+            patch = self._patches[keys[b]]
+            gone = np.zeros(patch.cells, dtype=bool)
+            gone[local[block == b]] = True
+            gone = self._removed_with(patch, gone)
+            removed_parts.append(extract_polys(patch.polydata, np.flatnonzero(gone)))
+            keep = np.flatnonzero(~gone)
+            if keep.size == 0:
+                self._take(patch)
+                continue
+            kept = Patch(
+                patch.key, extract_polys(patch.polydata, keep), patch.chunk,
+                patch.normals[keep], patch.evidence[keep], patch.contradicted[keep], patch.keyed,
+            )
+            self._put(kept, replacing=patch)
+        self._changed()
+        return _append(removed_parts)
+
+    @staticmethod
+    def _removed_with(patch: Patch, gone: np.ndarray) -> np.ndarray:
+        """The faces that go with the condemned ``gone`` of a patch of triangles.
+
+        A departed object's faces are contiguous: faces already contradicted (evidence above 0) go with a
+        removed face they are edge-connected to, and so do the direct neighbours of the removed faces that
+        were never voted on at all (smaller than a pixel: no pixel centre showed them), and kept faces left
+        as islands inside the removed region.
+        """
+        triangles = patch_triangles(patch.polydata)
+        if triangles is None:
+            return gone
+        points = patch.polydata.GetNumberOfPoints()
+        gone = spread_removal(triangles, points, gone, patch.evidence > 0)
+        never_voted = (patch.evidence == 0) & (patch.contradicted == 0)
+        gone = spread_removal(triangles, points, gone, never_voted, steps=1)
+        return gone | enclosed(triangles, points, gone)
+
+    def move_points(self, key: str, vertex_ids: np.ndarray, positions: np.ndarray) -> None:
+        """Move vertices ``vertex_ids`` of patch ``key`` to ``positions`` (K, 3) world metres; faces unchanged.
+
+        The patch's points are changed in place and marked modified, so the expected-image renderer
+        re-uploads that patch only; the normals of the faces around the moved vertices are recomputed.
+        """
+        patch = self._patches[key]
+        current = vtk_to_numpy(patch.polydata.GetPoints().GetData())
+        vertex_ids = np.asarray(vertex_ids, dtype=np.int64)
+        positions = np.asarray(positions)
+        if positions.shape != (len(vertex_ids), 3):
+            raise ValueError(f"move_points: {len(vertex_ids)} vertex ids of block {key} need ({len(vertex_ids)}, 3) positions, got {positions.shape}")
+        if len(vertex_ids) and (vertex_ids.min() < 0 or vertex_ids.max() >= len(current)):
+            raise ValueError(f"move_points: block {key} has {len(current)} points, got vertex ids outside 0..{len(current) - 1}")
+        current[vertex_ids] = positions.astype(current.dtype)
+        patch.polydata.GetPoints().Modified()
+        patch.polydata.Modified()
+        triangles = patch_triangles(patch.polydata)
+        if triangles is None:  # not all triangles: the patch's normals anew
+            patch.normals = face_normals(patch.polydata)
+        else:
+            moved = np.zeros(len(current), dtype=bool)
+            moved[vertex_ids] = True
+            faces = np.flatnonzero(moved[triangles].any(axis=1))
+            patch.normals[faces] = triangle_normals(current.astype(np.float32, copy=False), triangles[faces])[0]
+        self._set_bounds(self.chunks[patch.chunk])
+        self._changed()
+
+    # -- checkpoints --------------------------------------------------------
+    def state(self) -> dict:
+        """The map as plain data (patches chunk by chunk, in order, with their chunk and per-face evidence), for
+        checkpoints: :meth:`set_state` rebuilds the same chunks in the same order, so a resumed run's map is
+        byte-identical."""
+        return {
+            "chunk_size": self.chunk_size,
+            "merges": self._merges,
+            "patches": [
+                [key, polydata_to_state(p.polydata), list(p.chunk), p.evidence.copy(), p.contradicted.copy(), p.keyed]
+                for chunk in self.chunks.values()
+                for key, p in chunk.patches.items()
+            ],
+        }
+
+    def set_state(self, state: dict) -> None:
+        """Restore a map saved by :meth:`state` (replaces the current map); also reads the checkpoints of the
+        map kept as one block per patch (face evidence by 24-bit identity ranges)."""
+        if "ranges" in state:
+            state = _chunked_state(state, self.chunk_size)
+        self.reset()
+        self.chunk_size = float(state["chunk_size"])
+        self._merges = int(state["merges"])
+        for key, polydata, chunk, evidence, contradicted, keyed in state["patches"]:
+            polydata = polydata_from_state(polydata)
+            patch = Patch(key, polydata, tuple(int(i) for i in chunk), face_normals(polydata), evidence.copy(), contradicted.copy(), bool(keyed))
+            self._put(patch)
+        self._changed()
+
+
+def _chunked_state(state: dict, chunk_size: float) -> dict:
+    """A checkpoint of the map kept as patches with evidence by identity range, as :meth:`WorldMap.state`."""
+    patches = []
+    for key, polydata in state["patches"]:
+        base, count = state["ranges"][key]
+        chunk = WorldMap(chunk_size).chunk_of(polydata_from_state(polydata))
+        patches.append([
+            key, polydata, list(chunk), state["evidence"][base : base + count].copy(),
+            state["contradicted"][base : base + count].copy(), key.startswith("patch_"),
+        ])
+    return {"chunk_size": chunk_size, "merges": 0, "patches": patches}

@@ -1,0 +1,203 @@
+"""WorldMap: patches in chunks of space, merged frame patches, E drawn from the chunks in view, and a map of
+more faces than an image's 24-bit face codes can name at once."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from vtkmodules.util.numpy_support import numpy_to_vtk, vtk_to_numpy
+from vtkmodules.vtkCommonCore import vtkPoints
+from vtkmodules.vtkCommonDataModel import vtkCellArray, vtkDataObject, vtkPolyData
+
+from conftest import plane_mesh
+from scipy.spatial import cKDTree
+
+from mabdi.camera import Intrinsics, look_at
+from mabdi.face_identity import MAX_FACE_CODE, FaceIdTable
+from mabdi.filters.depth_image import DepthRenderer
+from mabdi.polydata import named_leaves
+from mabdi.filters.removal import RemovalParameters
+from mabdi.polydata import polydata_arrays
+from mabdi.world_map import WorldMap, _chunked_state
+
+SMALL = Intrinsics(fx=160, fy=160, cx=80, cy=60, width=160, height=120, near=0.3, far=4.0)
+
+
+def test_patches_go_to_the_chunk_of_their_centre_and_chunks_carry_their_bounds():
+    world = WorldMap(chunk_size=4.0)
+    world.add_patch("frame_0", plane_mesh([1, 1, 0], [0, 0, 1], size=1.0), frame=0)
+    world.add_patch("frame_1", plane_mesh([-6, 9, 0.5], [0, 0, 1], size=1.0), frame=1)
+    world.add_patch("frame_2", plane_mesh([3, 3, 0], [0, 0, 1], size=1.0), frame=2)
+    assert set(world.chunks) == {(0, 0, 0), (-2, 2, 0)}
+    assert list(world.chunks[(0, 0, 0)].patches) == ["frame_0", "frame_2"]
+    top = world.multiblock
+    assert top.GetNumberOfBlocks() == 2
+    np.testing.assert_allclose(top.GetMetaData(0).Get(vtkDataObject.BOUNDING_BOX()), [0.5, 3.5, 0.5, 3.5, 0, 0])
+    assert [name for name, _ in named_leaves(top)] == ["frame_0", "frame_2", "frame_1"]
+    assert world.number_of_cells == 6
+
+
+def test_frame_patches_beyond_the_limit_merge_into_one_with_their_faces_and_evidence():
+    world = WorldMap(patches_per_chunk=3)
+    for frame in range(5):
+        world.add_patch(f"frame_{frame}", plane_mesh([0.5, 0.5, 0.1 * frame], [0, 0, 1], size=1.0, subdivisions=2), frame=frame)
+    world.add_patch("patch_9", plane_mesh([1.5, 1.5, 0], [0, 0, 1], size=0.5), frame=5, keyed=True)
+    table = FaceIdTable(["frame_1"], [1], [8])
+    world.update_evidence(np.arange(1, 9), np.ones(8, bool), np.zeros(8, bool), RemovalParameters(), table)
+    before = world.mesh()
+    assert world.number_of_cells == 42 and len(world.patch_keys) == 6
+    world.compact()
+    chunk = world.chunks[(0, 0, 0)]
+    assert list(chunk.patches) == ["patch_9", "merged_0"]  # keyed patches are never merged
+    merged = chunk.patches["merged_0"]
+    assert merged.cells == 40 and world.number_of_cells == 42
+    frames = vtk_to_numpy(merged.polydata.GetCellData().GetArray("frame"))
+    assert frames.tolist() == sorted(frames.tolist()) == [f for f in range(5) for _ in range(8)]
+    assert (merged.evidence[8:16] > 0).all() and (merged.evidence[:8] == 0).all() and (merged.evidence[16:] == 0).all()
+    points, triangles = polydata_arrays(world.mesh())
+    old_points, old_triangles = polydata_arrays(before)
+    centres = np.sort(points[triangles].mean(axis=1), axis=0)
+    np.testing.assert_allclose(centres, np.sort(old_points[old_triangles].mean(axis=1), axis=0))
+    # the merged patch keeps vertices apart: removing one layer's face spreads over that layer only
+    assert merged.polydata.GetNumberOfPoints() == 5 * 9
+
+
+def test_state_round_trip_and_the_previous_checkpoint_layout():
+    world = WorldMap()
+    world.add_patch("frame_0", plane_mesh([0.5, 0.5, 0], [0, 0, 1], size=1.0, subdivisions=2), frame=0)
+    world.add_patch("patch_3", plane_mesh([9, 0.5, 0], [0, 0, 1], size=1.0), frame=1, keyed=True)
+    world.patch("frame_0").evidence[:] = np.arange(8)
+    restored = WorldMap()
+    restored.set_state(world.state())
+    assert restored.patch_keys == world.patch_keys and restored.number_of_cells == 10
+    np.testing.assert_array_equal(restored.patch("frame_0").evidence, np.arange(8))
+    assert restored.patch("patch_3").keyed and restored.patch("patch_3").chunk == (2, 0, 0)
+    # a checkpoint of the map kept as blocks with evidence by 24-bit identity range
+    state = world.state()
+    old = {
+        "patches": [[key, polydata] for key, polydata, *_ in state["patches"]],
+        "ranges": {"frame_0": [1, 8], "patch_3": [9, 2]},
+        "evidence": np.concatenate([[0.0], np.arange(8), [5, 6]]).astype(np.float32),
+        "contradicted": np.zeros(11, np.uint16),
+        "next_frame": 2,
+    }
+    converted = WorldMap()
+    converted.set_state(old)
+    np.testing.assert_array_equal(converted.patch("patch_3").evidence, [5, 6])
+    assert _chunked_state(old, 4.0)["patches"][1][5] is True
+
+
+def test_expected_image_draws_only_the_chunks_in_view():
+    world = WorldMap(chunk_size=2.0)
+    for i in range(10):  # ten floor tiles along x, 2 m apart
+        world.add_patch(f"frame_{i}", plane_mesh([2.0 * i + 1.0, 1.0, 0.0], [0, 0, 1], size=1.9, subdivisions=4), frame=i)
+    renderer = DepthRenderer(face_identity=True)
+    pose = look_at([13.0, 1.0, 1.2], [13.0, 1.0001, 0.0])  # straight down over tile 6 (x 12..14)
+    zbuffer = renderer.render_zbuffer(world.multiblock, SMALL, pose)
+    assert (zbuffer < 1).any()
+    assert renderer.identities.names == ["frame_6"]  # the other nine chunks were not drawn
+    renderer.render_zbuffer(world.multiblock, SMALL, look_at([3.0, 1.0, 1.2], [3.0, 1.0001, 0.0]))
+    assert renderer.identities.names == ["frame_1"]
+
+
+def _grid(cells_per_side: int, size: float, origin) -> tuple[np.ndarray, vtkCellArray]:
+    n = cells_per_side + 1
+    s = np.linspace(0.0, size, n)
+    x, y = np.meshgrid(s, s, indexing="ij")
+    points = np.column_stack([x.ravel() + origin[0], y.ravel() + origin[1], np.zeros(n * n)]).astype(np.float32)
+    i, j = np.meshgrid(np.arange(cells_per_side), np.arange(cells_per_side), indexing="ij")
+    v0 = (i * n + j).ravel()
+    triangles = np.concatenate([np.stack([v0, v0 + n, v0 + n + 1], 1), np.stack([v0, v0 + n + 1, v0 + 1], 1)])
+    cells = vtkCellArray()
+    cells.SetData(
+        numpy_to_vtk(np.arange(0, 3 * len(triangles) + 1, 3, dtype=np.int64), deep=True),
+        numpy_to_vtk(triangles.ravel().astype(np.int64), deep=True),
+    )
+    return points, cells
+
+
+def test_a_map_of_more_faces_than_24_bit_codes_renders_identities_and_removes_faces():
+    """21 patches of 1M faces each (21M faces, more than the 16.7M an image's codes can name): the expected
+    image over the last patch names its faces right, and removing faces by those codes removes exactly them."""
+    side = 708  # 2 * 708^2 = 1,002,528 triangles per patch
+    patches = 21
+    world = WorldMap(chunk_size=4.0)
+    _, cells = _grid(side, 3.9, (0.0, 0.0))  # the connectivity is shared by every patch (the points differ)
+    for k in range(patches):
+        points, _ = _grid(side, 3.9, (4.0 * k + 0.05, 0.05))
+        patch = vtkPolyData()
+        vtk_points = vtkPoints()
+        vtk_points.SetData(numpy_to_vtk(points, deep=True))
+        patch.SetPoints(vtk_points)
+        patch.SetPolys(cells)
+        world.add_patch(f"frame_{k}", patch, frame=k)
+    assert world.number_of_cells == patches * 2 * side * side > MAX_FACE_CODE + 4_000_000
+
+    last = f"frame_{patches - 1}"
+    x0 = 4.0 * (patches - 1) + 0.05
+    renderer = DepthRenderer(face_identity=True)
+    pose = look_at([x0 + 1.7, 1.3, 0.8], [x0 + 1.7, 1.3001, 0.0])
+    zbuffer = renderer.render_zbuffer(world.multiblock, SMALL, pose)
+    codes = renderer.render_identity()
+    table = renderer.identities
+    assert table.names == [last] and (zbuffer < 1).all()
+    block, local, keys = world.face_lookup(codes, table)
+    assert (block == 0).all() and keys == [last]
+    # each pixel's face contains the point its centre ray hits on the floor (z = 0)
+    rays = SMALL.rays() @ pose[:3, :3].T
+    hits = pose[:3, 3] + rays * (-pose[2, 3] / rays[..., 2])[..., None]
+    step = 3.9 / side
+    i = np.floor((hits[..., 0] - x0) / step).astype(int)
+    j = np.floor((hits[..., 1] - 0.05) / step).astype(int)
+    fx, fy = (hits[..., 0] - x0) / step - i, (hits[..., 1] - 0.05) / step - j
+    quad = i * side + j
+    expected = np.where(fy < fx, quad, quad + side * side)  # which of the quad's two triangles
+    clear = (np.abs(fx - fy) > 0.05) & (fx > 0.05) & (fx < 0.95) & (fy > 0.05) & (fy < 0.95)
+    assert clear.mean() > 0.5
+    np.testing.assert_array_equal(local[clear], expected[clear])
+
+    # remove the faces seen by every tenth pixel (5 cm apart: no two touch), every face voted on first so
+    # that only they go (faces never voted on would go with their removed neighbours)
+    every_code = table.bases[0] + np.arange(table.counts[0])
+    world.update_evidence(every_code, np.zeros(len(every_code), bool), np.ones(len(every_code), bool), RemovalParameters(), table)
+    chosen = np.unique(codes[::10, ::10])
+    gone_local = table.lookup(chosen)[1]
+    before = world.number_of_cells
+    removed = world.remove_faces(chosen, table)
+    assert removed.GetNumberOfCells() == len(chosen) == 192 and world.number_of_cells == before - len(chosen)
+    assert world.patch(last).cells == 2 * side * side - len(chosen)
+    points, triangles = polydata_arrays(removed)
+    quad, upper = gone_local % (side * side), gone_local // (side * side)
+    i, j = quad // side, quad % side
+    corners = np.stack([np.stack([i, j], 1), np.stack([i + 1, j + upper], 1), np.stack([i + 1 - upper, j + 1], 1)], 1)
+    centres = corners.mean(axis=1) * step + [x0, 0.05]
+    distance, _ = cKDTree(points[triangles].mean(axis=1)[:, :2]).query(centres)
+    assert distance.max() < 1e-5
+    # the next image of the same place sees through where they were
+    zbuffer = renderer.render_zbuffer(world.multiblock, SMALL, pose)
+    assert (zbuffer[::10, ::10] == 1).all() and (zbuffer < 1).mean() > 0.98
+
+
+def test_a_view_of_more_faces_than_codes_is_a_clear_error():
+    world = WorldMap()
+    renderer = DepthRenderer(face_identity=True)
+    renderer._codes.allocate("elsewhere", MAX_FACE_CODE - 10)  # as if a huge block were in view already
+    world.add_patch("frame_0", plane_mesh([0.5, 0.5, 0], [0, 0, 1], size=1.0, subdivisions=4), frame=0)
+    with pytest.raises(MemoryError, match="in view"):
+        renderer.render_zbuffer(world.multiblock, SMALL, look_at([0.5, 0.5, 1.0], [0.5, 0.5001, 0.0]))
+
+
+def test_merging_leaves_a_large_patch_apart_until_the_small_ones_add_up_to_it():
+    world = WorldMap(patches_per_chunk=4)
+    world.add_patch("frame_0", plane_mesh([0.5, 0.5, 0], [0, 0, 1], size=1.0, subdivisions=10), frame=0)  # 200 faces
+    for frame in range(1, 6):
+        world.add_patch(f"frame_{frame}", plane_mesh([0.5, 0.5, 0.1 * frame], [0, 0, 1], size=1.0, subdivisions=2), frame=frame)
+    world.compact()
+    chunk = world.chunks[(0, 0, 0)]
+    assert [(key, p.cells) for key, p in chunk.patches.items()] == [("frame_0", 200), ("merged_0", 40)]
+    for frame in range(6, 30):  # small patches keep coming: merged among themselves, then into the large one
+        world.add_patch(f"frame_{frame}", plane_mesh([0.5, 0.5, 0.1 * frame], [0, 0, 1], size=1.0, subdivisions=5), frame=frame)
+        world.compact()
+        assert chunk.frame_patches <= 5
+    assert world.number_of_cells == 200 + 40 + 24 * 50
+    assert "frame_0" not in world.patch_keys  # once the small ones outweighed it
