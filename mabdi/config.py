@@ -351,10 +351,10 @@ def run_config_from_dict(data: dict, where: str = "<config>", base_dir=None, val
     """Build and validate a :class:`RunConfig` from parsed TOML (``where`` names the file in errors).
 
     A waypoint or trajectory ``[path]`` without ``run.frames`` sets it to the path's own number of frames
-    (:func:`mabdi.simulate.path.path_frame_count`; a trajectory ``file`` is relative to ``base_dir``).
+    (:func:`mabdi.simulate.routes.path_frame_count`; a trajectory ``file`` is relative to ``base_dir``).
     ``validate=False`` leaves out the checks across sections (:func:`validate_run_config`).
     """
-    from mabdi.simulate.path import check_path_keys
+    from mabdi.simulate.routes import check_path_keys
 
     config = _build(RunConfig, data, where, "")
     path_table = data.get("path", {})
@@ -370,7 +370,7 @@ def run_config_from_dict(data: dict, where: str = "<config>", base_dir=None, val
 
 def _frames_from_path(config: RunConfig, where: str, base_dir=None) -> None:
     """Set ``run.frames`` to the number of frames of the config's waypoint or trajectory path."""
-    from mabdi.simulate.path import path_frame_count
+    from mabdi.simulate.routes import path_frame_count
 
     try:
         config.run.frames = path_frame_count(config.path, base_dir)
@@ -673,7 +673,7 @@ def validate_run_config(config: RunConfig, where: str = "<config>") -> None:
     except ConfigError as exc:
         raise ConfigError(f"{where}: [sensor] {exc}") from None
     path = config.path
-    from mabdi.simulate.path import PATH_KINDS, waypoint_distances
+    from mabdi.simulate.routes import PATH_KINDS, waypoint_distances
 
     _check_choice(path.kind, PATH_KINDS, where, "path.kind")
     if path.kind == "waypoints":
@@ -730,7 +730,7 @@ def _toml_table(obj) -> dict:
 
 def _path_key_written(path: PathConfig, name: str) -> bool:
     """Whether a ``[path]`` key is written: those of its kind (``kind`` itself unless it is the default helix)."""
-    from mabdi.simulate.path import KIND_KEYS
+    from mabdi.simulate.routes import KIND_KEYS
 
     if name == "kind":
         return path.kind != "helix"

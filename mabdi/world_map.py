@@ -231,6 +231,11 @@ class WorldMap:
         self._patches: dict[str, Patch] = {}
         self._cells = 0
         self._merges = 0
+        #: patch key -> (its number of faces before, old face -> new face or -1) for the keyed patches re-meshed
+        #: since the last compact (the end of the loop's frame): E's codes of the old faces still find theirs
+        self._replaced: dict[str, tuple[int, np.ndarray]] = {}
+        #: merged patch key -> [(part key, its number of points)], in the order their points were concatenated
+        self._merged_from: dict[str, list[tuple[str, int]]] = {}
         self._merged: vtkPolyData | None = None
         self._rebuild_top()
 
@@ -281,6 +286,7 @@ class WorldMap:
         )
         if old is not None:
             self._inherit_evidence(patch, old)
+            self._note_replacement(key, old, patch)
         before = self._cells
         self._put(patch, replacing=old)
         self._changed()
@@ -292,6 +298,7 @@ class WorldMap:
         if old is None:
             return 0
         self._take(old)
+        self._replaced.pop(key, None)
         self._changed()
         return -old.cells
 
@@ -328,9 +335,17 @@ class WorldMap:
         rendered before would name patches no longer there. The loop compacts at the end of each frame, once
         its E's codes have been used (removal votes come after the append).
         """
+        self._merged_from = {key: parts for key, parts in self._merged_from.items() if key in self._patches}
+        self._replaced.clear()
         for chunk in self.chunks.values():
             if chunk.frame_patches > self.patches_per_chunk:
                 self._merge_frame_patches(chunk)
+
+    def merged_parts(self, key: str) -> list[tuple[str, int]]:
+        """The patches merged into patch ``key`` at the last :meth:`compact` that made it, as (key, number of
+        points) in the order of its points; empty for a patch that was not made by merging (or merged earlier).
+        What was kept per vertex of the parts (refinement's state) can follow them so."""
+        return list(self._merged_from.get(key, ()))
 
     def _merge_frame_patches(self, chunk: Chunk) -> None:
         """Merge a chunk's frame patches into one, size-tiered: the largest stays apart while it holds more
@@ -351,6 +366,7 @@ class WorldMap:
             np.concatenate([p.contradicted for p in parts]),
         )
         self._merges += 1
+        self._merged_from[merged.key] = [(p.key, p.polydata.GetNumberOfPoints()) for p in parts]
         chunk.remove([part.key for part in parts])
         for part in parts:
             del self._patches[part.key]
@@ -402,15 +418,45 @@ class WorldMap:
         patch.evidence[same] = old.evidence[nearest[same]]
         patch.contradicted[same] = old.contradicted[nearest[same]]
 
+    def _note_replacement(self, key: str, old: Patch, patch: Patch) -> None:
+        """Remember which new face stands where each old face of a re-meshed patch stood (its centre within the
+        new face's radius), so that an expected image rendered before the re-meshing still names its faces."""
+        mapping = np.full(old.cells, -1, dtype=np.int64)
+        if old.cells and patch.cells:
+            centres, _ = face_centres(old.polydata)
+            new_centres, radii = face_centres(patch.polydata)
+            distance, nearest = cKDTree(new_centres).query(centres)
+            inside = distance <= radii[nearest]
+            mapping[inside] = nearest[inside]
+        if key in self._replaced:  # re-meshed twice since the last compact: old -> between -> new
+            count, before = self._replaced[key]
+            mapping = np.where(before >= 0, mapping[np.maximum(before, 0)], -1)
+            self._replaced[key] = (count, mapping)
+        else:
+            self._replaced[key] = (old.cells, mapping)
+
     def face_lookup(self, codes, table: FaceIdTable) -> tuple[np.ndarray, np.ndarray, list[str]]:
         """Where the faces of an expected image's ``codes`` live: (index into the returned patch keys, cell id in
-        the patch, keys); index -1 for codes of no face in the map."""
+        the patch, keys); index -1 for codes of no face in the map.
+
+        A block of the table is the patch of its name when that holds as many faces as the block did. A keyed
+        patch re-meshed since (voxel planes, at the append after E was drawn) leads each old face to the new
+        face at its place; a patch changed otherwise (faces removed) is not found.
+        """
         block, local = table.lookup(codes)
-        live = np.array([name in self._patches and self._patches[name].cells == count for name, count in zip(table.names, table.counts, strict=True)], dtype=bool)
-        if len(live):
-            gone = (block >= 0) & ~live[np.maximum(block, 0)]
-            block = np.where(gone, -1, block)
-            local = np.where(gone, -1, local)
+        flat_block, flat_local = block.reshape(-1), local.reshape(-1)
+        order = np.argsort(flat_block, kind="stable")
+        sorted_blocks = flat_block[order]
+        starts = np.searchsorted(sorted_blocks, np.arange(len(table.names) + 1))
+        for b in np.flatnonzero(np.diff(starts) > 0):
+            rows = order[starts[b] : starts[b + 1]]
+            name, count = table.names[b], int(table.counts[b])
+            replaced = self._replaced.get(name)
+            if replaced is not None and replaced[0] == count:
+                flat_local[rows] = replaced[1][flat_local[rows]]
+            elif name not in self._patches or self._patches[name].cells != count:
+                flat_local[rows] = -1
+        block = np.where(local >= 0, block, -1)
         return block, local, list(table.names)
 
     def _per_face(self, codes, table: FaceIdTable, attribute: str, fill) -> np.ndarray:
@@ -533,6 +579,7 @@ class WorldMap:
         return {
             "chunk_size": self.chunk_size,
             "merges": self._merges,
+            "merged_from": {key: [[part, int(points)] for part, points in parts] for key, parts in self._merged_from.items()},
             "patches": [
                 [key, polydata_to_state(p.polydata), list(p.chunk), p.evidence.copy(), p.contradicted.copy(), p.keyed]
                 for chunk in self.chunks.values()
@@ -548,6 +595,7 @@ class WorldMap:
         self.reset()
         self.chunk_size = float(state["chunk_size"])
         self._merges = int(state["merges"])
+        self._merged_from = {key: [(str(part), int(points)) for part, points in parts] for key, parts in state.get("merged_from", {}).items()}
         for key, polydata, chunk, evidence, contradicted, keyed in state["patches"]:
             polydata = polydata_from_state(polydata)
             patch = Patch(key, polydata, tuple(int(i) for i in chunk), face_normals(polydata), evidence.copy(), contradicted.copy(), bool(keyed))

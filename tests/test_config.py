@@ -189,6 +189,12 @@ def test_a_surface_filter_registered_from_outside_runs_by_name(tmp_path):
             output.GetFieldData().ShallowCopy(image.GetFieldData())
             return 1
 
+        def reset(self):  # what a filter has is not probed: only declared capabilities are used
+            raise AssertionError("the loop called reset() of a filter that does not declare keeps_state")
+
+        def state(self):
+            raise AssertionError("the loop called state() of a filter that does not declare keeps_state")
+
     mabdi.register_surface_filter(
         "centre_triangle", CentreTriangleParameters, lambda parameters, noise: FilterCentreTriangle(parameters), "one test triangle"
     )
@@ -201,8 +207,11 @@ def test_a_surface_filter_registered_from_outside_runs_by_name(tmp_path):
         )
         config = load_run_config(path)
         assert config.surface.parameters_of().size == 0.2
-        result = mabdi.Simulation(config).run()
+        simulation = mabdi.Simulation(config)
+        result = simulation.run()
         assert result.mesh.GetNumberOfCells() == 3  # one triangle a frame
+        simulation.loop.reset()
+        assert "surface" not in simulation.loop.state()
         with pytest.raises(ConfigError, match=r"\[surface.centre_triangle\] size must be > 0"):
             load_run_config(write(tmp_path, "[surface.centre_triangle]\nsize = -1.0\n"))
     finally:

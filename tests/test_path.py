@@ -19,6 +19,7 @@ from mabdi.simulate.path import (
     path_frame_count,
     path_from_config,
     path_targets,
+    path_timestamps,
 )
 from mabdi.sources.tum import write_tum_trajectory
 from mabdi.sources.scene import SourceScene
@@ -187,6 +188,8 @@ def test_trajectory_poses_are_taken_as_they_are(tmp_path):
     got = path_from_config(6, config.path, base_dir=tmp_path, axes="lidar")
     np.testing.assert_allclose(got, poses, atol=1e-12)
     np.testing.assert_allclose(path_from_config(4, config.path, base_dir=tmp_path), poses[:4], atol=1e-12)
+    np.testing.assert_allclose(path_timestamps(4, config.path, base_dir=tmp_path), [0.0, 0.1, 0.2, 0.3])
+    assert path_timestamps(4, PathConfig()) is None  # the helix: the sensor's own rate
 
 
 def test_config_takes_the_frames_of_a_waypoint_path_unless_given():
@@ -241,3 +244,26 @@ def test_bad_trajectory_names_the_file_and_line(tmp_path):
     (tmp_path / "run.toml").write_text('[path]\nkind = "trajectory"\nfile = "poses.txt"\n')
     with pytest.raises(ConfigError, match=r"path.file.*poses.txt:2: expected 8 fields"):
         load_run_config(tmp_path / "run.toml")
+
+
+def test_the_simulated_camera_drives_the_waypoints(tmp_path):
+    """A wall at x = 5 m seen from a camera driving along +x: the centre pixel reads 5 m minus the distance driven."""
+    from mabdi.simulate.rig import SimulatedRig
+
+    (tmp_path / "run.toml").write_text(
+        '[sensor]\nwidth = 40\nheight = 30\nfx = 30.0\nfy = 30.0\ncx = 20.0\ncy = 15.0\nfar = 10.0\n'
+        '[path]\nkind = "waypoints"\npoints = [[0, 0, 1], [2, 0, 1]]\nspeed = 1.0\nrate = 2.0\n'
+        '[[scene.objects]]\nname = "wall"\ntype = "box"\nsize = [0.2, 10.0, 4.0]\nposition = [5.1, 0.0, -1.0]\n'
+    )
+    config = load_run_config(tmp_path / "run.toml")
+    assert config.run.frames == 5
+    rig = SimulatedRig.from_config(config)
+    try:
+        np.testing.assert_allclose(rig.poses, path_from_config(5, config.path))
+        np.testing.assert_allclose(rig.timestamps, [0.0, 0.5, 1.0, 1.5, 2.0])  # a frame every 1 / rate seconds
+        assert rig.read(3).timestamp == pytest.approx(1.5)
+        for i in (0, 2, 4):
+            depth = rig.read(i).depth
+            assert depth[14:16, 19:21] == pytest.approx(5.0 - 0.5 * i, abs=1e-3)
+    finally:
+        rig.close()

@@ -291,3 +291,33 @@ def test_a_rebuilt_block_finds_its_kept_points():
     np.testing.assert_array_equal(kernels.match_kept_points_kernel(old, old[kept]), kept)
     assert kernels.match_kept_points_kernel(old, stranger) is None
     assert kernels.match_kept_points_kernel(old, old[kept[::-1]]) is None  # out of order: not a rebuilt block
+
+
+def test_refinement_goes_on_through_the_world_maps_merges_of_frame_patches():
+    """With every frame's patch merged into its chunk's (the world map's bounded draw calls), the per-vertex
+    refinement state follows the merged vertices (their first-look positions, weights and offsets), and the
+    plate ends as good as without merging."""
+    plain, _ = refining_loop(plate_frames(), "pixel_grid")
+    plain_medians, _ = run_refined(plain, plain.refinement, 11)
+    loop, refinement = refining_loop(plate_frames(), "pixel_grid")
+    loop.world.store.chunk_of = lambda polydata: (0, 0, 0)  # the plate in one chunk (it straddles the origin),
+    loop.world.store.patches_per_chunk = 1  # its frame patches merged whenever there are two
+    medians, carried = [], 0
+    for i in range(11):
+        states = {key: (state.original.copy(), state.weight.copy()) for key, state in refinement._blocks.items()}
+        loop.step(i)
+        medians.append(float(np.median(vertex_distances(loop))))
+        for key in loop.world.patch_keys:
+            parts = loop.world.store.merged_parts(key)
+            if not key.startswith("merged_") or key not in refinement._blocks or not any(p in states for p, _ in parts):
+                continue
+            state, start = refinement._blocks[key], 0
+            for part, points in parts:
+                if part in states and len(states[part][0]) == points:
+                    np.testing.assert_array_equal(state.original[start : start + points], states[part][0])
+                    assert (state.weight[start : start + points] >= states[part][1]).all()
+                    carried += int((states[part][1] > 0).sum())
+                start += points
+    assert carried > 1000  # vertices observed before their patch was merged kept what they had
+    assert medians[-1] <= 0.5 * sigma(NEAR), medians
+    assert abs(medians[-1] - plain_medians[-1]) <= 0.2e-3, (medians, plain_medians)

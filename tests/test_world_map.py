@@ -15,9 +15,8 @@ from scipy.spatial import cKDTree
 from mabdi.camera import Intrinsics, look_at
 from mabdi.face_identity import MAX_FACE_CODE, FaceIdTable
 from mabdi.filters.depth_image import DepthRenderer
-from mabdi.polydata import named_leaves
+from mabdi.polydata import named_leaves, polydata_arrays, triangles_polydata
 from mabdi.filters.removal import RemovalParameters
-from mabdi.polydata import polydata_arrays
 from mabdi.world_map import WorldMap, _chunked_state
 
 SMALL = Intrinsics(fx=160, fy=160, cx=80, cy=60, width=160, height=120, near=0.3, far=4.0)
@@ -201,3 +200,27 @@ def test_merging_leaves_a_large_patch_apart_until_the_small_ones_add_up_to_it():
         assert chunk.frame_patches <= 5
     assert world.number_of_cells == 200 + 40 + 24 * 50
     assert "frame_0" not in world.patch_keys  # once the small ones outweighed it
+
+
+def test_codes_drawn_before_a_keyed_patch_is_re_meshed_find_the_faces_at_their_place():
+    """Voxel planes re-mesh a block at the append that follows E: the old faces' codes lead to the new faces
+    where they stood (until the end of the frame), and to none where nothing stands any more."""
+    world = WorldMap()
+    world.add_patch("patch_1", plane_mesh([0.5, 0.5, 0], [0, 0, 1], size=1.0, subdivisions=4), frame=0, keyed=True)
+    table = FaceIdTable(["patch_1"], [1], [32])  # E drew its 32 faces as codes 1..32
+    old_centres = polydata_arrays(world.block("patch_1"))
+    old_centres = old_centres[0][old_centres[1]].mean(axis=1)
+    # re-meshed: the left half as before (moved 1 mm), the right half gone
+    half = plane_mesh([0.25, 0.5, 0.001], [0, 0, 1], size=1.0, subdivisions=4)
+    points, triangles = polydata_arrays(half)
+    keep = points[triangles].mean(axis=1)[:, 0] < 0.5
+    world.add_patch("patch_1", triangles_polydata(points, triangles[keep]), frame=1, keyed=True)
+    block, local, _ = world.face_lookup(np.arange(1, 33), table)
+    new_points, new_triangles = polydata_arrays(world.block("patch_1"))
+    new_centres = new_points[new_triangles].mean(axis=1)
+    found = block >= 0
+    np.testing.assert_array_equal(found, old_centres[:, 0] < 0.5)  # the right half: nothing stands there now
+    np.testing.assert_allclose(new_centres[local[found]], old_centres[found] + [0, 0, 0.001], atol=1e-9)
+    world.compact()  # the end of the frame: the codes of the old faces mean nothing now
+    block, _, _ = world.face_lookup(np.arange(1, 33), table)
+    assert (block < 0).all()

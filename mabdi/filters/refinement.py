@@ -127,8 +127,9 @@ from mabdi.world_map import FRAME_CELL_ARRAY, patch_triangles
 
 from mabdi.filters import refinement_kernels as kernels
 
-#: Blocks of these key prefixes are refined (pixel grid and quad-tree patches); voxel planes use ``patch_``.
-REFINED_PREFIX = "frame_"
+#: Blocks of these key prefixes are refined (pixel grid and quad-tree patches, and the world map's merges of
+#: them); voxel planes use ``patch_``.
+REFINED_PREFIX = ("frame_", "merged_")
 
 
 @dataclass(frozen=True)
@@ -319,6 +320,18 @@ class MapRefinement:
             return where
         return _match_rows(old, new)
 
+    def _merge_states(self, key: str, patch: vtkPolyData, parts: list[tuple[str, int]], loop, pose: np.ndarray) -> None:
+        """The state of a block merged from ``parts`` ((key, points) in the order of its points): each part's
+        vertices keep the state they had, the others start fresh."""
+        merged = self._register(key, patch, loop, pose)
+        start = 0
+        for part, points in parts:
+            state = self._blocks.get(part)
+            if state is not None and len(state.original) == points and start + points <= len(merged.original):
+                for name in _STATE:
+                    getattr(merged, name)[start : start + points] = getattr(state, name)
+            start += points
+
     def _register(self, key: str, patch: vtkPolyData, loop, pose: np.ndarray) -> _BlockState:
         """The state of block ``key``: new, carried over from a rebuilt block, or as it was."""
         state = self._blocks.get(key)
@@ -377,6 +390,10 @@ class MapRefinement:
         pose = image_pose(measured_image)
         self._poses[image_frame(measured_image)] = pose
         world = loop.world
+        for key in world.patch_keys:  # blocks merged since the last frame carry their parts' states
+            parts = world.store.merged_parts(key)
+            if parts and key not in self._blocks and any(part in self._blocks for part, _ in parts):
+                self._merge_states(key, world.block(key), parts, loop, pose)
         for key in [k for k in self._blocks if k not in set(world.patch_keys)]:
             del self._blocks[key]
 

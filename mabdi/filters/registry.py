@@ -13,7 +13,10 @@ appended to the map. Each is registered under the name a run config uses
   depth-image input and a vtkPolyData output in world coordinates); ``noise``
   is the sensor's :class:`~mabdi.filters.depth_image.SensorNoise`, for
   filters whose thresholds follow the noise;
-* ``help``: one line for ``mabdi run --help``.
+* ``help``: one line for ``mabdi run --help``;
+* ``capabilities``: what the filter can do beyond meshing a frame, which
+  the loop uses (:class:`SurfaceCapabilities`; none by default). Declared
+  here, never probed on the filter object.
 
 A new surface filter is one module plus one :func:`register_surface_filter`
 call: the config section, the ``--surface`` choice and its help follow.
@@ -33,6 +36,21 @@ from mabdi.filters.voxel_planes import FilterVoxelPlanes, VoxelPlanesParameters
 
 
 @dataclass(frozen=True)
+class SurfaceCapabilities:
+    """What a surface filter can do beyond meshing one frame's novel pixels (the loop acts on it)."""
+
+    #: It keeps memory across frames (voxel statistics): ``reset()``, ``state()`` and ``set_state(state)``,
+    #: emptied with the map and saved in checkpoints.
+    keeps_state: bool = False
+    #: Object removal reaches that memory: ``clear_faces_at(centres)`` forgets what made removed faces, and
+    #: ``clear_free_space(origin, ends, margins)`` empties what rays that saw through them crossed.
+    clears_space: bool = False
+    #: Its faces may reach past a real edge by ``face_overhang`` metres (a property of the filter), so removal
+    #: widens its edge margin by that much.
+    overhang: bool = False
+
+
+@dataclass(frozen=True)
 class SurfaceFilterEntry:
     """One registered surface filter (see the module docs)."""
 
@@ -40,12 +58,20 @@ class SurfaceFilterEntry:
     parameters: type
     make: Callable
     help: str
+    capabilities: SurfaceCapabilities = SurfaceCapabilities()
 
 
 _REGISTRY: dict[str, SurfaceFilterEntry] = {}
 
 
-def register_surface_filter(name: str, parameters: type, make: Callable, help: str, replace_existing: bool = False) -> None:
+def register_surface_filter(
+    name: str,
+    parameters: type,
+    make: Callable,
+    help: str,
+    replace_existing: bool = False,
+    capabilities: SurfaceCapabilities = SurfaceCapabilities(),
+) -> None:
     """Register a surface filter under ``name`` (a config value: letters, digits, underscores)."""
     if not name.isidentifier():
         raise ValueError(f"surface filter name {name!r} must be letters, digits and underscores")
@@ -55,7 +81,9 @@ def register_surface_filter(name: str, parameters: type, make: Callable, help: s
         parameters()
     except TypeError as exc:
         raise TypeError(f"surface filter {name!r}: its parameters class must build with defaults alone ({exc})") from None
-    _REGISTRY[name] = SurfaceFilterEntry(name, parameters, make, help)
+    if not isinstance(capabilities, SurfaceCapabilities):
+        raise TypeError(f"surface filter {name!r}: capabilities must be a SurfaceCapabilities, got {type(capabilities).__name__}")
+    _REGISTRY[name] = SurfaceFilterEntry(name, parameters, make, help, capabilities)
 
 
 def unregister_surface_filter(name: str) -> None:
@@ -104,4 +132,5 @@ register_surface_filter(
     VoxelPlanesParameters,
     lambda parameters, noise: FilterVoxelPlanes(parameters),
     "incremental voxel-plane patches (seed 000)",
+    capabilities=SurfaceCapabilities(keeps_state=True, clears_space=True, overhang=True),
 )

@@ -16,8 +16,8 @@ frame's D - E to the noise calibration (:mod:`mabdi.filters.noise_calibration`).
 
 With removal on (``[classifier] removal = true``, the default), E also says
 which map face each pixel shows, and pixels that see through a face
-(D > E + tau) vote it out of the map (:mod:`mabdi.filters.removal`) at the
-end of the frame; voxel planes also clear the voxels those rays crossed
+(D > E + tau) vote it out of the map at the end of the frame (the stage:
+:mod:`mabdi.filters.object_removal`; its rules: :mod:`mabdi.filters.removal`); voxel planes also clear the voxels those rays crossed
 (re-meshed with the next frame's points).
 
 The frame index is set in one place, :class:`SourceDepthFrames`; D carries it
@@ -49,32 +49,29 @@ import numpy as np
 from vtkmodules.vtkCommonDataModel import vtkImageData, vtkPolyData
 
 from mabdi.algorithm import raise_pipeline_errors
-from mabdi.camera import Intrinsics, unit_rays
-from mabdi.depth import depth_array, image_pose, pixels_per_radian
-from mabdi.face_identity import FaceIdTable
+from mabdi.camera import Intrinsics
+from mabdi.depth import depth_array, image_pose
 from mabdi.spherical import SphericalGeometry
 from mabdi.filters.classifier import (
-    CONTRADICTED,
-    NO_RETURN,
     ClassifierParameters,
     FilterClassifier,
     label_array,
     pixel_counts,
     dilate,
-    pose_sigma_array,
 )
 from mabdi.filters.depth_image import BACKENDS, SensorNoise
-from mabdi.filters.expected_image import MAP_PORT, MEASURED_PORT, FilterExpectedImage, face_id_array
+from mabdi.filters.expected_image import MAP_PORT, MEASURED_PORT, FilterExpectedImage
 from mabdi.filters.refinement import MapRefinement, RefinementParameters
 from mabdi.filters.registration import FilterRegistration, RegistrationParameters, registration_values
-from mabdi.filters.registry import make_surface_filter
-from mabdi.filters.removal import RemovalParameters, depth_edges, for_geometry, removal_votes
+from mabdi.filters.registry import make_surface_filter, surface_filter
+from mabdi.filters.object_removal import ObjectRemoval
+from mabdi.filters.removal import RemovalParameters, depth_edges
 from mabdi.filters.world_mesh import FilterWorldMesh
-from mabdi.polydata import polydata_area, polydata_arrays, transformed_polydata
+from mabdi.polydata import polydata_area, transformed_polydata
 from mabdi.sources.frames import FrameSource, SourceDepthFrames
 
 
-@dataclass
+@dataclass(slots=True)  # one per frame, kept for the whole run: small
 class FrameRecord:
     """What one frame did. Counts of cells are triangles; ``cells_added`` is the map's net change. Times in ms."""
 
@@ -158,10 +155,10 @@ class MabdiLoop:
         #: on ("auto": with noise correlated between pixels), only with a noisy sensor (a noise-free
         #: measurement is exact the first time).
         self.removal = self.classifier_parameters.enabled and self.classifier_parameters.removal
-        self.removal_parameters = removal if removal is not None else RemovalParameters()
-        if self.removal_parameters.no_return_is_free and self.noise.loses_returns:
+        removal_parameters = removal if removal is not None else RemovalParameters()
+        if removal_parameters.no_return_is_free and self.noise.loses_returns:
             # a camera that loses returns on real surfaces: a pixel without one is not free space
-            self.removal_parameters = replace(self.removal_parameters, no_return_is_free=False)
+            removal_parameters = replace(removal_parameters, no_return_is_free=False)
         refinement_on = self.classifier_parameters.refinement
         if refinement_on == "auto":
             refinement_on = self.noise.correlated  # errors one look's smoothing cannot remove: average later looks in
@@ -183,9 +180,13 @@ class MabdiLoop:
         self.expected.SetInputDataObject(MAP_PORT, self.world.map)
         self.expected.SetInputConnection(MEASURED_PORT, measured_port)
         self.classifier = FilterClassifier(self.classifier_parameters, noise=self.noise)
+        #: The removal stage (its rules: :attr:`removal_parameters`).
+        self.object_removal = ObjectRemoval(removal_parameters, self.noise, self.classifier.threshold)
         self.classifier.SetInputConnection(0, measured_port)
         self.classifier.SetInputConnection(1, self.expected.GetOutputPort())
         self.surface = make_surface_filter(surface, surface_parameters, self.noise)
+        #: What the surface filter can do beyond meshing a frame (declared in its registry entry).
+        self.surface_capabilities = surface_filter(surface).capabilities
         upstream = self.classifier if self.classifier_parameters.enabled else self.measured
         self.surface.SetInputConnection(upstream.GetOutputPort())
         self.world.SetInputConnection(self.surface.GetOutputPort())
@@ -196,6 +197,15 @@ class MabdiLoop:
         self._poses = np.full((len(source), 4, 4), np.nan)
         self._removed = vtkPolyData()
         self._refined = None
+
+    @property
+    def removal_parameters(self) -> RemovalParameters:
+        """The rules of object removal (the removal stage's)."""
+        return self.object_removal.parameters
+
+    @removal_parameters.setter
+    def removal_parameters(self, parameters: RemovalParameters) -> None:
+        self.object_removal.parameters = parameters
 
     @classmethod
     def from_config(cls, config, source: FrameSource) -> MabdiLoop:
@@ -230,14 +240,14 @@ class MabdiLoop:
         if self.noise.calibration is not None:
             self.noise.calibration.reset()
         self._poses[:] = np.nan
-        if hasattr(self.surface, "reset"):
+        if self.surface_capabilities.keeps_state:
             self.surface.reset()
 
     def state(self) -> dict:
         """The loop's state between frames, for checkpoints: the map, refinement's and a stateful surface
         filter's memory. Plain data only (dicts, lists, numbers, strings, numpy arrays: :mod:`mabdi.io.checkpoint`)."""
         state = {"world": self.world.state(), "refinement": self.refinement.state(self.world), "poses": self._poses.copy()}
-        if hasattr(self.surface, "state"):
+        if self.surface_capabilities.keeps_state:
             state["surface"] = self.surface.state()
         if self.registration is not None:
             state["registration"] = self.registration.state()
@@ -296,7 +306,12 @@ class MabdiLoop:
         t_refine = time.perf_counter()
         self._removed = vtkPolyData()
         if (self.removal and votes) or len(replaced):
-            cells_removed = self._remove_contradicted(replaced, votes)
+            removal = self.object_removal.run(
+                self.measured_image(), self.expected.GetOutput(), self.classifier.GetOutput(), self.world, self.surface,
+                self.surface_capabilities, votes=self.removal and votes, replaced=replaced,
+            )  # fmt: skip
+            self._removed = removal.removed
+            cells_removed = removal.cells_removed
         t_remove = time.perf_counter()
         self.world.compact()  # now that this frame's E and its face codes have been used
         compact_s = time.perf_counter() - t_remove  # counted with the append: both keep the map's blocks
@@ -343,102 +358,6 @@ class MabdiLoop:
         expected = depth_array(self.expected.GetOutput())
         silhouettes = dilate(depth_edges(expected, self.removal_parameters.edge_jump), 2)
         self.noise.calibration.observe(depth_array(self.measured_image()), expected, silhouettes)
-
-    def _unit_rays(self) -> tuple[np.ndarray, np.ndarray]:
-        """(H, W, 3) unit pixel rays in the camera frame, and (H, W) their length per metre of depth (cached)."""
-        return unit_rays(self.intrinsics, np.float32)
-
-    def _remove_contradicted(self, replaced: np.ndarray, votes: bool) -> int:
-        """Vote with this frame's contradicted and known pixels (when ``votes``), remove the faces the
-        evidence condemns, and the faces refinement ``replaced`` (made from a much noisier look)."""
-        gone = np.asarray(replaced, dtype=np.int64)
-        classified = self.classifier.GetOutput()
-        labels = label_array(classified)
-        voting = None
-        if self.removal and votes and self._anything_seen_through(labels):
-            # (A frame where no pixel sees through the map is skipped whole: confirmations only matter
-            # against contradictions. The common case once the world is known.)
-            voting, condemned = self._votes(labels)
-            gone = np.union1d(gone, condemned)
-        if not len(gone):
-            return 0
-        self._removed = self.world.remove_faces(gone, FaceIdTable.read(self.expected.GetOutput()))
-        if hasattr(self.surface, "clear_faces_at") and self._removed.GetNumberOfCells():
-            # voxel planes: the statistics that made the removed faces go with them (else re-meshing brings
-            # them back), and the voxels the voting rays crossed in free space
-            points, triangles = polydata_arrays(self._removed)
-            self.surface.clear_faces_at(points[triangles].mean(axis=1))
-        if voting is not None and hasattr(self.surface, "clear_free_space"):
-            self._clear_free_space(voting, gone)
-        return int(self._removed.GetNumberOfCells())
-
-    def _anything_seen_through(self, labels: np.ndarray) -> bool:
-        """Whether any pixel may see through the map: contradicted, or (``no_return_is_free``) no return where E has a face."""
-        if np.any(labels == CONTRADICTED):
-            return True
-        if not self.removal_parameters.no_return_is_free:
-            return False
-        no_return = labels == NO_RETURN
-        return bool(no_return.any() and np.isfinite(depth_array(self.expected.GetOutput())[no_return]).any())
-
-    def _votes(self, labels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(the voting contradicted pixels, the faces the evidence now condemns)."""
-        measured_image = self.measured_image()
-        measured = depth_array(measured_image)
-        face_ids = face_id_array(self.expected.GetOutput())
-        table = FaceIdTable.read(self.expected.GetOutput())
-        pose = image_pose(measured_image)
-        unit_rays, _ = self._unit_rays()
-        expected = depth_array(self.expected.GetOutput())
-        faces, contradicted, confirmed, voting = removal_votes(
-            labels,
-            measured,
-            expected,
-            face_ids,
-            unit_rays,
-            pose,
-            lambda codes: self.world.face_normals_of(codes, table),
-            self._removal_parameters_for(expected),
-            evidence_of=lambda codes: self.world.face_evidence_of(codes, table),
-            sigma=lambda depth: self.noise.sigma(depth, self.intrinsics.near, self.intrinsics.far),
-            far=self.intrinsics.far,
-            pose_sigma=pose_sigma_array(self.classifier.GetOutput()),
-        )
-        if not len(faces):
-            return voting, np.zeros(0, dtype=np.int64)
-        return voting, self.world.update_evidence(faces, contradicted, confirmed, self.removal_parameters, table)
-
-    def _removal_parameters_for(self, expected: np.ndarray) -> RemovalParameters:
-        """The removal rules for this frame: the edge margin widened to the surface's ``face_overhang``
-        (metres, voxel planes) in pixels at the median depth of E (see :mod:`mabdi.filters.removal`)."""
-        parameters = for_geometry(self.removal_parameters, self.intrinsics)
-        overhang = getattr(self.surface, "face_overhang", 0.0)
-        if overhang <= 0:
-            return parameters
-        shown = expected[::4, ::4]
-        shown = shown[np.isfinite(shown)]
-        if not len(shown):
-            return parameters
-        margin = int(np.ceil(overhang * pixels_per_radian(self.intrinsics) / float(np.median(shown))))
-        margin = min(max(margin, parameters.edge_margin), parameters.max_edge_margin)
-        return replace(parameters, edge_margin=margin)
-
-    def _clear_free_space(self, voting: np.ndarray, gone: np.ndarray) -> None:
-        """Voxel planes: rays that saw through removed faces empty the voxels they crossed (up to tau before D)."""
-        face_ids = face_id_array(self.expected.GetOutput())
-        through = voting & np.isin(face_ids, gone)
-        if not through.any():
-            return
-        measured_image = self.measured_image()
-        measured = depth_array(measured_image)
-        pose = image_pose(measured_image)
-        unit_rays, length = self._unit_rays()
-        intrinsics = self.intrinsics
-        depth = np.where(np.isnan(measured[through]), intrinsics.far, measured[through]).astype(np.float64)
-        tau = self.classifier.threshold(depth.astype(np.float32), intrinsics.near, intrinsics.far).astype(np.float64)
-        directions = unit_rays[through].astype(np.float64) @ pose[:3, :3].T
-        ends = pose[:3, 3] + directions * (depth * length[through])[:, None]
-        self.surface.clear_free_space(pose[:3, 3], ends, tau * length[through])
 
     # -- what the last frame produced --------------------------------------
     def measured_image(self) -> vtkImageData:

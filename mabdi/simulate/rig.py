@@ -17,7 +17,9 @@ run seed), as a robot's odometry or SLAM would give it. ``poses`` are the
 given poses, ``true_poses`` the true ones; without pose noise they are equal.
 
 Timestamps: the simulated sensor runs at :data:`FRAME_RATE` frames per
-second (frame i at i / 30 s), like the Kinect it imitates.
+second (frame i at i / 30 s), like the Kinect it imitates, unless the path
+gives times (``timestamps``: a waypoint path's rate, a trajectory's file;
+:func:`mabdi.simulate.path.path_timestamps`).
 
 Colour: when the scene has coloured objects (``colour`` in the config), or
 with ``colour=True``, every frame also carries a colour image registered to
@@ -37,7 +39,7 @@ from mabdi.config import RunConfig
 from mabdi.depth import DepthFrame, depth_array
 from mabdi.filters.depth_image import FilterDepthImage, SensorNoise
 from mabdi.pose_noise import PoseNoise
-from mabdi.simulate.path import path_from_config
+from mabdi.simulate.path import path_from_config, path_timestamps
 from mabdi.sources.frames import FrameSource
 from mabdi.sources.scene import OBJECT_COLOUR_ARRAY, SourceScene
 from mabdi.spherical import SphericalGeometry
@@ -60,6 +62,7 @@ class SimulatedRig(FrameSource):
         description: str = "simulated sensor",
         pose_noise: PoseNoise | None = None,
         colour: bool | None = None,
+        timestamps=None,
     ) -> None:
         self.scene = scene
         self._true_poses = np.asarray(poses, dtype=np.float64)
@@ -68,6 +71,10 @@ class SimulatedRig(FrameSource):
         #: The noise of the given poses (the frames' poses); the sensor renders from the true ones.
         self.pose_noise = pose_noise if pose_noise is not None else PoseNoise()
         self._poses = self.pose_noise.given_poses(self._true_poses, seed)
+        count = len(self._true_poses)
+        self._timestamps = np.arange(count) / FRAME_RATE if timestamps is None else np.asarray(timestamps, dtype=np.float64)
+        if self._timestamps.shape != (count,):
+            raise ValueError(f"SimulatedRig: {count} poses but timestamps of shape {self._timestamps.shape}")
         self.sensor = FilterDepthImage(intrinsics=intrinsics, noise=noise, seed=seed, backend=backend)
         self.sensor.SetInputConnection(scene.GetOutputPort())
         self.description = description
@@ -93,6 +100,7 @@ class SimulatedRig(FrameSource):
         return cls(
             scene,
             path_from_config(frames, config.path, base_dir, axes=axes),
+            timestamps=path_timestamps(frames, config.path, base_dir),
             intrinsics=geometry,
             noise=sensor.sensor_noise(),
             seed=config.run.seed,
@@ -122,7 +130,7 @@ class SimulatedRig(FrameSource):
 
     @property
     def timestamps(self) -> np.ndarray:
-        return np.arange(len(self._poses)) / FRAME_RATE
+        return self._timestamps.copy()
 
     def __len__(self) -> int:
         return len(self._poses)
@@ -137,7 +145,7 @@ class SimulatedRig(FrameSource):
         # Each render hands out a new array, so the frame may keep it.
         depth = depth_array(self.sensor.GetOutput(), raw=True)
         colour = self._read_colour() if self.colour else None
-        return DepthFrame(depth, self.sensor.intrinsics, self._poses[index], index, index / FRAME_RATE, colour)
+        return DepthFrame(depth, self.sensor.intrinsics, self._poses[index], index, float(self._timestamps[index]), colour)
 
     def _read_colour(self) -> np.ndarray:
         """(H, W, 3) uint8 colour buffer of the last render (each object flat in its colour), top row first."""

@@ -5,9 +5,9 @@ Every way of running the loop goes through one object: ``mabdi run`` (and
 (:func:`mabdi.evaluate.dynamic.run_with_ghosts`), the bench
 (:mod:`mabdi.evaluate.bench`), a sweep's cells (:mod:`mabdi.sweep`) and
 :meth:`Simulation.run <mabdi.simulate.runner.Simulation.run>`. Its steps,
-in order (:meth:`RunPipeline.run`)::
+in order (:data:`STEPS`; :meth:`RunPipeline.run` calls a method per step)::
 
-    source      the frames and the loop: a Simulation (simulated rig or recording, MabdiLoop)
+    source      the frames: the Simulation's source (simulated rig or recording) and its MabdiLoop
     outputs     the run folder opened (refused if another run holds it), config.toml,
                 the input files' fingerprint (for --resume)
     loop        frame by frame: MabdiLoop.step(i), then each observer's on_frame
@@ -139,7 +139,7 @@ class Checkpoints(RunObserver):
 
     def on_frame(self, pipeline: RunPipeline, record) -> None:
         done = record.frame + 1
-        if done % self.every == 0 and done < pipeline.simulation.frames:
+        if done % self.every == 0 and done < pipeline.frames:
             pipeline.write_checkpoint(done)
 
 
@@ -198,36 +198,38 @@ class RunPipeline:
         self.loop_seconds = 0.0
         self.inputs: dict | None = None
         self.result: RunResult | None = None
+        self.frames = 0
 
     @property
     def config(self):
         return self.simulation.config
 
     def run(self) -> RunResult:
-        """The steps of the module docs; returns the :class:`RunResult` (scores and all)."""
+        """The steps of :data:`STEPS` in order; returns the :class:`RunResult` (scores and all). A pipeline runs once."""
+        if self.result is not None or self.records:
+            raise RuntimeError("this RunPipeline has run: make a new one for another run")
         try:
-            self._open_outputs()
-            self._notify("on_start")
-            self._run_loop()
-            result = self.result = self._results()
-            self._notify("on_loop_end", result)
-            self._run_evaluation(result)
-            if self.folder is not None and self.finish:
-                finish_run(result, result.scores.as_dict() if result.scores is not None else None, result.evaluation)
+            for step in STEPS:
+                getattr(self, f"_{step}")()
         except BaseException as error:
             self._notify("on_abort", error)
             if self.folder is not None:
                 self.folder.release()  # an interrupted run: its staged files stay for --resume, the folder is free
             raise
-        self._notify("on_finish", result)
-        return result
+        self._notify("on_finish", self.result)
+        return self.result
 
     # -- the steps ---------------------------------------------------------------------------------
 
-    def _open_outputs(self) -> None:
-        """The run folder, its config.toml and the input files' fingerprint; the built-in observers."""
+    def _source(self) -> None:
+        """The frames to run: the simulation's source (simulated or recorded), read by the loop frame by frame."""
+        self.frames = self.simulation.frames
+
+    def _outputs(self) -> None:
+        """The run folder, its config.toml and the input files' fingerprint; the built-in observers; ``on_start``."""
         out = self.out_dir
         if out is None:
+            self._notify("on_start")
             return
         if isinstance(out, RunFolder):
             self.folder = out
@@ -246,8 +248,9 @@ class RunPipeline:
         if output.checkpoint_every:
             built_in.append(Checkpoints(output.checkpoint_every))
         self.observers = built_in + self.observers  # the run's own files first, as frames are made
+        self._notify("on_start")
 
-    def _run_loop(self) -> None:
+    def _loop(self) -> None:
         """Every frame from the first (or the checkpoint's), each observer told after it."""
         loop = self.simulation.loop
         first = 0
@@ -258,7 +261,7 @@ class RunPipeline:
             self.records = list(self.resume_from.records)
             self.loop_seconds = float(self.resume_from.seconds)
         watching = self._hooks("on_frame")
-        for i in range(first, self.simulation.frames):
+        for i in range(first, self.frames):
             start = time.perf_counter()
             record = loop.step(i)
             self.loop_seconds += time.perf_counter() - start
@@ -266,8 +269,8 @@ class RunPipeline:
             for on_frame in watching:
                 on_frame(self, record)
 
-    def _results(self) -> RunResult:
-        """The RunResult, and the run's files when there is a folder."""
+    def _results(self) -> None:
+        """The RunResult, and the run's files when there is a folder; ``on_loop_end``."""
         simulation, loop = self.simulation, self.simulation.loop
         calibration = loop.noise.calibration
         result = RunResult(
@@ -285,10 +288,12 @@ class RunPipeline:
         )
         if self.folder is not None:
             write_run_outputs(result, simulation)
-        return result
+        self.result = result
+        self._notify("on_loop_end", result)
 
-    def _run_evaluation(self, result: RunResult) -> None:
+    def _evaluation(self) -> None:
         """Score the map against the ground truth, or say why not (``result.evaluation``)."""
+        result = self.result
         if self.no_eval:
             result.evaluation = "skipped (--no-eval)"
         elif self.evaluate is None:
@@ -303,6 +308,12 @@ class RunPipeline:
             start = time.perf_counter()
             result.scores = self.evaluate(self.simulation, result)
             result.evaluation_seconds = time.perf_counter() - start
+
+    def _summary(self) -> None:
+        """``summary.json`` last (the scores, or why there are none), the checkpoint dropped, the folder complete."""
+        result = self.result
+        if self.folder is not None and self.finish:
+            finish_run(result, result.scores.as_dict() if result.scores is not None else None, result.evaluation)
 
     # -- what the steps share ----------------------------------------------------------------------
 
