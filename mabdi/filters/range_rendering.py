@@ -9,15 +9,16 @@ two steps:
    smaller of the azimuth step and the closest beams' spacing), draw every triangle flat in the colour of
    its 24-bit identity (the off-screen :class:`~mabdi.filters.depth_image.DepthRenderer`, multisampling
    off). Each beam's direction projects into one sector's image; the triangles drawn in the 3 x 3 render
-   pixels around that point are its candidates.
+   pixels around that point are its candidates, and the 16 around those next.
 2. **Where along the beam**: the beam is intersected with its candidates exactly (Moller-Trumbore, float64,
-   :mod:`mabdi.filters.range_rendering_kernels`) and takes the nearest it hits inside. So the range is exact
-   at every beam, on planes at any slant and at silhouettes (a beam that passes a box's edge by a fraction
-   of a pixel reads the wall behind it, or no return), whenever the triangle the beam hits is drawn at one
-   of the 9 render pixels around it: always, unless the triangle is thinner than a render pixel. A fine
-   mesh (a scanned object, a cylinder's facets) has such triangles: there the beam takes the plane of a
-   thin candidate that it misses by less than a render pixel's footprint, if that is nearer than any
-   inside hit (a sub-pixel extrapolation of the surface next to the one hit).
+   :mod:`mabdi.filters.range_rendering_kernels`) and takes the nearest of the 3 x 3 it hits inside, else the
+   nearest of the ring around them. So the range is exact at every beam, on planes at any slant and at
+   silhouettes (a beam that passes a box's edge by a fraction of a pixel reads the wall behind it, or no
+   return), whenever the triangle the beam hits is drawn at one of those render pixels: always, unless it
+   is thinner than a render pixel there. A fine mesh (a scanned object, a cylinder's facets, a map's
+   triangles seen edge-on) has such triangles: a beam that hits none of its candidates inside takes the
+   plane of the nearest thin candidate it misses by less than a render pixel's footprint (a sub-pixel
+   extrapolation of the surface next to the one hit), or no return.
 
 Returns are ranges strictly between ``range_min`` and ``range_max``; anything else is NaN (a surface nearer
 than ``range_min`` hides what is behind it, as on a real sensor). The renderer keeps, per triangle, the block
@@ -55,6 +56,8 @@ SECTORS = 4
 OVERSAMPLE = 3.0
 #: Largest beam elevation the sector renders cover (degrees from the horizon).
 MAX_ELEVATION = 60.0
+#: Candidates per beam tried first: the 3 x 3 render pixels around its direction (then the 5 x 5 ring).
+INNER = 9
 #: Barycentric tolerance of the inside test (a beam on an edge between two triangles hits either).
 BARYCENTRIC_TOLERANCE = 1e-7
 #: Identities are 24-bit RGB colours; 0 is "no triangle".
@@ -69,8 +72,8 @@ class SectorViews:
     intrinsics: Intrinsics
     #: (SECTORS, 4, 4) each render camera's pose in the sensor frame (``sensor_from_camera``).
     sensor_from_camera: np.ndarray
-    #: (beams * columns, 9) flat indices into the stacked (SECTORS, h, w) identity images: the 3 x 3 render
-    #: pixels around each beam's direction, row-major, the beam's own pixel in the middle.
+    #: (beams * columns, 25) flat indices into the stacked (SECTORS, h, w) identity images: the 5 x 5 render
+    #: pixels around each beam's direction, the 3 x 3 nearest first (:data:`INNER`).
     candidates: np.ndarray
     #: Radians per render pixel at the image centre (the largest footprint; metres per metre of range).
     footprint: float
@@ -103,7 +106,7 @@ def sector_views(geometry: SphericalGeometry) -> SectorViews:
     x = rays[:, 0] * np.sin(angles) - rays[:, 1] * np.cos(angles)
     y = -rays[:, 2]
     z = rays[:, 0] * np.cos(angles) + rays[:, 1] * np.sin(angles)
-    pad = 3  # render pixels beyond the outermost beam: the 3 x 3 window stays inside the image
+    pad = 4  # render pixels beyond the outermost beam: the 5 x 5 window stays inside the image
     half_width = int(math.ceil(focal * np.abs(x / z).max())) + pad
     half_height = int(math.ceil(focal * np.abs(y / z).max())) + pad
     width, height = 2 * half_width, 2 * half_height
@@ -111,8 +114,10 @@ def sector_views(geometry: SphericalGeometry) -> SectorViews:
     intrinsics = Intrinsics(focal, focal, float(half_width), float(half_height), width, height, near, 1.001 * geometry.range_max)
     col = np.floor(focal * x / z + half_width).astype(np.int64)
     row = np.floor(focal * y / z + half_height).astype(np.int64)
-    dr, dc = np.meshgrid(np.arange(-1, 2), np.arange(-1, 2), indexing="ij")
-    candidates = sector[:, None] * (width * height) + (row[:, None] + dr.ravel()) * width + (col[:, None] + dc.ravel())
+    dr, dc = (a.ravel() for a in np.meshgrid(np.arange(-2, 3), np.arange(-2, 3), indexing="ij"))
+    order = np.argsort(np.maximum(np.abs(dr), np.abs(dc)), kind="stable")  # the 3 x 3 first
+    dr, dc = dr[order], dc[order]
+    candidates = sector[:, None] * (width * height) + (row[:, None] + dr) * width + (col[:, None] + dc)
     candidates.setflags(write=False)
     return SectorViews(intrinsics, poses, candidates, 1.0 / focal)
 
@@ -255,7 +260,7 @@ class RangeRenderer:
         directions = unit_rays(geometry)[0].reshape(-1, 3) @ pose[:3, :3].T
         table = self._table
         ranges, hits = cast_beams_kernel(
-            np.ascontiguousarray(pose[:3, 3]), np.ascontiguousarray(directions), candidates, table.corner, table.edge1,
+            np.ascontiguousarray(pose[:3, 3]), np.ascontiguousarray(directions), candidates, INNER, table.corner, table.edge1,
             table.edge2, table.width, views.footprint, BARYCENTRIC_TOLERANCE,
         )
         outside = ~((ranges > geometry.range_min) & (ranges < geometry.range_max))

@@ -28,17 +28,17 @@ def _distance_to_edges(px, py, pz, a, e1, e2):
 
 
 @njit(cache=True)
-def cast_beams_kernel(origin, directions, candidates, corner, edge1, edge2, width, footprint, tolerance):
+def cast_beams_kernel(origin, directions, candidates, inner, corner, edge1, edge2, width, footprint, tolerance):
     """(N,) float64 range along each unit world-frame beam ``directions`` (N, 3) from ``origin`` (3,) (NaN:
     no hit), and (N,) int64 the identity of the triangle hit (0: none).
 
-    ``candidates`` (N, K) are triangle identities (0: none); triangle ``i`` is ``corner[i]`` + a ``edge1[i]``
-    + b ``edge2[i]``, ``width[i]`` its height over its longest edge (metres).
-    A beam takes the nearest candidate it hits inside (barycentric tolerance ``tolerance``;
-    Moller-Trumbore). A *thin* candidate, narrower than ``footprint`` (radians) times its range, may be
-    missed by the beam although the surface it belongs to is hit (its neighbour, thinner than a render
-    pixel, was not drawn): the beam then takes such a candidate's plane if the hit lies outside it by less
-    than ``footprint`` times the range, and if it is nearer than any inside hit.
+    ``candidates`` (N, K) are triangle identities (0: none), the ``inner`` first of them the nearest to the
+    beam's direction; triangle ``i`` is ``corner[i]`` + a ``edge1[i]`` + b ``edge2[i]``, ``width[i]`` its
+    height over its longest edge (metres). A beam takes the nearest of the inner candidates it hits inside
+    (barycentric tolerance ``tolerance``; Moller-Trumbore), else the nearest of the others. Only when it
+    hits none inside does it take the plane of a *thin* candidate (narrower than ``footprint`` radians
+    times its range, so that its neighbour, which the beam may hit, can be thinner than a render pixel and
+    not drawn) that it misses by less than ``footprint`` times the range: the nearest such.
     """
     n, k = candidates.shape
     ranges = np.full(n, np.nan)
@@ -47,7 +47,11 @@ def cast_beams_kernel(origin, directions, candidates, corner, edge1, edge2, widt
         dx, dy, dz = directions[i, 0], directions[i, 1], directions[i, 2]
         best = np.inf
         best_id = 0
+        thin = np.inf
+        thin_id = 0
         for j in range(k):
+            if j == inner and best_id > 0:
+                break
             t_id = candidates[i, j]
             if t_id <= 0:
                 continue
@@ -76,17 +80,21 @@ def cast_beams_kernel(origin, directions, candidates, corner, edge1, edge2, widt
             qz = sx * e1y - sy * e1x
             b = (dx * qx + dy * qy + dz * qz) * inv
             t = (e2x * qx + e2y * qy + e2z * qz) * inv
-            if not (t > 0.0 and t < best):
+            if not t > 0.0:
                 continue
             outside = max(0.0, -a, -b, a + b - 1.0)
             if outside <= tolerance:
-                best = t
-                best_id = t_id
-            elif width[t_id] < footprint * t and _distance_to_edges(
+                if t < best:
+                    best = t
+                    best_id = t_id
+            elif t < thin and width[t_id] < footprint * t and _distance_to_edges(
                 origin[0] + t * dx, origin[1] + t * dy, origin[2] + t * dz, corner[t_id], edge1[t_id], edge2[t_id]
             ) < footprint * t:
-                best = t
-                best_id = t_id
+                thin = t
+                thin_id = t_id
+        if best_id == 0 and thin_id > 0:
+            best = thin
+            best_id = thin_id
         if best_id > 0:
             ranges[i] = best
             hits[i] = best_id
