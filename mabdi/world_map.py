@@ -1,11 +1,12 @@
 """WorldMap: the map as a spatial store of fixed-size world-space chunks.
 
 The map is a set of **patches** (vtkPolyData of triangles, each under a key:
-``frame_<i>`` for the novel surface of frame i, ``patch_<k>`` for a surface
+``frame_<i>`` for the novel surface of frame i, ``frame_<i>@<chunk>`` for its
+part in one chunk when it spans several, ``patch_<k>`` for a surface
 filter's keyed patch that later replaces it, ``merged_<i>`` for frame
-patches merged). Each patch lives in the **chunk** (a cube of ``chunk_size``
-metres, indexed by floor(position / chunk_size)) that holds the centre of its
-bounding box when it is added. Per face, a patch keeps its normal (world), its
+patches merged). A **chunk** is a cube of ``chunk_size`` metres, chunk (i, j, k)
+centred on (i, j, k) * chunk_size (:meth:`WorldMap.chunk_indices`): a frame's faces go to the chunk of their
+centre, a keyed patch whole to the chunk of its bounding box's centre. Per face, a patch keeps its normal (world), its
 removal evidence (log-odds) and the number of frames that contradicted it;
 cell data ``frame`` says which frame made each face.
 
@@ -53,8 +54,8 @@ from mabdi.filters.removal import update_log_odds
 from mabdi.polydata import extract_polys, polydata_from_state, polydata_to_state, triangle_normals
 
 FRAME_CELL_ARRAY = "frame"
-#: Edge of a chunk (metres): a few metres, about what a depth camera sees at once.
-CHUNK_SIZE = 4.0
+#: Edge of a chunk (metres): small beside what a depth camera sees at once, so culling draws little beyond the view.
+CHUNK_SIZE = 2.0
 #: Frame patches a chunk holds before they are merged into one (keyed patches do not count).
 PATCHES_PER_CHUNK = 8
 
@@ -266,19 +267,57 @@ class WorldMap:
         """The chunk holding the centre of ``polydata``'s bounding box."""
         b = polydata.GetBounds()
         centre = np.array([b[0] + b[1], b[2] + b[3], b[4] + b[5]]) / 2.0
-        return tuple(int(i) for i in np.floor(centre / self.chunk_size))
+        return tuple(int(i) for i in self.chunk_indices(centre))
+
+    def chunk_indices(self, points) -> np.ndarray:
+        """(..., 3) int64 chunk index of world points: chunk (i, j, k) is the cube of ``chunk_size`` centred on
+        (i, j, k) * chunk_size (the world origin is the centre of chunk (0, 0, 0))."""
+        return np.floor(np.asarray(points, dtype=np.float64) / self.chunk_size + 0.5).astype(np.int64)
 
     def chunk_bounds(self) -> dict[ChunkIndex, tuple[float, ...]]:
         """The bounding box of each chunk's patches (what the renderer culls with)."""
         return {index: chunk.bounds() for index, chunk in self.chunks.items()}
 
     def add_patch(self, key: str, polydata: vtkPolyData, frame: int, keyed: bool = False) -> int:
-        """Add ``polydata`` under ``key`` (replacing a patch of that key; a replaced keyed patch's faces keep the
-        removal evidence of the faces they replace); returns the net change in cells."""
+        """Add ``polydata`` under ``key``; returns the net change in cells.
+
+        A keyed patch (a surface filter's block) goes whole into the chunk of its centre and replaces the patch
+        of its key, its faces keeping the removal evidence of the faces they replace. A frame's patch is split
+        by chunk (each face into the chunk of its centre: ``<key>@i_j_k`` where it spans several), so that a
+        chunk's bounding box stays about its own size and E draws only what is near the view.
+        """
         polydata = stamped(polydata, frame)
+        if keyed:
+            return self._add(key, polydata, self.chunk_of(polydata), keyed=True)
+        parts = self._split_by_chunk(polydata)
+        if len(parts) == 1:
+            return self._add(key, polydata, parts[0][0], keyed=False)
+        return sum(self._add("{}@{}_{}_{}".format(key, *chunk), part, chunk, keyed=False) for chunk, part in parts)
+
+    def _split_by_chunk(self, polydata: vtkPolyData) -> list[tuple[ChunkIndex, vtkPolyData]]:
+        """(chunk, the faces of ``polydata`` whose centre lies in it) for each chunk it reaches (one: itself)."""
+        b = polydata.GetBounds()
+        low, high = self.chunk_indices([b[0], b[2], b[4]]), self.chunk_indices([b[1], b[3], b[5]])
+        if polydata.GetNumberOfCells() == 0 or (low == high).all():  # within one chunk: no face to look at
+            return [(tuple(int(i) for i in low), polydata)]
+        cells = self.chunk_indices(face_centres(polydata)[0]) - low  # 0 .. span per axis
+        span = high - low + 1
+        flat = (cells[:, 0] * span[1] + cells[:, 1]) * span[2] + cells[:, 2]
+        keys, which = np.unique(flat, return_inverse=True)
+        if len(keys) == 1:
+            return [(tuple(int(i) for i in low + cells[0]), polydata)]
+        order = np.argsort(which, kind="stable")
+        starts = np.searchsorted(which[order], np.arange(len(keys) + 1))
+        parts = []
+        for n in range(len(keys)):
+            rows = order[starts[n] : starts[n + 1]]
+            parts.append((tuple(int(i) for i in low + cells[rows[0]]), extract_polys(polydata, rows)))
+        return parts
+
+    def _add(self, key: str, polydata: vtkPolyData, chunk: ChunkIndex, keyed: bool) -> int:
         old = self._patches.get(key)
         patch = Patch(
-            key, polydata, self.chunk_of(polydata), face_normals(polydata),
+            key, polydata, chunk, face_normals(polydata),
             np.zeros(polydata.GetNumberOfCells(), np.float32), np.zeros(polydata.GetNumberOfCells(), np.uint16), keyed,
         )
         if old is not None:

@@ -25,19 +25,27 @@ SMALL = Intrinsics(fx=160, fy=160, cx=80, cy=60, width=160, height=120, near=0.3
 def test_patches_go_to_the_chunk_of_their_centre_and_chunks_carry_their_bounds():
     world = WorldMap(chunk_size=4.0)
     world.add_patch("frame_0", plane_mesh([1, 1, 0], [0, 0, 1], size=1.0), frame=0)
-    world.add_patch("frame_1", plane_mesh([-6, 9, 0.5], [0, 0, 1], size=1.0), frame=1)
-    world.add_patch("frame_2", plane_mesh([3, 3, 0], [0, 0, 1], size=1.0), frame=2)
-    assert set(world.chunks) == {(0, 0, 0), (-2, 2, 0)}
+    world.add_patch("frame_1", plane_mesh([-7, 9, 0.5], [0, 0, 1], size=1.0), frame=1)
+    world.add_patch("frame_2", plane_mesh([1.5, 1.5, 0], [0, 0, 1], size=1.0), frame=2)
+    assert set(world.chunks) == {(0, 0, 0), (-2, 2, 0)}  # chunk (i, j, k) is centred on 4 (i, j, k) metres
     assert list(world.chunks[(0, 0, 0)].patches) == ["frame_0", "frame_2"]
     top = world.multiblock
     assert top.GetNumberOfBlocks() == 2
-    np.testing.assert_allclose(top.GetMetaData(0).Get(vtkDataObject.BOUNDING_BOX()), [0.5, 3.5, 0.5, 3.5, 0, 0])
+    np.testing.assert_allclose(top.GetMetaData(0).Get(vtkDataObject.BOUNDING_BOX()), [0.5, 2.0, 0.5, 2.0, 0, 0])
     assert [name for name, _ in named_leaves(top)] == ["frame_0", "frame_2", "frame_1"]
     assert world.number_of_cells == 6
+    # a frame's patch across chunks is split, each face to the chunk of its centre
+    world.add_patch("frame_3", plane_mesh([2.0, 0.0, 0], [0, 0, 1], size=2.0, subdivisions=4), frame=3)
+    parts = [key for key in world.patch_keys if key.startswith("frame_3")]
+    assert parts == ["frame_3@0_0_0", "frame_3@1_0_0"] and world.number_of_cells == 6 + 32
+    for key in parts:
+        x = polydata_arrays(world.block(key))[0][:, 0]
+        assert (x >= 1.0 - 1e-9).all() and (x <= 3.0 + 1e-9).all()
+        assert world.patch(key).chunk == ((0, 0, 0) if key.endswith("@0_0_0") else (1, 0, 0))
 
 
 def test_frame_patches_beyond_the_limit_merge_into_one_with_their_faces_and_evidence():
-    world = WorldMap(patches_per_chunk=3)
+    world = WorldMap(chunk_size=4.0, patches_per_chunk=3)
     for frame in range(5):
         world.add_patch(f"frame_{frame}", plane_mesh([0.5, 0.5, 0.1 * frame], [0, 0, 1], size=1.0, subdivisions=2), frame=frame)
     world.add_patch("patch_9", plane_mesh([1.5, 1.5, 0], [0, 0, 1], size=0.5), frame=5, keyed=True)
@@ -62,11 +70,11 @@ def test_frame_patches_beyond_the_limit_merge_into_one_with_their_faces_and_evid
 
 
 def test_state_round_trip_and_the_previous_checkpoint_layout():
-    world = WorldMap()
+    world = WorldMap(chunk_size=4.0)
     world.add_patch("frame_0", plane_mesh([0.5, 0.5, 0], [0, 0, 1], size=1.0, subdivisions=2), frame=0)
     world.add_patch("patch_3", plane_mesh([9, 0.5, 0], [0, 0, 1], size=1.0), frame=1, keyed=True)
     world.patch("frame_0").evidence[:] = np.arange(8)
-    restored = WorldMap()
+    restored = WorldMap(chunk_size=4.0)
     restored.set_state(world.state())
     assert restored.patch_keys == world.patch_keys and restored.number_of_cells == 10
     np.testing.assert_array_equal(restored.patch("frame_0").evidence, np.arange(8))
@@ -80,7 +88,7 @@ def test_state_round_trip_and_the_previous_checkpoint_layout():
         "contradicted": np.zeros(11, np.uint16),
         "next_frame": 2,
     }
-    converted = WorldMap()
+    converted = WorldMap(chunk_size=4.0)
     converted.set_state(old)
     np.testing.assert_array_equal(converted.patch("patch_3").evidence, [5, 6])
     assert _chunked_state(old, 4.0)["patches"][1][5] is True
@@ -88,14 +96,14 @@ def test_state_round_trip_and_the_previous_checkpoint_layout():
 
 def test_expected_image_draws_only_the_chunks_in_view():
     world = WorldMap(chunk_size=2.0)
-    for i in range(10):  # ten floor tiles along x, 2 m apart
-        world.add_patch(f"frame_{i}", plane_mesh([2.0 * i + 1.0, 1.0, 0.0], [0, 0, 1], size=1.9, subdivisions=4), frame=i)
+    for i in range(10):  # ten floor tiles along x, 2 m apart (each in its chunk)
+        world.add_patch(f"frame_{i}", plane_mesh([2.0 * i, 0.0, 0.0], [0, 0, 1], size=1.9, subdivisions=4), frame=i)
     renderer = DepthRenderer(face_identity=True)
-    pose = look_at([13.0, 1.0, 1.2], [13.0, 1.0001, 0.0])  # straight down over tile 6 (x 12..14)
+    pose = look_at([12.0, 0.0, 1.2], [12.0, 0.0001, 0.0])  # straight down over tile 6 (x 11..13)
     zbuffer = renderer.render_zbuffer(world.multiblock, SMALL, pose)
     assert (zbuffer < 1).any()
     assert renderer.identities.names == ["frame_6"]  # the other nine chunks were not drawn
-    renderer.render_zbuffer(world.multiblock, SMALL, look_at([3.0, 1.0, 1.2], [3.0, 1.0001, 0.0]))
+    renderer.render_zbuffer(world.multiblock, SMALL, look_at([2.0, 0.0, 1.2], [2.0, 0.0001, 0.0]))
     assert renderer.identities.names == ["frame_1"]
 
 
@@ -122,8 +130,8 @@ def test_a_map_of_more_faces_than_24_bit_codes_renders_identities_and_removes_fa
     patches = 21
     world = WorldMap(chunk_size=4.0)
     _, cells = _grid(side, 3.9, (0.0, 0.0))  # the connectivity is shared by every patch (the points differ)
-    for k in range(patches):
-        points, _ = _grid(side, 3.9, (4.0 * k + 0.05, 0.05))
+    for k in range(patches):  # patch k fills most of chunk (k, 0, 0): x from 4k - 1.95 to 4k + 1.95
+        points, _ = _grid(side, 3.9, (4.0 * k - 1.95, -1.95))
         patch = vtkPolyData()
         vtk_points = vtkPoints()
         vtk_points.SetData(numpy_to_vtk(points, deep=True))
@@ -133,9 +141,9 @@ def test_a_map_of_more_faces_than_24_bit_codes_renders_identities_and_removes_fa
     assert world.number_of_cells == patches * 2 * side * side > MAX_FACE_CODE + 4_000_000
 
     last = f"frame_{patches - 1}"
-    x0 = 4.0 * (patches - 1) + 0.05
+    x0, y0 = 4.0 * (patches - 1) - 1.95, -1.95
     renderer = DepthRenderer(face_identity=True)
-    pose = look_at([x0 + 1.7, 1.3, 0.8], [x0 + 1.7, 1.3001, 0.0])
+    pose = look_at([x0 + 1.7, y0 + 1.25, 0.8], [x0 + 1.7, y0 + 1.2501, 0.0])
     zbuffer = renderer.render_zbuffer(world.multiblock, SMALL, pose)
     codes = renderer.render_identity()
     table = renderer.identities
@@ -147,8 +155,8 @@ def test_a_map_of_more_faces_than_24_bit_codes_renders_identities_and_removes_fa
     hits = pose[:3, 3] + rays * (-pose[2, 3] / rays[..., 2])[..., None]
     step = 3.9 / side
     i = np.floor((hits[..., 0] - x0) / step).astype(int)
-    j = np.floor((hits[..., 1] - 0.05) / step).astype(int)
-    fx, fy = (hits[..., 0] - x0) / step - i, (hits[..., 1] - 0.05) / step - j
+    j = np.floor((hits[..., 1] - y0) / step).astype(int)
+    fx, fy = (hits[..., 0] - x0) / step - i, (hits[..., 1] - y0) / step - j
     quad = i * side + j
     expected = np.where(fy < fx, quad, quad + side * side)  # which of the quad's two triangles
     clear = (np.abs(fx - fy) > 0.05) & (fx > 0.05) & (fx < 0.95) & (fy > 0.05) & (fy < 0.95)
@@ -169,7 +177,7 @@ def test_a_map_of_more_faces_than_24_bit_codes_renders_identities_and_removes_fa
     quad, upper = gone_local % (side * side), gone_local // (side * side)
     i, j = quad // side, quad % side
     corners = np.stack([np.stack([i, j], 1), np.stack([i + 1, j + upper], 1), np.stack([i + 1 - upper, j + 1], 1)], 1)
-    centres = corners.mean(axis=1) * step + [x0, 0.05]
+    centres = corners.mean(axis=1) * step + [x0, y0]
     distance, _ = cKDTree(points[triangles].mean(axis=1)[:, :2]).query(centres)
     assert distance.max() < 1e-5
     # the next image of the same place sees through where they were
@@ -187,7 +195,7 @@ def test_a_view_of_more_faces_than_codes_is_a_clear_error():
 
 
 def test_merging_leaves_a_large_patch_apart_until_the_small_ones_add_up_to_it():
-    world = WorldMap(patches_per_chunk=4)
+    world = WorldMap(chunk_size=8.0, patches_per_chunk=4)
     world.add_patch("frame_0", plane_mesh([0.5, 0.5, 0], [0, 0, 1], size=1.0, subdivisions=10), frame=0)  # 200 faces
     for frame in range(1, 6):
         world.add_patch(f"frame_{frame}", plane_mesh([0.5, 0.5, 0.1 * frame], [0, 0, 1], size=1.0, subdivisions=2), frame=frame)

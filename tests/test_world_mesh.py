@@ -28,7 +28,7 @@ def append(world, mesh):
 
 
 def test_appends_patches_and_stamps_frames():
-    world = FilterWorldMesh()
+    world = FilterWorldMesh(chunk_size=1000.0)  # one chunk: these tests are about patches
     assert append(world, with_frame(plane_mesh([0, 0, 0], [0, 0, 1], subdivisions=2), 0)) == 8
     first_block = world.map.GetBlock(0)
     assert append(world, with_frame(plane_mesh([0, 0, 1], [0, 0, 1], subdivisions=3), 5)) == 18
@@ -40,7 +40,7 @@ def test_appends_patches_and_stamps_frames():
 
 
 def test_re_execution_for_the_same_frame_appends_nothing():
-    world = FilterWorldMesh()
+    world = FilterWorldMesh(chunk_size=1000.0)  # one chunk: these tests are about patches
     mesh = with_frame(plane_mesh([0, 0, 0], [0, 0, 1]), 3)
     append(world, mesh)
     world.Modified()
@@ -57,7 +57,7 @@ def test_re_execution_behind_a_vtk_filter_appends_nothing():
     source.SetResolution(3, 3)
     triangles = vtkTriangleFilter()
     triangles.SetInputConnection(source.GetOutputPort())
-    world = FilterWorldMesh()
+    world = FilterWorldMesh(chunk_size=1000.0)  # one chunk: these tests are about patches
     world.SetInputConnection(triangles.GetOutputPort())
     world.Update()
     for _ in range(3):
@@ -67,7 +67,7 @@ def test_re_execution_behind_a_vtk_filter_appends_nothing():
 
 
 def test_keyed_patches_replace_instead_of_stacking():
-    world = FilterWorldMesh()
+    world = FilterWorldMesh(chunk_size=1000.0)  # one chunk: these tests are about patches
     mesh = with_frame(plane_mesh([0, 0, 0], [0, 0, 1], subdivisions=2), 0)  # 8 cells
     keys = numpy_to_vtk(np.array([7, 7, 7, 7, 9, 9, 9, 9], dtype=np.int64), deep=True)
     keys.SetName("patch_key")
@@ -90,7 +90,7 @@ def test_keyed_patches_replace_instead_of_stacking():
 
 
 def test_reset_empties_the_map():
-    world = FilterWorldMesh()
+    world = FilterWorldMesh(chunk_size=1000.0)  # one chunk: these tests are about patches
     append(world, with_frame(plane_mesh([0, 0, 0], [0, 0, 1]), 0))
     world.reset()
     assert world.number_of_cells == 0 and world.map.GetNumberOfBlocks() == 0
@@ -98,7 +98,7 @@ def test_reset_empties_the_map():
 
 
 def test_expected_image_from_blocks_equals_the_merged_mesh_and_keeps_block_actors():
-    world = FilterWorldMesh()
+    world = FilterWorldMesh(chunk_size=1000.0)  # one chunk: these tests are about patches
     append(world, with_frame(plane_mesh([0, 0, 0], [0, 0, 1], size=3.0), 0))
     pose = look_at([0, -2.5, 1.5], [0, 0, 0.3])
     expected = FilterDepthImage(intrinsics=Intrinsics(width=160, height=120, fx=131.25, fy=131.25, cx=80, cy=60))
@@ -123,7 +123,7 @@ def test_expected_image_from_blocks_equals_the_merged_mesh_and_keeps_block_actor
 def test_removed_blocks_are_hidden_then_lose_their_actors():
     from mabdi.filters.depth_image import KEEP_HIDDEN_RENDERS
 
-    world = FilterWorldMesh()
+    world = FilterWorldMesh(chunk_size=1000.0)  # one chunk: these tests are about patches
     world.add_patch("a", plane_mesh([0, 0, 0], [0, 0, 1]), 0)
     world.add_patch("b", plane_mesh([0, 0, 1], [0, 0, 1]), 0)
     expected = FilterDepthImage()
@@ -160,7 +160,7 @@ def test_a_re_meshed_patch_keeps_the_removal_evidence_of_the_faces_it_replaces()
     a face at the same place keeps its evidence, a face somewhere new starts at zero."""
     from mabdi.filters.removal import RemovalParameters
 
-    world = FilterWorldMesh()
+    world = FilterWorldMesh(chunk_size=1000.0)  # one chunk: these tests are about patches
     world.add_patch("patch_7", plane_mesh((0, 0, 2), (0, 0, 1), size=1.0, subdivisions=4), frame=0)
     count = world.number_of_cells
     table = FaceIdTable(["patch_7"], [100], [count])  # as an expected image that drew the patch at codes 100..
@@ -182,7 +182,7 @@ def test_a_re_meshed_patch_keeps_the_removal_evidence_of_the_faces_it_replaces()
 def test_moving_points_changes_the_block_and_its_face_normals_only():
     """``move_points``: the moved vertices go where they are told, the faces around them get new normals,
     the rest stay; a wrong shape or vertex id is an error naming the block."""
-    world = FilterWorldMesh()
+    world = FilterWorldMesh(chunk_size=1000.0)  # one chunk: these tests are about patches
     append(world, with_frame(plane_mesh([0, 0, 0], [0, 0, 1], subdivisions=2), 0))
     block = world.block("frame_0")
     points = vtk_to_numpy(block.GetPoints().GetData()).copy()
