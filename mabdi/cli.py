@@ -6,7 +6,7 @@
     mabdi run --sequence PATH [CONFIG] [--camera PRESET|fx,fy,cx,cy,w,h] [--depth-scale UNITS] [--depth-topic T] ...
     mabdi run --resume OUT [--quiet] [--no-eval]   finish an interrupted run from its last checkpoint (its inputs
                                                    must be unchanged; the run's own options are kept)
-    mabdi record CONFIG --format tum|rosbag2 --out PATH [--storage sqlite3|mcap] [--encoding 32FC1|16UC1]
+    mabdi record CONFIG --format tum|rosbag2|kitti --out PATH [--storage sqlite3|mcap] [--encoding 32FC1|16UC1]
     mabdi export IN OUT [--layout mesh_tools|lvr2]   convert a map between VTP, PLY, OBJ, STL and HDF5
     mabdi info MAP               counts, bounds, layers, labels and cluster sets of a map
     mabdi view PATH [--colour frame|normal|rgb|LAYER] [--out PNG] [--from-frame N]   look at a map or a run folder
@@ -422,7 +422,13 @@ def cmd_record(args) -> int:
     config = load_run_config(args.config)
     config = _apply_overrides(config, args)
     written = record(config, args.out, args.format, storage=args.storage, encoding=args.encoding, overwrite=args.overwrite)
-    kind = "TUM RGB-D folder" if args.format == "tum" else f"ROS 2 bag ({args.storage}, {args.encoding})"
+    lidar = config.sensor.kind == "lidar"
+    kinds = {
+        "tum": "TUM RGB-D folder",
+        "kitti": "KITTI-style LiDAR folder",
+        "rosbag2": f"ROS 2 bag ({args.storage}, {'PointCloud2' if lidar else args.encoding})",
+    }
+    kind = kinds.get(args.format, args.format)
     print(f"wrote {written} ({kind}, {config.run.frames} frames of {config.run.name or args.config.stem})")
     return 0
 
