@@ -173,8 +173,9 @@ class RefinementParameters:
 
 @dataclass
 class RefinementResult:
-    """What one frame's refinement did: vertices moved, faces to replace (24-bit identities as E drew
-    them: remove them with ``world.remove_faces``), pixels that observed, and the time it took (ms)."""
+    """What one frame's refinement did: vertices moved, faces to replace (E's face codes, with E's
+    :class:`~mabdi.face_identity.FaceIdTable`: remove them with ``world.remove_faces``), pixels that observed,
+    and the time it took (ms)."""
 
     moved_vertices: int = 0
     replaced: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
@@ -233,7 +234,7 @@ class MapRefinement:
     """Refines the map's known faces and picks faces to replace, once per frame (see the module docs).
 
     Keep one per loop; call :meth:`step` after the world mesh appended the frame's surface and before any
-    face of that frame is removed (E's face identities must still name the faces E drew).
+    face of that frame is removed (E's face codes must still name the faces E drew).
     """
 
     def __init__(self, parameters: RefinementParameters | None = None) -> None:
