@@ -166,10 +166,10 @@ def test_removed_faces_leave_only_their_blocks(monkeypatch):
     loop = mabdi.MabdiLoop(plane_then_wall(), surface="pixel_grid", noise="kinect", registration=EXACT_POSES)
     for i in range(6):
         loop.step(i)
-    before = {key: loop.world.map.GetBlock(i) for i, key in enumerate(loop.world.patch_keys)}
+    before = {key: loop.world.block(key) for key in loop.world.patch_keys}
     for i in range(6, 8):
         loop.step(i)
-    after = {key: loop.world.map.GetBlock(i) for i, key in enumerate(loop.world.patch_keys)}
+    after = {key: loop.world.block(key) for key in loop.world.patch_keys}
     changed = [key for key in before if key in after and after[key] is not before[key]]
     kept = [key for key in before if key in after and after[key] is before[key]]
     assert not changed or all(after[k].GetNumberOfCells() < before[k].GetNumberOfCells() for k in changed)
