@@ -53,8 +53,9 @@ def polyline(points: np.ndarray) -> vtkPolyData:
     return mesh
 
 
-def polydata_arrays(mesh: vtkPolyData) -> tuple[np.ndarray, np.ndarray]:
-    """(points float64 (N, 3), triangles int64 (M, 3)) of a mesh, triangulated first if needed."""
+def triangulated(mesh: vtkPolyData) -> vtkPolyData:
+    """``mesh`` itself when it holds triangles only, else its polygons as triangles (lines and vertices dropped;
+    cell data carried to each triangle of the cell it came from)."""
     if (
         mesh.GetNumberOfStrips()
         or mesh.GetNumberOfLines()
@@ -66,7 +67,13 @@ def polydata_arrays(mesh: vtkPolyData) -> tuple[np.ndarray, np.ndarray]:
         tri.PassLinesOff()
         tri.PassVertsOff()
         tri.Update()
-        mesh = tri.GetOutput()
+        return tri.GetOutput()
+    return mesh
+
+
+def polydata_arrays(mesh: vtkPolyData) -> tuple[np.ndarray, np.ndarray]:
+    """(points float64 (N, 3), triangles int64 (M, 3)) of a mesh, triangulated first if needed."""
+    mesh = triangulated(mesh)
     points = vtk_to_numpy(mesh.GetPoints().GetData()).astype(np.float64)
     connectivity = vtk_to_numpy(mesh.GetPolys().GetConnectivityArray()).astype(np.int64)
     return points, connectivity.reshape(-1, 3)

@@ -37,13 +37,12 @@ from dataclasses import dataclass
 import numpy as np
 from vtkmodules.util.numpy_support import numpy_to_vtk, vtk_to_numpy
 from vtkmodules.vtkCommonDataModel import vtkMultiBlockDataSet, vtkPolyData
-from vtkmodules.vtkFiltersCore import vtkTriangleFilter
 
 from mabdi.camera import Intrinsics, unit_rays
 from mabdi.errors import ConfigError
 from mabdi.filters.range_rendering_kernels import cast_beams_kernel
 from mabdi.face_identity import FaceIdTable
-from mabdi.polydata import named_leaves
+from mabdi.polydata import named_leaves, triangulated
 from mabdi.spherical import SphericalGeometry
 
 #: Cell data the range renderer draws: each triangle's 24-bit identity in its own table, as uint8 RGB.
@@ -203,13 +202,7 @@ class _TriangleTable:
         source_cells = numpy_to_vtk(np.arange(leaf.GetNumberOfCells(), dtype=np.int64), deep=True)
         source_cells.SetName(_SOURCE_CELL_ARRAY)
         copy.GetCellData().AddArray(source_cells)
-        if not (leaf.GetPolys().GetMaxCellSize() == 3 and not (leaf.GetNumberOfStrips() or leaf.GetNumberOfLines() or leaf.GetNumberOfVerts())):
-            triangulate = vtkTriangleFilter()
-            triangulate.SetInputData(copy)
-            triangulate.PassLinesOff()
-            triangulate.PassVertsOff()
-            triangulate.Update()
-            copy = triangulate.GetOutput()
+        copy = triangulated(copy)
         points = vtk_to_numpy(copy.GetPoints().GetData()).astype(np.float64)
         triangles = vtk_to_numpy(copy.GetPolys().GetConnectivityArray()).astype(np.int64).reshape(-1, 3)
         count = len(triangles)
