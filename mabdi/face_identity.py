@@ -11,9 +11,11 @@ the 16.7M codes (:data:`MAX_FACE_CODE`), which a 640x480 view never nears.
 
 What a code means travels with E (:class:`FaceIdTable`, field data
 ``face_id_blocks`` and ``face_id_ranges``): the name of each drawn block (the
-world mesh's patch key), its first code and its number of faces. A face is
-then (block name, local cell id), which is how the world mesh keeps its
-faces' removal evidence and normals (:mod:`mabdi.world_map`).
+world mesh's patch key), its first code, its number of faces and which
+polydata was drawn (:func:`block_address`, so that a block replaced since
+under the same name is told apart). A face is then (block name, local cell
+id), which is how the world mesh keeps its faces' removal evidence and
+normals (:mod:`mabdi.world_map`).
 """
 
 from __future__ import annotations
@@ -73,20 +75,31 @@ class FaceCodes:
         self._sorted = None
 
 
+def block_address(polydata) -> int:
+    """Which polydata object a block is, while it lives (its C++ address): a block replaced under the same name
+    is another object. Only meaningful within one process, for one image's codes."""
+    return int(polydata.GetAddressAsString("vtkPolyData")[5:], 16)
+
+
 @dataclass
 class FaceIdTable:
     """What the codes of one expected image mean: block ``names[i]`` has codes ``bases[i]`` ..
-    ``bases[i] + counts[i] - 1`` for its cells 0 .. counts[i] - 1."""
+    ``bases[i] + counts[i] - 1`` for its cells 0 .. counts[i] - 1, and was the polydata ``addresses[i]``
+    (:func:`block_address`; 0: not said)."""
 
     names: list[str]
     bases: np.ndarray
     counts: np.ndarray
+    addresses: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         order = np.argsort(np.asarray(self.bases, dtype=np.int64), kind="stable")
         self.names = [self.names[i] for i in order]
         self.bases = np.asarray(self.bases, dtype=np.int64)[order]
         self.counts = np.asarray(self.counts, dtype=np.int64)[order]
+        if self.addresses is None:
+            self.addresses = np.zeros(len(self.names), dtype=np.int64)
+        self.addresses = np.asarray(self.addresses, dtype=np.int64)[order]
 
     @classmethod
     def empty(cls) -> FaceIdTable:
@@ -111,7 +124,7 @@ class FaceIdTable:
         names.SetName(FACE_ID_BLOCKS_ARRAY)
         for name in self.names:
             names.InsertNextValue(name)
-        ranges = numpy_to_vtk(np.stack([self.bases, self.counts], axis=1).astype(np.int64).reshape(-1, 2), deep=True)
+        ranges = numpy_to_vtk(np.stack([self.bases, self.counts, self.addresses], axis=1).astype(np.int64).reshape(-1, 3), deep=True)
         ranges.SetName(FACE_ID_RANGES_ARRAY)
         field_data.AddArray(names)
         field_data.AddArray(ranges)
@@ -124,5 +137,7 @@ class FaceIdTable:
         ranges = field.GetArray(FACE_ID_RANGES_ARRAY)
         if names is None or ranges is None:
             raise ValueError(f"expected image has no field data '{FACE_ID_BLOCKS_ARRAY}' / '{FACE_ID_RANGES_ARRAY}' (rendered without identity?)")
-        values = vtk_to_numpy(ranges).reshape(-1, 2)
-        return cls([names.GetValue(i) for i in range(names.GetNumberOfValues())], values[:, 0].copy(), values[:, 1].copy())
+        columns = ranges.GetNumberOfComponents()  # (first code, faces[, address])
+        values = vtk_to_numpy(ranges).reshape(-1, columns)
+        addresses = values[:, 2].copy() if columns > 2 else None
+        return cls([names.GetValue(i) for i in range(names.GetNumberOfValues())], values[:, 0].copy(), values[:, 1].copy(), addresses)

@@ -79,6 +79,27 @@ def polydata_arrays(mesh: vtkPolyData) -> tuple[np.ndarray, np.ndarray]:
     return points, connectivity.reshape(-1, 3)
 
 
+def triangle_frames(mesh: vtkPolyData) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(corner, edge1, edge2, cell) of the triangles of ``mesh``'s polygons, each polygon fanned from its first
+    vertex (convex polygons): triangle i is corner[i] + a edge1[i] + b edge2[i] (float64 (T, 3) each, metres)
+    and came from polygon cell[i] (int64 (T,)), so a hit names the mesh's own cell."""
+    polys = mesh.GetPolys()
+    if mesh.GetNumberOfPoints() == 0 or polys.GetNumberOfCells() == 0:
+        empty = np.zeros((0, 3))
+        return empty, empty, empty, np.zeros(0, dtype=np.int64)
+    points = vtk_to_numpy(mesh.GetPoints().GetData()).astype(np.float64)
+    offsets = vtk_to_numpy(polys.GetOffsetsArray()).astype(np.int64)
+    connectivity = vtk_to_numpy(polys.GetConnectivityArray()).astype(np.int64)
+    fans = np.maximum(np.diff(offsets) - 2, 0)  # triangles per polygon
+    cell = np.repeat(np.arange(len(fans)), fans)
+    step = np.arange(len(cell)) - np.repeat(np.cumsum(fans) - fans, fans)  # 0 .. fans - 1 within each polygon
+    first = offsets[cell]
+    corner = points[connectivity[first]]
+    edge1 = points[connectivity[first + step + 1]] - corner
+    edge2 = points[connectivity[first + step + 2]] - corner
+    return corner, edge1, edge2, cell
+
+
 def extract_polys(surface: vtkPolyData, cell_ids: np.ndarray) -> vtkPolyData:
     """A new vtkPolyData with the polygons ``cell_ids`` of ``surface`` (polygons only), its
     points compacted and its point and cell arrays carried over."""

@@ -30,8 +30,9 @@ A face is named by (patch key, cell id in the patch). The expected image
 says which face each pixel shows with codes that mean something for that
 image alone (:mod:`mabdi.face_identity`); the methods that take face codes
 take the image's :class:`~mabdi.face_identity.FaceIdTable` beside them. A
-block named in a table whose patch has since been replaced by one of another
-size counts as not in the map. There is no cap on the number of faces in the
+block named in a table whose patch has since been replaced (the table says
+which polydata was drawn) counts as not in the map; removal casts the pixels
+that showed it against the patch now there. There is no cap on the number of faces in the
 map.
 
 :class:`mabdi.filters.world_mesh.FilterWorldMesh` is the VTK adaptor that
@@ -49,7 +50,7 @@ from vtkmodules.util.numpy_support import numpy_to_vtk, vtk_to_numpy
 from vtkmodules.vtkCommonDataModel import vtkCompositeDataSet, vtkDataObject, vtkMultiBlockDataSet, vtkPolyData
 from vtkmodules.vtkFiltersCore import vtkAppendPolyData
 
-from mabdi.face_identity import FaceIdTable
+from mabdi.face_identity import FaceIdTable, block_address
 from mabdi.filters.removal import update_log_odds
 from mabdi.polydata import extract_polys, polydata_from_state, polydata_to_state, triangle_normals
 
@@ -58,6 +59,9 @@ FRAME_CELL_ARRAY = "frame"
 CHUNK_SIZE = 2.0
 #: Frame patches a chunk holds before they are merged into one (keyed patches do not count).
 PATCHES_PER_CHUNK = 8
+
+#: A re-meshed patch's face whose centre lies within this (metres) of an old face's is that face, unchanged.
+UNCHANGED_FACE = 1e-5
 
 ChunkIndex = tuple[int, int, int]
 
@@ -73,6 +77,9 @@ class Patch:
     evidence: np.ndarray  # (M,) float32
     contradicted: np.ndarray  # (M,) uint16
     keyed: bool = False
+    #: (M,) bool, a keyed patch's faces that were not in the patch it replaced (new, or fitted again to new
+    #: points); None: all its faces came with it
+    refitted: np.ndarray | None = None
 
     @property
     def cells(self) -> int:
@@ -443,6 +450,7 @@ class WorldMap:
         nearest to its own, if that centre lies within the new face (its radius); otherwise it starts at 0.
         """
         centres, _ = face_centres(old.polydata)
+        patch.refitted = np.ones(patch.cells, dtype=bool)
         if not len(centres) or not patch.cells:
             return
         new_centres, radii = face_centres(patch.polydata)
@@ -450,16 +458,15 @@ class WorldMap:
         same = np.isfinite(distance) & (distance <= radii)
         patch.evidence[same] = old.evidence[nearest[same]]
         patch.contradicted[same] = old.contradicted[nearest[same]]
+        patch.refitted = ~(np.isfinite(distance) & (distance <= UNCHANGED_FACE))
 
     def face_lookup(self, codes, table: FaceIdTable) -> tuple[np.ndarray, np.ndarray, list[str]]:
         """Where the faces of an expected image's ``codes`` live: (index into the returned patch keys, cell id in
         the patch, keys); index -1 for codes of no face in the map.
 
-        A block of the table is the patch of its name when that holds as many faces as the block did; else
-        (re-meshed into another number of faces, or faces removed since E was drawn) its codes find nothing.
-        Votes are not carried to a re-meshed patch's faces by place: a contradiction of the old face is stale
-        for the new one, fitted to newer points (carrying them took 0.26% of Run 2's static voxel-plane map,
-        against 0.017% without).
+        A block of the table is the patch of its name when that is the polydata E drew (and holds as many
+        faces); else (re-meshed, or faces removed since E was drawn) its codes find nothing here: the removal
+        stage casts the pixels that showed a re-meshed block against its new faces (:meth:`stale_blocks`).
         """
         block, local = table.lookup(codes)
         flat_block, flat_local = block.reshape(-1), local.reshape(-1)
@@ -467,12 +474,30 @@ class WorldMap:
         sorted_blocks = flat_block[order]
         starts = np.searchsorted(sorted_blocks, np.arange(len(table.names) + 1))
         for b in np.flatnonzero(np.diff(starts) > 0):
-            rows = order[starts[b] : starts[b + 1]]
-            name, count = table.names[b], int(table.counts[b])
-            if name not in self._patches or self._patches[name].cells != count:
-                flat_local[rows] = -1
+            if not self._drawn_is_current(table, b):
+                flat_local[order[starts[b] : starts[b + 1]]] = -1
         block = np.where(local >= 0, block, -1)
         return block, local, list(table.names)
+
+    def _drawn_is_current(self, table: FaceIdTable, b: int) -> bool:
+        """Whether block ``b`` of ``table`` is the patch of its name as it is now (the same polydata, as many faces)."""
+        patch = self._patches.get(table.names[b])
+        if patch is None or patch.cells != int(table.counts[b]):
+            return False
+        address = int(table.addresses[b])
+        return address == 0 or address == block_address(patch.polydata)
+
+    def stale_blocks(self, table: FaceIdTable) -> list[int]:
+        """Indices of the blocks of ``table`` whose name is a patch of the map that is not the one drawn (a keyed
+        patch re-meshed since): their codes find nothing, and the pixels that showed them can be cast against
+        the patch now there (:mod:`mabdi.filters.object_removal`)."""
+        return [b for b, name in enumerate(table.names) if name in self._patches and not self._drawn_is_current(table, b)]
+
+    def refitted_faces(self, key: str) -> np.ndarray:
+        """(M,) bool: the faces of patch ``key`` made or fitted again when it last replaced a patch (all False for a
+        patch that replaced none)."""
+        patch = self._patches[key]
+        return patch.refitted if patch.refitted is not None else np.zeros(patch.cells, dtype=bool)
 
     def _per_face(self, codes, table: FaceIdTable, attribute: str, fill) -> np.ndarray:
         codes = np.asarray(codes, dtype=np.int64)

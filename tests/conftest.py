@@ -78,17 +78,36 @@ def simulation(scene: str, surface: str, **values):
 
 @pytest.fixture(scope="session")
 def static_runs():
-    """Runs 1-2 (nothing leaves) by (scene, surface, removal): (result, metrics), run once for all tests."""
+    """Runs 1-2 (nothing leaves) by (scene, surface, removal): (result, metrics), run once for all tests; the
+    ``static_runs.removed(scene, surface)`` gives the faces removal took out."""
     from mabdi.evaluate import evaluate_run
 
+    from mabdi.polydata import transformed_polydata
+
     cache = {}
+    removed_faces = {}
 
     def get(scene: str, surface: str, removal: bool = True):
         key = (scene, surface, removal)
         if key not in cache:
             sim = simulation(scene, surface, classifier__removal=removal)
-            result = sim.run()
+            removed = []
+
+            def keep_removed(record):
+                if record.cells_removed:
+                    removed.append(transformed_polydata(sim.loop.removed_surface(), sim.loop.world_from_map()))
+
+            result = sim.run(progress=keep_removed)
+            removed_faces[key] = (removed, sim.rig.scene)
             cache[key] = (result, evaluate_run(sim, result))
         return cache[key]
+
+    def removed(scene: str, surface: str) -> tuple[list, object]:
+        """(the faces removal took out of run (scene, surface), a vtkPolyData per frame that removed any, in the
+        world frame; the scene)."""
+        get(scene, surface)
+        return removed_faces[(scene, surface, True)]
+
+    get.removed = removed
 
     return get

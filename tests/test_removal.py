@@ -174,3 +174,60 @@ def test_removed_faces_leave_only_their_blocks(monkeypatch):
     kept = [key for key in before if key in after and after[key] is before[key]]
     assert not changed or all(after[k].GetNumberOfCells() < before[k].GetNumberOfCells() for k in changed)
     assert loop.removed_surface().GetNumberOfCells() >= 0 and len(kept) + len(changed) <= len(before)
+
+
+def _votes_after_re_meshing(replacement) -> tuple[np.ndarray, np.ndarray]:
+    """A keyed patch (a plane 1 m wide at 2 m, all in view) drawn into E; before the frame's votes it is re-meshed
+    into ``replacement(plane)``; D sees through it (3 m). Returns the evidence of the old plane's faces and of
+    the replacement's, as the map holds them after the votes."""
+    from mabdi.filters.classifier import ClassifierParameters, FilterClassifier
+    from mabdi.filters.depth_image import SensorNoise
+    from mabdi.filters.expected_image import MAP_PORT, MEASURED_PORT, FilterExpectedImage
+    from mabdi.filters.object_removal import ObjectRemoval
+    from mabdi.filters.registry import SurfaceCapabilities
+    from mabdi.filters.world_mesh import FilterWorldMesh
+
+    world = FilterWorldMesh(chunk_size=1000.0)
+    plane = plane_mesh([0, 0, 2], [0, 0, -1], size=1.0, subdivisions=20)
+    world.add_patch("patch_7", plane, frame=0)
+    pose = np.eye(4)
+    pose[:3, 3] = [0.013, -0.021, 0.0]
+    measured = DepthFrame(np.full(SMALL.shape, 3.0, np.float32), SMALL, pose, 1).to_image()
+    expected = FilterExpectedImage(identity=True)
+    expected.SetInputDataObject(MAP_PORT, world.map)
+    expected.SetInputDataObject(MEASURED_PORT, measured)
+    expected.Update()
+    noise = SensorNoise.of("zbuffer")
+    classifier = FilterClassifier(ClassifierParameters(), noise=noise)
+    classifier.SetInputDataObject(0, measured)
+    classifier.SetInputConnection(1, expected.GetOutputPort())
+    classifier.Update()
+    new = replacement(plane)
+    world.add_patch("patch_7", new, frame=1)  # re-meshed after E was drawn, as voxel planes do at the append
+    stage = ObjectRemoval(RemovalParameters(edge_margin=0), noise, classifier.threshold)
+    stage.run(measured, expected.GetOutput(), classifier.GetOutput(), world, None, SurfaceCapabilities(), votes=True)
+    count = world.block("patch_7").GetNumberOfCells()
+    evidence = world.face_evidence_of(np.arange(1, count + 1), FaceIdTable(["patch_7"], [1], [count]))
+    return evidence[: plane.GetNumberOfCells()], evidence
+
+
+def test_votes_reach_the_faces_of_a_block_re_meshed_after_e_was_drawn():
+    """The pixels that showed a re-meshed block are cast against its new faces: a face still where it was
+    gets its vote (the codes of E alone name faces no longer there), one fitted anew does not (a face made
+    from this frame's points is not judged by the same frame)."""
+    from mabdi.polydata import triangles_polydata
+
+    def plus_a_face(plane):  # the same faces, and a new one 10 m away: another polydata, another size
+        points, triangles = polydata_arrays(plane)
+        extra = np.array([[10.0, 0, 2], [10.5, 0, 2], [10.0, 0.5, 2]])
+        return triangles_polydata(np.vstack([points, extra]), np.vstack([triangles, len(points) + np.arange(3)[None]]))
+
+    kept, _ = _votes_after_re_meshing(plus_a_face)
+    assert (kept > 0).mean() > 0.9, np.unique(kept)  # nearly all faces contradicted once
+
+    def moved(plane):  # the same number of faces, fitted 5 mm nearer: every face anew
+        points, triangles = polydata_arrays(plane)
+        return triangles_polydata(points - [0, 0, 0.005], triangles)
+
+    _, refitted = _votes_after_re_meshing(moved)
+    assert (refitted == 0).all()

@@ -99,7 +99,7 @@ from mabdi.camera import (
 )
 from mabdi.depth import fill_depth_image
 from mabdi.errors import ConfigError
-from mabdi.face_identity import FaceCodes, FaceIdTable, face_rgb
+from mabdi.face_identity import FaceCodes, FaceIdTable, block_address, face_rgb
 from mabdi.filters.noise_calibration import NoiseCalibration
 from mabdi.filters.range_rendering import TRIANGLE_RGB_ARRAY, RangeRenderer
 from mabdi.polydata import FACE_RGB_ARRAY, named_leaves
@@ -488,6 +488,7 @@ class DepthRenderer:
         self._actors: dict[int, _Drawn] = {}
         self._codes = FaceCodes()
         self._names: dict[int, str] = {}
+        self._addresses: dict[int, int] = {}  # block_address of each drawn polydata
         self._renders = 0
         self._drawn: set[int] = set()
         self._zbuffer = vtkFloatArray()
@@ -510,6 +511,7 @@ class DepthRenderer:
             entry.actor.VisibilityOn()
             entry.last_render = self._renders
             self._names[key] = name
+            self._addresses[key] = block_address(leaf)
             drawn.add(key)
         for key, entry in list(self._actors.items()):
             if key in drawn:
@@ -525,6 +527,7 @@ class DepthRenderer:
         self._renderer.RemoveActor(entry.actor)
         self._codes.release(key)
         self._names.pop(key, None)
+        self._addresses.pop(key, None)
 
     def _new_actor(self, leaf: vtkPolyData) -> _Drawn:
         drawn = leaf
@@ -561,14 +564,15 @@ class DepthRenderer:
     def identities(self) -> FaceIdTable:
         """What the codes of the last :meth:`render_identity` mean (``face_identity`` renderers): block names,
         first codes and face counts of the blocks drawn."""
-        names, bases, counts = [], [], []
+        names, bases, counts, addresses = [], [], [], []
         for key, (base, count) in self._codes.ranges.items():
             if key not in self._drawn:
                 continue
             names.append(self._names[key])
             bases.append(base)
             counts.append(count)
-        return FaceIdTable(names, np.array(bases, dtype=np.int64), np.array(counts, dtype=np.int64))
+            addresses.append(self._addresses[key])
+        return FaceIdTable(names, np.array(bases, dtype=np.int64), np.array(counts, dtype=np.int64), np.array(addresses, dtype=np.int64))
 
     def _make_window(self, width: int, height: int):
         _check_backend_library(self.backend)

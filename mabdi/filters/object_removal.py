@@ -20,6 +20,17 @@ dashboard, and their number). The map is changed in place.
 A frame where no pixel sees through the map is skipped whole: confirmations
 only matter against contradictions, and it is the common case once the
 world is known.
+
+**Blocks re-meshed after E was drawn.** The votes come after the frame's
+append, where a keyed surface (voxel planes) replaces every block its new
+points landed in, so E's codes of such a block name faces no longer there.
+The pixels that showed it are cast against the block's new faces
+(:func:`~mabdi.filters.ray_triangle_kernels.nearest_hits_in_boxes_kernel`) and
+classified again against them with the same tau: a face still where it was
+(its centre within :data:`~mabdi.world_map.UNCHANGED_FACE` of an old one's)
+gets their votes; a face made or fitted again to this frame's points is not
+judged by the same frame. Without this a block that keeps receiving points
+(the jamb beside an opening door) never lets its old faces be voted out.
 """
 
 from __future__ import annotations
@@ -30,14 +41,16 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from vtkmodules.vtkCommonDataModel import vtkPolyData
 
-from mabdi.camera import unit_rays
+from mabdi.camera import project, unit_rays
 from mabdi.depth import depth_array, image_intrinsics, image_pose, pixels_per_radian
-from mabdi.face_identity import FaceIdTable
-from mabdi.filters.classifier import CONTRADICTED, NO_RETURN, label_array, pose_sigma_array
+from mabdi.face_identity import FaceIdTable, block_address
+from mabdi.filters.classifier import CONTRADICTED, NO_RETURN, classify, label_array, pose_sigma_array
 from mabdi.filters.expected_image import face_id_array
+from mabdi.filters.ray_triangle_kernels import nearest_hits_in_boxes_kernel
 from mabdi.filters.registry import SurfaceCapabilities
 from mabdi.filters.removal import RemovalParameters, for_geometry, removal_votes
-from mabdi.polydata import polydata_arrays
+from mabdi.polydata import polydata_arrays, triangle_frames
+from mabdi.spherical import SphericalGeometry
 
 
 @dataclass
@@ -77,18 +90,20 @@ class ObjectRemoval:
         labels = label_array(classified_image)
         voting = None
         if votes and self._anything_seen_through(labels, expected_image):
-            voting, condemned = self._votes(labels, measured_image, expected_image, classified_image, world, surface, capabilities)
+            voting, condemned, table, codes = self._votes(labels, measured_image, expected_image, classified_image, world, surface, capabilities)
             gone = np.union1d(gone, condemned)
+        else:
+            table, codes = FaceIdTable.read(expected_image), None
         if not len(gone):
             return RemovalResult()
-        result = RemovalResult(world.remove_faces(gone, FaceIdTable.read(expected_image)))
+        result = RemovalResult(world.remove_faces(gone, table))
         if capabilities.clears_space and result.cells_removed:
             # voxel planes: the statistics that made the removed faces go with them (else re-meshing brings
             # them back), and the voxels the voting rays crossed in free space
             points, triangles = polydata_arrays(result.removed)
             surface.clear_faces_at(points[triangles].mean(axis=1))
         if voting is not None and capabilities.clears_space:
-            self._clear_free_space(voting, gone, measured_image, expected_image, surface)
+            self._clear_free_space(voting, gone, measured_image, codes, surface)
         return result
 
     def _anything_seen_through(self, labels: np.ndarray, expected_image) -> bool:
@@ -107,6 +122,8 @@ class ObjectRemoval:
         codes = face_id_array(expected_image)
         table = FaceIdTable.read(expected_image)
         expected = depth_array(expected_image)
+        pose_sigma = pose_sigma_array(classified_image)
+        labels, expected, codes, table = self._retraced(labels, measured, expected, codes, table, measured_image, pose_sigma, world)
         rays, _ = unit_rays(geometry, np.float32)
         faces, contradicted, confirmed, voting = removal_votes(
             labels,
@@ -120,11 +137,66 @@ class ObjectRemoval:
             evidence_of=lambda faces: world.face_evidence_of(faces, table),
             sigma=lambda depth: self.noise.sigma(depth, geometry.near, geometry.far),
             far=geometry.far,
-            pose_sigma=pose_sigma_array(classified_image),
+            pose_sigma=pose_sigma,
         )
         if not len(faces):
-            return voting, np.zeros(0, dtype=np.int64)
-        return voting, world.update_evidence(faces, contradicted, confirmed, self.parameters, table)
+            return voting, np.zeros(0, dtype=np.int64), table, codes
+        return voting, world.update_evidence(faces, contradicted, confirmed, self.parameters, table), table, codes
+
+    def _retraced(self, labels, measured, expected, codes, table: FaceIdTable, measured_image, pose_sigma, world):
+        """(labels, E, codes, table) with the pixels that showed a block re-meshed since E was drawn (a keyed
+        patch replaced at the append: its old faces are gone) cast against the block's new faces, and
+        classified again against them: the votes of these pixels go to the faces now there, and only where D
+        still sees through them (a new face fitted to this frame's points is not contradicted by them)."""
+        stale = world.stale_blocks(table)
+        if not stale:
+            return labels, expected, codes, table
+        geometry = image_intrinsics(measured_image)
+        pose = image_pose(measured_image)
+        block_of, _ = table.lookup(codes)
+        block_of = block_of.ravel()
+        rays, length = unit_rays(geometry, np.float64)
+        rays, length = rays.reshape(-1, 3), length.ravel()
+        labels, expected, codes = labels.copy(), expected.copy(), codes.astype(np.int64)
+        flat_expected, flat_codes = expected.reshape(-1), codes.reshape(-1)
+        names, bases, counts, addresses = list(table.names), list(table.bases), list(table.counts), list(table.addresses)
+        next_base = int((table.bases + table.counts).max()) + 1
+        retraced = []
+        for b in stale:
+            pixels = np.flatnonzero(block_of == b)
+            if not len(pixels):
+                continue
+            key = table.names[b]
+            corner, edge1, edge2, cell_of = triangle_frames(world.block(key))
+            slots = np.full(geometry.shape, -1, dtype=np.int64)
+            slots.reshape(-1)[pixels] = np.arange(len(pixels))
+            boxes = pixel_boxes(corner, edge1, edge2, geometry, pose)
+            hit, distance = nearest_hits_in_boxes_kernel(
+                pose[:3, 3].astype(np.float64), rays[pixels] @ pose[:3, :3].T, slots, boxes, corner, edge1, edge2
+            )
+            cell = cell_of[np.maximum(hit, 0)]
+            found = hit >= 0
+            # a face fitted to this frame's points is not judged by the same frame: no vote on it
+            voted = found & ~world.refitted_faces(key)[cell] if len(cell) else found
+            flat_codes[pixels] = np.where(voted, next_base + cell, 0)
+            flat_expected[pixels] = np.where(found, distance / length[pixels], np.nan).astype(np.float32)
+            block = world.block(key)
+            cells = block.GetNumberOfCells()
+            names.append(key)
+            bases.append(next_base)
+            counts.append(cells)
+            addresses.append(block_address(block))
+            next_base += cells
+            retraced.append(pixels)
+        if not retraced:
+            return labels, expected, codes, table
+        pixels = np.concatenate(retraced)
+        flat_labels = labels.reshape(-1)
+        d = measured.reshape(-1)[pixels]
+        sigma = None if pose_sigma is None else pose_sigma.reshape(-1)[pixels]
+        tau = self.threshold(d, geometry.near, geometry.far, sigma)
+        flat_labels[pixels] = classify(d, flat_expected[pixels], tau)
+        return labels, expected, codes, FaceIdTable(names, np.array(bases), np.array(counts), np.array(addresses))
 
     def _parameters_for(self, expected: np.ndarray, geometry, surface, capabilities: SurfaceCapabilities) -> RemovalParameters:
         """The removal rules for this frame: for the sensor's geometry, and the edge margin widened to the
@@ -142,9 +214,10 @@ class ObjectRemoval:
         margin = min(max(margin, parameters.edge_margin), parameters.max_edge_margin)
         return replace(parameters, edge_margin=margin)
 
-    def _clear_free_space(self, voting: np.ndarray, gone: np.ndarray, measured_image, expected_image, surface) -> None:
-        """Voxel planes: rays that saw through removed faces empty the voxels they crossed (up to tau before D)."""
-        through = voting & np.isin(face_id_array(expected_image), gone)
+    def _clear_free_space(self, voting: np.ndarray, gone: np.ndarray, measured_image, codes: np.ndarray, surface) -> None:
+        """Voxel planes: rays that saw through removed faces (``codes``: the faces the votes went to) empty the
+        voxels they crossed (up to tau before D)."""
+        through = voting & np.isin(codes, gone)
         if not through.any():
             return
         geometry = image_intrinsics(measured_image)
@@ -156,3 +229,36 @@ class ObjectRemoval:
         directions = rays[through].astype(np.float64) @ pose[:3, :3].T
         ends = pose[:3, 3] + directions * (depth * length[through])[:, None]
         surface.clear_free_space(pose[:3, 3], ends, tau * length[through])
+
+
+def pixel_boxes(corner: np.ndarray, edge1: np.ndarray, edge2: np.ndarray, geometry, world_from_sensor: np.ndarray) -> np.ndarray:
+    """(M, 4) int64 the pixel columns u0..u1 and rows v0..v1 (inclusive, a pixel's margin around) that each
+    triangle (``corner`` + a ``edge1`` + b ``edge2``, world frame) may cover in the image of ``geometry`` seen
+    from ``world_from_sensor``. A camera's triangle wholly behind it covers none (u0 > u1); one crossing the
+    camera's plane, or a range image's triangle across the azimuth seam, may cover any column."""
+    height, width = geometry.shape
+    vertices = np.stack([corner, corner + edge1, corner + edge2], axis=1).reshape(-1, 3)
+    rotation, centre = world_from_sensor[:3, :3], world_from_sensor[:3, 3]
+    if isinstance(geometry, SphericalGeometry):
+        uv, _ = geometry.pixels((vertices - centre) @ rotation)
+        in_front = np.ones(len(vertices), dtype=bool)
+    else:
+        uv, z = project(vertices, geometry, world_from_sensor)
+        in_front = z > 1e-9
+    uv = uv.reshape(-1, 3, 2)
+    in_front = in_front.reshape(-1, 3)
+    with np.errstate(invalid="ignore"):
+        low = np.floor(np.nan_to_num(uv.min(axis=1), nan=-1.0, posinf=width + height, neginf=-1.0)) - 1
+        high = np.floor(np.nan_to_num(uv.max(axis=1), nan=width + height, posinf=width + height, neginf=-1.0)) + 1
+    boxes = np.stack([low[:, 0], high[:, 0], low[:, 1], high[:, 1]], axis=1)
+    every_column = ~in_front.all(axis=1)
+    if isinstance(geometry, SphericalGeometry):
+        every_column |= (high[:, 0] - low[:, 0]) > width / 2  # across the seam
+    boxes[every_column] = [0, width - 1, 0, height - 1]
+    boxes[~in_front.any(axis=1)] = [1, 0, 1, 0]  # wholly behind a camera
+    boxes[:, 0:2] = np.clip(boxes[:, 0:2], 0, width - 1)
+    boxes[:, 2:4] = np.clip(boxes[:, 2:4], 0, height - 1)
+    outside = (high[:, 0] < 0) | (low[:, 0] > width - 1) | (high[:, 1] < 0) | (low[:, 1] > height - 1)
+    boxes[outside & ~every_column] = [1, 0, 1, 0]
+    return boxes.astype(np.int64)
+

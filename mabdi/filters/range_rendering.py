@@ -41,7 +41,7 @@ from vtkmodules.vtkCommonDataModel import vtkMultiBlockDataSet, vtkPolyData
 from mabdi.camera import Intrinsics, unit_rays
 from mabdi.errors import ConfigError
 from mabdi.filters.range_rendering_kernels import cast_beams_kernel
-from mabdi.face_identity import FaceIdTable
+from mabdi.face_identity import FaceIdTable, block_address
 from mabdi.polydata import named_leaves, triangulated
 from mabdi.spherical import SphericalGeometry
 
@@ -177,20 +177,21 @@ class _TriangleTable:
     def faces(self, triangles: np.ndarray) -> tuple[np.ndarray, FaceIdTable]:
         """Face codes of the map cells that ``triangles`` (identities; 0 = none) were drawn for, and their table:
         the blocks drawn last, numbered from code 1 in order."""
-        names, bases, counts = [], [], []
+        names, bases, counts, addresses = [], [], [], []
         base_of = np.full(self._serials + 1, -1, dtype=np.int64)
         start = 1
         for leaf, _, _, serial, name in self._copies.values():
             names.append(name)
             bases.append(start)
             counts.append(leaf.GetNumberOfCells())
+            addresses.append(block_address(leaf))
             base_of[serial] = start
             start += leaf.GetNumberOfCells()
         block = self.block[triangles]
         known = (triangles > 0) & (block >= 0)
         codes = np.where(known, base_of[np.maximum(block, 0)] + self.cell[triangles], 0)
         codes[known & (base_of[np.maximum(block, 0)] < 0)] = 0
-        return codes, FaceIdTable(names, np.array(bases, dtype=np.int64), np.array(counts, dtype=np.int64))
+        return codes, FaceIdTable(names, np.array(bases, dtype=np.int64), np.array(counts, dtype=np.int64), np.array(addresses, dtype=np.int64))
 
     def _current(self, leaf: vtkPolyData) -> bool:
         entry = self._copies.get(id(leaf))

@@ -139,6 +139,14 @@ class FilterWorldMesh(MabdiAlgorithm):
         """(index into keys, cell id in the patch, keys) of an expected image's face ``codes``; -1 where none."""
         return self.store.face_lookup(codes, table)
 
+    def refitted_faces(self, key: str) -> np.ndarray:
+        """Faces of patch ``key`` made or fitted again at its last replacement (:meth:`WorldMap.refitted_faces`)."""
+        return self.store.refitted_faces(key)
+
+    def stale_blocks(self, table: FaceIdTable) -> list[int]:
+        """Blocks of ``table`` re-meshed since it was drawn (:meth:`WorldMap.stale_blocks`)."""
+        return self.store.stale_blocks(table)
+
     def face_normals_of(self, codes, table: FaceIdTable) -> np.ndarray:
         return self.store.face_normals_of(codes, table)
 

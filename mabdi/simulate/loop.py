@@ -394,7 +394,7 @@ class MabdiLoop:
         return self._refined
 
     def removed_surface(self) -> vtkPolyData:
-        """The faces object removal took out of the map in the last frame (world coordinates)."""
+        """The faces object removal took out of the map in the last frame (the map frame: :meth:`world_from_map` places them)."""
         return self._removed
 
     def novel_surface(self) -> vtkPolyData:
