@@ -122,7 +122,7 @@ def bench_reading(frames: int, passes: int) -> None:
 
 def bench_loop(frames: int, repeats: int = 2, surfaces=("pixel_grid", "quadtree", "voxel_planes")) -> None:
     from mabdi.config import load_run_config, set_value
-    from mabdi.simulate import Simulation
+    from mabdi.loop import Simulation
 
     text = (REPO / "scenes" / "table.toml").read_text()
     coloured = text
@@ -168,7 +168,7 @@ def bench_voxel_colour(repeats: int = 15) -> None:
     """VoxelMap.add_points with and without colours: a floor of 300k and of 20k points over 4 m x 4 m, added
     to a map that holds them already (its blocks allocated, as in a running loop); median of ``repeats``, the
     lower of two rounds."""
-    from mabdi.filters.voxel_map import VoxelMap
+    from mabdi.voxels.voxel_map import VoxelMap
 
     rng = np.random.default_rng(0)
     print("\nVoxelMap.add_points (5 cm voxels, blocks allocated), ms: median of each round, the lower of 2\n")

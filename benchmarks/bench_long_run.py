@@ -21,7 +21,7 @@ os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
 import mabdi  # noqa: E402
 from mabdi.config import load_run_config, set_value  # noqa: E402
 from mabdi.evaluate.bench import machine_info  # noqa: E402
-from mabdi.simulate.run_pipeline import FrameCallback, RunPipeline  # noqa: E402
+from mabdi.loop.run_pipeline import FrameCallback, RunPipeline  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 

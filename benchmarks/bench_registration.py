@@ -30,7 +30,7 @@ from mabdi.config import load_run_config, set_value
 from mabdi.evaluate import evaluate_run
 from mabdi.filters.depth_image import DepthRenderer, SensorNoise
 from mabdi.filters.registration import RegistrationParameters, register_depth, transform_size
-from mabdi.simulate import Simulation
+from mabdi.loop import Simulation
 from mabdi.simulate.rig import SimulatedRig
 
 REPO = Path(__file__).resolve().parents[1]

@@ -43,7 +43,7 @@ from mabdi.evaluate.dynamic import GhostTracker, run_with_ghosts
 from mabdi.evaluate.metrics import fscore, observed_ground_truth, scenes_per_pose
 from mabdi.evaluate.sampling import sample_surface
 from mabdi.evaluate.tsdf import TsdfMapper, TsdfSettings, open3d_status
-from mabdi.simulate import Simulation
+from mabdi.loop import Simulation
 
 REPO = Path(__file__).resolve().parents[1]
 SCENES = {

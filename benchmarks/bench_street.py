@@ -28,7 +28,7 @@ from mabdi.config import load_run_config, set_value
 from mabdi.evaluate.bench import machine_info
 from mabdi.evaluate.dynamic import run_with_ghosts
 from mabdi.evaluate.metrics import evaluate_run
-from mabdi.simulate import Simulation
+from mabdi.loop import Simulation
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -30,7 +30,8 @@ from mabdi.filters import (  # noqa: E402
 from mabdi.maps import MeshMap  # noqa: E402
 from mabdi.filters.expected_image import FilterExpectedImage  # noqa: E402
 from mabdi.filters.registry import register_surface_filter  # noqa: E402
-from mabdi.simulate import MabdiLoop, RunObserver, RunPipeline, SimulatedRig, Simulation, helical_path  # noqa: E402
+from mabdi.loop import MabdiLoop, RunObserver, RunPipeline, Simulation  # noqa: E402
+from mabdi.simulate import SimulatedRig, helical_path  # noqa: E402
 from mabdi.sources import FrameSource, SourceDepthFrames, SourceScene  # noqa: E402
 
 __version__ = "0.1.0"

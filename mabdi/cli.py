@@ -242,14 +242,14 @@ def _apply_overrides(config, args):
 
 
 def cmd_run(args) -> int:
-    """``mabdi run``: one :class:`~mabdi.simulate.run_pipeline.RunPipeline`, its observers chosen by the options."""
+    """``mabdi run``: one :class:`~mabdi.loop.run_pipeline.RunPipeline`, its observers chosen by the options."""
     from mabdi.config import RunConfig, load_run_config
     from mabdi.errors import ConfigError
-    from mabdi.simulate import Simulation
-    from mabdi.simulate.run_pipeline import ProgressBar, RunPipeline
+    from mabdi.loop import Simulation
+    from mabdi.loop.run_pipeline import ProgressBar, RunPipeline
 
     if args.resume is not None:
-        from mabdi.simulate.runner import resume_run
+        from mabdi.loop.runner import resume_run
 
         if args.config is not None or args.sequence is not None:
             raise ConfigError("run: --resume OUT takes the config and source of the run in OUT; give neither CONFIG nor --sequence")
@@ -272,7 +272,7 @@ def cmd_run(args) -> int:
     note = None
     recording = None
     if args.sequence is not None:
-        from mabdi.simulate.recorded import recorded_simulation
+        from mabdi.loop.runner import recorded_simulation
 
         name = config.run.name or args.sequence.resolve().name
         options = {
@@ -379,7 +379,7 @@ def registration_line(registration: dict) -> str:
 
 class RunReport:
     """Prints a run's totals as its loop ends, before the evaluation: an observer of the run's
-    :class:`~mabdi.simulate.run_pipeline.RunPipeline` (its one hook; the others are optional)."""
+    :class:`~mabdi.loop.run_pipeline.RunPipeline` (its one hook; the others are optional)."""
 
     def __init__(self, heading: str | None = None) -> None:
         self.heading = heading
@@ -417,7 +417,7 @@ def _report_run(pipeline, result, movie) -> int:
 
 def cmd_record(args) -> int:
     from mabdi.config import load_run_config
-    from mabdi.simulate.recorded import record
+    from mabdi.simulate.recording import record
 
     config = load_run_config(args.config)
     config = _apply_overrides(config, args)

@@ -40,7 +40,7 @@ Each cell resolves its config (file + overrides, validated), is keyed by a
 hash of the resolved config, the evaluation settings and the content
 (SHA-256) of every mesh file its scene reads (so a mesh replaced at the same
 path makes new cells), and runs in
-``OUT/cells/<id>/``: the run's own outputs (:mod:`mabdi.simulate.runner`)
+``OUT/cells/<id>/``: the run's own outputs (:mod:`mabdi.loop.runner`)
 and, after success, ``row.json`` (written atomically). A cell whose
 ``row.json`` exists is not run again, so an interrupted or extended sweep
 re-runs only what is missing or failed; a changed config or default changes
@@ -297,15 +297,15 @@ def sweep_cells(spec: SweepSpec) -> list[Cell]:
 def run_cell(config, out_dir, samples: int | None = None) -> dict:
     """Run ``config`` into ``out_dir`` and score it: the measured columns of a row (:data:`MEASURES`).
 
-    What ``mabdi run`` does for one config (its :class:`~mabdi.simulate.run_pipeline.RunPipeline`, the
+    What ``mabdi run`` does for one config (its :class:`~mabdi.loop.run_pipeline.RunPipeline`, the
     evaluation with ``samples`` a side); any error becomes ``{"error": ...}``.
     """
     try:
         from functools import partial
 
         from mabdi.evaluate.metrics import SAMPLES, evaluate_run
-        from mabdi.simulate import Simulation
-        from mabdi.simulate.run_pipeline import RunPipeline
+        from mabdi.loop import Simulation
+        from mabdi.loop.run_pipeline import RunPipeline
 
         evaluate = partial(evaluate_run, samples=samples or SAMPLES)
         result = RunPipeline(Simulation(config), Path(out_dir), evaluate=evaluate, evaluate_empty=True).run()

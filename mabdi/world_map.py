@@ -490,7 +490,7 @@ class WorldMap:
     def stale_blocks(self, table: FaceIdTable) -> list[int]:
         """Indices of the blocks of ``table`` whose name is a patch of the map that is not the one drawn (a keyed
         patch re-meshed since): their codes find nothing, and the pixels that showed them can be cast against
-        the patch now there (:mod:`mabdi.filters.object_removal`)."""
+        the patch now there (:mod:`mabdi.loop.object_removal`)."""
         return [b for b, name in enumerate(table.names) if name in self._patches and not self._drawn_is_current(table, b)]
 
     def refitted_faces(self, key: str) -> np.ndarray:

@@ -50,7 +50,7 @@ def check_table_loop(surface: str, median_limit: float):
 
     from mabdi.config import load_run_config
     from mabdi.evaluate import distances_to_mesh
-    from mabdi.simulate import Simulation
+    from mabdi.loop import Simulation
 
     config = load_run_config(REPO / "scenes" / "table.toml")
     config.surface.method = surface
@@ -67,7 +67,7 @@ def check_table_loop(surface: str, median_limit: float):
 def simulation(scene: str, surface: str, **values):
     """The Simulation of ``scenes/<scene>.toml`` with ``surface``; ``values`` set config keys (``a__b`` = ``a.b``)."""
     from mabdi.config import load_run_config, set_value
-    from mabdi.simulate import Simulation
+    from mabdi.loop import Simulation
 
     config = load_run_config(REPO / "scenes" / f"{scene}.toml")
     set_value(config, "surface.method", surface)

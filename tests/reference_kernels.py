@@ -11,7 +11,7 @@ that a test can hand both the same inputs and check that they agree:
   with these stages); tests/test_quadtree.py.
 * refinement's per-block work (:mod:`mabdi.filters.refinement_kernels`):
   :func:`observe_block`; tests/test_refinement.py.
-* voxel traversal (:mod:`mabdi.filters.voxel_traversal`): :func:`reference_voxels`
+* voxel traversal (:mod:`mabdi.voxels.traversal`): :func:`reference_voxels`
   and :func:`reference_pairs`; tests/test_voxel_traversal.py.
 * fast marching on a mesh map (:mod:`mabdi.maps.fast_marching`):
   :func:`iterative_arrival_times`; tests/test_maps.py.
@@ -24,7 +24,7 @@ import numpy as np
 from mabdi.camera import Intrinsics
 from mabdi.filters.depth_smoothing import smooth_depth_by_noise
 from mabdi.filters.quadtree import Leaves, fitting_leaves
-from mabdi.filters.voxel_traversal import prepare_rays
+from mabdi.voxels.traversal import prepare_rays
 from mabdi.maps.fast_marching import triangle_updates
 from mabdi.maps.planning import _vertex_faces
 
@@ -297,11 +297,11 @@ def _barycentric(v: np.ndarray, e1: np.ndarray, e2: np.ndarray) -> np.ndarray:
 
 
 # ---------------------------------------------------------------------------
-# voxel traversal (mabdi.filters.voxel_traversal)
+# voxel traversal (mabdi.voxels.traversal)
 
 
 def reference_voxels(origins, ends, voxel_size: float, margins=0.0, *, include_end: bool = True) -> np.ndarray:
-    """:func:`mabdi.filters.voxel_traversal.traverse_voxels` in numpy, exactly (the tests' reference).
+    """:func:`mabdi.voxels.traversal.traverse_voxels` in numpy, exactly (the tests' reference).
 
     Candidates: the voxels of samples every s/4 along each segment (its end included) and their 26
     neighbours (between two samples each coordinate moves less than a voxel, so every crossed voxel is
@@ -313,7 +313,7 @@ def reference_voxels(origins, ends, voxel_size: float, margins=0.0, *, include_e
 
 
 def reference_pairs(origins, ends, voxel_size: float, margins=0.0, *, include_end: bool = True) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`mabdi.filters.voxel_traversal.ray_voxels` in numpy (see :func:`reference_voxels`): ray indices (K,) and voxels (K, 3),
+    """:func:`mabdi.voxels.traversal.ray_voxels` in numpy (see :func:`reference_voxels`): ray indices (K,) and voxels (K, 3),
     by ray and along it."""
     origins, ends, margins = prepare_rays(origins, ends, margins)
     s = float(voxel_size)

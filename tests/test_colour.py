@@ -16,7 +16,7 @@ from mabdi.io.map_files import load_map, save_map
 from mabdi.io.vtk_files import read_mesh_file, write_mesh_file
 from mabdi.maps.mesh_map import COLOUR_LAYER, MeshMap
 from mabdi.polydata import triangles_polydata
-from mabdi.simulate import Simulation
+from mabdi.loop import Simulation
 from mabdi.sources.scene import SourceScene
 
 #: Each object of Run 1's table its own colour (no two alike), so a vertex's colour names its object.

@@ -143,7 +143,7 @@ def test_departures_static_mesh_and_first_seen():
 
 
 def test_run_with_ghosts_steps_and_measures_a_run():
-    from mabdi.simulate import Simulation
+    from mabdi.loop import Simulation
 
     config = run_config_from_dict(
         {

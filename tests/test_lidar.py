@@ -302,7 +302,7 @@ disappear_at = {leave}
 
 
 def lidar_run(tmp_path, surface="pixel_grid", noise="none", frames=16, leave=1.0):
-    from mabdi.simulate import Simulation
+    from mabdi.loop import Simulation
 
     path = tmp_path / f"lidar_{surface}_{noise}.toml"
     path.write_text(LIDAR_SCENE.format(frames=frames, noise=noise, surface=surface, leave=leave if leave < 1.0 else frames + 1))
@@ -363,7 +363,7 @@ def test_one_projection_for_either_geometry_round_trips_pixel_centres():
 def test_recorded_lidar_scans_give_the_simulators_map(tmp_path, layout):
     # the simulated LiDAR's scans written as a KITTI-style folder or as PointCloud2 in a ROS 2 bag and read
     # back: the loop on the recording makes the map the simulator's frames make (triangle count within 1%)
-    from mabdi.simulate.loop import MabdiLoop
+    from mabdi.loop.loop import MabdiLoop
     from mabdi.simulate.rig import SimulatedRig
     from mabdi.sources.kitti import write_kitti
     from mabdi.sources.rosbag2 import write_lidar_rosbag2

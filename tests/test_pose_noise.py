@@ -206,7 +206,7 @@ def small_table(frames: int = 2):
 
 def test_a_run_writes_the_true_poses_beside_the_given_ones(tmp_path):
     from mabdi.evaluate.metrics import sensor_poses
-    from mabdi.simulate import Simulation
+    from mabdi.loop import Simulation
 
     config = small_table()
     simulation = Simulation(config)
@@ -219,7 +219,8 @@ def test_a_run_writes_the_true_poses_beside_the_given_ones(tmp_path):
 
 
 def test_a_recording_carries_the_given_poses_and_keeps_the_true_ones(tmp_path):
-    from mabdi.simulate.recorded import TRUE_POSES, record, recorded_simulation
+    from mabdi.loop.runner import recorded_simulation
+    from mabdi.simulate.recording import TRUE_POSES, record
     from mabdi.sources.tum import TumSequence
 
     config = small_table(3)

@@ -22,8 +22,8 @@ from mabdi.config import load_run_config, set_value
 from mabdi.errors import ConfigError
 from mabdi.io.checkpoint import CheckpointError, decode, encode, read_tree, write_tree
 from mabdi.io.run_folder import LOCK, STAGING, OutputError, RunFolder
-from mabdi.simulate import Simulation
-from mabdi.simulate.runner import CHECKPOINT, OLD_CHECKPOINT
+from mabdi.loop import Simulation
+from mabdi.loop.runner import CHECKPOINT, OLD_CHECKPOINT
 from mabdi.sources.frames import FrameList
 from mabdi.sources.rosbag2 import _TYPESTORE, Rosbag2Sequence, write_rosbag2
 from mabdi.sources.sequences import SequenceError, interpolate_poses
@@ -240,7 +240,7 @@ def test_tum_poses_are_interpolated_and_the_map_sits_within_half_a_millimetre(tm
     """30 Hz depth, 100 Hz ground truth (offset, so no depth stamp has its own sample): the map's vertices
     lie within 0.5 mm of the table scene (the nearest sample alone puts them millimetres off)."""
     from mabdi.evaluate.distance import distances_to_mesh
-    from mabdi.simulate.loop import MabdiLoop
+    from mabdi.loop.loop import MabdiLoop
     from mabdi.simulate.rig import FRAME_RATE, SimulatedRig
     from mabdi.sources.scene import SourceScene
     from mabdi.sources.tum import TumSequence, write_tum
@@ -304,7 +304,8 @@ def _interrupted(out, config, at: int, **run):
 
 def test_resume_refuses_a_changed_recording(tmp_path, capsys):
     from mabdi.cli import main
-    from mabdi.simulate.recorded import record, recorded_simulation
+    from mabdi.loop.runner import recorded_simulation
+    from mabdi.simulate.recording import record
 
     recording = record(table(12, output__checkpoint_every=4), tmp_path / "tum", "tum")
     config = table(12, output__checkpoint_every=4)

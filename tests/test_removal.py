@@ -183,7 +183,7 @@ def _votes_after_re_meshing(replacement) -> tuple[np.ndarray, np.ndarray]:
     from mabdi.filters.classifier import ClassifierParameters, FilterClassifier
     from mabdi.filters.depth_image import SensorNoise
     from mabdi.filters.expected_image import MAP_PORT, MEASURED_PORT, FilterExpectedImage
-    from mabdi.filters.object_removal import ObjectRemoval
+    from mabdi.loop.object_removal import ObjectRemoval
     from mabdi.filters.registry import SurfaceCapabilities
     from mabdi.filters.world_mesh import FilterWorldMesh
 

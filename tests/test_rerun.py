@@ -38,7 +38,7 @@ def read_recording(path) -> tuple[dict[str, set[str]], set[int]]:
 @pytest.fixture(scope="module")
 def recorded_run(tmp_path_factory):
     from mabdi.config import load_run_config
-    from mabdi.simulate import Simulation
+    from mabdi.loop import Simulation
     from mabdi.viz.rerun_log import rerun_progress
 
     config = load_run_config(SCENES / "table.toml")

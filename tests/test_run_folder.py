@@ -10,8 +10,8 @@ import pytest
 from conftest import REPO
 from mabdi.config import load_run_config, set_value
 from mabdi.io.run_folder import MANIFEST, STAGING, OutputError, RunFolder
-from mabdi.simulate import Simulation
-from mabdi.simulate.runner import CHECKPOINT
+from mabdi.loop import Simulation
+from mabdi.loop.runner import CHECKPOINT
 
 
 def table(frames: int, surface: str = "pixel_grid", **values):

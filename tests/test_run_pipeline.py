@@ -9,8 +9,8 @@ import pytest
 
 from mabdi.config import load_run_config, set_value, with_overrides
 from mabdi.errors import ConfigError
-from mabdi.simulate import Simulation
-from mabdi.simulate.run_pipeline import STEPS, RunObserver, RunPipeline
+from mabdi.loop import Simulation
+from mabdi.loop.run_pipeline import STEPS, RunObserver, RunPipeline
 from mabdi.sweep import apply_overrides
 
 SCENES = Path(__file__).resolve().parents[1] / "scenes"
@@ -102,7 +102,7 @@ def test_simulation_run_is_the_pipeline_and_an_observer_needs_only_its_hooks(tmp
 
 
 def test_an_interrupted_run_tells_its_observers_and_resumes_to_the_same_map(tmp_path):
-    from mabdi.simulate.runner import resume_run
+    from mabdi.loop.runner import resume_run
 
     events: list = []
 

@@ -17,9 +17,9 @@ from mabdi.depth import depth_array
 from mabdi.errors import ConfigError
 from mabdi.evaluate import distances_to_mesh
 from mabdi.filters.depth_image import FilterDepthImage
-from mabdi.simulate import Simulation
+from mabdi.loop import Simulation
 from mabdi.io.run_folder import OutputError
-from mabdi.simulate.runner import METRICS_COLUMNS
+from mabdi.loop.runner import METRICS_COLUMNS
 from mabdi.polydata import triangles_polydata
 
 

@@ -10,7 +10,7 @@ from vtkmodules.vtkCommonCore import vtkPoints
 from vtkmodules.vtkCommonDataModel import vtkPolyData
 
 from mabdi.depth import COLOUR_ARRAY
-from mabdi.filters.voxel_map import VoxelMap
+from mabdi.voxels.voxel_map import VoxelMap
 from mabdi.filters.voxel_planes import NO_COLOUR, FilterVoxelPlanes
 from mabdi.io.checkpoint import read_tree, write_tree
 from mabdi.maps.mesh_map import COLOUR_LAYER
@@ -50,7 +50,7 @@ def expected_sums(voxels: VoxelMap, points, colours):
 
 @pytest.mark.parametrize("path", ["compiled", "numpy dense", "numpy sparse"])
 def test_each_voxel_keeps_the_sum_of_its_points_colours(monkeypatch, path):
-    import mabdi.filters.voxel_map as voxel_map
+    import mabdi.voxels.voxel_map as voxel_map
 
     rng = np.random.default_rng(4)
     count = 40_000 if path != "numpy sparse" else 300  # few points in big blocks: the sparse numpy sums
@@ -181,8 +181,8 @@ def test_a_coloured_voxel_planes_run_resumes_with_its_colours(tmp_path):
 
     from mabdi.config import load_run_config
     from mabdi.io.run_folder import STAGING
-    from mabdi.simulate import Simulation
-    from mabdi.simulate.runner import CHECKPOINT
+    from mabdi.loop import Simulation
+    from mabdi.loop.runner import CHECKPOINT
 
     def config():
         config = load_run_config(coloured_table(tmp_path, frames=6))

@@ -8,7 +8,7 @@ from vtkmodules.util.numpy_support import vtk_to_numpy
 
 from conftest import check_table_loop
 from mabdi.errors import ConfigError
-from mabdi.filters.voxel_map import VoxelMap, moments_to_gaussian
+from mabdi.voxels.voxel_map import VoxelMap, moments_to_gaussian
 from mabdi.filters.voxel_planes import (
     FilterVoxelPlanes,
     VoxelPlanesParameters,
@@ -54,7 +54,7 @@ def test_statistics_match_the_points_far_from_the_origin():
 
 
 def test_compiled_and_numpy_statistics_agree(monkeypatch):
-    import mabdi.filters.voxel_map as voxel_map
+    import mabdi.voxels.voxel_map as voxel_map
 
     rng = np.random.default_rng(8)
     points = rng.normal([-3.0, 0.4, 1.2], 0.8, (50_000, 3))  # negative coordinates, many blocks

@@ -4,11 +4,11 @@ import numpy as np
 import pytest
 from reference_kernels import reference_pairs, reference_voxels
 
-import mabdi.filters.voxel_map as voxel_map
-import mabdi.filters.voxel_traversal as voxel_traversal
-from mabdi.filters.voxel_map import VoxelMap
+import mabdi.voxels.voxel_map as voxel_map
+import mabdi.voxels.traversal as voxel_traversal
+from mabdi.voxels.voxel_map import VoxelMap
 from mabdi.filters.voxel_planes import FilterVoxelPlanes
-from mabdi.filters.voxel_traversal import ray_voxels, traverse_voxels
+from mabdi.voxels.traversal import ray_voxels, traverse_voxels
 
 
 def _along_x(xs):

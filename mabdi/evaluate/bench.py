@@ -8,7 +8,7 @@ and every method reads them from there:
 * ``mabdi``: the MABDI loop with the config's surface filter and classifier;
 * ``black_box``: the same runner with the classifier off;
 
-  both are a :class:`~mabdi.simulate.run_pipeline.RunPipeline` (nothing
+  both are a :class:`~mabdi.loop.run_pipeline.RunPipeline` (nothing
   written; in a scene an object leaves, a
   :class:`~mabdi.evaluate.dynamic.GhostObserver` watches it);
 * ``tsdf_1cm``, ``tsdf_2cm``: Open3D's VoxelBlockGrid TSDF (optional; see
@@ -50,8 +50,8 @@ from mabdi.io.atomic import write_text
 from mabdi.io.plots import write_elements_plot
 from mabdi.simulate.rig import SimulatedRig
 from mabdi.io.run_folder import prepare_output_dir
-from mabdi.simulate.run_pipeline import RunPipeline
-from mabdi.simulate.runner import Simulation
+from mabdi.loop.run_pipeline import RunPipeline
+from mabdi.loop.runner import Simulation
 from mabdi.sources.frames import FrameList
 
 METHODS = ("mabdi", "black_box", "tsdf_1cm", "tsdf_2cm")

@@ -45,7 +45,7 @@ it stands at each frame (:meth:`mabdi.sources.scene.SourceScene.mesh_at`).
   map keeps and of dynamic ones it removed (``GhostRun.removal``).
 
 :class:`GhostObserver` measures all of this as a run goes (an observer of
-:class:`mabdi.simulate.run_pipeline.RunPipeline`; :func:`run_with_ghosts`
+:class:`mabdi.loop.run_pipeline.RunPipeline`; :func:`run_with_ghosts`
 runs a Simulation with one); :class:`GhostTracker` does the measuring for
 any map one hands it (a TSDF's extracted mesh, say).
 """
@@ -64,7 +64,7 @@ from mabdi.evaluate.removal_accuracy import MapHistory, RemovalAccuracy, removal
 from mabdi.evaluate.sampling import SAMPLE_SEED, sample_surface
 from mabdi.filters.depth_image import SensorRenderer
 from mabdi.polydata import triangles_polydata
-from mabdi.simulate.run_pipeline import RunObserver, RunPipeline
+from mabdi.loop.run_pipeline import RunObserver, RunPipeline
 
 #: A map point this far (m) from the scene as it is is a ghost.
 GHOST_THRESHOLD = 0.03
@@ -308,7 +308,7 @@ class GhostRun:
     ghost share) after each measured frame; ``by_object``: departure name ->
     (frame, share of the map's area that is that object's ghost);
     ``departures`` with their ``seen_at``; ``result``: the
-    :class:`~mabdi.simulate.runner.RunResult` (None for a map not made by the loop).
+    :class:`~mabdi.loop.runner.RunResult` (None for a map not made by the loop).
     ``loop_seconds``: time in the loop's steps alone (not the measuring).
     ``removal``: static and dynamic accuracy of the final map
     (:mod:`mabdi.evaluate.removal_accuracy`), None when no map was measured.
@@ -433,13 +433,13 @@ class GhostTracker:
 
 
 class GhostObserver(RunObserver):
-    """Watches a run (:class:`~mabdi.simulate.run_pipeline.RunPipeline`) and measures its map every ``every``
+    """Watches a run (:class:`~mabdi.loop.run_pipeline.RunPipeline`) and measures its map every ``every``
     frames and after the last, against the scene as it stands at that frame (a :class:`GhostTracker`).
 
     The scene is the simulation's (or its rig's); the first sight of each
     departed object is judged from the poses the sensor really had. After the
     run, ``ghosts`` is the :class:`GhostRun` (its ``result`` the run's
-    :class:`~mabdi.simulate.run_outputs.RunResult`, ``loop_seconds`` the
+    :class:`~mabdi.loop.run_outputs.RunResult`, ``loop_seconds`` the
     loop's steps alone). ``progress(frame, share)`` is called after each
     measurement.
     """
@@ -499,11 +499,11 @@ def run_with_ghosts(
     min_pixels: int = MIN_PIXELS,
     progress=None,
 ) -> GhostRun:
-    """Run ``simulation`` (a :class:`~mabdi.simulate.run_pipeline.RunPipeline`, nothing written) with a
+    """Run ``simulation`` (a :class:`~mabdi.loop.run_pipeline.RunPipeline`, nothing written) with a
     :class:`GhostObserver` measuring the map every ``every`` frames and after the last.
 
     Returns a :class:`GhostRun` (``records, shares = run_with_ghosts(sim)``) whose ``result`` is the
-    run's :class:`~mabdi.simulate.run_outputs.RunResult`.
+    run's :class:`~mabdi.loop.run_outputs.RunResult`.
     """
     observer = GhostObserver(every, threshold, samples, static_every, min_pixels, progress)
     RunPipeline(simulation, observers=[observer]).run()

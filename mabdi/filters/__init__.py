@@ -1,4 +1,7 @@
-"""Filters: one module per VTK algorithm of the MABDI pipeline."""
+"""Filters: one module per VTK algorithm of the MABDI pipeline, and beside them what only they use: their
+numba kernels, the surface registry, the rules of removal and refinement (the loop runs those stages,
+:mod:`mabdi.loop`), the map's anchor and the noise calibration of registration. The voxel planes'
+storage is :mod:`mabdi.voxels`."""
 
 from mabdi.filters.classifier import ClassifierParameters, FilterClassifier
 from mabdi.filters.depth_image import DepthRenderer, FilterDepthImage, SensorNoise
@@ -7,7 +10,7 @@ from mabdi.filters.map_anchor import MapAnchor
 from mabdi.filters.noise_calibration import NoiseCalibration
 from mabdi.filters.quadtree import FilterQuadTree, QuadTreeParameters
 from mabdi.filters.registration import FilterRegistration, RegistrationParameters
-from mabdi.filters.voxel_map import VoxelMap
+from mabdi.voxels.voxel_map import VoxelMap
 from mabdi.filters.voxel_planes import FilterVoxelPlanes, VoxelPlanesParameters
 from mabdi.filters.world_mesh import FilterWorldMesh
 from mabdi.filters.registry import make_surface_filter, register_surface_filter, surface_filter, surface_filter_names

@@ -376,7 +376,7 @@ class MapRefinement:
 
     # -- one frame -----------------------------------------------------------
     def step(self, loop) -> RefinementResult:
-        """One frame's refinement of ``loop``'s map (a :class:`mabdi.simulate.loop.MabdiLoop` after its world
+        """One frame's refinement of ``loop``'s map (a :class:`mabdi.loop.loop.MabdiLoop` after its world
         mesh appended the frame); returns what it did. Moves vertices itself; the replaced faces are for the
         loop to remove."""
         start = time.perf_counter()

@@ -3,7 +3,7 @@
 Points in (a depth image's valid pixels, back-projected with its pose: the
 classifier's output gives only the novel ones; or a vtkPolyData of world
 points), a mesh of small planar polygons out. The filter keeps a
-:class:`~mabdi.filters.voxel_map.VoxelMap` across updates.
+:class:`~mabdi.voxels.voxel_map.VoxelMap` across updates.
 
 1. **Statistics**: every point is added to its voxel's count, sum and sum of
    outer products (:class:`VoxelMap`, a semi-sparse blockwise grid).
@@ -91,7 +91,7 @@ from mabdi.algorithm import MabdiAlgorithm
 from mabdi.camera import pixel_rays
 from mabdi.depth import COLOUR_ARRAY, FRAME_ARRAY, colour_point_array, depth_array, image_colour, image_intrinsics, image_pose
 from mabdi.errors import ConfigError
-from mabdi.filters.voxel_map import VoxelMap, moments_to_gaussian, pack_keys, unpack_keys
+from mabdi.voxels.voxel_map import VoxelMap, moments_to_gaussian, pack_keys, unpack_keys
 from mabdi.filters.world_mesh import PATCH_KEY_ARRAY, REMOVED_KEYS_ARRAY
 from mabdi.maps.colours import colours_by_normal
 from mabdi.maps.mesh_map import COLOUR_LAYER

@@ -21,7 +21,7 @@ str or int, order kept). Non-finite floats are written as JSON's
 
 :func:`encode` / :func:`decode` turn any such tree into (header, arrays) and
 back; :func:`write_tree` / :func:`read_tree` add the file. Whoever adds state
-to :meth:`mabdi.simulate.loop.MabdiLoop.state` only needs to keep it to
+to :meth:`mabdi.loop.loop.MabdiLoop.state` only needs to keep it to
 dicts, lists, numbers, strings, None and numpy arrays.
 """
 

@@ -1,19 +1,10 @@
-"""Simulation: the simulated rig (scene, sensor, helical path), the MABDI loop, the runner and a run's pipeline."""
+"""The simulator: a scene, a depth sensor (camera or LiDAR) with its noise, and the paths it is carried along.
 
-from mabdi.simulate.loop import FrameRecord, MabdiLoop
+:class:`SimulatedRig` renders D from a scene along a path (:func:`helical_path`, waypoints, a recorded
+trajectory: :mod:`mabdi.simulate.path`); the MABDI loop and the runs that drive it are in :mod:`mabdi.loop`.
+"""
+
 from mabdi.simulate.path import helical_path, path_from_config
 from mabdi.simulate.rig import SimulatedRig
-from mabdi.simulate.run_pipeline import RunObserver, RunPipeline
-from mabdi.simulate.runner import RunResult, Simulation
 
-__all__ = [
-    "FrameRecord",
-    "MabdiLoop",
-    "RunObserver",
-    "RunPipeline",
-    "RunResult",
-    "Simulation",
-    "SimulatedRig",
-    "helical_path",
-    "path_from_config",
-]
+__all__ = ["SimulatedRig", "helical_path", "path_from_config"]

@@ -1,7 +1,7 @@
 """Record a run as a movie: the dashboard of every frame streamed to MP4, PNG snapshots at chosen frames.
 
 :class:`MovieObserver` watches a run (an observer of
-:class:`~mabdi.simulate.run_pipeline.RunPipeline`, which ``mabdi run
+:class:`~mabdi.loop.run_pipeline.RunPipeline`, which ``mabdi run
 --movie`` adds) and writes ``movie.mp4`` (or ``movie.gif`` without ffmpeg)
 into the run's folder, and ``dashboard_<frame>.png`` for each frame in
 ``snapshots`` (default: the first, the middle and the last). Frames go to
@@ -16,7 +16,7 @@ import time
 from pathlib import Path
 
 from mabdi.io.atomic import atomic_output
-from mabdi.simulate.run_pipeline import FrameCallback, RunObserver, RunPipeline
+from mabdi.loop.run_pipeline import FrameCallback, RunObserver, RunPipeline
 from mabdi.viz.dashboard import SIZE, Dashboard
 from mabdi.viz.movie import MovieWriter
 
@@ -94,7 +94,7 @@ def run_with_movie(
 ):
     """Run the simulation into ``out_dir`` with a :class:`MovieObserver`; returns (RunResult, movie path,
     dashboard ms per frame). ``progress(record)`` after each frame; ``overwrite`` and ``finish`` as in
-    :class:`~mabdi.simulate.run_pipeline.RunPipeline`."""
+    :class:`~mabdi.loop.run_pipeline.RunPipeline`."""
     movie = MovieObserver(snapshots, fps, size)
     observers = [movie] + ([FrameCallback(progress)] if progress is not None else [])
     result = RunPipeline(simulation, out_dir, observers, overwrite=overwrite, finish=finish).run()

@@ -46,7 +46,7 @@ from mabdi.depth import depth_array, image_colour, image_pose
 from mabdi.errors import MabdiError
 from mabdi.polydata import named_leaves
 from mabdi.maps.mesh_map import COLOUR_LAYER
-from mabdi.simulate.run_pipeline import RunObserver
+from mabdi.loop.run_pipeline import RunObserver
 
 TIMELINE = "frame"
 #: Colours of the classified image (RGB), as the dashboard draws it.
@@ -101,7 +101,7 @@ def frame_colour(t: float) -> np.ndarray:
 
 
 class RerunLogger:
-    """Logs a :class:`mabdi.simulate.loop.MabdiLoop` frame by frame to Rerun (see the module docs).
+    """Logs a :class:`mabdi.loop.loop.MabdiLoop` frame by frame to Rerun (see the module docs).
 
     ``path``: a ``.rrd`` file to save, or None to spawn / connect to a viewer.
     ``frames``: the run's length, for the colours of the map by frame.
@@ -250,7 +250,7 @@ class RerunLogger:
 
 
 class RerunProgress(RunObserver):
-    """Logs each frame of a Simulation's run: an observer of :class:`~mabdi.simulate.run_pipeline.RunPipeline`,
+    """Logs each frame of a Simulation's run: an observer of :class:`~mabdi.loop.run_pipeline.RunPipeline`,
     or a ``progress(record)`` callback; the recording is finished after the last frame (or when the run stops)."""
 
     def __init__(self, simulation, path=None, images: bool = True) -> None:

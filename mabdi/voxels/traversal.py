@@ -3,11 +3,11 @@
 Used to clear free space in the voxel-plane map: where the sensor sees
 *through* a surface of the map (measured depth D > expected depth E + tau),
 the voxels between the sensor and the measured point are empty now, so their
-statistics must go (:meth:`mabdi.filters.voxel_map.VoxelMap.clear_free_space`).
+statistics must go (:meth:`mabdi.voxels.voxel_map.VoxelMap.clear_free_space`).
 
 Grid: voxel (i, j, k) covers [i s, (i + 1) s) x [j s, ...) x [k s, ...) in the
 world frame (metres), aligned at 0, index = floor(p / s), negative indices
-fine (the grid of :class:`~mabdi.filters.voxel_map.VoxelMap`).
+fine (the grid of :class:`~mabdi.voxels.voxel_map.VoxelMap`).
 
 Segment: ray r runs from ``origins[r]`` towards ``ends[r]``; its end is pulled
 back along the ray by ``margins[r]`` metres (Euclidean, along the ray), so
@@ -265,7 +265,7 @@ def _flag_kernel(origins, ends, margins, s, include_end, b, block_low, block_dim
 def flag_occupied(origins, ends, margins, voxel_size, include_end, block_voxels, block_low, block_dims, compact_of_box, slots, stats, flags):
     """Compiled: set ``flags[c, flat]`` for every voxel the segments cross that holds points they saw
     through (:func:`seen_through`, see ``_walk``); for
-    :meth:`mabdi.filters.voxel_map.VoxelMap.clear_free_space`. Rays as :func:`prepare_rays` gives them."""
+    :meth:`mabdi.voxels.voxel_map.VoxelMap.clear_free_space`. Rays as :func:`prepare_rays` gives them."""
     _flag_kernel(origins, ends, margins, float(voxel_size), include_end, np.int64(block_voxels), block_low, block_dims, compact_of_box, slots, stats, flags)
 
 

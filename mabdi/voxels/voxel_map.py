@@ -42,7 +42,7 @@ carries the sums, and :meth:`VoxelMap.from_state` reads states without them.
 
 Free space (object removal): where the sensor sees through a surface of the
 map, the voxels its rays cross are empty now. :meth:`VoxelMap.clear_free_space`
-walks those rays (:mod:`mabdi.filters.voxel_traversal`, Amanatides & Woo,
+walks those rays (:mod:`mabdi.voxels.traversal`, Amanatides & Woo,
 stopping a margin before the measured point and never clearing the voxel that
 holds it) and zeroes the statistics of every voxel they cross;
 :meth:`VoxelMap.clear_voxels` zeroes given voxels. Both return the voxels
@@ -63,7 +63,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from mabdi.errors import ConfigError
-from mabdi.filters import voxel_traversal
+from mabdi.voxels import traversal as voxel_traversal
 
 from numba import njit
 
@@ -465,9 +465,9 @@ class VoxelMap:
         measured points of rays that saw through the map. Each ray is walked up to ``margins``
         metres (along the ray; one number or (N,), e.g. the classifier's threshold tau(z) of each
         pixel, scaled by |ray| / z) before its end, and the voxel holding that pulled-back end is
-        kept too (:func:`mabdi.filters.voxel_traversal.traverse_voxels` with ``include_end=False``):
+        kept too (:func:`mabdi.voxels.traversal.traverse_voxels` with ``include_end=False``):
         a ray never clears its own end point's voxel. A crossed voxel is emptied when the ray saw
-        through its points (:func:`mabdi.filters.voxel_traversal.seen_through`: it passes within
+        through its points (:func:`mabdi.voxels.traversal.seen_through`: it passes within
         3 sigma of their Gaussian before the pulled-back end), so a ray that grazes the surface it
         measures, or passes beside points in a voxel it crosses, leaves them. One compiled pass walks the rays and flags the crossed voxels that hold points (when the
         rays' blocks fit a dense table of :data:`CLEAR_BLOCKS` blocks); otherwise :meth:`clear_voxels`

@@ -21,12 +21,12 @@ the folder follows :mod:`mabdi.io.run_folder`):
 * ``poses_true.npy`` when the source knows the true poses (a simulation:
   they differ from ``poses.npy`` with ``[sensor.pose_noise]``);
 * with ``output.depth_images``: ``depth/D_000000.vti``, ``E_...``, ``labels_...``
-  (:class:`mabdi.simulate.run_pipeline.DepthImages`);
+  (:class:`mabdi.loop.run_pipeline.DepthImages`);
 * ``.mabdi-run.json``: the manifest of the files above (:mod:`mabdi.io.run_folder`);
 * while running, with ``output.checkpoint_every``: ``checkpoint.npz``
-  (:class:`mabdi.simulate.run_pipeline.Checkpoints`).
+  (:class:`mabdi.loop.run_pipeline.Checkpoints`).
 
-``simulation`` below is the run's :class:`~mabdi.simulate.runner.Simulation`
+``simulation`` below is the run's :class:`~mabdi.loop.runner.Simulation`
 (its ``config``, ``source``, ``scene``, ``rig``, ``poses``, ``true_poses``,
 ``meshed_poses()``).
 """
@@ -55,13 +55,11 @@ from mabdi.maps.labels import label_floor, planar_clusters
 from mabdi.maps.layers import add_cost_layers
 from mabdi.maps.mesh_map import MeshMap
 from mabdi.polydata import polyline
-from mabdi.simulate.loop import FrameRecord
+from mabdi.loop.loop import FrameRecord
+from mabdi.simulate.recording import TRUE_POSES  # in a run's folder too, when the source knows the true poses
 from mabdi.sources.tum import write_tum_trajectory
 
 #: The loop's state every ``output.checkpoint_every`` frames (data only: :mod:`mabdi.io.checkpoint`).
-#: The true poses, (N, 4, 4): in a run's folder (when the source knows them), and beside a recording made by
-#: :func:`mabdi.simulate.recorded.record` (read back by :func:`mabdi.simulate.runner.recorded_simulation`).
-TRUE_POSES = "poses_true.npy"
 CHECKPOINT = "checkpoint.npz"
 CHECKPOINT_VERSION = CHECKPOINT_FORMAT_VERSION
 #: The pickled checkpoint of mabdi before format version 2: refused, never loaded.

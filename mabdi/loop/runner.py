@@ -2,15 +2,15 @@
 
 ``Simulation(config)`` is the simulated rig (:class:`~mabdi.simulate.rig.SimulatedRig`:
 scene, sensor, helical path) feeding the MABDI loop
-(:class:`~mabdi.simulate.loop.MabdiLoop`: expected image, classifier,
+(:class:`~mabdi.loop.loop.MabdiLoop`: expected image, classifier,
 surface, world mesh). ``Simulation(config, source=...)`` runs the same loop
 on any other :class:`~mabdi.sources.frames.FrameSource` (a recorded
 sequence), with ``scene=`` the ground truth when it is known;
 :func:`recorded_simulation` builds one over a recording on disk.
 
-A run of it is a :class:`~mabdi.simulate.run_pipeline.RunPipeline` (the
+A run of it is a :class:`~mabdi.loop.run_pipeline.RunPipeline` (the
 steps and the observers are listed there; the files a run writes in
-:mod:`mabdi.simulate.run_outputs`). ``simulation.run(out_dir)`` is that
+:mod:`mabdi.loop.run_outputs`). ``simulation.run(out_dir)`` is that
 pipeline without an evaluation; :func:`resume_run` is the pipeline of an
 interrupted run, from its last checkpoint (:meth:`Simulation.resume` runs
 it). A resume refuses (an :class:`~mabdi.io.run_folder.OutputError` naming
@@ -33,14 +33,14 @@ from mabdi.errors import ConfigError
 from mabdi.io.checkpoint import CheckpointError, read_tree
 from mabdi.io.fingerprint import changed_inputs, run_inputs
 from mabdi.io.run_folder import OutputError, RunFolder
-from mabdi.simulate.loop import FrameRecord, MabdiLoop
+from mabdi.loop.loop import FrameRecord, MabdiLoop
+from mabdi.simulate.recording import TRUE_POSES
 from mabdi.simulate.rig import SimulatedRig
-from mabdi.simulate.run_outputs import (  # noqa: F401 - re-exported: the runner's names before run_outputs
+from mabdi.loop.run_outputs import (  # noqa: F401 - re-exported: the runner's names before run_outputs
     CHECKPOINT,
     CHECKPOINT_VERSION,
     METRICS_COLUMNS,
     OLD_CHECKPOINT,
-    TRUE_POSES,
     EmptyMapWarning,
     RunResult,
     annotated_map,
@@ -50,7 +50,7 @@ from mabdi.simulate.run_outputs import (  # noqa: F401 - re-exported: the runner
     registration_summary,
     write_run_outputs,
 )
-from mabdi.simulate.run_pipeline import FrameCallback, ResumePoint, RunPipeline
+from mabdi.loop.run_pipeline import FrameCallback, ResumePoint, RunPipeline
 from mabdi.sources.frames import FrameSource
 from mabdi.sources.scene import SourceScene
 from mabdi.sources.sequences import FORMATS, READER_OPTIONS, metadata_path, open_sequence, read_sequence_metadata, sequence_format
@@ -111,8 +111,8 @@ class Simulation:
         run_options: dict | None = None,
     ) -> RunResult:
         """Run every frame: ``RunPipeline(self, out_dir, ...).run()`` without an evaluation (see
-        :class:`~mabdi.simulate.run_pipeline.RunPipeline` for the arguments; ``progress(record)`` is
-        called after each frame). Writes the files of :mod:`mabdi.simulate.run_outputs` when ``out_dir``
+        :class:`~mabdi.loop.run_pipeline.RunPipeline` for the arguments; ``progress(record)`` is
+        called after each frame). Writes the files of :mod:`mabdi.loop.run_outputs` when ``out_dir``
         is given."""
         observers = [FrameCallback(progress)] if progress is not None else []
         pipeline = RunPipeline(

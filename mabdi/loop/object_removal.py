@@ -25,7 +25,7 @@ world is known.
 append, where a keyed surface (voxel planes) replaces every block its new
 points landed in, so E's codes of such a block name faces no longer there.
 The pixels that showed it are cast against the block's new faces
-(:func:`~mabdi.filters.ray_triangle_kernels.nearest_hits_in_boxes_kernel`) and
+(:func:`~mabdi.loop.ray_triangle_kernels.nearest_hits_in_boxes_kernel`) and
 classified again against them with the same tau: a face still where it was
 (its centre within :data:`~mabdi.world_map.UNCHANGED_FACE` of an old one's)
 gets their votes; a face made or fitted again to this frame's points is not
@@ -46,7 +46,7 @@ from mabdi.depth import depth_array, image_intrinsics, image_pose, pixels_per_ra
 from mabdi.face_identity import FaceIdTable, block_address
 from mabdi.filters.classifier import CONTRADICTED, NO_RETURN, classify, label_array, pose_sigma_array
 from mabdi.filters.expected_image import face_id_array
-from mabdi.filters.ray_triangle_kernels import nearest_hits_in_boxes_kernel
+from mabdi.loop.ray_triangle_kernels import nearest_hits_in_boxes_kernel
 from mabdi.filters.registry import SurfaceCapabilities
 from mabdi.filters.removal import RemovalParameters, for_geometry, removal_votes
 from mabdi.polydata import polydata_arrays, triangle_frames

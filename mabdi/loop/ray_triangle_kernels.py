@@ -1,7 +1,7 @@
 """Compiled (numba) ray casting against a small set of triangles: the nearest hit of each ray.
 
 Used where an expected image's face codes no longer name the faces of a block
-(a keyed patch re-meshed after E was drawn, :mod:`mabdi.filters.object_removal`):
+(a keyed patch re-meshed after E was drawn, :mod:`mabdi.loop.object_removal`):
 the pixels that showed the block are cast against its new triangles.
 """
 

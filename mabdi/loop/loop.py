@@ -17,7 +17,7 @@ frame's D - E to the noise calibration (:mod:`mabdi.filters.noise_calibration`).
 With removal on (``[classifier] removal = true``, the default), E also says
 which map face each pixel shows, and pixels that see through a face
 (D > E + tau) vote it out of the map at the end of the frame (the stage:
-:mod:`mabdi.filters.object_removal`; its rules: :mod:`mabdi.filters.removal`); voxel planes also clear the voxels those rays crossed
+:mod:`mabdi.loop.object_removal`; its rules: :mod:`mabdi.filters.removal`); voxel planes also clear the voxels those rays crossed
 (re-meshed with the next frame's points).
 
 The frame index is set in one place, :class:`SourceDepthFrames`; D carries it
@@ -64,7 +64,7 @@ from mabdi.filters.expected_image import MAP_PORT, MEASURED_PORT, FilterExpected
 from mabdi.filters.refinement import MapRefinement, RefinementParameters
 from mabdi.filters.registration import FilterRegistration, RegistrationParameters, registration_values
 from mabdi.filters.registry import make_surface_filter, surface_filter
-from mabdi.filters.object_removal import ObjectRemoval
+from mabdi.loop.object_removal import ObjectRemoval
 from mabdi.filters.removal import RemovalParameters, depth_edges
 from mabdi.filters.world_mesh import FilterWorldMesh
 from mabdi.polydata import polydata_area, transformed_polydata

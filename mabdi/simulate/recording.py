@@ -1,4 +1,4 @@
-"""Recorded sequences in the loop: record a simulated run, and run the loop on a recording.
+"""Record a simulated run as the recordings robots make (the loop runs them with :mod:`mabdi.loop.runner`).
 
 ``record(config, out, format)`` writes the simulated rig's frames as a TUM
 RGB-D folder (:mod:`mabdi.sources.tum`), a ROS 2 bag
@@ -11,9 +11,8 @@ recording's poses are the rig's given poses (with the config's
 them, in ``poses_true.npy`` (:data:`TRUE_POSES`) in the recording's folder,
 so the pose error can be scored.
 
-``recorded_simulation(config, path)`` (:func:`mabdi.simulate.runner.recorded_simulation`,
-re-exported here: the runner reopens recordings when it resumes a run)
-opens a recording and builds a :class:`~mabdi.simulate.runner.Simulation`
+``recorded_simulation(config, path)`` (:func:`mabdi.loop.runner.recorded_simulation`)
+opens a recording and builds a :class:`~mabdi.loop.runner.Simulation`
 over it with the config's classifier, surface and output settings. The
 ground truth for the evaluation is the config's scene when the recording
 says it came from that very scene (same digest); otherwise the evaluation is
@@ -32,10 +31,10 @@ from mabdi.config import RunConfig, scene_digest
 from mabdi.io.atomic import atomic_output
 from mabdi.io.run_folder import OutputError
 from mabdi.simulate.rig import SimulatedRig
-from mabdi.simulate.runner import TRUE_POSES, recorded_simulation
-from mabdi.sources.sequences import READER_OPTIONS
 
-__all__ = ["FORMATS", "READER_OPTIONS", "TRUE_POSES", "record", "recorded_simulation", "scene_digest"]
+#: The true poses (N, 4, 4, world) beside a recording made by :func:`record` (read back by
+#: :func:`mabdi.loop.runner.recorded_simulation`) and in a run's folder, for scoring the pose error.
+TRUE_POSES = "poses_true.npy"
 
 #: The formats :func:`record` writes.
 FORMATS = ("tum", "rosbag2", "kitti")

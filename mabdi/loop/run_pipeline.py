@@ -4,14 +4,14 @@ Every way of running the loop goes through one object: ``mabdi run`` (and
 ``--resume``), the movie (:mod:`mabdi.viz.record`), the dynamic-scene metrics
 (:func:`mabdi.evaluate.dynamic.run_with_ghosts`), the bench
 (:mod:`mabdi.evaluate.bench`), a sweep's cells (:mod:`mabdi.sweep`) and
-:meth:`Simulation.run <mabdi.simulate.runner.Simulation.run>`. Its steps,
+:meth:`Simulation.run <mabdi.loop.runner.Simulation.run>`. Its steps,
 in order (:data:`STEPS`; :meth:`RunPipeline.run` calls a method per step)::
 
     source      the frames: the Simulation's source (simulated rig or recording) and its MabdiLoop
     outputs     the run folder opened (refused if another run holds it), config.toml,
                 the input files' fingerprint (for --resume)
     loop        frame by frame: MabdiLoop.step(i), then each observer's on_frame
-    results     the RunResult (map, records, timings) and the run's files (mabdi.simulate.run_outputs)
+    results     the RunResult (map, records, timings) and the run's files (mabdi.loop.run_outputs)
     evaluation  the map scored against the ground truth by the ``evaluate`` callable, or why not
     summary     summary.json written last, the checkpoint dropped, the folder complete
 
@@ -40,9 +40,9 @@ format version 2: arrays and a JSON header, loaded without pickle, so a
 checkpoint from elsewhere runs no code). They hold the resolved config, the
 recording and its options, the run's own options (``run_options``: whether
 it is evaluated), the next frame, the seconds run so far, the frame records,
-:meth:`MabdiLoop.state <mabdi.simulate.loop.MabdiLoop.state>` and the
+:meth:`MabdiLoop.state <mabdi.loop.loop.MabdiLoop.state>` and the
 fingerprint of every input file (:mod:`mabdi.io.fingerprint`). A resumed run
-(:func:`mabdi.simulate.runner.resume_run`) is the same pipeline started at
+(:func:`mabdi.loop.runner.resume_run`) is the same pipeline started at
 the checkpoint's frame.
 """
 
@@ -58,7 +58,7 @@ from mabdi.io.checkpoint import write_tree
 from mabdi.io.fingerprint import fingerprint, run_inputs
 from mabdi.io.run_folder import RunFolder
 from mabdi.io.vtk_files import write_image
-from mabdi.simulate.run_outputs import CHECKPOINT, RunResult, finish_run, write_run_outputs
+from mabdi.loop.run_outputs import CHECKPOINT, RunResult, finish_run, write_run_outputs
 
 #: The steps of a run, in order (see the module docs).
 STEPS = ("source", "outputs", "loop", "results", "evaluation", "summary")
@@ -171,8 +171,8 @@ class RunPipeline:
     ``run_options`` says). ``note``: why the ground truth is unknown (the
     evaluation is then skipped, saying so). ``finish``: write
     ``summary.json`` and complete the folder (False: the caller does, with
-    :func:`mabdi.simulate.run_outputs.finish_run`). ``resume_from``: go on
-    from a checkpoint (:func:`mabdi.simulate.runner.resume_run`).
+    :func:`mabdi.loop.run_outputs.finish_run`). ``resume_from``: go on
+    from a checkpoint (:func:`mabdi.loop.runner.resume_run`).
     """
 
     simulation: object
@@ -234,7 +234,7 @@ class RunPipeline:
         if isinstance(out, RunFolder):
             self.folder = out
         elif self.resume_from is not None:
-            raise ValueError("a resumed run goes on in its own RunFolder (mabdi.simulate.runner.resume_run)")
+            raise ValueError("a resumed run goes on in its own RunFolder (mabdi.loop.runner.resume_run)")
         else:
             self.folder = RunFolder.prepare(out, self.overwrite, self.config.source)
         output = self.config.output

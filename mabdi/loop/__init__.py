@@ -1,0 +1,15 @@
+"""The MABDI loop and the runs that drive it.
+
+* :mod:`mabdi.loop.loop`: :class:`MabdiLoop`, one frame at a time (D, registration, E, classifier,
+  surface, world mesh, refinement, removal) over any source of depth frames;
+* :mod:`mabdi.loop.object_removal`: the removal stage (its rules are :mod:`mabdi.filters.removal`);
+* :mod:`mabdi.loop.runner`: :class:`Simulation`, a run config's rig (or recording) and loop;
+* :mod:`mabdi.loop.run_pipeline`: :class:`RunPipeline`, a run from the first frame to its files, with
+  observers; :mod:`mabdi.loop.run_outputs` writes those files;
+"""
+
+from mabdi.loop.loop import FrameRecord, MabdiLoop
+from mabdi.loop.run_pipeline import RunObserver, RunPipeline
+from mabdi.loop.runner import RunResult, Simulation
+
+__all__ = ["FrameRecord", "MabdiLoop", "RunObserver", "RunPipeline", "RunResult", "Simulation"]
