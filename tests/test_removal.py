@@ -231,3 +231,54 @@ def test_votes_reach_the_faces_of_a_block_re_meshed_after_e_was_drawn():
 
     _, refitted = _votes_after_re_meshing(moved)
     assert (refitted == 0).all()
+
+
+@pytest.mark.parametrize("geometry", ["pinhole", "spherical"])
+def test_casting_pixels_in_their_triangles_boxes_finds_what_casting_against_every_triangle_finds(geometry):
+    """The removal stage casts pixels against a re-meshed block, each triangle only against the pixels of its
+    projected box: the same nearest hits as every pixel against every triangle, for a camera (triangles
+    behind it and across its image plane) and for a LiDAR (triangles across the azimuth seam)."""
+    from mabdi.camera import unit_rays
+    from mabdi.filters.object_removal import pixel_boxes
+    from mabdi.filters.ray_triangle_kernels import nearest_hits_in_boxes_kernel
+    from mabdi.spherical import SphericalGeometry
+
+    rng = np.random.default_rng(4)
+    if geometry == "pinhole":
+        sensor = SMALL
+        centres = rng.uniform([-1.5, -1.2, -0.5], [1.5, 1.2, 4.0], (300, 3))  # some behind the camera
+    else:
+        sensor = SphericalGeometry(beams=16, columns=180, fov_up=10.0, fov_down=-20.0)
+        angle = rng.uniform(-0.3, 0.3, 300) + np.where(rng.random(300) < 0.5, np.pi, 0.0)  # about the seam and ahead
+        centres = np.stack([4 * np.cos(angle), 4 * np.sin(angle), rng.uniform(-1.5, 0.5, 300)], axis=1)
+    corner = centres + rng.normal(0, 0.3, (300, 3))
+    edge1, edge2 = rng.normal(0, 0.4, (300, 3)), rng.normal(0, 0.4, (300, 3))
+    if geometry == "pinhole":  # and 20 long triangles from behind the camera to 3 m in front of it
+        corner[:20] = np.column_stack([rng.uniform(-0.5, 0.5, (20, 2)), np.full(20, -1.0)])
+        edge1[:20] = np.column_stack([rng.uniform(-0.5, 0.5, (20, 2)), np.full(20, 4.0)])
+        edge2[:20] = edge1[:20] + np.column_stack([rng.uniform(0.2, 0.6, 20), rng.uniform(-0.6, -0.2, 20), np.zeros(20)])
+    pose = np.eye(4)
+    pose[:3, 3] = [0.05, -0.02, 0.01]
+    rays, _ = unit_rays(sensor, np.float64)
+    directions = rays.reshape(-1, 3) @ pose[:3, :3].T
+    slots = np.arange(directions.shape[0], dtype=np.int64).reshape(sensor.shape)
+    hits, distances = nearest_hits_in_boxes_kernel(pose[:3, 3], directions, slots, pixel_boxes(corner, edge1, edge2, sensor, pose), corner, edge1, edge2)
+
+    # every pixel against every triangle (Moller-Trumbore in numpy)
+    best = np.full(len(directions), np.inf)
+    which = np.full(len(directions), -1)
+    origin = pose[:3, 3]
+    for j in range(len(corner)):
+        p = np.cross(directions, edge2[j])
+        det = p @ edge1[j]
+        s = origin - corner[j]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            a = (p @ s) / det
+            q = np.cross(s, edge1[j])
+            b = (directions @ q) / det
+            t = (edge2[j] @ q) / det
+        hit = (np.abs(det) >= 1e-15) & (a >= 0) & (a <= 1) & (b >= 0) & (a + b <= 1) & (t > 0) & (t < best)
+        best[hit], which[hit] = t[hit], j
+    assert (which >= 0).sum() > 100  # the scene is in view
+    np.testing.assert_array_equal(hits, which)
+    np.testing.assert_allclose(distances[which >= 0], best[which >= 0], rtol=1e-9)
