@@ -239,8 +239,8 @@ def test_casting_pixels_in_their_triangles_boxes_finds_what_casting_against_ever
     projected box: the same nearest hits as every pixel against every triangle, for a camera (triangles
     behind it and across its image plane) and for a LiDAR (triangles across the azimuth seam)."""
     from mabdi.camera import unit_rays
-    from mabdi.filters.object_removal import pixel_boxes
-    from mabdi.filters.ray_triangle_kernels import nearest_hits_in_boxes_kernel
+    from mabdi.loop.object_removal import pixel_boxes
+    from mabdi.loop.ray_triangle_kernels import nearest_hits_in_boxes_kernel
     from mabdi.spherical import SphericalGeometry
 
     rng = np.random.default_rng(4)
