@@ -195,6 +195,43 @@ def test_the_loop_meshes_with_the_registered_pose_and_reports_it():
     assert np.array_equal(off.trajectory()[1], given[1])
 
 
+def test_a_pose_source_that_states_its_accuracy_is_weighed_by_it_from_the_first_frame():
+    """``given_sigma``: exact poses stated as exact are kept as given (the map's frame too), though every
+    frame is still registered (and so may vote); jittery poses stated as such still follow the fit: the
+    frames fit each other within 1.5 mm and 0.05 degrees (median) where the given ones are 7 mm and 0.5
+    degrees apart."""
+    true = room_poses(8)
+    depths = room_frames(true, noise="kinect")
+    rng = np.random.default_rng(5)
+    jittered = np.stack([perturbed(p, rng.normal(0, 0.005, 3), rng.normal(0, 0.3, 3)) for p in true])
+
+    def run(given, sigma):
+        frames = [DepthFrame(d, Intrinsics(), g, i, i / 30) for i, (d, g) in enumerate(zip(depths, given, strict=True))]
+        loop = mabdi.MabdiLoop(FrameList(frames), surface="quadtree", noise="kinect", registration=RegistrationParameters(given_sigma=sigma))
+        records = [loop.step(i) for i in range(len(frames))]
+        return records, loop.trajectory()
+
+    records, trajectory = run(true, [0.0, 0.0])
+    assert all(r.registered for r in records[1:])
+    np.testing.assert_allclose(trajectory, true, atol=1e-9)  # the fit moved nothing
+    _, learnt = run(true, None)  # not stated: the first frames follow the fit
+    assert max(transform_size(np.linalg.inv(t) @ p)[0] for t, p in zip(true, learnt, strict=True)) > 1e-5
+
+    _, stated = run(jittered, [0.005, 0.3])
+    relative = np.array(
+        [transform_size(np.linalg.inv(np.linalg.inv(true[0]) @ true[i]) @ np.linalg.inv(stated[0]) @ stated[i]) for i in range(1, 8)]
+    )
+    assert np.median(relative[:, 0]) < 0.0015 and np.median(relative[:, 1]) < 0.05, relative
+
+
+def test_given_sigma_is_checked():
+    with pytest.raises(ConfigError, match="given_sigma"):
+        RegistrationParameters(given_sigma=[0.001])
+    with pytest.raises(ConfigError, match="given_sigma"):
+        RegistrationParameters(given_sigma=[0.001, -1.0])
+    assert RegistrationParameters(given_sigma=[0.002, 0.5]).given_variance() == pytest.approx((np.radians(0.5) ** 2, 0.002**2))
+
+
 def anchored(offsets_rotation: np.ndarray, offsets_translation: np.ndarray, positions: np.ndarray, covariance=None) -> MapAnchor:
     """A MapAnchor fed frames whose registered poses differ from their given poses by the offsets (each
     registration with ``covariance``, None: exact)."""

@@ -90,9 +90,16 @@ def _blue_weights(sigma2: float, q: float, travelled: np.ndarray) -> np.ndarray:
 
 
 class MapAnchor:
-    """The map frame's place in the world, estimated from (given, registered) pose pairs (see the module docs)."""
+    """The map frame's place in the world, estimated from (given, registered) pose pairs (see the module docs).
 
-    def __init__(self) -> None:
+    ``stated``: the variance (rad^2, m^2 per component) of the given poses' error when the pose source states
+    it (``[registration] given_sigma``), taken as white: the fit is not learnt then, and A is shrunk towards
+    the identity as far as the first given pose (where the map started) is known to be good: with exact poses
+    stated, A is the identity whatever the registrations say.
+    """
+
+    def __init__(self, stated: tuple[float, float] | None = None) -> None:
+        self.stated = stated
         self.reset()
 
     def reset(self) -> None:
@@ -135,22 +142,34 @@ class MapAnchor:
         use = np.unique(np.round(np.linspace(0, n - 1, min(n, MAX_FRAMES))).astype(int))
         s = self._travelled[use]
         rotations = self._rotations[use]
-        fit_rotation = _variogram_fit(rotations, s)
+        own = self._registration_variances[use]
+        fit_rotation = _variogram_fit(rotations, s) if self.stated is None else (self.stated[0], 0.0)
         weights = _blue_weights(*fit_rotation, s)
-        rotation = Rotation.from_rotvec(weights @ rotations).as_matrix()
+        rotation = Rotation.from_rotvec(self._shrunk(weights @ rotations, weights, own[:, 0], 0)).as_matrix()
         residual = self._translations[use] - (self._positions[use] @ (rotation - np.eye(3)).T)
-        fit_translation = _variogram_fit(residual, s)
+        fit_translation = _variogram_fit(residual, s) if self.stated is None else (self.stated[1], 0.0)
         weights = _blue_weights(*fit_translation, s)
         self._fits = (fit_rotation, fit_translation)
         anchor = np.eye(4)
         anchor[:3, :3] = rotation
-        anchor[:3, 3] = weights @ residual
+        anchor[:3, 3] = self._shrunk(weights @ residual, weights, own[:, 1], 1)
         self._map_from_world = anchor
+
+    def _shrunk(self, estimate: np.ndarray, weights: np.ndarray, own: np.ndarray, part: int) -> np.ndarray:
+        """With a stated error (variance v of the first given pose, which placed the map), the estimate of A
+        (variance sum w_i^2 (v + own_i)) shrunk towards the identity: v / (v + that) of it."""
+        if self.stated is None:
+            return estimate
+        stated = self.stated[part]
+        spread = float(np.sum(weights**2 * (stated + own)))
+        return estimate * (stated / (stated + spread) if stated + spread > 0 else 0.0)
 
     def given_variance(self, travelled: float) -> tuple[float, float] | None:
         """The variance (rad^2, m^2 per component) of a given pose's error in the map frame at ``travelled``
         metres, with the registration's own variance taken off (see the module docs); None while fewer
         than :data:`MIN_FRAMES_FOR_DRIFT` frames say how the given poses behave."""
+        if self.stated is not None:
+            return self.stated
         if len(self._travelled) < MIN_FRAMES_FOR_DRIFT:
             return None
         registration = self._registration_variances.mean(axis=0)

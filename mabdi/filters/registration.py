@@ -58,7 +58,12 @@ corrects the pose the way KinectFusion's frame-to-model tracking does
    (:meth:`~mabdi.filters.map_anchor.MapAnchor.given_variance`: their
    spread about the map frame, less the registration's own), the
    correction is shrunk by the two covariances (:func:`fuse_with_given`):
-   exact poses stay exact, jittery ones follow the registration.
+   exact poses stay exact, jittery ones follow the registration. A pose
+   source that states its accuracy (``given_sigma``: a motion-capture
+   system, a simulator's exact poses) is weighed by that from the first
+   frame on, instead of by what the anchor learns: a map that biases the
+   fit (a voxel-plane map moves ICP by millimetres even when built at the
+   true poses) then cannot pull poses known to be good.
 
 Output: D with the registered pose (in the map's frame) as its
 ``world_from_camera`` and in field data ``given_world_from_camera`` (the
@@ -142,6 +147,10 @@ class RegistrationParameters:
     min_support: float = 0.3
     max_translation: float = 0.1
     max_rotation: float = 5.0
+    #: How far the given poses are off, if the pose source says so: [translation m, rotation degrees], the
+    #: standard deviation per axis (a motion-capture system's stated accuracy; [0, 0] for exact poses). None:
+    #: learnt from the run (:meth:`~mabdi.filters.map_anchor.MapAnchor.given_variance`).
+    given_sigma: list[float] | None = None
 
     def __post_init__(self) -> None:
         for name in ("levels", "stride", "iterations", "min_points"):
@@ -158,6 +167,18 @@ class RegistrationParameters:
         for name in ("min_inliers", "min_support"):
             if not 0 <= getattr(self, name) <= 1:
                 raise ConfigError(f"registration: {name} must be a share in [0, 1], got {getattr(self, name)!r}")
+        if self.given_sigma is not None:
+            sigma = self.given_sigma
+            if len(sigma) != 2 or not all(isinstance(v, (int, float)) and not isinstance(v, bool) and 0 <= v < np.inf for v in sigma):
+                raise ConfigError(f"registration: given_sigma must be [translation m, rotation degrees], both >= 0, got {sigma!r}")
+
+    def given_variance(self) -> tuple[float, float] | None:
+        """The variance (rad^2, m^2 per component) of the given poses' error that ``given_sigma`` states; None
+        when it is to be learnt."""
+        if self.given_sigma is None:
+            return None
+        translation, rotation = self.given_sigma
+        return float(np.radians(rotation)) ** 2, float(translation) ** 2
 
 
 @dataclass
@@ -494,6 +515,7 @@ class FilterRegistration(MapAndImageAlgorithm):
     @parameters.setter
     def parameters(self, value: RegistrationParameters) -> None:
         self._set("_parameters", value)
+        self.anchor.stated = value.given_variance()
 
     @property
     def noise(self) -> SensorNoise:
@@ -511,7 +533,7 @@ class FilterRegistration(MapAndImageAlgorithm):
         self._travelled = 0.0
         self._last_position: np.ndarray | None = None
         self._last_frame = -1
-        self.anchor = MapAnchor()
+        self.anchor = MapAnchor(stated=self._parameters.given_variance())
         self.Modified()
 
     def state(self) -> dict:
@@ -555,7 +577,7 @@ class FilterRegistration(MapAndImageAlgorithm):
         pose = given_in_map @ result.transform
         covariance = result.covariance
         if result.registered:
-            variance = self.anchor.given_variance(self._travelled)
+            variance = self.anchor.given_variance(self._travelled)  # as stated (given_sigma), or learnt
             if variance is not None:
                 pose, covariance = fuse_with_given(given_in_map, pose, result.covariance, variance)
         if p.enabled and new_frame:
