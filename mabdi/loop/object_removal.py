@@ -167,20 +167,23 @@ class ObjectRemoval:
             if not len(pixels):
                 continue
             key = table.names[b]
-            corner, edge1, edge2, cell_of = triangle_frames(world.block(key))
+            block = world.block(key)
+            corner, edge1, edge2, cell_of = triangle_frames(block)
             slots = np.full(geometry.shape, -1, dtype=np.int64)
             slots.reshape(-1)[pixels] = np.arange(len(pixels))
             boxes = pixel_boxes(corner, edge1, edge2, geometry, pose)
             hit, distance = nearest_hits_in_boxes_kernel(
                 pose[:3, 3].astype(np.float64), rays[pixels] @ pose[:3, :3].T, slots, boxes, corner, edge1, edge2
             )
-            cell = cell_of[np.maximum(hit, 0)]
             found = hit >= 0
-            # a face fitted to this frame's points is not judged by the same frame: no vote on it
-            voted = found & ~world.refitted_faces(key)[cell] if len(cell) else found
+            if len(cell_of):
+                cell = cell_of[np.maximum(hit, 0)]
+                # a face fitted to this frame's points is not judged by the same frame: no vote on it
+                voted = found & ~world.refitted_faces(key)[cell]
+            else:  # no triangle to meet (degenerate polygons only)
+                cell, voted = np.zeros(len(hit), dtype=np.int64), found
             flat_codes[pixels] = np.where(voted, next_base + cell, 0)
             flat_expected[pixels] = np.where(found, distance / length[pixels], np.nan).astype(np.float32)
-            block = world.block(key)
             cells = block.GetNumberOfCells()
             names.append(key)
             bases.append(next_base)
