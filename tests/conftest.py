@@ -33,6 +33,19 @@ def plane_mesh(point, normal, size: float = 40.0, subdivisions: int = 1):
     return triangles_polydata(points, triangles)
 
 
+def merged(*meshes):
+    """One triangle polydata of several (vtkPolyData, or (points, triangles) arrays), points renumbered."""
+    from mabdi.polydata import polydata_arrays
+
+    points, triangles, offset = [], [], 0
+    for mesh in meshes:
+        p, t = mesh if isinstance(mesh, tuple) else polydata_arrays(mesh)
+        points.append(p)
+        triangles.append(t + offset)
+        offset += len(p)
+    return triangles_polydata(np.concatenate(points), np.concatenate(triangles))
+
+
 @pytest.fixture(scope="session")
 def scenes_dir() -> Path:
     return SCENES

@@ -22,22 +22,10 @@ from mabdi.evaluate.dynamic import (
 from mabdi.polydata import triangles_polydata
 from mabdi.sources import primitives
 from mabdi.sources.scene import SourceScene
-from tests.conftest import SCENES, plane_mesh
+from tests.conftest import SCENES, merged, plane_mesh
 
 # Sampling error of a share from 20,000 area-weighted samples: sqrt(p (1 - p) / n) <= 0.0035.
 SHARE_TOLERANCE = 0.015
-
-
-def merged(*meshes):
-    from mabdi.polydata import polydata_arrays
-
-    points, triangles, offset = [], [], 0
-    for mesh in meshes:
-        p, t = polydata_arrays(mesh)
-        points.append(p)
-        triangles.append(t + offset)
-        offset += len(p)
-    return triangles_polydata(np.concatenate(points), np.concatenate(triangles))
 
 
 def box_mesh(size, centre):

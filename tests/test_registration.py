@@ -8,7 +8,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 import mabdi
-from conftest import REPO, plane_mesh
+from conftest import REPO, merged, plane_mesh
 from mabdi.camera import Intrinsics, look_at
 from mabdi.config import load_run_config, set_value
 from mabdi.depth import DepthFrame
@@ -22,7 +22,6 @@ from mabdi.filters.registration import (
     register_depth,
     transform_size,
 )
-from mabdi.polydata import polydata_arrays, triangles_polydata
 from mabdi.sources.primitives import box
 from mabdi.sources.frames import FrameList
 from mabdi.sources.scene import SourceScene
@@ -129,17 +128,6 @@ def test_pose_uncertainty_becomes_depth_uncertainty_by_the_angle_of_incidence():
         expected = sigma * np.tan(np.radians(theta))
         assert pose_depth_sigma(tilted, intrinsics, lateral)[centre] == pytest.approx(expected, rel=0.03), theta
     assert np.isnan(pose_depth_sigma(np.full_like(head_on, np.nan), intrinsics, axial)).all()
-
-
-def merged(*meshes):
-    """One polydata of several (vtkPolyData or (points, triangles))."""
-    points, triangles, offset = [], [], 0
-    for mesh in meshes:
-        p, t = polydata_arrays(mesh) if not isinstance(mesh, tuple) else mesh
-        points.append(p)
-        triangles.append(t + offset)
-        offset += len(p)
-    return triangles_polydata(np.concatenate(points), np.concatenate(triangles))
 
 
 def room_frames(poses: np.ndarray, *, extra=None, intrinsics: Intrinsics = ROOM_CAMERA, noise="none") -> list[np.ndarray]:

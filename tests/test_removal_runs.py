@@ -33,7 +33,8 @@ def test_runs_1_and_2_lose_nothing_static(scene, surface, static_runs):
     import numpy as np
 
     from mabdi.evaluate import distances_to_mesh
-    from mabdi.polydata import triangles_polydata
+    from conftest import merged
+    from mabdi.polydata import polydata_arrays, triangle_normals, triangles_polydata
 
     result, f_on = static_runs(scene, surface)
     _, f_off = static_runs(scene, surface, removal=False)
@@ -43,9 +44,9 @@ def test_runs_1_and_2_lose_nothing_static(scene, surface, static_runs):
     frames, scene_objects = static_runs.removed(scene, surface)
     on_surface = 0.0
     if frames:
-        points, triangles = _stacked(frames)
+        points, triangles = polydata_arrays(merged(*frames))
+        face_area = triangle_normals(points, triangles)[1]
         corners = points[triangles]
-        face_area = 0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1)
         truth = [triangles_polydata(o.points, o.triangles) for o in scene_objects.objects]
         distance = np.min([distances_to_mesh(corners.mean(axis=1), mesh) for mesh in truth], axis=0)
         on_surface = float(face_area[distance <= 0.01].sum())
@@ -53,21 +54,6 @@ def test_runs_1_and_2_lose_nothing_static(scene, surface, static_runs):
     assert f_on.fscore_1cm >= f_off.fscore_1cm - 0.002, (f_on.fscore_1cm, f_off.fscore_1cm)
     growth = f_on.growth_per_circle
     assert growth[1] <= 0.15 * growth[0], growth
-
-
-def _stacked(polydatas) -> tuple:
-    """(points, triangles) of several triangle meshes as one."""
-    import numpy as np
-
-    from mabdi.polydata import polydata_arrays
-
-    points, triangles, offset = [], [], 0
-    for mesh in polydatas:
-        p, t = polydata_arrays(mesh)
-        points.append(p)
-        triangles.append(t + offset)
-        offset += len(p)
-    return np.vstack(points), np.vstack(triangles)
 
 
 def test_run5_the_door_opens_and_closes_in_the_map():

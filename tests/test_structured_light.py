@@ -11,13 +11,12 @@ import numpy as np
 import pytest
 from scipy.ndimage import binary_dilation
 
-from conftest import plane_mesh
+from conftest import merged, plane_mesh
 from mabdi.camera import Intrinsics, depth_to_zbuffer
 from mabdi.config import load_run_config
 from mabdi.depth import DepthFrame
 from mabdi.errors import ConfigError
 from mabdi.filters.depth_image import FilterDepthImage, SensorNoise, correlated_field, noise_rng
-from mabdi.polydata import polydata_arrays, triangles_polydata
 
 K = Intrinsics()
 SL = SensorNoise("structured_light", focal=K.fx)  # as a [sensor] section builds it: focal = fx
@@ -32,16 +31,6 @@ def render(mesh, noise, pose=None, intrinsics=K, seed=3, frame=0) -> np.ndarray:
     depth = DepthFrame.from_image(sensor.GetOutput()).depth
     sensor.renderer.close()
     return depth
-
-
-def append_polydata(meshes):
-    points, triangles, offset = [], [], 0
-    for mesh in meshes:
-        p, t = polydata_arrays(mesh)
-        points.append(p)
-        triangles.append(t + offset)
-        offset += len(p)
-    return triangles_polydata(np.concatenate(points), np.concatenate(triangles))
 
 
 def tilted_normal(degrees: float, axis: str = "x") -> np.ndarray:
@@ -150,7 +139,7 @@ def test_grazing_limit_follows_each_pixels_own_ray():
 def test_pixels_beside_a_depth_step_are_dropped():
     """A 0.6 m square at 1.5 m in front of a wall at 3 m: the pixels within edge_dropout (2) of its outline
     have no return, those 4 or more pixels away keep theirs."""
-    mesh = append_polydata([plane_mesh([0, 0, 1.5], [0, 0, -1], size=0.6), plane_mesh([0, 0, 3.0], [0, 0, -1])])
+    mesh = merged(plane_mesh([0, 0, 1.5], [0, 0, -1], size=0.6), plane_mesh([0, 0, 3.0], [0, 0, -1]))
     true = render(mesh, "none")
     assert np.isfinite(true).all()
     jump = np.zeros(true.shape, dtype=bool)
