@@ -65,6 +65,13 @@ class PoseNoise:
         """Whether any part is non-zero (else the given poses are the true ones)."""
         return any((self.jitter_translation, self.jitter_rotation, self.drift_translation, self.drift_rotation))
 
+    def variances(self) -> tuple[tuple[float, float], tuple[float, float]]:
+        """What this noise says of a given pose's error, per component: ((sigma^2, q) of the rotation in rad^2
+        and rad^2 per metre travelled, (sigma^2, q) of the translation in m^2 and m^2 per metre): the white
+        jitter's variance and the drift's growth (the form :class:`mabdi.filters.map_anchor.MapAnchor` takes)."""
+        rotation = (math.radians(self.jitter_rotation) ** 2, math.radians(self.drift_rotation) ** 2)
+        return rotation, (self.jitter_translation**2, self.drift_translation**2)
+
     def given_poses(self, true_poses, seed: int) -> np.ndarray:
         """(N, 4, 4) given poses for the (N, 4, 4) ``true_poses``, with the noise of run ``seed``.
 

@@ -15,6 +15,7 @@ from mabdi.depth import DepthFrame
 from mabdi.errors import ConfigError
 from mabdi.filters.depth_image import DepthRenderer, SensorNoise, noise_rng
 from mabdi.filters.map_anchor import MapAnchor
+from mabdi.pose_noise import PoseNoise
 from mabdi.filters.registration import (
     RegistrationParameters,
     fuse_with_given,
@@ -193,17 +194,24 @@ def test_a_pose_source_that_states_its_accuracy_is_weighed_by_it_from_the_first_
     rng = np.random.default_rng(5)
     jittered = np.stack([perturbed(p, rng.normal(0, 0.005, 3), rng.normal(0, 0.3, 3)) for p in true])
 
-    def run(given, sigma):
+    class ExactSource(FrameList):  # a source that says its poses are exact, as the simulator does without pose noise
+        @property
+        def pose_accuracy(self):
+            return PoseNoise()
+
+    def run(given, sigma, source=FrameList):
         frames = [DepthFrame(d, Intrinsics(), g, i, i / 30) for i, (d, g) in enumerate(zip(depths, given, strict=True))]
-        loop = mabdi.MabdiLoop(FrameList(frames), surface="quadtree", noise="kinect", registration=RegistrationParameters(given_sigma=sigma))
+        loop = mabdi.MabdiLoop(source(frames), surface="quadtree", noise="kinect", registration=RegistrationParameters(given_sigma=sigma))
         records = [loop.step(i) for i in range(len(frames))]
         return records, loop.trajectory()
 
-    records, trajectory = run(true, [0.0, 0.0])
-    assert all(r.registered for r in records[1:])
-    np.testing.assert_allclose(trajectory, true, atol=1e-9)  # the fit moved nothing
-    _, learnt = run(true, None)  # not stated: the first frames follow the fit
-    assert max(transform_size(np.linalg.inv(t) @ p)[0] for t, p in zip(true, learnt, strict=True)) > 1e-5
+    for sigma, source in (([0.0, 0.0], FrameList), ("source", ExactSource)):
+        records, trajectory = run(true, sigma, source)
+        assert all(r.registered for r in records[1:])
+        np.testing.assert_allclose(trajectory, true, atol=1e-9)  # the fit moved nothing
+    for sigma, source in (("source", FrameList), ("learnt", ExactSource)):  # not stated: the first frames follow the fit
+        _, learnt = run(true, sigma, source)
+        assert max(transform_size(np.linalg.inv(t) @ p)[0] for t, p in zip(true, learnt, strict=True)) > 1e-5
 
     _, stated = run(jittered, [0.005, 0.3])
     relative = np.array(
@@ -217,7 +225,15 @@ def test_given_sigma_is_checked():
         RegistrationParameters(given_sigma=[0.001])
     with pytest.raises(ConfigError, match="given_sigma"):
         RegistrationParameters(given_sigma=[0.001, -1.0])
-    assert RegistrationParameters(given_sigma=[0.002, 0.5]).given_variance() == pytest.approx((np.radians(0.5) ** 2, 0.002**2))
+    with pytest.raises(ConfigError, match="given_sigma.*'source', 'learnt'.*'guess'"):
+        RegistrationParameters(given_sigma="guess")
+    rotation, translation = RegistrationParameters(given_sigma=[0.002, 0.5]).given_variance(PoseNoise(0.1, 1.0))
+    assert rotation == pytest.approx((np.radians(0.5) ** 2, 0.0)) and translation == pytest.approx((0.002**2, 0.0))
+    drifting = PoseNoise(jitter_translation=0.002, jitter_rotation=0.1, drift_translation=0.01, drift_rotation=0.5)
+    rotation, translation = RegistrationParameters().given_variance(drifting)  # "source": the source's statement
+    assert rotation == pytest.approx((np.radians(0.1) ** 2, np.radians(0.5) ** 2)) and translation == pytest.approx((0.002**2, 0.01**2))
+    assert RegistrationParameters().given_variance(None) is None  # a source that states nothing: learnt
+    assert RegistrationParameters(given_sigma="learnt").given_variance(drifting) is None
 
 
 def anchored(offsets_rotation: np.ndarray, offsets_translation: np.ndarray, positions: np.ndarray, covariance=None) -> MapAnchor:
@@ -285,6 +301,30 @@ def test_the_anchor_tells_the_given_poses_error_from_the_registrations_own():
     drift = anchored(np.zeros((n, 3)), walk, positions, covariance)
     assert drift.given_variance(20.0)[1] > 1.5 * drift.given_variance(5.0)[1] > 0
     assert MapAnchor().given_variance(0.0) is None  # too few frames to tell
+
+
+def test_offsets_bound_to_a_place_are_the_maps_error_not_drift():
+    """Exact given poses registered to a map that is off by up to 1 cm / 0.1 degrees, differently at each place
+    (a smooth function of where the frame is), each registration with 1 mm / 0.02 degrees of its own noise.
+    Over two circles the offsets come back at each place: the given poses read as exact (under the
+    registration's own sigma, 20 m on). The same map errors on a drive that never comes back cannot be told
+    from drift and read as drift (the safe side)."""
+    rng = np.random.default_rng(3)
+    own_r, own_t = np.radians(0.02), 0.001
+    covariance = np.diag([own_r**2] * 3 + [own_t**2] * 3)
+
+    def map_error(phase: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        waves = np.stack([np.sin(phase), np.cos(2 * phase), np.sin(3 * phase)], axis=1)
+        return np.radians(0.1) * waves + rng.normal(0, own_r, waves.shape), 0.01 * waves + rng.normal(0, own_t, waves.shape)
+
+    n = 100
+    angle = np.linspace(0, 4 * np.pi, n)
+    circles = np.stack([3 * np.cos(angle), 3 * np.sin(angle), np.ones(n)], axis=1)
+    rotation, translation = anchored(*map_error(angle), circles, covariance).given_variance(20.0)
+    assert np.sqrt(rotation) < own_r and np.sqrt(translation) < own_t, (np.degrees(np.sqrt(rotation)), np.sqrt(translation))
+    line = np.stack([np.linspace(0, 38, n), np.zeros(n), np.ones(n)], axis=1)
+    rotation, translation = anchored(*map_error(line[:, 0] / 3), line, covariance).given_variance(20.0)
+    assert np.sqrt(translation) > 0.005 and np.sqrt(rotation) > np.radians(0.05), (np.degrees(np.sqrt(rotation)), np.sqrt(translation))
 
 
 def test_the_registered_pose_is_weighed_against_the_given_one():

@@ -44,17 +44,46 @@ taken off the white part. Exact poses then read as exact however noisy the
 registration (a structured-light camera's correlated error moves each
 registered pose a millimetre or more), and the registration can weigh the
 given pose against its own result (:func:`mabdi.filters.registration.fuse_with_given`).
+
+**Offsets bound to a place, not to the distance travelled.** A map is not
+exact: a voxel-plane map cuts chords through a curved surface, a terrace of
+correlated noise meshed from a first look stays in the map. Frames that see
+such a part of the map register a few millimetres off however exact their
+given poses, and frames that see the same part again, a circle later, are
+off by the same amount. Over one pass these offsets change slowly from frame
+to frame, which is what a drift looks like; only a return to a place tells
+them apart: under drift the offsets on a return differ by the walk since the
+first visit, offsets of the map's own error agree. So when the run has come
+back (at least :data:`MIN_REVISITS` pairs of frames within
+:data:`PLACE_RADIUS` of each other that travelled :data:`REVISIT_DISTANCE`
+or more between them), the variogram is fitted on pairs of nearby frames
+only, with a third term growing with their place distance (the map's error
+changing from place to place): sigma^2 + q |s_i - s_j| / 2 + c d_ij, by
+non-negative least squares (:func:`_revisit_fit`). A frame's place is its
+given camera centre and the point it looks at (along the optical axis at
+the median depth of its image); d_ij is the mean of the two distances.
+Without returns (a straight drive) the two cannot be told apart and the
+offsets are read as drift, the safe side: a map that is off is then followed
+rather than a pose source trusted that may be drifting.
 """
 
 from __future__ import annotations
 
 import numpy as np
+from scipy.optimize import nnls
 from scipy.spatial.transform import Rotation
 
 #: Frames that take part in the estimate, at most (spread evenly over the run, the first always).
 MAX_FRAMES = 128
 #: Below this many frames the given poses' errors are taken as white (too few to see a drift).
 MIN_FRAMES_FOR_DRIFT = 8
+#: Frames whose places (camera centre and looked-at point, mean distance) are closer than this (m) see
+#: much the same part of the map.
+PLACE_RADIUS = 1.0
+#: A return to a place: two frames within :data:`PLACE_RADIUS` that travelled at least this far (m) between them.
+REVISIT_DISTANCE = 3.0 * PLACE_RADIUS
+#: Returns needed before place-bound offsets are told from drift (:func:`_revisit_fit`).
+MIN_REVISITS = 8
 #: A floor on the white-noise variance (relative), so the covariance stays invertible for pure drift.
 REGULARISER = 1e-6
 
@@ -80,6 +109,33 @@ def _variogram_fit(values: np.ndarray, travelled: np.ndarray) -> tuple[float, fl
     return sigma2, q
 
 
+def _revisit_fit(values: np.ndarray, travelled: np.ndarray, places: np.ndarray) -> tuple[float, float] | None:
+    """(sigma^2, q) from pairs of frames at nearby places, with the map's own error as a third term that grows
+    with their place distance (see the module docs); None when the run has not come back to a place often
+    enough to tell that error from drift. ``places``: (n, 2, 3) camera centres and looked-at points (m)."""
+    first, second = np.triu_indices(len(values), 1)
+    distance = 0.5 * np.linalg.norm(places[first] - places[second], axis=2).sum(axis=1)
+    apart = np.abs(travelled[first] - travelled[second])
+    near = distance < PLACE_RADIUS
+    if np.count_nonzero(near & (apart >= REVISIT_DISTANCE)) < MIN_REVISITS:
+        return None
+    first, second, distance, apart = first[near], second[near], distance[near], apart[near]
+    half_squares = 0.5 * np.mean((values[first] - values[second]) ** 2, axis=1)
+    design = np.stack([np.ones_like(apart), 0.5 * apart, distance], axis=1)
+    (sigma2, q, _), _ = nnls(design, half_squares)
+    return float(sigma2), float(q)
+
+
+def _offsets_fit(values: np.ndarray, travelled: np.ndarray, places: np.ndarray) -> tuple[float, float]:
+    """(sigma^2, q) of the given poses' error: from returns to a place where the run has them
+    (:func:`_revisit_fit`), else from the distance travelled alone (:func:`_variogram_fit`)."""
+    if len(values) >= MIN_FRAMES_FOR_DRIFT:
+        revisits = _revisit_fit(values, travelled, places)
+        if revisits is not None:
+            return revisits
+    return _variogram_fit(values, travelled)
+
+
 def _blue_weights(sigma2: float, q: float, travelled: np.ndarray) -> np.ndarray:
     """Weights of the best linear unbiased estimate of a constant under sigma^2 I + q min(s_i, s_j)."""
     n = len(travelled)
@@ -92,13 +148,14 @@ def _blue_weights(sigma2: float, q: float, travelled: np.ndarray) -> np.ndarray:
 class MapAnchor:
     """The map frame's place in the world, estimated from (given, registered) pose pairs (see the module docs).
 
-    ``stated``: the variance (rad^2, m^2 per component) of the given poses' error when the pose source states
-    it (``[registration] given_sigma``), taken as white: the fit is not learnt then, and A is shrunk towards
-    the identity as far as the first given pose (where the map started) is known to be good: with exact poses
-    stated, A is the identity whatever the registrations say.
+    ``stated``: the given poses' error when the pose source states it
+    (:meth:`mabdi.filters.registration.RegistrationParameters.given_variance`): ((sigma^2, q) of the rotation,
+    (sigma^2, q) of the translation), rad^2 and m^2 per component, q per metre travelled. The fit is not
+    learnt then, and A is shrunk towards the identity as far as the first given pose (where the map started)
+    is known to be good: with exact poses stated, A is the identity whatever the registrations say.
     """
 
-    def __init__(self, stated: tuple[float, float] | None = None) -> None:
+    def __init__(self, stated: tuple[tuple[float, float], tuple[float, float]] | None = None) -> None:
         self.stated = stated
         self.reset()
 
@@ -106,6 +163,7 @@ class MapAnchor:
         self._rotations = np.zeros((0, 3))  # dR as rotation vectors (rad)
         self._translations = np.zeros((0, 3))  # dt (m)
         self._positions = np.zeros((0, 3))  # t_G (m)
+        self._looks = np.zeros((0, 3))  # the points the given poses look at (m)
         self._travelled = np.zeros(0)  # s (m)
         self._registration_variances = np.zeros((0, 2))  # the registration's variance per frame (rad^2, m^2)
         self._map_from_world = np.eye(4)
@@ -124,16 +182,21 @@ class MapAnchor:
         """A's inverse: map coordinates to world coordinates (4x4)."""
         return np.linalg.inv(self._map_from_world)
 
-    def add(self, given: np.ndarray, registered: np.ndarray, travelled: float, covariance: np.ndarray | None = None) -> None:
+    def add(
+        self, given: np.ndarray, registered: np.ndarray, travelled: float, covariance: np.ndarray | None = None, depth: float = 0.0
+    ) -> None:
         """One frame that fits the map: its given pose (world), its registered pose (map frame), the
-        distance (m) the given poses travelled from the first frame to it, and the registration's 6x6
-        pose covariance (rotation vector in rad, then translation in m; None: exact). Updates the estimate."""
+        distance (m) the given poses travelled from the first frame to it, the registration's 6x6
+        pose covariance (rotation vector in rad, then translation in m; None: exact) and the median depth (m)
+        the frame sees along its optical axis (its place is where it is and what it looks at). Updates the
+        estimate."""
         variances = np.zeros(2) if covariance is None else np.array([np.trace(covariance[:3, :3]), np.trace(covariance[3:, 3:])]) / 3.0
         self._registration_variances = np.vstack([self._registration_variances, variances])
         rotation = Rotation.from_matrix(registered[:3, :3] @ given[:3, :3].T).as_rotvec()
         self._rotations = np.vstack([self._rotations, rotation])
         self._translations = np.vstack([self._translations, registered[:3, 3] - given[:3, 3]])
         self._positions = np.vstack([self._positions, given[:3, 3]])
+        self._looks = np.vstack([self._looks, given[:3, 3] + float(depth) * given[:3, 2]])
         self._travelled = np.append(self._travelled, float(travelled))
         self._estimate()
 
@@ -143,11 +206,12 @@ class MapAnchor:
         s = self._travelled[use]
         rotations = self._rotations[use]
         own = self._registration_variances[use]
-        fit_rotation = _variogram_fit(rotations, s) if self.stated is None else (self.stated[0], 0.0)
+        places = np.stack([self._positions[use], self._looks[use]], axis=1)
+        fit_rotation = _offsets_fit(rotations, s, places) if self.stated is None else self.stated[0]
         weights = _blue_weights(*fit_rotation, s)
         rotation = Rotation.from_rotvec(self._shrunk(weights @ rotations, weights, own[:, 0], 0)).as_matrix()
         residual = self._translations[use] - (self._positions[use] @ (rotation - np.eye(3)).T)
-        fit_translation = _variogram_fit(residual, s) if self.stated is None else (self.stated[1], 0.0)
+        fit_translation = _offsets_fit(residual, s, places) if self.stated is None else self.stated[1]
         weights = _blue_weights(*fit_translation, s)
         self._fits = (fit_rotation, fit_translation)
         anchor = np.eye(4)
@@ -160,7 +224,7 @@ class MapAnchor:
         (variance sum w_i^2 (v + own_i)) shrunk towards the identity: v / (v + that) of it."""
         if self.stated is None:
             return estimate
-        stated = self.stated[part]
+        stated = self.stated[part][0]  # the first given pose's: no drift yet
         spread = float(np.sum(weights**2 * (stated + own)))
         return estimate * (stated / (stated + spread) if stated + spread > 0 else 0.0)
 
@@ -169,7 +233,7 @@ class MapAnchor:
         metres, with the registration's own variance taken off (see the module docs); None while fewer
         than :data:`MIN_FRAMES_FOR_DRIFT` frames say how the given poses behave."""
         if self.stated is not None:
-            return self.stated
+            return tuple(sigma2 + q * max(float(travelled), 0.0) for sigma2, q in self.stated)
         if len(self._travelled) < MIN_FRAMES_FOR_DRIFT:
             return None
         registration = self._registration_variances.mean(axis=0)
@@ -185,6 +249,7 @@ class MapAnchor:
             "rotations": self._rotations.copy(),
             "translations": self._translations.copy(),
             "positions": self._positions.copy(),
+            "looks": self._looks.copy(),
             "travelled": self._travelled.copy(),
         }
 
@@ -193,6 +258,7 @@ class MapAnchor:
         self._translations = np.array(state["translations"], dtype=np.float64).reshape(-1, 3)
         self._positions = np.array(state["positions"], dtype=np.float64).reshape(-1, 3)
         self._travelled = np.array(state["travelled"], dtype=np.float64).ravel()
+        self._looks = np.array(state.get("looks", self._positions), dtype=np.float64).reshape(-1, 3)
         variances = state.get("registration_variances", np.zeros((len(self._travelled), 2)))
         self._registration_variances = np.array(variances, dtype=np.float64).reshape(-1, 2)
         self._map_from_world = np.eye(4)

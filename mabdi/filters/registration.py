@@ -59,11 +59,15 @@ corrects the pose the way KinectFusion's frame-to-model tracking does
    spread about the map frame, less the registration's own), the
    correction is shrunk by the two covariances (:func:`fuse_with_given`):
    exact poses stay exact, jittery ones follow the registration. A pose
-   source that states its accuracy (``given_sigma``: a motion-capture
-   system, a simulator's exact poses) is weighed by that from the first
-   frame on, instead of by what the anchor learns: a map that biases the
-   fit (a voxel-plane map moves ICP by millimetres even when built at the
-   true poses) then cannot pull poses known to be good.
+   source that states its accuracy is weighed by that from the first frame
+   on, instead of by what the anchor learns: a map that biases the fit (a
+   voxel-plane map moves ICP by millimetres even when built at the true
+   poses) then cannot pull poses known to be good. The statement comes
+   from the frame source (``pose_accuracy``: the simulator knows its
+   ``[sensor.pose_noise]``, jitter and drift) or from ``given_sigma``
+   (``[m, deg]``, white: a motion-capture system's figure), which
+   overrides it; ``given_sigma = "learnt"`` learns even where the source
+   states (what a recording of unknown accuracy gets).
 
 Output: D with the registered pose (in the map's frame) as its
 ``world_from_camera`` and in field data ``given_world_from_camera`` (the
@@ -102,6 +106,7 @@ from mabdi.filters.expected_image import MEASURED_PORT, MapAndImageAlgorithm, ma
 from mabdi.filters.map_anchor import MapAnchor
 from mabdi.filters.noise_calibration import MAD_TO_SIGMA
 from mabdi.filters.registration_kernels import point_to_plane_system, pose_sigma_image
+from mabdi.pose_noise import PoseNoise
 
 
 GIVEN_POSE_ARRAY = "given_world_from_camera"
@@ -111,6 +116,8 @@ POSE_COVARIANCE_ARRAY = "pose_covariance"
 #: The values of the ``registration`` field-data array, in order.
 REGISTRATION_FIELDS = ("status", "correction_m", "correction_deg", "residual_m", "inlier_share", "support", "iterations")
 #: Status codes: 0 registered; the rest leave the frame unregistered (see the module docs).
+#: The words ``given_sigma`` takes besides [m, deg]: the source's statement (learnt without one), or always learnt.
+GIVEN_SIGMA_WORDS = ("source", "learnt")
 STATUSES = ("registered", "off", "no_map", "few_points", "few_inliers", "not_converged", "beyond_bound")
 REGISTERED = 0
 
@@ -147,10 +154,13 @@ class RegistrationParameters:
     min_support: float = 0.3
     max_translation: float = 0.1
     max_rotation: float = 5.0
-    #: How far the given poses are off, if the pose source says so: [translation m, rotation degrees], the
-    #: standard deviation per axis (a motion-capture system's stated accuracy; [0, 0] for exact poses). None:
-    #: learnt from the run (:meth:`~mabdi.filters.map_anchor.MapAnchor.given_variance`).
-    given_sigma: list[float] | None = None
+    #: How far the given poses are off: ``[translation m, rotation degrees]``, the standard deviation per
+    #: axis of white jitter (a motion-capture system's stated accuracy; ``[0, 0]`` for exact poses);
+    #: ``"source"``: what the frame source states (:attr:`mabdi.sources.frames.FrameSource.pose_accuracy`:
+    #: the simulator its ``[sensor.pose_noise]``), learnt where it states nothing (recordings);
+    #: ``"learnt"``: learnt from the run whatever the source states
+    #: (:meth:`~mabdi.filters.map_anchor.MapAnchor.given_variance`).
+    given_sigma: list[float] | str = "source"
 
     def __post_init__(self) -> None:
         for name in ("levels", "stride", "iterations", "min_points"):
@@ -167,18 +177,25 @@ class RegistrationParameters:
         for name in ("min_inliers", "min_support"):
             if not 0 <= getattr(self, name) <= 1:
                 raise ConfigError(f"registration: {name} must be a share in [0, 1], got {getattr(self, name)!r}")
-        if self.given_sigma is not None:
+        if isinstance(self.given_sigma, str):
+            if self.given_sigma not in GIVEN_SIGMA_WORDS:
+                raise ConfigError(
+                    f"registration: given_sigma must be [translation m, rotation degrees] or one of {', '.join(map(repr, GIVEN_SIGMA_WORDS))}, got {self.given_sigma!r}"
+                )
+        else:
             sigma = self.given_sigma
             if len(sigma) != 2 or not all(isinstance(v, (int, float)) and not isinstance(v, bool) and 0 <= v < np.inf for v in sigma):
                 raise ConfigError(f"registration: given_sigma must be [translation m, rotation degrees], both >= 0, got {sigma!r}")
 
-    def given_variance(self) -> tuple[float, float] | None:
-        """The variance (rad^2, m^2 per component) of the given poses' error that ``given_sigma`` states; None
-        when it is to be learnt."""
-        if self.given_sigma is None:
-            return None
+    def given_variance(self, source: PoseNoise | None = None) -> tuple[tuple[float, float], tuple[float, float]] | None:
+        """What is stated of the given poses' error: ((sigma^2, q) of the rotation in rad^2 and rad^2 per metre,
+        the same of the translation in m^2), from ``given_sigma`` (white: q = 0) or from ``source``, the
+        frame source's :attr:`~mabdi.sources.frames.FrameSource.pose_accuracy`, where ``given_sigma`` is
+        ``"source"``; None when it is to be learnt."""
+        if isinstance(self.given_sigma, str):
+            return source.variances() if self.given_sigma == "source" and source is not None else None
         translation, rotation = self.given_sigma
-        return float(np.radians(rotation)) ** 2, float(translation) ** 2
+        return (float(np.radians(rotation)) ** 2, 0.0), (float(translation) ** 2, 0.0)
 
 
 @dataclass
@@ -480,6 +497,14 @@ def fuse_with_given(
     return pose, frame.T @ (0.5 * (posterior + posterior.T)) @ frame
 
 
+def _median_depth(depth: np.ndarray) -> float:
+    """The median of a depth image's returns (m; every 4th pixel each way), 0 without any: where the
+    frame looks (:meth:`MapAnchor.add`)."""
+    sample = depth[::4, ::4]
+    sample = sample[np.isfinite(sample)]
+    return float(np.median(sample)) if sample.size else 0.0
+
+
 def _add_field(image, name: str, values) -> None:
     array = numpy_to_vtk(np.asarray(values, dtype=np.float64).ravel(), deep=True)
     array.SetName(name)
@@ -490,7 +515,8 @@ class FilterRegistration(MapAndImageAlgorithm):
     """Register D (port 1) to the map (port 0): D out with the registered pose (see the module docs).
 
     ``renderer``: the :class:`DepthRenderer` that draws the map (share the
-    expected image's so the map is uploaded once). The filter keeps the
+    expected image's so the map is uploaded once). ``pose_accuracy``: what the frame source states of its
+    poses' error (``given_sigma = "source"``), None when it states nothing. The filter keeps the
     world-frame correction of the last registered frame, which predicts the
     next frame's pose; :meth:`state` and :meth:`set_state` carry it over a checkpoint.
     """
@@ -501,9 +527,11 @@ class FilterRegistration(MapAndImageAlgorithm):
         noise: SensorNoise | str = "none",
         renderer: DepthRenderer | None = None,
         backend: str = BACKENDS[0],
+        pose_accuracy: PoseNoise | None = None,
     ) -> None:
         super().__init__(nInputPorts=2, nOutputPorts=1, outputType="vtkImageData")
         self._parameters = parameters if parameters is not None else RegistrationParameters()
+        self._pose_accuracy = pose_accuracy
         self._noise = SensorNoise.of(noise)
         self.renderer = renderer if renderer is not None else DepthRenderer(backend)
         self.reset()
@@ -515,7 +543,7 @@ class FilterRegistration(MapAndImageAlgorithm):
     @parameters.setter
     def parameters(self, value: RegistrationParameters) -> None:
         self._set("_parameters", value)
-        self.anchor.stated = value.given_variance()
+        self.anchor.stated = value.given_variance(self._pose_accuracy)
 
     @property
     def noise(self) -> SensorNoise:
@@ -533,7 +561,7 @@ class FilterRegistration(MapAndImageAlgorithm):
         self._travelled = 0.0
         self._last_position: np.ndarray | None = None
         self._last_frame = -1
-        self.anchor = MapAnchor(stated=self._parameters.given_variance())
+        self.anchor = MapAnchor(stated=self._parameters.given_variance(self._pose_accuracy))
         self.Modified()
 
     def state(self) -> dict:
@@ -583,7 +611,7 @@ class FilterRegistration(MapAndImageAlgorithm):
         if p.enabled and new_frame:
             if result.registered:
                 self._correction = correction_between(given_in_map, pose)
-                self.anchor.add(given, given_in_map @ result.transform, self._travelled, result.covariance)
+                self.anchor.add(given, given_in_map @ result.transform, self._travelled, result.covariance, _median_depth(measured))
             elif result.status == "no_map" and len(self.anchor) == 0:
                 self.anchor.add(given, pose, self._travelled)  # the first frame starts the map where it is given
         if new_frame:

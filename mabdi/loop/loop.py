@@ -173,7 +173,9 @@ class MabdiLoop:
         self.registration: FilterRegistration | None = None
         measured_port = self.measured.GetOutputPort()
         if self.classifier_parameters.enabled and self.registration_parameters.enabled:
-            self.registration = FilterRegistration(self.registration_parameters, self.noise, renderer=self.expected.renderer)
+            self.registration = FilterRegistration(
+                self.registration_parameters, self.noise, renderer=self.expected.renderer, pose_accuracy=source.pose_accuracy
+            )
             self.registration.SetInputDataObject(MAP_PORT, self.world.map)
             self.registration.SetInputConnection(MEASURED_PORT, measured_port)
             measured_port = self.registration.GetOutputPort()

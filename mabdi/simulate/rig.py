@@ -129,6 +129,11 @@ class SimulatedRig(FrameSource):
         return self._true_poses.copy()
 
     @property
+    def pose_accuracy(self) -> PoseNoise:
+        """The simulator knows how far its given poses are off: its pose noise (all zero: exact)."""
+        return self.pose_noise
+
+    @property
     def timestamps(self) -> np.ndarray:
         return self._timestamps.copy()
 

@@ -38,6 +38,7 @@ from vtkmodules.vtkCommonExecutionModel import vtkStreamingDemandDrivenPipeline
 from mabdi.algorithm import MabdiAlgorithm
 from mabdi.camera import Intrinsics
 from mabdi.depth import DepthFrame, fill_depth_image, only_returns
+from mabdi.pose_noise import PoseNoise
 
 
 class FrameSource:
@@ -94,6 +95,13 @@ class FrameSource:
         """(N, 4, 4) the poses the sensor really had, when the source knows them (a simulation with pose
         noise: ``poses`` are the given ones), else None. Use them to judge what the sensor saw, or how far
         off the given poses are; the map is built with ``poses``."""
+        return None
+
+    @property
+    def pose_accuracy(self) -> PoseNoise | None:
+        """How far ``poses`` are off, when the source says (the simulator: its ``[sensor.pose_noise]``, all
+        zero for exact poses), as jitter and drift rates; None when it does not (recordings: the
+        registration learns it from the run, :mod:`mabdi.filters.map_anchor`)."""
         return None
 
     def check_index(self, index: int) -> int:
