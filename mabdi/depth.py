@@ -226,6 +226,61 @@ def jump_scale(geometry: SensorGeometry) -> float:
     return 1.0
 
 
+#: Neighbouring samples continue one flat surface when the next lies within this many standard deviations
+#: of the straight line through the two before it (:func:`straight_continuations`).
+LINE_SIGMAS = 3.0
+#: A floor on that tolerance, as a share of the range: the renderer's and float32's precision (a noise-free sensor).
+LINE_FLOOR = 1e-4
+#: Samples along a line may space out by at most this factor from one step to the next (a plane seen towards
+#: its horizon spaces out without bound, and there noise is all there is).
+LINE_SPACING = 4.0
+
+
+def _continues(before: np.ndarray, last: np.ndarray, after: np.ndarray, sigma_after: np.ndarray) -> np.ndarray:
+    """Whether ``after`` lies on the straight line through ``before`` and ``last`` (..., 3 points), within
+    :data:`LINE_SIGMAS` of the extrapolation's error (sigma sqrt(1 + (1 + k)^2 + k^2), k the step ratio) plus
+    the floor, stepping forwards by a ratio within :data:`LINE_SPACING`."""
+    step = last - before
+    ahead = after - last
+    length = np.linalg.norm(step, axis=-1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ratio = np.linalg.norm(ahead, axis=-1) / length
+        along = np.einsum("...i,...i->...", ahead, step) / length
+        off_line = np.linalg.norm(np.cross(ahead, step), axis=-1) / length
+        spread = sigma_after * np.sqrt(1.0 + (1.0 + ratio) ** 2 + ratio**2)
+        tolerance = LINE_SIGMAS * spread + LINE_FLOOR * np.linalg.norm(after, axis=-1)
+        return (along > 0) & (ratio <= LINE_SPACING) & (ratio >= 1.0 / LINE_SPACING) & (off_line <= tolerance)
+
+
+def straight_continuations(points: np.ndarray, sigma: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Which neighbouring samples of a (H, W, 3) sensor-frame point image (NaN: no return) lie on one flat
+    surface however steeply it is seen: the two continue each other's straight line, the sample after them
+    on the line through the two before, both ways (a ground plane at grazing incidence, whose neighbouring
+    beams are metres apart; a silhouette's two sides are not on one line). ``sigma``: (H, W) the samples'
+    standard deviation (m). Returns the masks of the edges between (v, u) and (v + 1, u) (H - 1, W), (v, u)
+    and (v, u + 1) (H, W - 1), and (v, u + 1) and (v + 1, u) (H - 1, W - 1); the image's border edges, which
+    lack a sample beyond them, are False."""
+    height, width = points.shape[:2]
+    vertical = np.zeros((height - 1, width), dtype=bool)
+    horizontal = np.zeros((height, width - 1), dtype=bool)
+    diagonal = np.zeros((height - 1, width - 1), dtype=bool)
+    if height >= 4:  # rows v - 1, v, v + 1, v + 2 for the edge (v, v + 1)
+        p, s = points, sigma
+        vertical[1:-1] = _continues(p[:-3], p[1:-2], p[2:-1], s[2:-1]) & _continues(p[3:], p[2:-1], p[1:-2], s[1:-2])
+    if width >= 4:
+        p, s = points, sigma
+        horizontal[:, 1:-1] = _continues(p[:, :-3], p[:, 1:-2], p[:, 2:-1], s[:, 2:-1]) & _continues(
+            p[:, 3:], p[:, 2:-1], p[:, 1:-2], s[:, 1:-2]
+        )
+    if height >= 4 and width >= 4:  # (v - 1, u + 2), (v, u + 1), (v + 1, u), (v + 2, u - 1)
+        first, second = points[:-3, 3:], points[1:-2, 2:-1]
+        third, fourth = points[2:-1, 1:-2], points[3:, :-3]
+        diagonal[1:-1, 1:-1] = _continues(first, second, third, sigma[2:-1, 1:-2]) & _continues(
+            fourth, third, second, sigma[1:-2, 2:-1]
+        )
+    return vertical, horizontal, diagonal
+
+
 def sensor_values(sensor_points, geometry: SensorGeometry) -> np.ndarray:
     """(...) what an image of ``geometry`` holds for sensor-frame points (..., 3): a camera's z-depth, a LiDAR's
     range (metres)."""

@@ -15,7 +15,7 @@ from mabdi.depth import DepthFrame, depth_array, image_intrinsics, is_range_imag
 from mabdi.errors import ConfigError
 from mabdi.filters.depth_image import FilterDepthImage, SensorNoise
 from mabdi.filters.expected_image import FilterExpectedImage, face_id_array
-from mabdi.filters.pixel_grid import FilterPixelGrid
+from mabdi.filters.pixel_grid import FilterPixelGrid, PixelGridParameters
 from mabdi.filters.world_mesh import FilterWorldMesh
 from mabdi.polydata import polydata_arrays
 from mabdi.spherical import SphericalGeometry
@@ -215,6 +215,42 @@ def test_composite_map_renders_as_one():
     blocks.SetBlock(0, wall)
     blocks.SetBlock(1, floor)
     np.testing.assert_array_equal(depth_array(render(blocks, GEOMETRY, np.eye(4))), depth_array(render(merged(wall, floor), GEOMETRY, np.eye(4))))
+
+
+def test_the_pixel_grid_meshes_ground_seen_at_grazing_incidence_and_nothing_off_the_scene():
+    """A LiDAR 1.9 m above a flat ground, a car-sized box at 8 m and a wall at 30 m, 5 mm range noise. The jump
+    rule alone meshes the ground to about 10 m (beyond, more than 79 degrees from its normal); the straight-line
+    rule (``grazing``, on for range images) meshes it to the wall, and adds no triangle more than 3 cm off the
+    scene (no bridge from the box to the ground behind it, or from the wall's top to the sky)."""
+    geometry = SphericalGeometry(32, 512, 2.0, -24.8, 1.0, 60.0)
+    centre, half = np.array([8.0, 0.0, 0.75]), np.array([2.25, 0.9, 0.75])
+    scene = merged(
+        plane((-60.0, -60.0, 0.0), (60.0, -60.0, 0.0), (-60.0, 60.0, 0.0)),
+        box(centre, 2 * half, 0.0),
+        plane((30.0, -60.0, 0.0), (30.0, 60.0, 0.0), (30.0, -60.0, 12.0)),
+    )
+    pose = np.eye(4)
+    pose[2, 3] = 1.9
+    noise = SensorNoise("range", range_sigma=0.005)
+    image = render(scene, geometry, pose, noise=noise, seed=1)
+
+    def off_scene(points):
+        outside = np.abs(points - centre) - half
+        to_box = np.abs(np.linalg.norm(np.maximum(outside, 0), axis=1) + np.minimum(outside.max(axis=1), 0))
+        return np.minimum(np.minimum(np.abs(points[:, 2]), np.abs(points[:, 0] - 30.0)), to_box)
+
+    reach, off = {}, {}
+    for grazing in (False, "auto"):
+        surface = FilterPixelGrid(PixelGridParameters(grazing=grazing), noise=noise)
+        surface.SetInputDataObject(image)
+        surface.Update()
+        points, triangles = polydata_arrays(surface.GetOutput())
+        centroids = points[triangles].mean(axis=1)
+        ground = np.abs(centroids[:, 2]) < 0.05
+        reach[grazing] = np.linalg.norm(centroids[ground, :2], axis=1).max()
+        off[grazing] = set(map(tuple, np.round(centroids[off_scene(centroids) > 0.03], 4)))
+    assert reach[False] < 12.0 < 28.0 < reach["auto"], reach
+    assert off["auto"] <= off[False], len(off["auto"] - off[False])  # the corners' chords of the box, as before
 
 
 @pytest.mark.parametrize("reduction", [1, 3])

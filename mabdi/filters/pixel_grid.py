@@ -25,6 +25,18 @@ apart than a camera's pixels, so ``max_jump`` is scaled by
 the same 79 degrees of incidence). The image's azimuth seam (the first and
 last columns) is not joined.
 
+**Flat ground at grazing incidence** (``grazing``): a LiDAR on a vehicle sees
+the ground beyond about 10 m at more than 79 degrees from its normal on every
+scan, and no later look is better, so the jump rule alone never meshes it.
+With ``grazing`` on, a triangle edge that fails the jump rule is kept where
+the two samples continue one straight line, each within the noise of the line
+through the two samples before it (:func:`mabdi.depth.straight_continuations`:
+3 sigma of the extrapolation plus 0.1 mm per metre): a plane is straight along
+every image line however steeply it is seen; a silhouette's two sides, and a
+curved surface seen edge-on, are not. ``"auto"`` (the default) turns it on for
+range images and leaves a camera's rule as it was (a camera moving around a
+scene gets better looks).
+
 Triangles are wound so their normals face the sensor. Vertex positions are
 the pixel-centre rays scaled by the depth and moved into the world by the
 image's pose.
@@ -52,11 +64,20 @@ from vtkmodules.vtkCommonDataModel import vtkImageData, vtkPolyData
 
 from mabdi.algorithm import MabdiAlgorithm
 from mabdi.camera import pixel_rays
-from mabdi.depth import colour_point_array, depth_array, image_colour, image_intrinsics, image_pose, jump_scale
+from mabdi.depth import (
+    colour_point_array,
+    depth_array,
+    image_colour,
+    image_intrinsics,
+    image_pose,
+    jump_scale,
+    straight_continuations,
+)
 from mabdi.errors import ConfigError
 from mabdi.filters.depth_image import SensorNoise
 from mabdi.filters.depth_smoothing import smooth_depth_by_noise
 from mabdi.polydata import triangles_polydata
+from mabdi.spherical import SphericalGeometry
 
 
 @dataclass(frozen=True)
@@ -67,31 +88,42 @@ class PixelGridParameters:
 
     max_jump: float = 0.01
     smooth_depth: bool = True
+    #: Keep edges that continue a straight line though they fail the jump rule (see the module docs): true,
+    #: false, or "auto" (range images only).
+    grazing: bool | str = "auto"
 
     def __post_init__(self) -> None:
+        if self.grazing not in (True, False, "auto"):
+            raise ConfigError(f"grazing must be true, false or \"auto\", got {self.grazing!r}")
         if not (isinstance(self.max_jump, (int, float)) and self.max_jump > 0):
             raise ConfigError(f"max_jump must be > 0 (a fraction of the depth), got {self.max_jump!r}")
         if not isinstance(self.smooth_depth, bool):
             raise ConfigError(f"smooth_depth must be true or false, got {self.smooth_depth!r}")
 
 
-def pixel_grid_triangles(depth: np.ndarray, max_jump: float) -> np.ndarray:
-    """(M, 3) int64 pixel ids (v * W + u) of the kept triangles of a (H, W) depth image."""
+def pixel_grid_triangles(depth: np.ndarray, max_jump: float, straight: tuple[np.ndarray, ...] | None = None) -> np.ndarray:
+    """(M, 3) int64 pixel ids (v * W + u) of the kept triangles of a (H, W) depth image: each of a triangle's
+    three edges within ``max_jump``, or (``straight``: the edge masks of
+    :func:`mabdi.depth.straight_continuations`) on one straight line with the samples beyond it."""
     height, width = depth.shape
     z = np.asarray(depth, dtype=np.float32)
-    a, b = z[:-1, :-1], z[:-1, 1:]
-    c, d = z[1:, :-1], z[1:, 1:]
     ratio = np.float32(1.0 + max_jump)
 
-    def keep(p, q, r):
+    def within(p, q):
         # NaN compares false, so invalid corners drop out; max <= (1 + jump) * min.
         with np.errstate(invalid="ignore"):
-            low = np.minimum(np.minimum(p, q), r)
-            high = np.maximum(np.maximum(p, q), r)
-            return high <= ratio * low
+            return np.maximum(p, q) <= ratio * np.minimum(p, q)
 
-    first = np.flatnonzero(keep(a, c, b))
-    second = np.flatnonzero(keep(b, c, d))
+    vertical = within(z[:-1, :], z[1:, :])  # (v, u) - (v + 1, u)
+    horizontal = within(z[:, :-1], z[:, 1:])  # (v, u) - (v, u + 1)
+    diagonal = within(z[:-1, 1:], z[1:, :-1])  # (v, u + 1) - (v + 1, u)
+    if straight is not None:
+        vertical, horizontal, diagonal = vertical | straight[0], horizontal | straight[1], diagonal | straight[2]
+    # square (v, u): a, b, c, d = (v, u), (v, u + 1), (v + 1, u), (v + 1, u + 1)
+    keep_first = vertical[:, :-1] & horizontal[:-1, :] & diagonal  # (a, c, b)
+    keep_second = vertical[:, 1:] & horizontal[1:, :] & diagonal  # (b, c, d)
+    first = np.flatnonzero(keep_first)
+    second = np.flatnonzero(keep_second)
     # square index s = v * (W - 1) + u  ->  top-left pixel id p = v * W + u
     p1 = first + first // (width - 1)
     p2 = second + second // (width - 1)
@@ -148,13 +180,19 @@ class FilterPixelGrid(MabdiAlgorithm):
         depth = depth_array(image)
         if self._parameters.smooth_depth:
             depth = smooth_depth_by_noise(depth, self._noise, intrinsics)
-        triangles = pixel_grid_triangles(depth, self._parameters.max_jump * jump_scale(intrinsics))
+        rays = pixel_rays(intrinsics)
+        grazing = self._parameters.grazing
+        straight = None
+        if grazing is True or (grazing == "auto" and isinstance(intrinsics, SphericalGeometry)):
+            sigma = self._noise.sigma(depth, intrinsics.near, intrinsics.far)
+            straight = straight_continuations(rays * depth[..., None], sigma)
+        triangles = pixel_grid_triangles(depth, self._parameters.max_jump * jump_scale(intrinsics), straight)
         # Keep only the pixels the triangles use, renumbered in order.
         used = np.zeros(depth.size, dtype=bool)
         used[triangles.ravel()] = True
         pixel_ids = np.flatnonzero(used)
         renumber = np.cumsum(used) - 1
-        camera_points = pixel_rays(intrinsics).reshape(-1, 3)[pixel_ids] * depth.ravel()[pixel_ids, None]
+        camera_points = rays.reshape(-1, 3)[pixel_ids] * depth.ravel()[pixel_ids, None]
         world_points = camera_points @ pose[:3, :3].T + pose[:3, 3]
         output = vtkPolyData.GetData(outInfo)
         mesh = triangles_polydata(world_points, renumber[triangles], dtype=np.float32)
