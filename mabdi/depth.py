@@ -264,11 +264,10 @@ def straight_continuations(points: np.ndarray, sigma: np.ndarray) -> tuple[np.nd
     vertical = np.zeros((height - 1, width), dtype=bool)
     horizontal = np.zeros((height, width - 1), dtype=bool)
     diagonal = np.zeros((height - 1, width - 1), dtype=bool)
+    p, s = points, sigma
     if height >= 4:  # rows v - 1, v, v + 1, v + 2 for the edge (v, v + 1)
-        p, s = points, sigma
         vertical[1:-1] = _continues(p[:-3], p[1:-2], p[2:-1], s[2:-1]) & _continues(p[3:], p[2:-1], p[1:-2], s[1:-2])
     if width >= 4:
-        p, s = points, sigma
         horizontal[:, 1:-1] = _continues(p[:, :-3], p[:, 1:-2], p[:, 2:-1], s[:, 2:-1]) & _continues(
             p[:, 3:], p[:, 2:-1], p[:, 1:-2], s[:, 1:-2]
         )

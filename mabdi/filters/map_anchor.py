@@ -109,30 +109,34 @@ def _variogram_fit(values: np.ndarray, travelled: np.ndarray) -> tuple[float, fl
     return sigma2, q
 
 
-def _revisit_fit(values: np.ndarray, travelled: np.ndarray, places: np.ndarray) -> tuple[float, float] | None:
-    """(sigma^2, q) from pairs of frames at nearby places, with the map's own error as a third term that grows
-    with their place distance (see the module docs); None when the run has not come back to a place often
-    enough to tell that error from drift. ``places``: (n, 2, 3) camera centres and looked-at points (m)."""
-    first, second = np.triu_indices(len(values), 1)
+def _nearby_pairs(travelled: np.ndarray, places: np.ndarray) -> tuple[np.ndarray, ...] | None:
+    """The pairs of frames within :data:`PLACE_RADIUS` of each other: (first, second, place distance, distance
+    travelled between them), or None when the run has not come back to a place often enough to tell the
+    map's own error from drift (see the module docs). ``places``: (n, 2, 3) camera centres and looked-at points (m)."""
+    first, second = np.triu_indices(len(travelled), 1)
     distance = 0.5 * np.linalg.norm(places[first] - places[second], axis=2).sum(axis=1)
     apart = np.abs(travelled[first] - travelled[second])
     near = distance < PLACE_RADIUS
     if np.count_nonzero(near & (apart >= REVISIT_DISTANCE)) < MIN_REVISITS:
         return None
-    first, second, distance, apart = first[near], second[near], distance[near], apart[near]
+    return first[near], second[near], distance[near], apart[near]
+
+
+def _revisit_fit(values: np.ndarray, pairs: tuple[np.ndarray, ...]) -> tuple[float, float]:
+    """(sigma^2, q) from the pairs of frames at nearby places (:func:`_nearby_pairs`), with the map's own error
+    as a third term that grows with their place distance (see the module docs)."""
+    first, second, distance, apart = pairs
     half_squares = 0.5 * np.mean((values[first] - values[second]) ** 2, axis=1)
     design = np.stack([np.ones_like(apart), 0.5 * apart, distance], axis=1)
     (sigma2, q, _), _ = nnls(design, half_squares)
     return float(sigma2), float(q)
 
 
-def _offsets_fit(values: np.ndarray, travelled: np.ndarray, places: np.ndarray) -> tuple[float, float]:
+def _offsets_fit(values: np.ndarray, travelled: np.ndarray, pairs: tuple[np.ndarray, ...] | None) -> tuple[float, float]:
     """(sigma^2, q) of the given poses' error: from returns to a place where the run has them
     (:func:`_revisit_fit`), else from the distance travelled alone (:func:`_variogram_fit`)."""
-    if len(values) >= MIN_FRAMES_FOR_DRIFT:
-        revisits = _revisit_fit(values, travelled, places)
-        if revisits is not None:
-            return revisits
+    if pairs is not None and len(values) >= MIN_FRAMES_FOR_DRIFT:
+        return _revisit_fit(values, pairs)
     return _variogram_fit(values, travelled)
 
 
@@ -206,12 +210,12 @@ class MapAnchor:
         s = self._travelled[use]
         rotations = self._rotations[use]
         own = self._registration_variances[use]
-        places = np.stack([self._positions[use], self._looks[use]], axis=1)
-        fit_rotation = _offsets_fit(rotations, s, places) if self.stated is None else self.stated[0]
+        pairs = None if self.stated is not None else _nearby_pairs(s, np.stack([self._positions[use], self._looks[use]], axis=1))
+        fit_rotation = _offsets_fit(rotations, s, pairs) if self.stated is None else self.stated[0]
         weights = _blue_weights(*fit_rotation, s)
         rotation = Rotation.from_rotvec(self._shrunk(weights @ rotations, weights, own[:, 0], 0)).as_matrix()
         residual = self._translations[use] - (self._positions[use] @ (rotation - np.eye(3)).T)
-        fit_translation = _offsets_fit(residual, s, places) if self.stated is None else self.stated[1]
+        fit_translation = _offsets_fit(residual, s, pairs) if self.stated is None else self.stated[1]
         weights = _blue_weights(*fit_translation, s)
         self._fits = (fit_rotation, fit_translation)
         anchor = np.eye(4)

@@ -115,9 +115,9 @@ REGISTRATION_ARRAY = "registration"
 POSE_COVARIANCE_ARRAY = "pose_covariance"
 #: The values of the ``registration`` field-data array, in order.
 REGISTRATION_FIELDS = ("status", "correction_m", "correction_deg", "residual_m", "inlier_share", "support", "iterations")
-#: Status codes: 0 registered; the rest leave the frame unregistered (see the module docs).
 #: The words ``given_sigma`` takes besides [m, deg]: the source's statement (learnt without one), or always learnt.
 GIVEN_SIGMA_WORDS = ("source", "learnt")
+#: Status codes: 0 registered; the rest leave the frame unregistered (see the module docs).
 STATUSES = ("registered", "off", "no_map", "few_points", "few_inliers", "not_converged", "beyond_bound")
 REGISTERED = 0
 
@@ -195,7 +195,7 @@ class RegistrationParameters:
         if isinstance(self.given_sigma, str):
             return source.variances() if self.given_sigma == "source" and source is not None else None
         translation, rotation = self.given_sigma
-        return (float(np.radians(rotation)) ** 2, 0.0), (float(translation) ** 2, 0.0)
+        return PoseNoise(jitter_translation=translation, jitter_rotation=rotation).variances()
 
 
 @dataclass
