@@ -28,7 +28,8 @@ from scipy.spatial.transform import Rotation
 import mabdi  # noqa: F401  (selects the EGL window before VTK loads)
 from mabdi.config import load_run_config, set_value
 from mabdi.evaluate import evaluate_run
-from mabdi.filters.depth_image import DepthRenderer, SensorNoise
+from mabdi.filters.depth_image import DepthRenderer
+from mabdi.sensor_noise import SensorNoise
 from mabdi.filters.registration import RegistrationParameters, register_depth, transform_size
 from mabdi.loop import Simulation
 from mabdi.simulate.rig import SimulatedRig

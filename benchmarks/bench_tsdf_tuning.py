@@ -60,7 +60,7 @@ from mabdi.config import load_run_config  # noqa: E402
 from mabdi.depth import DepthFrame, depth_array  # noqa: E402
 from mabdi.evaluate.metrics import evaluate_map, observed_ground_truth, scenes_per_pose  # noqa: E402
 from mabdi.evaluate.tsdf import TsdfSettings, alignment_error, run_tsdf, tune_tsdf, tuning_markdown  # noqa: E402
-from mabdi.filters.depth_image import SensorNoise  # noqa: E402
+from mabdi.sensor_noise import SensorNoise  # noqa: E402
 from mabdi.simulate.path import path_from_config  # noqa: E402
 from mabdi.sources.frames import FrameList, FrameSource  # noqa: E402
 

@@ -25,9 +25,9 @@ from mabdi.filters import (  # noqa: E402
     FilterVoxelPlanes,
     FilterWorldMesh,
     RegistrationParameters,
-    SensorNoise,
 )
 from mabdi.maps import MeshMap  # noqa: E402
+from mabdi.sensor_noise import SensorNoise  # noqa: E402
 from mabdi.filters.expected_image import FilterExpectedImage  # noqa: E402
 from mabdi.filters.registry import register_surface_filter  # noqa: E402
 from mabdi.loop import MabdiLoop, RunObserver, RunPipeline, Simulation  # noqa: E402

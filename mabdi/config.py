@@ -45,7 +45,8 @@ from mabdi.filters.classifier import ClassifierParameters
 from mabdi.filters.refinement import RefinementParameters
 from mabdi.filters.registration import RegistrationParameters
 from mabdi.filters.removal import RemovalParameters
-from mabdi.filters.depth_image import BACKENDS, NOISE_MODELS, RANGE_NOISE_MODELS, SensorNoise
+from mabdi.filters.depth_image import BACKENDS
+from mabdi.sensor_noise import NOISE_MODELS, RANGE_NOISE_MODELS, SensorNoise
 from mabdi.filters.registry import surface_filter, surface_filter_names
 from mabdi.pose_noise import PoseNoise
 from mabdi.spherical import SphericalGeometry
@@ -119,7 +120,7 @@ class SensorConfig:
     """The simulated depth sensor: intrinsics (pixels, metres), noise model and render backend.
 
     The defaults and checks of the intrinsics are :class:`mabdi.camera.Intrinsics`'
-    and those of the noise models :class:`mabdi.filters.depth_image.SensorNoise`'
+    and those of the noise models :class:`mabdi.sensor_noise.SensorNoise`'
     (``noise`` here is its ``model``): this section only gathers them under
     the keys of a run config. Noise models: ``none``; ``zbuffer`` (seed 001:
     d + d N(0, zbuffer_sigma) on the normalised z-buffer value d); ``kinect``
@@ -129,7 +130,7 @@ class SensorConfig:
     f = ``fx`` and b = ``baseline``, quantised to ``disparity_step`` pixels,
     so sigma grows with z^2; no returns within ``edge_dropout`` pixels of a
     depth jump larger than ``edge_jump`` or beyond ``max_incidence`` degrees
-    of incidence; :mod:`mabdi.filters.depth_image` says where each default
+    of incidence; :mod:`mabdi.sensor_noise` says where each default
     comes from).
 
     ``kind`` is ``pinhole`` (the default: a depth camera with the intrinsics
@@ -141,7 +142,7 @@ class SensorConfig:
     Velodyne HDL-64E's). A LiDAR's ``noise`` is ``none`` or ``range``
     (Gaussian of ``range_sigma`` metres along the beam; the default 0.02 m is
     the HDL-64E S2 datasheet's accuracy, see
-    :mod:`mabdi.filters.depth_image`). The path gives a LiDAR's poses in its
+    :mod:`mabdi.sensor_noise`). The path gives a LiDAR's poses in its
     own axes (:func:`mabdi.simulate.path.path_from_config`, ``axes="lidar"``).
 
     ``[sensor.pose_noise]`` (:class:`mabdi.pose_noise.PoseNoise`): jitter and

@@ -13,6 +13,12 @@ Layout (every filter reads and writes it so):
   ``world_from_camera`` (float64[16], row-major), ``frame``
   (int64[1], the frame index, -1 when unknown) and ``timestamp`` (float64[1],
   seconds, NaN when unknown);
+* field data ``noise_model`` (a string: the sensor's noise model,
+  :mod:`mabdi.sensor_noise`) and ``noise_parameters`` (float64: its
+  parameters, :meth:`~mabdi.sensor_noise.SensorNoise.to_array`), where the
+  source states them; an image without them is read as noise-free
+  (:func:`image_noise`). Every filter that needs the sensor's sigma(z) reads
+  it here, so the noise model travels with the frame as the intrinsics do;
 * optionally the point array ``colour`` (uint8, 3 components, sRGB): the
   colour image registered to the depth, pixel for pixel (the same index
   v*W + u), when the source has one.
@@ -32,9 +38,11 @@ from dataclasses import dataclass
 
 import numpy as np
 from vtkmodules.util.numpy_support import numpy_to_vtk, vtk_to_numpy
+from vtkmodules.vtkCommonCore import vtkStringArray
 from vtkmodules.vtkCommonDataModel import vtkImageData
 
 from mabdi.camera import Intrinsics, check_pose, project
+from mabdi.sensor_noise import SensorNoise
 from mabdi.spherical import BEAM_ELEVATIONS_ARRAY, SPHERICAL_ARRAY, SphericalGeometry
 
 #: What a depth image's pixels are: a pinhole camera's (z-depth) or a spinning LiDAR's (range).
@@ -46,6 +54,8 @@ POSE_ARRAY = "world_from_camera"
 FRAME_ARRAY = "frame"
 TIMESTAMP_ARRAY = "timestamp"
 COLOUR_ARRAY = "colour"
+NOISE_MODEL_ARRAY = "noise_model"
+NOISE_PARAMETERS_ARRAY = "noise_parameters"
 
 
 def returns(depth: np.ndarray, near: float, far: float) -> np.ndarray:
@@ -119,9 +129,17 @@ class DepthFrame:
 
 
 def depth_image(
-    depth, intrinsics: SensorGeometry, world_from_camera, frame: int = -1, timestamp: float = float("nan"), colour=None
+    depth,
+    intrinsics: SensorGeometry,
+    world_from_camera,
+    frame: int = -1,
+    timestamp: float = float("nan"),
+    colour=None,
+    noise: SensorNoise | str | None = None,
 ) -> vtkImageData:
-    """Build a depth-image vtkImageData from a (H, W) array of metres (v = 0 the top row); copies ``depth`` and ``colour``."""
+    """Build a depth-image vtkImageData from a (H, W) array of metres (v = 0 the top row); copies ``depth`` and
+    ``colour``. ``noise``: the sensor's noise model the image carries (a :class:`SensorNoise` or its name; None:
+    none stated, read as noise-free)."""
     depth = np.array(depth, dtype=np.float32, order="C", copy=True)
     if depth.shape != intrinsics.shape:
         raise ValueError(
@@ -131,7 +149,7 @@ def depth_image(
     image = vtkImageData()
     fill_depth_image(
         image, depth, intrinsics, check_pose(world_from_camera, "world_from_camera"), frame, timestamp,
-        None if colour is None else colour.copy(),
+        None if colour is None else colour.copy(), None if noise is None else SensorNoise.of(noise),
     )
     return image
 
@@ -144,9 +162,10 @@ def fill_depth_image(
     frame: int,
     timestamp: float = float("nan"),
     colour: np.ndarray | None = None,
+    noise: SensorNoise | None = None,
 ) -> None:
     """Fill an existing vtkImageData (a filter's output) with a depth image (and its (H, W, 3) uint8
-    ``colour``, when given). Inputs are trusted.
+    ``colour`` and the sensor's ``noise`` model, when given). Inputs are trusted.
 
     The image shares ``depth``'s (and ``colour``'s) memory: hand over arrays nobody else writes to.
     """
@@ -178,6 +197,37 @@ def fill_depth_image(
         vtk_array = numpy_to_vtk(values, deep=True)
         vtk_array.SetName(name)
         field.AddArray(vtk_array)
+    if noise is not None:
+        set_noise(image, noise)
+
+
+def set_noise(image, noise: SensorNoise) -> None:
+    """Write the sensor's noise model into a depth image's field data (replacing any it held)."""
+    field = image.GetFieldData()
+    model = vtkStringArray()
+    model.SetName(NOISE_MODEL_ARRAY)
+    model.InsertNextValue(noise.model)
+    parameters = numpy_to_vtk(noise.to_array(), deep=True)
+    parameters.SetName(NOISE_PARAMETERS_ARRAY)
+    field.AddArray(model)  # AddArray replaces an array of the same name
+    field.AddArray(parameters)
+
+
+def image_noise(image) -> SensorNoise:
+    """The sensor's noise model a depth image carries (``none`` when it carries none: a noise-free
+    sensor, as a hand-made image is read); ValueError when its arrays are malformed."""
+    field = image.GetFieldData()
+    model = field.GetAbstractArray(NOISE_MODEL_ARRAY)
+    if model is None:
+        return NO_NOISE
+    parameters = field.GetArray(NOISE_PARAMETERS_ARRAY)
+    if not isinstance(model, vtkStringArray) or model.GetNumberOfValues() != 1 or parameters is None:
+        raise ValueError(f"depth image field data: '{NOISE_MODEL_ARRAY}' must be one string with '{NOISE_PARAMETERS_ARRAY}' beside it")
+    return SensorNoise.from_array(model.GetValue(0), vtk_to_numpy(parameters))
+
+
+#: What an image without a noise model is read as.
+NO_NOISE = SensorNoise("none")
 
 
 def _field_array(image, name: str) -> np.ndarray:

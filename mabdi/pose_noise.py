@@ -27,7 +27,7 @@ Jitter and drift add up: omega = omega_jitter + omega_drift, tau likewise.
 Reproducible: the whole trajectory's noise comes from one random stream,
 ``numpy.random.default_rng([seed, POSE_STREAM])``, drawn frame by frame
 (frame i's draws are the same whatever the number of frames after it), and
-independent of the depth noise's streams (:func:`mabdi.filters.depth_image.noise_rng`,
+independent of the depth noise's streams (:func:`mabdi.sensor_noise.noise_rng`,
 ``[seed, frame]``: :data:`POSE_STREAM` is larger than any frame index).
 """
 

@@ -8,6 +8,7 @@ from vtkmodules.util.numpy_support import vtk_to_numpy
 
 from mabdi.camera import Intrinsics, look_at
 from mabdi.depth import DepthFrame, depth_image
+from mabdi.sensor_noise import SensorNoise
 from mabdi.filters.classifier import (
     CONTRADICTED,
     KNOWN,
@@ -25,8 +26,8 @@ POSE = look_at([0, -3, 1], [0, 0, 1])
 
 
 def run_classifier(measured, expected, parameters=None, noise="none", pose_e=POSE, intrinsics_e=SMALL):
-    classifier = FilterClassifier(parameters or ClassifierParameters(min_width=1, min_region=0, rim=0), noise=noise)
-    classifier.SetInputDataObject(0, depth_image(measured, SMALL, POSE, frame=4))
+    classifier = FilterClassifier(parameters or ClassifierParameters(min_width=1, min_region=0, rim=0))
+    classifier.SetInputDataObject(0, depth_image(measured, SMALL, POSE, frame=4, noise=noise))
     classifier.SetInputDataObject(1, depth_image(expected, intrinsics_e, pose_e, frame=4))
     classifier.Update()
     output = classifier.GetOutput()
@@ -57,11 +58,12 @@ def test_labels_on_known_cases():
 
 
 def test_threshold_grows_with_range_for_the_kinect_model():
-    classifier = FilterClassifier(ClassifierParameters(tau_min=0.01, k_sigma=3.0), noise="kinect")
-    tau = classifier.threshold(np.array([0.5, 2.0, 3.0]), 0.5, 4.0)
+    classifier = FilterClassifier(ClassifierParameters(tau_min=0.01, k_sigma=3.0))
+    kinect = SensorNoise("kinect")
+    tau = classifier.threshold(np.array([0.5, 2.0, 3.0]), kinect, 0.5, 4.0)
     np.testing.assert_allclose(tau, [0.01, 3 * 1.425e-3 * 4, 3 * 1.425e-3 * 9])
     # 2 cm nearer is novel at 1 m but within the noise at 3 m
-    labels = classify(np.array([0.98, 2.98]), np.array([1.0, 3.0]), classifier.threshold(np.array([0.98, 2.98]), 0.5, 4.0))
+    labels = classify(np.array([0.98, 2.98]), np.array([1.0, 3.0]), classifier.threshold(np.array([0.98, 2.98]), kinect, 0.5, 4.0))
     assert labels.tolist() == [NOVEL, KNOWN]
 
 

@@ -196,7 +196,7 @@ def test_a_surface_filter_registered_from_outside_runs_by_name(tmp_path):
             raise AssertionError("the loop called state() of a filter that does not declare keeps_state")
 
     mabdi.register_surface_filter(
-        "centre_triangle", CentreTriangleParameters, lambda parameters, noise: FilterCentreTriangle(parameters), "one test triangle"
+        "centre_triangle", CentreTriangleParameters, FilterCentreTriangle, "one test triangle"
     )
     try:
         assert "centre_triangle" in surface_filter_names()

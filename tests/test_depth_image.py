@@ -13,7 +13,8 @@ from conftest import plane_mesh
 from mabdi.camera import Intrinsics, backproject, look_at
 from mabdi.depth import DepthFrame, depth_array
 from mabdi.errors import ConfigError, PoseError
-from mabdi.filters.depth_image import FilterDepthImage, SensorNoise
+from mabdi.filters.depth_image import FilterDepthImage
+from mabdi.sensor_noise import SensorNoise
 from mabdi.sources.scene import SourceScene
 
 

@@ -10,7 +10,7 @@ from mabdi.camera import Intrinsics
 from mabdi.config import load_run_config, set_value
 from mabdi.depth import depth_image
 from mabdi.errors import ConfigError
-from mabdi.filters.depth_image import SensorNoise
+from mabdi.sensor_noise import SensorNoise
 from mabdi.filters.depth_smoothing import smooth_depth
 from mabdi.filters.pixel_grid import FilterPixelGrid, PixelGridParameters
 from mabdi.filters.quadtree import FilterQuadTree, QuadTreeParameters
@@ -55,7 +55,7 @@ def test_steps_holes_and_a_noise_free_sensor_are_left_alone():
 
 
 def plane_distances(surface, depth, normal, distance=2.0) -> np.ndarray:
-    surface.SetInputDataObject(depth_image(depth, K, np.eye(4)))
+    surface.SetInputDataObject(depth_image(depth, K, np.eye(4), noise=KINECT))
     surface.Update()
     points = vtk_to_numpy(surface.GetOutput().GetPoints().GetData()).astype(np.float64)
     return np.abs(points @ normal + distance)
@@ -68,8 +68,8 @@ def test_the_surfaces_mesh_the_smoothed_image_of_a_noisy_plane(make):
     noisy = exact + sigma * np.random.default_rng(7).standard_normal(exact.shape).astype(np.float32)
     raw_parameters = PixelGridParameters(max_jump=0.05, smooth_depth=False) if make is FilterPixelGrid else QuadTreeParameters(smooth_depth=False)
     smooth_parameters = PixelGridParameters(max_jump=0.05) if make is FilterPixelGrid else QuadTreeParameters()
-    raw = np.median(plane_distances(make(raw_parameters, noise=KINECT), noisy, normal))
-    smoothed = np.median(plane_distances(make(smooth_parameters, noise=KINECT), noisy, normal))
+    raw = np.median(plane_distances(make(raw_parameters), noisy, normal))
+    smoothed = np.median(plane_distances(make(smooth_parameters), noisy, normal))
     assert smoothed < 0.75 * raw
     if make is FilterPixelGrid:  # one pixel each: median |N(0, s)| = 0.674 s, and s = sigma / 3 smoothed
         assert smoothed < 0.3 * 0.674 * np.median(sigma) * 1.5

@@ -13,7 +13,8 @@ from vtkmodules.vtkFiltersSources import vtkCubeSource, vtkPlaneSource
 from mabdi.config import RunConfig, load_run_config
 from mabdi.depth import DepthFrame, depth_array, image_intrinsics, is_range_image
 from mabdi.errors import ConfigError
-from mabdi.filters.depth_image import FilterDepthImage, SensorNoise
+from mabdi.filters.depth_image import FilterDepthImage
+from mabdi.sensor_noise import SensorNoise
 from mabdi.filters.expected_image import FilterExpectedImage, face_id_array
 from mabdi.filters.pixel_grid import FilterPixelGrid, PixelGridParameters
 from mabdi.filters.world_mesh import FilterWorldMesh
@@ -241,7 +242,7 @@ def test_the_pixel_grid_meshes_ground_seen_at_grazing_incidence_and_nothing_off_
 
     reach, off = {}, {}
     for grazing in (False, "auto"):
-        surface = FilterPixelGrid(PixelGridParameters(grazing=grazing), noise=noise)
+        surface = FilterPixelGrid(PixelGridParameters(grazing=grazing))
         surface.SetInputDataObject(image)
         surface.Update()
         points, triangles = polydata_arrays(surface.GetOutput())

@@ -9,8 +9,8 @@ import mabdi
 from conftest import REPO
 from mabdi.config import load_run_config, set_value
 from mabdi.errors import ConfigError
-from mabdi.filters.depth_image import SensorNoise
-from mabdi.filters.noise_calibration import PRIOR_COEFFICIENT, NoiseCalibration
+from mabdi.sensor_noise import SensorNoise
+from mabdi.noise_calibration import PRIOR_COEFFICIENT, NoiseCalibration
 from mabdi.simulate.rig import SimulatedRig
 from mabdi.sources.tum import TumSequence, write_tum
 

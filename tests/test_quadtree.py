@@ -139,7 +139,8 @@ def test_compiled_stages_give_the_numpy_leaves(noise):
 
     from mabdi.config import load_run_config
     from mabdi.depth import depth_array
-    from mabdi.filters.depth_image import FilterDepthImage, SensorNoise
+    from mabdi.filters.depth_image import FilterDepthImage
+    from mabdi.sensor_noise import SensorNoise
     from mabdi.filters.quadtree import leaves_of_image
     from mabdi.simulate.path import path_from_config
     from mabdi.sources.scene import SourceScene

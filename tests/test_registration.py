@@ -13,7 +13,8 @@ from mabdi.camera import Intrinsics, look_at
 from mabdi.config import load_run_config, set_value
 from mabdi.depth import DepthFrame
 from mabdi.errors import ConfigError
-from mabdi.filters.depth_image import DepthRenderer, SensorNoise, noise_rng
+from mabdi.filters.depth_image import DepthRenderer
+from mabdi.sensor_noise import SensorNoise, noise_rng
 from mabdi.filters.map_anchor import MapAnchor
 from mabdi.pose_noise import PoseNoise
 from mabdi.filters.registration import (

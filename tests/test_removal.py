@@ -10,7 +10,7 @@ from vtkmodules.vtkCommonDataModel import vtkCellLocator
 import mabdi
 from conftest import plane_mesh
 from mabdi.camera import Intrinsics, project
-from mabdi.depth import DepthFrame, image_pose
+from mabdi.depth import DepthFrame, depth_image, image_pose
 from mabdi.filters.depth_image import DepthRenderer
 from mabdi.filters.registration import RegistrationParameters
 from mabdi.filters.removal import RemovalParameters, depth_edges, update_log_odds
@@ -181,7 +181,7 @@ def _votes_after_re_meshing(replacement) -> tuple[np.ndarray, np.ndarray]:
     into ``replacement(plane)``; D sees through it (3 m). Returns the evidence of the old plane's faces and of
     the replacement's, as the map holds them after the votes."""
     from mabdi.filters.classifier import ClassifierParameters, FilterClassifier
-    from mabdi.filters.depth_image import SensorNoise
+    from mabdi.sensor_noise import SensorNoise
     from mabdi.filters.expected_image import MAP_PORT, MEASURED_PORT, FilterExpectedImage
     from mabdi.loop.object_removal import ObjectRemoval
     from mabdi.filters.registry import SurfaceCapabilities
@@ -192,19 +192,19 @@ def _votes_after_re_meshing(replacement) -> tuple[np.ndarray, np.ndarray]:
     world.add_patch("patch_7", plane, frame=0)
     pose = np.eye(4)
     pose[:3, 3] = [0.013, -0.021, 0.0]
-    measured = DepthFrame(np.full(SMALL.shape, 3.0, np.float32), SMALL, pose, 1).to_image()
+    noise = SensorNoise.of("zbuffer")
+    measured = depth_image(np.full(SMALL.shape, 3.0, np.float32), SMALL, pose, 1, noise=noise)
     expected = FilterExpectedImage(identity=True)
     expected.SetInputDataObject(MAP_PORT, world.map)
     expected.SetInputDataObject(MEASURED_PORT, measured)
     expected.Update()
-    noise = SensorNoise.of("zbuffer")
-    classifier = FilterClassifier(ClassifierParameters(), noise=noise)
+    classifier = FilterClassifier(ClassifierParameters())
     classifier.SetInputDataObject(0, measured)
     classifier.SetInputConnection(1, expected.GetOutputPort())
     classifier.Update()
     new = replacement(plane)
     world.add_patch("patch_7", new, frame=1)  # re-meshed after E was drawn, as voxel planes do at the append
-    stage = ObjectRemoval(RemovalParameters(edge_margin=0), noise, classifier.threshold)
+    stage = ObjectRemoval(RemovalParameters(edge_margin=0), classifier.threshold)
     stage.run(measured, expected.GetOutput(), classifier.GetOutput(), world, None, SurfaceCapabilities(), votes=True)
     count = world.block("patch_7").GetNumberOfCells()
     evidence = world.face_evidence_of(np.arange(1, count + 1), FaceIdTable(["patch_7"], [1], [count]))

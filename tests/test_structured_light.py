@@ -16,7 +16,8 @@ from mabdi.camera import Intrinsics, depth_to_zbuffer
 from mabdi.config import load_run_config
 from mabdi.depth import DepthFrame
 from mabdi.errors import ConfigError
-from mabdi.filters.depth_image import FilterDepthImage, SensorNoise, correlated_field, noise_rng
+from mabdi.filters.depth_image import FilterDepthImage
+from mabdi.sensor_noise import SensorNoise, correlated_field, noise_rng
 
 K = Intrinsics()
 SL = SensorNoise("structured_light", focal=K.fx)  # as a [sensor] section builds it: focal = fx

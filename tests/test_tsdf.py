@@ -206,7 +206,7 @@ def test_smoothed_depth_brings_the_surface_of_a_noisy_plane_nearer():
     it): with one noisy frame the TSDF surface lies nearer the plane; without a noise model nothing changes."""
     pytest.importorskip("open3d")
     from mabdi.evaluate.tsdf import run_tsdf
-    from mabdi.filters.depth_image import SensorNoise
+    from mabdi.sensor_noise import SensorNoise
 
     exact = plane_frames(offsets=(0.0,), intrinsics=Intrinsics()).read(0)
     sigma = SensorNoise("kinect").sigma(exact.depth, exact.intrinsics.near, exact.intrinsics.far)

@@ -45,7 +45,7 @@ from mabdi.config import RunConfig, with_overrides
 from mabdi.evaluate.dynamic import GhostObserver, GhostTracker, departures
 from mabdi.evaluate.metrics import SAMPLES, evaluate_map, evaluate_run, observed_ground_truth, scenes_per_pose
 from mabdi.evaluate.tsdf import TsdfSettings, alignment_error, open3d_status, run_tsdf, tune_tsdf
-from mabdi.filters.depth_image import SensorNoise
+from mabdi.sensor_noise import SensorNoise
 from mabdi.io.atomic import write_text
 from mabdi.io.plots import write_elements_plot
 from mabdi.simulate.rig import SimulatedRig

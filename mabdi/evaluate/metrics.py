@@ -40,7 +40,7 @@ from mabdi.evaluate.distance import distances_to_mesh, distances_within
 from mabdi.evaluate.redundancy import DELTA_MIN, redundancy
 from mabdi.evaluate.sampling import SurfaceSamples, sample_surface
 from mabdi.evaluate.visibility import observed_mask
-from mabdi.filters.depth_image import SensorNoise
+from mabdi.sensor_noise import SensorNoise
 from mabdi.io.vtk_files import write_mesh_file
 from mabdi.simulate.path import circle_index
 

@@ -58,7 +58,7 @@ from vtkmodules.vtkCommonDataModel import vtkPolyData
 from mabdi.camera import Intrinsics
 from mabdi.depth import DepthFrame
 from mabdi.errors import ConfigError
-from mabdi.filters.depth_image import SensorNoise
+from mabdi.sensor_noise import SensorNoise
 from mabdi.filters.depth_smoothing import smooth_depth_by_noise
 from mabdi.polydata import triangles_polydata
 from mabdi.simulate.path import circle_index
@@ -175,7 +175,7 @@ class TsdfMapper:
 
     ``TsdfMapper(voxel_size, intrinsics)`` (the old form) still works: the
     other settings are :class:`TsdfSettings`' defaults. ``noise``: the sensor's
-    noise model (a :class:`~mabdi.filters.depth_image.SensorNoise` or its name),
+    noise model (a :class:`~mabdi.sensor_noise.SensorNoise` or its name),
     which ``settings.smooth_depth`` follows.
     """
 

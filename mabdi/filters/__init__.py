@@ -1,13 +1,13 @@
 """Filters: one module per VTK algorithm of the MABDI pipeline, and beside them what only they use: their
 numba kernels, the surface registry, the rules of removal and refinement (the loop runs those stages,
-:mod:`mabdi.loop`), the map's anchor and the noise calibration of registration. The voxel planes'
-storage is :mod:`mabdi.voxels`."""
+:mod:`mabdi.loop`) and the map's anchor of registration. The voxel planes' storage is
+:mod:`mabdi.voxels`; the sensor's noise model, which every depth image carries, is
+:mod:`mabdi.sensor_noise` (its online calibration :mod:`mabdi.noise_calibration`)."""
 
 from mabdi.filters.classifier import ClassifierParameters, FilterClassifier
-from mabdi.filters.depth_image import DepthRenderer, FilterDepthImage, SensorNoise
+from mabdi.filters.depth_image import DepthRenderer, FilterDepthImage
 from mabdi.filters.pixel_grid import FilterDepthImageToSurface, FilterPixelGrid, PixelGridParameters
 from mabdi.filters.map_anchor import MapAnchor
-from mabdi.filters.noise_calibration import NoiseCalibration
 from mabdi.filters.quadtree import FilterQuadTree, QuadTreeParameters
 from mabdi.filters.registration import FilterRegistration, RegistrationParameters
 from mabdi.voxels.voxel_map import VoxelMap
@@ -32,10 +32,8 @@ __all__ = [
     "FilterVoxelPlanes",
     "FilterWorldMesh",
     "MapAnchor",
-    "NoiseCalibration",
     "QuadTreeParameters",
     "RegistrationParameters",
     "VoxelMap",
     "VoxelPlanesParameters",
-    "SensorNoise",
 ]

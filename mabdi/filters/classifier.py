@@ -6,7 +6,8 @@ from the same pose, rendered without noise). Both are depth images
 
 Per pixel, with tau = max(tau_min, k_sigma * sqrt(sigma(z)^2 + sigma_pose^2))
 metres at the measured depth z = D, sigma the active noise model's standard
-deviation (:meth:`mabdi.filters.depth_image.SensorNoise.sigma`) and
+deviation (:meth:`mabdi.sensor_noise.SensorNoise.sigma`, of the model D carries in its
+field data, :func:`mabdi.depth.image_noise`) and
 sigma_pose the depth uncertainty that the pose's own uncertainty causes at
 that pixel of E (0 unless D carries a ``pose_covariance``, which frame-to-map
 registration puts there, :func:`mabdi.filters.registration.pose_depth_sigma`:
@@ -55,9 +56,9 @@ from vtkmodules.vtkCommonDataModel import vtkImageData
 from vtkmodules.vtkCommonExecutionModel import vtkStreamingDemandDrivenPipeline
 
 from mabdi.algorithm import MabdiAlgorithm
-from mabdi.depth import copy_colour, depth_array, fill_depth_image, image_frame, image_intrinsics, image_pose, image_timestamp
+from mabdi.depth import copy_colour, depth_array, fill_depth_image, image_frame, image_intrinsics, image_noise, image_pose, image_timestamp
 from mabdi.errors import ConfigError
-from mabdi.filters.depth_image import SensorNoise
+from mabdi.sensor_noise import SensorNoise
 from mabdi.filters.registration import image_pose_covariance, pose_depth_sigma
 
 NO_RETURN, KNOWN, NOVEL, CONTRADICTED = 0, 1, 2, 3
@@ -83,7 +84,7 @@ class ClassifierParameters:
     noisier look are replaced (:mod:`mabdi.filters.refinement`; nothing
     happens with a noise-free sensor). ``"auto"`` (the default) turns it on
     where the noise model says neighbouring pixels err together
-    (:attr:`~mabdi.filters.depth_image.SensorNoise.correlated`: a
+    (:attr:`~mabdi.sensor_noise.SensorNoise.correlated`: a
     structured-light or stereo camera, a real camera under ``noise =
     "auto"``): smoothing cannot take such errors out of one look, so later
     looks must be averaged in; with independent noise the smoothed first
@@ -178,10 +179,9 @@ def remove_specks(novel: np.ndarray, min_width: int, min_region: int) -> np.ndar
 class FilterClassifier(MabdiAlgorithm):
     """Label D's pixels against E and pass on the novel ones (2 depth images -> depth image)."""
 
-    def __init__(self, parameters: ClassifierParameters | None = None, noise: SensorNoise | str = "none") -> None:
+    def __init__(self, parameters: ClassifierParameters | None = None) -> None:
         super().__init__(nInputPorts=2, inputType="vtkImageData", nOutputPorts=1, outputType="vtkImageData")
         self._parameters = parameters if parameters is not None else ClassifierParameters()
-        self._noise = SensorNoise.of(noise)
 
     @property
     def parameters(self) -> ClassifierParameters:
@@ -191,18 +191,12 @@ class FilterClassifier(MabdiAlgorithm):
     def parameters(self, value: ClassifierParameters) -> None:
         self._set("_parameters", value)
 
-    @property
-    def noise(self) -> SensorNoise:
-        """The noise model whose sigma(z) sets the threshold (the sensor's)."""
-        return self._noise
-
-    @noise.setter
-    def noise(self, value: SensorNoise | str) -> None:
-        self._set("_noise", SensorNoise.of(value))
-
-    def threshold(self, depth: np.ndarray, near: float, far: float, pose_sigma: np.ndarray | None = None) -> np.ndarray:
-        """tau = max(tau_min, k_sigma sqrt(sigma(z)^2 + pose_sigma^2)) in metres (``pose_sigma`` NaN counts as 0)."""
-        sigma = self._noise.sigma(depth, near, far)
+    def threshold(
+        self, depth: np.ndarray, noise: SensorNoise, near: float, far: float, pose_sigma: np.ndarray | None = None
+    ) -> np.ndarray:
+        """tau = max(tau_min, k_sigma sqrt(sigma(z)^2 + pose_sigma^2)) in metres, sigma(z) of the sensor's
+        ``noise`` model (the one D carries) (``pose_sigma`` NaN counts as 0)."""
+        sigma = noise.sigma(depth, near, far)
         if pose_sigma is not None:
             sigma = np.sqrt(sigma * sigma + np.nan_to_num(pose_sigma, nan=0.0).astype(sigma.dtype) ** 2)
         return np.maximum(sigma.dtype.type(self._parameters.tau_min), sigma.dtype.type(self._parameters.k_sigma) * sigma)
@@ -245,7 +239,8 @@ class FilterClassifier(MabdiAlgorithm):
         expected = depth_array(expected_image)
         covariance = image_pose_covariance(measured_image)
         pose_sigma = None if covariance is None else pose_depth_sigma(expected, intrinsics, covariance)
-        tau = self.threshold(measured, intrinsics.near, intrinsics.far, pose_sigma)
+        noise = image_noise(measured_image)
+        tau = self.threshold(measured, noise, intrinsics.near, intrinsics.far, pose_sigma)
         labels = classify(measured, expected, tau)
         p = self._parameters
         raw_novel = labels == NOVEL
@@ -257,7 +252,7 @@ class FilterClassifier(MabdiAlgorithm):
             meshed = dilate(novel, p.rim) & np.isfinite(measured)
         depth = np.where(meshed, measured, np.float32(np.nan)).astype(np.float32)
         output = vtkImageData.GetData(outInfo)
-        fill_depth_image(output, depth, intrinsics, pose, image_frame(measured_image), image_timestamp(measured_image))
+        fill_depth_image(output, depth, intrinsics, pose, image_frame(measured_image), image_timestamp(measured_image), noise=noise)
         copy_colour(measured_image, output)  # D's colour image, for the surface filters
         label_array = numpy_to_vtk(labels.ravel(), deep=False)
         label_array.SetName(LABEL_ARRAY)

@@ -7,68 +7,8 @@ the depth read back blends several samples instead of the pixel centre's), reads
 the z-buffer, flips it to top-row-first and converts it to metres. Pixels
 with no surface within [near, far] are NaN.
 
-Noise models (:class:`SensorNoise`):
-
-* ``none``
-* ``zbuffer`` (seed 001): D_noisy = d + d N(0, sigma) on the normalised
-  z-buffer value d (sigma = 0.001), then converted to metres; about 1, 6 and
-  15 mm standard deviation at 1, 2 and 3 m for near = 0.5 m, far = 4 m. A
-  value pushed to d >= 1 is beyond the far plane: NaN.
-* ``kinect``: axial sigma(z) = 1.425e-3 z^2 m (Khoshelham & Elberink 2012),
-  added in metres.
-* ``structured_light``: a structured-light / stereo camera, modelled where
-  its error arises, in disparity. The true depth z becomes the disparity
-  d = f b / z (f = :attr:`SensorNoise.focal` in pixels, b = ``baseline`` in
-  metres); d gets ``disparity_sigma`` pixels times a spatially correlated
-  unit-variance Gaussian field (white noise smoothed by a Gaussian of
-  ``correlation_length`` pixels, :func:`correlated_field`), is rounded to the
-  disparity lattice (``disparity_step`` pixels) and turned back into
-  z = f b / d. So the depth error grows with z^2, neighbouring pixels err
-  together, and every depth lies on the lattice f b / (k step). Returns are
-  lost (NaN) where a real camera loses them: within ``edge_dropout`` pixels
-  of a depth discontinuity of the true image (neighbours whose depths differ
-  by more than ``edge_jump`` times the nearer one, or a surface next to
-  background), and at grazing incidence (the angle between the pixel's ray
-  and the surface normal, estimated from the true depth image, beyond
-  ``max_incidence`` degrees). Per-pixel standard deviation:
-  sigma(z) = z^2 sigma_eff / (f b) with sigma_eff^2 = disparity_sigma^2 +
-  disparity_step^2 / 12 (the quantisation as uniform error).
-
-  The defaults are a Kinect v1 (PrimeSense). Khoshelham & Elberink,
-  "Accuracy and resolution of Kinect depth data for indoor mapping
-  applications", Sensors 12 (2012) 1437-1454: base length b = 7.5 cm, and
-  the random error sigma_z = 1.425e-3 z^2 m, which they derive from a
-  disparity error of half a disparity unit with m / (f b) = 2.85e-3 per unit
-  and metre. Konolige & Mihelich, "Technical description of Kinect
-  calibration" (ROS wiki, 2011): disparity in units of 1/8 pixel
-  (``disparity_step`` = 0.125), IR focal length about 580 px at 640 x 480
-  (``focal`` = 580; (1/8) / (580 x 0.075) = 2.87e-3 agrees with the m / (f b)
-  above), block matching over a window of about 9 x 9 pixels. So
-  sigma_eff = 1.425e-3 f b = 0.062 px, and ``disparity_sigma`` = 0.05 px once
-  the quantisation's 0.125 / sqrt(12) = 0.036 px is counted (sigma(z) =
-  1.42e-3 z^2 m). Our choices, with their reasons: ``correlation_length`` =
-  2.5 px, because neighbouring pixels share most of their 9-pixel matching
-  window, whose box profile has a standard deviation of 9 / sqrt(12) = 2.6 px;
-  ``edge_dropout`` = 2 px, because a window that straddles an occluding edge
-  fails to match (Kinect images show an invalid band of a few pixels around
-  objects); ``max_incidence`` = 75 degrees, because the projected pattern
-  seen more obliquely is too stretched to match (real images lose such
-  surfaces); ``edge_jump`` = 0.05, a jump no plane makes between neighbours
-  unless tilted past about 87 degrees. For an active stereo camera such as
-  the RealSense D435, Intel's D400 datasheet gives a 50 mm baseline and a
-  subpixel RMS error of about 0.08 px: ``baseline`` = 0.05,
-  ``disparity_sigma`` = 0.08, a fine ``disparity_step`` (its disparity has
-  sub-pixel resolution) and ``focal`` its fx.
-* ``range`` (a spinning LiDAR's range images, :mod:`mabdi.filters.range_rendering`):
-  Gaussian noise of ``range_sigma`` metres on the range along each beam,
-  the same at every range. The default, 0.02 m, is the figure Velodyne's
-  HDL-64E S2 datasheet gives for its 64 beams ("accuracy < 2 cm, one sigma
-  at 25 m"); Ouster's OS1 datasheets give a precision of 1-3 cm over most of
-  the range, the same order. Only ``none`` and ``range`` apply to a LiDAR.
-
-Noise is reproducible: frame i of a run with seed s always draws from the
-random stream ``numpy.random.default_rng([s, i])``, independent of every
-other frame and of the order frames are rendered in.
+Noise models: :mod:`mabdi.sensor_noise` (:class:`SensorNoise`); the filter draws its model's noise
+into each image and writes the model into the image's field data.
 
 Backends: ``egl`` (default; Mesa llvmpipe on a CPU machine, the GPU driver
 where there is one; no X server) or ``osmesa`` (needs Debian's libosmesa6).
@@ -77,8 +17,7 @@ where there is one; no X server) or ``osmesa`` (needs Debian's libosmesa6).
 from __future__ import annotations
 
 import ctypes.util
-import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 from vtkmodules.util.numpy_support import numpy_to_vtk, vtk_to_numpy
@@ -94,340 +33,18 @@ from mabdi.camera import (
     check_pose,
     configure_vtk_camera,
     frustum_planes,
-    zbuffer_depth_derivative,
     zbuffer_to_depth,
 )
 from mabdi.depth import fill_depth_image
 from mabdi.errors import ConfigError
 from mabdi.face_identity import FaceCodes, FaceIdTable, block_address, face_rgb
-from mabdi.filters.noise_calibration import NoiseCalibration
 from mabdi.filters.range_rendering import TRIANGLE_RGB_ARRAY, RangeRenderer
 from mabdi.polydata import FACE_RGB_ARRAY, named_leaves
+from mabdi.sensor_noise import SensorNoise, noise_rng
 from mabdi.spherical import SphericalGeometry
 
-#: Depth noise models (see the module docs).
-NOISE_MODELS = ("none", "zbuffer", "kinect", "structured_light", "auto", "range")
-#: The noise models a LiDAR's range images take (the others model a camera's depth).
-RANGE_NOISE_MODELS = ("none", "range")
 #: Off-screen render backends; the first is the default.
 BACKENDS = ("egl", "osmesa")
-
-
-@dataclass(frozen=True)
-class SensorNoise:
-    """A depth noise model and its parameters (see the module docs).
-
-    ``zbuffer_sigma``: the ``zbuffer`` model's relative sigma; ``kinect_coefficient``:
-    the ``kinect`` model's c in c z^2 (1/m). The ``structured_light`` model's:
-    ``baseline`` (m), ``focal`` (the disparity camera's focal length, pixels:
-    :meth:`from_config` sets it to the sensor's ``fx``; a model built by
-    name keeps the Kinect's 580), ``disparity_sigma``
-    and ``disparity_step`` (pixels; step 0 = no quantisation),
-    ``correlation_length`` (pixels, 0 = white noise), ``edge_dropout``
-    (pixels), ``edge_jump`` (relative) and ``max_incidence`` (degrees, 90 =
-    no loss at grazing incidence).
-    """
-
-    model: str = "none"
-    zbuffer_sigma: float = 0.001
-    kinect_coefficient: float = 1.425e-3
-    baseline: float = 0.075
-    focal: float = 580.0
-    disparity_sigma: float = 0.05
-    disparity_step: float = 0.125
-    correlation_length: float = 2.5
-    edge_dropout: int = 2
-    edge_jump: float = 0.05
-    max_incidence: float = 75.0
-    #: ``range``: the LiDAR's range noise, one sigma in metres (see the module docs).
-    range_sigma: float = 0.02
-    #: ``auto``: the online calibration whose curve :meth:`sigma` reads (made with the model; shared by copies).
-    calibration: NoiseCalibration | None = field(default=None, compare=False, repr=False)
-
-    def __post_init__(self) -> None:
-        if self.model not in NOISE_MODELS:
-            raise ConfigError(f"unknown noise model {self.model!r} (known: {', '.join(NOISE_MODELS)})")
-        if self.model == "auto" and self.calibration is None:
-            object.__setattr__(self, "calibration", NoiseCalibration())
-        checks = (
-            ("zbuffer_sigma", self.zbuffer_sigma >= 0, ">= 0"),
-            ("kinect_coefficient", self.kinect_coefficient >= 0, ">= 0"),
-            ("baseline", self.baseline > 0, "> 0 (metres)"),
-            ("focal", self.focal > 0, "> 0 (pixels)"),
-            ("disparity_sigma", self.disparity_sigma >= 0, ">= 0 (pixels)"),
-            ("disparity_step", self.disparity_step >= 0, ">= 0 (pixels; 0 = no quantisation)"),
-            ("correlation_length", self.correlation_length >= 0, ">= 0 (pixels; 0 = white noise)"),
-            ("edge_jump", self.edge_jump > 0, "> 0 (a relative depth jump)"),
-            ("max_incidence", 0 < self.max_incidence <= 90, "in (0, 90] degrees"),
-            ("range_sigma", self.range_sigma >= 0, ">= 0 (metres)"),
-        )
-        for name, ok, rule in checks:
-            value = getattr(self, name)
-            if not (ok and math.isfinite(value)):
-                raise ConfigError(f"noise parameter {name} must be {rule}, got {value!r}")
-        dropout = self.edge_dropout
-        if isinstance(dropout, bool) or not isinstance(dropout, (int, np.integer)) or dropout < 0:
-            raise ConfigError(f"noise parameter edge_dropout must be an integer >= 0 (pixels), got {dropout!r}")
-
-    @classmethod
-    def of(cls, value: SensorNoise | str) -> SensorNoise:
-        """``value`` itself if it is a SensorNoise, else the model of that name with default parameters."""
-        return value if isinstance(value, SensorNoise) else cls(value)
-
-    @classmethod
-    def from_config(cls, sensor) -> SensorNoise:
-        """The noise of a ``[sensor]`` config section (:class:`mabdi.config.SensorConfig`); ``focal`` is its ``fx``."""
-        return cls(
-            sensor.noise,
-            sensor.zbuffer_sigma,
-            sensor.kinect_coefficient,
-            baseline=sensor.baseline,
-            focal=sensor.fx,
-            disparity_sigma=sensor.disparity_sigma,
-            disparity_step=sensor.disparity_step,
-            correlation_length=sensor.correlation_length,
-            edge_dropout=sensor.edge_dropout,
-            edge_jump=sensor.edge_jump,
-            max_incidence=sensor.max_incidence,
-            range_sigma=sensor.range_sigma,
-        )
-
-    @property
-    def correlated(self) -> bool:
-        """Whether neighbouring pixels err together: ``structured_light`` with its correlated field or its
-        disparity quantisation (a surface facing the camera comes as one terrace), and ``auto`` (a real
-        camera: block matching and the device's own filtering correlate its errors). The simulator's
-        ``zbuffer`` and ``kinect`` draw every pixel's error on its own."""
-        if self.model == "structured_light":
-            return (self.correlation_length > 0 and self.disparity_sigma > 0) or self.disparity_step > 0
-        return self.model == "auto"
-
-    @property
-    def loses_returns(self) -> bool:
-        """Whether the camera loses returns on surfaces within its range, so that a pixel without a return
-        says nothing about free space: ``structured_light`` with its edge or grazing-incidence dropouts
-        on, and ``auto`` (a real camera: they all lose returns at depth edges, at grazing incidence and
-        on dark or shiny surfaces). The simulator's ``none``, ``zbuffer`` and ``kinect`` return every
-        surface within the range."""
-        if self.model == "structured_light":
-            return self.edge_dropout > 0 or self.max_incidence < 90.0
-        return self.model == "auto"
-
-    @property
-    def disparity_sigma_effective(self) -> float:
-        """``structured_light``: the disparity error (pixels) with the quantisation, sqrt(sigma_d^2 + step^2 / 12)."""
-        return math.sqrt(self.disparity_sigma**2 + self.disparity_step**2 / 12.0)
-
-    def sigma(self, depth, near: float, far: float) -> np.ndarray:
-        """Expected standard deviation (m) of a measurement at metric depth ``depth``.
-
-        ``zbuffer``: sigma d |dz/dd| (first order); ``kinect``: c z^2;
-        ``structured_light``: z^2 sigma_eff / (f b); ``range``: ``range_sigma`` (``depth`` is a range);
-        ``none``: 0.
-        Computed in float32 for float32 input, float64 otherwise.
-        """
-        z = np.asarray(depth)
-        if z.dtype != np.float32:
-            z = z.astype(np.float64)
-        if self.model == "zbuffer":
-            d = far * (z - near) / (z * (far - near))
-            return self.zbuffer_sigma * d * zbuffer_depth_derivative(z, near, far)
-        if self.model == "kinect":
-            return self.kinect_coefficient * z * z
-        if self.model == "structured_light":
-            return z * z * z.dtype.type(self.disparity_sigma_effective / (self.focal * self.baseline))
-        if self.model == "auto":
-            return self.calibration.sigma(z)
-        if self.model == "range":
-            return np.full_like(z, self.range_sigma)
-        return np.zeros_like(z)
-
-    def ranges_with_noise(self, ranges: np.ndarray, rng: np.random.Generator | None) -> np.ndarray:
-        """A LiDAR's ranges (float32 metres, NaN = no return) with this model's noise drawn from ``rng``
-        (``range``: sigma = ``range_sigma``; ``none`` or no ``rng``: unchanged). Other models are a camera's."""
-        if self.model not in RANGE_NOISE_MODELS:
-            raise ConfigError(f"noise model {self.model!r} is a camera's; a LiDAR takes {' or '.join(RANGE_NOISE_MODELS)}")
-        ranges = np.asarray(ranges, dtype=np.float32)
-        if self.model == "range" and rng is not None and self.range_sigma > 0:
-            valid = np.isfinite(ranges)
-            ranges = ranges.copy()
-            ranges[valid] += np.float32(self.range_sigma) * rng.standard_normal(int(valid.sum()), dtype=np.float32)
-        return ranges
-
-    def depth_from_zbuffer(
-        self,
-        zbuffer: np.ndarray,
-        near: float,
-        far: float,
-        rng: np.random.Generator | None,
-        intrinsics: Intrinsics | None = None,
-    ) -> np.ndarray:
-        """Metric depth (float32, NaN = no return) from a z-buffer, with this model's noise drawn from ``rng``.
-
-        Works in float32: the z-buffer holds 24 bits, and float32 metres
-        resolve 0.5 um at 4 m. ``structured_light`` needs ``intrinsics`` (its
-        losses at grazing incidence look along each pixel's ray); its losses
-        are applied with or without ``rng``, its disparity noise only with one.
-        """
-        if self.model == "auto" and rng is not None:
-            raise ConfigError(
-                "noise model 'auto' calibrates the thresholds to a recording's noise; a simulated sensor "
-                "needs a model to draw noise from (none, zbuffer, kinect, structured_light)"
-            )
-        if self.model == "range" and rng is not None:
-            raise ConfigError("noise model 'range' is a LiDAR's (noise in range along each beam); a camera takes none, zbuffer, kinect or structured_light")
-        d = np.asarray(zbuffer, dtype=np.float32)
-        if self.model == "zbuffer" and rng is not None:
-            valid = d < 1.0
-            dv = d[valid]
-            d = d.copy()
-            d[valid] = dv + dv * (np.float32(self.zbuffer_sigma) * rng.standard_normal(dv.size, dtype=np.float32))
-        depth = zbuffer_to_depth(d, near, far)
-        if self.model == "kinect" and rng is not None:
-            valid = np.isfinite(depth)
-            zv = depth[valid]
-            depth[valid] = zv + np.float32(self.kinect_coefficient) * zv * zv * rng.standard_normal(zv.size, dtype=np.float32)
-        if self.model == "structured_light":
-            if intrinsics is None:
-                raise ValueError("the structured_light noise model needs the intrinsics (depth_from_zbuffer(..., intrinsics=...))")
-            depth = self._structured_light(depth, intrinsics, rng)
-        return depth
-
-    def _structured_light(self, depth: np.ndarray, intrinsics: Intrinsics, rng: np.random.Generator | None) -> np.ndarray:
-        """The ``structured_light`` model on a true depth image (see the module docs)."""
-        lost = edge_pixels(depth, self.edge_jump, self.edge_dropout)
-        if self.max_incidence < 90.0:
-            lost |= incidence_cosine(depth, intrinsics) < np.float32(math.cos(math.radians(self.max_incidence)))
-        fb = np.float32(self.focal * self.baseline)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            disparity = fb / depth
-            if rng is not None and self.disparity_sigma > 0:
-                field = correlated_field(depth.shape, self.correlation_length, rng)
-                disparity += np.float32(self.disparity_sigma) * field
-            if self.disparity_step > 0:
-                step = np.float32(self.disparity_step)
-                disparity = np.round(disparity / step) * step
-            disparity[lost | ~(disparity > 0)] = np.nan
-            return fb / disparity
-
-
-def _gaussian_weights(sigma: float) -> np.ndarray:
-    """The normalised 1-D kernel :func:`scipy.ndimage.gaussian_filter1d` uses for ``sigma`` (truncate 3)."""
-    radius = int(_TRUNCATE * sigma + 0.5)
-    x = np.arange(-radius, radius + 1, dtype=np.float64)
-    w = np.exp(-0.5 * (x / sigma) ** 2)
-    return w / w.sum()
-
-
-_TRUNCATE = 3.0
-
-
-def correlated_field(shape: tuple[int, int], length: float, rng: np.random.Generator) -> np.ndarray:
-    """(H, W) float32 Gaussian field of unit variance, correlated over ``length`` pixels.
-
-    White noise smoothed by a Gaussian of standard deviation ``length``
-    pixels (0: the white noise itself), scaled back to unit variance by the
-    kernel's own sum of squares (exact, not estimated). The white noise is
-    drawn with a margin, so the field is stationary up to the image border.
-    For ``length`` >= 2 it is made at half resolution (smoothed by
-    ``length`` / 2) and interpolated bilinearly, each interpolated sample
-    rescaled to unit variance: a 640 x 480 field then costs about 2 ms
-    instead of 7 (one core of the 2-core test machine). Interpolation
-    lengthens the correlation a little (neighbour correlation 0.963
-    against 0.961 at 2.5 px).
-    """
-    from scipy.ndimage import gaussian_filter
-
-    height, width = shape
-    if length <= 0:
-        return rng.standard_normal(shape, dtype=np.float32)
-    factor = 2 if length >= 2.0 else 1
-    sigma = length / factor
-    weights = _gaussian_weights(sigma)
-    margin = (len(weights) - 1) // 2
-    rows, cols = -(-height // factor) + (factor - 1), -(-width // factor) + (factor - 1)
-    white = rng.standard_normal((rows + 2 * margin, cols + 2 * margin), dtype=np.float32)
-    field = gaussian_filter(white, sigma, mode="constant", truncate=_TRUNCATE)[margin : margin + rows, margin : margin + cols]
-    field *= np.float32(1.0 / float(np.sum(weights**2)))  # 2-D variance = (sum w^2)^2; its square root
-    if factor == 2:
-        lag1 = float(np.sum(weights[:-1] * weights[1:]) / np.sum(weights**2))  # neighbour correlation per axis
-        gain = np.float32(0.5 / math.sqrt(0.5 * (1.0 + lag1)))  # the mean of two neighbours, back to unit variance
-        up = np.empty((2 * rows - 1, cols), dtype=np.float32)
-        up[::2] = field
-        np.add(field[:-1], field[1:], out=up[1::2])
-        up[1::2] *= gain
-        field = np.empty((2 * rows - 1, 2 * cols - 1), dtype=np.float32)
-        field[:, ::2] = up
-        np.add(up[:, :-1], up[:, 1:], out=field[:, 1::2])
-        field[:, 1::2] *= gain
-    return field[:height, :width]
-
-
-def edge_pixels(depth: np.ndarray, jump: float, dropout: int) -> np.ndarray:
-    """(H, W) bool: pixels within ``dropout`` pixels of a depth discontinuity (``dropout`` 0: none).
-
-    A discontinuity lies between 4-neighbours whose depths differ by more
-    than ``jump`` times the nearer one, or of which one has a return and the
-    other none; the pixels on both sides of it are at distance 1.
-    """
-    edges = np.zeros(depth.shape, dtype=bool)
-    if dropout <= 0:
-        return edges
-    valid = np.isfinite(depth)
-    with np.errstate(invalid="ignore"):
-        for axis in (0, 1):
-            a = depth[:-1] if axis == 0 else depth[:, :-1]
-            b = depth[1:] if axis == 0 else depth[:, 1:]
-            va = valid[:-1] if axis == 0 else valid[:, :-1]
-            vb = valid[1:] if axis == 0 else valid[:, 1:]
-            step = (va != vb) | (np.abs(a - b) > np.float32(jump) * np.fmin(a, b))
-            if axis == 0:
-                edges[:-1] |= step
-                edges[1:] |= step
-            else:
-                edges[:, :-1] |= step
-                edges[:, 1:] |= step
-    for _ in range(dropout - 1):  # grow by one pixel (a 3 x 3 square) per further pixel of dropout
-        grown = edges.copy()
-        grown[1:] |= edges[:-1]
-        grown[:-1] |= edges[1:]
-        edges = grown.copy()
-        edges[:, 1:] |= grown[:, :-1]
-        edges[:, :-1] |= grown[:, 1:]
-    return edges
-
-
-def incidence_cosine(depth: np.ndarray, intrinsics: Intrinsics) -> np.ndarray:
-    """(H, W) float32 cosine of the angle between each pixel's ray and the surface normal (NaN: unknown).
-
-    The normal comes from the gradient of inverse depth w = 1/z, which is
-    linear in the ray coordinates (a, b) = ((u + 0.5 - cx) / fx, (v + 0.5 - cy) / fy)
-    on a plane n . p = c: w = (n_x a + n_y b + n_z) / c. So n / c =
-    (dw/da, dw/db, w - a dw/da - b dw/db) and cos = |w| / (|n / c| |(a, b, 1)|),
-    exact on planes. Central differences; one-sided at the image border.
-    """
-    with np.errstate(divide="ignore", invalid="ignore"):
-        w = np.float32(1.0) / depth
-        gu = np.empty_like(w)
-        gv = np.empty_like(w)
-        gu[:, 1:-1] = (w[:, 2:] - w[:, :-2]) * np.float32(0.5)
-        gu[:, 0] = w[:, 1] - w[:, 0]
-        gu[:, -1] = w[:, -1] - w[:, -2]
-        gv[1:-1] = (w[2:] - w[:-2]) * np.float32(0.5)
-        gv[0] = w[1] - w[0]
-        gv[-1] = w[-1] - w[-2]
-        a = ((np.arange(depth.shape[1], dtype=np.float32) + np.float32(0.5 - intrinsics.cx)) / np.float32(intrinsics.fx))[None, :]
-        b = ((np.arange(depth.shape[0], dtype=np.float32) + np.float32(0.5 - intrinsics.cy)) / np.float32(intrinsics.fy))[:, None]
-        ga = gu * np.float32(intrinsics.fx)
-        gb = gv * np.float32(intrinsics.fy)
-        nz = w - a * ga - b * gb
-        norm = np.sqrt((ga * ga + gb * gb + nz * nz) * (a * a + b * b + np.float32(1.0)))
-        return np.abs(w) / norm
-
-
-def noise_rng(seed: int, frame: int) -> np.random.Generator:
-    """The random stream of frame ``frame`` in a run with ``seed`` (independent per frame)."""
-    return np.random.default_rng([int(seed), int(frame)])
 
 
 def _check_backend_library(backend: str) -> None:
@@ -742,7 +359,7 @@ class FilterDepthImage(MabdiAlgorithm):
         else:
             zbuffer = self.renderer.render_zbuffer(data, intr, self._pose)
             depth = self._noise.depth_from_zbuffer(zbuffer, intr.near, intr.far, rng, intrinsics=intr)
-        fill_depth_image(vtkImageData.GetData(outInfo), depth, intr, self._pose, self._frame)
+        fill_depth_image(vtkImageData.GetData(outInfo), depth, intr, self._pose, self._frame, noise=self._noise)
         return 1
 
 

@@ -9,7 +9,7 @@ averaging each pixel with its neighbours on the same surface removes most
 of it before the surface filter meshes the image.
 
 The rule, per pixel with depth z (metres) and sigma = sigma(z) from the
-sensor's noise model (:meth:`mabdi.filters.depth_image.SensorNoise.sigma`):
+sensor's noise model (:meth:`mabdi.sensor_noise.SensorNoise.sigma`):
 
 * The 8 neighbours form 4 opposite pairs (left/right, up/down and the two
   diagonals). A pair is used when *both* its pixels lie within
@@ -42,9 +42,10 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from mabdi.sensor_noise import SensorNoise
+
 if TYPE_CHECKING:
     from mabdi.camera import Intrinsics
-    from mabdi.filters.depth_image import SensorNoise
 
 #: Gate of a neighbour pair, in standard deviations of one pixel's noise (times sqrt 2 for a difference).
 SMOOTHING_GATE_K = 3.0

@@ -33,7 +33,8 @@ from vtkmodules.vtkCommonExecutionModel import vtkAlgorithm, vtkStreamingDemandD
 
 from mabdi.algorithm import MabdiAlgorithm
 from mabdi.depth import fill_depth_image, image_frame, image_intrinsics, image_pose, image_timestamp
-from mabdi.filters.depth_image import DepthRenderer, SensorNoise
+from mabdi.filters.depth_image import DepthRenderer
+from mabdi.sensor_noise import SensorNoise
 from mabdi.filters.range_rendering import TRIANGLE_RGB_ARRAY, RangeRenderer
 from mabdi.spherical import SphericalGeometry
 

@@ -69,12 +69,12 @@ from mabdi.depth import (
     depth_array,
     image_colour,
     image_intrinsics,
+    image_noise,
     image_pose,
     jump_scale,
     straight_continuations,
 )
 from mabdi.errors import ConfigError
-from mabdi.filters.depth_image import SensorNoise
 from mabdi.filters.depth_smoothing import smooth_depth_by_noise
 from mabdi.polydata import triangles_polydata
 from mabdi.spherical import SphericalGeometry
@@ -140,19 +140,18 @@ def pixel_grid_triangles(depth: np.ndarray, max_jump: float, straight: tuple[np.
 class FilterPixelGrid(MabdiAlgorithm):
     """Mesh a depth image's valid pixels as a pixel grid in world coordinates (depth image -> vtkPolyData).
 
-    ``FilterPixelGrid(PixelGridParameters(max_jump=0.01), noise="kinect")``; a bare number is taken as
-    ``max_jump``. ``noise``: the sensor's noise model (a :class:`SensorNoise` or its name), which
-    ``smooth_depth`` follows.
+    ``FilterPixelGrid(PixelGridParameters(max_jump=0.01))``; a bare number is taken as ``max_jump``.
+    ``smooth_depth`` and ``grazing`` follow the sensor's noise model that the image carries
+    (:func:`mabdi.depth.image_noise`).
     """
 
-    def __init__(self, parameters: PixelGridParameters | float | None = None, noise: SensorNoise | str = "none") -> None:
+    def __init__(self, parameters: PixelGridParameters | float | None = None) -> None:
         super().__init__(nInputPorts=1, inputType="vtkImageData", nOutputPorts=1, outputType="vtkPolyData")
         if parameters is None:
             parameters = PixelGridParameters()
         elif not isinstance(parameters, PixelGridParameters):
             parameters = PixelGridParameters(max_jump=float(parameters))
         self._parameters = parameters
-        self._noise = SensorNoise.of(noise)
 
     @property
     def parameters(self) -> PixelGridParameters:
@@ -178,13 +177,14 @@ class FilterPixelGrid(MabdiAlgorithm):
         intrinsics = image_intrinsics(image)
         pose = image_pose(image)
         depth = depth_array(image)
+        noise = image_noise(image)
         if self._parameters.smooth_depth:
-            depth = smooth_depth_by_noise(depth, self._noise, intrinsics)
+            depth = smooth_depth_by_noise(depth, noise, intrinsics)
         rays = pixel_rays(intrinsics)
         grazing = self._parameters.grazing
         straight = None
         if grazing is True or (grazing == "auto" and isinstance(intrinsics, SphericalGeometry)):
-            sigma = self._noise.sigma(depth, intrinsics.near, intrinsics.far)
+            sigma = noise.sigma(depth, intrinsics.near, intrinsics.far)
             straight = straight_continuations(rays * depth[..., None], sigma)
         triangles = pixel_grid_triangles(depth, self._parameters.max_jump * jump_scale(intrinsics), straight)
         # Keep only the pixels the triangles use, renumbered in order.

@@ -107,12 +107,13 @@ from mabdi.depth import (
     depth_array,
     image_colour,
     image_intrinsics,
+    image_noise,
     image_pose,
     pixel_angle,
     sensor_values,
 )
 from mabdi.errors import ConfigError
-from mabdi.filters.depth_image import SensorNoise
+from mabdi.sensor_noise import SensorNoise
 from mabdi.filters.depth_smoothing import smooth_depth_by_noise
 from mabdi.spherical import SphericalGeometry
 
@@ -516,13 +517,13 @@ def fitting_leaves(leaves: Leaves, residual: np.ndarray, reduced: Grid, noise: S
 class FilterQuadTree(MabdiAlgorithm):
     """Quad-tree mesh of a depth image's valid pixels (depth image -> vtkPolyData), see the module docs.
 
-    ``noise``: the sensor's noise model; the small-leaf plane test allows 3 sigma(z) of it.
+    The small-leaf plane test allows 3 sigma(z) of the sensor's noise model, the one the image carries
+    (:func:`mabdi.depth.image_noise`).
     """
 
-    def __init__(self, parameters: QuadTreeParameters | None = None, noise: SensorNoise | str = "none") -> None:
+    def __init__(self, parameters: QuadTreeParameters | None = None) -> None:
         super().__init__(nInputPorts=1, inputType="vtkImageData", nOutputPorts=1, outputType="vtkPolyData")
         self._parameters = parameters if parameters is not None else QuadTreeParameters()
-        self._noise = SensorNoise.of(noise)
         #: Region count of the last image (the pyramid root's, seed invariant 1).
         self.regions = 0
 
@@ -539,7 +540,7 @@ class FilterQuadTree(MabdiAlgorithm):
         intrinsics = image_intrinsics(image)
         pose = image_pose(image)
         p = self._parameters
-        points, reduced, leaves = leaves_of_image(depth_array(image), intrinsics, p, self._noise)
+        points, reduced, leaves = leaves_of_image(depth_array(image), intrinsics, p, image_noise(image))
         self.regions = leaves.regions
         if isinstance(reduced, ReducedSpherical) and len(leaves.level):
             # a LiDAR's beams lie far apart: a leaf whose plane puts a corner far from its range is a surface

@@ -70,7 +70,7 @@ never doubled by a layer beside it. Pixels of replaced faces do not refine.
 
 **When it runs** (``[classifier] refinement``): ``"auto"``, the default,
 turns it on where the noise model says neighbouring pixels err together
-(:attr:`~mabdi.filters.depth_image.SensorNoise.correlated`: a
+(:attr:`~mabdi.sensor_noise.SensorNoise.correlated`: a
 structured-light or stereo camera, a real camera under ``noise = "auto"``).
 There a first look's error is a terrace or a patch that smoothing the depth
 (:mod:`mabdi.filters.depth_smoothing`) cannot take out, and only later looks
@@ -118,7 +118,7 @@ from vtkmodules.util.numpy_support import numpy_to_vtk, vtk_to_numpy
 from vtkmodules.vtkCommonCore import vtkPoints
 from vtkmodules.vtkCommonDataModel import vtkPolyData
 
-from mabdi.depth import depth_array, image_frame, image_pose
+from mabdi.depth import depth_array, image_frame, image_noise, image_pose
 from mabdi.errors import ConfigError
 from mabdi.filters.classifier import NO_RETURN
 from mabdi.face_identity import FaceIdTable
@@ -309,8 +309,9 @@ class MapRefinement:
         return current
 
     def _sigma(self, loop, depth: np.ndarray) -> np.ndarray:
+        """The sensor's sigma(z) (the noise model D carries), floored at ``min_sigma``."""
         intrinsics = loop.intrinsics
-        sigma = loop.noise.sigma(depth, intrinsics.near, intrinsics.far)
+        sigma = image_noise(loop.measured_image()).sigma(depth, intrinsics.near, intrinsics.far)
         return np.maximum(sigma, sigma.dtype.type(self.parameters.min_sigma))
 
     def _match_points(self, old: np.ndarray, new: np.ndarray) -> np.ndarray:
@@ -382,7 +383,7 @@ class MapRefinement:
         start = time.perf_counter()
         p = self.parameters
         result = RefinementResult()
-        if loop.noise.model == "none" or not loop.classifier_enabled:
+        if not loop.classifier_enabled or image_noise(loop.measured_image()).model == "none":
             return result
         expected_image = loop.expected_image()
         if expected_image is None or expected_image.GetPointData().GetArray(FACE_ID_ARRAY) is None:

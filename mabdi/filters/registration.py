@@ -99,12 +99,13 @@ from vtkmodules.util.numpy_support import numpy_to_vtk, vtk_to_numpy
 from vtkmodules.vtkCommonDataModel import vtkImageData
 
 from mabdi.camera import Intrinsics
-from mabdi.depth import copy_colour, depth_array, fill_depth_image, image_frame, image_intrinsics, image_pose, image_timestamp
+from mabdi.depth import copy_colour, depth_array, fill_depth_image, image_frame, image_intrinsics, image_noise, image_pose, image_timestamp
 from mabdi.errors import ConfigError
-from mabdi.filters.depth_image import BACKENDS, DepthRenderer, SensorNoise
+from mabdi.filters.depth_image import BACKENDS, DepthRenderer
+from mabdi.sensor_noise import SensorNoise
 from mabdi.filters.expected_image import MEASURED_PORT, MapAndImageAlgorithm, map_input, render_expected
 from mabdi.filters.map_anchor import MapAnchor
-from mabdi.filters.noise_calibration import MAD_TO_SIGMA
+from mabdi.noise_calibration import MAD_TO_SIGMA
 from mabdi.filters.registration_kernels import point_to_plane_system, pose_sigma_image
 from mabdi.pose_noise import PoseNoise
 
@@ -524,7 +525,6 @@ class FilterRegistration(MapAndImageAlgorithm):
     def __init__(
         self,
         parameters: RegistrationParameters | None = None,
-        noise: SensorNoise | str = "none",
         renderer: DepthRenderer | None = None,
         backend: str = BACKENDS[0],
         pose_accuracy: PoseNoise | None = None,
@@ -532,7 +532,6 @@ class FilterRegistration(MapAndImageAlgorithm):
         super().__init__(nInputPorts=2, nOutputPorts=1, outputType="vtkImageData")
         self._parameters = parameters if parameters is not None else RegistrationParameters()
         self._pose_accuracy = pose_accuracy
-        self._noise = SensorNoise.of(noise)
         self.renderer = renderer if renderer is not None else DepthRenderer(backend)
         self.reset()
 
@@ -544,14 +543,6 @@ class FilterRegistration(MapAndImageAlgorithm):
     def parameters(self, value: RegistrationParameters) -> None:
         self._set("_parameters", value)
         self.anchor.stated = value.given_variance(self._pose_accuracy)
-
-    @property
-    def noise(self) -> SensorNoise:
-        return self._noise
-
-    @noise.setter
-    def noise(self, value: SensorNoise | str) -> None:
-        self._set("_noise", SensorNoise.of(value))
 
     def reset(self) -> None:
         """Forget the correction and the anchor (the next frame starts a new map at its given pose)."""
@@ -589,6 +580,7 @@ class FilterRegistration(MapAndImageAlgorithm):
         intrinsics = image_intrinsics(measured_image)
         given = image_pose(measured_image)
         frame = image_frame(measured_image)
+        noise = image_noise(measured_image)
         measured = depth_array(measured_image)
         new_frame = frame != self._last_frame or frame < 0  # a re-executed frame is not counted twice
         if new_frame and self._last_position is not None:
@@ -601,7 +593,7 @@ class FilterRegistration(MapAndImageAlgorithm):
             given_in_map = self.anchor.map_from_world @ given
             expected = render_expected(self.renderer, world, intrinsics, given_in_map)
             carried = np.linalg.inv(given_in_map) @ apply_correction(self._correction, given_in_map)
-            result = register_depth(measured, expected, intrinsics, self._noise, p, starts=(carried,))
+            result = register_depth(measured, expected, intrinsics, noise, p, starts=(carried,))
         pose = given_in_map @ result.transform
         covariance = result.covariance
         if result.registered:
@@ -619,7 +611,7 @@ class FilterRegistration(MapAndImageAlgorithm):
             self._last_frame = frame
         world_from_map = self.anchor.world_from_map
         output = vtkImageData.GetData(outInfo)
-        fill_depth_image(output, measured.copy(), intrinsics, pose, frame, image_timestamp(measured_image))
+        fill_depth_image(output, measured.copy(), intrinsics, pose, frame, image_timestamp(measured_image), noise=noise)
         copy_colour(measured_image, output)  # D's colour image goes on with it
         _add_field(output, GIVEN_POSE_ARRAY, given)
         _add_field(output, WORLD_FROM_MAP_ARRAY, world_from_map)

@@ -9,10 +9,10 @@ appended to the map. Each is registered under the name a run config uses
   ``__post_init__``, raising :class:`~mabdi.errors.ConfigError`). It is the
   config's ``[surface.<name>]`` table, field for field; fields with
   ``metadata={"toml": False}`` are not config keys;
-* ``make(parameters, noise)``: builds the filter (a VTK algorithm with one
-  depth-image input and a vtkPolyData output in world coordinates); ``noise``
-  is the sensor's :class:`~mabdi.filters.depth_image.SensorNoise`, for
-  filters whose thresholds follow the noise;
+* ``make(parameters)``: builds the filter (a VTK algorithm with one
+  depth-image input and a vtkPolyData output in world coordinates); a filter
+  whose thresholds follow the sensor's noise reads the model from its input
+  image (:func:`mabdi.depth.image_noise`);
 * ``help``: one line for ``mabdi run --help``;
 * ``capabilities``: what the filter can do beyond meshing a frame, which
   the loop uses (:class:`SurfaceCapabilities`; none by default). Declared
@@ -104,33 +104,33 @@ def surface_filter(name: str) -> SurfaceFilterEntry:
     return entry
 
 
-def make_surface_filter(name: str, parameters=None, noise=None):
+def make_surface_filter(name: str, parameters=None):
     """A new filter of surface ``name`` with ``parameters`` (default: the filter's defaults)."""
     entry = surface_filter(name)
     if parameters is None:
         parameters = entry.parameters()
     if not isinstance(parameters, entry.parameters):
         raise TypeError(f"surface filter {name!r} takes {entry.parameters.__name__}, got {type(parameters).__name__}")
-    return entry.make(parameters, noise)
+    return entry.make(parameters)
 
 
 register_surface_filter(
     "pixel_grid",
     PixelGridParameters,
-    lambda parameters, noise: FilterPixelGrid(parameters, noise=noise or "none"),
+    FilterPixelGrid,
     "two triangles per 2x2 pixels (seed 001)",
 )
 register_surface_filter(
     "quadtree",
     QuadTreeParameters,
     # The loop counts triangles: quad-tree faces are always triangulated there.
-    lambda parameters, noise: FilterQuadTree(replace(parameters, triangles=True), noise=noise or "none"),
+    lambda parameters: FilterQuadTree(replace(parameters, triangles=True)),
     "quad-tree faces merged over flat regions (seed 002)",
 )
 register_surface_filter(
     "voxel_planes",
     VoxelPlanesParameters,
-    lambda parameters, noise: FilterVoxelPlanes(parameters),
+    FilterVoxelPlanes,
     "incremental voxel-plane patches (seed 000)",
     capabilities=SurfaceCapabilities(keeps_state=True, clears_space=True, overhang=True),
 )

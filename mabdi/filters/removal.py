@@ -53,7 +53,7 @@ except
   real sensor also loses returns at depth edges, at grazing incidence and on
   black or shiny surfaces: the loop turns it off when the noise model says
   the camera loses returns,
-  :attr:`~mabdi.filters.depth_image.SensorNoise.loses_returns`, as
+  :attr:`~mabdi.sensor_noise.SensorNoise.loses_returns`, as
   ``structured_light`` and ``auto`` do; set it false for any other such data.)
   The edge of a no-return region is a silhouette like any other;
 * within the noise: a contradiction counts only when D is beyond E by more

@@ -12,7 +12,7 @@ own, tied to the given poses as a whole (:mod:`mabdi.filters.map_anchor`),
 and :meth:`MabdiLoop.mesh` and :meth:`MabdiLoop.trajectory` hand it out in
 the world. Frames it cannot register are meshed unregistered and cast no
 removal votes. With ``noise = "auto"`` the loop feeds each registered
-frame's D - E to the noise calibration (:mod:`mabdi.filters.noise_calibration`).
+frame's D - E to the noise calibration (:mod:`mabdi.noise_calibration`).
 
 With removal on (``[classifier] removal = true``, the default), E also says
 which map face each pixel shows, and pixels that see through a face
@@ -21,8 +21,12 @@ which map face each pixel shows, and pixels that see through a face
 (re-meshed with the next frame's points).
 
 The frame index is set in one place, :class:`SourceDepthFrames`; D carries it
-with its pose and timestamp in its field data, and E, the classifier and the
-surface take them from there. E is rendered from the map as it stood after
+with its pose, timestamp and the sensor's noise model in its field data, and
+E, registration, the classifier, the surface and removal take them from
+there (a filter holds no noise model of its own). With ``noise = "auto"`` D
+carries the calibrated curve as it stood when the frame began, and the
+whole frame is judged by it; the frame's residuals then refine the curve
+for the next. E is rendered from the map as it stood after
 the previous frame: the world mesh appends frame i's surface only at the end
 of frame i. With the classifier off (``enabled = false``, the "black box")
 the surface filter meshes D itself: every valid pixel, every frame.
@@ -59,7 +63,8 @@ from mabdi.filters.classifier import (
     pixel_counts,
     dilate,
 )
-from mabdi.filters.depth_image import BACKENDS, SensorNoise
+from mabdi.filters.depth_image import BACKENDS
+from mabdi.sensor_noise import SensorNoise
 from mabdi.filters.expected_image import MAP_PORT, MEASURED_PORT, FilterExpectedImage
 from mabdi.filters.refinement import MapRefinement, RefinementParameters
 from mabdi.filters.registration import FilterRegistration, RegistrationParameters, registration_values
@@ -128,8 +133,9 @@ class MabdiLoop:
 
     ``classifier``: :class:`ClassifierParameters` (its ``enabled`` chooses the
     black box); ``surface``: a registered surface name and its parameters
-    (None: the filter's defaults); ``noise``: the sensor's noise model, for the
-    classifier's threshold tau(z) and noise-aware surfaces; ``removal`` and
+    (None: the filter's defaults); ``noise``: the sensor's noise model (None: the source's own
+    statement, :attr:`FrameSource.noise`, else noise-free), which D carries in its field data to the
+    classifier's threshold tau(z), registration, removal and the noise-aware surfaces; ``removal`` and
     ``refinement``: their rules (None: defaults), used when ``classifier`` turns them on;
     ``registration``: frame-to-map registration (None: defaults, on), used when the classifier is on.
     """
@@ -140,7 +146,7 @@ class MabdiLoop:
         classifier: ClassifierParameters | None = None,
         surface: str = "pixel_grid",
         surface_parameters=None,
-        noise: SensorNoise | str = "none",
+        noise: SensorNoise | str | None = None,
         backend: str = BACKENDS[0],
         removal: RemovalParameters | None = None,
         refinement: RefinementParameters | None = None,
@@ -148,7 +154,9 @@ class MabdiLoop:
     ) -> None:
         self.source = source
         self.classifier_parameters = classifier if classifier is not None else ClassifierParameters()
-        self.noise = SensorNoise.of(noise)
+        #: The sensor's noise model: D carries it (and, for ``auto``, the curve :attr:`SensorNoise.calibration`
+        #: learns from each frame); the loop's own rules below are chosen by it.
+        self.noise = SensorNoise.of(noise if noise is not None else (source.noise or "none"))
         self.surface_name = surface
 
         #: Object removal runs when the classifier does and it is on (the default); refinement when it is
@@ -166,7 +174,7 @@ class MabdiLoop:
         self.registration_parameters = registration if registration is not None else RegistrationParameters()
         self.refining, self.registration_parameters = lidar_rules(source.intrinsics, self.refining, self.registration_parameters)
         self.refinement = MapRefinement(refinement if refinement is not None else RefinementParameters())
-        self.measured = SourceDepthFrames(source)
+        self.measured = SourceDepthFrames(source, noise=self.noise)
         self.world = FilterWorldMesh(compact_on_append=False)  # compacted at the end of each frame (step)
         self.expected = FilterExpectedImage(backend=backend, identity=self.removal or self.refining)
         #: D as the classifier sees it: registered to the map (the renderer of E is shared: one upload of the map)
@@ -174,19 +182,19 @@ class MabdiLoop:
         measured_port = self.measured.GetOutputPort()
         if self.classifier_parameters.enabled and self.registration_parameters.enabled:
             self.registration = FilterRegistration(
-                self.registration_parameters, self.noise, renderer=self.expected.renderer, pose_accuracy=source.pose_accuracy
+                self.registration_parameters, renderer=self.expected.renderer, pose_accuracy=source.pose_accuracy
             )
             self.registration.SetInputDataObject(MAP_PORT, self.world.map)
             self.registration.SetInputConnection(MEASURED_PORT, measured_port)
             measured_port = self.registration.GetOutputPort()
         self.expected.SetInputDataObject(MAP_PORT, self.world.map)
         self.expected.SetInputConnection(MEASURED_PORT, measured_port)
-        self.classifier = FilterClassifier(self.classifier_parameters, noise=self.noise)
+        self.classifier = FilterClassifier(self.classifier_parameters)
         #: The removal stage (its rules: :attr:`removal_parameters`).
-        self.object_removal = ObjectRemoval(removal_parameters, self.noise, self.classifier.threshold)
+        self.object_removal = ObjectRemoval(removal_parameters, self.classifier.threshold)
         self.classifier.SetInputConnection(0, measured_port)
         self.classifier.SetInputConnection(1, self.expected.GetOutputPort())
-        self.surface = make_surface_filter(surface, surface_parameters, self.noise)
+        self.surface = make_surface_filter(surface, surface_parameters)
         #: What the surface filter can do beyond meshing a frame (declared in its registry entry).
         self.surface_capabilities = surface_filter(surface).capabilities
         upstream = self.classifier if self.classifier_parameters.enabled else self.measured
@@ -356,7 +364,7 @@ class MabdiLoop:
 
     def _calibrate_noise(self) -> None:
         """``noise = "auto"``: this frame's D - E where the map explains D, away from E's silhouettes
-        (:mod:`mabdi.filters.noise_calibration`)."""
+        (:mod:`mabdi.noise_calibration`)."""
         expected = depth_array(self.expected.GetOutput())
         silhouettes = dilate(depth_edges(expected, self.removal_parameters.edge_jump), 2)
         self.noise.calibration.observe(depth_array(self.measured_image()), expected, silhouettes)

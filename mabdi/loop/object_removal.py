@@ -42,7 +42,7 @@ import numpy as np
 from vtkmodules.vtkCommonDataModel import vtkPolyData
 
 from mabdi.camera import project, unit_rays
-from mabdi.depth import depth_array, image_intrinsics, image_pose, pixels_per_radian
+from mabdi.depth import depth_array, image_intrinsics, image_noise, image_pose, pixels_per_radian
 from mabdi.face_identity import FaceIdTable, block_address
 from mabdi.filters.classifier import CONTRADICTED, NO_RETURN, classify, label_array, pose_sigma_array
 from mabdi.filters.expected_image import face_id_array
@@ -65,12 +65,12 @@ class RemovalResult:
 
 
 class ObjectRemoval:
-    """The removal stage (see the module docs): ``parameters`` are the rules, ``noise`` the sensor's model
-    (its sigma(z) weighs the votes), ``threshold(depth, near, far)`` the classifier's tau."""
+    """The removal stage (see the module docs): ``parameters`` are the rules, ``threshold(depth, noise, near,
+    far, pose_sigma)`` the classifier's tau. The sensor's noise model (its sigma(z) weighs the votes) is the
+    one D carries."""
 
-    def __init__(self, parameters: RemovalParameters, noise, threshold: Callable) -> None:
+    def __init__(self, parameters: RemovalParameters, threshold: Callable) -> None:
         self.parameters = parameters
-        self.noise = noise
         self.threshold = threshold
 
     def run(
@@ -118,6 +118,7 @@ class ObjectRemoval:
     def _votes(self, labels, measured_image, expected_image, classified_image, world, surface, capabilities):
         """(the voting contradicted pixels, the codes of the faces the evidence now condemns)."""
         geometry = image_intrinsics(measured_image)
+        noise = image_noise(measured_image)
         measured = depth_array(measured_image)
         codes = face_id_array(expected_image)
         table = FaceIdTable.read(expected_image)
@@ -135,7 +136,7 @@ class ObjectRemoval:
             lambda faces: world.face_normals_of(faces, table),
             self._parameters_for(expected, geometry, surface, capabilities),
             evidence_of=lambda faces: world.face_evidence_of(faces, table),
-            sigma=lambda depth: self.noise.sigma(depth, geometry.near, geometry.far),
+            sigma=lambda depth: noise.sigma(depth, geometry.near, geometry.far),
             far=geometry.far,
             pose_sigma=pose_sigma,
         )
@@ -197,7 +198,7 @@ class ObjectRemoval:
         flat_labels = labels.reshape(-1)
         d = measured.reshape(-1)[pixels]
         sigma = None if pose_sigma is None else pose_sigma.reshape(-1)[pixels]
-        tau = self.threshold(d, geometry.near, geometry.far, sigma)
+        tau = self.threshold(d, image_noise(measured_image), geometry.near, geometry.far, sigma)
         flat_labels[pixels] = classify(d, flat_expected[pixels], tau)
         return labels, expected, codes, FaceIdTable(names, np.array(bases), np.array(counts), np.array(addresses))
 
@@ -228,7 +229,7 @@ class ObjectRemoval:
         pose = image_pose(measured_image)
         rays, length = unit_rays(geometry, np.float32)
         depth = np.where(np.isnan(measured[through]), geometry.far, measured[through]).astype(np.float64)
-        tau = self.threshold(depth.astype(np.float32), geometry.near, geometry.far).astype(np.float64)
+        tau = self.threshold(depth.astype(np.float32), image_noise(measured_image), geometry.near, geometry.far).astype(np.float64)
         directions = rays[through].astype(np.float64) @ pose[:3, :3].T
         ends = pose[:3, 3] + directions * (depth * length[through])[:, None]
         surface.clear_free_space(pose[:3, 3], ends, tau * length[through])

@@ -98,7 +98,7 @@ class RunResult:
     backend: dict = field(default_factory=dict)
     source: str = ""
     folder: RunFolder | None = field(default=None, repr=False)
-    #: ``noise = "auto"``: the calibrated sigma(z) (:meth:`mabdi.filters.noise_calibration.NoiseCalibration.summary`)
+    #: ``noise = "auto"``: the calibrated sigma(z) (:meth:`mabdi.noise_calibration.NoiseCalibration.summary`)
     noise_calibration: dict | None = None
     #: The source's intrinsics (:class:`mabdi.camera.Intrinsics` as a dict): ``mabdi view --from-frame`` uses them.
     intrinsics: dict | None = None

@@ -37,7 +37,8 @@ from vtkmodules.vtkCommonCore import vtkUnsignedCharArray
 from mabdi.camera import Intrinsics
 from mabdi.config import RunConfig
 from mabdi.depth import DepthFrame, depth_array
-from mabdi.filters.depth_image import FilterDepthImage, SensorNoise
+from mabdi.filters.depth_image import FilterDepthImage
+from mabdi.sensor_noise import SensorNoise
 from mabdi.pose_noise import PoseNoise
 from mabdi.simulate.path import path_from_config, path_timestamps
 from mabdi.sources.frames import FrameSource
@@ -127,6 +128,11 @@ class SimulatedRig(FrameSource):
     def true_poses(self) -> np.ndarray:
         """(N, 4, 4) the poses the sensor renders from."""
         return self._true_poses.copy()
+
+    @property
+    def noise(self) -> SensorNoise:
+        """The noise model the sensor draws from."""
+        return self.sensor.noise
 
     @property
     def pose_accuracy(self) -> PoseNoise:

@@ -39,6 +39,7 @@ from mabdi.algorithm import MabdiAlgorithm
 from mabdi.camera import Intrinsics
 from mabdi.depth import DepthFrame, fill_depth_image, only_returns
 from mabdi.pose_noise import PoseNoise
+from mabdi.sensor_noise import SensorNoise
 
 
 class FrameSource:
@@ -95,6 +96,13 @@ class FrameSource:
         """(N, 4, 4) the poses the sensor really had, when the source knows them (a simulation with pose
         noise: ``poses`` are the given ones), else None. Use them to judge what the sensor saw, or how far
         off the given poses are; the map is built with ``poses``."""
+        return None
+
+    @property
+    def noise(self) -> SensorNoise | None:
+        """The sensor's noise model, when the source knows it (the simulator: the model it draws from);
+        None when it does not (recordings: the run's ``[sensor] noise`` says what the camera is). D carries
+        it in its field data (:class:`SourceDepthFrames`)."""
         return None
 
     @property
@@ -168,18 +176,27 @@ class SourceDepthFrames(MabdiAlgorithm):
     """A :class:`FrameSource` as a VTK source: no input, the depth image of frame ``frame`` out.
 
     The output is D with field data ``intrinsics``, ``world_from_camera``,
-    ``frame`` and ``timestamp``, and the point array ``colour`` when the frame
-    has a colour image; depths that are not returns are NaN.
+    ``frame``, ``timestamp`` and the sensor's noise model (``noise``; None: the
+    source's own statement, :attr:`FrameSource.noise`; an image without one is
+    read as noise-free), and the point array ``colour`` when the frame has a
+    colour image; depths that are not returns are NaN. With ``noise = "auto"``
+    D carries the calibrated curve as it stands when D is made.
     """
 
-    def __init__(self, source: FrameSource) -> None:
+    def __init__(self, source: FrameSource, noise: SensorNoise | str | None = None) -> None:
         super().__init__(nInputPorts=0, nOutputPorts=1, outputType="vtkImageData")
         self._source = source
         self._frame = 0
+        self._noise = SensorNoise.of(noise) if noise is not None else source.noise
 
     @property
     def source(self) -> FrameSource:
         return self._source
+
+    @property
+    def noise(self) -> SensorNoise | None:
+        """The sensor's noise model D carries (None: none stated)."""
+        return self._noise
 
     @property
     def frame(self) -> int:
@@ -204,6 +221,7 @@ class SourceDepthFrames(MabdiAlgorithm):
         depth = frame.depth.copy()  # the output image owns its buffers
         colour = None if frame.colour is None else frame.colour.copy()
         fill_depth_image(
-            vtkImageData.GetData(outInfo), depth, frame.intrinsics, frame.world_from_camera, self._frame, frame.timestamp, colour
+            vtkImageData.GetData(outInfo), depth, frame.intrinsics, frame.world_from_camera, self._frame, frame.timestamp, colour,
+            noise=self._noise,
         )
         return 1

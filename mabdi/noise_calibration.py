@@ -28,15 +28,17 @@ no map to compare with) it is the Kinect v1's c = 1.425e-3 / m, a = 0
 (Khoshelham & Elberink 2012), a typical consumer depth camera.
 
 Everything that uses the sensor's noise reads this curve through
-:meth:`mabdi.filters.depth_image.SensorNoise.sigma` (the classifier's tau,
+:meth:`mabdi.sensor_noise.SensorNoise.sigma` (the classifier's tau,
 depth smoothing, registration's weights, removal's gate), so it follows the
-calibration frame by frame. The calibrated curve and its bins go into a
+calibration frame by frame: each depth image carries the curve as it stood
+when the image was made (a :class:`NoiseCurve`, in its field data). The calibrated curve and its bins go into a
 run's ``summary.json`` (:meth:`summary`).
 """
 
 from __future__ import annotations
 
 import warnings
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -44,6 +46,30 @@ import numpy as np
 MAD_TO_SIGMA = 1.4826
 #: The curve before the first fit: the Kinect v1's c (1/m), Khoshelham & Elberink 2012.
 PRIOR_COEFFICIENT = 1.425e-3
+
+
+@dataclass(frozen=True)
+class NoiseCurve:
+    """sigma(z) = sqrt(floor^2 + (coefficient z^2)^2): the calibrated curve at one moment (``floor`` in m,
+    ``coefficient`` in 1/m), as a depth image carries it."""
+
+    floor: float = 0.0
+    coefficient: float = PRIOR_COEFFICIENT
+
+    def sigma(self, depth) -> np.ndarray:
+        """sigma (m) at metric depths ``depth``; float32 for float32 input."""
+        z = np.asarray(depth)
+        if z.dtype != np.float32:
+            z = z.astype(np.float64)
+        kind = z.dtype.type
+        return np.sqrt(kind(self.floor**2) + (kind(self.coefficient) * z * z) ** 2)
+
+    def sensor_sigma(self, depth) -> np.ndarray:
+        """The sensor's part of the curve, c z^2 (m), without the floor (see the module docs)."""
+        z = np.asarray(depth)
+        if z.dtype != np.float32:
+            z = z.astype(np.float64)
+        return z.dtype.type(self.coefficient) * z * z
 
 
 class NoiseCalibration:
@@ -80,25 +106,18 @@ class NoiseCalibration:
         #: per bin: a ring of the most recent absolute residuals (m), how many were ever added
         self._residuals = np.full((bins, self.samples_per_bin), np.nan, dtype=np.float32)
         self._added = np.zeros(bins, dtype=np.int64)
-        self._floor = 0.0
-        self._coefficient = PRIOR_COEFFICIENT
+        #: the current fit (the prior until the first)
+        self.curve = NoiseCurve()
         self._fitted = False
 
     # -- the curve -------------------------------------------------------------
     def sigma(self, depth) -> np.ndarray:
         """sigma (m) at metric depths ``depth``: sqrt(a^2 + (c z^2)^2); float32 for float32 input."""
-        z = np.asarray(depth)
-        if z.dtype != np.float32:
-            z = z.astype(np.float64)
-        kind = z.dtype.type
-        return np.sqrt(kind(self._floor**2) + (kind(self._coefficient) * z * z) ** 2)
+        return self.curve.sigma(depth)
 
     def sensor_sigma(self, depth) -> np.ndarray:
         """The sensor's part of the curve, c z^2 (m), without the floor (see the module docs)."""
-        z = np.asarray(depth)
-        if z.dtype != np.float32:
-            z = z.astype(np.float64)
-        return z.dtype.type(self._coefficient) * z * z
+        return self.curve.sensor_sigma(depth)
 
     @property
     def fitted(self) -> bool:
@@ -162,8 +181,7 @@ class NoiseCalibration:
                 c2 = max(float(np.sum(w * (sigma[use] ** 2 - a2) * z**4) / np.sum(w * z**8)), 0.0)
         else:  # one bin: the z^2 law through it
             a2, c2 = 0.0, float(sigma[use][0] ** 2 / z[0] ** 4)
-        self._floor = float(np.sqrt(max(a2, 0.0)))
-        self._coefficient = float(np.sqrt(max(c2, 0.0)))
+        self.curve = NoiseCurve(float(np.sqrt(max(a2, 0.0))), float(np.sqrt(max(c2, 0.0))))
         self._fitted = True
 
     # -- checkpoints and reports ---------------------------------------------------
@@ -172,16 +190,15 @@ class NoiseCalibration:
         return {
             "residuals": self._residuals.copy(),
             "added": self._added.copy(),
-            "floor": self._floor,
-            "coefficient": self._coefficient,
+            "floor": self.curve.floor,
+            "coefficient": self.curve.coefficient,
             "fitted": self._fitted,
         }
 
     def set_state(self, state: dict) -> None:
         self._residuals = np.array(state["residuals"], dtype=np.float32)
         self._added = np.array(state["added"], dtype=np.int64)
-        self._floor = float(state["floor"])
-        self._coefficient = float(state["coefficient"])
+        self.curve = NoiseCurve(float(state["floor"]), float(state["coefficient"]))
         self._fitted = bool(state["fitted"])
 
     def summary(self) -> dict:
@@ -191,8 +208,8 @@ class NoiseCalibration:
         return {
             "law": "sigma(z) = sqrt(floor_m^2 + (coefficient_per_m * z^2)^2); the sensor's part: coefficient_per_m * z^2",
             "fitted": self._fitted,
-            "floor_m": self._floor,
-            "coefficient_per_m": self._coefficient,
+            "floor_m": self.curve.floor,
+            "coefficient_per_m": self.curve.coefficient,
             "bins_m": [round(float(c), 4) for c in centres[used]],
             "bin_sigma_m": [float(s) for s in sigma[used]],
             "bin_samples": [int(h) for h in held[used]],
