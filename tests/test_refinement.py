@@ -12,7 +12,8 @@ from mabdi.camera import Intrinsics
 from mabdi.depth import DepthFrame
 from mabdi.filters.pixel_grid import PixelGridParameters
 from mabdi.filters.quadtree import QuadTreeParameters
-from mabdi.filters.refinement import MapRefinement, RefinementParameters, vertex_normals
+from mabdi.filters.refinement import MapRefinement, RefinementParameters
+from mabdi.polydata import vertex_normals
 from mabdi.filters.registration import RegistrationParameters
 from mabdi.filters.removal import RemovalParameters
 from mabdi.polydata import polydata_arrays

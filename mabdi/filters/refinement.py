@@ -118,11 +118,13 @@ from vtkmodules.util.numpy_support import numpy_to_vtk, vtk_to_numpy
 from vtkmodules.vtkCommonCore import vtkPoints
 from vtkmodules.vtkCommonDataModel import vtkPolyData
 
+from mabdi.camera import unit_rays
 from mabdi.depth import depth_array, image_frame, image_noise, image_pose
 from mabdi.errors import ConfigError
 from mabdi.filters.classifier import NO_RETURN
 from mabdi.face_identity import FaceIdTable
 from mabdi.filters.expected_image import FACE_ID_ARRAY, face_id_array
+from mabdi.polydata import vertex_normals
 from mabdi.world_map import FRAME_CELL_ARRAY, patch_triangles
 
 from mabdi.filters import refinement_kernels as kernels
@@ -205,17 +207,6 @@ def _points(patch: vtkPolyData) -> np.ndarray:
     return vtk_to_numpy(patch.GetPoints().GetData())
 
 
-def vertex_normals(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    """(N, 3) unit vertex normals: the area-weighted sum of the normals of each vertex's triangles."""
-    p = points.astype(np.float64)
-    cross = np.cross(p[triangles[:, 1]] - p[triangles[:, 0]], p[triangles[:, 2]] - p[triangles[:, 0]])
-    flat = triangles.ravel()
-    n = len(points)
-    normals = np.stack([np.bincount(flat, weights=np.repeat(cross[:, k], 3), minlength=n) for k in range(3)], axis=1)
-    length = np.linalg.norm(normals, axis=1, keepdims=True)
-    return normals / np.where(length > 0, length, 1.0)
-
-
 def _match_rows(old: np.ndarray, new: np.ndarray) -> np.ndarray:
     """For each row of ``new``, the index of an identical row of ``old`` (-1 where none): how a block's
     vertices carry their state over when the block is rebuilt with some faces taken out."""
@@ -242,7 +233,6 @@ class MapRefinement:
         self._blocks: dict[str, _BlockState] = {}
         self._poses: dict[int, np.ndarray] = {}
         self._source_poses: np.ndarray | None = None
-        self._ray_cache = None
 
     def reset(self) -> None:
         """Forget every block (after the map was emptied or replaced)."""
@@ -288,12 +278,11 @@ class MapRefinement:
 
     # -- helpers -------------------------------------------------------------
     def _unit_rays(self, intrinsics) -> tuple[np.ndarray, np.ndarray]:
+        """(M, 3) unit rays and (M,) their lengths per metre of depth at every ``stride``-th pixel (the
+        pipeline's ray cache, :func:`mabdi.camera.unit_rays`)."""
         stride = self.parameters.stride
-        if self._ray_cache is None or self._ray_cache[0] != (intrinsics, stride):
-            rays = intrinsics.rays()[::stride, ::stride]
-            length = np.linalg.norm(rays, axis=-1)
-            self._ray_cache = ((intrinsics, stride), (rays / length[..., None]).reshape(-1, 3), length.ravel())
-        return self._ray_cache[1], self._ray_cache[2]
+        rays, length = unit_rays(intrinsics)
+        return rays[::stride, ::stride].reshape(-1, 3), length[::stride, ::stride].ravel()
 
     def _pose_of(self, frame: int, loop, current: np.ndarray) -> np.ndarray:
         pose = self._poses.get(frame)
@@ -410,8 +399,8 @@ class MapRefinement:
         block, local, keys = world.face_lookup(ids, FaceIdTable.read(expected_image))
         measured = depth_array(measured_image)[::s, ::s].ravel()[candidates]
         expected = depth_array(expected_image)[::s, ::s].ravel()[candidates]
-        unit_rays, length = self._unit_rays(loop.intrinsics)
-        rays = unit_rays[candidates] @ pose[:3, :3].T  # world
+        rays, length = self._unit_rays(loop.intrinsics)
+        rays = rays[candidates] @ pose[:3, :3].T  # world
         length = length[candidates]
         sigma_d = self._sigma(loop, measured).astype(np.float64)
         centre = pose[:3, 3]
