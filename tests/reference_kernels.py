@@ -15,11 +15,14 @@ that a test can hand both the same inputs and check that they agree:
   and :func:`reference_pairs`; tests/test_voxel_traversal.py.
 * fast marching on a mesh map (:mod:`mabdi.maps.fast_marching`):
   :func:`iterative_arrival_times`; tests/test_maps.py.
+* the cost layers' neighbourhood statistics (:func:`mabdi.maps.neighbourhood.radius_statistics`):
+  :func:`neighbourhoods` (a KD-tree), :func:`roughness` and :func:`height_difference`; tests/test_maps.py.
 """
 
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from mabdi.camera import Intrinsics
 from mabdi.filters.depth_smoothing import smooth_depth_by_noise
@@ -392,3 +395,44 @@ def iterative_arrival_times(mesh_map, source: int, slowness: np.ndarray, blocked
         np.minimum.at(times, targets, new_times)
         active = np.flatnonzero(times < before - tolerance)
     return times
+
+
+CHUNK = 1 << 17
+
+
+def neighbourhoods(vertices: np.ndarray, radius: float, max_neighbours: int) -> np.ndarray:
+    """(N, K) indices of the vertices within ``radius`` (nearest first, the vertex itself first), N where none.
+
+    """
+    points = np.asarray(vertices, dtype=np.float64)
+    tree = cKDTree(points)
+    k = min(max_neighbours, len(points))
+    out = np.empty((len(points), k), dtype=np.int64)
+    for start in range(0, len(points), CHUNK):
+        _, index = tree.query(points[start : start + CHUNK], k=k, distance_upper_bound=radius, workers=-1)
+        out[start : start + CHUNK] = index.reshape(-1, k)
+    return out
+
+
+def _padded(values: np.ndarray, fill: float) -> np.ndarray:
+    """``values`` with one more row of ``fill``: the KD-tree's "no neighbour" index N points there."""
+    return np.concatenate([values, np.full((1,) + values.shape[1:], fill, dtype=values.dtype)])
+
+
+def roughness(normals: np.ndarray, index: np.ndarray) -> np.ndarray:
+    """Mean of 1 - |n_v . n_u| over each vertex's neighbourhood (``index`` from :func:`neighbourhoods`)."""
+    normals = np.asarray(normals, dtype=np.float32)
+    padded = _padded(normals, 0.0)
+    out = np.empty(len(normals))
+    for start in range(0, len(normals), CHUNK):
+        block = slice(start, start + CHUNK)
+        valid = index[block] < len(normals)
+        dots = np.abs(np.einsum("nkc,nc->nk", padded[index[block]], normals[block]))
+        out[block] = np.where(valid, 1.0 - dots, 0.0).sum(axis=1) / valid.sum(axis=1)
+    return out
+
+
+def height_difference(vertices: np.ndarray, index: np.ndarray) -> np.ndarray:
+    """max z - min z over each vertex's neighbourhood (m)."""
+    z = np.asarray(vertices, dtype=np.float64)[:, 2]
+    return _padded(z, -np.inf)[index].max(axis=1) - _padded(z, np.inf)[index].min(axis=1)

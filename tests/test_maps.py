@@ -56,6 +56,23 @@ def test_height_difference_flags_a_20_cm_step():
     assert (layers["cost"][near] == 1).all()
 
 
+def test_the_compiled_neighbourhood_statistics_give_the_kd_tree_references():
+    """radius_statistics (a numba grid hash) against the numpy references over every neighbour a KD-tree finds
+    within the radius: the same roughness and height difference on a bumpy, stepped patch."""
+    from reference_kernels import height_difference, neighbourhoods, roughness
+
+    from mabdi.maps.neighbourhood import radius_statistics
+
+    bumpy = grid(1, 1, 0.02, z=lambda x, y: 0.03 * np.sin(x / 0.05) * np.cos(y / 0.05) + np.where(x > 0.2, 0.05, 0.0))
+    normals = vertex_normals(bumpy.vertices, bumpy.faces)
+    radius = 0.07
+    index = neighbourhoods(bumpy.vertices, radius, len(bumpy.vertices))  # all within the radius
+    rough, top, bottom = radius_statistics(bumpy.vertices, normals, bumpy.vertices[:, 2], radius)
+    np.testing.assert_allclose(rough, roughness(normals, index), atol=1e-6)
+    np.testing.assert_allclose(top - bottom, height_difference(bumpy.vertices, index), atol=1e-12)
+    assert (top - bottom).max() > 0.05 and rough.max() > 0.05  # the step and the bumps are there to find
+
+
 def test_floor_label_and_planar_clusters_on_a_table():
     floor = grid(3, 3, 0.05)
     top = grid(1, 0.6, 0.05, z=lambda x, y: np.full_like(x, 0.8))

@@ -7,8 +7,7 @@ All vectorised over the vertices (numpy, a scipy KD-tree); z is up (metres).
   (the robot's footprint) and ``height_window`` (0.5 m) vertically, an
   ellipsoid, found as a sphere after scaling z by radius / height_window,
   the vertex itself included; all of them, by a grid hash compiled with
-  numba (:mod:`mabdi.maps.neighbourhood`), or without numba the
-  ``max_neighbours`` nearest (24) by a KD-tree. A sphere of the footprint's radius would never
+  numba (:mod:`mabdi.maps.neighbourhood`). A sphere of the footprint's radius would never
   see the top of a step taller than the radius; an unbounded column would
   mix levels (the floor under a table with its top).
 * ``roughness``: the local normal variation, the mean over the
@@ -43,16 +42,7 @@ from mabdi.errors import ConfigError
 from mabdi.maps.mesh_map import MeshMap
 from mabdi.polydata import triangle_normals, vertex_normals
 
-try:
-    from mabdi.maps.neighbourhood import radius_statistics
-except ImportError:  # pragma: no cover - numba is a dependency
-    radius_statistics = None
-
-
-def fast_neighbourhoods_available() -> bool:
-    return radius_statistics is not None
-
-CHUNK = 1 << 17
+from mabdi.maps.neighbourhood import radius_statistics
 
 
 @dataclass(frozen=True)
@@ -61,7 +51,6 @@ class CostParameters:
 
     radius: float = 0.1
     height_window: float = 0.5
-    max_neighbours: int = 24  # only without numba (the KD-tree fallback)
     max_slope: float = float(np.radians(30.0))
     max_step: float = 0.1
     max_roughness: float = 0.3
@@ -75,52 +64,14 @@ class CostParameters:
         for name in ("radius", "height_window", "max_slope", "max_step", "max_roughness"):
             if not getattr(self, name) > 0:
                 raise ConfigError(f"cost layers: {name} must be > 0, got {getattr(self, name)}")
-        if self.inflation_radius < 0 or self.max_neighbours < 2:
-            raise ConfigError("cost layers: need inflation_radius >= 0 and max_neighbours >= 2")
+        if self.inflation_radius < 0:
+            raise ConfigError(f"cost layers: inflation_radius must be >= 0, got {self.inflation_radius}")
 
 
 def face_normals(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Unit normals (M, 3) of the triangles (right-hand rule) and their areas (M,), in float64
     (:func:`mabdi.polydata.triangle_normals`)."""
     return triangle_normals(np.asarray(vertices, dtype=np.float64), faces)
-
-
-def neighbourhoods(vertices: np.ndarray, radius: float, max_neighbours: int) -> np.ndarray:
-    """(N, K) indices of the vertices within ``radius`` (nearest first, the vertex itself first), N where none.
-
-    """
-    points = np.asarray(vertices, dtype=np.float64)
-    tree = cKDTree(points)
-    k = min(max_neighbours, len(points))
-    out = np.empty((len(points), k), dtype=np.int64)
-    for start in range(0, len(points), CHUNK):
-        _, index = tree.query(points[start : start + CHUNK], k=k, distance_upper_bound=radius, workers=-1)
-        out[start : start + CHUNK] = index.reshape(-1, k)
-    return out
-
-
-def _padded(values: np.ndarray, fill: float) -> np.ndarray:
-    """``values`` with one more row of ``fill``: the KD-tree's "no neighbour" index N points there."""
-    return np.concatenate([values, np.full((1,) + values.shape[1:], fill, dtype=values.dtype)])
-
-
-def roughness(normals: np.ndarray, index: np.ndarray) -> np.ndarray:
-    """Mean of 1 - |n_v . n_u| over each vertex's neighbourhood (``index`` from :func:`neighbourhoods`)."""
-    normals = np.asarray(normals, dtype=np.float32)
-    padded = _padded(normals, 0.0)
-    out = np.empty(len(normals))
-    for start in range(0, len(normals), CHUNK):
-        block = slice(start, start + CHUNK)
-        valid = index[block] < len(normals)
-        dots = np.abs(np.einsum("nkc,nc->nk", padded[index[block]], normals[block]))
-        out[block] = np.where(valid, 1.0 - dots, 0.0).sum(axis=1) / valid.sum(axis=1)
-    return out
-
-
-def height_difference(vertices: np.ndarray, index: np.ndarray) -> np.ndarray:
-    """max z - min z over each vertex's neighbourhood (m)."""
-    z = np.asarray(vertices, dtype=np.float64)[:, 2]
-    return _padded(z, -np.inf)[index].max(axis=1) - _padded(z, np.inf)[index].min(axis=1)
 
 
 def inflation(vertices: np.ndarray, lethal: np.ndarray, radius: float) -> np.ndarray:
@@ -142,13 +93,8 @@ def cost_layers(mesh_map: MeshMap, parameters: CostParameters | None = None) -> 
     vertices, faces = mesh_map.vertices, mesh_map.faces
     normals = vertex_normals(vertices, faces)
     squashed = np.asarray(vertices, dtype=np.float64) * [1.0, 1.0, p.radius / p.height_window]
-    if fast_neighbourhoods_available():
-        rough, top, bottom = radius_statistics(squashed, normals, vertices[:, 2], p.radius)
-        height = top - bottom
-    else:  # without numba: the nearest max_neighbours within the radius, by a KD-tree
-        index = neighbourhoods(squashed, p.radius, p.max_neighbours)
-        rough = roughness(normals, index)
-        height = height_difference(vertices, index)
+    rough, top, bottom = radius_statistics(squashed, normals, vertices[:, 2], p.radius)
+    height = top - bottom
     slope = np.arccos(np.clip(np.abs(normals[:, 2]), 0.0, 1.0))
     lethal = (slope > p.max_slope) | (height > p.max_step) | (rough > p.max_roughness)
     inflated = inflation(vertices, lethal, p.inflation_radius)
