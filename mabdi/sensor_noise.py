@@ -337,10 +337,9 @@ def correlated_field(shape: tuple[int, int], length: float, rng: np.random.Gener
     drawn with a margin, so the field is stationary up to the image border.
     For ``length`` >= 2 it is made at half resolution (smoothed by
     ``length`` / 2) and interpolated bilinearly, each interpolated sample
-    rescaled to unit variance: a 640 x 480 field then costs about 2 ms
-    instead of 7 (one core of the 2-core test machine). Interpolation
-    lengthens the correlation a little (neighbour correlation 0.963
-    against 0.961 at 2.5 px).
+    rescaled to unit variance: a fraction of the full-resolution cost
+    (docs/benchmarks.md, "Depth image"). Interpolation lengthens the
+    correlation a little.
     """
     from scipy.ndimage import gaussian_filter
 

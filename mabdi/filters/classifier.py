@@ -88,7 +88,7 @@ class ClassifierParameters:
     structured-light or stereo camera, a real camera under ``noise =
     "auto"``): smoothing cannot take such errors out of one look, so later
     looks must be averaged in; with independent noise the smoothed first
-    look is nearly as good as refinement makes it, for 25-100 ms a frame
+    look is nearly as good as refinement makes it, for refinement's cost a frame
     (docs/benchmarks.md, "Depth smoothing before meshing" and "Real poses
     and real cameras"). ``true`` or ``false`` decide
     outright. The classifier filter itself reads none of these switches: the

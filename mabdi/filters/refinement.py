@@ -102,10 +102,9 @@ into the block's sums (its numpy reference lives with the test that compares
 the two, tests/reference_kernels.py). Per block only the state
 arrays are kept (original positions, normals, prior, sums, offsets); a block
 rebuilt with faces removed keeps its points in order, so its state is
-carried over by one in-order walk. Measured on a 2-core machine (``kinect``
-table, 640x480): 28 ms a frame for the quad-tree map, 68 ms for the pixel
-grid with replacement (numpy: 73 and 338 ms); most of what is left is
-moving the points in the world mesh and the Python work per block.
+carried over by one in-order walk. What it costs a frame is in
+docs/benchmarks.md ("Refinement on the runs"); most of it is moving the
+points in the world mesh and the Python work per block.
 """
 
 from __future__ import annotations
