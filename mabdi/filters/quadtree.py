@@ -70,6 +70,22 @@ edge-on between two beams) gets no face, rather than the camera's corners
 at the leaf's depth, which between beams that far apart float off the
 surface. The azimuth seam is not joined.
 
+**Flat ground at grazing incidence** (``grazing``, the pixel grid's rule,
+:mod:`mabdi.filters.pixel_grid`): a LiDAR on a vehicle sees the road beyond
+about 10 m at more than 79 degrees from its normal, where neighbouring beams'
+ranges jump more than the jump rule allows, so its pixels got no normal and
+no face. With ``grazing`` on, a neighbour that fails the jump rule is used for
+the normal all the same where the two continue one straight line with the
+pixels beyond them (:func:`mabdi.depth.straight_continuations`, within the
+noise). Leaves of two or more pixels a side then take the least-squares plane
+of their own points (a leaf may stretch metres along the road, where each
+pixel's normal rests on neighbours a beam apart), and their silhouette and
+wild-corner tests allow the depth change their own plane makes per pixel
+(twice tan(incidence) times the pixel's angle, incidence up to 88 degrees).
+A single pixel's normal is no fitted plane: it keeps the jump rule's
+allowance, so one seen that steeply gets no face, as before. ``"auto"`` (the
+default) turns the rule on for range images and leaves a camera's as it was.
+
 Small or accurate: the defaults (the seed's 3x3 reduction, n_t = 0.1) make
 the small map. With a noisy sensor, ``reduction = 2`` and ``n_t = 0.2`` (and
 the classifier's ``min_width = 1``, refinement on with ``replace = false``)
@@ -111,6 +127,7 @@ from mabdi.depth import (
     image_pose,
     pixel_angle,
     sensor_values,
+    straight_continuations,
 )
 from mabdi.errors import ConfigError
 from mabdi.sensor_noise import SensorNoise
@@ -127,6 +144,10 @@ RESIDUAL_FOOTPRINTS = 0.4
 #: A LiDAR's neighbouring beams are on one surface when their ranges differ by no more than a surface
 #: seen this far from its normal (degrees) makes: the pixel grid's rule (its 1% at 525 px).
 LIDAR_INCIDENCE = 79.0
+#: With the grazing rule, a leaf's silhouette and wild-corner tests allow this many times the depth change
+#: its own plane makes per pixel, up to this incidence (degrees).
+GRAZING_MARGIN = 2.0
+MAX_GRAZING_INCIDENCE = 88.0
 #: Corners of leaves whose normals differ by more than 45 degrees are not merged (a crease).
 CREASE_COSINE = float(np.cos(np.radians(45.0)))
 
@@ -142,6 +163,9 @@ class QuadTreeParameters:
     planarity: float = 0.002
     #: Smooth the depth image by the sensor's noise model first (:mod:`mabdi.filters.depth_smoothing`).
     smooth_depth: bool = True
+    #: Flat ground at grazing incidence on a range image (see the module docs): true, false, or "auto"
+    #: (range images only; a camera's images keep the jump rule alone).
+    grazing: bool | str = "auto"
     #: Triangulate every face. Not a config key: in the MABDI loop faces are always triangulated.
     triangles: bool = field(default=False, metadata={"toml": False})
 
@@ -154,6 +178,8 @@ class QuadTreeParameters:
             raise ConfigError(f"max_jump and planarity must be > 0, got max_jump={self.max_jump}, planarity={self.planarity}")
         if not isinstance(self.smooth_depth, bool):
             raise ConfigError(f"smooth_depth must be true or false, got {self.smooth_depth!r}")
+        if self.grazing not in (True, False, "auto"):
+            raise ConfigError(f"grazing must be true, false or \"auto\", got {self.grazing!r}")
 
 
 # ---------------------------------------------------------------------------
@@ -230,6 +256,28 @@ def _step_jump(p: QuadTreeParameters, k: Grid) -> float:
     return p.max_jump
 
 
+def grazing_on(p: QuadTreeParameters, k: Grid | SphericalGeometry) -> bool:
+    """Whether the grazing rule applies to an image of ``k``: ``grazing`` true, or "auto" on a range image."""
+    return p.grazing is True or (p.grazing == "auto" and isinstance(k, (ReducedSpherical, SphericalGeometry)))
+
+
+def _leaf_jump(leaves: Leaves, p: QuadTreeParameters, k: Grid) -> np.ndarray:
+    """(L, 1) the relative depth change per pixel each leaf's surface may make (the silhouette and wild-corner
+    tests): :func:`_step_jump`, and with the grazing rule at least what the leaf's own plane makes at its
+    incidence, :data:`GRAZING_MARGIN` tan(incidence) times the pixel's angle (incidence capped at
+    :data:`MAX_GRAZING_INCIDENCE` degrees): a plane seen steeply is still one surface."""
+    jump = np.full((len(leaves.level), 1), _step_jump(p, k))
+    if not grazing_on(p, k) or not len(leaves.level):
+        return jump
+    angle = k.footprint if isinstance(k, ReducedSpherical) else 1.0 / min(k.fx, k.fy)
+    distance = np.linalg.norm(leaves.point, axis=1)
+    cosine = np.abs(np.einsum("ij,ij->i", leaves.normal, leaves.point)) / np.where(distance > 0, distance, 1.0)
+    cosine = np.maximum(cosine, math.cos(math.radians(MAX_GRAZING_INCIDENCE)))
+    tangent = np.sqrt(1.0 - cosine**2) / cosine
+    widened = np.maximum(jump, (GRAZING_MARGIN * tangent * angle)[:, None])
+    return np.where((leaves.level > 0)[:, None], widened, jump)  # a single pixel's normal is no fitted plane
+
+
 def _depth(points: np.ndarray, k: Grid) -> np.ndarray:
     """What the image holds for sensor-frame points (..., 3): a camera's z, a LiDAR's range."""
     return sensor_values(points, k.geometry if isinstance(k, ReducedSpherical) else k)
@@ -251,7 +299,7 @@ def select(leaves: Leaves, keep: np.ndarray) -> Leaves:
     return Leaves(*(getattr(leaves, name)[keep] for name in ("level", "row", "col", "normal", "point")))
 
 
-def _on_silhouette(pixel_depth: np.ndarray, corner_u: np.ndarray, corner_v: np.ndarray, depth: np.ndarray, max_jump: float) -> np.ndarray:
+def _on_silhouette(pixel_depth: np.ndarray, corner_u: np.ndarray, corner_v: np.ndarray, depth: np.ndarray, max_jump) -> np.ndarray:
     """Whether a corner's four surrounding pixels (``pixel_depth``, (H, W)) are not all on the leaf's surface
     (valid, within max_jump)."""
     h, w = pixel_depth.shape[:2]
@@ -280,7 +328,7 @@ def leaf_corners(
     if points is not None:
         # On a silhouette the surface ends inside the border pixel: the corner moves half a pixel
         # in, to the border pixels' centres (where the samples are), instead of hanging past it.
-        rim = _on_silhouette(_depth(points, k), corner_u, corner_v, _depth(leaves.point, k)[:, None], _step_jump(p, k))
+        rim = _on_silhouette(_depth(points, k), corner_u, corner_v, _depth(leaves.point, k)[:, None], _leaf_jump(leaves, p, k))
         centre_u = ((leaves.col + 0.5) * size)[:, None]
         centre_v = ((leaves.row + 0.5) * size)[:, None]
         ray_u = np.where(rim, ray_u + 0.5 * np.sign(centre_u - ray_u), ray_u)
@@ -293,7 +341,7 @@ def leaf_corners(
     # at most max_jump per pixel, so a corner further than max_jump * z * 0.71 * size (its
     # distance from the centre in pixels) from the leaf's depth falls back the same way.
     centre_depth = _depth(leaves.point, k)[:, None]
-    allowed = _step_jump(p, k) * centre_depth * (0.71 * size)[:, None]
+    allowed = _leaf_jump(leaves, p, k) * centre_depth * (0.71 * size)[:, None]
     with np.errstate(invalid="ignore"):
         misses = np.einsum("...i,...i->...", leaves.normal[:, None, :], corner_rays) * np.einsum("...i,...i->...", leaves.normal, leaves.point)[:, None] <= 0
     wild = (np.abs(_depth(corners, k) - centre_depth) > allowed) | misses  # (a ray that misses the plane: at its depth too)
@@ -473,11 +521,20 @@ def leaves_of_image(
         reduced = Intrinsics(k.fx / r, k.fy / r, k.cx / r, k.cy / r, w, h, k.near, k.far)
     else:  # no reduction: every pixel back-projected through its centre
         points, reduced = k.rays() * np.asarray(depth, dtype=np.float64)[..., None], k
-    normals = kernels.point_normals_kernel(np.ascontiguousarray(points), p.max_jump)
+    points = np.ascontiguousarray(points)
+    grazing = grazing_on(p, reduced)
+    if grazing:
+        z = np.ascontiguousarray(points[:, :, 2])
+        right, down = straight_neighbours(points, z, noise, reduced)
+        normals = kernels.point_normals_depth_kernel(points, z, p.max_jump, right, down)
+    else:
+        normals = kernels.point_normals_kernel(points, p.max_jump)
     level, row, col, normal, point, regions = kernels.pyramid_kernel(points, normals, p.n_t, p.d_t)
     leaves = Leaves(level, row, col, normal, point)
     residual = kernels.plane_residual_kernel(points, level, row, col, normal, point, p.max_jump, 2)
     leaves = fitting_leaves(leaves, residual, reduced, noise)
+    if grazing:
+        leaves = fitted_planes(leaves, points)
     leaves.regions = regions
     return points, reduced, leaves
 
@@ -495,13 +552,64 @@ def _range_leaves(ranges: np.ndarray, geometry: SphericalGeometry, p: QuadTreePa
     reduced = ReducedSpherical(geometry, r, points.shape[1], points.shape[0])
     depth = np.ascontiguousarray(_depth(points, reduced))
     jump = _step_jump(p, reduced)
-    normals = kernels.point_normals_depth_kernel(np.ascontiguousarray(points), depth, jump)
+    points = np.ascontiguousarray(points)
+    grazing = grazing_on(p, reduced)
+    if grazing:
+        right, down = straight_neighbours(points, depth, noise, reduced)
+    else:
+        right = down = np.zeros(depth.shape, dtype=bool)
+    normals = kernels.point_normals_depth_kernel(points, depth, jump, right, down)
     level, row, col, normal, point, regions = kernels.pyramid_kernel(points, normals, p.n_t, p.d_t)
     leaves = Leaves(level, row, col, normal, point)
     residual = kernels.plane_residual_depth_kernel(points, depth, level, row, col, normal, point, _depth(point, reduced), jump, 2)
     leaves = fitting_leaves(leaves, residual, reduced, noise)
+    if grazing:
+        leaves = fitted_planes(leaves, points)
     leaves.regions = regions
     return points, reduced, leaves
+
+
+def fitted_planes(leaves: Leaves, points: np.ndarray) -> Leaves:
+    """The leaves of two or more pixels a side with the least-squares plane of their own points (centroid and
+    the covariance's smallest eigenvector, facing the sensor) instead of the pyramid's averaged normal. With
+    the grazing rule a leaf may stretch metres along a surface seen nearly edge-on, where each pixel's normal
+    comes from neighbours a beam apart; the fitted plane is what keeps its far corners on the surface."""
+    height, width = points.shape[:2]
+    normal, point = leaves.normal.copy(), leaves.point.copy()
+    for level in np.unique(leaves.level):
+        if level == 0:
+            continue
+        which = np.flatnonzero(leaves.level == level)
+        side = 1 << int(level)
+        rows = leaves.row[which, None] * side + np.arange(side)
+        cols = leaves.col[which, None] * side + np.arange(side)
+        inside = (rows[:, :, None] < height) & (cols[:, None, :] < width)
+        block = points[np.minimum(rows, height - 1)[:, :, None], np.minimum(cols, width - 1)[:, None, :]].reshape(len(which), -1, 3)
+        valid = (inside.reshape(len(which), -1) & np.isfinite(block).all(axis=2))[:, :, None]
+        count = valid.sum(axis=1)
+        fit = count[:, 0] >= 3
+        centroid = np.where(valid, block, 0.0).sum(axis=1) / np.maximum(count, 1)
+        offset = np.where(valid, block - centroid[:, None, :], 0.0)
+        covariance = np.einsum("lpi,lpj->lij", offset, offset)
+        _, vectors = np.linalg.eigh(covariance[fit])
+        fitted = vectors[:, :, 0]
+        fitted *= np.where(np.einsum("li,li->l", fitted, centroid[fit]) > 0, -1.0, 1.0)[:, None]  # facing the sensor
+        normal[which[fit]] = fitted
+        point[which[fit]] = centroid[fit]
+    return Leaves(leaves.level, leaves.row, leaves.col, normal, point, leaves.regions)
+
+
+def straight_neighbours(points: np.ndarray, depth: np.ndarray, noise: SensorNoise, k: Grid) -> tuple[np.ndarray, np.ndarray]:
+    """(right, down) (H, W) bool: whether pixels (i, j) and (i, j + 1), and (i, j) and (i + 1, j), lie on one straight
+    line with the pixels beyond them (:func:`mabdi.depth.straight_continuations`, within the noise of
+    ``depth``: the image's z or range): one flat surface however steeply it is seen."""
+    sigma = noise.sigma(depth, k.near, k.far)
+    vertical, horizontal, _ = straight_continuations(points, np.nan_to_num(sigma, nan=0.0))
+    right = np.zeros(depth.shape, dtype=bool)
+    down = np.zeros(depth.shape, dtype=bool)
+    right[:, :-1] = horizontal
+    down[:-1, :] = vertical
+    return right, down
 
 
 def fitting_leaves(leaves: Leaves, residual: np.ndarray, reduced: Grid, noise: SensorNoise) -> Leaves:

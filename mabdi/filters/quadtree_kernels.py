@@ -83,13 +83,17 @@ def reduce_ranges_kernel(ranges, r, rays):
 @njit(cache=True)
 def point_normals_kernel(points, max_jump):
     """(H, W, 3) unit normals facing the camera, as the numpy reference ``point_normals`` (tests/reference_kernels.py)."""
-    return point_normals_depth_kernel(points, points[:, :, 2], max_jump)
+    height, width = points.shape[0], points.shape[1]
+    none = np.zeros((height, width), dtype=np.bool_)
+    return point_normals_depth_kernel(points, points[:, :, 2], max_jump, none, none)
 
 
 @njit(cache=True)
-def point_normals_depth_kernel(points, depth, max_jump):
+def point_normals_depth_kernel(points, depth, max_jump, right, down):
     """:func:`point_normals_kernel` with the depth tests on ``depth`` (H, W): a camera's z (the points' own), a
-    LiDAR's range."""
+    LiDAR's range; and a neighbour that fails the jump rule used all the same where ``right`` (H, W: pixel
+    (i, j) with (i, j + 1)) or ``down`` ((i, j) with (i + 1, j)) says the two are on one straight line
+    (:func:`mabdi.depth.straight_continuations`; all False: the jump rule alone)."""
     height, width = points.shape[0], points.shape[1]
     normals = np.full((height, width, 3), np.nan)
     du = np.empty(3)
@@ -105,8 +109,10 @@ def point_normals_depth_kernel(points, depth, max_jump):
                 bi, bj = (i, j - 1) if axis == 0 else (i - 1, j)
                 forward_ok = fi < height and fj < width
                 backward_ok = bi >= 0 and bj >= 0
-                has_forward = forward_ok and abs(depth[fi, fj] - z) <= max_jump * z
-                has_backward = backward_ok and abs(depth[bi, bj] - z) <= max_jump * z
+                straight_forward = right[i, j] if axis == 0 else down[i, j]
+                straight_backward = backward_ok and (right[bi, bj] if axis == 0 else down[bi, bj])
+                has_forward = forward_ok and (abs(depth[fi, fj] - z) <= max_jump * z or straight_forward)
+                has_backward = backward_ok and (abs(depth[bi, bj] - z) <= max_jump * z or straight_backward)
                 for c in range(3):
                     forward = points[fi, fj, c] if forward_ok else np.nan
                     backward = points[bi, bj, c] if backward_ok else np.nan
