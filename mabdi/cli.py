@@ -99,7 +99,8 @@ def _parser() -> argparse.ArgumentParser:
         "--sequence", type=Path,
         help="run on a recorded sequence (a TUM RGB-D folder, a ROS 2 bag, or a 3DMatch / 7-Scenes, Redwood / Open3D, "
         "ScanNet, Replica (NICE-SLAM) or KITTI-style LiDAR folder, told apart by their files) instead of the simulated sensor; "
-        "CONFIG then gives the classifier, surface and output settings (its [sensor] noise sets the thresholds)",
+        "CONFIG then gives the classifier, surface and output settings (its [sensor] noise sets the thresholds; "
+        "with neither CONFIG nor --noise a depth camera's noise is learnt from the run, noise = auto)",
     )
     sequence.add_argument(
         "--camera",
@@ -285,9 +286,13 @@ def cmd_run(args) -> int:
             "cloud_topic": args.cloud_topic,
             "tolerance": args.tolerance,
         }
-        simulation, note = recorded_simulation(config, args.sequence, **options)
+        set_keys = {setting.partition("=")[0].strip() for setting in getattr(args, "settings", [])}
+        noise_stated = args.config is not None or args.noise is not None or "sensor.noise" in set_keys
+        simulation, note = recorded_simulation(config, args.sequence, noise_stated=noise_stated, **options)
         recording = {"path": str(args.sequence.resolve()), "options": options}
         print(f"source: {simulation.source.description}")
+        if not noise_stated and simulation.config.sensor.noise != config.sensor.noise:
+            print(f"noise: {simulation.config.sensor.noise} (learnt from the run: no config and no --noise name the camera's model)")
     else:
         for option in ("camera", "depth_scale", "depth_topic", "info_topic", "pose_topic", "colour_topic", "cloud_topic", "tolerance"):
             if getattr(args, option) is not None:

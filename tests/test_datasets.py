@@ -185,6 +185,20 @@ def test_depth_scale_and_camera_options(recorded, tmp_path, capsys):
     assert "Replica (NICE-SLAM) folder: --tolerance does not apply" in capsys.readouterr().err
 
 
+def test_a_camera_recording_run_without_a_noise_model_learns_it(recorded, tmp_path, capsys):
+    """No config and no --noise: every real camera has noise and its model is unknown, so the run learns it
+    (noise = "auto", said on the console and in summary.json); --noise or a config names the model instead."""
+    _, config, folders = recorded
+    common = ["--tolerance", "0.01", "--no-eval", "--quiet", "--frames", "2"]
+    assert main(["run", "--sequence", str(folders["tum"]), *common, "--out", str(tmp_path / "learnt")]) == 0
+    assert "noise: auto (learnt from the run" in capsys.readouterr().out
+    assert json.loads((tmp_path / "learnt" / "summary.json").read_text())["noise"] == "auto"
+    assert main(["run", "--sequence", str(folders["tum"]), *common, "--noise", "kinect", "--out", str(tmp_path / "named")]) == 0
+    assert json.loads((tmp_path / "named" / "summary.json").read_text())["noise"] == "kinect"
+    assert main(["run", str(config), "--sequence", str(folders["tum"]), *common, "--out", str(tmp_path / "config")]) == 0
+    assert json.loads((tmp_path / "config" / "summary.json").read_text())["noise"] == "none"  # as the config says
+
+
 def test_scannet_colour_of_another_size_is_sampled_along_each_ray():
     from mabdi.camera import Intrinsics
 

@@ -28,7 +28,8 @@ from pathlib import Path
 
 import numpy as np
 
-from mabdi.config import RunConfig, run_config_from_dict, scene_digest
+from mabdi.camera import Intrinsics
+from mabdi.config import RunConfig, run_config_from_dict, scene_digest, with_overrides
 from mabdi.errors import ConfigError
 from mabdi.io.checkpoint import CheckpointError, read_tree
 from mabdi.io.fingerprint import changed_inputs, run_inputs
@@ -213,9 +214,17 @@ def read_checkpoint(folder: Path) -> dict:
     return state
 
 
-def recorded_simulation(config: RunConfig, path, **options) -> tuple[Simulation, str | None]:
+#: The noise model of a depth camera's recording whose run states none (no config file, no ``--noise``):
+#: learnt from the run (:mod:`mabdi.noise_calibration`), since every real camera has noise and its
+#: model is unknown; ``none`` would hold the thresholds at ``tau_min`` at every depth.
+RECORDING_NOISE = "auto"
+
+
+def recorded_simulation(config: RunConfig, path, noise_stated: bool = True, **options) -> tuple[Simulation, str | None]:
     """A Simulation over the recording at ``path`` (``options`` go to the reader), and a note when
-    the ground truth is unknown (the evaluation is then skipped)."""
+    the ground truth is unknown (the evaluation is then skipped). ``noise_stated`` False (the run gave
+    no config file and no noise model): a depth camera's recording runs with :data:`RECORDING_NOISE`,
+    a LiDAR's with the config's."""
     kind = sequence_format(path)
     wanted = READER_OPTIONS[kind]
     for name, value in options.items():
@@ -223,6 +232,8 @@ def recorded_simulation(config: RunConfig, path, **options) -> tuple[Simulation,
             flag = "--" + name.replace("_", "-")
             raise ConfigError(f"{path} is a {FORMATS[kind][0]}: {flag} does not apply to it")
     source = open_sequence(path, **{k: v for k, v in options.items() if v is not None and k in wanted})
+    if not noise_stated and isinstance(source.intrinsics, Intrinsics):
+        config = with_overrides(config, {"sensor.noise": RECORDING_NOISE}, f"{path} (no noise model stated)")
     recorded = read_sequence_metadata(path).get("recorded", {})
     scene = None
     note = None
