@@ -143,6 +143,20 @@ def test_hand_built_pipeline_from_the_readme_equals_simulation(monkeypatch):
     )
 
 
+def test_the_mabdi_loop_example_from_the_readme_equals_simulation(monkeypatch):
+    """The README's MabdiLoop example (the loop in one object, on the simulated rig) makes the map a run of the
+    same config with the quad-tree makes."""
+    _, result = run("table", surface__method="quadtree")
+    text = (REPO / "README.md").read_text()
+    code = text.split("<!-- example: MabdiLoop -->")[1].split("```python")[1].split("```")[0]
+    monkeypatch.chdir(REPO)
+    namespace: dict = {}
+    exec(compile(code, "README.md example", "exec"), namespace)
+    mesh = namespace["loop"].mesh()
+    assert mesh.GetNumberOfCells() == result.mesh.GetNumberOfCells() > 10_000
+    np.testing.assert_array_equal(vtk_to_numpy(mesh.GetPoints().GetData()), vtk_to_numpy(result.mesh.GetPoints().GetData()))
+
+
 STAGES = {
     "scene": lambda s: s.rig.scene,
     "sensor": lambda s: s.rig.sensor,
