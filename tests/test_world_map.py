@@ -224,3 +224,37 @@ def test_codes_drawn_before_a_patch_changed_its_number_of_faces_find_nothing():
     block, local, keys = world.face_lookup(np.arange(1, 65), table)
     assert (block[:32] == -1).all() and (local[:32] == -1).all()  # 8 faces now: the old codes mean nothing
     assert [keys[b] for b in block[32:]] == ["patch_2"] * 32 and local[32:].tolist() == list(range(32))
+
+
+def test_a_block_of_polygons_and_the_same_block_triangulated_show_the_same_faces():
+    """A block of triangles draws its codes from the triangles' order in the shader, a block of quads (split into
+    triangles by the mapper) from a colour array: pixel for pixel they name the same faces (quad i is
+    triangles 2i and 2i + 1 once triangulated)."""
+    from vtkmodules.vtkFiltersCore import vtkTriangleFilter
+    from vtkmodules.vtkFiltersSources import vtkPlaneSource
+
+    plane = vtkPlaneSource()
+    plane.SetResolution(24, 18)
+    plane.SetOrigin(-1.2, -0.9, 0.0)
+    plane.SetPoint1(1.2, -0.9, 0.0)
+    plane.SetPoint2(-1.2, 0.9, 0.0)
+    plane.Update()
+    quads = plane.GetOutput()
+    triangulate = vtkTriangleFilter()
+    triangulate.SetInputData(quads)
+    triangulate.Update()
+    triangles = triangulate.GetOutput()
+    assert triangles.GetNumberOfCells() == 2 * quads.GetNumberOfCells()
+    pose = look_at([0.1, -0.2, 2.0], [0.1, -0.1999, 0.0])
+    local, seen = {}, {}
+    for name, mesh in (("quads", quads), ("triangles", triangles)):
+        renderer = DepthRenderer(face_identity=True)
+        renderer.render_zbuffer(mesh, SMALL, pose)
+        codes = renderer.render_identity()
+        seen[name] = codes > 0
+        local[name] = renderer.identities.lookup(np.where(seen[name], codes, renderer.identities.bases[0]))[1]
+    np.testing.assert_array_equal(seen["quads"], seen["triangles"])
+    assert seen["quads"].mean() > 0.5
+    on = seen["quads"]
+    np.testing.assert_array_equal(local["triangles"][on] // 2, local["quads"][on])
+    assert len(np.unique(local["triangles"][on])) > 1.8 * len(np.unique(local["quads"][on]))  # both halves of each quad seen

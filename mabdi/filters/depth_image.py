@@ -60,16 +60,35 @@ def _check_backend_library(backend: str) -> None:
 
 @dataclass
 class _Drawn:
-    """A leaf being drawn: the actor, and with face identity the copy that carries its codes."""
+    """A leaf being drawn: the actor, the number of faces its codes were given for (face identity), and
+    for a leaf of polygons the copy that carries its codes as colours."""
 
     leaf: vtkPolyData
     actor: vtkActor
+    faces: int = -1
     copy: vtkPolyData | None = None
     last_render: int = 0
 
 
+#: The fragment shader of a block of triangles drawn with face identity: triangle i of the draw is cell i of
+#: the block, so its code is the block's first code plus the primitive's index (no colour array is made,
+#: uploaded or kept: the codes cost nothing per face).
+FACE_CODE_SHADER = """//VTK::Light::Impl
+  int faceCode = faceBase + gl_PrimitiveID;
+  gl_FragData[0] = vec4(float(faceCode & 255) / 255.0, float((faceCode >> 8) & 255) / 255.0,
+                        float((faceCode >> 16) & 255) / 255.0, 1.0);
+"""
+
+
 #: Renders a block may go undrawn before its actor, upload and face codes are dropped.
 KEEP_HIDDEN_RENDERS = 8
+
+
+def _triangles_only(polydata: vtkPolyData) -> bool:
+    """Whether every cell of ``polydata`` is a triangle among its polygons (no vertices, lines or strips), so
+    that the mapper draws cell i as triangle i."""
+    polys = polydata.GetPolys()
+    return polydata.GetNumberOfCells() == polydata.GetNumberOfPolys() and (polys.GetNumberOfCells() == 0 or polys.IsHomogeneous() == 3)
 
 
 class DepthRenderer:
@@ -89,7 +108,11 @@ class DepthRenderer:
     (flat, no lighting; the simulator's object colours), or ``face_identity``
     draws each face in the colour of a 24-bit code the renderer assigns
     (:mod:`mabdi.face_identity`): :meth:`render_identity` reads the codes back
-    and :attr:`identities` says which block each range of codes belongs to.
+    and :attr:`identities` says which block each range of codes belongs to. A
+    block of triangles (the map's) draws its codes in the fragment shader from
+    the index of each triangle (:data:`FACE_CODE_SHADER`); a block with other
+    polygons, which the mapper splits into triangles, carries them as a colour
+    array on a shallow copy.
     """
 
     def __init__(self, backend: str = "egl", identity_array: str | None = None, face_identity: bool = False) -> None:
@@ -120,7 +143,7 @@ class DepthRenderer:
         for name, leaf in leaves:
             key = id(leaf)
             entry = self._actors.get(key)
-            if entry is not None and entry.copy is not None and entry.copy.GetNumberOfCells() != leaf.GetNumberOfCells():
+            if entry is not None and self.face_identity and entry.faces != leaf.GetNumberOfCells():
                 self._drop(key)
                 entry = None
             if entry is None:
@@ -149,11 +172,12 @@ class DepthRenderer:
     def _new_actor(self, leaf: vtkPolyData) -> _Drawn:
         drawn = leaf
         copy = None
-        if self.face_identity:
+        count = leaf.GetNumberOfCells()
+        base = self._codes.allocate(id(leaf), count) if self.face_identity else 0
+        by_primitive = self.face_identity and _triangles_only(leaf)
+        if self.face_identity and not by_primitive:
             # the codes live on a shallow copy (points and cells shared, so moved points still show), never
             # on the map's own block
-            count = leaf.GetNumberOfCells()
-            base = self._codes.allocate(id(leaf), count)
             copy = vtkPolyData()
             copy.ShallowCopy(leaf)
             rgb = numpy_to_vtk(face_rgb(base, count), deep=True)
@@ -162,7 +186,9 @@ class DepthRenderer:
             drawn = copy
         mapper = vtkPolyDataMapper()
         mapper.SetInputData(drawn)
-        if self.identity_array is not None and drawn.GetCellData().GetArray(self.identity_array) is not None:
+        if by_primitive:
+            mapper.ScalarVisibilityOff()
+        elif self.identity_array is not None and drawn.GetCellData().GetArray(self.identity_array) is not None:
             mapper.ScalarVisibilityOn()
             mapper.SetScalarModeToUseCellFieldData()
             mapper.SelectColorArray(self.identity_array)
@@ -174,8 +200,12 @@ class DepthRenderer:
         actor.GetProperty().LightingOff()
         if self.identity_array is not None:
             actor.GetProperty().SetColor(0.0, 0.0, 0.0)  # a block without identities reads as "no face"
+        if by_primitive:
+            shader = actor.GetShaderProperty()
+            shader.AddFragmentShaderReplacement("//VTK::Light::Impl", True, FACE_CODE_SHADER, False)
+            shader.GetFragmentCustomUniforms().SetUniformi("faceBase", base)
         self._renderer.AddActor(actor)
-        return _Drawn(leaf, actor, copy)
+        return _Drawn(leaf, actor, count, copy)
 
     @property
     def identities(self) -> FaceIdTable:
