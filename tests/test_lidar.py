@@ -455,3 +455,27 @@ def test_recorded_lidar_scans_give_the_simulators_map(tmp_path, layout):
     assert simulated > 1000
     assert abs(recorded - simulated) <= 0.01 * simulated
     rig.close()
+
+
+def test_the_pixel_grid_joins_the_azimuth_seam():
+    """A range image's columns go round 360 degrees: a wall behind the sensor, where the last column meets the
+    first, is meshed across the seam (the point straight behind is covered) with every vertex on the wall."""
+    geometry = SphericalGeometry(16, 256, 10.0, -10.0, 0.5, 30.0)
+    wall = plane((-5.0, -8.0, -3.0), (-5.0, 8.0, -3.0), (-5.0, -8.0, 3.0))  # azimuth +-180 degrees: the seam
+    surface = FilterPixelGrid()
+    surface.SetInputDataObject(render(wall, geometry, np.eye(4)))
+    surface.Update()
+    points, triangles = polydata_arrays(surface.GetOutput())
+    assert np.abs(points[:, 0] + 5.0).max() < 1e-4
+    corners = points[triangles][:, :, 1:]  # (y, z) on the wall
+    across = (corners[:, :, 0].max(axis=1) > 0) & (corners[:, :, 0].min(axis=1) < 0)
+    assert across.sum() == 2 * (geometry.beams - 1)  # one pair of triangles per pair of beams across the seam
+    a, b, c = corners[:, 0], corners[:, 1], corners[:, 2]
+
+    def side(start, end, point):  # the z of the 2-D cross product: which side of start -> end the point lies
+        return (end[:, 0] - start[:, 0]) * (point[1] - start[:, 1]) - (end[:, 1] - start[:, 1]) * (point[0] - start[:, 0])
+
+    for target in ([0.0, 0.0], [0.0, 0.5]):
+        p = np.asarray(target)
+        u, v, w = side(a, b, p), side(b, c, p), side(c, a, p)
+        assert (((u >= 0) & (v >= 0) & (w >= 0)) | ((u <= 0) & (v <= 0) & (w <= 0))).any(), target

@@ -22,8 +22,9 @@ A LiDAR's range image (:mod:`mabdi.spherical`) is meshed the same way,
 range along unit rays for depth along z = 1 rays; its beams lie further
 apart than a camera's pixels, so ``max_jump`` is scaled by
 :func:`mabdi.depth.jump_scale` (its pixel angle over the default camera's:
-the same 79 degrees of incidence). The image's azimuth seam (the first and
-last columns) is not joined.
+the same 79 degrees of incidence). Its columns go round 360 degrees, so
+the last column and the first are neighbours, meshed like any other two
+(the azimuth seam is joined).
 
 **Flat ground at grazing incidence** (``grazing``): a LiDAR on a vehicle sees
 the ground beyond about 10 m at more than 79 degrees from its normal on every
@@ -182,11 +183,24 @@ class FilterPixelGrid(MabdiAlgorithm):
             depth = smooth_depth_by_noise(depth, noise, intrinsics)
         rays = pixel_rays(intrinsics)
         grazing = self._parameters.grazing
+        wrap = isinstance(intrinsics, SphericalGeometry)  # 360 degrees of azimuth: the last column meets the first
         straight = None
-        if grazing is True or (grazing == "auto" and isinstance(intrinsics, SphericalGeometry)):
+        if grazing is True or (grazing == "auto" and wrap):
+            # two columns beyond each side of the seam, so that edges across it have samples beyond them too
+            wide = (lambda a: np.concatenate([a[:, -2:], a, a[:, :3]], axis=1)) if wrap else (lambda a: a)
             sigma = noise.sigma(depth, intrinsics.near, intrinsics.far)
-            straight = straight_continuations(rays * depth[..., None], sigma)
-        triangles = pixel_grid_triangles(depth, self._parameters.max_jump * jump_scale(intrinsics), straight)
+            straight = straight_continuations(wide(rays) * wide(depth)[..., None], wide(sigma))
+            if wrap:
+                width = depth.shape[1]
+                straight = (straight[0][:, 2 : width + 3], straight[1][:, 2 : width + 2], straight[2][:, 2 : width + 2])
+        jump = self._parameters.max_jump * jump_scale(intrinsics)
+        if wrap:
+            height, width = depth.shape
+            triangles = pixel_grid_triangles(np.concatenate([depth, depth[:, :1]], axis=1), jump, straight)
+            row, col = np.divmod(triangles, width + 1)
+            triangles = row * width + col % width  # column W is column 0 again
+        else:
+            triangles = pixel_grid_triangles(depth, jump, straight)
         # Keep only the pixels the triangles use, renumbered in order.
         used = np.zeros(depth.size, dtype=bool)
         used[triangles.ravel()] = True

@@ -68,7 +68,8 @@ merge within ``max_jump``). A leaf whose plane puts a
 corner further from its range than that allows (a surface seen nearly
 edge-on between two beams) gets no face, rather than the camera's corners
 at the leaf's depth, which between beams that far apart float off the
-surface. The azimuth seam is not joined.
+surface. The azimuth seam is not joined (the pixel grid joins it): a leaf
+never spans the last and the first column.
 
 **Flat ground at grazing incidence** (``grazing``, the pixel grid's rule,
 :mod:`mabdi.filters.pixel_grid`): a LiDAR on a vehicle sees the road beyond
