@@ -27,6 +27,22 @@ least squares on the relative error of sigma^2 to the bins holding at least
 no map to compare with) it is the Kinect v1's c = 1.425e-3 / m, a = 0
 (Khoshelham & Elberink 2012), a typical consumer depth camera.
 
+**How far errors reach across pixels** (``correlation``, pixels): a
+structured-light or stereo camera's matching window makes neighbouring
+pixels err together, and refinement (:mod:`mabdi.filters.refinement`)
+needs to know over how many pixels, to average past them. The loop's
+residuals, each divided by sigma(E), give the correlation rho(k) of pixels
+``CORRELATION_LAGS`` = 1, 2, 4 and 8 apart (along every eighth row and column,
+summed over the run). Neighbouring errors that are
+mostly independent (rho(1) below ``MIN_NEIGHBOUR_CORRELATION`` = 0.25: an
+ideal sensor's noise over a map's slowly varying error, which makes a few
+per cent) give 0. Otherwise rho(k) = f exp(-k^2 / (4 L^2)), the correlation
+of white noise smoothed by a Gaussian of L pixels with a share f of
+independent noise beside it, fitted by least squares on ln rho over the
+lags where rho > 0.02, gives L. Before ``min_correlation_pairs`` pairs at
+every lag (and before any fit) it is the prior ``PRIOR_CORRELATION`` = 2.5
+pixels, the structured-light model's, a Kinect v1.
+
 Everything that uses the sensor's noise reads this curve through
 :meth:`mabdi.sensor_noise.SensorNoise.sigma` (the classifier's tau,
 depth smoothing, registration's weights, removal's gate), so it follows the
@@ -46,15 +62,25 @@ import numpy as np
 MAD_TO_SIGMA = 1.4826
 #: The curve before the first fit: the Kinect v1's c (1/m), Khoshelham & Elberink 2012.
 PRIOR_COEFFICIENT = 1.425e-3
+#: The correlation length (pixels) before the first fit: the structured-light model's default, a Kinect v1's.
+PRIOR_CORRELATION = 2.5
+#: Pixel distances at which the residuals' correlation is measured.
+CORRELATION_LAGS = (1, 2, 4, 8)
+#: Pairs are taken along every this many rows and columns.
+PAIR_LINE_STRIDE = 8
+#: Below this correlation of neighbouring residuals the pixels' errors are taken as independent (length 0).
+MIN_NEIGHBOUR_CORRELATION = 0.25
 
 
 @dataclass(frozen=True)
 class NoiseCurve:
     """sigma(z) = sqrt(floor^2 + (coefficient z^2)^2): the calibrated curve at one moment (``floor`` in m,
-    ``coefficient`` in 1/m), as a depth image carries it."""
+    ``coefficient`` in 1/m), as a depth image carries it, with the length (pixels) over which neighbouring
+    pixels' errors are correlated (``correlation``, 0: independent; see the module docs)."""
 
     floor: float = 0.0
     coefficient: float = PRIOR_COEFFICIENT
+    correlation: float = PRIOR_CORRELATION
 
     def sigma(self, depth) -> np.ndarray:
         """sigma (m) at metric depths ``depth``; float32 for float32 input."""
@@ -79,7 +105,9 @@ class NoiseCalibration:
     bin's far edge; ``samples_per_bin``: residuals kept per bin (the most
     recent); ``min_samples``: a bin counts in the fit from this many;
     ``stride``: pixels sampled in u and v; ``gate_k`` and ``min_gate``:
-    residuals within max(gate_k sigma(z), min_gate) are counted.
+    residuals within max(gate_k sigma(z), min_gate) are counted;
+    ``min_correlation_pairs``: pairs of residuals each lag needs before the
+    correlation length is fitted.
     """
 
     def __init__(
@@ -91,6 +119,7 @@ class NoiseCalibration:
         stride: int = 2,
         gate_k: float = 5.0,
         min_gate: float = 0.02,
+        min_correlation_pairs: int = 20000,
     ) -> None:
         self.bin_width = float(bin_width)
         self.edges = np.arange(0.0, max_depth + 0.5 * bin_width, bin_width)
@@ -99,6 +128,7 @@ class NoiseCalibration:
         self.stride = int(stride)
         self.gate_k = float(gate_k)
         self.min_gate = float(min_gate)
+        self.min_correlation_pairs = int(min_correlation_pairs)
         self.reset()
 
     def reset(self) -> None:
@@ -106,6 +136,9 @@ class NoiseCalibration:
         #: per bin: a ring of the most recent absolute residuals (m), how many were ever added
         self._residuals = np.full((bins, self.samples_per_bin), np.nan, dtype=np.float32)
         self._added = np.zeros(bins, dtype=np.int64)
+        #: per lag (:data:`CORRELATION_LAGS`): sums over pairs of normalised residuals a, b of
+        #: a b, a^2, b^2 and the number of pairs
+        self._pair_sums = np.zeros((len(CORRELATION_LAGS), 4), dtype=np.float64)
         #: the current fit (the prior until the first)
         self.curve = NoiseCurve()
         self._fitted = False
@@ -135,7 +168,8 @@ class NoiseCalibration:
     # -- learning ----------------------------------------------------------------
     def observe(self, measured: np.ndarray, expected: np.ndarray, silhouettes: np.ndarray | None = None) -> int:
         """Add one frame's residuals (D, E: (H, W) metres, NaN = none; ``silhouettes``: pixels to skip) and
-        refit the curve. Returns the number of residuals added."""
+        refit the curve and the correlation length. Returns the number of residuals added."""
+        self._observe_pairs(measured, expected, silhouettes)
         s = self.stride
         d = measured[::s, ::s]
         e = expected[::s, ::s]
@@ -161,7 +195,54 @@ class NoiseCalibration:
         self._fit()
         return int(len(residual))
 
+    def _observe_pairs(self, measured: np.ndarray, expected: np.ndarray, silhouettes: np.ndarray | None) -> None:
+        """Add the products of normalised residuals (D - E) / sigma(E) of pixels ``CORRELATION_LAGS`` apart,
+        along every ``PAIR_LINE_STRIDE``-th row and column (the gate of :meth:`observe`)."""
+        k = PAIR_LINE_STRIDE
+        lines = []
+        for take in (lambda a: a[::k], lambda a: a[:, ::k].T):  # rows, then columns
+            d = take(np.asarray(measured, dtype=np.float32))
+            e = take(np.asarray(expected, dtype=np.float32))
+            with np.errstate(invalid="ignore"):
+                residual = d - e
+                sigma = np.maximum(self.sigma(e), np.float32(1e-6))
+                usable = np.abs(residual) <= np.maximum(np.float32(self.gate_k) * sigma, np.float32(self.min_gate))
+            if silhouettes is not None:
+                usable &= ~take(silhouettes)
+            lines.append(np.where(usable, residual / sigma, np.float32(np.nan)))
+        for i, lag in enumerate(CORRELATION_LAGS):
+            for normalised in lines:
+                a, b = normalised[:, :-lag], normalised[:, lag:]
+                both = np.isfinite(a) & np.isfinite(b)
+                a, b = a[both].astype(np.float64), b[both].astype(np.float64)
+                self._pair_sums[i] += (a @ b, a @ a, b @ b, len(a))
+
+    def correlations(self) -> np.ndarray:
+        """The residuals' correlation at each of :data:`CORRELATION_LAGS` (NaN where no pairs were seen)."""
+        products, first, second, _ = self._pair_sums.T
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return products / np.sqrt(first * second)
+
+    def _fit_correlation(self) -> float | None:
+        """The correlation length (pixels) of the residuals so far, or None before enough pairs (module docs)."""
+        if not np.all(self._pair_sums[:, 3] >= self.min_correlation_pairs):
+            return None
+        rho = self.correlations()
+        if not rho[0] >= MIN_NEIGHBOUR_CORRELATION:
+            return 0.0
+        lags = np.asarray(CORRELATION_LAGS, dtype=np.float64)
+        use = rho > 0.02
+        if use.sum() < 2:  # correlated at 1 pixel, nothing left at 2: a length well under a pixel
+            return 0.5
+        slope, _ = np.polyfit(lags[use] ** 2, np.log(rho[use]), 1)  # ln rho = ln f - k^2 / (4 L^2)
+        if slope >= 0:  # no decay over 8 pixels: longer than the lags can tell
+            return float(2 * CORRELATION_LAGS[-1])
+        return float(min(np.sqrt(-1.0 / (4.0 * slope)), 2 * CORRELATION_LAGS[-1]))
+
     def _fit(self) -> None:
+        correlation = self._fit_correlation()
+        if correlation is not None:
+            self.curve = NoiseCurve(self.curve.floor, self.curve.coefficient, correlation)
         centres, sigma, held = self.bin_sigmas()
         use = (held >= self.min_samples) & np.isfinite(sigma)
         if not use.any():
@@ -181,7 +262,7 @@ class NoiseCalibration:
                 c2 = max(float(np.sum(w * (sigma[use] ** 2 - a2) * z**4) / np.sum(w * z**8)), 0.0)
         else:  # one bin: the z^2 law through it
             a2, c2 = 0.0, float(sigma[use][0] ** 2 / z[0] ** 4)
-        self.curve = NoiseCurve(float(np.sqrt(max(a2, 0.0))), float(np.sqrt(max(c2, 0.0))))
+        self.curve = NoiseCurve(float(np.sqrt(max(a2, 0.0))), float(np.sqrt(max(c2, 0.0))), self.curve.correlation)
         self._fitted = True
 
     # -- checkpoints and reports ---------------------------------------------------
@@ -190,15 +271,20 @@ class NoiseCalibration:
         return {
             "residuals": self._residuals.copy(),
             "added": self._added.copy(),
+            "pair_sums": self._pair_sums.copy(),
             "floor": self.curve.floor,
             "coefficient": self.curve.coefficient,
+            "correlation": self.curve.correlation,
             "fitted": self._fitted,
         }
 
     def set_state(self, state: dict) -> None:
         self._residuals = np.array(state["residuals"], dtype=np.float32)
         self._added = np.array(state["added"], dtype=np.int64)
-        self.curve = NoiseCurve(float(state["floor"]), float(state["coefficient"]))
+        self._pair_sums = np.array(state.get("pair_sums", np.zeros_like(self._pair_sums)), dtype=np.float64)
+        self.curve = NoiseCurve(
+            float(state["floor"]), float(state["coefficient"]), float(state.get("correlation", PRIOR_CORRELATION))
+        )
         self._fitted = bool(state["fitted"])
 
     def summary(self) -> dict:
@@ -210,6 +296,9 @@ class NoiseCalibration:
             "fitted": self._fitted,
             "floor_m": self.curve.floor,
             "coefficient_per_m": self.curve.coefficient,
+            "correlation_px": self.curve.correlation,
+            "correlation_lags_px": list(CORRELATION_LAGS),
+            "correlation_at_lags": [None if not np.isfinite(r) else round(float(r), 4) for r in self.correlations()],
             "bins_m": [round(float(c), 4) for c in centres[used]],
             "bin_sigma_m": [float(s) for s in sigma[used]],
             "bin_samples": [int(h) for h in held[used]],

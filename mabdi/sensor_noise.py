@@ -177,21 +177,27 @@ class SensorNoise:
         return tuple(f.name for f in fields(cls) if f.name not in ("model", "calibration"))
 
     def to_array(self) -> np.ndarray:
-        """float64: the parameters in :meth:`parameter_names`' order, and for ``auto`` the curve's floor (m)
-        and coefficient (1/m) as they stand now (what a depth image carries, :func:`mabdi.depth.image_noise`)."""
+        """float64: the parameters in :meth:`parameter_names`' order, and for ``auto`` the curve's floor (m),
+        coefficient (1/m) and correlation length (pixels) as they stand now (what a depth image carries,
+        :func:`mabdi.depth.image_noise`)."""
         values = [float(getattr(self, name)) for name in self.parameter_names()]
         if self.model == "auto":
-            curve = self.calibration.curve if isinstance(self.calibration, NoiseCalibration) else self.calibration
-            values += [curve.floor, curve.coefficient]
+            curve = self._curve()
+            values += [curve.floor, curve.coefficient, curve.correlation]
         return np.asarray(values, dtype=np.float64)
+
+    def _curve(self) -> NoiseCurve:
+        """``auto``: the curve as it stands now."""
+        return self.calibration.curve if isinstance(self.calibration, NoiseCalibration) else self.calibration
 
     @classmethod
     def from_array(cls, model: str, values) -> SensorNoise:
-        """The model :meth:`to_array` wrote (``auto`` with its curve frozen); ValueError on a wrong length."""
+        """The model :meth:`to_array` wrote (``auto`` with its curve frozen; images written before the curve
+        had a correlation length carry two numbers, and get the prior's); ValueError on a wrong length."""
         names = cls.parameter_names()
         values = [float(v) for v in np.asarray(values, dtype=np.float64).ravel()]
-        expected = len(names) + (2 if model == "auto" else 0)
-        if len(values) != expected:
+        expected = len(names) + (3 if model == "auto" else 0)
+        if len(values) != expected and not (model == "auto" and len(values) == expected - 1):
             raise ValueError(f"noise model {model!r}: expected {expected} parameters ({', '.join(names)}), got {len(values)}")
         parameters = dict(zip(names, values[: len(names)], strict=True))
         parameters["edge_dropout"] = int(parameters["edge_dropout"])
@@ -207,6 +213,17 @@ class SensorNoise:
         if self.model == "structured_light":
             return (self.correlation_length > 0 and self.disparity_sigma > 0) or self.disparity_step > 0
         return self.model == "auto"
+
+    @property
+    def correlation_px(self) -> float:
+        """How far (pixels) neighbouring pixels' errors reach together: ``structured_light``'s
+        ``correlation_length`` (0 without the correlated field), ``auto``'s length learnt from the run
+        (:mod:`mabdi.noise_calibration`), 0 for the models that draw each pixel on its own."""
+        if self.model == "structured_light":
+            return self.correlation_length if self.disparity_sigma > 0 else 0.0
+        if self.model == "auto":
+            return self._curve().correlation
+        return 0.0
 
     @property
     def loses_returns(self) -> bool:

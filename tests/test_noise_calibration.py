@@ -9,8 +9,8 @@ import mabdi
 from conftest import REPO
 from mabdi.config import load_run_config, set_value
 from mabdi.errors import ConfigError
-from mabdi.sensor_noise import SensorNoise
-from mabdi.noise_calibration import PRIOR_COEFFICIENT, NoiseCalibration
+from mabdi.sensor_noise import SensorNoise, correlated_field
+from mabdi.noise_calibration import PRIOR_COEFFICIENT, PRIOR_CORRELATION, NoiseCalibration
 from mabdi.simulate.rig import SimulatedRig
 from mabdi.sources.tum import TumSequence, write_tum
 
@@ -35,6 +35,28 @@ def test_the_calibration_fits_the_z_squared_law_and_its_floor():
     assert copy.sigma(2.5) == calibration.sigma(2.5)
     summary = calibration.summary()
     assert summary["fitted"] and len(summary["bins_m"]) == len(summary["bin_sigma_m"]) > 5
+
+
+@pytest.mark.parametrize("length", [0.0, 1.0, 2.5, 4.0])
+def test_the_calibration_learns_how_far_the_errors_are_correlated(length):
+    """Residuals drawn as a Gaussian-smoothed field of ``length`` pixels: the learnt correlation length is within
+    15% of it (0 for white noise); before enough pairs it is the prior; it survives a checkpoint."""
+    rng = np.random.default_rng(1)
+    calibration = NoiseCalibration()
+    assert calibration.curve.correlation == PRIOR_CORRELATION
+    for _ in range(6):
+        expected = rng.uniform(1.0, 3.0) * np.ones((240, 320))
+        measured = expected + 1.425e-3 * expected**2 * correlated_field(expected.shape, length, rng)
+        measured[:20] = expected[:20] - 0.5  # a new object in front of the map: beyond the gate, not counted
+        calibration.observe(measured, expected)
+    learnt = calibration.curve.correlation
+    assert learnt == pytest.approx(length, rel=0.15, abs=1e-9), calibration.correlations()
+    copy = NoiseCalibration()
+    copy.set_state(calibration.state())
+    assert copy.curve.correlation == learnt
+    summary = calibration.summary()
+    assert summary["correlation_px"] == learnt and len(summary["correlation_at_lags"]) == 4
+    assert SensorNoise("auto", calibration=calibration).correlation_px == learnt
 
 
 def test_auto_is_shared_by_the_filters_and_cannot_simulate():

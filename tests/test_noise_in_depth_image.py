@@ -11,7 +11,7 @@ from mabdi.camera import Intrinsics, look_at
 from mabdi.config import set_value
 from mabdi.depth import DepthFrame, depth_image, image_noise, set_noise
 from mabdi.filters.classifier import CONTRADICTED, KNOWN, NOVEL, ClassifierParameters, FilterClassifier, label_array
-from mabdi.noise_calibration import NoiseCalibration, NoiseCurve
+from mabdi.noise_calibration import PRIOR_CORRELATION, NoiseCalibration, NoiseCurve
 from mabdi.sensor_noise import SensorNoise
 from mabdi.sources.frames import FrameList, SourceDepthFrames
 
@@ -48,12 +48,17 @@ def test_an_image_without_a_noise_model_is_read_as_noise_free_and_a_malformed_on
 def test_auto_carries_the_curve_as_it_stood_when_the_image_was_made():
     calibration = NoiseCalibration()
     noise = SensorNoise("auto", calibration=calibration)
-    calibration.curve = NoiseCurve(0.002, 3e-3)
+    calibration.curve = NoiseCurve(0.002, 3e-3, 1.7)
     image = depth_image(np.full(SMALL.shape, 2.0), SMALL, POSE, noise=noise)
     calibration.curve = NoiseCurve(0.0, 1e-3)  # the calibration learns on; the image keeps its curve
     carried = image_noise(image)
-    assert carried.model == "auto" and carried.calibration == NoiseCurve(0.002, 3e-3)
+    assert carried.model == "auto" and carried.calibration == NoiseCurve(0.002, 3e-3, 1.7)
     assert carried.sigma(2.0, SMALL.near, SMALL.far) == pytest.approx(np.hypot(0.002, 3e-3 * 4))
+    assert carried.correlation_px == 1.7
+    # an image written before the curve had a correlation length (floor and coefficient only): the prior's
+    values = image.GetFieldData().GetArray("noise_parameters")
+    values.SetNumberOfTuples(values.GetNumberOfTuples() - 1)
+    assert image_noise(image).calibration == NoiseCurve(0.002, 3e-3, PRIOR_CORRELATION)
     # the source stamps each new D with the curve of that moment
     frames = FrameList([DepthFrame(np.full(SMALL.shape, 2.0, np.float32), SMALL, POSE, i) for i in range(2)])
     measured = SourceDepthFrames(frames, noise=noise)

@@ -40,12 +40,19 @@ as an offset t_v from its *original* position p0_v:
   W_k += beta_k w_p and S_k += beta_k w_p s_k. Pixels within
   ``grazing_deg`` (75 degrees) of the face's plane do not observe.
 * **Near the corner only**: m counts for corner k only if it lies within
-  ``radius_px`` (2.5) pixel footprints (D / f metres, f the focal length)
+  ``radius_px`` pixel footprints (D / f metres, f the focal length)
   of p0_k across n_k. s_k extrapolates the surface from m to the corner
   along the plane normal to n_k; an error alpha of the vertex normal tilts
   it by u sin(alpha) at a distance u, and a quad-tree face's corner is
   30-100 mm from most of its pixels (a 10 degree error: 5-17 mm, the same
-  sign for every pixel on that side).
+  sign for every pixel on that side). ``radius_px = "auto"`` (the default)
+  is 2.5 footprints where pixels err independently, and
+  ``RADIUS_PER_CORRELATION`` (4) times the noise's correlation length L
+  where that is more (:attr:`~mabdi.sensor_noise.SensorNoise.correlation_px`:
+  the structured-light model's, or the one ``noise = "auto"`` learns): the
+  pixels near a corner then err together, and one look averages only as
+  many independent errors as there are correlation lengths in the radius
+  (a Gaussian-smoothed field's correlation is exp(-4) = 2% at 4 L).
 * **Estimate**: the weighted mean of prior and observations,
   t_v = S_v / (W0_v + W_v), with variance 1 / (W0_v + W_v), kept within
   3 / sqrt(W0_v) (three sigma of the first look) of the original position.
@@ -128,6 +135,11 @@ from mabdi.world_map import FRAME_CELL_ARRAY, patch_triangles
 
 from mabdi.filters import refinement_kernels as kernels
 
+#: ``radius_px = "auto"``: footprints around a corner where pixels err independently, and per correlation
+#: length of the noise where they err together (see the module docs).
+RADIUS_PX_INDEPENDENT = 2.5
+RADIUS_PER_CORRELATION = 4.0
+
 #: Blocks of these key prefixes are refined (pixel grid and quad-tree patches, and the world map's merges of
 #: them); voxel planes use ``patch_``.
 REFINED_PREFIX = ("frame_", "merged_")
@@ -140,7 +152,8 @@ class RefinementParameters:
     ``stride``: pixels sampled every ``stride`` in u and v; ``grazing_deg``: pixels whose ray is more than this
     angle off the face's normal neither observe nor vote (75);
     ``radius_px``: a pixel observes a vertex only if its measured point lies within this many pixel footprints
-    (its depth / focal length) of the vertex across the vertex's normal (2.5);
+    (its depth / focal length) of the vertex across the vertex's normal ("auto": by the noise's correlation,
+    :meth:`radius_for`);
     ``confidence``: a vertex moves once its observations' weight is at least this times its prior's;
     ``min_step``: nor unless its estimate is at least this far from where it is; ``min_sigma``: floor on
     sigma(z); ``replace_ratio``: a face is replaced when its sigma is at least this times the pixel's;
@@ -150,7 +163,7 @@ class RefinementParameters:
 
     stride: int = 2
     grazing_deg: float = 75.0
-    radius_px: float = 2.5
+    radius_px: float | str = "auto"
     confidence: float = 1.0
     min_step: float = 2e-4
     min_sigma: float = 1e-4
@@ -164,12 +177,21 @@ class RefinementParameters:
             raise ConfigError(f"refinement: stride must be an integer >= 1 (pixels), got {self.stride!r}")
         if not 0 < self.grazing_deg < 90:
             raise ConfigError(f"refinement: need 0 < grazing_deg < 90, got {self.grazing_deg}")
-        if not self.radius_px > 0:
-            raise ConfigError(f"refinement: radius_px must be > 0 pixels, got {self.radius_px}")
+        if self.radius_px != "auto" and not (
+            isinstance(self.radius_px, (int, float)) and not isinstance(self.radius_px, bool) and self.radius_px > 0
+        ):
+            raise ConfigError(f"refinement: radius_px must be > 0 pixels or \"auto\", got {self.radius_px!r}")
         if not (self.confidence >= 0 and self.min_step >= 0 and self.min_sigma > 0):
             raise ConfigError("refinement: need confidence >= 0, min_step >= 0 and min_sigma > 0")
         if not (self.replace_ratio > 1 and self.gate_k > 0 and 0 < self.replace_share <= 1):
             raise ConfigError("refinement: need replace_ratio > 1, gate_k > 0 and 0 < replace_share <= 1")
+
+    def radius_for(self, noise) -> float:
+        """The radius (pixel footprints) for a depth image of noise ``noise`` (a SensorNoise): ``radius_px``, or
+        for "auto" max(RADIUS_PX_INDEPENDENT, RADIUS_PER_CORRELATION x its correlation length)."""
+        if self.radius_px != "auto":
+            return float(self.radius_px)
+        return max(RADIUS_PX_INDEPENDENT, RADIUS_PER_CORRELATION * noise.correlation_px)
 
 
 @dataclass
@@ -371,7 +393,8 @@ class MapRefinement:
         start = time.perf_counter()
         p = self.parameters
         result = RefinementResult()
-        if not loop.classifier_enabled or image_noise(loop.measured_image()).model == "none":
+        noise = image_noise(loop.measured_image())
+        if not loop.classifier_enabled or noise.model == "none":
             return result
         expected_image = loop.expected_image()
         if expected_image is None or expected_image.GetPointData().GetArray(FACE_ID_ARRAY) is None:
@@ -405,6 +428,7 @@ class MapRefinement:
         centre = pose[:3, 3]
         focal = 0.5 * (loop.intrinsics.fx + loop.intrinsics.fy)
         cos_grazing = np.cos(np.radians(p.grazing_deg))
+        radius = p.radius_for(noise)
 
         replaced = []
         touched = []
@@ -423,7 +447,7 @@ class MapRefinement:
                 state.triangles, _points(state.patch), state.original, state.normal, state.prior, state.weight,
                 state.total, local[chosen], rays[chosen], measured[chosen], expected[chosen], length[chosen],
                 sigma_d[chosen], centre, focal, cos_grazing, p.gate_k, p.replace, p.replace_ratio,
-                p.replace_share, p.radius_px,
+                p.replace_share, radius,
             )  # fmt: skip
             gone, count, vertices = kernels.observe_block_kernel(*arguments)
             if gone.any():
