@@ -178,8 +178,7 @@ class NoiseCalibration:
             use &= ~silhouettes[::s, ::s]
         d, e = d[use].astype(np.float64), e[use].astype(np.float64)
         residual = np.abs(d - e)
-        gate = np.maximum(self.gate_k * self.sigma(e), self.min_gate)
-        keep = residual <= gate
+        keep = self._counted(residual, self.sigma(e))
         z, residual = e[keep], residual[keep]
         which = np.searchsorted(self.edges, z, side="right") - 1
         inside = (which >= 0) & (which < len(self._added))
@@ -195,6 +194,11 @@ class NoiseCalibration:
         self._fit()
         return int(len(residual))
 
+    def _counted(self, residual: np.ndarray, sigma: np.ndarray) -> np.ndarray:
+        """Which absolute residuals count: within max(gate_k sigma, min_gate) (new surfaces in front of the map
+        and objects that left lie beyond it)."""
+        return residual <= np.maximum(self.gate_k * sigma, self.min_gate)
+
     def _observe_pairs(self, measured: np.ndarray, expected: np.ndarray, silhouettes: np.ndarray | None) -> None:
         """Add the products of normalised residuals (D - E) / sigma(E) of pixels ``CORRELATION_LAGS`` apart,
         along every ``PAIR_LINE_STRIDE``-th row and column (the gate of :meth:`observe`)."""
@@ -206,7 +210,7 @@ class NoiseCalibration:
             with np.errstate(invalid="ignore"):
                 residual = d - e
                 sigma = np.maximum(self.sigma(e), np.float32(1e-6))
-                usable = np.abs(residual) <= np.maximum(np.float32(self.gate_k) * sigma, np.float32(self.min_gate))
+                usable = self._counted(np.abs(residual), sigma)
             if silhouettes is not None:
                 usable &= ~take(silhouettes)
             lines.append(np.where(usable, residual / sigma, np.float32(np.nan)))
