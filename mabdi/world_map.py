@@ -178,18 +178,25 @@ def face_normals(patch: vtkPolyData) -> np.ndarray:
     return triangle_normals(points, corners)[0]
 
 
-def face_centres(patch: vtkPolyData) -> tuple[np.ndarray, np.ndarray]:
-    """(M, 3) corner-average centres of a patch's polygons and (M,) their radii (farthest corner), metres."""
-    if patch.GetNumberOfCells() == 0:
-        return np.zeros((0, 3)), np.zeros(0)
-    points = vtk_to_numpy(patch.GetPoints().GetData()).astype(np.float64)
+def face_centres(patch: vtkPolyData, cells=None) -> tuple[np.ndarray, np.ndarray]:
+    """(M, 3) corner-average centres of a patch's polygons and (M,) their radii (farthest corner), metres;
+    ``cells``: only those polygons (ids, in that order)."""
     polys = patch.GetPolys()
     offsets = vtk_to_numpy(polys.GetOffsetsArray())
-    corners = points[vtk_to_numpy(polys.GetConnectivityArray())]
-    sizes = np.diff(offsets)
-    centres = np.add.reduceat(corners, offsets[:-1], axis=0) / sizes[:, None]
+    connectivity = vtk_to_numpy(polys.GetConnectivityArray())
+    if cells is None:
+        starts, sizes = offsets[:-1], np.diff(offsets)
+    else:
+        cells = np.asarray(cells, dtype=np.int64)
+        starts, sizes = offsets[cells], offsets[cells + 1] - offsets[cells]
+    if not len(sizes):
+        return np.zeros((0, 3)), np.zeros(0)
+    firsts = np.cumsum(sizes) - sizes  # where each polygon's corners start in the gathered list
+    corner_ids = connectivity[np.repeat(starts - firsts, sizes) + np.arange(int(sizes.sum()))]
+    corners = vtk_to_numpy(patch.GetPoints().GetData())[corner_ids].astype(np.float64)
+    centres = np.add.reduceat(corners, firsts, axis=0) / sizes[:, None]
     reach = np.linalg.norm(corners - np.repeat(centres, sizes, axis=0), axis=1)
-    return centres, np.maximum.reduceat(reach, offsets[:-1])
+    return centres, np.maximum.reduceat(reach, firsts)
 
 
 def stamped(patch: vtkPolyData, frame: int, drop=()) -> vtkPolyData:

@@ -44,7 +44,12 @@ except
   edge of a ghost (the world behind it is smooth);
 * at grazing incidence: the angle between the pixel's ray and the face's
   normal is over ``grazing_deg`` (75 degrees), where tiny depth errors along
-  the ray are large;
+  the ray are large. A confirmation there does not count; a contradiction
+  does where D lies beyond E by the gap below stretched along the ray,
+  cos(grazing_deg) / cos(incidence) times it (:func:`gap_along_ray`: a
+  face's error across its plane is 1 / cos(incidence) times longer along
+  the ray). A car's roof seen from a LiDAR 1.9 m up across the street lies
+  86 degrees from the beams; once the car has gone they pass it by metres;
 * pixels with no return count as seeing through to the far limit
   (``no_return_is_free``, on): in the simulator a ray without a return met
   nothing within the range, and behind a departed object there is often
@@ -80,6 +85,27 @@ confirmed all along (L = -0.7) goes after two contradicting frames with no
 confirming frame between them; a confirming frame between costs a third.
 Frames in which a face gets no vote (not in view, or too small to cover a
 pixel centre) leave its L as it is.
+
+**Faces smaller than a pixel** (:func:`votes_between_pixels`). A surface
+meshed from close and seen later from afar, or at grazing incidence, has
+faces smaller than the pixels' spacing there: few of them are shown by a
+pixel centre in any frame, so they rarely get the two contradicting frames
+the rule asks for and stay when the object has gone (a LiDAR's beams are
+0.4 degrees apart: a departed car's roof, meshed on the way past it, is
+seen from across the street by two or three beams). In the blocks of the map where a face was voted
+against this frame, each face that no pixel showed is contradicted where
+its centre projects into a pixel that voted a contradiction, that pixel's
+ray crosses the face's plane near the face (within the face's radius and
+the pixel's footprint on the plane) and D lies beyond the crossing by the
+(stretched) gap. The crossing, not the centre's depth, is compared with D,
+so a face of the surface D reaches (the road beside the car) is not seen
+through. The loop looks only at voting pixels with a voting neighbour (a
+surface seen through, not a lone pixel of noise) and only at faces whose
+first corner falls within a pixel of one
+(:class:`~mabdi.loop.object_removal.ObjectRemoval`). These votes enter the
+same rule (two frames, the threshold);
+faces edge-connected to a removed face that were contradicted before
+follow it (:meth:`~mabdi.world_map.WorldMap.remove_faces`).
 
 The removed faces leave their blocks in the world mesh
 (:meth:`~mabdi.filters.world_mesh.FilterWorldMesh.remove_faces`), the blocks
@@ -195,15 +221,15 @@ def removal_votes(
     else:
         seen_through = labels == CONTRADICTED
     contradicting_pixels = seen_through & (face_ids > 0)
+    gap = np.full(labels.shape, np.float32(parameters.min_gap))
     if contradicting_pixels.any():
-        gap = np.full(labels.shape, np.float32(parameters.min_gap))
-        if sigma is not None:
-            d, e = measured[contradicting_pixels], expected[contradicting_pixels]
-            variance = sigma(d) ** 2 + sigma(e) ** 2
-            if pose_sigma is not None:
-                variance = variance + np.nan_to_num(pose_sigma[contradicting_pixels], nan=0.0) ** 2
-            noise = np.float32(parameters.k_sigma) * np.sqrt(variance).astype(np.float32)
-            gap[contradicting_pixels] = np.maximum(gap[contradicting_pixels], noise)
+        gap[contradicting_pixels] = contradiction_gap(
+            measured[contradicting_pixels],
+            expected[contradicting_pixels],
+            parameters,
+            sigma,
+            None if pose_sigma is None else pose_sigma[contradicting_pixels],
+        )
         with np.errstate(invalid="ignore"):
             contradicting_pixels &= measured - expected > gap
     candidates = (face_ids > 0) & ((labels == KNOWN) | contradicting_pixels)
@@ -232,6 +258,13 @@ def removal_votes(
     rays = unit_rays.reshape(-1, 3)[pixels]
     cosine = np.abs(normals[:, 0] * rays[:, 0] + normals[:, 1] * rays[:, 1] + normals[:, 2] * rays[:, 2])
     facing = cosine >= np.float32(np.cos(np.radians(parameters.grazing_deg)))  # NaN normals fail too
+    # beyond grazing_deg a contradiction still counts where D is beyond E by the gap stretched along the ray
+    grazing = contradicting & ~facing
+    if grazing.any():
+        at = pixels[grazing]
+        beyond = measured.ravel()[at] - expected.ravel()[at]
+        grazing[grazing] = beyond > gap_along_ray(gap.ravel()[at], cosine[grazing], parameters)
+        facing |= grazing
     pixels, inverse, contradicting = pixels[facing], inverse[facing], contradicting[facing]
     seen = np.bincount(inverse, minlength=len(faces))
     contradicted = np.bincount(inverse[contradicting], minlength=len(faces)).astype(np.int64)
@@ -241,6 +274,93 @@ def removal_votes(
     voting = np.zeros(labels.size, dtype=bool)
     voting[pixels[contradicting]] = True
     return faces, contradicted, confirmed, voting.reshape(labels.shape)
+
+
+def contradiction_gap(measured, expected, parameters: RemovalParameters, sigma=None, pose_sigma=None) -> np.ndarray:
+    """(N,) float32 how far (m) D must lie beyond E for a contradiction (module docs, "within the noise"):
+    ``k_sigma`` times the noise of the difference, sqrt(sigma(D)^2 + sigma(E)^2 + pose_sigma^2), and at least
+    ``min_gap``. ``sigma(depth)`` -> the sensor's noise (None: ``min_gap`` alone); ``pose_sigma`` (N,) or None."""
+    measured = np.asarray(measured, dtype=np.float32)
+    gap = np.full(measured.shape, np.float32(parameters.min_gap))
+    if sigma is None:
+        return gap
+    variance = sigma(measured) ** 2 + sigma(np.asarray(expected, dtype=np.float32)) ** 2
+    if pose_sigma is not None:
+        variance = variance + np.nan_to_num(pose_sigma, nan=0.0) ** 2
+    return np.maximum(gap, np.float32(parameters.k_sigma) * np.sqrt(variance).astype(np.float32))
+
+
+def gap_along_ray(gap, cosine, parameters: RemovalParameters) -> np.ndarray:
+    """``gap`` (m) as it stands along a ray at ``cosine`` = |cos(incidence)| on a face: as it is up to
+    ``grazing_deg``, beyond it stretched by cos(grazing_deg) / cosine (a face's error across its plane is
+    1 / cosine times longer along the ray; continuous at ``grazing_deg``); infinite edge-on (or NaN normals)."""
+    cos_grazing = np.float32(np.cos(np.radians(parameters.grazing_deg)))
+    cosine = np.asarray(cosine, dtype=np.float32)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        stretch = np.where(cosine > 0, np.maximum(np.float32(1.0), cos_grazing / cosine), np.float32(np.inf))
+    return np.asarray(gap, dtype=np.float32) * stretch
+
+
+def votes_between_pixels(
+    centres: np.ndarray,
+    normals: np.ndarray,
+    radii: np.ndarray,
+    measured: np.ndarray,
+    voting: np.ndarray,
+    unit_rays: np.ndarray,
+    ray_length: np.ndarray,
+    pixels_uv: np.ndarray,
+    origin: np.ndarray,
+    rotation: np.ndarray,
+    pixel_angle: float,
+    parameters: RemovalParameters,
+    sigma=None,
+    pose_sigma: np.ndarray | None = None,
+) -> np.ndarray:
+    """(M,) bool: which of M faces that no pixel centre showed this frame a voting contradiction sees through.
+
+    A face smaller than the pixels' spacing where it is seen (a surface once seen closely, now from afar or
+    at grazing incidence) gets no pixel of E, so no vote, and stays when the object it belonged to has gone.
+    Such a face is contradicted where its centre projects into a pixel that voted a contradiction this frame
+    (``voting``, from :func:`removal_votes`: that ray saw through the face E showed, past every gate), the
+    ray crosses the face's plane near the face (within its radius and the pixel's footprint on the plane,
+    ``pixel_angle`` times the distance over cos(incidence)) and D lies beyond the crossing by the gap of
+    :func:`contradiction_gap`, stretched along the ray as :func:`gap_along_ray` says. The crossing, not
+    the centre's own depth, is what D is compared with, so a face of the surface D hits (a road beside a
+    departed car, seen at grazing incidence) is not seen through.
+
+    ``centres``, ``normals`` (M, 3) world frame, ``radii`` (M,) m; ``measured`` D (H, W) (a pixel with no return
+    standing for the far limit); ``unit_rays`` (H, W, 3) sensor frame and ``ray_length`` (H, W) the distance
+    along it per unit of D; ``pixels_uv`` (M, 2) the centres' continuous pixel coordinates (NaN: not in
+    the image); ``origin``, ``rotation``: the sensor's position and world_from_sensor rotation.
+    """
+    height, width = measured.shape
+    hit = np.zeros(len(centres), dtype=bool)
+    with np.errstate(invalid="ignore"):
+        u, v = np.floor(pixels_uv[:, 0]), np.floor(pixels_uv[:, 1])
+        inside = (u >= 0) & (u < width) & (v >= 0) & (v < height)
+    faces = np.flatnonzero(inside)
+    u, v = u[faces].astype(np.int64), v[faces].astype(np.int64)
+    on = voting[v, u]
+    faces, u, v = faces[on], u[on], v[on]
+    if not len(faces):
+        return hit
+    rays = unit_rays[v, u].astype(np.float64) @ np.asarray(rotation, dtype=np.float64).T
+    normal = normals[faces].astype(np.float64)
+    along = np.einsum("ij,ij->i", normal, rays)
+    cosine = np.abs(along)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.einsum("ij,ij->i", normal, centres[faces] - origin) / along  # distance along the ray to the plane
+        off = np.linalg.norm(origin + t[:, None] * rays - centres[faces], axis=1)
+        near_face = (t > 0) & (off <= radii[faces] + pixel_angle * t / np.maximum(cosine, 1e-6))
+    length = ray_length[v, u]
+    d = measured[v, u].astype(np.float64)
+    crossing = (t / length).astype(np.float32)  # the crossing in D's own units (z-depth or range)
+    gap = contradiction_gap(d, crossing, parameters, sigma, None if pose_sigma is None else pose_sigma[v, u])
+    with np.errstate(invalid="ignore"):
+        beyond = (d * length - t) > gap_along_ray(gap, cosine, parameters) * length
+    hit[faces] = near_face & beyond
+    return hit
 
 
 def update_log_odds(

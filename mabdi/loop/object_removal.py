@@ -35,22 +35,30 @@ judged by the same frame. Without this a block that keeps receiving points
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import numpy as np
+from vtkmodules.util.numpy_support import vtk_to_numpy
 from vtkmodules.vtkCommonDataModel import vtkPolyData
 
 from mabdi.camera import project, unit_rays
-from mabdi.depth import depth_array, image_intrinsics, image_noise, image_pose, pixels_per_radian
+from mabdi.depth import depth_array, image_intrinsics, image_noise, image_pose, pixel_angle, pixels_per_radian, project_to_image
 from mabdi.face_identity import FaceIdTable, block_address
-from mabdi.filters.classifier import CONTRADICTED, NO_RETURN, classify, label_array, pose_sigma_array
+from mabdi.filters.classifier import CONTRADICTED, NO_RETURN, classify, dilate, label_array, neighbourhood_3x3, pose_sigma_array
 from mabdi.filters.expected_image import face_id_array
 from mabdi.loop.ray_triangle_kernels import nearest_hits_in_boxes_kernel
 from mabdi.filters.registry import SurfaceCapabilities
-from mabdi.filters.removal import RemovalParameters, for_geometry, removal_votes
+from mabdi.filters.removal import RemovalParameters, for_geometry, removal_votes, votes_between_pixels
 from mabdi.polydata import polydata_arrays, triangle_frames
 from mabdi.spherical import SphericalGeometry
+from mabdi.world_map import face_centres
+
+
+#: Faces smaller than a pixel are looked for within a pixel's footprint on a plane seen this steeply (degrees).
+MAX_INCIDENCE_DEG = 88.0
+_COS_MAX_INCIDENCE = math.cos(math.radians(MAX_INCIDENCE_DEG))
 
 
 @dataclass
@@ -126,23 +134,88 @@ class ObjectRemoval:
         pose_sigma = pose_sigma_array(classified_image)
         labels, expected, codes, table = self._retraced(labels, measured, expected, codes, table, measured_image, pose_sigma, world)
         rays, _ = unit_rays(geometry, np.float32)
+        parameters = self._parameters_for(expected, geometry, surface, capabilities)
+        pose = image_pose(measured_image)
+
+        def sigma(depth):
+            return noise.sigma(depth, geometry.near, geometry.far)
+
         faces, contradicted, confirmed, voting = removal_votes(
             labels,
             measured,
             expected,
             codes,
             rays,
-            image_pose(measured_image),
+            pose,
             lambda faces: world.face_normals_of(faces, table),
-            self._parameters_for(expected, geometry, surface, capabilities),
+            parameters,
             evidence_of=lambda faces: world.face_evidence_of(faces, table),
-            sigma=lambda depth: noise.sigma(depth, geometry.near, geometry.far),
+            sigma=sigma,
             far=geometry.far,
             pose_sigma=pose_sigma,
         )
         if not len(faces):
             return voting, np.zeros(0, dtype=np.int64), table, codes
+        between = self._between_pixels(faces, contradicted, confirmed, voting, measured, geometry, pose, table, world, parameters, sigma, pose_sigma)
+        if len(between):
+            faces = np.concatenate([faces, between])
+            contradicted = np.concatenate([contradicted, np.ones(len(between), dtype=contradicted.dtype)])
+            confirmed = np.concatenate([confirmed, np.zeros(len(between), dtype=confirmed.dtype)])
         return voting, world.update_evidence(faces, contradicted, confirmed, self.parameters, table), table, codes
+
+    def _between_pixels(self, faces, contradicted, confirmed, voting, measured, geometry, pose, table, world, parameters, sigma, pose_sigma):
+        """Codes of the faces no pixel showed that this frame's contradictions see through
+        (:func:`~mabdi.filters.removal.votes_between_pixels`), among the faces of the blocks where a face was
+        voted against: where something left, the faces too small for a pixel of this view go with it.
+
+        Only voting pixels with a voting neighbour count here (where a surface was seen through, not a
+        lone pixel of noise), and only faces whose first corner projects within a pixel of one are looked at, so
+        a frame without such a cluster costs nothing and one with it costs a projection of the blocks' points.
+        """
+        clustered = voting & (neighbourhood_3x3(voting.astype(np.uint8), np.add, outside=0) >= 2)  # itself and one more
+        against = faces[contradicted > confirmed]
+        if not len(against) or not clustered.any():
+            return np.zeros(0, dtype=np.int64)
+        near_cluster = dilate(clustered, 1)
+        height, width = clustered.shape
+        block, local, keys = world.face_lookup(against, table)
+        if parameters.no_return_is_free:
+            measured = np.where(np.isnan(measured), np.float32(geometry.far), measured)
+        rays, length = unit_rays(geometry, np.float32)
+        rotation, origin = pose[:3, :3], pose[:3, 3]
+        found = []
+        for b in np.unique(block[block >= 0]):
+            polydata = world.block(keys[b])
+            # the faces around this block's contradicted ones: within a pixel's footprint on a plane seen at
+            # up to MAX_INCIDENCE_DEG, and their radius
+            shown, shown_radii = face_centres(polydata, local[block == b])
+            reach = np.linalg.norm(shown - origin, axis=1) * pixel_angle(geometry) / _COS_MAX_INCIDENCE + shown_radii
+            low, high = (shown - reach[:, None]).min(axis=0), (shown + reach[:, None]).max(axis=0)
+            points = vtk_to_numpy(polydata.GetPoints().GetData())
+            around = np.flatnonzero(np.all((points >= low) & (points <= high), axis=1))
+            uv, value = project_to_image(points[around], geometry, pose)
+            with np.errstate(invalid="ignore"):
+                u, v = np.floor(uv[:, 0]), np.floor(uv[:, 1])
+                inside = (u >= 0) & (u < width) & (v >= 0) & (v < height) & (value > 0)
+            near = np.zeros(len(points), dtype=bool)
+            near[around[inside]] = near_cluster[v[inside].astype(np.int64), u[inside].astype(np.int64)]
+            polys = polydata.GetPolys()
+            first_corner = vtk_to_numpy(polys.GetConnectivityArray())[vtk_to_numpy(polys.GetOffsetsArray())[:-1]]
+            cells = np.flatnonzero(near[first_corner])
+            codes = int(table.bases[b]) + cells
+            unseen = ~np.isin(codes, faces)
+            if not unseen.any():
+                continue
+            cells, codes = cells[unseen], codes[unseen]
+            centres, radii = face_centres(polydata, cells)
+            uv, value = project_to_image(centres, geometry, pose)
+            uv[value <= 0] = np.nan  # behind a camera
+            hit = votes_between_pixels(
+                centres, world.face_normals_of(codes, table), radii, measured, voting, rays, length, uv, origin, rotation,
+                pixel_angle(geometry), parameters, sigma, pose_sigma,
+            )
+            found.append(codes[hit])
+        return np.concatenate(found) if found else np.zeros(0, dtype=np.int64)
 
     def _retraced(self, labels, measured, expected, codes, table: FaceIdTable, measured_image, pose_sigma, world):
         """(labels, E, codes, table) with the pixels that showed a block re-meshed since E was drawn (a keyed
