@@ -158,10 +158,11 @@ def test_run_with_ghosts_steps_and_measures_a_run():
     assert all(0.0 <= s <= 1.0 for _, s in shares)
     assert set(run.frames_to_clear()) == {"crate"}
     assert run.static.covered_end_m2 > 0
-    removal = run.removal  # nothing static lost; the crate's ghost is part gone, part left (4 frames after it left)
+    assert max(s for f, s in crate if f >= 4) > 0.0 and crate[-1][1] < 0.01  # a ghost once it left, cleared by the end
+    removal = run.removal  # nothing static lost; of the crate's vertices in the measured maps most are gone, not all
     assert removal.static_points > 0 and removal.dynamic_points > 0 and removal.unlabelled == 0
     assert removal.static_accuracy >= 0.99
-    assert 0.0 < removal.dynamic_accuracy < 1.0 and crate[-1][1] > 0.0
+    assert 0.0 < removal.dynamic_accuracy < 1.0
 
 
 def test_scenes_of_runs_4_and_5_schedule_their_departures():
