@@ -212,10 +212,9 @@ def removal_votes(
     ``pose_sigma`` (H, W): E's depth uncertainty from the registered pose's own uncertainty (m, NaN = 0),
     added to the noise of the difference.
     """
+    measured = free_space_filled(measured, parameters, far)
     if parameters.no_return_is_free:
-        # no return within the range: the ray met nothing up to the far limit (as if D = far)
-        measured = np.where(np.isnan(measured), np.float32(far), measured).astype(np.float32)
-        # ... but only where E is well inside the range: near the far limit noise alone loses returns
+        # a pixel with no return sees through only where E is well inside the range: near the far limit noise alone loses returns
         inside = np.isfinite(expected) & (expected < np.float32(far - parameters.far_margin))
         seen_through = (labels == CONTRADICTED) | ((labels == NO_RETURN) & inside)
     else:
@@ -274,6 +273,14 @@ def removal_votes(
     voting = np.zeros(labels.size, dtype=bool)
     voting[pixels[contradicting]] = True
     return faces, contradicted, confirmed, voting.reshape(labels.shape)
+
+
+def free_space_filled(measured, parameters: RemovalParameters, far: float) -> np.ndarray:
+    """D (float32) as removal reads it: with ``no_return_is_free`` a pixel with no return met nothing up to the
+    sensor's range ``far`` (m), so it reads ``far``; without it, D as it is."""
+    if not parameters.no_return_is_free:
+        return measured
+    return np.where(np.isnan(measured), np.float32(far), measured).astype(np.float32)
 
 
 def contradiction_gap(measured, expected, parameters: RemovalParameters, sigma=None, pose_sigma=None) -> np.ndarray:

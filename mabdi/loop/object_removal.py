@@ -50,7 +50,7 @@ from mabdi.filters.classifier import CONTRADICTED, NO_RETURN, classify, dilate, 
 from mabdi.filters.expected_image import face_id_array
 from mabdi.loop.ray_triangle_kernels import nearest_hits_in_boxes_kernel
 from mabdi.filters.registry import SurfaceCapabilities
-from mabdi.filters.removal import RemovalParameters, for_geometry, removal_votes, votes_between_pixels
+from mabdi.filters.removal import RemovalParameters, for_geometry, free_space_filled, removal_votes, votes_between_pixels
 from mabdi.polydata import polydata_arrays, triangle_frames
 from mabdi.spherical import SphericalGeometry
 from mabdi.world_map import face_centres
@@ -179,17 +179,17 @@ class ObjectRemoval:
         near_cluster = dilate(clustered, 1)
         height, width = clustered.shape
         block, local, keys = world.face_lookup(against, table)
-        if parameters.no_return_is_free:
-            measured = np.where(np.isnan(measured), np.float32(geometry.far), measured)
+        measured = free_space_filled(measured, parameters, geometry.far)
         rays, length = unit_rays(geometry, np.float32)
         rotation, origin = pose[:3, :3], pose[:3, 3]
+        angle = pixel_angle(geometry)
         found = []
         for b in np.unique(block[block >= 0]):
             polydata = world.block(keys[b])
             # the faces around this block's contradicted ones: within a pixel's footprint on a plane seen at
             # up to MAX_INCIDENCE_DEG, and their radius
             shown, shown_radii = face_centres(polydata, local[block == b])
-            reach = np.linalg.norm(shown - origin, axis=1) * pixel_angle(geometry) / _COS_MAX_INCIDENCE + shown_radii
+            reach = np.linalg.norm(shown - origin, axis=1) * angle / _COS_MAX_INCIDENCE + shown_radii
             low, high = (shown - reach[:, None]).min(axis=0), (shown + reach[:, None]).max(axis=0)
             points = vtk_to_numpy(polydata.GetPoints().GetData())
             around = np.flatnonzero(np.all((points >= low) & (points <= high), axis=1))
@@ -212,7 +212,7 @@ class ObjectRemoval:
             uv[value <= 0] = np.nan  # behind a camera
             hit = votes_between_pixels(
                 centres, world.face_normals_of(codes, table), radii, measured, voting, rays, length, uv, origin, rotation,
-                pixel_angle(geometry), parameters, sigma, pose_sigma,
+                angle, parameters, sigma, pose_sigma,
             )
             found.append(codes[hit])
         return np.concatenate(found) if found else np.zeros(0, dtype=np.int64)
