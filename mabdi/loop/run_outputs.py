@@ -37,6 +37,7 @@ import csv
 import io
 import json
 import warnings
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 
@@ -90,7 +91,8 @@ class RunResult:
     """
 
     config: RunConfig
-    records: list[FrameRecord]
+    #: One record per frame, in order (:class:`~mabdi.loop.frame_records.FrameRecords` from a run).
+    records: Sequence[FrameRecord]
     mesh: vtkPolyData
     map_bytes: int
     seconds: float

@@ -58,6 +58,7 @@ from mabdi.io.checkpoint import write_tree
 from mabdi.io.fingerprint import fingerprint, run_inputs
 from mabdi.io.run_folder import RunFolder
 from mabdi.io.vtk_files import write_image
+from mabdi.loop.frame_records import FrameRecords
 from mabdi.loop.run_outputs import CHECKPOINT, RunResult, finish_run, write_run_outputs
 
 #: The steps of a run, in order (see the module docs).
@@ -148,7 +149,7 @@ class ResumePoint:
     """Where an interrupted run goes on: its next frame, the records and loop seconds so far, the inputs' fingerprint."""
 
     next_frame: int
-    records: list
+    records: FrameRecords
     seconds: float
     inputs: dict | None = None
 
@@ -194,7 +195,7 @@ class RunPipeline:
         if self.no_eval is None:
             self.no_eval = bool(self.run_options.get("no_eval"))
         self.folder: RunFolder | None = None
-        self.records: list = []
+        self.records = FrameRecords()
         self.loop_seconds = 0.0
         self.inputs: dict | None = None
         self.result: RunResult | None = None
@@ -258,7 +259,7 @@ class RunPipeline:
             loop.reset()
         else:
             first = self.resume_from.next_frame
-            self.records = list(self.resume_from.records)
+            self.records = FrameRecords(self.resume_from.records)
             self.loop_seconds = float(self.resume_from.seconds)
         watching = self._hooks("on_frame")
         for i in range(first, self.frames):
@@ -343,7 +344,7 @@ class RunPipeline:
             "run_options": self.run_options,
             "next_frame": next_frame,
             "seconds": float(self.loop_seconds),
-            "records": [asdict(record) for record in self.records],
+            "records": self.records.state(),
             "inputs": self.inputs,
             "loop": self.simulation.loop.state(),
         }

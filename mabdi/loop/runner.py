@@ -34,6 +34,7 @@ from mabdi.errors import ConfigError
 from mabdi.io.checkpoint import CheckpointError, read_tree
 from mabdi.io.fingerprint import changed_inputs, run_inputs
 from mabdi.io.run_folder import OutputError, RunFolder
+from mabdi.loop.frame_records import FrameRecords
 from mabdi.loop.loop import FrameRecord, MabdiLoop
 from mabdi.simulate.recording import TRUE_POSES
 from mabdi.simulate.rig import SimulatedRig
@@ -164,7 +165,7 @@ def resume_run(out_dir, observers=(), **options) -> RunPipeline:
                 f"but the source has {simulation.frames} frames now"
             )
         try:
-            records = [FrameRecord(**record) for record in checkpoint["records"]]
+            records = FrameRecords.from_state(checkpoint["records"])
         except TypeError as exc:
             raise OutputError(f"cannot resume {folder.folder}: its checkpoint's frame records do not fit ({exc})") from None
         try:
