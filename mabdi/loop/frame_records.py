@@ -1,13 +1,13 @@
 """The run's frame records, kept by column: a few hundred bytes a frame, not a Python object per frame.
 
 A run keeps one :class:`~mabdi.loop.loop.FrameRecord` per frame for its
-``metrics.csv``, its summary and its checkpoints. Held as objects, 10,000
-frames cost about 8.6 MB (a slotted object and a boxed number per field);
-:class:`FrameRecords` holds the same values in numpy columns, in fixed-size
-blocks of :data:`BLOCK` frames (no copy as the run grows, at most one block
-unused): 8 bytes per numeric field (int64 / float64, so every value comes
-back exactly) and one byte per text field (``registration``: an index into
-the statuses seen so far), about 210 bytes a frame.
+``metrics.csv``, its summary and its checkpoints. Held as objects, each frame
+costs a slotted object and a boxed number per field; :class:`FrameRecords`
+holds the same values in numpy columns, in fixed-size blocks of :data:`BLOCK`
+frames (no copy as the run grows, at most one block unused): 8 bytes per
+numeric field (int64 / float64, so every value comes back exactly) and one
+byte per text field (``registration``: an index into the statuses seen so
+far). ``docs/benchmarks.md`` ("Frame records kept by column") has what it saves.
 
 It reads like the list it replaces: ``len``, indexing (a :class:`FrameRecord`
 built on the fly; a slice gives a list of them), iteration; ``column(name)``
