@@ -105,7 +105,7 @@ class FrameRecords(Sequence):
             raise KeyError(f"FrameRecord has no field {name!r} (fields: {', '.join(self._kinds)})")
         values = np.concatenate([block[name] for block in self._blocks])[: self._length] if self._blocks else np.zeros(0, self._dtype[name])
         if self._kinds[name] == "str":
-            return np.array(self._labels[name] + [""], dtype=str)[values] if len(values) else np.zeros(0, dtype=str)
+            return np.array(self._labels[name], dtype=str)[values] if len(values) else np.zeros(0, dtype=str)
         return values.copy()
 
     def state(self) -> dict[str, np.ndarray]:
