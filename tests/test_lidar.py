@@ -10,6 +10,7 @@ from vtkmodules.vtkCommonDataModel import vtkMultiBlockDataSet
 from vtkmodules.vtkFiltersCore import vtkAppendPolyData, vtkTriangleFilter
 from vtkmodules.vtkFiltersSources import vtkCubeSource, vtkPlaneSource
 
+from mabdi.camera import Intrinsics
 from mabdi.config import RunConfig, load_run_config
 from mabdi.depth import DepthFrame, depth_array, image_intrinsics, is_range_image
 from mabdi.errors import ConfigError
@@ -479,3 +480,54 @@ def test_the_pixel_grid_joins_the_azimuth_seam():
         p = np.asarray(target)
         u, v, w = side(a, b, p), side(b, c, p), side(c, a, p)
         assert (((u >= 0) & (v >= 0) & (w >= 0)) | ((u <= 0) & (v <= 0) & (w <= 0))).any(), target
+
+
+def test_expected_range_image_says_where_the_map_reaches_into_a_beams_footprint():
+    """A floor patch 4 to 8 m ahead of a LiDAR 1.9 m up: E's ``map_in_footprint`` is set at the beams that hit
+    it, and at a beam that misses it exactly where the patch's far edge lies within half a beam step of it."""
+    from mabdi.filters.expected_image import map_in_footprint
+
+    lidar = SphericalGeometry(32, 256, 2.0, -30.0, 0.5, 50.0)  # beams 1 degree apart
+    height = 1.9
+    patch = plane((4.0, -1.0, 0.0), (8.0, -1.0, 0.0), (4.0, 1.0, 0.0))
+    pose = np.eye(4)
+    pose[2, 3] = height
+    expected = FilterExpectedImage()
+    expected.SetInputDataObject(0, patch)
+    expected.SetInputDataObject(1, render(plane((-50, -50, 0), (50, -50, 0), (-50, 50, 0)), lidar, pose))
+    expected.Update()
+    covered = map_in_footprint(expected.GetOutput())
+    e = depth_array(expected.GetOutput())
+    assert covered[np.isfinite(e)].all()
+    column = lidar.columns // 2  # looks forward (azimuth -0.7 degrees)
+    elevation = np.degrees(lidar.elevations())
+    step = (lidar.fov_up - lidar.fov_down) / lidar.beams
+    near_edge, far_edge = -np.degrees(np.arctan(height / 4.0)), -np.degrees(np.arctan(height / 8.0))
+    # the patch spans elevations [near_edge, far_edge] ahead; a footprint is the beam's elevation +- step / 2
+    clearly_in = (elevation - 0.4 * step <= far_edge) & (elevation + 0.4 * step >= near_edge)
+    clearly_out = (elevation - 0.6 * step > far_edge) | (elevation + 0.6 * step < near_edge)
+    assert clearly_in.sum() >= 4 and clearly_out.sum() >= 8
+    assert covered[clearly_in, column].all() and not covered[clearly_out, column].any()
+    assert np.isnan(e[clearly_out, column]).all()
+    # a camera's E does not say
+    camera = FilterExpectedImage()
+    camera.SetInputDataObject(0, patch)
+    camera.SetInputDataObject(1, DepthFrame(np.full((48, 64), 2.0, dtype=np.float32), Intrinsics(width=64, height=48, fx=50.0, fy=50.0, cx=32.0, cy=24.0), pose, 0).to_image())
+    camera.Update()
+    assert map_in_footprint(camera.GetOutput()) is None
+
+
+def test_thin_novel_strips_go_only_where_the_map_reaches_into_their_footprint():
+    from mabdi.filters.classifier import remove_specks
+
+    novel = np.zeros((16, 64), dtype=bool)
+    novel[5, 2:62] = True  # a strip one pixel tall, 60 long
+    novel[10, 20:30] = True  # one pixel tall, 10 long: under min_region
+    novel[12:15, 40:52] = True  # wide enough for the opening
+    covered = np.zeros_like(novel)
+    covered[5, 2:28] = True  # the map reaches into the strip's left part
+    kept = remove_specks(novel, 3, 32, covered)
+    assert kept[5, 28:62].all() and not kept[5, 2:28].any()
+    assert not kept[10].any() and kept[12:15, 40:52].all()
+    without = remove_specks(novel, 3, 32)  # no word on the map's reach (a camera): every thin region goes
+    assert not without[5].any() and without[12:15, 40:52].all()

@@ -31,6 +31,16 @@ regions (8-neighbours) of fewer than ``min_region`` pixels are dropped; those
 pixels get label 1 (explained by the map). ``min_width = 1`` and
 ``min_region = 0`` turn this off.
 
+Where E says how far the map reaches (a range image's E carries
+``map_in_footprint``, :mod:`mabdi.filters.expected_image`), only a thin
+novel pixel whose footprint the map reaches into is a speck: a sliver along
+the map's silhouette, which the map already covers in part. A thin strip
+beyond the map's edge, where no map triangle lies within the pixel's
+footprint, is new surface and is kept (still subject to ``min_region``): a
+LiDAR sees the next ring of a road beyond the mapped one as a strip one or
+two beams tall. A camera's E does not carry the array, and every thin
+region goes as before.
+
 Output: a depth image whose ``depth`` is D on the novel pixels and on a rim
 of ``rim`` pixels around them (NaN elsewhere), plus the uint8 point array
 ``label``, the float32 point array ``pose_sigma`` when D carries a pose
@@ -59,6 +69,7 @@ from mabdi.algorithm import MabdiAlgorithm
 from mabdi.depth import copy_colour, depth_array, fill_depth_image, image_frame, image_intrinsics, image_noise, image_pose, image_timestamp
 from mabdi.errors import ConfigError
 from mabdi.sensor_noise import SensorNoise
+from mabdi.filters.expected_image import map_in_footprint
 from mabdi.filters.registration import image_pose_covariance, pose_depth_sigma
 
 NO_RETURN, KNOWN, NOVEL, CONTRADICTED = 0, 1, 2, 3
@@ -153,12 +164,13 @@ def dilate(mask: np.ndarray, radius: int) -> np.ndarray:
     return mask
 
 
-def remove_specks(novel: np.ndarray, min_width: int, min_region: int) -> np.ndarray:
+def remove_specks(novel: np.ndarray, min_width: int, min_region: int, covered: np.ndarray | None = None) -> np.ndarray:
     """The novel mask without regions thinner than ``min_width`` or smaller than ``min_region`` pixels.
 
     Thin parts go by a binary opening with a ``min_width`` square (odd widths
     by array slices; even widths through scipy.ndimage), small regions by
-    counting the pixels of each 8-connected region.
+    counting the pixels of each 8-connected region. With ``covered`` (True where
+    the map reaches into the pixel's footprint), thin pixels go only where it is True.
     """
     mask = novel
     if min_width > 1 and mask.any():
@@ -167,6 +179,8 @@ def remove_specks(novel: np.ndarray, min_width: int, min_region: int) -> np.ndar
             mask = dilate(erode(mask, radius), radius)
         else:
             mask = ndimage.binary_opening(mask, structure=np.ones((min_width, min_width), dtype=bool))
+        if covered is not None:
+            mask = mask | (novel & ~covered)
     if min_region > 0 and mask.any():
         regions, count = ndimage.label(mask, structure=_EIGHT_NEIGHBOURS)
         sizes = np.bincount(regions.ravel(), minlength=count + 1)
@@ -244,7 +258,7 @@ class FilterClassifier(MabdiAlgorithm):
         labels = classify(measured, expected, tau)
         p = self._parameters
         raw_novel = labels == NOVEL
-        novel = remove_specks(raw_novel, p.min_width, p.min_region)
+        novel = remove_specks(raw_novel, p.min_width, p.min_region, map_in_footprint(expected_image))
         specks = raw_novel & ~novel
         labels[specks] = KNOWN
         meshed = novel

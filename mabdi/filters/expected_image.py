@@ -22,6 +22,12 @@ int32 point array ``face_id`` (per pixel, the code of the map face seen
 there; 0 = none) and the field data that says which block and cell each code
 is (:class:`mabdi.face_identity.FaceIdTable`). Object removal
 (:mod:`mabdi.filters.removal`) and refinement vote on faces through it.
+
+**The map within each beam's footprint** (range images only): the uint8
+point array ``map_in_footprint`` is 1 where a map triangle lies within the
+beam's footprint, hit by the beam or not
+(:meth:`mabdi.filters.range_rendering.RangeRenderer.footprint_covered`).
+The classifier keeps thin novel strips where it is 0 (see its docs).
 """
 
 from __future__ import annotations
@@ -41,6 +47,8 @@ from mabdi.spherical import SphericalGeometry
 MAP_PORT, MEASURED_PORT = 0, 1
 #: Point data of E with identity: the map face seen at each pixel (int32, 0 = none).
 FACE_ID_ARRAY = "face_id"
+#: Point data of a range image's E: 1 where the map reaches into the beam's footprint (uint8).
+MAP_IN_FOOTPRINT_ARRAY = "map_in_footprint"
 
 
 class MapAndImageAlgorithm(MabdiAlgorithm):
@@ -75,14 +83,20 @@ class FilterExpectedImage(MapAndImageAlgorithm):
         measured = vtkImageData.GetData(inInfo[MEASURED_PORT], 0)
         intrinsics = image_intrinsics(measured)
         pose = image_pose(measured)
+        covered = None
         if isinstance(intrinsics, SphericalGeometry):  # a LiDAR's range image
             depth, ids, table = self._range_image(world, intrinsics, pose)
+            covered = self.range_renderer.footprint_covered()
         else:
             depth = render_expected(self.renderer, world, intrinsics, pose)
             ids = self.renderer.render_identity().astype(np.int32) if self.identity else None
             table = self.renderer.identities if self.identity else None
         output = vtkImageData.GetData(outInfo)
         fill_depth_image(output, depth, intrinsics, pose, image_frame(measured), image_timestamp(measured))
+        if covered is not None:
+            array = numpy_to_vtk(covered.astype(np.uint8).ravel(), deep=True)
+            array.SetName(MAP_IN_FOOTPRINT_ARRAY)
+            output.GetPointData().AddArray(array)
         if self.identity:
             ids[np.isnan(depth)] = 0  # beyond the range: no face
             array = numpy_to_vtk(ids.ravel(), deep=True)
@@ -119,6 +133,15 @@ def render_expected(renderer: DepthRenderer, world, intrinsics, world_from_camer
     """(H, W) float32 metric depth of the map seen from ``world_from_camera``, without noise (NaN: no surface)."""
     zbuffer = renderer.render_zbuffer(world, intrinsics, world_from_camera)
     return SensorNoise("none").depth_from_zbuffer(zbuffer, intrinsics.near, intrinsics.far, None)
+
+
+def map_in_footprint(image) -> np.ndarray | None:
+    """(H, W) bool: the map reaches into each pixel's footprint (E of a range image), or None when E does not
+    say (a camera's E)."""
+    array = image.GetPointData().GetArray(MAP_IN_FOOTPRINT_ARRAY)
+    if array is None:
+        return None
+    return vtk_to_numpy(array).reshape(image_intrinsics(image).shape).astype(bool)
 
 
 def face_id_array(image) -> np.ndarray:

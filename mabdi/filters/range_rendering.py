@@ -25,6 +25,11 @@ than ``range_min`` hides what is behind it, as on a real sensor). The renderer k
 and cell it was drawn for, so E of a map says which face each beam shows with a code and its
 :class:`~mabdi.face_identity.FaceIdTable` (:meth:`RangeRenderer.face_ids`), as a camera's E does.
 
+**The map within a beam's footprint** (:meth:`RangeRenderer.footprint_covered`): the 3 x 3 render pixels
+around a beam's direction span one beam step (``OVERSAMPLE`` render pixels per step), so a triangle drawn
+in any of them means the map reaches into that beam's footprint, whether or not the beam itself hits it.
+The classifier reads it to tell a sliver along the map's silhouette from new surface beyond its edge.
+
 Beams must lie within ``MAX_ELEVATION`` (60) degrees of the horizon: the sector renders look horizontally.
 """
 
@@ -238,6 +243,7 @@ class RangeRenderer:
         self.depth_renderer = depth_renderer
         self._table = _TriangleTable()
         self._hits: np.ndarray | None = None
+        self._covered: np.ndarray | None = None
 
     def render(self, data, geometry: SphericalGeometry, world_from_sensor) -> np.ndarray:
         """(beams, columns) float32 range (m) along each beam from ``world_from_sensor`` (x forward, y left,
@@ -261,6 +267,7 @@ class RangeRenderer:
         ranges[outside] = np.nan
         hits[outside] = 0
         self._hits = hits.reshape(geometry.shape)
+        self._covered = (candidates[:, :INNER] != 0).any(axis=1).reshape(geometry.shape)
         return ranges.astype(np.float32).reshape(geometry.shape)
 
     def face_ids(self) -> tuple[np.ndarray, FaceIdTable]:
@@ -269,6 +276,13 @@ class RangeRenderer:
         if self._hits is None:
             raise ValueError("RangeRenderer.face_ids: nothing rendered yet")
         return self._table.faces(self._hits)
+
+    def footprint_covered(self) -> np.ndarray:
+        """(beams, columns) bool: a triangle of the last render's mesh was drawn within the beam's footprint
+        (the 3 x 3 render pixels around its direction, one beam step), hit by the beam or not."""
+        if self._covered is None:
+            raise ValueError("RangeRenderer.footprint_covered: nothing rendered yet")
+        return self._covered
 
     def describe(self) -> dict:
         return self.depth_renderer.describe()
