@@ -220,3 +220,32 @@ def test_smoothed_depth_brings_the_surface_of_a_noisy_plane_nearer():
     assert unsmoothed.mesh.GetNumberOfCells() == run_tsdf(frames, settings, mesh_every=None).mesh.GetNumberOfCells()
     with pytest.raises(ConfigError, match="smooth_depth must be true or false"):
         TsdfSettings(smooth_depth="yes")
+
+
+def test_range_images_fuse_along_each_beam_onto_the_wall_they_saw():
+    """A LiDAR's range images of a wall 4 m ahead (two poses 0.3 m apart), fused beam by beam: the mesh lies on
+    the wall (median 2 mm, 90% within 1 cm at 5 cm voxels) and spans what the beams reached, and a
+    far wall the depth range leaves out is not fused."""
+    pytest.importorskip("open3d")
+    from mabdi.evaluate.tsdf import TsdfMapper
+    from mabdi.polydata import polydata_arrays
+    from mabdi.spherical import SphericalGeometry
+
+    lidar = SphericalGeometry(beams=64, columns=1024, fov_up=10.0, fov_down=-10.0, range_min=0.5, range_max=30.0)
+    rays = lidar.rays()
+    settings = TsdfSettings(voxel_size=0.05, trunc_voxels=3, weight_threshold=0.5, depth_max=20.0, block_resolution=8)
+    mapper = TsdfMapper(settings, lidar)
+    for y in (0.0, 0.3):
+        pose = np.eye(4)
+        pose[:3, 3] = (1.0, y, 0.5)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ranges = np.where(rays[..., 0] > 0.5, 4.0 / rays[..., 0], np.nan)  # the wall x = 5 in the world
+            ranges = np.where(rays[..., 0] < -0.5, -25.0 / rays[..., 0], ranges)  # a wall behind, beyond depth_max
+        mapper.integrate(ranges, pose)
+    points, triangles = polydata_arrays(mapper.extract())
+    assert len(triangles) > 10_000
+    off = np.abs(points[:, 0] - 5.0)
+    assert np.median(off) < 2e-3 and np.percentile(off, 90) < 1e-2
+    # rays with x > 0.5 reach 60 degrees either side: y from -6.9 to 7.2 m, z within 10 degrees of 0.5 m
+    assert points[:, 1].min() < -6.5 and points[:, 1].max() > 6.8
+    assert points[:, 2].min() < -0.5 and points[:, 2].max() > 1.5 and np.all(np.abs(points[:, 2] - 0.5) < 1.5)

@@ -31,6 +31,22 @@ integration projects a voxel to a continuous (u, v) and reads pixel
 and ``"half"`` is right. :func:`alignment_error` and ``tests/test_tsdf.py``
 (a tilted plane) measure it; the tuner searches both.
 
+**Range images** (a spinning LiDAR's, :class:`mabdi.spherical.SphericalGeometry`):
+Open3D integrates pinhole depth images only, so a range image is fused
+*along each beam* into the same VoxelBlockGrid and meshed by the same
+marching cubes. Every beam with a return updates the voxels its ray crosses
+within the truncation distance of the hit (sampled every half voxel along
+the ray, each voxel once per beam), with the signed distance from the
+voxel's grid point to the hit measured along the beam, positive in front,
+truncated and normalised like Open3D's, and weight 1 per beam: the
+point-wise scheme of LiDAR TSDF mappers (VDBFusion's, without its optional
+space carving). A projective integration (each voxel reads the beam it
+projects to) would be the other choice; with a LiDAR's beams 0.4 degrees
+apart it marks the ground between two rings as free space from the ring
+beyond (a projective TSDF's distance is along the ray, metres there at
+grazing incidence), so the point-wise one is the peer at its best.
+``pixel_centre`` does not apply to rays.
+
 **Runs**: :func:`run_tsdf` integrates every frame of a
 :class:`mabdi.sources.frames.FrameSource` and extracts the mesh at the end
 (optionally at several weight thresholds from the one integration: the
@@ -62,6 +78,7 @@ from mabdi.sensor_noise import SensorNoise
 from mabdi.filters.depth_smoothing import smooth_depth_by_noise
 from mabdi.polydata import triangles_polydata
 from mabdi.simulate.path import circle_index
+from mabdi.spherical import SphericalGeometry
 from mabdi.sources.frames import FrameList, FrameSource
 
 OPEN3D_HELP = (
@@ -182,7 +199,7 @@ class TsdfMapper:
     def __init__(
         self,
         settings: TsdfSettings | float,
-        intrinsics: Intrinsics,
+        intrinsics: Intrinsics | SphericalGeometry,
         block_count: int | None = None,
         noise: SensorNoise | str | None = None,
     ):
@@ -208,14 +225,20 @@ class TsdfMapper:
             block_count=settings.block_count,
             device=self.device,
         )
-        self._intrinsic = o3c.Tensor(settings.open3d_intrinsic(intrinsics), dtype=o3c.float64)
+        self.beams = isinstance(intrinsics, SphericalGeometry)
+        if not self.beams:
+            self._intrinsic = o3c.Tensor(settings.open3d_intrinsic(intrinsics), dtype=o3c.float64)
 
     def integrate(self, depth: np.ndarray, world_from_camera: np.ndarray) -> None:
-        """Fuse a (H, W) metric depth image (NaN = no return) taken from ``world_from_camera``."""
+        """Fuse a (H, W) metric depth image (NaN = no return) taken from ``world_from_camera``
+        (a range image, for a spherical sensor: fused along each beam, see the module docs)."""
         o3d, o3c = self._o3d, self._o3c
         s = self.settings
         if s.smooth_depth:
             depth = smooth_depth_by_noise(depth, self.noise, self.intrinsics)
+        if self.beams:
+            self._integrate_beams(np.asarray(depth, dtype=np.float64), np.asarray(world_from_camera, dtype=np.float64))
+            return
         image = o3d.t.geometry.Image(o3c.Tensor(np.nan_to_num(np.asarray(depth, dtype=np.float32), nan=0.0)))
         extrinsic = o3c.Tensor(np.linalg.inv(world_from_camera), dtype=o3c.float64)
         blocks = self.grid.compute_unique_block_coordinates(
@@ -235,6 +258,53 @@ class TsdfMapper:
             depth_max=s.depth_max,
             trunc_voxel_multiplier=s.trunc_voxels,
         )
+
+    def _integrate_beams(self, ranges: np.ndarray, world_from_sensor: np.ndarray) -> None:
+        """Fuse a range image beam by beam: the voxels each ray crosses within the truncation distance of its hit."""
+        o3c = self._o3c
+        s = self.settings
+        voxel, res = s.voxel_size, s.block_resolution
+        trunc = s.trunc_voxels * voxel
+        hit = np.isfinite(ranges) & (ranges <= s.depth_max)
+        if not hit.any():
+            return
+        rotation, origin = world_from_sensor[:3, :3], world_from_sensor[:3, 3]
+        directions = self.intrinsics.rays()[hit] @ rotation.T  # unit rays, world frame
+        points = origin + directions * ranges[hit][:, None]
+        steps = np.arange(-trunc, trunc + 0.25 * voxel, 0.5 * voxel)
+        samples = points[:, None, :] + steps[None, :, None] * directions[:, None, :]  # (beams, steps, 3)
+        keys = np.rint(samples / voxel).astype(np.int64)  # the nearest grid point (voxel k sits at k * voxel)
+        # a straight ray enters a grid point's cell once: a repeat is always the sample just before
+        first = np.ones(keys.shape[:2], dtype=bool)
+        first[:, 1:] = np.any(keys[:, 1:] != keys[:, :-1], axis=2)
+        beam = np.broadcast_to(np.arange(len(points))[:, None], first.shape)[first]
+        keys = keys[first]
+        sdf = np.einsum("ij,ij->i", points[beam] - keys * voxel, directions[beam])  # along the beam, + in front
+        inside = np.abs(sdf) <= trunc
+        keys, sdf = keys[inside], sdf[inside] / trunc
+        packed = ((keys[:, 0] + (1 << 20)) << 42) | ((keys[:, 1] + (1 << 20)) << 21) | (keys[:, 2] + (1 << 20))
+        packed, inverse = np.unique(packed, return_inverse=True)
+        count = np.bincount(inverse)
+        total = np.bincount(inverse, weights=sdf)
+        keys = np.stack([(packed >> 42) & 0x1FFFFF, (packed >> 21) & 0x1FFFFF, packed & 0x1FFFFF], axis=1) - (1 << 20)
+        blocks = np.floor_divide(keys, res)
+        local = keys - blocks * res
+        blocks, block_of = np.unique(blocks, axis=0, return_inverse=True)
+        block_tensor = o3c.Tensor(blocks.astype(np.int32))
+        hashmap = self.grid.hashmap()
+        buffers, new = hashmap.activate(block_tensor)
+        buffers, new = buffers.numpy(), new.numpy()
+        tsdf = self.grid.attribute("tsdf").numpy()  # views of the grid's buffers (after any growth)
+        weight = self.grid.attribute("weight").numpy()
+        if new.any():
+            tsdf[buffers[new]] = 0.0
+            weight[buffers[new]] = 0.0
+        buffers, _ = hashmap.find(block_tensor)
+        flat = buffers.numpy().astype(np.int64)[block_of.ravel()] * res**3 + local[:, 0] + res * local[:, 1] + res * res * local[:, 2]
+        tsdf, weight = tsdf.reshape(-1), weight.reshape(-1)
+        w = weight[flat]
+        tsdf[flat] = (tsdf[flat] * w + total) / (w + count)
+        weight[flat] = w + count
 
     def extract(self, weight_threshold: float | None = None) -> vtkPolyData:
         """The zero crossing as a triangle mesh (marching cubes over the blocks).
