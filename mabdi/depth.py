@@ -56,6 +56,9 @@ TIMESTAMP_ARRAY = "timestamp"
 COLOUR_ARRAY = "colour"
 NOISE_MODEL_ARRAY = "noise_model"
 NOISE_PARAMETERS_ARRAY = "noise_parameters"
+#: Optional point data of a depth image that holds only some pixels (the classifier's output): the whole
+#: measured image, for the surfaces' tests that look at the samples beyond the pixels they mesh.
+MEASURED_ARRAY = "measured_depth"
 
 
 def returns(depth: np.ndarray, near: float, far: float) -> np.ndarray:
@@ -441,3 +444,13 @@ def depth_array(image, raw: bool = False) -> np.ndarray:
     if raw:
         return values
     return only_returns(values, intrinsics.near, intrinsics.far)
+
+
+def measured_depth(image) -> np.ndarray | None:
+    """(H, W) float32 the whole measured image behind a depth image that holds only some of its pixels (the
+    classifier's output carries it as :data:`MEASURED_ARRAY`), non-returns as NaN; None when it carries none."""
+    array = image.GetPointData().GetArray(MEASURED_ARRAY)
+    if array is None:
+        return None
+    intrinsics = image_intrinsics(image)
+    return only_returns(vtk_to_numpy(array).reshape(intrinsics.shape), intrinsics.near, intrinsics.far)

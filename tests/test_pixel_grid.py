@@ -84,3 +84,15 @@ def test_the_former_name_is_an_alias_and_parameters_are_checked():
     assert FilterPixelGrid(0.1).max_jump == 0.1 and FilterPixelGrid().parameters == PixelGridParameters()
     with pytest.raises(ConfigError, match="max_jump must be > 0"):
         FilterPixelGrid(PixelGridParameters(max_jump=0.0))
+
+
+def test_straight_edges_from_a_wider_image_never_reach_a_pixel_without_depth():
+    """The flat-ground masks may come from the whole measured image; a triangle still needs three valid corners."""
+    from mabdi.filters.pixel_grid import pixel_grid_triangles
+
+    depth = np.full((6, 8), 2.0, dtype=np.float32)
+    depth[2:4, 3:5] = np.nan
+    everywhere = (np.ones((5, 8), bool), np.ones((6, 7), bool), np.ones((5, 7), bool))
+    triangles = pixel_grid_triangles(depth, 0.01, everywhere)
+    assert len(triangles) > 0 and np.isfinite(depth.ravel()[triangles]).all()
+    assert len(triangles) == len(pixel_grid_triangles(depth, 0.01))

@@ -65,7 +65,7 @@ def test_settings_defaults_are_the_plain_open3d_settings():
         ({"voxel_size": 0.0}, "voxel_size"),
         ({"voxel_size": float("nan")}, "voxel_size"),
         ({"trunc_voxels": 1.5}, "trunc_voxels"),
-        ({"trunc_voxels": 7}, "trunc_voxels"),
+        ({"trunc_voxels": 13}, "trunc_voxels"),
         ({"weight_threshold": 0.25}, "weight_threshold"),
         ({"weight_threshold": 3.5}, "weight_threshold"),
         ({"depth_max": -1.0}, "depth_max"),

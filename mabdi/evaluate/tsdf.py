@@ -5,7 +5,7 @@ import also needs ``apt-get install libusb-1.0-0``). :func:`open3d_status`
 says whether it can be used, and why not.
 
 **Settings** (:class:`TsdfSettings`, defaults and checks in one place):
-voxel size; truncation in voxels (2-6; Open3D's ``trunc_voxel_multiplier``);
+voxel size; truncation in voxels (2-12; Open3D's ``trunc_voxel_multiplier``);
 the weight threshold of the extraction (0.5-3: Open3D keeps a voxel only
 when its weight, the number of frames fused into it, is *above* the
 threshold, so 0.5 keeps what a single frame saw and 1 drops it; on the
@@ -87,7 +87,7 @@ OPEN3D_HELP = (
 )
 
 PIXEL_CENTRES = ("half", "integer")
-TRUNC_VOXELS_RANGE = (2.0, 6.0)
+TRUNC_VOXELS_RANGE = (2.0, 12.0)
 WEIGHT_THRESHOLD_RANGE = (0.5, 3.0)
 
 
@@ -109,7 +109,7 @@ class TsdfSettings:
     """How the TSDF is built and meshed (see the module docs). Every check is here.
 
     * ``voxel_size``: metres, > 0.
-    * ``trunc_voxels``: truncation distance in voxels, 2-6.
+    * ``trunc_voxels``: truncation distance in voxels, 2-12 (the camera grid tries 2-6; a LiDAR's sparse rings want more).
     * ``weight_threshold``: extraction keeps voxels whose weight (frames fused) is above it, 0.5-3
       (0.5: every voxel a frame reached; 1, the plain setting: seen by two frames or more).
     * ``depth_max``: metres; depths beyond it are not fused (>= the sensor's far plane = all returns).

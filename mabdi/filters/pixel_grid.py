@@ -36,7 +36,11 @@ through the two samples before it (:func:`mabdi.depth.straight_continuations`:
 every image line however steeply it is seen; a silhouette's two sides, and a
 curved surface seen edge-on, are not. ``"auto"`` (the default) turns it on for
 range images and leaves a camera's rule as it was (a camera moving around a
-scene gets better looks).
+scene gets better looks). The samples before an edge come from the whole
+measured image when the input carries it (the classifier's output,
+:func:`mabdi.depth.measured_depth`): a new strip of ground one or two beams
+beyond the mapped ground has its straight line through the mapped beams
+below it, which the classifier does not pass on as novel.
 
 Triangles are wound so their normals face the sensor. Vertex positions are
 the pixel-centre rays scaled by the depth and moved into the world by the
@@ -73,6 +77,7 @@ from mabdi.depth import (
     image_noise,
     image_pose,
     jump_scale,
+    measured_depth,
     straight_continuations,
 )
 from mabdi.errors import ConfigError
@@ -105,7 +110,8 @@ class PixelGridParameters:
 def pixel_grid_triangles(depth: np.ndarray, max_jump: float, straight: tuple[np.ndarray, ...] | None = None) -> np.ndarray:
     """(M, 3) int64 pixel ids (v * W + u) of the kept triangles of a (H, W) depth image: each of a triangle's
     three edges within ``max_jump``, or (``straight``: the edge masks of
-    :func:`mabdi.depth.straight_continuations`) on one straight line with the samples beyond it."""
+    :func:`mabdi.depth.straight_continuations`, which may come from a wider image than ``depth``: an edge
+    counts only between two valid corners of ``depth``) on one straight line with the samples beyond it."""
     height, width = depth.shape
     z = np.asarray(depth, dtype=np.float32)
     ratio = np.float32(1.0 + max_jump)
@@ -119,7 +125,10 @@ def pixel_grid_triangles(depth: np.ndarray, max_jump: float, straight: tuple[np.
     horizontal = within(z[:, :-1], z[:, 1:])  # (v, u) - (v, u + 1)
     diagonal = within(z[:-1, 1:], z[1:, :-1])  # (v, u + 1) - (v + 1, u)
     if straight is not None:
-        vertical, horizontal, diagonal = vertical | straight[0], horizontal | straight[1], diagonal | straight[2]
+        ok = np.isfinite(z)
+        vertical = vertical | (straight[0] & ok[:-1, :] & ok[1:, :])
+        horizontal = horizontal | (straight[1] & ok[:, :-1] & ok[:, 1:])
+        diagonal = diagonal | (straight[2] & ok[:-1, 1:] & ok[1:, :-1])
     # square (v, u): a, b, c, d = (v, u), (v, u + 1), (v + 1, u), (v + 1, u + 1)
     keep_first = vertical[:, :-1] & horizontal[:-1, :] & diagonal  # (a, c, b)
     keep_second = vertical[:, 1:] & horizontal[1:, :] & diagonal  # (b, c, d)
@@ -186,10 +195,18 @@ class FilterPixelGrid(MabdiAlgorithm):
         wrap = isinstance(intrinsics, SphericalGeometry)  # 360 degrees of azimuth: the last column meets the first
         straight = None
         if grazing is True or (grazing == "auto" and wrap):
+            # the samples beyond an edge come from the whole measured image (the novel pixels' neighbours too)
+            context = measured_depth(image)
+            if context is None:
+                context = depth
+            else:
+                if self._parameters.smooth_depth:
+                    context = smooth_depth_by_noise(context, noise, intrinsics)
+                context = np.where(np.isfinite(depth), depth, context)
             # two columns beyond each side of the seam, so that edges across it have samples beyond them too
             wide = (lambda a: np.concatenate([a[:, -2:], a, a[:, :3]], axis=1)) if wrap else (lambda a: a)
-            sigma = noise.sigma(depth, intrinsics.near, intrinsics.far)
-            straight = straight_continuations(wide(rays) * wide(depth)[..., None], wide(sigma))
+            sigma = noise.sigma(context, intrinsics.near, intrinsics.far)
+            straight = straight_continuations(wide(rays) * wide(context)[..., None], wide(sigma))
             if wrap:
                 width = depth.shape[1]
                 straight = (straight[0][:, 2 : width + 3], straight[1][:, 2 : width + 2], straight[2][:, 2 : width + 2])

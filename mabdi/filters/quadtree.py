@@ -78,7 +78,8 @@ ranges jump more than the jump rule allows, so its pixels got no normal and
 no face. With ``grazing`` on, a neighbour that fails the jump rule is used for
 the normal all the same where the two continue one straight line with the
 pixels beyond them (:func:`mabdi.depth.straight_continuations`, within the
-noise). Leaves of two or more pixels a side then take the least-squares plane
+noise; the pixels beyond come from the whole measured image when the input
+carries it, :func:`mabdi.depth.measured_depth`). Leaves of two or more pixels a side then take the least-squares plane
 of their own points (a leaf may stretch metres along the road, where each
 pixel's normal rests on neighbours a beam apart), and their silhouette and
 wild-corner tests allow the depth change their own plane makes per pixel
@@ -126,6 +127,7 @@ from mabdi.depth import (
     image_intrinsics,
     image_noise,
     image_pose,
+    measured_depth,
     pixel_angle,
     sensor_values,
     straight_continuations,
@@ -502,9 +504,16 @@ def _gather(members: np.ndarray, starts: np.ndarray, faces: np.ndarray) -> np.nd
 
 
 def leaves_of_image(
-    depth: np.ndarray, intrinsics: Intrinsics | SphericalGeometry, p: QuadTreeParameters, noise: SensorNoise
+    depth: np.ndarray,
+    intrinsics: Intrinsics | SphericalGeometry,
+    p: QuadTreeParameters,
+    noise: SensorNoise,
+    measured: np.ndarray | None = None,
 ) -> tuple[np.ndarray, Grid, Leaves]:
     """Smoothing, stages 1-5 and the small-leaf plane test: (reduced points, reduced grid, kept leaves).
+
+    ``measured``: the whole measured image behind ``depth`` (which may hold only the novel pixels), where the
+    grazing rule finds the pixels beyond an edge; None: ``depth`` itself.
 
     Stages 1-5 and the plane test are the numba kernels of :mod:`mabdi.filters.quadtree_kernels`.
     The leaves carry ``regions``, the pyramid root's region count. A LiDAR's range image
@@ -512,21 +521,28 @@ def leaves_of_image(
     """
     if p.smooth_depth:
         depth = smooth_depth_by_noise(depth, noise, intrinsics)
+        if measured is not None:
+            measured = smooth_depth_by_noise(measured, noise, intrinsics)
+    if measured is not None:
+        measured = np.where(np.isfinite(depth), depth, measured)
     if isinstance(intrinsics, SphericalGeometry):
-        return _range_leaves(depth, intrinsics, p, noise)
+        return _range_leaves(depth, intrinsics, p, noise, measured)
     k = intrinsics
     r = p.reduction
-    if r > 1:
-        points = kernels.reduce_points_kernel(np.ascontiguousarray(depth, dtype=np.float64), r, k.fx, k.fy, k.cx, k.cy)
-        h, w = points.shape[:2]
-        reduced = Intrinsics(k.fx / r, k.fy / r, k.cx / r, k.cy / r, w, h, k.near, k.far)
-    else:  # no reduction: every pixel back-projected through its centre
-        points, reduced = k.rays() * np.asarray(depth, dtype=np.float64)[..., None], k
-    points = np.ascontiguousarray(points)
+
+    def back_projected(image):
+        if r > 1:
+            return kernels.reduce_points_kernel(np.ascontiguousarray(image, dtype=np.float64), r, k.fx, k.fy, k.cx, k.cy)
+        return k.rays() * np.asarray(image, dtype=np.float64)[..., None]  # every pixel through its centre
+
+    points = np.ascontiguousarray(back_projected(depth))
+    h, w = points.shape[:2]
+    reduced = Intrinsics(k.fx / r, k.fy / r, k.cx / r, k.cy / r, w, h, k.near, k.far) if r > 1 else k
     grazing = grazing_on(p, reduced)
     if grazing:
         z = np.ascontiguousarray(points[:, :, 2])
-        right, down = straight_neighbours(points, z, noise, reduced)
+        around = points if measured is None else np.ascontiguousarray(back_projected(measured))
+        right, down = straight_neighbours(around, around[:, :, 2], noise, reduced, z)
         normals = kernels.point_normals_depth_kernel(points, z, p.max_jump, right, down)
     else:
         normals = kernels.point_normals_kernel(points, p.max_jump)
@@ -540,23 +556,32 @@ def leaves_of_image(
     return points, reduced, leaves
 
 
-def _range_leaves(ranges: np.ndarray, geometry: SphericalGeometry, p: QuadTreeParameters, noise: SensorNoise) -> tuple[np.ndarray, Grid, Leaves]:
+def _range_leaves(
+    ranges: np.ndarray, geometry: SphericalGeometry, p: QuadTreeParameters, noise: SensorNoise, measured: np.ndarray | None = None
+) -> tuple[np.ndarray, Grid, Leaves]:
     """Stages 1-5 and the plane test on a LiDAR's range image: seed 002 §3.2's transform (every beam block to a
     sensor-frame point: its median range times its unit ray, so a straight wall is flat again), §3.3's normals
     from the point map's differences, with the depth tests on range instead of z."""
     r = p.reduction
     rays = unit_rays(geometry)[0]
-    if r > 1:
-        points = kernels.reduce_ranges_kernel(np.ascontiguousarray(ranges, dtype=np.float64), r, rays)
-    else:
-        points = rays * np.asarray(ranges, dtype=np.float64)[..., None]
+
+    def back_projected(image):
+        if r > 1:
+            return kernels.reduce_ranges_kernel(np.ascontiguousarray(image, dtype=np.float64), r, rays)
+        return rays * np.asarray(image, dtype=np.float64)[..., None]
+
+    points = back_projected(ranges)
     reduced = ReducedSpherical(geometry, r, points.shape[1], points.shape[0])
     depth = np.ascontiguousarray(_depth(points, reduced))
     jump = _step_jump(p, reduced)
     points = np.ascontiguousarray(points)
     grazing = grazing_on(p, reduced)
     if grazing:
-        right, down = straight_neighbours(points, depth, noise, reduced)
+        if measured is None:
+            right, down = straight_neighbours(points, depth, noise, reduced)
+        else:
+            around = np.ascontiguousarray(back_projected(measured))
+            right, down = straight_neighbours(around, _depth(around, reduced), noise, reduced, depth)
     else:
         right = down = np.zeros(depth.shape, dtype=bool)
     normals = kernels.point_normals_depth_kernel(points, depth, jump, right, down)
@@ -600,16 +625,23 @@ def fitted_planes(leaves: Leaves, points: np.ndarray) -> Leaves:
     return Leaves(leaves.level, leaves.row, leaves.col, normal, point, leaves.regions)
 
 
-def straight_neighbours(points: np.ndarray, depth: np.ndarray, noise: SensorNoise, k: Grid) -> tuple[np.ndarray, np.ndarray]:
+def straight_neighbours(
+    points: np.ndarray, depth: np.ndarray, noise: SensorNoise, k: Grid, meshed: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """(right, down) (H, W) bool: whether pixels (i, j) and (i, j + 1), and (i, j) and (i + 1, j), lie on one straight
     line with the pixels beyond them (:func:`mabdi.depth.straight_continuations`, within the noise of
-    ``depth``: the image's z or range): one flat surface however steeply it is seen."""
+    ``depth``: the image's z or range): one flat surface however steeply it is seen. ``meshed`` (H, W): the depth
+    of the pixels being meshed when ``points`` is the whole measured image; a pair counts only where both hold one."""
     sigma = noise.sigma(depth, k.near, k.far)
     vertical, horizontal, _ = straight_continuations(points, np.nan_to_num(sigma, nan=0.0))
     right = np.zeros(depth.shape, dtype=bool)
     down = np.zeros(depth.shape, dtype=bool)
     right[:, :-1] = horizontal
     down[:-1, :] = vertical
+    if meshed is not None:
+        ok = np.isfinite(meshed)
+        right[:, :-1] &= ok[:, :-1] & ok[:, 1:]
+        down[:-1, :] &= ok[:-1, :] & ok[1:, :]
     return right, down
 
 
@@ -649,7 +681,9 @@ class FilterQuadTree(MabdiAlgorithm):
         intrinsics = image_intrinsics(image)
         pose = image_pose(image)
         p = self._parameters
-        points, reduced, leaves = leaves_of_image(depth_array(image), intrinsics, p, image_noise(image))
+        points, reduced, leaves = leaves_of_image(
+            depth_array(image), intrinsics, p, image_noise(image), measured_depth(image)
+        )
         self.regions = leaves.regions
         if isinstance(reduced, ReducedSpherical) and len(leaves.level):
             # a LiDAR's beams lie far apart: a leaf whose plane puts a corner far from its range is a surface

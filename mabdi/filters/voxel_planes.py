@@ -35,6 +35,12 @@ points), a mesh of small planar polygons out. The filter keeps a
    polygon, ordered by angle around the normal and triangulated as a fan.
    The cubes of neighbouring vertices tile space, so neighbouring patches
    meet along the cubes' shared faces.
+   **Voxel size for a LiDAR**: the default 5 cm suits a camera's dense
+   pixels. A spinning LiDAR's beams lie 0.2-0.4 degrees apart, 10-20 cm at
+   20-30 m, so a 10 cm window gathers ``min_points`` hits only after many
+   scans, and the far road and facades stay unmeshed; choose a voxel about
+   the beams' spacing where the scene is seen (``scenes/street.toml``: 0.2 m;
+   docs/benchmarks.md has the street at both sizes).
 4. **Incremental**: after new points, only the blocks (``block_size``, 1 m)
    holding a vertex whose neighbourhood changed are re-meshed. The mesh is
    kept per block; the output is either the blocks re-meshed by this update
