@@ -16,7 +16,7 @@ F@2cm (ties: fewer triangles) against a 50,000-sample set of the observed scene 
 and measured like the surfaces (its maps every ``--every`` scans, against the full sample set).
 
     .venv/bin/python benchmarks/bench_street.py [--surfaces pixel_grid quadtree voxel_planes] [--frames N]
-        [--every 19] [--tsdf-voxels 0.03 0.05 0.08] [--tsdf-trunc 3 5] [--no-tsdf]
+        [--every 19] [--tsdf-voxels 0.08 0.1] [--tsdf-trunc 6 8 10] [--no-tsdf]
         [--out benchmarks/results/street.json]
 
 Prints a markdown table and writes the JSON.
@@ -183,8 +183,8 @@ def main() -> None:
     parser.add_argument("--surfaces", nargs="*", default=["pixel_grid", "quadtree", "voxel_planes"])
     parser.add_argument("--frames", type=int, default=None)
     parser.add_argument("--every", type=int, default=19)
-    parser.add_argument("--tsdf-voxels", nargs="+", type=float, default=[0.03, 0.05, 0.08])
-    parser.add_argument("--tsdf-trunc", nargs="+", type=float, default=[3.0, 5.0])
+    parser.add_argument("--tsdf-voxels", nargs="+", type=float, default=[0.08, 0.1])
+    parser.add_argument("--tsdf-trunc", nargs="+", type=float, default=[6.0, 8.0, 10.0])
     parser.add_argument("--no-tsdf", action="store_true", help="leave out the TSDF peer")
     parser.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "street.json"))
     args = parser.parse_args()
