@@ -43,9 +43,9 @@ region goes as before.
 
 Output: a depth image whose ``depth`` is D on the novel pixels and on a rim
 of ``rim`` pixels around them (NaN elsewhere), plus the whole of D as the
-point array ``measured_depth`` (:data:`mabdi.depth.MEASURED_ARRAY`, the
-input's values, not copied: the surfaces' flat-ground test looks at the
-samples beyond the pixels they mesh), the uint8 point array
+point array ``measured_depth`` (:data:`mabdi.depth.MEASURED_ARRAY`, a copy
+of the input's values: the surfaces' flat-ground test looks at the samples
+beyond the pixels they mesh), the uint8 point array
 ``label``, the float32 point array ``pose_sigma`` when D carries a pose
 covariance (metres, NaN where E has no surface; object removal widens its
 gate by it), and the field-data array ``pixel_counts`` (valid = D has a return,
@@ -271,7 +271,7 @@ class FilterClassifier(MabdiAlgorithm):
         output = vtkImageData.GetData(outInfo)
         fill_depth_image(output, depth, intrinsics, pose, image_frame(measured_image), image_timestamp(measured_image), noise=noise)
         copy_colour(measured_image, output)  # D's colour image, for the surface filters
-        whole = numpy_to_vtk(depth_array(measured_image, raw=True).ravel(), deep=False)  # keeps a reference to D's values
+        whole = numpy_to_vtk(depth_array(measured_image, raw=True).ravel(), deep=True)  # D's values as they are now
         whole.SetName(MEASURED_ARRAY)
         output.GetPointData().AddArray(whole)
         label_array = numpy_to_vtk(labels.ravel(), deep=False)

@@ -519,6 +519,8 @@ def leaves_of_image(
     The leaves carry ``regions``, the pyramid root's region count. A LiDAR's range image
     (``intrinsics`` a :class:`~mabdi.spherical.SphericalGeometry`) goes through :func:`_range_leaves`.
     """
+    if not grazing_on(p, intrinsics):
+        measured = None  # only the grazing rule looks beyond the pixels it meshes
     if p.smooth_depth:
         depth = smooth_depth_by_noise(depth, noise, intrinsics)
         if measured is not None:
