@@ -32,9 +32,9 @@ from pathlib import Path
 import numpy as np
 
 from mabdi.config import load_run_config, set_value
-from mabdi.evaluate.bench import bench_frames, machine_info
+from mabdi.evaluate.bench import bench_frames, machine_info, observed_samples
 from mabdi.evaluate.dynamic import GhostTracker, run_with_ghosts
-from mabdi.evaluate.metrics import SAMPLES, evaluate_map, evaluate_run, observed_ground_truth, scenes_per_pose
+from mabdi.evaluate.metrics import SAMPLES, evaluate_map, evaluate_run
 from mabdi.evaluate.tsdf import TsdfMapper, TsdfSettings, open3d_status
 from mabdi.loop import Simulation
 
@@ -97,20 +97,13 @@ def bench_tsdf(frames_count: int | None, every: int, voxels, truncs) -> dict:
     rig, frames = bench_frames(config)
     count = len(frames)
     ground_truth = rig.scene.mesh_at(count - 1)
-
-    def observed(samples: int):
-        return observed_ground_truth(
-            ground_truth, scenes_per_pose(rig.scene, count), rig.true_poses, rig.intrinsics, samples, config.sensor.backend
-        )
-
-    tuning_observed = observed(TUNING_SAMPLES)
+    tuning_observed = observed_samples(rig, config, TUNING_SAMPLES)
+    # every volume starts with room for the street at these voxel sizes (Open3D grows it if not)
+    base = TsdfSettings(depth_max=rig.intrinsics.far, block_resolution=8, block_count=20_000)
     table = []
     for voxel in voxels:
         for trunc in truncs:
-            settings = TsdfSettings(
-                voxel_size=voxel, trunc_voxels=trunc, depth_max=rig.intrinsics.far, block_resolution=8, block_count=20_000
-            )
-            mapper = TsdfMapper(settings, rig.intrinsics)
+            mapper = TsdfMapper(base.replace(voxel_size=voxel, trunc_voxels=trunc), rig.intrinsics)
             start = time.perf_counter()
             for i in range(count):
                 frame = frames.read(i)
@@ -127,10 +120,7 @@ def bench_tsdf(frames_count: int | None, every: int, voxels, truncs) -> dict:
                 print(f"tsdf voxel {voxel} trunc {trunc} weight {weight}: F@2cm {scores.fscore_2cm:.3f} "
                       f"({scores.precision_2cm:.3f} / {scores.recall_2cm:.3f}), {scores.triangles:,} triangles", flush=True)
     best = min(table, key=lambda r: (-r["fscore_2cm"], r["triangles"]))
-    settings = TsdfSettings(
-        voxel_size=best["voxel_size"], trunc_voxels=best["trunc_voxels"], weight_threshold=best["weight_threshold"],
-        depth_max=rig.intrinsics.far, block_resolution=8, block_count=20_000,
-    )
+    settings = base.replace(voxel_size=best["voxel_size"], trunc_voxels=best["trunc_voxels"], weight_threshold=best["weight_threshold"])
     # the best settings again, measured like the loop's maps: every ``every`` scans and after the last
     mapper = TsdfMapper(settings, rig.intrinsics)
     tracker = GhostTracker(rig.scene, count, rig.true_poses, rig.intrinsics, backend=config.sensor.backend)
@@ -149,7 +139,7 @@ def bench_tsdf(frames_count: int | None, every: int, voxels, truncs) -> dict:
             if (i + 1) % every == 0 or i == count - 1:
                 tracker.measure(i, mesh, final=i == count - 1)
     ghosts = tracker.finish()
-    scores = evaluate_map(mesh, ground_truth, observed(SAMPLES), samples=SAMPLES)
+    scores = evaluate_map(mesh, ground_truth, observed_samples(rig, config, SAMPLES), samples=SAMPLES)
     out = triangles_at[count // 2 - 1]
     car = ghosts.by_object.get("car_leaving", [])
     removal = ghosts.removal

@@ -126,7 +126,7 @@ def _dynamic(ghosts) -> dict:
     }
 
 
-def _observed_samples(rig: SimulatedRig, config: RunConfig, samples: int):
+def observed_samples(rig: SimulatedRig, config: RunConfig, samples: int):
     """The ground-truth samples that the run's poses saw (shared by every method of a bench)."""
     frames = len(rig)
     return observed_ground_truth(
@@ -168,7 +168,7 @@ def run_bench(
     out = prepare_output_dir(out_dir) if out_dir is not None else None
     progress(f"rendering {config.run.frames} frames of {config.run.name or 'the scene'}")
     rig, frames = bench_frames(config)
-    observed = _observed_samples(rig, config, samples)
+    observed = observed_samples(rig, config, samples)
     ground_truth = rig.scene.mesh_at(len(frames) - 1)
     #: a scene an object leaves: ghost share, frames to clear and static loss for every method
     dynamic = bool(departures(rig.scene, len(frames)))
@@ -197,7 +197,7 @@ def run_bench(
         settings, tuning = TsdfSettings(voxel_size=voxel), None
         if tune:
             progress(f"{method}: tuning the TSDF on {len(frames)} frames")
-            tuning_observed = _observed_samples(rig, config, min(samples, TUNING_SAMPLES))
+            tuning_observed = observed_samples(rig, config, min(samples, TUNING_SAMPLES))
 
             def score(mesh, tuning_observed=tuning_observed):
                 return evaluate_map(mesh, ground_truth, tuning_observed, samples=min(samples, TUNING_SAMPLES)).as_dict()

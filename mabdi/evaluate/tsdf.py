@@ -71,7 +71,7 @@ from dataclasses import asdict, dataclass, field, replace
 import numpy as np
 from vtkmodules.vtkCommonDataModel import vtkPolyData
 
-from mabdi.camera import Intrinsics
+from mabdi.camera import Intrinsics, unit_rays
 from mabdi.depth import DepthFrame
 from mabdi.errors import ConfigError
 from mabdi.sensor_noise import SensorNoise
@@ -269,7 +269,7 @@ class TsdfMapper:
         if not hit.any():
             return
         rotation, origin = world_from_sensor[:3, :3], world_from_sensor[:3, 3]
-        directions = self.intrinsics.rays()[hit] @ rotation.T  # unit rays, world frame
+        directions = unit_rays(self.intrinsics)[0][hit] @ rotation.T  # unit rays, world frame
         points = origin + directions * ranges[hit][:, None]
         steps = np.arange(-trunc, trunc + 0.25 * voxel, 0.5 * voxel)
         samples = points[:, None, :] + steps[None, :, None] * directions[:, None, :]  # (beams, steps, 3)

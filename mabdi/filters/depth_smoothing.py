@@ -85,3 +85,11 @@ def smooth_depth_by_noise(depth: np.ndarray, noise: SensorNoise, intrinsics: Int
     if noise.model == "none":
         return depth
     return smooth_depth(depth, noise.sigma(np.asarray(depth, dtype=np.float32), intrinsics.near, intrinsics.far))
+
+
+def measured_around(depth: np.ndarray, measured: np.ndarray, noise: SensorNoise, intrinsics: Intrinsics, smooth: bool) -> np.ndarray:
+    """The whole measured image behind ``depth`` (which may hold only the pixels being meshed) as the surfaces'
+    flat-ground test reads it: smoothed like ``depth`` when ``smooth``, with ``depth``'s own values where it has them."""
+    if smooth:
+        measured = smooth_depth_by_noise(measured, noise, intrinsics)
+    return np.where(np.isfinite(depth), depth, measured)

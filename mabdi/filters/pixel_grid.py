@@ -81,7 +81,7 @@ from mabdi.depth import (
     straight_continuations,
 )
 from mabdi.errors import ConfigError
-from mabdi.filters.depth_smoothing import smooth_depth_by_noise
+from mabdi.filters.depth_smoothing import measured_around, smooth_depth_by_noise
 from mabdi.polydata import triangles_polydata
 from mabdi.spherical import SphericalGeometry
 
@@ -196,13 +196,8 @@ class FilterPixelGrid(MabdiAlgorithm):
         straight = None
         if grazing is True or (grazing == "auto" and wrap):
             # the samples beyond an edge come from the whole measured image (the novel pixels' neighbours too)
-            context = measured_depth(image)
-            if context is None:
-                context = depth
-            else:
-                if self._parameters.smooth_depth:
-                    context = smooth_depth_by_noise(context, noise, intrinsics)
-                context = np.where(np.isfinite(depth), depth, context)
+            measured = measured_depth(image)
+            context = depth if measured is None else measured_around(depth, measured, noise, intrinsics, self._parameters.smooth_depth)
             # two columns beyond each side of the seam, so that edges across it have samples beyond them too
             wide = (lambda a: np.concatenate([a[:, -2:], a, a[:, :3]], axis=1)) if wrap else (lambda a: a)
             sigma = noise.sigma(context, intrinsics.near, intrinsics.far)

@@ -134,7 +134,7 @@ from mabdi.depth import (
 )
 from mabdi.errors import ConfigError
 from mabdi.sensor_noise import SensorNoise
-from mabdi.filters.depth_smoothing import smooth_depth_by_noise
+from mabdi.filters.depth_smoothing import measured_around, smooth_depth_by_noise
 from mabdi.spherical import SphericalGeometry
 
 from mabdi.filters import quadtree_kernels as kernels
@@ -523,10 +523,8 @@ def leaves_of_image(
         measured = None  # only the grazing rule looks beyond the pixels it meshes
     if p.smooth_depth:
         depth = smooth_depth_by_noise(depth, noise, intrinsics)
-        if measured is not None:
-            measured = smooth_depth_by_noise(measured, noise, intrinsics)
     if measured is not None:
-        measured = np.where(np.isfinite(depth), depth, measured)
+        measured = measured_around(depth, measured, noise, intrinsics, p.smooth_depth)
     if isinstance(intrinsics, SphericalGeometry):
         return _range_leaves(depth, intrinsics, p, noise, measured)
     k = intrinsics
