@@ -307,30 +307,61 @@ def _continues(before: np.ndarray, last: np.ndarray, after: np.ndarray, sigma_af
 
 def straight_continuations(points: np.ndarray, sigma: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Which neighbouring samples of a (H, W, 3) sensor-frame point image (NaN: no return) lie on one flat
-    surface however steeply it is seen: the two continue each other's straight line, the sample after them
-    on the line through the two before, both ways (a ground plane at grazing incidence, whose neighbouring
-    beams are metres apart; a silhouette's two sides are not on one line). ``sigma``: (H, W) the samples'
-    standard deviation (m). Returns the masks of the edges between (v, u) and (v + 1, u) (H - 1, W), (v, u)
-    and (v, u + 1) (H, W - 1), and (v, u + 1) and (v + 1, u) (H - 1, W - 1); the image's border edges, which
-    lack a sample beyond them, are False."""
+    surface however steeply it is seen (a ground plane at grazing incidence, whose neighbouring beams are
+    metres apart; a silhouette's two sides are not on one line). ``sigma``: (H, W) the samples' standard
+    deviation (m). Returns the masks of the edges between (v, u) and (v + 1, u) (H - 1, W), (v, u) and
+    (v, u + 1) (H, W - 1), and (v, u + 1) and (v + 1, u) (H - 1, W - 1).
+
+    Along an image line of samples ..., p0, a, b, p3, ..., the edge (a, b) is straight where
+
+    * each of a and b lies on the straight line through the two samples before it (``forward``: b on the
+      line p0 a; ``backward``: a on the line p3 b), or
+    * one way only, where the sample that continues the line is not also the start of the next surface:
+      ``forward`` and b not on the line p4 p3 beyond it (``backward`` of the next edge), or the mirror.
+      The last two rings of a road before its end, or before the foot of a wall, have no sample beyond them
+      on the same line (no return, or a wall), and the line from the near side alone decides. A sample
+      beyond a silhouette that happens to lie on the foreground's extrapolated line does not count: it
+      continues its own surface's line (the far facade behind a car's roof).
+
+    An edge whose sample beyond is missing (no return, or the image's border) is decided the one way."""
     height, width = points.shape[:2]
+    p, s = points, sigma
     vertical = np.zeros((height - 1, width), dtype=bool)
     horizontal = np.zeros((height, width - 1), dtype=bool)
     diagonal = np.zeros((height - 1, width - 1), dtype=bool)
-    p, s = points, sigma
-    if height >= 4:  # rows v - 1, v, v + 1, v + 2 for the edge (v, v + 1)
-        vertical[1:-1] = _continues(p[:-3], p[1:-2], p[2:-1], s[2:-1]) & _continues(p[3:], p[2:-1], p[1:-2], s[1:-2])
-    if width >= 4:
-        horizontal[:, 1:-1] = _continues(p[:, :-3], p[:, 1:-2], p[:, 2:-1], s[:, 2:-1]) & _continues(
-            p[:, 3:], p[:, 2:-1], p[:, 1:-2], s[:, 1:-2]
-        )
-    if height >= 4 and width >= 4:  # (v - 1, u + 2), (v, u + 1), (v + 1, u), (v + 2, u - 1)
-        first, second = points[:-3, 3:], points[1:-2, 2:-1]
-        third, fourth = points[2:-1, 1:-2], points[3:, :-3]
-        diagonal[1:-1, 1:-1] = _continues(first, second, third, sigma[2:-1, 1:-2]) & _continues(
-            fourth, third, second, sigma[1:-2, 2:-1]
-        )
+    if height >= 3:  # edges (v, v + 1): forward from rows v - 1, v (v >= 1); backward from rows v + 2, v + 1
+        forward, backward = np.zeros_like(vertical), np.zeros_like(vertical)
+        forward[1:] = _continues(p[:-2], p[1:-1], p[2:], s[2:])
+        backward[:-1] = _continues(p[2:], p[1:-1], p[:-2], s[:-2])
+        vertical = _straight_edges(forward, backward, _shifted(backward, 1, 0), _shifted(forward, -1, 0))
+    if width >= 3:
+        forward, backward = np.zeros_like(horizontal), np.zeros_like(horizontal)
+        forward[:, 1:] = _continues(p[:, :-2], p[:, 1:-1], p[:, 2:], s[:, 2:])
+        backward[:, :-1] = _continues(p[:, 2:], p[:, 1:-1], p[:, :-2], s[:, :-2])
+        horizontal = _straight_edges(forward, backward, _shifted(backward, 0, 1), _shifted(forward, 0, -1))
+    if height >= 3 and width >= 3:
+        # the edge (v, u) joins (v, u + 1) and (v + 1, u), on the line ..., (v - 1, u + 2), (v, u + 1), (v + 1, u),
+        # (v + 2, u - 1), ...; the next edge along it is (v + 1, u - 1)
+        forward, backward = np.zeros_like(diagonal), np.zeros_like(diagonal)
+        forward[1:, :-1] = _continues(p[:-2, 2:], p[1:-1, 1:-1], p[2:, :-2], s[2:, :-2])
+        backward[:-1, 1:] = _continues(p[2:, :-2], p[1:-1, 1:-1], p[:-2, 2:], s[:-2, 2:])
+        diagonal = _straight_edges(forward, backward, _shifted(backward, 1, -1), _shifted(forward, -1, 1))
     return vertical, horizontal, diagonal
+
+
+def _straight_edges(forward, backward, next_backward, previous_forward) -> np.ndarray:
+    """The rule of :func:`straight_continuations` from its four tests on every edge."""
+    return (forward & backward) | (forward & ~next_backward) | (backward & ~previous_forward)
+
+
+def _shifted(edges: np.ndarray, dv: int, du: int) -> np.ndarray:
+    """``edges`` read at (v + dv, u + du) for every (v, u); False beyond the array."""
+    out = np.zeros_like(edges)
+    height, width = edges.shape
+    out[max(0, -dv) : height - max(0, dv), max(0, -du) : width - max(0, du)] = edges[
+        max(0, dv) : height - max(0, -dv), max(0, du) : width - max(0, -du)
+    ]
+    return out
 
 
 def sensor_values(sensor_points, geometry: SensorGeometry) -> np.ndarray:

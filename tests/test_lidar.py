@@ -241,12 +241,88 @@ def street_corner():
     return image, off_scene
 
 
+def beam_column(surface_of, elevations_deg):
+    """Sensor-frame points (H, 1, 3) of beams in the x-z plane at ``elevations_deg`` (top row first), each at the
+    point ``surface_of(elevation)`` gives (NaN: no return), and their sigma (5 mm)."""
+    points = np.array([surface_of(math.radians(e)) for e in elevations_deg], dtype=np.float64)[:, None, :]
+    return points, np.full(points.shape[:2], 0.005)
+
+
+#: Beams 0.4 degrees apart from 2 to 14 degrees below the horizon, top row first; the sensor 1.9 m up.
+ELEVATIONS = -2.0 - 0.4 * np.arange(31)
+HEIGHT = 1.9
+
+
+def test_straight_lines_reach_the_last_ring_before_the_road_ends_or_meets_a_wall():
+    """Ground seen at grazing incidence: every edge between two of its rings is straight, the last two rings'
+    too, though no ring lies beyond them on the road's line (the road ends: no return; a wall stands there:
+    the next sample is on the wall). The edge from the ground to the wall is not straight; the wall's are."""
+    from mabdi.depth import straight_continuations
+
+    def ground_until(end):
+        def hit(elevation):
+            x = HEIGHT / math.tan(-elevation)
+            return (x, 0.0, -HEIGHT) if x <= end else (np.nan, np.nan, np.nan)
+
+        return hit
+
+    def ground_and_wall(wall):
+        def hit(elevation):
+            x = HEIGHT / math.tan(-elevation)
+            return (x, 0.0, -HEIGHT) if x <= wall else (wall, 0.0, wall * math.tan(elevation))
+
+        return hit
+
+    points, sigma = beam_column(ground_until(25.0), ELEVATIONS)
+    rings = np.isfinite(points[:, 0, 0])
+    vertical, _, _ = straight_continuations(points, sigma)
+    assert 10 < rings.sum() < len(rings)
+    edges = rings[:-1] & rings[1:]
+    np.testing.assert_array_equal(vertical[:, 0], edges)  # the farthest pair included
+
+    points, sigma = beam_column(ground_and_wall(25.0), ELEVATIONS)
+    on_wall = np.isclose(points[:, 0, 0], 25.0)
+    vertical, _, _ = straight_continuations(points, sigma)
+    assert 3 < on_wall.sum() < len(on_wall) - 10
+    foot = np.flatnonzero(on_wall)[-1]  # the edge (foot, foot + 1) joins the wall's lowest sample to the ground
+    assert not vertical[foot, 0]
+    assert vertical[:foot, 0].all() and vertical[foot + 1 :, 0].all()  # the wall's, and the ground's to the last ring
+
+
+def test_a_sample_beyond_a_silhouette_on_the_foreground_line_does_not_join_it():
+    """A car's roof (1.5 m, seen from 1.9 m) ends 0.45 m before a facade, and the facade's sample at the roof's
+    height lies exactly on the roof's extrapolated line. That sample continues the facade's own line too, so the
+    roof is not joined to it (no false roof over the gap). Being on both lines, it is joined to neither by this
+    rule (the facade, seen head-on, is joined by the jump rule); every other edge of the roof and the facade is
+    straight."""
+    from mabdi.depth import straight_continuations
+
+    facade, roof_end, roof = 5.45, 5.0, -0.4
+
+    def hit(elevation):
+        x_roof = roof / math.tan(elevation)
+        if x_roof <= roof_end:
+            return (x_roof, 0.0, roof)
+        return (facade, 0.0, facade * math.tan(elevation))
+
+    # beams 0.4 degrees apart, one of them through the facade at the roof's height
+    elevations = math.degrees(math.atan2(roof, facade)) - 0.4 * np.arange(-5, 6)
+    points, sigma = beam_column(hit, elevations)
+    on_facade = np.isclose(points[:, 0, 0], facade)
+    gap = np.flatnonzero(on_facade)[-1]  # the facade's sample at the roof's height, then the roof's far edge
+    assert abs(points[gap, 0, 2] - roof) < 1e-9 and on_facade[:gap].all() and not on_facade[gap + 1 :].any()
+    vertical, _, _ = straight_continuations(points, sigma)
+    assert not vertical[gap, 0] and not vertical[gap - 1, 0]
+    assert vertical[: gap - 1, 0].all() and vertical[gap + 1 :, 0].all()
+
+
 def test_the_pixel_grid_meshes_ground_seen_at_grazing_incidence_and_nothing_off_the_scene():
     """The jump rule alone meshes the ground to about 10 m (beyond, more than 79 degrees from its normal); the
-    straight-line rule (``grazing``, on for range images) meshes it to the wall, and adds no triangle more
-    than 3 cm off the scene (no bridge from the box to the ground behind it, or from the wall's top to the sky)."""
+    straight-line rule (``grazing``, on for range images) meshes it to the wall, to the last ring before the
+    wall's foot (the rings lie 7 m apart there), and adds no triangle more than 3 cm off the scene (no bridge
+    from the box to the ground behind it, or from the wall's top to the sky)."""
     image, off_scene = street_corner()
-    reach, off = {}, {}
+    reach, front, off = {}, {}, {}
     for grazing in (False, "auto"):
         surface = FilterPixelGrid(PixelGridParameters(grazing=grazing))
         surface.SetInputDataObject(image)
@@ -255,8 +331,10 @@ def test_the_pixel_grid_meshes_ground_seen_at_grazing_incidence_and_nothing_off_
         centroids = points[triangles].mean(axis=1)
         ground = np.abs(centroids[:, 2]) < 0.05
         reach[grazing] = np.linalg.norm(centroids[ground, :2], axis=1).max()
+        front[grazing] = centroids[ground, 0].max()  # towards the wall at x = 30 m
         off[grazing] = set(map(tuple, np.round(centroids[off_scene(centroids) > 0.03], 4)))
     assert reach[False] < 12.0 < 28.0 < reach["auto"], reach
+    assert front["auto"] > 26.0, front
     assert off["auto"] <= off[False], len(off["auto"] - off[False])  # the corners' chords of the box, as before
 
 

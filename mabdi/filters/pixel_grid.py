@@ -30,11 +30,15 @@ the last column and the first are neighbours, meshed like any other two
 the ground beyond about 10 m at more than 79 degrees from its normal on every
 scan, and no later look is better, so the jump rule alone never meshes it.
 With ``grazing`` on, a triangle edge that fails the jump rule is kept where
-the two samples continue one straight line, each within the noise of the line
-through the two samples before it (:func:`mabdi.depth.straight_continuations`:
+the two samples continue one straight line, within the noise of the line
+through the two samples before them (:func:`mabdi.depth.straight_continuations`:
 3 sigma of the extrapolation plus 0.1 mm per metre): a plane is straight along
 every image line however steeply it is seen; a silhouette's two sides, and a
-curved surface seen edge-on, are not. ``"auto"`` (the default) turns it on for
+curved surface seen edge-on, are not. Both samples are tested where the line
+goes on beyond them; one suffices where the sample beyond ends the line (the
+road's last ring before its end or before a wall's foot), unless the sample it
+admits also starts the next surface's line (a facade sample that happens to lie
+on a car roof's extrapolated line). ``"auto"`` (the default) turns it on for
 range images and leaves a camera's rule as it was (a camera moving around a
 scene gets better looks). The samples before an edge come from the whole
 measured image when the input carries it (the classifier's output,
