@@ -343,7 +343,8 @@ def test_the_quadtree_meshes_ground_seen_at_grazing_incidence_and_nothing_off_th
     ``grazing`` the ground's normals take their neighbours along the beams' straight lines, and leaves of
     two or more pixels keep their far corners on their fitted plane, so the meshed area grows more than
     fourfold; a single pixel's normal is no fitted plane, and no vertex lands off the scene that did not
-    without the rule."""
+    without the rule. No triangle is without area (single pixels on two silhouettes, their corners moved
+    onto one line, made a third of the triangles here before they were left out)."""
     from mabdi.filters.quadtree import FilterQuadTree, QuadTreeParameters
     from mabdi.polydata import polydata_area
 
@@ -353,9 +354,12 @@ def test_the_quadtree_meshes_ground_seen_at_grazing_incidence_and_nothing_off_th
         quadtree = FilterQuadTree(QuadTreeParameters(reduction=1, grazing=grazing, triangles=True))
         quadtree.SetInputDataObject(image)
         quadtree.Update()
-        points, _ = polydata_arrays(quadtree.GetOutput())
+        points, triangles = polydata_arrays(quadtree.GetOutput())
         area[grazing] = polydata_area(quadtree.GetOutput())
         off[grazing] = int((off_scene(points) > 0.03).sum())
+        corners = points[triangles]
+        doubled = np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1)
+        assert doubled.min() > 1e-9, "a triangle with no area (a single pixel collapsed onto a line)"
     assert area["auto"] > 4.0 * area[False], area
     assert off["auto"] <= off[False], off
 

@@ -304,3 +304,57 @@ def test_voxel_planes_in_the_loop_on_the_table():
 
     simulation, result = check_table_loop("voxel_planes", median_limit=1e-2)
     assert evaluate_run(simulation, result, samples=30_000).redundancy <= 0.05
+
+
+def test_triangle_samples_cover_long_triangles_within_the_spacing_and_skip_small_ones():
+    from scipy.spatial import cKDTree
+
+    from mabdi.filters.voxel_planes import triangle_samples
+
+    # a strip of road between two LiDAR rings 3 m apart, 0.18 m wide; and a triangle smaller than the spacing
+    vertices = np.array([[20.0, 0.0, 0.0], [23.0, 0.0, 0.0], [20.0, 0.18, 0.0], [5.0, 5.0, 1.0], [5.05, 5.0, 1.0], [5.0, 5.05, 1.0]])
+    triangles = np.array([[0, 1, 2], [3, 4, 5]])
+    spacing = 0.1
+    points, nearest = triangle_samples(vertices, triangles, spacing)
+    assert 30 < len(points) < 150  # a few rows along the strip, not a 30 x 30 grid
+    np.testing.assert_allclose(points[:, 2], 0.0)  # all on the first triangle's plane, none from the small one
+    assert (points[:, 0] >= 20.0).all() and (points[:, 1] >= 0.0).all()
+    assert (points[:, 1] / 0.18 + (points[:, 0] - 20.0) / 3.0 <= 1.0 + 1e-9).all()  # inside
+    assert not np.isclose(points[:, None, :], vertices[None, :3]).all(axis=2).any()  # corners left out
+    # every point of the triangle lies within the spacing of a sample or a corner
+    rng = np.random.default_rng(0)
+    a, b = rng.random((2, 5000))
+    flip = a + b > 1
+    a[flip], b[flip] = 1 - a[flip], 1 - b[flip]
+    inside = vertices[0] + a[:, None] * (vertices[1] - vertices[0]) + b[:, None] * (vertices[2] - vertices[0])
+    gaps, _ = cKDTree(np.concatenate([points, vertices[:3]])).query(inside)
+    assert gaps.max() <= spacing
+    assert set(nearest) <= {0, 1, 2}
+    assert triangle_samples(vertices, triangles[1:], spacing)[0].shape == (0, 3)
+
+
+def test_voxel_planes_mesh_the_road_between_a_lidars_rings():
+    """A LiDAR 1.9 m above a road (the street corner of tests/test_lidar.py: a car-sized box at 8 m, a wall at
+    30 m): beyond 10 m the rings lie more than a voxel apart, and from the beams alone no window gathers
+    ``min_points`` between them. With the pixel grid's surface sampled between beams the road is meshed far
+    beyond, and no more polygons lie off the scene."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from test_lidar import street_corner
+
+    image, off_scene = street_corner()
+    far_road, off = {}, {}
+    for between in (False, "auto"):
+        surface = FilterVoxelPlanes(VoxelPlanesParameters(voxel_size=0.2, between_beams=between), output="full")
+        surface.SetInputDataObject(image)
+        surface.Update()
+        points, triangles = polydata_arrays(surface.GetOutput())
+        centroids = points[triangles].mean(axis=1)
+        road = (np.abs(centroids[:, 2]) < 0.05) & (np.linalg.norm(centroids[:, :2], axis=1) > 12.0)
+        corners = points[triangles[road]]
+        far_road[between] = 0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1).sum()
+        off[between] = int((off_scene(centroids) > 0.03).sum())
+    assert far_road["auto"] > 5.0 * max(far_road[False], 1.0), far_road
+    assert off["auto"] <= off[False] + 2, off

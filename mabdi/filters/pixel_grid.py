@@ -188,50 +188,60 @@ class FilterPixelGrid(MabdiAlgorithm):
 
     def RequestData(self, request, inInfo, outInfo):  # noqa: N802 (VTK API)
         image = vtkImageData.GetData(inInfo[0])
-        intrinsics = image_intrinsics(image)
-        pose = image_pose(image)
-        depth = depth_array(image)
-        noise = image_noise(image)
-        if self._parameters.smooth_depth:
-            depth = smooth_depth_by_noise(depth, noise, intrinsics)
-        rays = pixel_rays(intrinsics)
-        grazing = self._parameters.grazing
-        wrap = isinstance(intrinsics, SphericalGeometry)  # 360 degrees of azimuth: the last column meets the first
-        straight = None
-        if grazing is True or (grazing == "auto" and wrap):
-            # the samples beyond an edge come from the whole measured image (the novel pixels' neighbours too)
-            measured = measured_depth(image)
-            context = depth if measured is None else measured_around(depth, measured, noise, intrinsics, self._parameters.smooth_depth)
-            # two columns beyond each side of the seam, so that edges across it have samples beyond them too
-            wide = (lambda a: np.concatenate([a[:, -2:], a, a[:, :3]], axis=1)) if wrap else (lambda a: a)
-            sigma = noise.sigma(context, intrinsics.near, intrinsics.far)
-            straight = straight_continuations(wide(rays) * wide(context)[..., None], wide(sigma))
-            if wrap:
-                width = depth.shape[1]
-                straight = (straight[0][:, 2 : width + 3], straight[1][:, 2 : width + 2], straight[2][:, 2 : width + 2])
-        jump = self._parameters.max_jump * jump_scale(intrinsics)
-        if wrap:
-            height, width = depth.shape
-            triangles = pixel_grid_triangles(np.concatenate([depth, depth[:, :1]], axis=1), jump, straight)
-            row, col = np.divmod(triangles, width + 1)
-            triangles = row * width + col % width  # column W is column 0 again
-        else:
-            triangles = pixel_grid_triangles(depth, jump, straight)
-        # Keep only the pixels the triangles use, renumbered in order.
-        used = np.zeros(depth.size, dtype=bool)
-        used[triangles.ravel()] = True
-        pixel_ids = np.flatnonzero(used)
-        renumber = np.cumsum(used) - 1
-        camera_points = rays.reshape(-1, 3)[pixel_ids] * depth.ravel()[pixel_ids, None]
-        world_points = camera_points @ pose[:3, :3].T + pose[:3, 3]
+        world_points, triangles, pixel_ids = pixel_grid_surface(image, self._parameters)
         output = vtkPolyData.GetData(outInfo)
-        mesh = triangles_polydata(world_points, renumber[triangles], dtype=np.float32)
+        mesh = triangles_polydata(world_points, triangles, dtype=np.float32)
         colour = image_colour(image)
         if colour is not None:  # each vertex is a pixel: its colour
             mesh.GetPointData().AddArray(colour_point_array(colour.reshape(-1, 3)[pixel_ids]))
         output.ShallowCopy(mesh)
         output.GetFieldData().ShallowCopy(image.GetFieldData())
         return 1
+
+
+def pixel_grid_surface(
+    image: vtkImageData, parameters: PixelGridParameters, straight_only: bool = False
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The pixel grid of a depth image (the module docs): its vertices in the world (N, 3, metres), its
+    triangles (M, 3, indices into them) and each vertex's pixel id (N,: v * W + u). ``straight_only``: only
+    triangles whose three edges lie on straight lines with the samples beyond them (the straight-line rule,
+    whatever ``grazing`` says, without the jump rule, which also admits the chord across a crease)."""
+    intrinsics = image_intrinsics(image)
+    pose = image_pose(image)
+    depth = depth_array(image)
+    noise = image_noise(image)
+    if parameters.smooth_depth:
+        depth = smooth_depth_by_noise(depth, noise, intrinsics)
+    rays = pixel_rays(intrinsics)
+    grazing = parameters.grazing
+    wrap = isinstance(intrinsics, SphericalGeometry)  # 360 degrees of azimuth: the last column meets the first
+    straight = None
+    if straight_only or grazing is True or (grazing == "auto" and wrap):
+        # the samples beyond an edge come from the whole measured image (the novel pixels' neighbours too)
+        measured = measured_depth(image)
+        context = depth if measured is None else measured_around(depth, measured, noise, intrinsics, parameters.smooth_depth)
+        # two columns beyond each side of the seam, so that edges across it have samples beyond them too
+        wide = (lambda a: np.concatenate([a[:, -2:], a, a[:, :3]], axis=1)) if wrap else (lambda a: a)
+        sigma = noise.sigma(context, intrinsics.near, intrinsics.far)
+        straight = straight_continuations(wide(rays) * wide(context)[..., None], wide(sigma))
+        if wrap:
+            width = depth.shape[1]
+            straight = (straight[0][:, 2 : width + 3], straight[1][:, 2 : width + 2], straight[2][:, 2 : width + 2])
+    jump = -1.0 if straight_only else parameters.max_jump * jump_scale(intrinsics)  # -1: no edge within the jump
+    if wrap:
+        height, width = depth.shape
+        triangles = pixel_grid_triangles(np.concatenate([depth, depth[:, :1]], axis=1), jump, straight)
+        row, col = np.divmod(triangles, width + 1)
+        triangles = row * width + col % width  # column W is column 0 again
+    else:
+        triangles = pixel_grid_triangles(depth, jump, straight)
+    # Keep only the pixels the triangles use, renumbered in order.
+    used = np.zeros(depth.size, dtype=bool)
+    used[triangles.ravel()] = True
+    pixel_ids = np.flatnonzero(used)
+    renumber = np.cumsum(used) - 1
+    camera_points = rays.reshape(-1, 3)[pixel_ids] * depth.ravel()[pixel_ids, None]
+    return camera_points @ pose[:3, :3].T + pose[:3, 3], renumber[triangles], pixel_ids
 
 
 #: The former name of :class:`FilterPixelGrid`.

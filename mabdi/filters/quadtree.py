@@ -47,7 +47,10 @@ Beyond the seed (its own "future work"):
   vertices (T-vertices) of the big face, so the mesh is closed along it.
 * **Silhouettes**: a corner whose surrounding pixels are not all on the
   leaf's surface moves half a pixel in, to the border pixels' centres, so a
-  face does not hang past the edge of a surface seen at a grazing angle.
+  face does not hang past the edge of a surface seen at a grazing angle. A
+  single pixel with silhouettes on two opposite sides collapses to a line:
+  its triangles have no area, and they are left out (nothing could show
+  them, or see through them to remove them).
 * **Planar faces**: a quad whose corners are not coplanar within
   ``planarity`` (max(1 mm, 0.2% of the depth)) is split into two triangles;
   a face with T-vertices that is not planar becomes a fan around its centre.
@@ -486,13 +489,21 @@ def _faces(vertices, starts, members, sizes, leaves: Leaves, k: Grid, p: QuadTre
         out_leaf.append(fans[ring_owner])
     if not out_members:
         return np.zeros(1, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), vertices
-    sizes_out = np.concatenate(out_offsets)
-    return (
-        np.concatenate([[0], np.cumsum(sizes_out)]),
-        np.concatenate(out_members),
-        np.concatenate(out_leaf),
-        vertices,
-    )
+    sizes_out, members_out, leaf_out = np.concatenate(out_offsets), np.concatenate(out_members), np.concatenate(out_leaf)
+    # A single pixel on a silhouette on two sides has corners moved half a pixel in onto the same centre: its
+    # triangles have no area. Nothing shows them or can see through them; they go.
+    starts_out = np.concatenate([[0], np.cumsum(sizes_out)])[:-1]
+    triangle = np.flatnonzero(sizes_out == 3)
+    corners = vertices[members_out[starts_out[triangle][:, None] + np.arange(3)]]
+    doubled = np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1)
+    longest = np.max(np.linalg.norm(corners - np.roll(corners, 1, axis=1), axis=2), axis=1)
+    flat = triangle[doubled <= 1e-9 * longest**2]
+    if len(flat):
+        keep = np.ones(len(sizes_out), dtype=bool)
+        keep[flat] = False
+        members_out = members_out[np.repeat(keep, sizes_out)]
+        sizes_out, leaf_out = sizes_out[keep], leaf_out[keep]
+    return np.concatenate([[0], np.cumsum(sizes_out)]), members_out, leaf_out, vertices
 
 
 def _gather(members: np.ndarray, starts: np.ndarray, faces: np.ndarray) -> np.ndarray:

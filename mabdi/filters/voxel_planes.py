@@ -41,6 +41,18 @@ points), a mesh of small planar polygons out. The filter keeps a
    scans, and the far road and facades stay unmeshed; choose a voxel about
    the beams' spacing where the scene is seen (``scenes/street.toml``: 0.2 m;
    docs/benchmarks.md has the street at both sizes).
+   **Between beams** (``between_beams``, on for range images): a LiDAR's
+   rings on the road lie metres apart beyond 20 m, so most voxels between
+   them hold no point, and no window around them has ``min_points``. The
+   depth image's pixel grid is sampled at half a voxel wherever its triangles
+   are larger (:func:`triangle_samples`), the triangles whose every edge lies on
+   a straight line with the samples beyond it
+   (:func:`mabdi.filters.pixel_grid.pixel_grid_surface`, ``straight_only``:
+   the jump rule alone would also sample the chord across the foot of a wall), and those points join the beams' own
+   in the statistics: the voxels between two rings get the plane the rings
+   lie on. Where samples lie closer than half a voxel (a camera's pixels)
+   nothing is added. ``"auto"`` (the default) turns it on for range images
+   and leaves a camera's input as it was.
 4. **Incremental**: after new points, only the blocks (``block_size``, 1 m)
    holding a vertex whose neighbourhood changed are re-meshed. The mesh is
    kept per block; the output is either the blocks re-meshed by this update
@@ -102,7 +114,8 @@ from mabdi.filters.world_mesh import PATCH_KEY_ARRAY, REMOVED_KEYS_ARRAY
 from mabdi.maps.colours import colours_by_normal
 from mabdi.maps.mesh_map import COLOUR_LAYER
 from mabdi.polydata import triangles_polydata
-from mabdi.spherical import BEAM_ELEVATIONS_ARRAY, SPHERICAL_ARRAY
+from mabdi.filters.pixel_grid import PixelGridParameters, pixel_grid_surface
+from mabdi.spherical import BEAM_ELEVATIONS_ARRAY, SPHERICAL_ARRAY, SphericalGeometry
 
 OUTPUTS = ("changed", "full")
 #: The colour of a polygon whose voxels hold no coloured point (in a map that has colour: points added without it).
@@ -124,8 +137,13 @@ class VoxelPlanesParameters:
     window: int = 2
     min_points: int = 10
     block_size: float = 1.0
+    #: Add points on the surface between neighbouring samples more than half a voxel apart (see the module
+    #: docs, "Between beams"): true, false, or "auto" (range images only).
+    between_beams: bool | str = "auto"
 
     def __post_init__(self) -> None:
+        if self.between_beams not in (True, False, "auto"):
+            raise ConfigError(f"between_beams must be true, false or \"auto\", got {self.between_beams!r}")
         if not self.voxel_size > 0 or not self.epsilon > 0:
             raise ConfigError(
                 f"need voxel_size > 0 and epsilon > 0 (metres), got voxel_size={self.voxel_size}, epsilon={self.epsilon}"
@@ -179,6 +197,49 @@ def plane_patches(voxels: VoxelMap, anchors: np.ndarray, parameters: VoxelPlanes
     centroids = mean[keep] + lowest[keep] * s
     centres = (anchors[keep] + 0.5 * (w % 2)) * s
     return PlanePatches(anchors[keep], normals, centroids, centres, n[keep].astype(np.int64))
+
+
+def triangle_samples(vertices: np.ndarray, triangles: np.ndarray, spacing: float) -> tuple[np.ndarray, np.ndarray]:
+    """Points inside the triangles (M, 3, indices into ``vertices`` (N, 3)) at most ``spacing`` (m) apart, their
+    corners left out (a triangle with no edge longer than ``spacing`` gives none), and for each the vertex it
+    lies nearest (by barycentric weight). Each triangle is spanned from the corner opposite its longest
+    edge, a + (i / n) (b - a) + (j / m) (c - a) for i / n + j / m <= 1, with n and m the two edges' lengths
+    over ``spacing``, rounded up: a long thin triangle gets a row of points, not a square grid."""
+    if len(triangles) == 0:
+        return np.zeros((0, 3)), np.zeros(0, dtype=np.int64)
+    corners = vertices[triangles]  # (M, 3, 3)
+    opposite = np.stack([np.linalg.norm(corners[:, (k + 2) % 3] - corners[:, (k + 1) % 3], axis=1) for k in range(3)], axis=1)
+    first = np.argmax(opposite, axis=1)  # the corner opposite the longest edge: between the two shortest
+    order = (first[:, None] + np.arange(3)[None, :]) % 3
+    ids = np.take_along_axis(triangles, order, axis=1)
+    a, b, c = vertices[ids[:, 0]], vertices[ids[:, 1]], vertices[ids[:, 2]]
+    n = np.ceil(np.linalg.norm(b - a, axis=1) / spacing).astype(np.int64)
+    m = np.ceil(np.linalg.norm(c - a, axis=1) / spacing).astype(np.int64)
+    large = np.flatnonzero(np.maximum(n, m) >= 2)
+    points, nearest = [], []
+    pairs = np.stack([n[large], m[large]], axis=1)
+    for (steps_b, steps_c), rows in _grouped(pairs, large):
+        i, j = np.meshgrid(np.arange(steps_b + 1), np.arange(steps_c + 1), indexing="ij")
+        s_b, s_c = (i / steps_b).ravel(), (j / steps_c).ravel()
+        inside = s_b + s_c <= 1.0 + 1e-9
+        corner = ((s_b == 0) & (s_c == 0)) | ((s_b == 1) & (s_c == 0)) | ((s_b == 0) & (s_c == 1))
+        s_b, s_c = s_b[inside & ~corner], s_c[inside & ~corner]
+        weights = np.stack([1.0 - s_b - s_c, s_b, s_c], axis=1)  # (K, 3)
+        points.append((weights @ np.stack([a[rows], b[rows], c[rows]], axis=1)).reshape(-1, 3))
+        nearest.append(ids[rows][:, np.argmax(weights, axis=1)].reshape(-1))
+    if not points:
+        return np.zeros((0, 3)), np.zeros(0, dtype=np.int64)
+    return np.concatenate(points), np.concatenate(nearest)
+
+
+def _grouped(keys: np.ndarray, rows: np.ndarray):
+    """(key, rows) for each distinct row of ``keys`` (K, 2), ``rows`` (K,) the values grouped."""
+    unique, inverse = np.unique(keys, axis=0, return_inverse=True)
+    inverse = inverse.reshape(-1)
+    order = np.argsort(inverse, kind="stable")
+    bounds = np.searchsorted(inverse[order], np.arange(len(unique) + 1))
+    for g, key in enumerate(unique):
+        yield (int(key[0]), int(key[1])), rows[order[bounds[g] : bounds[g + 1]]]
 
 
 def cube_colours(voxels: VoxelMap, anchors: np.ndarray, window: int) -> np.ndarray:
@@ -631,11 +692,10 @@ class FilterVoxelPlanes(MabdiAlgorithm):
                     output.GetFieldData().AddArray(array)
         return 1
 
-    @staticmethod
-    def _input_points(data) -> tuple[np.ndarray, np.ndarray | None]:
+    def _input_points(self, data) -> tuple[np.ndarray, np.ndarray | None]:
         """World points (M, 3) of the input and their uint8 RGB colours (M, 3), None when it has no colour:
-        a depth image's point array ``colour`` at the valid pixels; a point set's ``colour`` (or
-        ``rgb_colors``) point array, uint8 with 3 components."""
+        a depth image's point array ``colour`` at the valid pixels (and, between beams, the points on its pixel
+        grid, module docs); a point set's ``colour`` (or ``rgb_colors``) point array, uint8 with 3 components."""
         if isinstance(data, vtkImageData):
             depth = depth_array(data)
             k = image_intrinsics(data)
@@ -644,7 +704,15 @@ class FilterVoxelPlanes(MabdiAlgorithm):
             z = depth[v, u].astype(np.float64)
             camera = pixel_rays(k)[v, u] * z[:, None]  # a camera's z = 1 rays times depth, or a LiDAR's unit rays times range
             colour = image_colour(data)
-            return camera @ pose[:3, :3].T + pose[:3, 3], None if colour is None else colour[v, u]
+            points, colours = camera @ pose[:3, :3].T + pose[:3, 3], None if colour is None else colour[v, u]
+            between = self._parameters.between_beams
+            if between is True or (between == "auto" and isinstance(k, SphericalGeometry)):
+                vertices, triangles, pixel_ids = pixel_grid_surface(data, PixelGridParameters(), straight_only=True)
+                extra, corner = triangle_samples(vertices, triangles, 0.5 * self._parameters.voxel_size)
+                points = np.concatenate([points, extra])
+                if colours is not None:
+                    colours = np.concatenate([colours, colour.reshape(-1, 3)[pixel_ids[corner]]])
+            return points, colours
         if isinstance(data, vtkPointSet):
             if data.GetNumberOfPoints() == 0:
                 return np.zeros((0, 3)), None
