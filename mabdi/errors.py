@@ -33,5 +33,12 @@ class WriteError(MabdiError, OSError):
     """A file could not be written completely (a full disk, a failing writer); nothing was left under its name."""
 
 
+def check_switch(name: str, value) -> None:
+    """Raise :class:`ConfigError` unless ``value`` is a switch that may be left to the input: true, false or
+    "auto" (what "auto" means is the parameter's own)."""
+    if not isinstance(value, (bool, str)) or value not in (True, False, "auto"):
+        raise ConfigError(f'{name} must be true, false or "auto", got {value!r}')
+
+
 class RenderBackendError(MabdiError, RuntimeError):
     """A render backend cannot be used on this machine (its system library is missing)."""

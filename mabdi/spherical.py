@@ -37,6 +37,12 @@ import numpy as np
 
 from mabdi.errors import ConfigError
 
+def on_for_range_images(switch: bool | str, geometry) -> bool:
+    """A true / false / "auto" switch (:func:`mabdi.errors.check_switch`) for an image of ``geometry``: "auto" is
+    on for a LiDAR's range image (a :class:`SphericalGeometry`) and off for a camera's."""
+    return switch is True or (switch == "auto" and isinstance(geometry, SphericalGeometry))
+
+
 #: Field-data array of a range image: beams, columns, fov_up, fov_down (degrees), range_min, range_max (m).
 SPHERICAL_ARRAY = "spherical"
 #: Optional field-data array of a range image: the elevation of each beam (degrees, top row first).

@@ -268,6 +268,8 @@ def test_bad_parameters_and_inputs():
         VoxelPlanesParameters(window=0)
     with pytest.raises(ConfigError, match="epsilon"):
         VoxelPlanesParameters(epsilon=0)
+    with pytest.raises(ConfigError, match="between_beams must be true, false or"):
+        VoxelPlanesParameters(between_beams="yes")
     with pytest.raises(ConfigError, match="whole number of voxels"):
         VoxelMap(0.05, 0.33)
     with pytest.raises(ValueError, match="shape"):

@@ -70,7 +70,7 @@ from vtkmodules.vtkCommonExecutionModel import vtkStreamingDemandDrivenPipeline
 
 from mabdi.algorithm import MabdiAlgorithm
 from mabdi.depth import MEASURED_ARRAY, copy_colour, depth_array, fill_depth_image, image_frame, image_intrinsics, image_noise, image_pose, image_timestamp
-from mabdi.errors import ConfigError
+from mabdi.errors import ConfigError, check_switch
 from mabdi.sensor_noise import SensorNoise
 from mabdi.filters.expected_image import map_in_footprint
 from mabdi.filters.registration import image_pose_covariance, pose_depth_sigma
@@ -119,8 +119,7 @@ class ClassifierParameters:
     rim: int = 1
 
     def __post_init__(self) -> None:
-        if self.refinement not in (True, False, "auto") or not isinstance(self.refinement, (bool, str)):
-            raise ConfigError(f"refinement must be true, false or \"auto\", got {self.refinement!r}")
+        check_switch("refinement", self.refinement)
         if not self.tau_min > 0:
             raise ConfigError(f"tau_min must be > 0 metres, got {self.tau_min}")
         if self.k_sigma < 0:

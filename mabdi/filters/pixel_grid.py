@@ -84,10 +84,10 @@ from mabdi.depth import (
     measured_depth,
     straight_continuations,
 )
-from mabdi.errors import ConfigError
+from mabdi.errors import ConfigError, check_switch
 from mabdi.filters.depth_smoothing import measured_around, smooth_depth_by_noise
 from mabdi.polydata import triangles_polydata
-from mabdi.spherical import SphericalGeometry
+from mabdi.spherical import SphericalGeometry, on_for_range_images
 
 
 @dataclass(frozen=True)
@@ -103,8 +103,7 @@ class PixelGridParameters:
     grazing: bool | str = "auto"
 
     def __post_init__(self) -> None:
-        if self.grazing not in (True, False, "auto"):
-            raise ConfigError(f"grazing must be true, false or \"auto\", got {self.grazing!r}")
+        check_switch("grazing", self.grazing)
         if not (isinstance(self.max_jump, (int, float)) and self.max_jump > 0):
             raise ConfigError(f"max_jump must be > 0 (a fraction of the depth), got {self.max_jump!r}")
         if not isinstance(self.smooth_depth, bool):
@@ -213,10 +212,9 @@ def pixel_grid_surface(
     if parameters.smooth_depth:
         depth = smooth_depth_by_noise(depth, noise, intrinsics)
     rays = pixel_rays(intrinsics)
-    grazing = parameters.grazing
     wrap = isinstance(intrinsics, SphericalGeometry)  # 360 degrees of azimuth: the last column meets the first
     straight = None
-    if straight_only or grazing is True or (grazing == "auto" and wrap):
+    if straight_only or on_for_range_images(parameters.grazing, intrinsics):
         # the samples beyond an edge come from the whole measured image (the novel pixels' neighbours too)
         measured = measured_depth(image)
         context = depth if measured is None else measured_around(depth, measured, noise, intrinsics, parameters.smooth_depth)

@@ -135,10 +135,10 @@ from mabdi.depth import (
     sensor_values,
     straight_continuations,
 )
-from mabdi.errors import ConfigError
+from mabdi.errors import ConfigError, check_switch
 from mabdi.sensor_noise import SensorNoise
 from mabdi.filters.depth_smoothing import measured_around, smooth_depth_by_noise
-from mabdi.spherical import SphericalGeometry
+from mabdi.spherical import SphericalGeometry, on_for_range_images
 
 from mabdi.filters import quadtree_kernels as kernels
 
@@ -184,8 +184,7 @@ class QuadTreeParameters:
             raise ConfigError(f"max_jump and planarity must be > 0, got max_jump={self.max_jump}, planarity={self.planarity}")
         if not isinstance(self.smooth_depth, bool):
             raise ConfigError(f"smooth_depth must be true or false, got {self.smooth_depth!r}")
-        if self.grazing not in (True, False, "auto"):
-            raise ConfigError(f"grazing must be true, false or \"auto\", got {self.grazing!r}")
+        check_switch("grazing", self.grazing)
 
 
 # ---------------------------------------------------------------------------
@@ -264,7 +263,7 @@ def _step_jump(p: QuadTreeParameters, k: Grid) -> float:
 
 def grazing_on(p: QuadTreeParameters, k: Grid | SphericalGeometry) -> bool:
     """Whether the grazing rule applies to an image of ``k``: ``grazing`` true, or "auto" on a range image."""
-    return p.grazing is True or (p.grazing == "auto" and isinstance(k, (ReducedSpherical, SphericalGeometry)))
+    return on_for_range_images(p.grazing, k.geometry if isinstance(k, ReducedSpherical) else k)
 
 
 def _leaf_jump(leaves: Leaves, p: QuadTreeParameters, k: Grid) -> np.ndarray:

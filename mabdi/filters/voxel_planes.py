@@ -45,11 +45,11 @@ points), a mesh of small planar polygons out. The filter keeps a
    rings on the road lie metres apart beyond 20 m, so most voxels between
    them hold no point, and no window around them has ``min_points``. The
    depth image's pixel grid is sampled at half a voxel wherever its triangles
-   are larger (:func:`triangle_samples`), the triangles whose every edge lies on
-   a straight line with the samples beyond it
+   are larger (:func:`triangle_samples`), the triangles whose every edge lies
+   on a straight line with the samples beyond it
    (:func:`mabdi.filters.pixel_grid.pixel_grid_surface`, ``straight_only``:
-   the jump rule alone would also sample the chord across the foot of a wall), and those points join the beams' own
-   in the statistics: the voxels between two rings get the plane the rings
+   the jump rule would also admit the chord across the foot of a wall), and
+   those points join the beams' own in the statistics: the voxels between two rings get the plane the rings
    lie on. Where samples lie closer than half a voxel (a camera's pixels)
    nothing is added. ``"auto"`` (the default) turns it on for range images
    and leaves a camera's input as it was.
@@ -108,14 +108,14 @@ from vtkmodules.vtkCommonDataModel import vtkDataObject, vtkImageData, vtkPointS
 from mabdi.algorithm import MabdiAlgorithm
 from mabdi.camera import pixel_rays
 from mabdi.depth import COLOUR_ARRAY, FRAME_ARRAY, colour_point_array, depth_array, image_colour, image_intrinsics, image_pose
-from mabdi.errors import ConfigError
+from mabdi.errors import ConfigError, check_switch
 from mabdi.voxels.voxel_map import VoxelMap, moments_to_gaussian, pack_keys, unpack_keys
 from mabdi.filters.world_mesh import PATCH_KEY_ARRAY, REMOVED_KEYS_ARRAY
 from mabdi.maps.colours import colours_by_normal
 from mabdi.maps.mesh_map import COLOUR_LAYER
 from mabdi.polydata import triangles_polydata
 from mabdi.filters.pixel_grid import PixelGridParameters, pixel_grid_surface
-from mabdi.spherical import BEAM_ELEVATIONS_ARRAY, SPHERICAL_ARRAY, SphericalGeometry
+from mabdi.spherical import BEAM_ELEVATIONS_ARRAY, SPHERICAL_ARRAY, on_for_range_images
 
 OUTPUTS = ("changed", "full")
 #: The colour of a polygon whose voxels hold no coloured point (in a map that has colour: points added without it).
@@ -142,8 +142,7 @@ class VoxelPlanesParameters:
     between_beams: bool | str = "auto"
 
     def __post_init__(self) -> None:
-        if self.between_beams not in (True, False, "auto"):
-            raise ConfigError(f"between_beams must be true, false or \"auto\", got {self.between_beams!r}")
+        check_switch("between_beams", self.between_beams)
         if not self.voxel_size > 0 or not self.epsilon > 0:
             raise ConfigError(
                 f"need voxel_size > 0 and epsilon > 0 (metres), got voxel_size={self.voxel_size}, epsilon={self.epsilon}"
@@ -201,10 +200,11 @@ def plane_patches(voxels: VoxelMap, anchors: np.ndarray, parameters: VoxelPlanes
 
 def triangle_samples(vertices: np.ndarray, triangles: np.ndarray, spacing: float) -> tuple[np.ndarray, np.ndarray]:
     """Points inside the triangles (M, 3, indices into ``vertices`` (N, 3)) at most ``spacing`` (m) apart, their
-    corners left out (a triangle with no edge longer than ``spacing`` gives none), and for each the vertex it
-    lies nearest (by barycentric weight). Each triangle is spanned from the corner opposite its longest
-    edge, a + (i / n) (b - a) + (j / m) (c - a) for i / n + j / m <= 1, with n and m the two edges' lengths
-    over ``spacing``, rounded up: a long thin triangle gets a row of points, not a square grid."""
+    corners left out, and for each the vertex it lies nearest (by barycentric weight). Each triangle is spanned
+    from the corner opposite its longest edge, a + (i / n) (b - a) + (j / m) (c - a) for i / n + j / m <= 1,
+    with n and m the two shorter edges' lengths over ``spacing``, rounded up: a long thin triangle gets a row
+    of points, not a square grid. A triangle whose two shorter edges are within ``spacing`` gives none (every
+    point of it is that close to the corner between them)."""
     if len(triangles) == 0:
         return np.zeros((0, 3)), np.zeros(0, dtype=np.int64)
     corners = vertices[triangles]  # (M, 3, 3)
@@ -705,8 +705,7 @@ class FilterVoxelPlanes(MabdiAlgorithm):
             camera = pixel_rays(k)[v, u] * z[:, None]  # a camera's z = 1 rays times depth, or a LiDAR's unit rays times range
             colour = image_colour(data)
             points, colours = camera @ pose[:3, :3].T + pose[:3, 3], None if colour is None else colour[v, u]
-            between = self._parameters.between_beams
-            if between is True or (between == "auto" and isinstance(k, SphericalGeometry)):
+            if on_for_range_images(self._parameters.between_beams, k):
                 vertices, triangles, pixel_ids = pixel_grid_surface(data, PixelGridParameters(), straight_only=True)
                 extra, corner = triangle_samples(vertices, triangles, 0.5 * self._parameters.voxel_size)
                 points = np.concatenate([points, extra])
