@@ -68,7 +68,8 @@ ChunkIndex = tuple[int, int, int]
 
 @dataclass
 class Patch:
-    """One patch of the map: its polydata and, per face, normal (world), removal log-odds and contradicting frames."""
+    """One patch of the map: its polydata and, per face, normal (world), removal log-odds, contradicting frames
+    and whether it shared an edge with a face removed from the patch."""
 
     key: str
     polydata: vtkPolyData
@@ -80,6 +81,13 @@ class Patch:
     #: (M,) bool, a keyed patch's faces that were not in the patch it replaced (new, or fitted again to new
     #: points); None: all its faces came with it
     refitted: np.ndarray | None = None
+    #: (M,) bool, faces that shared an edge with a face removed from the patch (they follow it once
+    #: contradicted: :meth:`WorldMap.update_evidence`); None: none did
+    beside_removed: np.ndarray | None = None
+
+    def beside_removed_faces(self) -> np.ndarray:
+        """(M,) bool :attr:`beside_removed`, all False where None."""
+        return self.beside_removed if self.beside_removed is not None else np.zeros(self.cells, dtype=bool)
 
     @property
     def cells(self) -> int:
@@ -412,6 +420,8 @@ class WorldMap:
             np.concatenate([p.evidence for p in parts]),
             np.concatenate([p.contradicted for p in parts]),
         )
+        if any(p.beside_removed is not None for p in parts):
+            merged.beside_removed = np.concatenate([p.beside_removed_faces() for p in parts])
         self._merges += 1
         self._merged_from[merged.key] = [(p.key, p.polydata.GetNumberOfPoints()) for p in parts]
         chunk.remove([part.key for part in parts])
@@ -465,6 +475,9 @@ class WorldMap:
         same = np.isfinite(distance) & (distance <= radii)
         patch.evidence[same] = old.evidence[nearest[same]]
         patch.contradicted[same] = old.contradicted[nearest[same]]
+        if old.beside_removed is not None:
+            patch.beside_removed = np.zeros(patch.cells, dtype=bool)
+            patch.beside_removed[same] = old.beside_removed[nearest[same]]
         patch.refitted = ~(np.isfinite(distance) & (distance <= UNCHANGED_FACE))
 
     def face_lookup(self, codes, table: FaceIdTable) -> tuple[np.ndarray, np.ndarray, list[str]]:
@@ -529,7 +542,11 @@ class WorldMap:
 
         ``codes``: faces voted on this frame (of the expected image whose ``table`` is given);
         ``contradicted`` / ``confirmed``: their pixel votes. The rule is
-        :func:`mabdi.filters.removal.update_log_odds` (``parameters``: :class:`~mabdi.filters.removal.RemovalParameters`).
+        :func:`mabdi.filters.removal.update_log_odds` (``parameters``: :class:`~mabdi.filters.removal.RemovalParameters`);
+        besides, a face that shared an edge with a face removed before (:attr:`Patch.beside_removed`) goes
+        as soon as its evidence is above 0. That is the rule by which contradicted faces follow a removed
+        neighbour (:meth:`_removed_with`), kept when the neighbour went first: a departed object's small
+        faces seen by one beam in one frame after the faces around them went would otherwise stay.
         """
         codes = np.asarray(codes, dtype=np.int64)
         block, local, keys = self.face_lookup(codes, table)
@@ -543,6 +560,7 @@ class WorldMap:
             )
             patch.evidence[cells] = evidence
             patch.contradicted[cells] = frames
+            gone |= patch.beside_removed_faces()[cells] & (evidence > 0)
             condemned.append(codes[rows[gone]])
         return np.concatenate(condemned) if condemned else np.zeros(0, dtype=np.int64)
 
@@ -564,13 +582,25 @@ class WorldMap:
             if keep.size == 0:
                 self._take(patch)
                 continue
+            beside = patch.beside_removed_faces() | self._beside(patch, gone)
             kept = Patch(
                 patch.key, extract_polys(patch.polydata, keep), patch.chunk,
                 patch.normals[keep], patch.evidence[keep], patch.contradicted[keep], patch.keyed,
+                beside_removed=beside[keep] if beside[keep].any() else None,
             )
             self._put(kept, replacing=patch)
         self._changed()
         return _append(removed_parts)
+
+    @staticmethod
+    def _beside(patch: Patch, gone: np.ndarray) -> np.ndarray:
+        """(M,) bool: faces of a patch of triangles not in ``gone`` that share an edge (two vertices) with one in it."""
+        triangles = patch_triangles(patch.polydata)
+        if triangles is None:
+            return np.zeros(patch.cells, dtype=bool)
+        marked = np.zeros(patch.polydata.GetNumberOfPoints(), dtype=bool)
+        marked[triangles[gone].ravel()] = True
+        return ~gone & (marked[triangles].sum(axis=1) >= 2)
 
     @staticmethod
     def _removed_with(patch: Patch, gone: np.ndarray) -> np.ndarray:
@@ -579,16 +609,24 @@ class WorldMap:
         A departed object's faces are contiguous: faces already contradicted (evidence above 0) go with a
         removed face they are edge-connected to, and so do the direct neighbours of the removed faces that
         were never voted on at all (smaller than a pixel: no pixel centre showed them), and kept faces left
-        as islands inside the removed region.
+        as islands inside the removed region. Contradicted faces beside those that joined (a never-voted
+        neighbour, an island) follow them too, and so on while contradicted faces join: a chain of
+        never-voted faces alone does not spread the removal beyond one ring.
         """
         triangles = patch_triangles(patch.polydata)
         if triangles is None:
             return gone
         points = patch.polydata.GetNumberOfPoints()
-        gone = spread_removal(triangles, points, gone, patch.evidence > 0)
+        contradicted = patch.evidence > 0
         never_voted = (patch.evidence == 0) & (patch.contradicted == 0)
-        gone = spread_removal(triangles, points, gone, never_voted, steps=1)
-        return gone | enclosed(triangles, points, gone)
+        gone = spread_removal(triangles, points, gone, contradicted)
+        while True:
+            ring = spread_removal(triangles, points, gone, never_voted, steps=1)
+            ring |= enclosed(triangles, points, ring)
+            grown = spread_removal(triangles, points, ring, contradicted)
+            if (grown == ring).all():
+                return ring
+            gone = grown
 
     def move_points(self, key: str, vertex_ids: np.ndarray, positions: np.ndarray) -> None:
         """Move vertices ``vertex_ids`` of patch ``key`` to ``positions`` (K, 3) world metres; faces unchanged.
@@ -628,7 +666,8 @@ class WorldMap:
             "merges": self._merges,
             "merged_from": {key: [[part, int(points)] for part, points in parts] for key, parts in self._merged_from.items()},
             "patches": [
-                [key, polydata_to_state(p.polydata), list(p.chunk), p.evidence.copy(), p.contradicted.copy(), p.keyed]
+                [key, polydata_to_state(p.polydata), list(p.chunk), p.evidence.copy(), p.contradicted.copy(), p.keyed,
+                 p.beside_removed_faces().copy()]
                 for chunk in self.chunks.values()
                 for key, p in chunk.patches.items()
             ],
@@ -643,9 +682,11 @@ class WorldMap:
         self.chunk_size = float(state["chunk_size"])
         self._merges = int(state["merges"])
         self._merged_from = {key: [(str(part), int(points)) for part, points in parts] for key, parts in state.get("merged_from", {}).items()}
-        for key, polydata, chunk, evidence, contradicted, keyed in state["patches"]:
+        for key, polydata, chunk, evidence, contradicted, keyed, *beside in state["patches"]:
             polydata = polydata_from_state(polydata)
             patch = Patch(key, polydata, tuple(int(i) for i in chunk), face_normals(polydata), evidence.copy(), contradicted.copy(), bool(keyed))
+            if beside and np.asarray(beside[0]).any():  # checkpoints before the flag have none
+                patch.beside_removed = np.asarray(beside[0], dtype=bool).copy()
             self._put(patch)
         self._changed()
 

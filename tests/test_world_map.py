@@ -258,3 +258,67 @@ def test_a_block_of_polygons_and_the_same_block_triangulated_show_the_same_faces
     on = seen["quads"]
     np.testing.assert_array_equal(local["triangles"][on] // 2, local["quads"][on])
     assert len(np.unique(local["triangles"][on])) > 1.8 * len(np.unique(local["quads"][on]))  # both halves of each quad seen
+
+
+def test_a_contradicted_face_follows_a_neighbour_removed_before_it_was_contradicted():
+    """Faces contradicted before go with a removed neighbour; one contradicted only after its neighbour
+    went (a departed car's small roof faces, each seen by one beam in one frame) goes at that contradiction,
+    while a face elsewhere still needs the two frames; the mark survives a checkpoint."""
+    world = WorldMap(chunk_size=100.0)
+    world.add_patch("frame_0", plane_mesh([0, 0, 0], [0, 0, 1], size=1.0, subdivisions=4), frame=0)
+    params = RemovalParameters()
+    n = world.number_of_cells
+
+    def vote(against, table_cells):
+        table = FaceIdTable(["frame_0"], [1], [table_cells])
+        codes = np.arange(1, table_cells + 1)
+        contradicted = np.isin(codes - 1, against)
+        return world.update_evidence(codes, contradicted, ~contradicted, params, table), table
+
+    vote([], n)  # every face confirmed once: none is "never voted", none follows by that rule
+    points, triangles = polydata_arrays(world.block("frame_0"))
+    centres = points[triangles].mean(axis=1)
+    target = int(np.argmin(np.linalg.norm(centres - [0.05, 0.05, 0], axis=1)))
+    for _ in range(3):
+        condemned, table = vote([target], n)
+    assert condemned.tolist() == [target + 1]
+    removed_corners = points[triangles[target]]
+    world.remove_faces(condemned, table)
+    assert world.number_of_cells == n - 1  # its neighbours were confirmed, not contradicted: they stay
+    points, triangles = polydata_arrays(world.block("frame_0"))
+    shared = (np.linalg.norm(points[triangles][:, :, None] - removed_corners[None, None], axis=3) < 1e-9).any(axis=2).sum(axis=1)
+    beside, far = np.flatnonzero(shared >= 2), int(np.argmax(np.linalg.norm(points[triangles].mean(axis=1), axis=1)))
+    assert len(beside) == 3 and far not in beside
+    restored = WorldMap(chunk_size=100.0)
+    restored.set_state(world.state())
+    np.testing.assert_array_equal(restored.patch("frame_0").beside_removed, world.patch("frame_0").beside_removed)
+    condemned, _ = vote([beside[0], far], n - 1)
+    assert condemned.tolist() == [beside[0] + 1]  # one contradicting frame: the neighbour goes, the far face waits
+
+
+def test_a_contradicted_face_follows_a_never_voted_neighbour_that_went_with_a_removed_face():
+    """Removal spreads to the never-voted direct neighbours of a removed face (no pixel centre showed them),
+    and from those on to faces already contradicted; faces confirmed stay."""
+    world = WorldMap(chunk_size=100.0)
+    world.add_patch("frame_0", plane_mesh([0, 0, 0], [0, 0, 1], size=1.0, subdivisions=4), frame=0)
+    n = world.number_of_cells
+    table = FaceIdTable(["frame_0"], [1], [n])
+    _, triangles = polydata_arrays(world.block("frame_0"))
+
+    def neighbours(face):
+        return [f for f in range(n) if f != face and len(set(triangles[f]) & set(triangles[face])) == 2]
+
+    def vote(faces, against):
+        faces = np.asarray(faces)
+        return world.update_evidence(faces + 1, np.full(len(faces), against), np.full(len(faces), not against), RemovalParameters(), table)
+
+    removed = 5
+    never_voted = neighbours(removed)[0]
+    follower = next(f for f in neighbours(never_voted) if f != removed and f not in neighbours(removed))
+    vote([f for f in range(n) if f != never_voted], against=False)
+    vote([follower], against=True)
+    for _ in range(3):
+        condemned = vote([removed], against=True)
+    assert condemned.tolist() == [removed + 1]
+    gone = world.remove_faces(condemned, table)
+    assert gone.GetNumberOfCells() == 3 and world.number_of_cells == n - 3

@@ -105,7 +105,12 @@ first corner falls within a pixel of one
 (:class:`~mabdi.loop.object_removal.ObjectRemoval`). These votes enter the
 same rule (two frames, the threshold);
 faces edge-connected to a removed face that were contradicted before
-follow it (:meth:`~mabdi.world_map.WorldMap.remove_faces`).
+follow it, and so do its never-voted direct neighbours and the contradicted
+faces beside those (:meth:`~mabdi.world_map.WorldMap.remove_faces`). The
+order does not matter: a face beside one removed earlier goes at its first
+contradicting frame (:meth:`~mabdi.world_map.WorldMap.update_evidence`). A
+LiDAR passing a departed car sees each small roof face with one beam in one
+frame, often after the faces around it went.
 
 The removed faces leave their blocks in the world mesh
 (:meth:`~mabdi.filters.world_mesh.FilterWorldMesh.remove_faces`), the blocks
