@@ -37,11 +37,6 @@ import numpy as np
 
 from mabdi.errors import ConfigError
 
-def on_for_range_images(switch: bool | str, geometry) -> bool:
-    """A true / false / "auto" switch (:func:`mabdi.errors.check_switch`) for an image of ``geometry``: "auto" is
-    on for a LiDAR's range image (a :class:`SphericalGeometry`) and off for a camera's."""
-    return switch is True or (switch == "auto" and isinstance(geometry, SphericalGeometry))
-
 
 #: Field-data array of a range image: beams, columns, fov_up, fov_down (degrees), range_min, range_max (m).
 SPHERICAL_ARRAY = "spherical"
@@ -185,3 +180,9 @@ class SphericalGeometry:
             raise ConfigError(f"spherical geometry array must have 6 values (beams, columns, fov_up, fov_down, range_min, range_max), got shape {a.shape}")
         table = () if beam_elevations is None else tuple(float(x) for x in np.asarray(beam_elevations).ravel())
         return cls(int(round(a[0])), int(round(a[1])), float(a[2]), float(a[3]), float(a[4]), float(a[5]), table)
+
+
+def on_for_range_images(switch: bool | str, geometry) -> bool:
+    """A true / false / "auto" switch (:func:`mabdi.errors.check_switch`) for an image of ``geometry``: "auto" is
+    on for a LiDAR's range image (a :class:`SphericalGeometry`) and off for a camera's."""
+    return switch is True or (switch == "auto" and isinstance(geometry, SphericalGeometry))

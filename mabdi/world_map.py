@@ -154,16 +154,21 @@ def spread_removal(triangles: np.ndarray, points: int, gone: np.ndarray, followe
     gone = gone.copy()
     if not followers.any():
         return gone
-    marked = np.zeros(points, dtype=bool)
     rings = 0
     while steps is None or rings < steps:
-        marked[triangles[gone].ravel()] = True
-        new = (marked[triangles].sum(axis=1) >= 2) & followers & ~gone
+        new = beside(triangles, points, gone) & followers
         if not new.any():
             break
         gone |= new
         rings += 1
     return gone
+
+
+def beside(triangles: np.ndarray, points: int, gone: np.ndarray) -> np.ndarray:
+    """Triangles not in ``gone`` that share an edge (two vertices) with one in it."""
+    marked = np.zeros(points, dtype=bool)
+    marked[triangles[gone].ravel()] = True
+    return ~gone & (marked[triangles].sum(axis=1) >= 2)
 
 
 def enclosed(triangles: np.ndarray, points: int, gone: np.ndarray) -> np.ndarray:
@@ -574,37 +579,31 @@ class WorldMap:
         removed_parts = []
         for b in np.unique(block[block >= 0]):
             patch = self._patches[keys[b]]
+            triangles = patch_triangles(patch.polydata)
             gone = np.zeros(patch.cells, dtype=bool)
             gone[local[block == b]] = True
-            gone = self._removed_with(patch, gone)
+            if triangles is not None:  # polygons other than triangles: no edges to follow
+                gone = self._removed_with(patch, triangles, gone)
             removed_parts.append(extract_polys(patch.polydata, np.flatnonzero(gone)))
             keep = np.flatnonzero(~gone)
             if keep.size == 0:
                 self._take(patch)
                 continue
-            beside = patch.beside_removed_faces() | self._beside(patch, gone)
+            near = patch.beside_removed_faces()
+            if triangles is not None:
+                near = near | beside(triangles, patch.polydata.GetNumberOfPoints(), gone)
             kept = Patch(
                 patch.key, extract_polys(patch.polydata, keep), patch.chunk,
                 patch.normals[keep], patch.evidence[keep], patch.contradicted[keep], patch.keyed,
-                beside_removed=beside[keep] if beside[keep].any() else None,
+                beside_removed=near[keep] if near[keep].any() else None,
             )
             self._put(kept, replacing=patch)
         self._changed()
         return _append(removed_parts)
 
     @staticmethod
-    def _beside(patch: Patch, gone: np.ndarray) -> np.ndarray:
-        """(M,) bool: faces of a patch of triangles not in ``gone`` that share an edge (two vertices) with one in it."""
-        triangles = patch_triangles(patch.polydata)
-        if triangles is None:
-            return np.zeros(patch.cells, dtype=bool)
-        marked = np.zeros(patch.polydata.GetNumberOfPoints(), dtype=bool)
-        marked[triangles[gone].ravel()] = True
-        return ~gone & (marked[triangles].sum(axis=1) >= 2)
-
-    @staticmethod
-    def _removed_with(patch: Patch, gone: np.ndarray) -> np.ndarray:
-        """The faces that go with the condemned ``gone`` of a patch of triangles.
+    def _removed_with(patch: Patch, triangles: np.ndarray, gone: np.ndarray) -> np.ndarray:
+        """The faces that go with the condemned ``gone`` of a patch of ``triangles`` (its (M, 3) vertex ids).
 
         A departed object's faces are contiguous: faces already contradicted (evidence above 0) go with a
         removed face they are edge-connected to, and so do the direct neighbours of the removed faces that
@@ -613,9 +612,6 @@ class WorldMap:
         neighbour, an island) follow them too, and so on while contradicted faces join: a chain of
         never-voted faces alone does not spread the removal beyond one ring.
         """
-        triangles = patch_triangles(patch.polydata)
-        if triangles is None:
-            return gone
         points = patch.polydata.GetNumberOfPoints()
         contradicted = patch.evidence > 0
         never_voted = (patch.evidence == 0) & (patch.contradicted == 0)

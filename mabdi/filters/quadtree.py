@@ -587,11 +587,8 @@ def _range_leaves(
     points = np.ascontiguousarray(points)
     grazing = grazing_on(p, reduced)
     if grazing:
-        if measured is None:
-            right, down = straight_neighbours(points, depth, noise, reduced)
-        else:
-            around = np.ascontiguousarray(back_projected(measured))
-            right, down = straight_neighbours(around, _depth(around, reduced), noise, reduced, depth)
+        around = points if measured is None else np.ascontiguousarray(back_projected(measured))
+        right, down = straight_neighbours(around, _depth(around, reduced), noise, reduced, depth)
     else:
         right = down = np.zeros(depth.shape, dtype=bool)
     normals = kernels.point_normals_depth_kernel(points, depth, jump, right, down)
