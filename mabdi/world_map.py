@@ -512,6 +512,11 @@ class WorldMap:
         address = int(table.addresses[b])
         return address == 0 or address == block_address(patch.polydata)
 
+    def current_blocks(self, table: FaceIdTable) -> list[int]:
+        """Indices of the blocks of ``table`` that are the patch of their name as it is now (their codes find
+        their faces: :meth:`face_lookup`)."""
+        return [b for b in range(len(table.names)) if self._drawn_is_current(table, b)]
+
     def stale_blocks(self, table: FaceIdTable) -> list[int]:
         """Indices of the blocks of ``table`` whose name is a patch of the map that is not the one drawn (a keyed
         patch re-meshed since): their codes find nothing, and the pixels that showed them can be cast against

@@ -143,3 +143,34 @@ def test_a_contradiction_at_grazing_incidence_counts_when_d_is_beyond_the_stretc
     assert by_face.get(2, 0) > 0
     assert (by_face.get(1, 0) > 0) == counts
     assert not confirmed.any()
+
+
+def test_a_patch_of_faces_smaller_than_a_pixel_is_looked_at_beside_a_contradicted_one():
+    """A departed surface meshed in two patches: one of faces many pixels wide, voted against by the pixels
+    that see through it, and beside it a remnant of faces a third of a pixel wide that no pixel shows. The
+    remnant's faces are contradicted with its neighbour's, though no pixel voted on that patch; a patch of
+    such faces far from the contradicted faces (3 m away, though in view and seen through) is not looked at."""
+    from tests.conftest import plane_mesh
+
+    from mabdi.face_identity import FaceIdTable
+    from mabdi.filters.world_mesh import FilterWorldMesh
+    from mabdi.loop.object_removal import ObjectRemoval
+
+    world = FilterWorldMesh(chunk_size=100.0)
+    world.store.add_patch("frame_0", plane_mesh([0.0, 0.0, 1.0], [0, 0, 1], size=0.4, subdivisions=2), frame=0)
+    world.store.add_patch("frame_1", plane_mesh([0.21, 0.0, 1.0], [0, 0, 1], size=0.02, subdivisions=10), frame=1)
+    world.store.add_patch("frame_2", plane_mesh([0.9, 0.0, 3.0], [0, 0, 1], size=0.06, subdivisions=10), frame=2)
+    counts = [world.block(k).GetNumberOfCells() for k in ("frame_0", "frame_1", "frame_2")]
+    table = FaceIdTable(["frame_0", "frame_1", "frame_2"], [1, 1 + counts[0], 1 + counts[0] + counts[1]], counts)
+    measured = np.full(CAMERA.shape, 6.0, np.float32)  # seen through everywhere
+    voting = np.ones(CAMERA.shape, dtype=bool)  # every pixel voted a contradiction
+    faces = np.arange(1, 1 + counts[0])
+    removal = ObjectRemoval(RULES, threshold=None)
+    found = removal._between_pixels(
+        faces, np.ones(len(faces), np.int64), np.zeros(len(faces), np.int64), voting, measured, CAMERA, np.eye(4),
+        table, world, RULES, None, None,
+    )
+    remnant = np.arange(1 + counts[0], 1 + counts[0] + counts[1])
+    assert np.isin(remnant, found).mean() > 0.9
+    far = np.arange(1 + counts[0] + counts[1], 1 + sum(counts))
+    assert not np.isin(far, found).any()

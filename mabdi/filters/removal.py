@@ -92,8 +92,9 @@ faces smaller than the pixels' spacing there: few of them are shown by a
 pixel centre in any frame, so they rarely get the two contradicting frames
 the rule asks for and stay when the object has gone (a LiDAR's beams are
 0.4 degrees apart: a departed car's roof, meshed on the way past it, is
-seen from across the street by two or three beams). In the blocks of the map where a face was voted
-against this frame, each face that no pixel showed is contradicted where
+seen from across the street by two or three beams). Around the faces voted against this frame, in
+every patch E drew (not only theirs: a remnant patch of faces that small, meshed in one frame, never gets
+a pixel of its own), each face that no pixel showed is contradicted where
 its centre projects into a pixel that voted a contradiction, that pixel's
 ray crosses the face's plane near the face (within the face's radius and
 the pixel's footprint on the plane) and D lies beyond the crossing by the

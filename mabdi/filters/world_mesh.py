@@ -143,6 +143,10 @@ class FilterWorldMesh(MabdiAlgorithm):
         """Faces of patch ``key`` made or fitted again at its last replacement (:meth:`WorldMap.refitted_faces`)."""
         return self.store.refitted_faces(key)
 
+    def current_blocks(self, table: FaceIdTable) -> list[int]:
+        """Blocks of ``table`` that are their patch as it is now (:meth:`WorldMap.current_blocks`)."""
+        return self.store.current_blocks(table)
+
     def stale_blocks(self, table: FaceIdTable) -> list[int]:
         """Blocks of ``table`` re-meshed since it was drawn (:meth:`WorldMap.stale_blocks`)."""
         return self.store.stale_blocks(table)

@@ -165,8 +165,10 @@ class ObjectRemoval:
 
     def _between_pixels(self, faces, contradicted, confirmed, voting, measured, geometry, pose, table, world, parameters, sigma, pose_sigma):
         """Codes of the faces no pixel showed that this frame's contradictions see through
-        (:func:`~mabdi.filters.removal.votes_between_pixels`), among the faces of the blocks where a face was
-        voted against: where something left, the faces too small for a pixel of this view go with it.
+        (:func:`~mabdi.filters.removal.votes_between_pixels`), among the faces around those voted against, in
+        any patch E drew: where something left, the faces too small for a pixel of this view go with it. (A
+        patch whose faces are all smaller than a pixel here, a remnant of a departed object's surface meshed
+        in one frame, gets no pixel and so no vote of its own.)
 
         Only voting pixels with a voting neighbour count here (where a surface was seen through, not a
         lone pixel of noise), and only faces whose first corner projects within a pixel of one are looked at, so
@@ -183,16 +185,30 @@ class ObjectRemoval:
         rays, length = unit_rays(geometry, np.float32)
         rotation, origin = pose[:3, :3], pose[:3, 3]
         angle = pixel_angle(geometry)
-        found = []
+        # where the map was seen through: around each block's contradicted faces, a pixel's footprint on a plane
+        # seen at up to MAX_INCIDENCE_DEG, and their radius
+        regions = []
         for b in np.unique(block[block >= 0]):
-            polydata = world.block(keys[b])
-            # the faces around this block's contradicted ones: within a pixel's footprint on a plane seen at
-            # up to MAX_INCIDENCE_DEG, and their radius
-            shown, shown_radii = face_centres(polydata, local[block == b])
+            shown, shown_radii = face_centres(world.block(keys[b]), local[block == b])
             reach = np.linalg.norm(shown - origin, axis=1) * angle / _COS_MAX_INCIDENCE + shown_radii
-            low, high = (shown - reach[:, None]).min(axis=0), (shown + reach[:, None]).max(axis=0)
+            regions.append(((shown - reach[:, None]).min(axis=0), (shown + reach[:, None]).max(axis=0)))
+        if not regions:
+            return np.zeros(0, dtype=np.int64)
+        lows, highs = np.array([r[0] for r in regions]), np.array([r[1] for r in regions])
+        found = []
+        for b in world.current_blocks(table):  # every patch E drew that reaches into a region, voted on or not
+            polydata = world.block(keys[b])
+            bounds = np.asarray(polydata.GetBounds()).reshape(3, 2)
+            touching = np.all((lows <= bounds[:, 1]) & (highs >= bounds[:, 0]), axis=1)
+            if not touching.any():
+                continue
             points = vtk_to_numpy(polydata.GetPoints().GetData())
-            around = np.flatnonzero(np.all((points >= low) & (points <= high), axis=1))
+            in_region = np.zeros(len(points), dtype=bool)
+            for low, high in zip(lows[touching], highs[touching], strict=True):
+                in_region |= np.all((points >= low) & (points <= high), axis=1)
+            around = np.flatnonzero(in_region)
+            if not len(around):
+                continue
             uv, value = project_to_image(points[around], geometry, pose)
             with np.errstate(invalid="ignore"):
                 u, v = np.floor(uv[:, 0]), np.floor(uv[:, 1])
