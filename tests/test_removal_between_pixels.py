@@ -5,10 +5,14 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from conftest import plane_mesh
 
 import mabdi
 from mabdi.camera import Intrinsics, look_at, project, unit_rays
 from mabdi.depth import DepthFrame, image_pose, pixel_angle
+from mabdi.face_identity import FaceIdTable
+from mabdi.filters.world_mesh import FilterWorldMesh
+from mabdi.loop.object_removal import ObjectRemoval
 from mabdi.filters.registration import RegistrationParameters
 from mabdi.filters.removal import RemovalParameters, gap_along_ray, votes_between_pixels
 from mabdi.polydata import polydata_arrays
@@ -150,12 +154,6 @@ def test_a_patch_of_faces_smaller_than_a_pixel_is_looked_at_beside_a_contradicte
     that see through it, and beside it a remnant of faces a third of a pixel wide that no pixel shows. The
     remnant's faces are contradicted with its neighbour's, though no pixel voted on that patch; a patch of
     such faces far from the contradicted faces (3 m away, though in view and seen through) is not looked at."""
-    from tests.conftest import plane_mesh
-
-    from mabdi.face_identity import FaceIdTable
-    from mabdi.filters.world_mesh import FilterWorldMesh
-    from mabdi.loop.object_removal import ObjectRemoval
-
     world = FilterWorldMesh(chunk_size=100.0)
     world.store.add_patch("frame_0", plane_mesh([0.0, 0.0, 1.0], [0, 0, 1], size=0.4, subdivisions=2), frame=0)
     world.store.add_patch("frame_1", plane_mesh([0.21, 0.0, 1.0], [0, 0, 1], size=0.02, subdivisions=10), frame=1)

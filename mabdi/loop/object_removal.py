@@ -187,14 +187,15 @@ class ObjectRemoval:
         angle = pixel_angle(geometry)
         # where the map was seen through: around each block's contradicted faces, a pixel's footprint on a plane
         # seen at up to MAX_INCIDENCE_DEG, and their radius
-        regions = []
+        lows, highs = [], []
         for b in np.unique(block[block >= 0]):
             shown, shown_radii = face_centres(world.block(keys[b]), local[block == b])
             reach = np.linalg.norm(shown - origin, axis=1) * angle / _COS_MAX_INCIDENCE + shown_radii
-            regions.append(((shown - reach[:, None]).min(axis=0), (shown + reach[:, None]).max(axis=0)))
-        if not regions:
+            lows.append((shown - reach[:, None]).min(axis=0))
+            highs.append((shown + reach[:, None]).max(axis=0))
+        if not lows:
             return np.zeros(0, dtype=np.int64)
-        lows, highs = np.array([r[0] for r in regions]), np.array([r[1] for r in regions])
+        lows, highs = np.array(lows), np.array(highs)
         found = []
         for b in world.current_blocks(table):  # every patch E drew that reaches into a region, voted on or not
             polydata = world.block(keys[b])
