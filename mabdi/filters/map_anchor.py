@@ -23,12 +23,21 @@ errors behave decides which frames to believe:
 The anchor learns which it is from the offsets themselves: half the mean
 squared difference of two frames' offsets, per component, is modelled as
 sigma^2 + q |s_i - s_j| / 2 (the variogram of white noise plus a random
-walk in s) and fitted by the method of moments (:func:`_variogram_fit`), and A is the best linear unbiased
-estimate of a constant under the covariance sigma^2 I + q min(s_i, s_j):
-the mean for pure jitter, the first frame for pure drift, in between for
-both. Rotation first (its components), then the translation (what is left
-of dt once (R_A - I) t_G is taken off). At most :data:`MAX_FRAMES` frames
-take part, spread evenly over the run (the first always).
+walk in s) and fitted by the method of moments (:func:`_variogram_fit`),
+and A is the best linear unbiased estimate under the covariance
+sigma^2 I + q min(s_i, s_j) across frames: the mean for pure jitter, the
+first frame for pure drift, in between for both. A's rotation is estimated
+from both halves of each offset together (:func:`_anchor_fit`, generalised
+least squares over rotation and translation): the orientations say R_A
+directly, and the places say it through (R_A - I) t_G, a lever as long as
+the cameras are far from the origin. With a camera circling 3 m out, 2 mm
+of positional jitter pins the rotation to 2 mm / 3 m / sqrt(N/2), three
+times better than 0.15 degrees of orientation jitter does
+(0.15 / sqrt(N)); each half is weighted by its own noise. Until
+:data:`MIN_FRAMES_FOR_DRIFT` frames say how the two noises compare (learnt),
+the rotation is the orientations' mean and the translation the mean of what
+is left. At most :data:`MAX_FRAMES` frames take part, spread evenly over
+the run (the first always).
 
 ``world_from_map`` is A's inverse: the loop builds the map in the map frame
 (E, the classifier and the surfaces all work there) and turns the map and
@@ -86,6 +95,8 @@ REVISIT_DISTANCE = 3.0 * PLACE_RADIUS
 MIN_REVISITS = 8
 #: A floor on the white-noise variance (relative), so the covariance stays invertible for pure drift.
 REGULARISER = 1e-6
+#: A floor on it (rad^2 or m^2): offsets never agree to better than a micrometre or microradian.
+VARIANCE_FLOOR = 1e-12
 
 
 def _variogram_fit(values: np.ndarray, travelled: np.ndarray) -> tuple[float, float]:
@@ -140,13 +151,79 @@ def _offsets_fit(values: np.ndarray, travelled: np.ndarray, pairs: tuple[np.ndar
     return _variogram_fit(values, travelled)
 
 
-def _blue_weights(sigma2: float, q: float, travelled: np.ndarray) -> np.ndarray:
-    """Weights of the best linear unbiased estimate of a constant under sigma^2 I + q min(s_i, s_j)."""
+def _offsets_covariance(sigma2: float, q: float, travelled: np.ndarray, own: np.ndarray | None = None) -> np.ndarray:
+    """The covariance across frames of one component of the offsets: sigma^2 I + q min(s_i, s_j), plus
+    ``own`` (each frame's registration variance) on the diagonal where given."""
     n = len(travelled)
     scale = max(sigma2 + q * float(travelled.max(initial=0.0)), 1e-300)
-    covariance = q * np.minimum(travelled[:, None], travelled[None, :]) + (sigma2 + REGULARISER * scale) * np.eye(n)
-    solved = np.linalg.solve(covariance, np.ones(n))
-    return solved / solved.sum()
+    white = max(sigma2 + REGULARISER * scale, VARIANCE_FLOOR)
+    covariance = q * np.minimum(travelled[:, None], travelled[None, :]) + white * np.eye(n)
+    if own is not None:
+        covariance[np.diag_indices(n)] += own
+    return covariance
+
+
+def _skews(vectors: np.ndarray) -> np.ndarray:
+    """(n, 3, 3) matrices [v]x of (n, 3) vectors."""
+    x, y, z = vectors.T
+    zero = np.zeros_like(x)
+    return np.stack([np.stack([zero, -z, y], 1), np.stack([z, zero, -x], 1), np.stack([-y, x, zero], 1)], 1)
+
+
+def _anchor_fit(
+    rotations: np.ndarray,
+    translations: np.ndarray,
+    positions: np.ndarray,
+    rotation_covariance: np.ndarray,
+    translation_covariance: np.ndarray,
+    prior: tuple[float, float] | None,
+    start: np.ndarray,
+) -> np.ndarray:
+    """A (4x4, map from world) from the offsets by generalised least squares, rotation and translation together.
+
+    ``rotations``, ``translations``: the offsets dR (rotation vectors) and dt, (n, 3); ``positions``: the given
+    camera centres t_G (n, 3); the two covariances across frames (n, n) hold for each component; ``start``:
+    a rotation (3x3) near A's, about which the model is linearised (R_A = exp(delta) R0):
+    dR_i = rotvec(R0) + delta and dt_i - (R0 - I) t_Gi = delta x (R0 t_Gi) + t_A. The cameras' places
+    say as much of A's rotation as their orientations do (a map turned by 0.02 degrees moves cameras 3 m
+    from the origin by a millimetre). ``prior``: the variances (rad^2, m^2 per component) of A about the
+    identity (the first given pose's, which placed the map), None for none; a part whose variance is 0 is
+    the identity's (``start`` must then be the identity if it is the rotation).
+    """
+    base = Rotation.from_matrix(start).as_rotvec()
+    ones = np.ones(len(rotations))
+    rotation_information = np.linalg.solve(rotation_covariance, ones)
+    translation_information = np.linalg.inv(translation_covariance)
+    hessian = np.zeros((6, 6))
+    gradient = np.zeros(6)
+    hessian[:3, :3] += float(ones @ rotation_information) * np.eye(3)
+    gradient[:3] += (rotations - base).T @ rotation_information
+    design = -_skews(positions @ start.T)  # (n, 3 components, 3 of delta): dt's part that delta explains
+    residual = translations - positions @ (start - np.eye(3)).T
+    column = translation_information @ ones
+    for k in range(3):
+        rows = design[:, k, :]
+        hessian[:3, :3] += rows.T @ translation_information @ rows
+        hessian[:3, 3 + k] += rows.T @ column
+        hessian[3 + k, :3] += rows.T @ column
+        hessian[3 + k, 3 + k] += float(ones @ column)
+        gradient[:3] += rows.T @ translation_information @ residual[:, k]
+        gradient[3 + k] += float(column @ residual[:, k])
+    free = np.ones(6, dtype=bool)
+    if prior is not None:
+        for part, variance in enumerate(prior):
+            block = slice(3 * part, 3 * part + 3)
+            if variance <= 0:
+                free[block] = False  # held at the identity: delta = 0 (start = I) or t_A = 0
+                continue
+            hessian[block, block] += np.eye(3) / variance
+            gradient[block] -= (base if part == 0 else 0.0) / variance
+    delta = np.zeros(6)
+    delta[free] = np.linalg.solve(hessian[np.ix_(free, free)], gradient[free])
+    anchor = np.eye(4)
+    anchor[:3, :3] = Rotation.from_rotvec(delta[:3]).as_matrix() @ start
+    anchor[:3, 3] = delta[3:]
+    return anchor
 
 
 class MapAnchor:
@@ -155,8 +232,9 @@ class MapAnchor:
     ``stated``: the given poses' error when the pose source states it
     (:meth:`mabdi.filters.registration.RegistrationParameters.given_variance`): ((sigma^2, q) of the rotation,
     (sigma^2, q) of the translation), rad^2 and m^2 per component, q per metre travelled. The fit is not
-    learnt then, and A is shrunk towards the identity as far as the first given pose (where the map started)
-    is known to be good: with exact poses stated, A is the identity whatever the registrations say.
+    learnt then (each frame's registration variance adds to the stated one), and A is drawn towards the
+    identity as far as the first given pose (where the map started) is known to be good (a prior of that
+    variance about it): with exact poses stated, A is the identity whatever the registrations say.
     """
 
     def __init__(self, stated: tuple[tuple[float, float], tuple[float, float]] | None = None) -> None:
@@ -212,25 +290,27 @@ class MapAnchor:
         own = self._registration_variances[use]
         pairs = None if self.stated is not None else _nearby_pairs(s, np.stack([self._positions[use], self._looks[use]], axis=1))
         fit_rotation = _offsets_fit(rotations, s, pairs) if self.stated is None else self.stated[0]
-        weights = _blue_weights(*fit_rotation, s)
-        rotation = Rotation.from_rotvec(self._shrunk(weights @ rotations, weights, own[:, 0], 0)).as_matrix()
-        residual = self._translations[use] - (self._positions[use] @ (rotation - np.eye(3)).T)
+        # a first rotation from the orientations alone, to fit the translations' noise and linearise about
+        weights = np.linalg.solve(_offsets_covariance(*fit_rotation, s), np.ones(len(s)))
+        start = Rotation.from_rotvec(weights @ rotations / weights.sum()).as_matrix()
+        residual = self._translations[use] - (self._positions[use] @ (start - np.eye(3)).T)
         fit_translation = _offsets_fit(residual, s, pairs) if self.stated is None else self.stated[1]
-        weights = _blue_weights(*fit_translation, s)
         self._fits = (fit_rotation, fit_translation)
-        anchor = np.eye(4)
-        anchor[:3, :3] = rotation
-        anchor[:3, 3] = self._shrunk(weights @ residual, weights, own[:, 1], 1)
-        self._map_from_world = anchor
-
-    def _shrunk(self, estimate: np.ndarray, weights: np.ndarray, own: np.ndarray, part: int) -> np.ndarray:
-        """With a stated error (variance v of the first given pose, which placed the map), the estimate of A
-        (variance sum w_i^2 (v + own_i)) shrunk towards the identity: v / (v + that) of it."""
-        if self.stated is None:
-            return estimate
-        stated = self.stated[part][0]  # the first given pose's: no drift yet
-        spread = float(np.sum(weights**2 * (stated + own)))
-        return estimate * (stated / (stated + spread) if stated + spread > 0 else 0.0)
+        if self.stated is None and len(s) < MIN_FRAMES_FOR_DRIFT:
+            # too few frames to say how the orientations' noise compares with the places': orientations alone
+            self._map_from_world = np.eye(4)
+            self._map_from_world[:3, :3] = start
+            self._map_from_world[:3, 3] = residual.mean(axis=0)
+            return
+        if self.stated is not None and self.stated[0][0] <= 0:
+            start = np.eye(3)  # the first given pose's orientation, which placed the map, is exact
+        # learnt: the offsets' fitted spread holds the registration's own error; stated: it comes on top
+        extra = (own[:, 0], own[:, 1]) if self.stated is not None else (None, None)
+        prior = None if self.stated is None else (self.stated[0][0], self.stated[1][0])
+        self._map_from_world = _anchor_fit(
+            rotations, self._translations[use], self._positions[use],
+            _offsets_covariance(*fit_rotation, s, extra[0]), _offsets_covariance(*fit_translation, s, extra[1]), prior, start,
+        )  # fmt: skip
 
     def given_variance(self, travelled: float) -> tuple[float, float] | None:
         """The variance (rad^2, m^2 per component) of a given pose's error in the map frame at ``travelled``
