@@ -360,3 +360,109 @@ def test_voxel_planes_mesh_the_road_between_a_lidars_rings():
         off[between] = int((off_scene(centroids) > 0.03).sum())
     assert far_road["auto"] > 5.0 * max(far_road[False], 1.0), far_road
     assert off["auto"] <= off[False] + 2, off
+
+
+def crease_points(count=60_000, seed=0):
+    """A wall's foot: ground z = 0.07 for x > 0.03 and a wall x = 0.03 above it, 3 m long in y, sigma 5 mm.
+
+    The crease lies inside voxels of 0.2 m, not on their faces. Returns the points and a function giving
+    each point's distance to the two half-planes."""
+    rng = np.random.default_rng(seed)
+    ground = np.c_[rng.uniform(0.03, 2.0, count), rng.uniform(0.0, 3.0, count), 0.07 + rng.normal(0, 0.005, count)]
+    wall = np.c_[0.03 + rng.normal(0, 0.005, count), rng.uniform(0.0, 3.0, count), rng.uniform(0.07, 2.0, count)]
+
+    def to_crease(p):
+        to_ground = np.hypot(np.maximum(0.03 - p[:, 0], 0.0), p[:, 2] - 0.07)
+        to_wall = np.hypot(p[:, 0] - 0.03, np.maximum(0.07 - p[:, 2], 0.0))
+        return np.minimum(to_ground, to_wall)
+
+    return np.concatenate([ground, wall]), to_crease
+
+
+def crease_band(count=5000, seed=1):
+    """Points on the crease's surface within 0.6 m of the fold, away from the ends in y."""
+    rng = np.random.default_rng(seed)
+    ground = np.c_[rng.uniform(0.03, 0.6, count), rng.uniform(0.5, 2.5, count), np.full(count, 0.07)]
+    wall = np.c_[np.full(count, 0.03), rng.uniform(0.5, 2.5, count), rng.uniform(0.07, 0.6, count)]
+    return np.concatenate([ground, wall])
+
+
+def test_creases_are_filled_from_half_size_voxels():
+    """At 0.2 m voxels a 2 x 2 x 2 window that holds a wall's foot is not planar, so the seed's rule leaves a
+    band of 0.2-0.4 m open along every crease; the half-size windows fill the cubes of those windows."""
+    from mabdi.evaluate.distance import distances_within
+
+    points, to_crease = crease_points()
+    band = crease_band()
+    plain = FilterVoxelPlanes(VoxelPlanesParameters(voxel_size=0.2, refine=False))
+    refined = FilterVoxelPlanes(VoxelPlanesParameters(voxel_size=0.2))  # "auto": on at 0.2 m
+    covered = {}
+    for name, surface in (("plain", plain), ("refined", refined)):
+        surface.add_points(points)
+        mesh = surface.mesh()
+        covered[name] = (distances_within(band, mesh, cap=0.05) < 0.02).mean()
+        vertices, _ = polydata_arrays(mesh)
+        assert to_crease(vertices).max() < 0.02  # within epsilon of the surface, the fold included
+    assert covered["plain"] < 0.65
+    assert covered["refined"] > 0.88
+    # the refinement's polygons are their anchor's: the same blocks, and each lies in its anchor's cube
+    assert plain.changed_blocks.tolist() == refined.changed_blocks.tolist()
+
+
+def test_refinement_is_automatic_where_half_size_windows_still_test_planarity():
+    assert VoxelPlanesParameters(voxel_size=0.2).refines  # (0.2 m)^2 / 24 >= (0.02 m)^2
+    assert not VoxelPlanesParameters().refines  # a camera's 5 cm: half-size windows would pass any crease as planar
+    assert VoxelPlanesParameters(refine=True).refines and not VoxelPlanesParameters(voxel_size=0.2, refine=False).refines
+    assert FilterVoxelPlanes().halved_map is None
+    with pytest.raises(ConfigError, match="refine"):
+        VoxelPlanesParameters(refine="sometimes")
+
+
+def test_refined_creases_incremental_equals_batch_and_state_round_trips():
+    rng = np.random.default_rng(6)
+    points, _ = crease_points(30_000, seed=3)
+    points = points[rng.permutation(len(points))]
+    parameters = VoxelPlanesParameters(voxel_size=0.2)
+    batch, halves = FilterVoxelPlanes(parameters), FilterVoxelPlanes(parameters)
+    batch.add_points(points)
+    halves.add_points(points[:30_000])
+    restored = FilterVoxelPlanes(parameters)
+    restored.set_state(halves.state())
+    restored.add_points(points[30_000:])
+    va, ta = polydata_arrays(batch.mesh())
+    vb, tb = polydata_arrays(restored.mesh())
+    np.testing.assert_array_equal(ta, tb)
+    np.testing.assert_allclose(va, vb, atol=1e-6)
+    # a state written before the refinement existed resumes without it (its statistics hold no half-size voxels)
+    old = halves.state()
+    del old["halved_map"]
+    old["meshed_with"] = {k: v for k, v in old["meshed_with"].items() if k != "refine"}
+    before = FilterVoxelPlanes(parameters)
+    before.set_state(old)
+    assert before.halved_map is None and not before.parameters.refines
+
+
+def test_removal_empties_the_half_size_statistics_too():
+    """Rays that see through the wall, and removal of the wall's faces, empty the half-size voxels they cross as
+    they empty the full-size ones, so no refined polygon is later made of points that are gone."""
+    points, _ = crease_points(seed=4)
+    rng = np.random.default_rng(7)
+    for clear in ("faces", "rays"):
+        surface = FilterVoxelPlanes(VoxelPlanesParameters(voxel_size=0.2))
+        surface.add_points(points)
+        halved = surface.halved_map
+        shift = 0.05  # a quarter voxel (module docs, "Creases")
+        wall = points[(points[:, 0] < 0.1) & (points[:, 2] > 0.5)]
+        assert halved.counts(halved.voxel_indices(wall + shift)).min() > 0
+        if clear == "faces":
+            surface.clear_faces_at(wall)
+        else:  # rays from x = -1 through the wall to x = 3 (beyond the ground's end), from 8 cm above the ground
+            ends = np.c_[np.full(40_000, 3.0), rng.uniform(0, 3, 40_000), rng.uniform(0.15, 2.0, 40_000)]
+            origins = ends * [0, 1, 1] + [-1.0, 0.0, 0.0]
+            surface.clear_free_space(origins, ends, 0.05)
+        assert surface.map.counts(surface.map.voxel_indices(wall)).max() == 0, clear
+        assert halved.counts(halved.voxel_indices(wall + shift)).max() == 0, clear
+        surface.add_points(np.zeros((0, 3)))  # re-mesh what was emptied: the wall above 0.3 m is gone
+        vertices, _ = polydata_arrays(surface.mesh())
+        assert ((np.abs(vertices[:, 0] - 0.03) < 0.03) & (vertices[:, 2] > 0.6)).sum() == 0, clear
+        assert (vertices[:, 0] > 0.5).sum() > 100, clear  # the ground away from the wall stays

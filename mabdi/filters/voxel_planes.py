@@ -53,6 +53,25 @@ points), a mesh of small planar polygons out. The filter keeps a
    lie on. Where samples lie closer than half a voxel (a camera's pixels)
    nothing is added. ``"auto"`` (the default) turns it on for range images
    and leaves a camera's input as it was.
+   **Creases** (``refine``): a window that holds ``min_points`` but is not
+   planar holds two surfaces (the foot of a wall, a kerb, a car's edge), and
+   the seed's rule leaves its cube open, so every crease gets an open band a
+   window wide (0.2-0.4 m along every wall's foot at a LiDAR's 0.2 m voxels).
+   The filter keeps a second map of the same points at half the voxel size
+   (``halved_map``), its grid shifted by a quarter voxel for even windows so
+   that the cubes of the half-size anchors 2 V + {0, 1}^3 are exactly the
+   eight octants of anchor V's cube (:class:`HalvedGrid`). Each octant of a
+   cube that is not planar takes the polygon of its own half-size window, by
+   the same test at half the size; those polygons belong to V (re-meshed,
+   replaced and removed with it). Free space and removal empty the half-size
+   voxels as they empty the full-size ones. ``"auto"`` (the default) refines
+   where a half-size window spans enough for the test to stay the seed's
+   (its full in-plane variance (window * voxel_size / 2)^2 / 24 at least
+   epsilon^2: voxels of 0.1 m and more at the default epsilon); at a camera's
+   5 cm a 5 cm window would pass any crease as a plane, so it stays off.
+   Refinement costs the statistics twice and the memory of the half-size map
+   (blocks of half the size, so about four times the full-size map's on a
+   surface).
 4. **Incremental**: after new points, only the blocks (``block_size``, 1 m)
    holding a vertex whose neighbourhood changed are re-meshed. The mesh is
    kept per block; the output is either the blocks re-meshed by this update
@@ -140,9 +159,14 @@ class VoxelPlanesParameters:
     #: Add points on the surface between neighbouring samples more than half a voxel apart (see the module
     #: docs, "Between beams"): true, false, or "auto" (range images only).
     between_beams: bool | str = "auto"
+    #: Fill the cubes of neighbourhoods that are not planar (a crease: a wall's foot) from windows of half-size
+    #: voxels (see the module docs, "Creases"): true, false, or "auto" (where half-size windows still tell a
+    #: plane from a crease by the same test, :attr:`refines`).
+    refine: bool | str = "auto"
 
     def __post_init__(self) -> None:
         check_switch("between_beams", self.between_beams)
+        check_switch("refine", self.refine)
         if not self.voxel_size > 0 or not self.epsilon > 0:
             raise ConfigError(
                 f"need voxel_size > 0 and epsilon > 0 (metres), got voxel_size={self.voxel_size}, epsilon={self.epsilon}"
@@ -162,6 +186,18 @@ class VoxelPlanesParameters:
         """Smallest variance along the plane (m^2): min(epsilon^2, (window * voxel_size)^2 / 24)."""
         return min(self.epsilon**2, (self.window * self.voxel_size) ** 2 / 24.0)
 
+    @property
+    def refines(self) -> bool:
+        """Whether creases are filled from half-size voxels: ``refine`` true, or "auto" and a half-size window
+        spans enough for the planarity test to hold as it is (its lambda_large still epsilon^2)."""
+        if self.refine == "auto":
+            return (self.window * self.voxel_size / 2.0) ** 2 / 24.0 >= self.epsilon**2
+        return bool(self.refine)
+
+    def halved(self) -> VoxelPlanesParameters:
+        """The same parameters at half the voxel size (the refinement's)."""
+        return dataclasses.replace(self, voxel_size=self.voxel_size / 2.0, refine=False)
+
 
 @dataclass
 class PlanePatches:
@@ -172,6 +208,8 @@ class PlanePatches:
     centroids: np.ndarray  # (M, 3) world
     centres: np.ndarray  # (M, 3) world centre of each neighbourhood's cube
     counts: np.ndarray  # (M,) points in the neighbourhood
+    #: (K, 3) int64: anchors whose neighbourhood holds ``min_points`` but is not planar (a crease, a corner)
+    unresolved: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((0, 3), dtype=np.int64))
 
 
 def anchor_range(window: int) -> int:
@@ -195,7 +233,8 @@ def plane_patches(voxels: VoxelMap, anchors: np.ndarray, parameters: VoxelPlanes
     normals = np.where(normals[:, 2:3] < 0, -normals, normals)
     centroids = mean[keep] + lowest[keep] * s
     centres = (anchors[keep] + 0.5 * (w % 2)) * s
-    return PlanePatches(anchors[keep], normals, centroids, centres, n[keep].astype(np.int64))
+    unresolved = anchors[np.flatnonzero(enough)[~planar]]
+    return PlanePatches(anchors[keep], normals, centroids, centres, n[keep].astype(np.int64), unresolved)
 
 
 def triangle_samples(vertices: np.ndarray, triangles: np.ndarray, spacing: float) -> tuple[np.ndarray, np.ndarray]:
@@ -399,6 +438,48 @@ def _block_offsets() -> np.ndarray:
     return np.array(list(itertools.product((-1, 0, 1), repeat=3)), dtype=np.int64)
 
 
+#: The eight half-size anchors of an anchor V are 2 V + these (see :class:`HalvedGrid`).
+_OCTANTS = np.array(list(itertools.product((0, 1), repeat=3)), dtype=np.int64)
+
+
+@dataclass(frozen=True)
+class HalvedGrid:
+    """Where the half-size voxels of the crease refinement lie (module docs, "Creases").
+
+    The half-size map indexes points shifted by ``shift`` (metres, on every axis): a quarter voxel for even
+    windows, nothing for odd ones, so that the cubes of the half-size anchors 2 V + {0, 1}^3 are exactly
+    the eight octants of anchor V's cube.
+    """
+
+    voxel_size: float  # the full voxel size s (m)
+    window: int
+
+    @property
+    def shift(self) -> float:
+        return self.voxel_size / 4.0 if self.window % 2 == 0 else 0.0
+
+    def anchors_of(self, anchors: np.ndarray) -> np.ndarray:
+        """(8 M, 3): the half-size anchors whose cubes tile the cubes of (M, 3) ``anchors``, eight per anchor."""
+        return (2 * np.asarray(anchors, dtype=np.int64)[:, None, :] + _OCTANTS[None]).reshape(-1, 3)
+
+    def voxels_within(self, voxels: np.ndarray) -> np.ndarray:
+        """The half-size voxels that overlap (M, 3) full-size ``voxels`` (3 or 2 a side)."""
+        voxels = np.asarray(voxels, dtype=np.int64).reshape(-1, 3)
+        side = 3 if self.shift else 2
+        steps = np.array(list(itertools.product(range(side), repeat=3)), dtype=np.int64)
+        return np.unique((2 * voxels[:, None, :] + steps[None]).reshape(-1, 3), axis=0)
+
+    def voxels_around(self, halved: np.ndarray) -> np.ndarray:
+        """The full-size voxels that (M, 3) half-size voxels ``halved`` overlap."""
+        halved = np.asarray(halved, dtype=np.int64).reshape(-1, 3)
+        if not self.shift:
+            return np.unique(np.floor_divide(halved, 2), axis=0)
+        # half-size voxel j spans [j s / 2 - s / 4, (j + 1) s / 2 - s / 4): full voxels (j - 1) // 2 and j // 2
+        low, high = np.floor_divide(halved - 1, 2), np.floor_divide(halved, 2)
+        corners = [np.where(np.array(pick, dtype=bool), high, low) for pick in itertools.product((0, 1), repeat=3)]
+        return np.unique(np.concatenate(corners), axis=0)
+
+
 class FilterVoxelPlanes(MabdiAlgorithm):
     """Incremental voxel-plane mesh (depth image or points -> vtkPolyData), see the module docs.
 
@@ -410,6 +491,7 @@ class FilterVoxelPlanes(MabdiAlgorithm):
         self._parameters = parameters if parameters is not None else VoxelPlanesParameters()
         self._output = self._check_output(output)
         self.map = VoxelMap(self._parameters.voxel_size, self._parameters.block_size)
+        self.halved_map = self._new_halved_map()
         self._blocks: dict[int, BlockPolygons] = {}
         self._changed = np.zeros(0, dtype=np.int64)
         self._pending_cleared = np.zeros((0, 3), dtype=np.int64)
@@ -423,14 +505,26 @@ class FilterVoxelPlanes(MabdiAlgorithm):
             raise ConfigError(f"FilterVoxelPlanes: output must be one of {OUTPUTS}, got {output!r}")
         return output
 
+    def _new_halved_map(self) -> VoxelMap | None:
+        """An empty half-size map for the crease refinement, or None when the parameters do not refine."""
+        p = self._parameters
+        # blocks of half the size hold as many voxels as the full-size map's, so memory grows with the surface
+        return VoxelMap(p.voxel_size / 2.0, p.block_size / 2.0) if p.refines else None
+
+    @property
+    def _halved_grid(self) -> HalvedGrid:
+        return HalvedGrid(self._parameters.voxel_size, self._parameters.window)
+
     @property
     def parameters(self) -> VoxelPlanesParameters:
         return self._parameters
 
     @parameters.setter
     def parameters(self, value: VoxelPlanesParameters) -> None:
-        """New parameters; a new voxel or block size empties the map (its statistics are per voxel)."""
-        if (value.voxel_size, value.block_size) != (self._parameters.voxel_size, self._parameters.block_size):
+        """New parameters; a new voxel or block size, or turning the crease refinement on or off, empties the map
+        (its statistics are per voxel, and the refinement's half-size statistics must hold every point)."""
+        old = self._parameters
+        if (value.voxel_size, value.block_size, value.refines) != (old.voxel_size, old.block_size, old.refines):
             self._parameters = value
             self.reset()
             return
@@ -456,6 +550,7 @@ class FilterVoxelPlanes(MabdiAlgorithm):
 
         return {
             "map": self.map.state(),
+            "halved_map": None if self.halved_map is None else self.halved_map.state(),
             "blocks": {  # every block's polygons one after another; "polygons" says how many are each block's
                 "keys": keys,
                 "polygons": np.array([len(b.anchors) for b in blocks], dtype=np.int64),
@@ -470,8 +565,15 @@ class FilterVoxelPlanes(MabdiAlgorithm):
         }
 
     def set_state(self, state: dict) -> None:
-        """Restore what :meth:`state` returned (the next update goes on from there)."""
+        """Restore what :meth:`state` returned (the next update goes on from there; with the crease refinement
+        on or off as the state was made, since the half-size statistics must hold every point)."""
         self.map = VoxelMap.from_state(state["map"])
+        halved = state.get("halved_map")
+        self.halved_map = None if halved is None else VoxelMap.from_state(halved)
+        # a state written before the crease refinement existed was meshed without it
+        self._meshed_with = VoxelPlanesParameters(**{"refine": False, **state["meshed_with"]})
+        if self._parameters.refines != (self.halved_map is not None):  # go on as the state was made
+            self._parameters = dataclasses.replace(self._parameters, refine=self.halved_map is not None)
         blocks = state["blocks"]
         polygons = np.asarray(blocks["polygons"], dtype=np.int64)
         sizes = np.asarray(blocks["sizes"])
@@ -491,7 +593,6 @@ class FilterVoxelPlanes(MabdiAlgorithm):
                 strict=True,
             )
         }
-        self._meshed_with = VoxelPlanesParameters(**state["meshed_with"])
         self._pending_cleared = np.asarray(state["pending"], dtype=np.int64).reshape(-1, 3).copy()
         self._changed = np.zeros(0, dtype=np.int64)
         self._last_input = None
@@ -500,6 +601,7 @@ class FilterVoxelPlanes(MabdiAlgorithm):
     def reset(self) -> None:
         """Forget every point and face."""
         self.map = VoxelMap(self._parameters.voxel_size, self._parameters.block_size)
+        self.halved_map = self._new_halved_map()
         self._blocks.clear()
         self._changed = np.zeros(0, dtype=np.int64)
         self._pending_cleared = np.zeros((0, 3), dtype=np.int64)
@@ -521,7 +623,11 @@ class FilterVoxelPlanes(MabdiAlgorithm):
         """Empty the voxels that rays from ``origins`` to ``ends`` (world, metres) saw through, stopping
         ``margins`` (m) short of the ends (:meth:`VoxelMap.clear_free_space`); the neighbourhoods that
         change are re-meshed with the next points. Returns the number of points removed."""
-        return self._cleared(self.map.clear_free_space(origins, ends, margins))
+        removed = self._cleared(self.map.clear_free_space(origins, ends, margins))
+        if self.halved_map is not None:  # the same rays through the half-size voxels
+            shift = self._halved_grid.shift
+            self._halved_cleared(self.halved_map.clear_free_space(np.asarray(origins) + shift, np.asarray(ends) + shift, margins))
+        return removed
 
     def _cleared(self, cleared) -> int:
         """Queue the emptied voxels of a :class:`VoxelMap` clearing for re-meshing; returns the points removed."""
@@ -529,6 +635,12 @@ class FilterVoxelPlanes(MabdiAlgorithm):
             self._pending_cleared = np.concatenate([self._pending_cleared, cleared.voxels])
             self.Modified()
         return int(cleared.points)
+
+    def _halved_cleared(self, cleared) -> None:
+        """Queue the full-size voxels around the emptied half-size ones for re-meshing."""
+        if len(cleared.voxels):
+            self._pending_cleared = np.concatenate([self._pending_cleared, self._halved_grid.voxels_around(cleared.voxels)])
+            self.Modified()
 
     @property
     def face_overhang(self) -> float:
@@ -542,7 +654,8 @@ class FilterVoxelPlanes(MabdiAlgorithm):
 
         A face lies in the cube of its neighbourhood's anchor: for even windows the grid vertex nearest
         to it, whose window of voxels is emptied; for odd windows the voxel holding it and its window.
-        Returns the number of points removed.
+        A face of the crease refinement lies in an octant of the same cube: the half-size voxels within
+        the emptied window are emptied too. Returns the number of points removed.
         """
         points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
         if not len(points):
@@ -553,6 +666,8 @@ class FilterVoxelPlanes(MabdiAlgorithm):
         anchors = np.rint(points / s).astype(np.int64) if window % 2 == 0 else np.floor(points / s).astype(np.int64)
         steps = np.array(list(itertools.product(range(low, low + window), repeat=3)), dtype=np.int64)
         voxels = (anchors[:, None, :] + steps[None]).reshape(-1, 3)
+        if self.halved_map is not None:
+            self._halved_cleared(self.halved_map.clear_voxels(self._halved_grid.voxels_within(np.unique(voxels, axis=0))))
         return self._cleared(self.map.clear_voxels(voxels))
 
     def add_points(self, points: np.ndarray, colours: np.ndarray | None = None) -> np.ndarray:
@@ -560,6 +675,8 @@ class FilterVoxelPlanes(MabdiAlgorithm):
         they touch (and those emptied by :meth:`clear_free_space` since the last call); returns the re-meshed
         block keys."""
         changed = self.map.add_points(points, colours)
+        if self.halved_map is not None:  # a point in a half-size voxel is in a full-size window around it too
+            self.halved_map.add_points(np.asarray(points, dtype=np.float64) + self._halved_grid.shift)
         if len(self._pending_cleared):
             changed = np.concatenate([np.asarray(changed, dtype=np.int64).reshape(-1, 3), self._pending_cleared])
             self._pending_cleared = np.zeros((0, 3), dtype=np.int64)
@@ -610,6 +727,16 @@ class FilterVoxelPlanes(MabdiAlgorithm):
         patches = plane_patches(self.map, anchors, p)
         vertices, sizes, owner = cube_polygons(patches.normals, patches.centroids, patches.centres, 0.5 * p.voxel_size)
         polygon_anchor = patches.anchors[owner]
+        polygon_normals = patches.normals[owner]
+        if self.halved_map is not None and len(patches.unresolved):
+            grid = self._halved_grid
+            halved = plane_patches(self.halved_map, grid.anchors_of(patches.unresolved), p.halved())
+            more, more_sizes, more_owner = cube_polygons(
+                halved.normals, halved.centroids - grid.shift, halved.centres - grid.shift, 0.25 * p.voxel_size
+            )
+            vertices, sizes = np.concatenate([vertices, more]), np.concatenate([sizes, more_sizes])
+            polygon_anchor = np.concatenate([polygon_anchor, np.floor_divide(halved.anchors[more_owner], 2)])
+            polygon_normals = np.concatenate([polygon_normals, halved.normals[more_owner]])
         if self.map.has_colour:
             colours = vertex_colours(self.map, vertices, sizes, cube_colours(self.map, polygon_anchor, p.window))
         else:
@@ -623,7 +750,7 @@ class FilterVoxelPlanes(MabdiAlgorithm):
         for key in blocks.tolist():
             mine = np.flatnonzero(polygon_block == key)
             fresh = BlockPolygons(
-                polygon_key[mine], sizes[mine], vertices[ring_indices(sizes, mine)], patches.normals[owner[mine]], colours[ring_indices(sizes, mine)]
+                polygon_key[mine], sizes[mine], vertices[ring_indices(sizes, mine)], polygon_normals[mine], colours[ring_indices(sizes, mine)]
             )
             old = self._blocks.get(key)
             if old is not None:
