@@ -219,10 +219,10 @@ def test_composite_map_renders_as_one():
     np.testing.assert_array_equal(depth_array(render(blocks, GEOMETRY, np.eye(4))), depth_array(render(merged(wall, floor), GEOMETRY, np.eye(4))))
 
 
-def street_corner():
+def street_corner(beams=32, columns=512, range_max=60.0):
     """A LiDAR 1.9 m above a flat ground, a car-sized box at 8 m and a wall at 30 m, 5 mm range noise: (its range
     image, the distance of world points from the scene)."""
-    geometry = SphericalGeometry(32, 512, 2.0, -24.8, 1.0, 60.0)
+    geometry = SphericalGeometry(beams, columns, 2.0, -24.8, 1.0, range_max)
     centre, half = np.array([8.0, 0.0, 0.75]), np.array([2.25, 0.9, 0.75])
     scene = merged(
         plane((-60.0, -60.0, 0.0), (60.0, -60.0, 0.0), (-60.0, 60.0, 0.0)),
