@@ -84,6 +84,9 @@ class Patch:
     #: (M,) bool, faces that shared an edge with a face removed from the patch (they follow it once
     #: contradicted: :meth:`WorldMap.update_evidence`); None: none did
     beside_removed: np.ndarray | None = None
+    #: frames in which any face of the patch was contradicted (the evidence a patch pools across its faces:
+    #: :meth:`WorldMap.update_evidence`)
+    contradicting_frames: int = 0
 
     def beside_removed_faces(self) -> np.ndarray:
         """(M,) bool :attr:`beside_removed`, all False where None."""
@@ -427,6 +430,7 @@ class WorldMap:
         )
         if any(p.beside_removed is not None for p in parts):
             merged.beside_removed = np.concatenate([p.beside_removed_faces() for p in parts])
+        merged.contradicting_frames = max(p.contradicting_frames for p in parts)  # frames of one part's, at least
         self._merges += 1
         self._merged_from[merged.key] = [(p.key, p.polydata.GetNumberOfPoints()) for p in parts]
         chunk.remove([part.key for part in parts])
@@ -473,6 +477,7 @@ class WorldMap:
         """
         centres, _ = face_centres(old.polydata)
         patch.refitted = np.ones(patch.cells, dtype=bool)
+        patch.contradicting_frames = old.contradicting_frames
         if not len(centres) or not patch.cells:
             return
         new_centres, radii = face_centres(patch.polydata)
@@ -557,6 +562,14 @@ class WorldMap:
         as soon as its evidence is above 0. That is the rule by which contradicted faces follow a removed
         neighbour (:meth:`_removed_with`), kept when the neighbour went first: a departed object's small
         faces seen by one beam in one frame after the faces around them went would otherwise stay.
+
+        A patch pools its faces' evidence when nothing in it stands: once ``min_frames`` frames have
+        contradicted some face of a patch (:attr:`Patch.contradicting_frames`) and every face of it that was
+        ever voted on has evidence above 0 (contradicted and not confirmed since), its contradicted faces go,
+        those this frame did not show too.
+        A patch is one frame's mesh of one surface; a roof seen from across a street by one beam in each of
+        several scans has each small face contradicted once, by different scans, and would otherwise stay.
+        A static patch has faces that pixels confirm, and then the rule does not apply.
         """
         codes = np.asarray(codes, dtype=np.int64)
         block, local, keys = self.face_lookup(codes, table)
@@ -570,9 +583,15 @@ class WorldMap:
             )
             patch.evidence[cells] = evidence
             patch.contradicted[cells] = frames
+            if (contradicted[rows] > confirmed[rows]).any():
+                patch.contradicting_frames += 1
             gone |= patch.beside_removed_faces()[cells] & (evidence > 0)
             condemned.append(codes[rows[gone]])
-        return np.concatenate(condemned) if condemned else np.zeros(0, dtype=np.int64)
+            voted = (patch.evidence != 0) | (patch.contradicted > 0)
+            if patch.contradicting_frames >= parameters.min_frames and (patch.evidence[voted] > 0).all():
+                # every contradicted face of the patch, those this frame did not show too (the block is current)
+                condemned.append(table.bases[b] + np.flatnonzero(patch.evidence > 0))
+        return np.unique(np.concatenate(condemned)) if condemned else np.zeros(0, dtype=np.int64)
 
     def remove_faces(self, codes, table: FaceIdTable) -> vtkPolyData:
         """Remove the faces ``codes`` from their patches (each changed patch is rebuilt, so only it is re-uploaded).
@@ -601,6 +620,7 @@ class WorldMap:
                 patch.key, extract_polys(patch.polydata, keep), patch.chunk,
                 patch.normals[keep], patch.evidence[keep], patch.contradicted[keep], patch.keyed,
                 beside_removed=near[keep] if near[keep].any() else None,
+                contradicting_frames=patch.contradicting_frames,
             )
             self._put(kept, replacing=patch)
         self._changed()
@@ -668,7 +688,7 @@ class WorldMap:
             "merged_from": {key: [[part, int(points)] for part, points in parts] for key, parts in self._merged_from.items()},
             "patches": [
                 [key, polydata_to_state(p.polydata), list(p.chunk), p.evidence.copy(), p.contradicted.copy(), p.keyed,
-                 p.beside_removed_faces().copy()]
+                 p.beside_removed_faces().copy(), p.contradicting_frames]
                 for chunk in self.chunks.values()
                 for key, p in chunk.patches.items()
             ],
@@ -683,11 +703,13 @@ class WorldMap:
         self.chunk_size = float(state["chunk_size"])
         self._merges = int(state["merges"])
         self._merged_from = {key: [(str(part), int(points)) for part, points in parts] for key, parts in state.get("merged_from", {}).items()}
-        for key, polydata, chunk, evidence, contradicted, keyed, *beside in state["patches"]:
+        for key, polydata, chunk, evidence, contradicted, keyed, *later in state["patches"]:
             polydata = polydata_from_state(polydata)
             patch = Patch(key, polydata, tuple(int(i) for i in chunk), face_normals(polydata), evidence.copy(), contradicted.copy(), bool(keyed))
-            if beside and np.asarray(beside[0]).any():  # checkpoints before the flag have none
-                patch.beside_removed = np.asarray(beside[0], dtype=bool).copy()
+            if later and np.asarray(later[0]).any():  # checkpoints before the flag have none
+                patch.beside_removed = np.asarray(later[0], dtype=bool).copy()
+            if len(later) > 1:  # nor the patch's frame count
+                patch.contradicting_frames = int(later[1])
             self._put(patch)
         self._changed()
 

@@ -322,3 +322,29 @@ def test_a_contradicted_face_follows_a_never_voted_neighbour_that_went_with_a_re
     assert condemned.tolist() == [removed + 1]
     gone = world.remove_faces(condemned, table)
     assert gone.GetNumberOfCells() == 3 and world.number_of_cells == n - 3
+
+
+def test_a_patch_pools_its_faces_evidence_when_nothing_in_it_stands():
+    """Each face of a small patch contradicted once, each by another frame (a departed car's roof seen from across
+    a street, one beam per scan): once two frames have contradicted the patch and none of its voted faces was
+    confirmed since, its contradicted faces go. The same votes on a patch with a confirmed face remove nothing;
+    the patch's frame count survives a checkpoint."""
+    world = WorldMap(chunk_size=100.0)
+    world.add_patch("roof", plane_mesh([0, 0, 1.5], [0, 0, 1], size=0.4, subdivisions=2), frame=0)
+    world.add_patch("wall", plane_mesh([5, 0, 1.5], [0, 0, 1], size=0.4, subdivisions=2), frame=0)
+    n = world.patch("roof").cells
+    table = FaceIdTable(["roof", "wall"], [1, 1 + n], [n, n])
+    params = RemovalParameters()
+
+    def vote(patch, face, against=True):
+        code = np.array([face + 1 + (n if patch == "wall" else 0)])
+        return world.update_evidence(code, np.array([against]), np.array([not against]), params, table).tolist()
+
+    vote("wall", 3, against=False)  # the wall has a face that pixels confirm
+    assert vote("roof", 0) == [] and vote("wall", 0) == []  # one frame: nothing goes
+    restored = WorldMap(chunk_size=100.0)
+    restored.set_state(world.state())
+    assert restored.patch("roof").contradicting_frames == 1 and restored.patch("wall").contradicting_frames == 1
+    assert vote("roof", 1) == [1, 2]  # a second frame, another face: the roof's contradicted faces go
+    assert vote("wall", 1) == []  # the wall's confirmed face stands: each face still needs two frames
+    assert vote("wall", 1) == [n + 2]
