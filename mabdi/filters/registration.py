@@ -38,7 +38,8 @@ corrects the pose the way KinectFusion's frame-to-model tracking does
    than the map, or where it has none) and objects that left fall outside
    the gate and pull on nothing. Gauss-Newton steps in (rotation vector,
    translation); directions the scene does not constrain (a camera sliding
-   along a plane) get no step.
+   along a plane) get no step. The tile sums and the information that the
+   checks below need are taken once, at the pose found.
 5. **Checks**: the frame is *registered* when at least ``min_points`` pairs
    and ``min_inliers`` of the candidates (sampled points that landed on the
    map) are within the gate, every direction the map constrains is held at
@@ -237,15 +238,22 @@ def sample_points(measured: np.ndarray, intrinsics: Intrinsics, stride: int) -> 
 
 
 def _rigid(rotation_vector: np.ndarray, translation: np.ndarray) -> np.ndarray:
+    """The 4x4 transform of a rotation vector (radians; Rodrigues' formula) and a translation."""
     transform = np.eye(4)
-    transform[:3, :3] = Rotation.from_rotvec(rotation_vector).as_matrix()
+    angle = float(np.linalg.norm(rotation_vector))
+    x, y, z = rotation_vector / angle if angle > 0.0 else (0.0, 0.0, 0.0)
+    k = np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+    transform[:3, :3] += np.sin(angle) * k + (1.0 - np.cos(angle)) * (k @ k)
     transform[:3, 3] = translation
     return transform
 
 
 def transform_size(transform: np.ndarray) -> tuple[float, float]:
-    """(translation in m, rotation angle in degrees) of a 4x4 rigid transform."""
-    angle = np.degrees(Rotation.from_matrix(transform[:3, :3]).magnitude())
+    """(translation in m, rotation angle in degrees) of a 4x4 rigid transform (the angle from both its sine and
+    its cosine, exact for small angles too)."""
+    r = transform[:3, :3]
+    sine = 0.5 * np.sqrt((r[2, 1] - r[1, 2]) ** 2 + (r[0, 2] - r[2, 0]) ** 2 + (r[1, 0] - r[0, 1]) ** 2)
+    angle = np.degrees(np.arctan2(sine, 0.5 * (np.trace(r) - 1.0)))
     return float(np.linalg.norm(transform[:3, 3])), float(angle)
 
 
@@ -298,14 +306,14 @@ def register_depth(
                 # how far off the prediction is, before the first step: pairs beyond that are other surfaces
                 *_, candidates, residuals, _, _ = point_to_plane_system(
                     points, tiles, n_tiles, scale, gate, transform[:3, :3], np.ascontiguousarray(transform[:3, 3]), expected,
-                    intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy, NORMAL_STEP, NORMAL_MAX_JUMP, p.huber,
+                    intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy, NORMAL_STEP, NORMAL_MAX_JUMP, p.huber, False,
                 )  # fmt: skip
                 if candidates:
                     reach = min(reach, p.gate_k * MAD_TO_SIGMA * float(np.median(residuals)))
                 gate = np.maximum(reach, p.gate_k * scale)
-            a, b, chi2, pairs, candidates, residuals, support, tile_gradients = point_to_plane_system(
+            a, b, chi2, pairs, candidates, residuals, _, _ = point_to_plane_system(
                 points, tiles, n_tiles, scale, gate, transform[:3, :3], np.ascontiguousarray(transform[:3, 3]), expected,
-                intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy, NORMAL_STEP, NORMAL_MAX_JUMP, p.huber,
+                intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy, NORMAL_STEP, NORMAL_MAX_JUMP, p.huber, False,
             )  # fmt: skip
             iterations += 1
             if pairs < max(6, p.min_points // 4 ** (p.levels - 1 - level)):
@@ -319,6 +327,12 @@ def register_depth(
             reach = min(reach, p.gate_k * spread)
             if step_size[0] < 1e-5 and step_size[1] < 1e-4:
                 break
+    # the pose found, judged at its own pairs: the covariance, the inlier share and which directions they hold
+    gate = np.maximum(reach, p.gate_k * scale)
+    a, b, chi2, pairs, candidates, residuals, support, tile_gradients = point_to_plane_system(
+        points, tiles, n_tiles, scale, gate, transform[:3, :3], np.ascontiguousarray(transform[:3, 3]), expected,
+        intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy, NORMAL_STEP, NORMAL_MAX_JUMP, p.huber, True,
+    )  # fmt: skip
     _, inverse = _solve(a, b)
     covariance = pose_covariance(inverse, chi2, pairs, tile_gradients)
     residual = float(np.sqrt(chi2 / max(pairs, 1)))  # in units of the noise; metres below
@@ -400,7 +414,7 @@ def _best_start(measured, expected, intrinsics: Intrinsics, starts, noise: Senso
     for transform in starts:
         _, _, _, pairs, *_ = point_to_plane_system(
             points, tiles, n_tiles, scale, gate, transform[:3, :3], np.ascontiguousarray(transform[:3, 3]), expected,
-            intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy, NORMAL_STEP, NORMAL_MAX_JUMP, p.huber,
+            intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy, NORMAL_STEP, NORMAL_MAX_JUMP, p.huber, False,
         )  # fmt: skip
         if pairs > best_pairs:
             best, best_pairs = transform, pairs

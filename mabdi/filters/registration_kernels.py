@@ -71,7 +71,9 @@ def point_plane_jacobian(jac, x, y, z, nx, ny, nz):
 
 
 @njit(cache=True)
-def point_to_plane_system(points, tiles, n_tiles, scale, gate, rotation, translation, e_depth, fx, fy, cx, cy, step, max_jump, huber):
+def point_to_plane_system(
+    points, tiles, n_tiles, scale, gate, rotation, translation, e_depth, fx, fy, cx, cy, step, max_jump, huber, summaries=True
+):
     """Normal equations of one ICP step in E's camera frame.
 
     ``points`` (N, 3): D's sampled points in D's camera frame (m); ``tiles``
@@ -93,6 +95,8 @@ def point_to_plane_system(points, tiles, n_tiles, scale, gate, rotation, transla
     absolute residuals (m); support (2, 6, 6) the information J^T J / s^2 of
     the pairs and of all candidates, without the robust weights (which
     directions the pairs constrain, against what the map could constrain).
+    ``summaries`` False leaves support and tile_gradients at zero (the steps
+    before the last need only A and b).
     """
     height, width = e_depth.shape
     n = points.shape[0]
@@ -125,12 +129,14 @@ def point_to_plane_system(points, tiles, n_tiles, scale, gate, rotation, transla
         s = scale[i]
         g = gate[i]
         inside = abs(r) <= g and abs(z - qz) <= 2.0 * g
-        for j in range(6):
-            for k in range(j, 6):
-                information = jac[j] * jac[k] / (s * s)
-                support[1, j, k] += information
-                if inside:
-                    support[0, j, k] += information
+        if summaries:
+            inverse_variance = 1.0 / (s * s)
+            for j in range(6):
+                for k in range(j, 6):
+                    information = jac[j] * jac[k] * inverse_variance
+                    support[1, j, k] += information
+                    if inside:
+                        support[0, j, k] += information
         if not inside:
             continue
         pairs += 1
@@ -144,7 +150,8 @@ def point_to_plane_system(points, tiles, n_tiles, scale, gate, rotation, transla
         for j in range(6):
             wj = w * jac[j]
             b[j] += wj * r
-            tile_gradients[tiles[i], j] += wj * r
+            if summaries:
+                tile_gradients[tiles[i], j] += wj * r
             for k in range(j, 6):
                 a[j, k] += wj * jac[k]
         chi2 += w * r * r

@@ -111,7 +111,11 @@ faces beside those (:meth:`~mabdi.world_map.WorldMap.remove_faces`). The
 order does not matter: a face beside one removed earlier goes at its first
 contradicting frame (:meth:`~mabdi.world_map.WorldMap.update_evidence`). A
 LiDAR passing a departed car sees each small roof face with one beam in one
-frame, often after the faces around it went.
+frame, often after the faces around it went. A patch pools the evidence of its
+faces when nothing in it stands: once ``min_frames`` frames have contradicted
+some face of a patch and every face of it that was ever voted on is
+contradicted (none confirmed since), its contradicted faces go (the roof's
+faces contradicted once each, by different scans).
 
 The removed faces leave their blocks in the world mesh
 (:meth:`~mabdi.filters.world_mesh.FilterWorldMesh.remove_faces`), the blocks
