@@ -132,6 +132,12 @@ COVARIANCE_TILE = 32
 #: The last step of a registered frame is below these (m, degrees).
 CONVERGED_TRANSLATION = 1e-3
 CONVERGED_ROTATION = 0.05
+#: The ICP stops at a level once a step is below these (m, degrees).
+STEP_TRANSLATION = 1e-5
+STEP_ROTATION = 1e-4
+#: The residuals' median is taken over every MEDIAN_STRIDE-th where there are more than MEDIAN_MANY.
+MEDIAN_STRIDE = 4
+MEDIAN_MANY = 20_000
 
 
 @dataclass(frozen=True)
@@ -296,6 +302,7 @@ def register_depth(
     step_size = (np.inf, np.inf)
     reach = p.max_distance  # the gate beyond the noise: shrinks with the residuals as the pose converges
     start = transform.copy()
+    summaries = None  # the last step's (support, tile_gradients), where it took them
     for level in range(p.levels):
         points, z, tiles, n_tiles = sample_points(measured, intrinsics, p.stride * 2 ** (p.levels - 1 - level))
         scale = np.sqrt(noise.sigma(z, intrinsics.near, intrinsics.far) ** 2 + p.model_sigma**2)
@@ -311,10 +318,13 @@ def register_depth(
                 if candidates:
                     reach = min(reach, p.gate_k * MAD_TO_SIGMA * float(np.median(residuals)))
                 gate = np.maximum(reach, p.gate_k * scale)
-            a, b, chi2, pairs, candidates, residuals, _, _ = point_to_plane_system(
+            # a finest step after a small one is likely the last: it takes what the checks need as it goes
+            likely_last = level == p.levels - 1 and step_size[0] < 10 * STEP_TRANSLATION and step_size[1] < 10 * STEP_ROTATION
+            a, b, chi2, pairs, candidates, residuals, support, tile_gradients = point_to_plane_system(
                 points, tiles, n_tiles, scale, gate, transform[:3, :3], np.ascontiguousarray(transform[:3, 3]), expected,
-                intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy, NORMAL_STEP, NORMAL_MAX_JUMP, p.huber, False,
+                intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy, NORMAL_STEP, NORMAL_MAX_JUMP, p.huber, likely_last,
             )  # fmt: skip
+            summaries = (support, tile_gradients) if likely_last else None
             iterations += 1
             if pairs < max(6, p.min_points // 4 ** (p.levels - 1 - level)):
                 return RegistrationResult(start, "few_points", iterations=iterations)
@@ -322,17 +332,19 @@ def register_depth(
             update = _rigid(step[:3], step[3:])
             transform = update @ transform
             step_size = transform_size(update)
-            # the spread of the residuals says how far off the pose still is (robust: a median)
-            spread = MAD_TO_SIGMA * float(np.median(residuals))
+            # the spread of the residuals says how far off the pose still is (robust: a median, of every
+            # MEDIAN_STRIDE-th of many)
+            spread = MAD_TO_SIGMA * float(np.median(residuals[:: MEDIAN_STRIDE if len(residuals) > MEDIAN_MANY else 1]))
             reach = min(reach, p.gate_k * spread)
-            if step_size[0] < 1e-5 and step_size[1] < 1e-4:
+            if step_size[0] < STEP_TRANSLATION and step_size[1] < STEP_ROTATION:
                 break
-    # the pose found, judged at its own pairs: the covariance, the inlier share and which directions they hold
-    gate = np.maximum(reach, p.gate_k * scale)
-    a, b, chi2, pairs, candidates, residuals, support, tile_gradients = point_to_plane_system(
-        points, tiles, n_tiles, scale, gate, transform[:3, :3], np.ascontiguousarray(transform[:3, 3]), expected,
-        intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy, NORMAL_STEP, NORMAL_MAX_JUMP, p.huber, True,
-    )  # fmt: skip
+    if summaries is None:  # the last step did not take them: the pose found, judged at its own pairs
+        gate = np.maximum(reach, p.gate_k * scale)
+        a, b, chi2, pairs, candidates, residuals, *summaries = point_to_plane_system(
+            points, tiles, n_tiles, scale, gate, transform[:3, :3], np.ascontiguousarray(transform[:3, 3]), expected,
+            intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy, NORMAL_STEP, NORMAL_MAX_JUMP, p.huber, True,
+        )  # fmt: skip
+    support, tile_gradients = summaries
     _, inverse = _solve(a, b)
     covariance = pose_covariance(inverse, chi2, pairs, tile_gradients)
     residual = float(np.sqrt(chi2 / max(pairs, 1)))  # in units of the noise; metres below
