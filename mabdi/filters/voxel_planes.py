@@ -70,8 +70,8 @@ points), a mesh of small planar polygons out. The filter keeps a
    epsilon^2: voxels of 0.1 m and more at the default epsilon); at a camera's
    5 cm a 5 cm window would pass any crease as a plane, so it stays off.
    Refinement costs the statistics twice and the memory of the half-size map
-   (blocks of half the size, so about four times the full-size map's on a
-   surface).
+   (blocks of half the size, so its memory grows with the surface it holds:
+   docs/benchmarks.md has the street's).
 4. **Incremental**: after new points, only the blocks (``block_size``, 1 m)
    holding a vertex whose neighbourhood changed are re-meshed. The mesh is
    kept per block; the output is either the blocks re-meshed by this update
