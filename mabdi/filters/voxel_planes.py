@@ -463,11 +463,10 @@ class HalvedGrid:
         return (2 * np.asarray(anchors, dtype=np.int64)[:, None, :] + _OCTANTS[None]).reshape(-1, 3)
 
     def voxels_within(self, voxels: np.ndarray) -> np.ndarray:
-        """The half-size voxels that overlap (M, 3) full-size ``voxels`` (3 or 2 a side)."""
+        """The half-size voxels whose centres lie in (M, 3) full-size ``voxels``: 2 c + {0, 1}^3 for voxel c (with the
+        quarter-voxel shift, half-size voxel j's centre is at j s / 2), so every half-size voxel belongs to one."""
         voxels = np.asarray(voxels, dtype=np.int64).reshape(-1, 3)
-        side = 3 if self.shift else 2
-        steps = np.array(list(itertools.product(range(side), repeat=3)), dtype=np.int64)
-        return np.unique((2 * voxels[:, None, :] + steps[None]).reshape(-1, 3), axis=0)
+        return np.unique((2 * voxels[:, None, :] + _OCTANTS[None]).reshape(-1, 3), axis=0)
 
     def voxels_around(self, halved: np.ndarray) -> np.ndarray:
         """The full-size voxels that (M, 3) half-size voxels ``halved`` overlap."""
