@@ -583,12 +583,14 @@ class WorldMap:
             )
             patch.evidence[cells] = evidence
             patch.contradicted[cells] = frames
-            if (contradicted[rows] > confirmed[rows]).any():
-                patch.contradicting_frames += 1
+            against = (contradicted[rows] > confirmed[rows]).any()
+            patch.contradicting_frames += int(against)
             gone |= patch.beside_removed_faces()[cells] & (evidence > 0)
             condemned.append(codes[rows[gone]])
+            if not against or patch.contradicting_frames < parameters.min_frames:
+                continue  # a frame that contradicts nothing here cannot make the patch's case
             voted = (patch.evidence != 0) | (patch.contradicted > 0)
-            if patch.contradicting_frames >= parameters.min_frames and (patch.evidence[voted] > 0).all():
+            if (patch.evidence[voted] > 0).all():
                 # every contradicted face of the patch, those this frame did not show too (the block is current)
                 condemned.append(table.bases[b] + np.flatnonzero(patch.evidence > 0))
         return np.unique(np.concatenate(condemned)) if condemned else np.zeros(0, dtype=np.int64)

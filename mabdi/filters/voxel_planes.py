@@ -654,7 +654,8 @@ class FilterVoxelPlanes(MabdiAlgorithm):
         A face lies in the cube of its neighbourhood's anchor: for even windows the grid vertex nearest
         to it, whose window of voxels is emptied; for odd windows the voxel holding it and its window.
         A face of the crease refinement lies in an octant of the same cube: the half-size voxels within
-        the emptied window are emptied too. Returns the number of points removed.
+        the emptied window are emptied too (every half-size window they are in lies in a full-size window
+        re-meshed with the emptied voxels). Returns the number of points removed.
         """
         points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
         if not len(points):
@@ -666,7 +667,7 @@ class FilterVoxelPlanes(MabdiAlgorithm):
         steps = np.array(list(itertools.product(range(low, low + window), repeat=3)), dtype=np.int64)
         voxels = (anchors[:, None, :] + steps[None]).reshape(-1, 3)
         if self.halved_map is not None:
-            self._halved_cleared(self.halved_map.clear_voxels(self._halved_grid.voxels_within(np.unique(voxels, axis=0))))
+            self.halved_map.clear_voxels(self._halved_grid.voxels_within(np.unique(voxels, axis=0)))
         return self._cleared(self.map.clear_voxels(voxels))
 
     def add_points(self, points: np.ndarray, colours: np.ndarray | None = None) -> np.ndarray:
