@@ -11,11 +11,15 @@ For each run config (table, bunnies, bunnies_dynamic), in the same process:
   map kept as a single mesh costs: merge + full re-upload), to show what the
   map's blocks save.
 
-Prints a markdown table: mean ms per frame by stage, frames per second,
-triangles and MB of the map at the end, and the second circle's growth as a
-share of the first's.
+Prints a markdown table: mean ms per frame by stage (D, registration, E,
+classification, removal, surface, append), frames per second, triangles and
+MB of the map at the end, and the second circle's growth as a share of the
+first's. A three-frame run of the table goes first and is not reported: it
+compiles the numba kernels (a fresh machine has no cache), so the first run
+reported pays no compilation.
 
-    python benchmarks/bench_loop.py [--frames N] [--runs table bunnies bunnies_dynamic]
+    python benchmarks/bench_loop.py [--frames N] [--runs table bunnies bunnies_dynamic street]
+                                    [--variants mabdi "black box" "no speck filter" "E from merged map"]
 """
 
 from __future__ import annotations
@@ -35,6 +39,9 @@ from mabdi.evaluate.bench import machine_info  # noqa: E402
 from mabdi.loop.runner import Simulation  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
+
+
+VARIANTS = ("mabdi", "black box", "no speck filter", "E from merged map")
 
 
 class MergedMapSimulation(Simulation):
@@ -72,24 +79,26 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--frames", type=int, default=None, help="frames per run (default: the config's)")
     parser.add_argument("--runs", nargs="+", default=["table", "bunnies", "bunnies_dynamic"])
+    parser.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=VARIANTS)
     args = parser.parse_args()
+    one("table", "mabdi", 3)  # compiles the numba kernels; not reported
     info = machine_info()
     print(f"machine: {info['cpu']}, {info['cores']} cores, GPU {info['gpu']}; Python {info['python']}")
     print()
     print(
-        "| run | method | D ms | E ms | classify ms | surface ms | append ms | total ms | frames/s "
-        "| triangles | map MB | 2nd circle / 1st |"
+        "| run | method | D ms | register ms | E ms | classify ms | refine + remove ms | surface ms | append ms | total ms "
+        "| frames/s | triangles | map MB | 2nd circle / 1st |"
     )
-    print("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+    print("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     renderer = None
     for name in args.runs:
-        for variant in ("mabdi", "black box", "no speck filter", "E from merged map"):
+        for variant in args.variants:
             summary, growth = one(name, variant, args.frames)
             renderer = summary["render"].get("gl_renderer", renderer)
             ms = summary["mean_ms"]
             print(
-                f"| {name} | {variant} | {ms['t_depth_ms']:.1f} | {ms['t_expected_ms']:.1f} | {ms['t_classify_ms']:.1f} "
-                f"| {ms['t_surface_ms']:.1f} | {ms['t_append_ms']:.1f} | {ms['t_total_ms']:.1f} "
+                f"| {name} | {variant} | {ms['t_depth_ms']:.1f} | {ms['t_register_ms']:.1f} | {ms['t_expected_ms']:.1f} "
+                f"| {ms['t_classify_ms']:.1f} | {ms['t_remove_ms'] + ms['t_refine_ms']:.1f} | {ms['t_surface_ms']:.1f} | {ms['t_append_ms']:.1f} | {ms['t_total_ms']:.1f} "
                 f"| {summary['frames_per_second']:.1f} | {summary['cells']:,} | {summary['map_bytes'] / 2**20:.0f} "
                 f"| {100 * growth:.1f}% |",
                 flush=True,

@@ -50,7 +50,7 @@ from vtkmodules.util.numpy_support import numpy_to_vtk, vtk_to_numpy
 from vtkmodules.vtkCommonDataModel import vtkCompositeDataSet, vtkDataObject, vtkMultiBlockDataSet, vtkPolyData
 from vtkmodules.vtkFiltersCore import vtkAppendPolyData
 
-from mabdi.face_identity import FaceIdTable, block_address
+from mabdi.face_identity import FaceIdTable, block_address, rows_by_block
 from mabdi.filters.removal import update_log_odds
 from mabdi.polydata import extract_polys, polydata_from_state, polydata_to_state, triangle_normals
 
@@ -539,8 +539,7 @@ class WorldMap:
         block, local, keys = self.face_lookup(codes, table)
         sample = getattr(next(iter(self._patches.values())), attribute) if self._patches else np.zeros(0, np.float32)
         out = np.full((len(codes), *sample.shape[1:]), fill, dtype=sample.dtype)
-        for b in np.unique(block[block >= 0]):
-            rows = block == b
+        for b, rows in rows_by_block(block):
             out[rows] = getattr(self._patches[keys[b]], attribute)[local[rows]]
         return out
 
@@ -574,8 +573,7 @@ class WorldMap:
         codes = np.asarray(codes, dtype=np.int64)
         block, local, keys = self.face_lookup(codes, table)
         condemned = []
-        for b in np.unique(block[block >= 0]):
-            rows = np.flatnonzero(block == b)
+        for b, rows in rows_by_block(block):
             patch = self._patches[keys[b]]
             cells = local[rows]
             evidence, frames, gone = update_log_odds(
@@ -603,11 +601,11 @@ class WorldMap:
         """
         block, local, keys = self.face_lookup(np.asarray(codes, dtype=np.int64), table)
         removed_parts = []
-        for b in np.unique(block[block >= 0]):
+        for b, rows in rows_by_block(block):
             patch = self._patches[keys[b]]
             triangles = patch_triangles(patch.polydata)
             gone = np.zeros(patch.cells, dtype=bool)
-            gone[local[block == b]] = True
+            gone[local[rows]] = True
             if triangles is not None:  # polygons other than triangles: no edges to follow
                 gone = self._removed_with(patch, triangles, gone)
             removed_parts.append(extract_polys(patch.polydata, np.flatnonzero(gone)))

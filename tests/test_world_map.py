@@ -13,7 +13,7 @@ from conftest import plane_mesh
 from scipy.spatial import cKDTree
 
 from mabdi.camera import Intrinsics, look_at
-from mabdi.face_identity import MAX_FACE_CODE, FaceIdTable
+from mabdi.face_identity import MAX_FACE_CODE, FaceIdTable, codes_in, rows_by_block, unique_codes
 from mabdi.filters.depth_image import DepthRenderer
 from mabdi.polydata import named_leaves, polydata_arrays
 from mabdi.filters.removal import RemovalParameters
@@ -348,3 +348,20 @@ def test_a_patch_pools_its_faces_evidence_when_nothing_in_it_stands():
     assert vote("roof", 1) == [1, 2]  # a second frame, another face: the roof's contradicted faces go
     assert vote("wall", 1) == []  # the wall's confirmed face stands: each face still needs two frames
     assert vote("wall", 1) == [n + 2]
+
+
+def test_code_sets_by_table_equal_numpys_sorting_sets():
+    """unique_codes, codes_in and rows_by_block (tables over the codes' range) give numpy's answers, dense and sparse."""
+    rng = np.random.default_rng(3)
+    for codes in (rng.integers(0, 5_000, 20_000), rng.integers(0, MAX_FACE_CODE, 300), np.array([7, 7, 7]), np.zeros(0, np.int64)):
+        distinct, inverse = unique_codes(codes)
+        expected, expected_inverse = np.unique(codes.astype(np.int64), return_inverse=True)
+        assert np.array_equal(distinct, expected) and np.array_equal(inverse, expected_inverse.reshape(-1))
+        chosen = np.concatenate([codes[::7], [-5, MAX_FACE_CODE + 9]]).astype(np.int64)
+        assert np.array_equal(codes_in(codes, chosen), np.isin(codes, chosen))
+    block = rng.integers(-1, 70_000, 50_000)  # over 2^16 blocks: no 16-bit keys
+    for blocks in (block, block % 40 - 1, np.full(10, -1)):
+        groups = rows_by_block(blocks)
+        assert [b for b, _ in groups] == sorted(set(blocks[blocks >= 0].tolist()))
+        for b, rows in groups:
+            assert np.array_equal(rows, np.flatnonzero(blocks == b))

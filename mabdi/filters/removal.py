@@ -133,6 +133,7 @@ import numpy as np
 
 from mabdi.depth import jump_scale
 from mabdi.errors import ConfigError
+from mabdi.face_identity import unique_codes
 from mabdi.filters.classifier import CONTRADICTED, KNOWN, NO_RETURN, dilate, neighbourhood_3x3
 
 
@@ -261,7 +262,7 @@ def removal_votes(
         # A confirmation cannot lower a face already at the floor: such pixels need no further work.
         useful = contradicting | (evidence_of(ids) > np.float32(parameters.floor))
         pixels, ids, contradicting = pixels[useful], ids[useful], contradicting[useful]
-    faces, inverse = np.unique(ids, return_inverse=True)
+    faces, inverse = unique_codes(ids)
     # normals into the camera frame (rows: n_world @ R = (R^T n_world)^T), one per face, then per pixel
     normals = (normals_of(faces) @ np.asarray(world_from_camera)[:3, :3]).astype(np.float32)[inverse]
     rays = unit_rays.reshape(-1, 3)[pixels]

@@ -45,7 +45,7 @@ from vtkmodules.vtkCommonDataModel import vtkPolyData
 
 from mabdi.camera import project, unit_rays
 from mabdi.depth import depth_array, image_intrinsics, image_noise, image_pose, pixel_angle, pixels_per_radian, project_to_image
-from mabdi.face_identity import FaceIdTable, block_address
+from mabdi.face_identity import FaceIdTable, block_address, codes_in, rows_by_block
 from mabdi.filters.classifier import CONTRADICTED, NO_RETURN, classify, dilate, label_array, neighbourhood_3x3, pose_sigma_array
 from mabdi.filters.expected_image import face_id_array
 from mabdi.loop.ray_triangle_kernels import nearest_hits_in_boxes_kernel
@@ -188,8 +188,8 @@ class ObjectRemoval:
         # where the map was seen through: around each block's contradicted faces, a pixel's footprint on a plane
         # seen at up to MAX_INCIDENCE_DEG, and their radius
         lows, highs = [], []
-        for b in np.unique(block[block >= 0]):
-            shown, shown_radii = face_centres(world.block(keys[b]), local[block == b])
+        for b, rows in rows_by_block(block):
+            shown, shown_radii = face_centres(world.block(keys[b]), local[rows])
             reach = np.linalg.norm(shown - origin, axis=1) * angle / _COS_MAX_INCIDENCE + shown_radii
             lows.append((shown - reach[:, None]).min(axis=0))
             highs.append((shown + reach[:, None]).max(axis=0))
@@ -220,7 +220,7 @@ class ObjectRemoval:
             first_corner = vtk_to_numpy(polys.GetConnectivityArray())[vtk_to_numpy(polys.GetOffsetsArray())[:-1]]
             cells = np.flatnonzero(near[first_corner])
             codes = int(table.bases[b]) + cells
-            unseen = ~np.isin(codes, faces)
+            unseen = ~codes_in(codes, faces)
             if not unseen.any():
                 continue
             cells, codes = cells[unseen], codes[unseen]
@@ -311,7 +311,7 @@ class ObjectRemoval:
     def _clear_free_space(self, voting: np.ndarray, gone: np.ndarray, measured_image, codes: np.ndarray, surface) -> None:
         """Voxel planes: rays that saw through removed faces (``codes``: the faces the votes went to) empty the
         voxels they crossed (up to tau before D)."""
-        through = voting & np.isin(codes, gone)
+        through = voting & codes_in(codes, gone)
         if not through.any():
             return
         geometry = image_intrinsics(measured_image)
