@@ -92,15 +92,19 @@ def unique_codes(codes) -> tuple[np.ndarray, np.ndarray]:
 
 
 def codes_in(codes, chosen) -> np.ndarray:
-    """Boolean array shaped like ``codes``: which of them are among ``chosen`` (``np.isin`` for face codes, by a
-    table over the range of ``codes``)."""
+    """Boolean array shaped like ``codes``: which of them are among ``chosen`` (``np.isin`` for face codes): by a
+    table over the range of ``codes``, or where that range is wide for their number, by a binary search in the
+    sorted ``chosen``."""
     codes = np.asarray(codes, dtype=np.int64)
     chosen = np.asarray(chosen, dtype=np.int64).reshape(-1)
     if not codes.size or not len(chosen):
         return np.zeros(codes.shape, dtype=bool)
     low, high = int(codes.min()), int(codes.max())
     if high - low > 8 * codes.size + 4096:
-        return np.isin(codes, chosen)
+        if np.any(chosen[1:] < chosen[:-1]):
+            chosen = np.sort(chosen)
+        at = np.minimum(np.searchsorted(chosen, codes), len(chosen) - 1)
+        return chosen[at] == codes
     table = np.zeros(high - low + 1, dtype=bool)
     table[chosen[(chosen >= low) & (chosen <= high)] - low] = True
     return table[codes - low]

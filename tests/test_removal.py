@@ -282,3 +282,38 @@ def test_casting_pixels_in_their_triangles_boxes_finds_what_casting_against_ever
     assert (which >= 0).sum() > 100  # the scene is in view
     np.testing.assert_array_equal(hits, which)
     np.testing.assert_allclose(distances[which >= 0], best[which >= 0], rtol=1e-9)
+
+
+def test_compiled_edges_dilation_and_boxes_equal_their_array_slice_formulations():
+    """depth_edges, dilate and points_in_boxes (one compiled pass each) against the array-slice definitions."""
+    from mabdi.filters.classifier import neighbourhood_3x3
+    from mabdi.filters.removal_kernels import points_in_boxes
+
+    def edges_by_slices(depth, jump):
+        missing = np.isnan(depth)
+        low = neighbourhood_3x3(np.where(missing, np.float32(np.inf), depth), np.minimum)
+        high = neighbourhood_3x3(np.where(missing, np.float32(-np.inf), depth), np.maximum)
+        with np.errstate(invalid="ignore"):
+            return neighbourhood_3x3(missing, np.logical_or) | (high > np.float32(1.0 + jump) * low)
+
+    def dilate_by_slices(mask, radius):
+        for _ in range(radius):
+            mask = neighbourhood_3x3(mask, np.logical_or, outside=False)
+        return mask
+
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        height, width = rng.integers(1, 40, 2)
+        depth = rng.uniform(1, 3, (height, width)).astype(np.float32)
+        depth[rng.random((height, width)) < 0.1] = np.nan
+        assert np.array_equal(depth_edges(depth, 0.05), edges_by_slices(depth, 0.05))
+        mask = rng.random((height, width)) < 0.05
+        for radius in range(4):
+            assert np.array_equal(dilate(mask, radius), dilate_by_slices(mask, radius))
+    points = rng.uniform(0, 1, (500, 3)).astype(np.float32)
+    lows = rng.uniform(0, 0.8, (4, 3))
+    inside = np.zeros(len(points), dtype=bool)
+    for low, high in zip(lows, lows + 0.2, strict=True):
+        inside |= np.all((points >= low) & (points <= high), axis=1)
+    assert 0 < inside.sum() < len(points)
+    assert np.array_equal(points_in_boxes(points, lows, lows + 0.2), inside)

@@ -73,6 +73,7 @@ from mabdi.depth import MEASURED_ARRAY, copy_colour, depth_array, fill_depth_ima
 from mabdi.errors import ConfigError, check_switch
 from mabdi.sensor_noise import SensorNoise
 from mabdi.filters.expected_image import map_in_footprint
+from mabdi.filters.image_kernels import dilate_kernel
 from mabdi.filters.registration import image_pose_covariance, pose_depth_sigma
 
 NO_RETURN, KNOWN, NOVEL, CONTRADICTED = 0, 1, 2, 3
@@ -160,10 +161,11 @@ def erode(mask: np.ndarray, radius: int) -> np.ndarray:
 
 
 def dilate(mask: np.ndarray, radius: int) -> np.ndarray:
-    """Binary dilation by a (2 radius + 1) square, as ``radius`` 3x3 steps of array slices."""
-    for _ in range(radius):
-        mask = neighbourhood_3x3(mask, np.logical_or, outside=False)
-    return mask
+    """Binary dilation by a (2 radius + 1) square, outside the image False (``radius`` 3x3 steps of
+    :func:`neighbourhood_3x3` with ``np.logical_or``, in one compiled row and column pass)."""
+    if radius <= 0:
+        return np.asarray(mask, dtype=bool)
+    return dilate_kernel(np.ascontiguousarray(mask, dtype=bool), int(radius))
 
 
 def remove_specks(novel: np.ndarray, min_width: int, min_region: int, covered: np.ndarray | None = None) -> np.ndarray:

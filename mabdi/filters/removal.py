@@ -134,7 +134,8 @@ import numpy as np
 from mabdi.depth import jump_scale
 from mabdi.errors import ConfigError
 from mabdi.face_identity import unique_codes
-from mabdi.filters.classifier import CONTRADICTED, KNOWN, NO_RETURN, dilate, neighbourhood_3x3
+from mabdi.filters.image_kernels import depth_edges_kernel
+from mabdi.filters.classifier import CONTRADICTED, KNOWN, NO_RETURN, dilate
 
 
 @dataclass(frozen=True)
@@ -187,15 +188,10 @@ def for_geometry(parameters: RemovalParameters, geometry) -> RemovalParameters:
 
 
 def depth_edges(depth: np.ndarray, jump: float) -> np.ndarray:
-    """Pixels whose 3x3 neighbourhood holds a relative depth jump over ``jump`` or a pixel without a return
-    (the image's own border is not an edge). Separable 3x3 min and max; NaN counts as no return."""
-    missing = np.isnan(depth)
-    filled = np.where(missing, np.float32(np.inf), depth)
-    low = neighbourhood_3x3(filled, np.minimum)
-    high = neighbourhood_3x3(np.where(missing, np.float32(-np.inf), depth), np.maximum)
-    near_missing = neighbourhood_3x3(missing, np.logical_or)
-    with np.errstate(invalid="ignore"):
-        return near_missing | (high > np.float32(1.0 + jump) * low)
+    """Pixels whose 3x3 neighbourhood holds a relative depth jump over ``jump`` (its largest depth over
+    1 + ``jump`` times its smallest) or a pixel without a return (the image's own border is not an edge;
+    NaN counts as no return). One compiled pass over the float32 image."""
+    return depth_edges_kernel(np.ascontiguousarray(depth, dtype=np.float32), np.float32(1.0 + jump))
 
 
 def removal_votes(
@@ -258,11 +254,11 @@ def removal_votes(
     pixels = np.flatnonzero(candidates)
     ids = face_ids.ravel()[pixels].astype(np.int64)
     contradicting = contradicting_pixels.ravel()[pixels]
+    faces, inverse = unique_codes(ids)
     if evidence_of is not None:
         # A confirmation cannot lower a face already at the floor: such pixels need no further work.
-        useful = contradicting | (evidence_of(ids) > np.float32(parameters.floor))
-        pixels, ids, contradicting = pixels[useful], ids[useful], contradicting[useful]
-    faces, inverse = unique_codes(ids)
+        useful = contradicting | (evidence_of(faces) > np.float32(parameters.floor))[inverse]
+        pixels, inverse, contradicting = pixels[useful], inverse[useful], contradicting[useful]
     # normals into the camera frame (rows: n_world @ R = (R^T n_world)^T), one per face, then per pixel
     normals = (normals_of(faces) @ np.asarray(world_from_camera)[:3, :3]).astype(np.float32)[inverse]
     rays = unit_rays.reshape(-1, 3)[pixels]

@@ -50,6 +50,7 @@ from mabdi.filters.classifier import CONTRADICTED, NO_RETURN, classify, dilate, 
 from mabdi.filters.expected_image import face_id_array
 from mabdi.loop.ray_triangle_kernels import nearest_hits_in_boxes_kernel
 from mabdi.filters.registry import SurfaceCapabilities
+from mabdi.filters.removal_kernels import points_in_boxes
 from mabdi.filters.removal import RemovalParameters, for_geometry, free_space_filled, removal_votes, votes_between_pixels
 from mabdi.polydata import polydata_arrays, triangle_frames
 from mabdi.spherical import SphericalGeometry
@@ -204,10 +205,7 @@ class ObjectRemoval:
             if not touching.any():
                 continue
             points = vtk_to_numpy(polydata.GetPoints().GetData())
-            in_region = np.zeros(len(points), dtype=bool)
-            for low, high in zip(lows[touching], highs[touching], strict=True):
-                in_region |= np.all((points >= low) & (points <= high), axis=1)
-            around = np.flatnonzero(in_region)
+            around = np.flatnonzero(points_in_boxes(points, lows[touching], highs[touching]))
             if not len(around):
                 continue
             uv, value = project_to_image(points[around], geometry, pose)
