@@ -51,6 +51,7 @@ from vtkmodules.vtkCommonDataModel import vtkCompositeDataSet, vtkDataObject, vt
 from vtkmodules.vtkFiltersCore import vtkAppendPolyData
 
 from mabdi.face_identity import FaceIdTable, block_address, rows_by_block
+from mabdi.polydata_kernels import triangle_centres
 from mabdi.filters.removal import update_log_odds
 from mabdi.polydata import extract_polys, polydata_from_state, polydata_to_state, triangle_normals
 
@@ -207,6 +208,9 @@ def face_centres(patch: vtkPolyData, cells=None) -> tuple[np.ndarray, np.ndarray
         starts, sizes = offsets[cells], offsets[cells + 1] - offsets[cells]
     if not len(sizes):
         return np.zeros((0, 3)), np.zeros(0)
+    if sizes.min() == 3 and sizes.max() == 3:  # triangles (the map's faces): compiled, no ragged gather
+        points = vtk_to_numpy(patch.GetPoints().GetData())
+        return triangle_centres(points, connectivity, np.ascontiguousarray(starts, dtype=np.int64))
     firsts = np.cumsum(sizes) - sizes  # where each polygon's corners start in the gathered list
     corner_ids = connectivity[np.repeat(starts - firsts, sizes) + np.arange(int(sizes.sum()))]
     corners = vtk_to_numpy(patch.GetPoints().GetData())[corner_ids].astype(np.float64)

@@ -286,7 +286,7 @@ def test_casting_pixels_in_their_triangles_boxes_finds_what_casting_against_ever
 
 def test_compiled_edges_dilation_and_boxes_equal_their_array_slice_formulations():
     """depth_edges, dilate and points_in_boxes (one compiled pass each) against the array-slice definitions."""
-    from mabdi.filters.classifier import neighbourhood_3x3
+    from mabdi.filters.classifier import dilate, neighbourhood_3x3
     from mabdi.filters.removal_kernels import points_in_boxes
 
     def edges_by_slices(depth, jump):

@@ -365,3 +365,25 @@ def test_code_sets_by_table_equal_numpys_sorting_sets():
         assert [b for b, _ in groups] == sorted(set(blocks[blocks >= 0].tolist()))
         for b, rows in groups:
             assert np.array_equal(rows, np.flatnonzero(blocks == b))
+
+
+def test_triangle_centres_and_radii_by_the_compiled_pass_equal_the_corner_formulas():
+    """face_centres of a triangle mesh (compiled path) against the corner average and farthest corner, all and some cells."""
+    from vtkmodules.util.numpy_support import vtk_to_numpy
+    from vtkmodules.vtkFiltersSources import vtkSphereSource
+
+    from mabdi.world_map import face_centres
+
+    source = vtkSphereSource()
+    source.SetThetaResolution(30)
+    source.SetPhiResolution(20)
+    source.Update()
+    sphere = source.GetOutput()
+    points = vtk_to_numpy(sphere.GetPoints().GetData()).astype(np.float64)
+    triangles = vtk_to_numpy(sphere.GetPolys().GetConnectivityArray()).reshape(-1, 3)
+    for cells in (None, np.array([5, 0, 17])):
+        rows = np.arange(len(triangles)) if cells is None else cells
+        corners = points[triangles[rows]]
+        centres, radii = face_centres(sphere, cells)
+        assert np.allclose(centres, corners.mean(axis=1), atol=1e-12)
+        assert np.allclose(radii, np.linalg.norm(corners - corners.mean(axis=1, keepdims=True), axis=2).max(axis=1), atol=1e-12)
