@@ -85,10 +85,13 @@ def unique_codes(codes) -> tuple[np.ndarray, np.ndarray]:
     low, high = int(codes.min()), int(codes.max())
     if high - low > 8 * len(codes) + 4096:  # few codes spread wide: the sort is cheaper than the table
         return np.unique(codes, return_inverse=True)
+    shifted = codes - low
     present = np.zeros(high - low + 1, dtype=bool)
-    present[codes - low] = True
-    index = np.cumsum(present, dtype=np.int64) - 1
-    return np.flatnonzero(present) + low, index[codes - low]
+    present[shifted] = True
+    distinct = np.flatnonzero(present)
+    index = np.empty(high - low + 1, dtype=np.int32)  # fewer than 2^24 codes
+    index[distinct] = np.arange(len(distinct), dtype=np.int32)
+    return distinct + low, index[shifted].astype(np.int64)
 
 
 def codes_in(codes, chosen) -> np.ndarray:
