@@ -132,7 +132,7 @@ class DepthRenderer:
         self._renders = 0
         self._drawn: set[int] = set()
         self._zbuffer = vtkFloatArray()
-        self._rgb = vtkUnsignedCharArray()
+        self._rgba = vtkUnsignedCharArray()
 
     def _sync_actors(self, leaves: list[tuple[str, vtkPolyData]]) -> None:
         """One actor per polydata of ``leaves``, shown; actors of polydata not drawn are hidden, and dropped
@@ -267,9 +267,10 @@ class DepthRenderer:
         Call right after :meth:`render_zbuffer` (same frame); needs ``identity_array``.
         """
         width, height = self._size
-        self._window.GetPixelData(0, 0, width - 1, height - 1, 0, self._rgb, 0)
-        rgb = vtk_to_numpy(self._rgb).reshape(height, width, 3)[::-1].astype(np.int64)
-        return rgb[..., 0] | (rgb[..., 1] << 8) | (rgb[..., 2] << 16)
+        # RGBA read as one little-endian 32-bit word per pixel: red is the low byte, alpha (the high byte) masked off
+        self._window.GetRGBACharPixelData(0, 0, width - 1, height - 1, 0, self._rgba, 0)
+        words = vtk_to_numpy(self._rgba).reshape(-1).view("<u4").reshape(height, width)[::-1]
+        return (words & np.uint32(0xFFFFFF)).astype(np.int64)
 
     def describe(self) -> dict:
         """The backend that drew the frames: name, window class and OpenGL renderer string."""

@@ -43,7 +43,7 @@ import numpy as np
 from vtkmodules.util.numpy_support import numpy_to_vtk, vtk_to_numpy
 from vtkmodules.vtkCommonDataModel import vtkMultiBlockDataSet, vtkPolyData
 
-from mabdi.camera import Intrinsics, unit_rays
+from mabdi.camera import Intrinsics, boxes_outside, frustum_planes, unit_rays
 from mabdi.errors import ConfigError
 from mabdi.filters.range_rendering_kernels import cast_beams_kernel
 from mabdi.face_identity import FaceIdTable, block_address
@@ -163,8 +163,8 @@ class _TriangleTable:
             new[: len(old)] = old
             setattr(self, name, new)
 
-    def blocks(self, data) -> vtkMultiBlockDataSet:
-        """A composite dataset of the drawn copies of ``data``'s polydata (new or changed ones added to the table)."""
+    def copies(self, data) -> list[vtkPolyData]:
+        """The drawn copies of ``data``'s polydata (new or changed ones added to the table)."""
         leaves = [(name, leaf) for name, leaf in named_leaves(data) if leaf.GetNumberOfPolys()]
         needed = sum(leaf.GetNumberOfPolys() for _, leaf in leaves if not self._current(leaf))
         if self._next + 2 * needed > _MAX_IDENTITY:  # identities run out: start the table afresh
@@ -174,10 +174,7 @@ class _TriangleTable:
             entry = self._copies.get(id(leaf)) if self._current(leaf) else None
             copies[id(leaf)] = entry if entry is not None else self._add(leaf, name)
         self._copies = copies
-        blocks = vtkMultiBlockDataSet()
-        for index, entry in enumerate(copies.values()):
-            blocks.SetBlock(index, entry[2])
-        return blocks
+        return [entry[2] for entry in copies.values()]
 
     def faces(self, triangles: np.ndarray) -> tuple[np.ndarray, FaceIdTable]:
         """Face codes of the map cells that ``triangles`` (identities; 0 = none) were drawn for, and their table:
@@ -250,11 +247,17 @@ class RangeRenderer:
         z up), NaN where no surface lies strictly between ``range_min`` and ``range_max``."""
         views = sector_views(geometry)
         pose = np.asarray(world_from_sensor, dtype=np.float64)
-        blocks = self._table.blocks(data)
+        copies = self._table.copies(data)
+        bounds = np.array([copy.GetBounds() for copy in copies]).reshape(-1, 6)
         k = views.intrinsics
         ids = np.empty((SECTORS, k.height, k.width), dtype=np.int64)
         for sector in range(SECTORS):
-            self.depth_renderer.render_zbuffer(blocks, k, pose @ views.sensor_from_camera[sector])
+            camera = pose @ views.sensor_from_camera[sector]
+            # each sector draws only the copies whose bounds reach into its frustum (a quarter of a street's)
+            blocks = vtkMultiBlockDataSet()
+            for index, visible in enumerate(np.flatnonzero(~boxes_outside(bounds, frustum_planes(k, camera)))):
+                blocks.SetBlock(index, copies[visible])
+            self.depth_renderer.render_zbuffer(blocks, k, camera)
             ids[sector] = self.depth_renderer.render_identity()
         candidates = ids.reshape(-1)[views.candidates]
         directions = unit_rays(geometry)[0].reshape(-1, 3) @ pose[:3, :3].T
