@@ -197,40 +197,54 @@ class ObjectRemoval:
         if not lows:
             return np.zeros(0, dtype=np.int64)
         lows, highs = np.array(lows), np.array(highs)
-        found = []
-        for b in world.current_blocks(table):  # every patch E drew that reaches into a region, voted on or not
+        # every patch E drew that reaches into a region, voted on or not: their points in a region, projected
+        # at once, and their faces whose first corner lands within a pixel of a cluster
+        touching_blocks, around, around_points, first_corners = [], [], [], []
+        point_count = 0
+        for b in world.current_blocks(table):
             polydata = world.block(keys[b])
             bounds = np.asarray(polydata.GetBounds()).reshape(3, 2)
             touching = np.all((lows <= bounds[:, 1]) & (highs >= bounds[:, 0]), axis=1)
             if not touching.any():
                 continue
             points = vtk_to_numpy(polydata.GetPoints().GetData())
-            around = np.flatnonzero(points_in_boxes(points, lows[touching], highs[touching]))
-            if not len(around):
+            inside = np.flatnonzero(points_in_boxes(points, lows[touching], highs[touching]))
+            if not len(inside):
                 continue
-            uv, value = project_to_image(points[around], geometry, pose)
-            with np.errstate(invalid="ignore"):
-                u, v = np.floor(uv[:, 0]), np.floor(uv[:, 1])
-                inside = (u >= 0) & (u < width) & (v >= 0) & (v < height) & (value > 0)
-            near = np.zeros(len(points), dtype=bool)
-            near[around[inside]] = near_cluster[v[inside].astype(np.int64), u[inside].astype(np.int64)]
             polys = polydata.GetPolys()
-            first_corner = vtk_to_numpy(polys.GetConnectivityArray())[vtk_to_numpy(polys.GetOffsetsArray())[:-1]]
-            cells = np.flatnonzero(near[first_corner])
-            codes = int(table.bases[b]) + cells
-            unseen = ~codes_in(codes, faces)
-            if not unseen.any():
-                continue
-            cells, codes = cells[unseen], codes[unseen]
-            centres, radii = face_centres(polydata, cells)
-            uv, value = project_to_image(centres, geometry, pose)
-            uv[value <= 0] = np.nan  # behind a camera
-            hit = votes_between_pixels(
-                centres, world.face_normals_of(codes, table), radii, measured, voting, rays, length, uv, origin, rotation,
-                angle, parameters, sigma, pose_sigma,
-            )
-            found.append(codes[hit])
-        return np.concatenate(found) if found else np.zeros(0, dtype=np.int64)
+            touching_blocks.append(b)
+            around.append(inside + point_count)
+            around_points.append(points[inside])
+            first_corners.append(vtk_to_numpy(polys.GetConnectivityArray())[vtk_to_numpy(polys.GetOffsetsArray())[:-1]] + point_count)
+            point_count += len(points)
+        if not touching_blocks:
+            return np.zeros(0, dtype=np.int64)
+        around = np.concatenate(around)
+        uv, value = project_to_image(np.concatenate(around_points), geometry, pose)
+        with np.errstate(invalid="ignore"):
+            u, v = np.floor(uv[:, 0]), np.floor(uv[:, 1])
+            inside = (u >= 0) & (u < width) & (v >= 0) & (v < height) & (value > 0)
+        near = np.zeros(point_count, dtype=bool)
+        near[around[inside]] = near_cluster[v[inside].astype(np.int64), u[inside].astype(np.int64)]
+        face_counts = np.array([len(corners) for corners in first_corners])
+        rows = np.flatnonzero(near[np.concatenate(first_corners)])  # faces of the touching blocks, in order
+        which = np.searchsorted(np.cumsum(face_counts), rows, side="right")  # index into touching_blocks
+        drawn = np.asarray(touching_blocks, dtype=np.int64)[which]
+        codes = table.bases[drawn] + rows - (np.cumsum(face_counts) - face_counts)[which]
+        unseen = ~codes_in(codes, faces)
+        if not unseen.any():
+            return np.zeros(0, dtype=np.int64)
+        codes, drawn = codes[unseen], drawn[unseen]
+        centres, radii = np.zeros((len(codes), 3)), np.zeros(len(codes))
+        for b, rows in rows_by_block(drawn):
+            centres[rows], radii[rows] = face_centres(world.block(keys[b]), codes[rows] - table.bases[b])
+        uv, value = project_to_image(centres, geometry, pose)
+        uv[value <= 0] = np.nan  # behind a camera
+        hit = votes_between_pixels(
+            centres, world.face_normals_of(codes, table), radii, measured, voting, rays, length, uv, origin, rotation,
+            angle, parameters, sigma, pose_sigma,
+        )
+        return codes[hit]
 
     def _retraced(self, labels, measured, expected, codes, table: FaceIdTable, measured_image, pose_sigma, world):
         """(labels, E, codes, table) with the pixels that showed a block re-meshed since E was drawn (a keyed
