@@ -42,6 +42,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from mabdi.filters.depth_smoothing_kernels import PAIR_DIRECTIONS, smooth_depth_kernel
 from mabdi.sensor_noise import SensorNoise
 
 if TYPE_CHECKING:
@@ -49,8 +50,6 @@ if TYPE_CHECKING:
 
 #: Gate of a neighbour pair, in standard deviations of one pixel's noise (times sqrt 2 for a difference).
 SMOOTHING_GATE_K = 3.0
-#: The 4 opposite-neighbour pairs, as (du, dv) of one side (the other side is (-du, -dv)).
-_PAIR_DIRECTIONS = ((1, 0), (0, 1), (1, 1), (1, -1))
 
 
 def smooth_depth(depth: np.ndarray, sigma: np.ndarray, gate_k: float = SMOOTHING_GATE_K) -> np.ndarray:
@@ -65,18 +64,8 @@ def smooth_depth(depth: np.ndarray, sigma: np.ndarray, gate_k: float = SMOOTHING
     gate = gate_k * np.sqrt(2.0) * np.broadcast_to(np.asarray(sigma, dtype=np.float64), z.shape)
     if not np.any(gate > 0):
         return np.asarray(depth, dtype=np.float32)
-    height, width = z.shape
-    padded = np.pad(z, 1, constant_values=np.nan)
     with np.errstate(divide="ignore", invalid="ignore"):
-        inverse_sum = 1.0 / z
-        count = np.ones_like(z)
-        for du, dv in _PAIR_DIRECTIONS:
-            ahead = padded[1 + dv : 1 + dv + height, 1 + du : 1 + du + width]
-            behind = padded[1 - dv : 1 - dv + height, 1 - du : 1 - du + width]
-            pair = (np.abs(ahead - z) <= gate) & (np.abs(behind - z) <= gate)  # NaN compares false
-            inverse_sum[pair] += 1.0 / ahead[pair] + 1.0 / behind[pair]
-            count[pair] += 2.0
-        return (count / inverse_sum).astype(np.float32)
+        return smooth_depth_kernel(np.ascontiguousarray(z), np.ascontiguousarray(gate), PAIR_DIRECTIONS)
 
 
 def smooth_depth_by_noise(depth: np.ndarray, noise: SensorNoise, intrinsics: Intrinsics) -> np.ndarray:
