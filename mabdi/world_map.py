@@ -58,6 +58,9 @@ from mabdi.polydata import extract_polys, polydata_from_state, polydata_to_state
 FRAME_CELL_ARRAY = "frame"
 #: Edge of a chunk (metres): small beside what a depth camera sees at once, so culling draws little beyond the view.
 CHUNK_SIZE = 2.0
+#: Edge of a chunk for a spinning LiDAR (metres, :func:`mabdi.loop.loop.chunk_size_for`): it sees tens of metres
+#: all around at once (the street's per-stage costs with 2 and 6 m chunks are in docs/benchmarks.md).
+LIDAR_CHUNK_SIZE = 6.0
 #: Frame patches a chunk holds before they are merged into one (keyed patches do not count).
 PATCHES_PER_CHUNK = 8
 

@@ -72,6 +72,7 @@ from mabdi.filters.registry import make_surface_filter, surface_filter
 from mabdi.loop.object_removal import ObjectRemoval
 from mabdi.filters.removal import RemovalParameters, depth_edges
 from mabdi.filters.world_mesh import FilterWorldMesh
+from mabdi.world_map import CHUNK_SIZE, LIDAR_CHUNK_SIZE
 from mabdi.polydata import polydata_area, transformed_polydata
 from mabdi.sources.frames import FrameSource, SourceDepthFrames
 
@@ -128,6 +129,14 @@ def lidar_rules(geometry, refining: bool, registration: RegistrationParameters) 
     return refining, registration
 
 
+def chunk_size_for(geometry) -> float:
+    """The world map's chunk edge (metres) for a sensor of ``geometry``: :data:`~mabdi.world_map.CHUNK_SIZE` for
+    a camera, :data:`~mabdi.world_map.LIDAR_CHUNK_SIZE` for a LiDAR's range images, which show tens of metres
+    all around at once (2 m chunks would put hundreds of blocks in every view, each drawn, culled and voted
+    on apart)."""
+    return LIDAR_CHUNK_SIZE if isinstance(geometry, SphericalGeometry) else CHUNK_SIZE
+
+
 class MabdiLoop:
     """Expected image, classifier, surface and world mesh over a :class:`FrameSource` (see the module docs).
 
@@ -175,7 +184,8 @@ class MabdiLoop:
         self.refining, self.registration_parameters = lidar_rules(source.intrinsics, self.refining, self.registration_parameters)
         self.refinement = MapRefinement(refinement if refinement is not None else RefinementParameters())
         self.measured = SourceDepthFrames(source, noise=self.noise)
-        self.world = FilterWorldMesh(compact_on_append=False)  # compacted at the end of each frame (step)
+        # compacted at the end of each frame (step)
+        self.world = FilterWorldMesh(chunk_size=chunk_size_for(source.intrinsics), compact_on_append=False)
         self.expected = FilterExpectedImage(backend=backend, identity=self.removal or self.refining)
         #: D as the classifier sees it: registered to the map (the renderer of E is shared: one upload of the map)
         self.registration: FilterRegistration | None = None
