@@ -58,14 +58,14 @@ def smooth_depth(depth: np.ndarray, sigma: np.ndarray, gate_k: float = SMOOTHING
     ``sigma``: (H, W) or scalar standard deviation of each pixel's noise (metres), from the sensor's
     noise model at that pixel's depth.
     """
-    z = np.asarray(depth, dtype=np.float64)
+    z = np.asarray(depth)
     if z.ndim != 2:
         raise ValueError(f"smooth_depth: need an (H, W) depth image, got shape {z.shape}")
-    gate = gate_k * np.sqrt(2.0) * np.broadcast_to(np.asarray(sigma, dtype=np.float64), z.shape)
-    if not np.any(gate > 0):
+    sigma = np.broadcast_to(np.asarray(sigma), z.shape)
+    if gate_k <= 0 or not np.any(sigma > 0):
         return np.asarray(depth, dtype=np.float32)
     with np.errstate(divide="ignore", invalid="ignore"):
-        return smooth_depth_kernel(np.ascontiguousarray(z), np.ascontiguousarray(gate), PAIR_DIRECTIONS)
+        return smooth_depth_kernel(z, sigma, gate_k * np.sqrt(2.0), PAIR_DIRECTIONS)
 
 
 def smooth_depth_by_noise(depth: np.ndarray, noise: SensorNoise, intrinsics: Intrinsics) -> np.ndarray:

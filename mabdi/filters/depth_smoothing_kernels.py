@@ -12,24 +12,25 @@ PAIR_DIRECTIONS = np.array([(1, 0), (0, 1), (1, 1), (1, -1)], dtype=np.int64)
 
 
 @njit(cache=True, error_model="numpy")  # a depth of 0 divides as numpy does (inf), not raising
-def smooth_depth_kernel(z, gate, directions):
+def smooth_depth_kernel(z, sigma, gate_scale, directions):
     """(H, W) float32: each pixel's harmonic mean with the opposite-neighbour pairs (``directions`` (4, 2) of
-    (du, dv)) whose both members lie within ``gate`` (H, W, metres) of it; ``z`` (H, W) float64, NaN = no
-    return (a pair with a NaN or outside the image is left out; a NaN pixel stays NaN)."""
+    (du, dv)) whose both members lie within ``gate_scale`` times its ``sigma`` (H, W, metres) of it; ``z``
+    (H, W) metres, NaN = no return (a pair with a NaN or outside the image is left out; a NaN pixel stays
+    NaN). Arithmetic in float64."""
     height, width = z.shape
     out = np.empty((height, width), dtype=np.float32)
     for row in range(height):
         for col in range(width):
-            centre = z[row, col]
+            centre = np.float64(z[row, col])
             inverse_sum = 1.0 / centre
             count = 1.0
-            limit = gate[row, col]
+            limit = gate_scale * np.float64(sigma[row, col])
             for pair in range(directions.shape[0]):
                 du, dv = directions[pair, 0], directions[pair, 1]
                 r1, c1, r2, c2 = row + dv, col + du, row - dv, col - du
                 if r1 < 0 or r1 >= height or c1 < 0 or c1 >= width or r2 < 0 or r2 >= height or c2 < 0 or c2 >= width:
                     continue
-                ahead, behind = z[r1, c1], z[r2, c2]
+                ahead, behind = np.float64(z[r1, c1]), np.float64(z[r2, c2])
                 if abs(ahead - centre) <= limit and abs(behind - centre) <= limit:
                     inverse_sum += 1.0 / ahead + 1.0 / behind
                     count += 2.0
