@@ -34,9 +34,10 @@ FACE_ID_RANGES_ARRAY = "face_id_ranges"
 
 
 def face_rgb(base: int, count: int) -> np.ndarray:
-    """(count, 3) uint8 RGB of the codes base .. base + count - 1 (red = low byte)."""
-    ids = np.arange(base, base + count, dtype=np.int64)
-    return np.stack([ids & 255, (ids >> 8) & 255, (ids >> 16) & 255], axis=1).astype(np.uint8)
+    """(count, 3) uint8 RGB of the codes base .. base + count - 1 (red = low byte): the first three bytes of
+    each code as a little-endian 32-bit word."""
+    words = np.arange(base, base + count, dtype="<u4")
+    return np.ascontiguousarray(words.view(np.uint8).reshape(-1, 4)[:, :3])
 
 
 class FaceCodes:

@@ -46,7 +46,7 @@ from vtkmodules.vtkCommonDataModel import vtkMultiBlockDataSet, vtkPolyData
 from mabdi.camera import Intrinsics, boxes_outside, frustum_planes, unit_rays
 from mabdi.errors import ConfigError
 from mabdi.filters.range_rendering_kernels import cast_beams_kernel
-from mabdi.face_identity import FaceIdTable, block_address
+from mabdi.face_identity import FaceIdTable, block_address, face_rgb
 from mabdi.polydata import named_leaves, triangulated
 from mabdi.spherical import SphericalGeometry
 
@@ -124,12 +124,6 @@ def sector_views(geometry: SphericalGeometry) -> SectorViews:
     candidates = sector[:, None] * (width * height) + (row[:, None] + dr) * width + (col[:, None] + dc)
     candidates.setflags(write=False)
     return SectorViews(intrinsics, poses, candidates, 1.0 / focal)
-
-
-def _identity_rgb(first: int, count: int) -> np.ndarray:
-    """(count, 3) uint8 RGB of identities first .. first + count - 1 (red the low byte)."""
-    ids = np.arange(first, first + count, dtype=np.int64)
-    return np.stack([ids & 255, (ids >> 8) & 255, (ids >> 16) & 255], axis=1).astype(np.uint8)
 
 
 class _TriangleTable:
@@ -223,7 +217,7 @@ class _TriangleTable:
         self._serials += 1
         self.block[rows] = self._serials
         self.cell[rows] = vtk_to_numpy(copy.GetCellData().GetArray(_SOURCE_CELL_ARRAY))
-        array = numpy_to_vtk(_identity_rgb(first, count), deep=True)
+        array = numpy_to_vtk(face_rgb(first, count), deep=True)
         array.SetName(TRIANGLE_RGB_ARRAY)
         copy.GetCellData().AddArray(array)
         return (leaf, leaf.GetMTime(), copy, self._serials, name)
