@@ -505,16 +505,17 @@ class WorldMap:
         faces); else (re-meshed, or faces removed since E was drawn) its codes find nothing here: the removal
         stage casts the pixels that showed a re-meshed block against its new faces (:meth:`stale_blocks`).
         """
+        groups, local = self._current_groups(codes, table)
+        block = np.full(local.shape, -1, dtype=np.int64)
+        for b, rows in groups:
+            block.reshape(-1)[rows] = b
+        return block, np.where(block >= 0, local, -1), list(table.names)
+
+    def _current_groups(self, codes, table: FaceIdTable) -> tuple[list[tuple[int, np.ndarray]], np.ndarray]:
+        """(``(b, rows)`` for each block ``b`` of ``table`` that ``codes`` name and that is current, with the flat
+        rows of ``codes`` in it (:func:`~mabdi.face_identity.rows_by_block`); each code's cell id in its block)."""
         block, local = table.lookup(codes)
-        flat_block, flat_local = block.reshape(-1), local.reshape(-1)
-        order = np.argsort(flat_block, kind="stable")
-        sorted_blocks = flat_block[order]
-        starts = np.searchsorted(sorted_blocks, np.arange(len(table.names) + 1))
-        for b in np.flatnonzero(np.diff(starts) > 0):
-            if not self._drawn_is_current(table, b):
-                flat_local[order[starts[b] : starts[b + 1]]] = -1
-        block = np.where(local >= 0, block, -1)
-        return block, local, list(table.names)
+        return [(b, rows) for b, rows in rows_by_block(block) if self._drawn_is_current(table, b)], local
 
     def _drawn_is_current(self, table: FaceIdTable, b: int) -> bool:
         """Whether block ``b`` of ``table`` is the patch of its name as it is now (the same polydata, as many faces)."""
@@ -543,11 +544,11 @@ class WorldMap:
 
     def _per_face(self, codes, table: FaceIdTable, attribute: str, fill) -> np.ndarray:
         codes = np.asarray(codes, dtype=np.int64)
-        block, local, keys = self.face_lookup(codes, table)
+        groups, local = self._current_groups(codes, table)
         sample = getattr(next(iter(self._patches.values())), attribute) if self._patches else np.zeros(0, np.float32)
         out = np.full((len(codes), *sample.shape[1:]), fill, dtype=sample.dtype)
-        for b, rows in rows_by_block(block):
-            out[rows] = getattr(self._patches[keys[b]], attribute)[local[rows]]
+        for b, rows in groups:
+            out[rows] = getattr(self._patches[table.names[b]], attribute)[local[rows]]
         return out
 
     def face_normals_of(self, codes, table: FaceIdTable) -> np.ndarray:
@@ -578,10 +579,10 @@ class WorldMap:
         A static patch has faces that pixels confirm, and then the rule does not apply.
         """
         codes = np.asarray(codes, dtype=np.int64)
-        block, local, keys = self.face_lookup(codes, table)
+        groups, local = self._current_groups(codes, table)
         condemned = []
-        for b, rows in rows_by_block(block):
-            patch = self._patches[keys[b]]
+        for b, rows in groups:
+            patch = self._patches[table.names[b]]
             cells = local[rows]
             evidence, frames, gone = update_log_odds(
                 patch.evidence[cells], patch.contradicted[cells], contradicted[rows], confirmed[rows], parameters
@@ -606,10 +607,10 @@ class WorldMap:
         Faces go with their edge-connected neighbours as :meth:`_removed_with` says. Returns the removed faces
         as one vtkPolyData (for the dashboard).
         """
-        block, local, keys = self.face_lookup(np.asarray(codes, dtype=np.int64), table)
+        groups, local = self._current_groups(np.asarray(codes, dtype=np.int64), table)
         removed_parts = []
-        for b, rows in rows_by_block(block):
-            patch = self._patches[keys[b]]
+        for b, rows in groups:
+            patch = self._patches[table.names[b]]
             triangles = patch_triangles(patch.polydata)
             gone = np.zeros(patch.cells, dtype=bool)
             gone[local[rows]] = True

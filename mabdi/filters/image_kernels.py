@@ -44,10 +44,10 @@ def depth_edges_kernel(depth, factor):
 
 
 @njit(cache=True)
-def dilate_kernel(mask, radius):
-    """(H, W) bool: ``mask`` dilated by a (2 radius + 1) square (a row pass, then a column pass)."""
+def _dilate_rows(mask, radius):
+    """(H, W) bool: ``mask`` dilated along its rows by 2 radius + 1 pixels, outside False."""
     height, width = mask.shape
-    rows = np.zeros((height, width), dtype=np.bool_)
+    out = np.zeros((height, width), dtype=np.bool_)
     for row in range(height):
         last = -(radius + 1)  # the column of the last True seen
         for col in range(width + radius):
@@ -55,15 +55,12 @@ def dilate_kernel(mask, radius):
                 last = col
             target = col - radius
             if target >= 0:
-                # True within radius to the left of col (col included) covers target from its right;
-                rows[row, target] = col - last <= 2 * radius
-    out = np.zeros((height, width), dtype=np.bool_)
-    for col in range(width):
-        last = -(radius + 1)
-        for row in range(height + radius):
-            if row < height and rows[row, col]:
-                last = row
-            target = row - radius
-            if target >= 0:
-                out[target, col] = row - last <= 2 * radius
+                # a True within 2 radius to the left of col (col included) covers target
+                out[row, target] = col - last <= 2 * radius
     return out
+
+
+@njit(cache=True)
+def dilate_kernel(mask, radius):
+    """(H, W) bool: ``mask`` dilated by a (2 radius + 1) square: along the rows, then along the columns."""
+    return np.ascontiguousarray(_dilate_rows(_dilate_rows(mask, radius).T, radius).T)

@@ -227,10 +227,11 @@ class ObjectRemoval:
         near = np.zeros(point_count, dtype=bool)
         near[around[inside]] = near_cluster[v[inside].astype(np.int64), u[inside].astype(np.int64)]
         face_counts = np.array([len(corners) for corners in first_corners])
+        ends = np.cumsum(face_counts)
         rows = np.flatnonzero(near[np.concatenate(first_corners)])  # faces of the touching blocks, in order
-        which = np.searchsorted(np.cumsum(face_counts), rows, side="right")  # index into touching_blocks
+        which = np.searchsorted(ends, rows, side="right")  # index into touching_blocks
         drawn = np.asarray(touching_blocks, dtype=np.int64)[which]
-        codes = table.bases[drawn] + rows - (np.cumsum(face_counts) - face_counts)[which]
+        codes = table.bases[drawn] + rows - (ends - face_counts)[which]
         unseen = ~codes_in(codes, faces)
         if not unseen.any():
             return np.zeros(0, dtype=np.int64)
