@@ -427,3 +427,75 @@ def test_registration_config_section_and_checks(tmp_path):
     path.write_text("[registration]\nlevel = 2\n")
     with pytest.raises(ConfigError, match="level"):
         load_run_config(path)
+
+
+def test_the_compiled_steps_agree_with_their_array_formulations():
+    """The ICP's compiled helpers against numpy and scipy: D's samples (points, depths, tiles) as the
+    array expressions give them, Rodrigues' formula against scipy's rotation, a transform's size, the
+    normal equations' step with no step along an unconstrained direction, and a cached normal equal
+    to one computed afresh."""
+    from mabdi.filters import registration_kernels as kernels
+    from mabdi.filters.registration import COVARIANCE_TILE, sample_points
+
+    rng = np.random.default_rng(5)
+    intrinsics = Intrinsics()
+    measured = rng.uniform(0.5, 4.0, (intrinsics.height, intrinsics.width)).astype(np.float32)
+    measured[rng.random(measured.shape) < 0.3] = np.nan
+    for stride in (2, 3, 8):
+        points, z, tiles, n_tiles = sample_points(measured, intrinsics, stride)
+        offset = stride // 2
+        depth = measured[offset::stride, offset::stride].astype(np.float64)
+        rows, cols = np.nonzero(np.isfinite(depth))
+        u, v = cols * stride + offset + 0.5, rows * stride + offset + 0.5
+        expected_z = depth[rows, cols]
+        np.testing.assert_array_equal(z, expected_z)
+        np.testing.assert_array_equal(points[:, 0], (u - intrinsics.cx) / intrinsics.fx * expected_z)
+        np.testing.assert_array_equal(points[:, 1], (v - intrinsics.cy) / intrinsics.fy * expected_z)
+        across = -(-intrinsics.width // COVARIANCE_TILE)
+        np.testing.assert_array_equal(tiles, ((v - 0.5) // COVARIANCE_TILE) * across + (u - 0.5) // COVARIANCE_TILE)
+        assert n_tiles == across * -(-intrinsics.height // COVARIANCE_TILE)
+
+    for vector in (rng.normal(0, 0.3, 3), np.zeros(3), np.array([1e-9, 0.0, 0.0])):
+        transform = kernels.rigid_from_vector(vector, np.array([0.1, -0.2, 0.3]))
+        np.testing.assert_allclose(transform[:3, :3], Rotation.from_rotvec(vector).as_matrix(), atol=1e-12)
+        translation, angle = transform_size(transform)
+        assert translation == pytest.approx(np.sqrt(0.14))
+        assert angle == pytest.approx(np.degrees(np.linalg.norm(vector)), abs=1e-9)
+
+    a = np.diag([4.0, 2.0, 1.0, 1e-12, 3.0, 5.0])  # the fourth direction unconstrained
+    b = np.array([4.0, 2.0, 1.0, 7.0, 6.0, 5.0])
+    step, inverse = kernels.solve_normal_equations(a, b)
+    np.testing.assert_allclose(step, [-1.0, -1.0, -1.0, 0.0, -2.0, -1.0])
+    assert inverse[3, 3] == 0.0
+
+    expected = measured.copy()
+    normals, known = np.empty((*expected.shape, 3)), np.zeros(expected.shape, dtype=np.int8)
+    k = intrinsics
+    for row, col in rng.integers(0, [k.height, k.width], (300, 2)):
+        fresh = kernels.point_and_normal(expected, row, col, k.fx, k.fy, k.cx, k.cy, 2, 0.5)
+        first = kernels.cached_point_and_normal(expected, normals, known, row, col, k.fx, k.fy, k.cx, k.cy, 2, 0.5)
+        again = kernels.cached_point_and_normal(expected, normals, known, row, col, k.fx, k.fy, k.cx, k.cy, 2, 0.5)
+        assert fresh == first == again
+        assert known[row, col] == (kernels.NORMAL_FOUND if fresh[0] else kernels.NORMAL_NONE)
+
+
+def test_a_kept_workspace_registers_as_a_fresh_one(bunnies):
+    """The normal cache a filter keeps from frame to frame starts each E afresh: registering frames one
+    after the other with one workspace gives the poses each gets alone."""
+    from mabdi.filters.registration import IcpWorkspace
+
+    mesh, poses = bunnies
+    intrinsics = Intrinsics()
+    renderer = DepthRenderer()
+    noise = SensorNoise("zbuffer")
+    rng = np.random.default_rng(4)
+    workspace = IcpWorkspace()
+    for i, true in enumerate(poses[:3]):
+        given = perturbed(true, rng.normal(0, 0.005, 3), rng.normal(0, 0.25, 3))
+        measured = depth_of(renderer, mesh, intrinsics, true, noise, frame=i)
+        expected = depth_of(renderer, mesh, intrinsics, given)
+        kept = register_depth(measured, expected, intrinsics, noise, RegistrationParameters(), workspace=workspace)
+        fresh = register_depth(measured, expected, intrinsics, noise, RegistrationParameters())
+        assert kept.status == fresh.status == "registered"
+        np.testing.assert_array_equal(kept.transform, fresh.transform)
+        np.testing.assert_array_equal(kept.covariance, fresh.covariance)

@@ -38,7 +38,12 @@ corrects the pose the way KinectFusion's frame-to-model tracking does
    than the map, or where it has none) and objects that left fall outside
    the gate and pull on nothing. Gauss-Newton steps in (rotation vector,
    translation); directions the scene does not constrain (a camera sliding
-   along a plane) get no step. The tile sums and the information that the
+   along a plane) get no step. A level ends once a step is below
+   ``STEP_TRANSLATION`` and ``STEP_ROTATION`` (0.05 mm and 0.0005 degrees,
+   well below the registered pose's own precision of tenths of a millimetre), ten times that for each
+   coarser level: those only bring the pose near. E's normals are computed
+   once per pixel that a sample lands on and kept while the frame is
+   registered (:class:`IcpWorkspace`). The tile sums and the information that the
    checks below need are taken once, at the pose found.
 5. **Checks**: the frame is *registered* when at least ``min_points`` pairs
    and ``min_inliers`` of the candidates (sampled points that landed on the
@@ -107,7 +112,17 @@ from mabdi.sensor_noise import SensorNoise
 from mabdi.filters.expected_image import MEASURED_PORT, MapAndImageAlgorithm, map_input, render_expected
 from mabdi.filters.map_anchor import MapAnchor
 from mabdi.noise_calibration import MAD_TO_SIGMA
-from mabdi.filters.registration_kernels import point_to_plane_system, pose_sigma_image
+from mabdi.filters.registration_kernels import (
+    gauss_newton_update,
+    median_every,
+    NORMAL_UNKNOWN,
+    point_to_plane_system,
+    pose_sigma_image,
+    rigid_from_vector,
+    rigid_size,
+    sample_depth_points,
+    solve_normal_equations,
+)
 from mabdi.pose_noise import PoseNoise
 
 
@@ -133,8 +148,10 @@ COVARIANCE_TILE = 32
 CONVERGED_TRANSLATION = 1e-3
 CONVERGED_ROTATION = 0.05
 #: The ICP stops at a level once a step is below these (m, degrees).
-STEP_TRANSLATION = 1e-5
-STEP_ROTATION = 1e-4
+STEP_TRANSLATION = 5e-5
+STEP_ROTATION = 5e-4
+#: ... and at each level coarser than the finest, this many times more (they only bring the pose near).
+COARSE_TOLERANCE = 10.0
 #: The residuals' median is taken over every MEDIAN_STRIDE-th where there are more than MEDIAN_MANY.
 MEDIAN_STRIDE = 4
 MEDIAN_MANY = 20_000
@@ -230,47 +247,68 @@ def sample_points(measured: np.ndarray, intrinsics: Intrinsics, stride: int) -> 
     """D's points (N, 3, camera frame, m) at every ``stride``-th pixel (the centre pixel of each
     stride x stride cell) that has a return, their depths (N,), the :data:`COVARIANCE_TILE` tile of the
     image each lies in (N,) and the number of tiles."""
-    offset = stride // 2
-    depth = measured[offset::stride, offset::stride].astype(np.float64)
-    rows, cols = np.nonzero(np.isfinite(depth))
-    z = depth[rows, cols]
-    u = cols * stride + offset + 0.5
-    v = rows * stride + offset + 0.5
-    points = np.stack([(u - intrinsics.cx) / intrinsics.fx * z, (v - intrinsics.cy) / intrinsics.fy * z, z], axis=1)
     tiles_across = -(-measured.shape[1] // COVARIANCE_TILE)
-    tiles = ((rows * stride + offset) // COVARIANCE_TILE) * tiles_across + (cols * stride + offset) // COVARIANCE_TILE
     n_tiles = tiles_across * -(-measured.shape[0] // COVARIANCE_TILE)
-    return points, z, tiles.astype(np.int64), n_tiles
+    k = intrinsics
+    points, z, tiles = sample_depth_points(measured, stride, k.fx, k.fy, k.cx, k.cy, COVARIANCE_TILE, tiles_across)
+    return points, z, tiles, n_tiles
 
 
 def _rigid(rotation_vector: np.ndarray, translation: np.ndarray) -> np.ndarray:
     """The 4x4 transform of a rotation vector (radians; Rodrigues' formula) and a translation."""
-    transform = np.eye(4)
-    angle = float(np.linalg.norm(rotation_vector))
-    x, y, z = rotation_vector / angle if angle > 0.0 else (0.0, 0.0, 0.0)
-    k = np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
-    transform[:3, :3] += np.sin(angle) * k + (1.0 - np.cos(angle)) * (k @ k)
-    transform[:3, 3] = translation
-    return transform
+    return rigid_from_vector(np.asarray(rotation_vector, dtype=np.float64), np.asarray(translation, dtype=np.float64))
 
 
 def transform_size(transform: np.ndarray) -> tuple[float, float]:
     """(translation in m, rotation angle in degrees) of a 4x4 rigid transform (the angle from both its sine and
     its cosine, exact for small angles too)."""
-    r = transform[:3, :3]
-    sine = 0.5 * np.sqrt((r[2, 1] - r[1, 2]) ** 2 + (r[0, 2] - r[2, 0]) ** 2 + (r[1, 0] - r[0, 1]) ** 2)
-    angle = np.degrees(np.arctan2(sine, 0.5 * (np.trace(r) - 1.0)))
-    return float(np.linalg.norm(transform[:3, 3])), float(angle)
+    translation, angle = rigid_size(np.ascontiguousarray(transform, dtype=np.float64))
+    return float(translation), float(angle)
 
 
 def _solve(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The step x of A x = -b and the pseudo-inverse of A, with no step along directions A does not constrain."""
-    values, vectors = np.linalg.eigh(a)
-    keep = values > max(values[-1], 0.0) * 1e-8
-    inverse_values = np.zeros_like(values)
-    inverse_values[keep] = 1.0 / values[keep]
-    inverse = (vectors * inverse_values) @ vectors.T
-    return -inverse @ b, inverse
+    return solve_normal_equations(a, b)
+
+
+class IcpWorkspace:
+    """Memory the ICP reuses from frame to frame: the cache of E's normals (H x W x 3, float64) that its
+    steps fill (:func:`~mabdi.filters.registration_kernels.cached_point_and_normal`) and which pixels it holds.
+    Touching 7 MB of fresh pages for every frame costs more than the normals themselves, so a caller that
+    registers many frames (:class:`FilterRegistration`) keeps one; one workspace serves one registration
+    at a time."""
+
+    def __init__(self) -> None:
+        self._normals = np.empty((0, 0, 3))
+        self._known = np.zeros((0, 0), dtype=np.int8)
+
+    def normal_cache(self, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+        """(normals (H, W, 3), known (H, W) int8 all unknown) for an E of ``shape``."""
+        if self._known.shape != tuple(shape):
+            self._normals = np.empty((*shape, 3))
+            self._known = np.zeros(shape, dtype=np.int8)
+        else:
+            self._known.fill(NORMAL_UNKNOWN)
+        return self._normals, self._known
+
+
+class _MapImage:
+    """E as the ICP reads it: its depth (float32) and the cache of the normals its steps computed, kept while
+    one frame is registered."""
+
+    def __init__(self, expected: np.ndarray, intrinsics: Intrinsics, workspace: IcpWorkspace) -> None:
+        self.depth = np.ascontiguousarray(expected, dtype=np.float32)
+        self.normals, self.known = workspace.normal_cache(self.depth.shape)
+        self.intrinsics = intrinsics
+
+    def system(self, points, tiles, n_tiles, scale, gate, transform, huber, summaries):
+        """One ICP step's normal equations at ``transform`` (E-camera from D-camera, 4x4):
+        :func:`~mabdi.filters.registration_kernels.point_to_plane_system`."""
+        k = self.intrinsics
+        return point_to_plane_system(
+            points, tiles, n_tiles, scale, gate, transform[:3, :3], np.ascontiguousarray(transform[:3, 3]), self.depth,
+            self.normals, self.known, k.fx, k.fy, k.cx, k.cy, NORMAL_STEP, NORMAL_MAX_JUMP, huber, summaries,
+        )  # fmt: skip
 
 
 def register_depth(
@@ -280,6 +318,7 @@ def register_depth(
     noise: SensorNoise,
     parameters: RegistrationParameters,
     starts: tuple[np.ndarray, ...] = (),
+    workspace: IcpWorkspace | None = None,
 ) -> RegistrationResult:
     """Align D (``measured``) to E (``expected``, the map rendered at D's pose) by projective point-to-plane ICP.
 
@@ -287,14 +326,15 @@ def register_depth(
     Returns the transform E-camera from D-camera: the registered pose is the
     rendering pose times it. The search starts from the identity or from the
     transform in ``starts`` under which more of D's samples lie on E within
-    their noise. See the module docs for the steps and checks.
+    their noise. ``workspace``: memory kept from one call to the next (:class:`IcpWorkspace`; a
+    fresh one when None). See the module docs for the steps and checks.
     """
     p = parameters
     if np.count_nonzero(np.isfinite(expected[::4, ::4])) * 16 < p.min_points:
         # nothing to fit: the last correction carried on is the best guess (drift grows; jitter stays small)
         return RegistrationResult(starts[-1].copy() if starts else np.eye(4), "no_map")
-    expected = np.ascontiguousarray(expected, dtype=np.float32)
-    transform = _best_start(measured, expected, intrinsics, (np.eye(4), *starts), noise, p)
+    map_image = _MapImage(expected, intrinsics, workspace if workspace is not None else IcpWorkspace())
+    transform = _best_start(measured, map_image, intrinsics, (np.eye(4), *starts), noise, p)
     a = b = None
     chi2 = 0.0
     pairs = candidates = 0
@@ -307,43 +347,39 @@ def register_depth(
         points, z, tiles, n_tiles = sample_points(measured, intrinsics, p.stride * 2 ** (p.levels - 1 - level))
         scale = np.sqrt(noise.sigma(z, intrinsics.near, intrinsics.far) ** 2 + p.model_sigma**2)
         scale = np.maximum(scale, 1e-4)
+        # a coarser level only brings the pose near: the finer ones end it (steps below these end the level)
+        loose = COARSE_TOLERANCE ** (p.levels - 1 - level)
+        step_translation, step_rotation = STEP_TRANSLATION * loose, STEP_ROTATION * loose
+        step_size = (np.inf, np.inf)
         for _ in range(p.iterations):
             gate = np.maximum(reach, p.gate_k * scale)
             if iterations == 0:
                 # how far off the prediction is, before the first step: pairs beyond that are other surfaces
-                *_, candidates, residuals, _, _ = point_to_plane_system(
-                    points, tiles, n_tiles, scale, gate, transform[:3, :3], np.ascontiguousarray(transform[:3, 3]), expected,
-                    intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy, NORMAL_STEP, NORMAL_MAX_JUMP, p.huber, False,
-                )  # fmt: skip
+                *_, candidates, residuals, _, _ = map_image.system(points, tiles, n_tiles, scale, gate, transform, p.huber, False)
                 if candidates:
-                    reach = min(reach, p.gate_k * MAD_TO_SIGMA * float(np.median(residuals)))
+                    reach = min(reach, p.gate_k * MAD_TO_SIGMA * median_every(residuals, 1))
                 gate = np.maximum(reach, p.gate_k * scale)
             # a finest step after a small one is likely the last: it takes what the checks need as it goes
-            likely_last = level == p.levels - 1 and step_size[0] < 10 * STEP_TRANSLATION and step_size[1] < 10 * STEP_ROTATION
-            a, b, chi2, pairs, candidates, residuals, support, tile_gradients = point_to_plane_system(
-                points, tiles, n_tiles, scale, gate, transform[:3, :3], np.ascontiguousarray(transform[:3, 3]), expected,
-                intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy, NORMAL_STEP, NORMAL_MAX_JUMP, p.huber, likely_last,
-            )  # fmt: skip
+            likely_last = level == p.levels - 1 and step_size[0] < 10 * step_translation and step_size[1] < 10 * step_rotation
+            a, b, chi2, pairs, candidates, residuals, support, tile_gradients = map_image.system(
+                points, tiles, n_tiles, scale, gate, transform, p.huber, likely_last
+            )
             summaries = (support, tile_gradients) if likely_last else None
             iterations += 1
             if pairs < max(6, p.min_points // 4 ** (p.levels - 1 - level)):
                 return RegistrationResult(start, "few_points", iterations=iterations)
-            step, _ = _solve(a, b)
-            update = _rigid(step[:3], step[3:])
-            transform = update @ transform
-            step_size = transform_size(update)
+            transform, *step_size = gauss_newton_update(a, b, transform)
             # the spread of the residuals says how far off the pose still is (robust: a median, of every
             # MEDIAN_STRIDE-th of many)
-            spread = MAD_TO_SIGMA * float(np.median(residuals[:: MEDIAN_STRIDE if len(residuals) > MEDIAN_MANY else 1]))
+            spread = MAD_TO_SIGMA * median_every(residuals, MEDIAN_STRIDE if len(residuals) > MEDIAN_MANY else 1)
             reach = min(reach, p.gate_k * spread)
-            if step_size[0] < STEP_TRANSLATION and step_size[1] < STEP_ROTATION:
+            if step_size[0] < step_translation and step_size[1] < step_rotation:
                 break
     if summaries is None:  # the last step did not take them: the pose found, judged at its own pairs
         gate = np.maximum(reach, p.gate_k * scale)
-        a, b, chi2, pairs, candidates, residuals, *summaries = point_to_plane_system(
-            points, tiles, n_tiles, scale, gate, transform[:3, :3], np.ascontiguousarray(transform[:3, 3]), expected,
-            intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy, NORMAL_STEP, NORMAL_MAX_JUMP, p.huber, True,
-        )  # fmt: skip
+        a, b, chi2, pairs, candidates, residuals, *summaries = map_image.system(
+            points, tiles, n_tiles, scale, gate, transform, p.huber, True
+        )
     support, tile_gradients = summaries
     _, inverse = _solve(a, b)
     covariance = pose_covariance(inverse, chi2, pairs, tile_gradients)
@@ -414,7 +450,7 @@ def constraint_support(support: np.ndarray, depths: np.ndarray) -> float:
     return float(shares.min())
 
 
-def _best_start(measured, expected, intrinsics: Intrinsics, starts, noise: SensorNoise, p: RegistrationParameters) -> np.ndarray:
+def _best_start(measured, map_image: _MapImage, intrinsics: Intrinsics, starts, noise: SensorNoise, p: RegistrationParameters) -> np.ndarray:
     """The transform of ``starts`` under which most of D's coarsest samples lie on E within their noise gate
     (a count, not a median: a heading error leaves the floor where it was and moves only the objects)."""
     if len(starts) == 1:
@@ -424,10 +460,7 @@ def _best_start(measured, expected, intrinsics: Intrinsics, starts, noise: Senso
     gate = p.gate_k * scale
     best, best_pairs = starts[0], -1
     for transform in starts:
-        _, _, _, pairs, *_ = point_to_plane_system(
-            points, tiles, n_tiles, scale, gate, transform[:3, :3], np.ascontiguousarray(transform[:3, 3]), expected,
-            intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy, NORMAL_STEP, NORMAL_MAX_JUMP, p.huber, False,
-        )  # fmt: skip
+        _, _, _, pairs, *_ = map_image.system(points, tiles, n_tiles, scale, gate, transform, p.huber, False)
         if pairs > best_pairs:
             best, best_pairs = transform, pairs
     return best.copy()
@@ -559,6 +592,7 @@ class FilterRegistration(MapAndImageAlgorithm):
         self._parameters = parameters if parameters is not None else RegistrationParameters()
         self._pose_accuracy = pose_accuracy
         self.renderer = renderer if renderer is not None else DepthRenderer(backend)
+        self._workspace = IcpWorkspace()
         self.reset()
 
     @property
@@ -619,7 +653,7 @@ class FilterRegistration(MapAndImageAlgorithm):
             given_in_map = self.anchor.map_from_world @ given
             expected = render_expected(self.renderer, world, intrinsics, given_in_map)
             carried = np.linalg.inv(given_in_map) @ apply_correction(self._correction, given_in_map)
-            result = register_depth(measured, expected, intrinsics, noise, p, starts=(carried,))
+            result = register_depth(measured, expected, intrinsics, noise, p, starts=(carried,), workspace=self._workspace)
         pose = given_in_map @ result.transform
         covariance = result.covariance
         if result.registered:

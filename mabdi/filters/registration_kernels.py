@@ -6,7 +6,10 @@ is projected into E's image, paired with the map point and normal E shows at
 that pixel, and adds its robustly weighted row to the 6x6 normal equations.
 :func:`pose_sigma_image` turns a pose covariance into each pixel's depth
 uncertainty. Both read E's points and normals straight from its depth image
-(:func:`point_and_normal`), so no image-sized temporaries are made.
+(:func:`point_and_normal`), so no image-sized temporaries are made; the
+ICP's steps keep the normals they computed (:func:`cached_point_and_normal`):
+E does not change while a frame is registered, and after the first steps
+the samples land on the same pixels again.
 """
 
 from __future__ import annotations
@@ -36,26 +39,59 @@ def point_and_normal(depth, row, col, fx, fy, cx, cy, step, max_jump):
     limit = max_jump * z
     if not (abs(left - z) <= limit and abs(right - z) <= limit and abs(up - z) <= limit and abs(down - z) <= limit):
         return False, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0  # also for NaN in the pixel or a neighbour
-    ax = (col + 0.5 - cx) / fx
-    ay = (row + 0.5 - cy) / fy
+    across = col + 0.5 - cx  # the pixel centre's offset from the principal point (pixels)
+    down_from = row + 0.5 - cy
+    ax = across / fx
+    ay = down_from / fy
     x = ax * z
     y = ay * z
     # u difference: points at columns col +- step (same row); v difference: rows row +- step (same column)
-    ux = (col + step + 0.5 - cx) / fx * right - (col - step + 0.5 - cx) / fx * left
+    ux = ((across + step) * right - (across - step) * left) / fx
     uy = ay * (right - left)
     uz = right - left
     vx = ax * (down - up)
-    vy = (row + step + 0.5 - cy) / fy * down - (row - step + 0.5 - cy) / fy * up
+    vy = ((down_from + step) * down - (down_from - step) * up) / fy
     vz = down - up
     nx = uy * vz - uz * vy
     ny = uz * vx - ux * vz
     nz = ux * vy - uy * vx
-    norm = np.sqrt(nx * nx + ny * ny + nz * nz)
-    if norm == 0.0:
+    squared = nx * nx + ny * ny + nz * nz
+    if squared == 0.0:
         return False, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+    inverse = 1.0 / np.sqrt(squared)
     if nx * x + ny * y + nz * z > 0.0:
-        norm = -norm
-    return True, x, y, z, nx / norm, ny / norm, nz / norm
+        inverse = -inverse
+    return True, x, y, z, nx * inverse, ny * inverse, nz * inverse
+
+
+#: States of a pixel in the normal cache of :func:`cached_point_and_normal`.
+NORMAL_UNKNOWN = 0
+NORMAL_FOUND = 1
+NORMAL_NONE = 2
+
+
+@njit(cache=True, inline="always")
+def cached_point_and_normal(depth, normals, known, row, col, fx, fy, cx, cy, step, max_jump):
+    """:func:`point_and_normal`, computed once per pixel: ``normals`` (H, W, 3) float64 keeps each
+    pixel's unit normal and ``known`` (H, W) int8 whether it was computed (``NORMAL_UNKNOWN`` before, then
+    ``NORMAL_FOUND`` or ``NORMAL_NONE``). The same numbers as :func:`point_and_normal`."""
+    state = known[row, col]
+    if state == NORMAL_UNKNOWN:
+        ok, x, y, z, nx, ny, nz = point_and_normal(depth, row, col, fx, fy, cx, cy, step, max_jump)
+        if ok:
+            normals[row, col, 0] = nx
+            normals[row, col, 1] = ny
+            normals[row, col, 2] = nz
+            known[row, col] = NORMAL_FOUND
+        else:
+            known[row, col] = NORMAL_NONE
+        return ok, x, y, z, nx, ny, nz
+    if state == NORMAL_NONE:
+        return False, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+    z = np.float64(depth[row, col])
+    x = (col + 0.5 - cx) / fx * z
+    y = (row + 0.5 - cy) / fy * z
+    return True, x, y, z, normals[row, col, 0], normals[row, col, 1], normals[row, col, 2]
 
 
 @njit(cache=True, inline="always")
@@ -72,7 +108,8 @@ def point_plane_jacobian(jac, x, y, z, nx, ny, nz):
 
 @njit(cache=True)
 def point_to_plane_system(
-    points, tiles, n_tiles, scale, gate, rotation, translation, e_depth, fx, fy, cx, cy, step, max_jump, huber, summaries=True
+    points, tiles, n_tiles, scale, gate, rotation, translation, e_depth, e_normals, e_known, fx, fy, cx, cy, step, max_jump, huber,
+    summaries=True,
 ):
     """Normal equations of one ICP step in E's camera frame.
 
@@ -81,7 +118,8 @@ def point_to_plane_system(
     (N,): each point's noise (m), the unit of its residual; ``gate`` (N,):
     the largest residual (m) a pair may have; ``rotation``, ``translation``:
     the current estimate of E-camera from D-camera; ``e_depth`` (H, W): E,
-    metric depth, NaN where the map has no surface; ``step`` and
+    metric depth, NaN where the map has no surface; ``e_normals`` and ``e_known``: the cache of E's normals
+    (:func:`cached_point_and_normal`; start it unknown for each E); ``step`` and
     ``max_jump``: E's normals (:func:`point_and_normal`); ``huber``: the
     Huber threshold in units of ``scale`` (0: Tukey's biweight over the
     gate). Parameters are (rotation vector, translation), a left
@@ -119,7 +157,9 @@ def point_to_plane_system(
         v = fy * y / z + cy
         if not (u >= 0.0 and v >= 0.0 and u < width and v < height):
             continue
-        ok, qx, qy, qz, nx, ny, nz = point_and_normal(e_depth, int(v), int(u), fx, fy, cx, cy, step, max_jump)
+        ok, qx, qy, qz, nx, ny, nz = cached_point_and_normal(
+            e_depth, e_normals, e_known, int(v), int(u), fx, fy, cx, cy, step, max_jump
+        )
         if not ok:
             continue
         r = nx * (x - qx) + ny * (y - qy) + nz * (z - qz)
@@ -171,7 +211,14 @@ def pose_sigma_image(e_depth, fx, fy, cx, cy, step, max_jump, covariance, min_co
     """
     height, width = e_depth.shape
     sigma = np.full((height, width), np.nan, dtype=np.float32)
-    jac = np.zeros(6)
+    # the quadratic form J C J^T over the 21 distinct entries of the symmetric C (off-diagonals twice)
+    c = covariance
+    c00, c11, c22, c33, c44, c55 = c[0, 0], c[1, 1], c[2, 2], c[3, 3], c[4, 4], c[5, 5]
+    c01, c02, c03, c04, c05 = 2 * c[0, 1], 2 * c[0, 2], 2 * c[0, 3], 2 * c[0, 4], 2 * c[0, 5]
+    c12, c13, c14, c15 = 2 * c[1, 2], 2 * c[1, 3], 2 * c[1, 4], 2 * c[1, 5]
+    c23, c24, c25 = 2 * c[2, 3], 2 * c[2, 4], 2 * c[2, 5]
+    c34, c35 = 2 * c[3, 4], 2 * c[3, 5]
+    c45 = 2 * c[4, 5]
     for row in range(height):
         for col in range(width):
             depth = np.float64(e_depth[row, col])
@@ -187,13 +234,111 @@ def pose_sigma_image(e_depth, fx, fy, cx, cy, step, max_jump, covariance, min_co
                 nx, ny, nz = -x / distance, -y / distance, -z / distance
             else:
                 distance = np.sqrt(x * x + y * y + z * z)
-            point_plane_jacobian(jac, x, y, z, nx, ny, nz)
-            variance = 0.0
-            for j in range(6):
-                for k in range(6):
-                    variance += jac[j] * covariance[j, k] * jac[k]
+            # J = (p x n, n): :func:`point_plane_jacobian`
+            j0 = y * nz - z * ny
+            j1 = z * nx - x * nz
+            j2 = x * ny - y * nx
+            variance = (
+                j0 * (c00 * j0 + c01 * j1 + c02 * j2 + c03 * nx + c04 * ny + c05 * nz)
+                + j1 * (c11 * j1 + c12 * j2 + c13 * nx + c14 * ny + c15 * nz)
+                + j2 * (c22 * j2 + c23 * nx + c24 * ny + c25 * nz)
+                + nx * (c33 * nx + c34 * ny + c35 * nz)
+                + ny * (c44 * ny + c45 * nz)
+                + nz * c55 * nz
+            )
             cosine = abs(nx * x + ny * y + nz * z) / distance
             if cosine < min_cosine:
                 cosine = min_cosine
             sigma[row, col] = np.sqrt(max(variance, 0.0)) / cosine * z / distance
     return sigma
+
+
+@njit(cache=True)
+def sample_depth_points(measured, stride, fx, fy, cx, cy, tile, tiles_across):
+    """D's points at the centre pixel of every ``stride`` x ``stride`` cell that has a return: (points (N, 3) in
+    D's camera frame (m), depths (N,), the index of the ``tile`` x ``tile`` image tile each lies in (N,), row by
+    row with ``tiles_across`` tiles a row). See :func:`mabdi.filters.registration.sample_points`."""
+    height, width = measured.shape
+    offset = stride // 2
+    rows = (height - offset + stride - 1) // stride
+    cols = (width - offset + stride - 1) // stride
+    points = np.empty((rows * cols, 3))
+    depths = np.empty(rows * cols)
+    tiles = np.empty(rows * cols, dtype=np.int64)
+    n = 0
+    for i in range(rows):
+        row = i * stride + offset
+        ay = (row + 0.5 - cy) / fy
+        for j in range(cols):
+            col = j * stride + offset
+            z = np.float64(measured[row, col])
+            if not np.isfinite(z):
+                continue
+            points[n, 0] = (col + 0.5 - cx) / fx * z
+            points[n, 1] = ay * z
+            points[n, 2] = z
+            depths[n] = z
+            tiles[n] = (row // tile) * tiles_across + col // tile
+            n += 1
+    return points[:n], depths[:n], tiles[:n]
+
+
+@njit(cache=True)
+def rigid_from_vector(rotation_vector, translation):
+    """The 4x4 transform of a rotation vector (radians; Rodrigues' formula) and a translation (m)."""
+    transform = np.eye(4)
+    angle = np.sqrt(rotation_vector[0] ** 2 + rotation_vector[1] ** 2 + rotation_vector[2] ** 2)
+    x = y = z = 0.0
+    if angle > 0.0:
+        x, y, z = rotation_vector[0] / angle, rotation_vector[1] / angle, rotation_vector[2] / angle
+    k = np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+    k2 = k @ k
+    sine, versine = np.sin(angle), 1.0 - np.cos(angle)
+    for i in range(3):
+        for j in range(3):
+            transform[i, j] += sine * k[i, j] + versine * k2[i, j]
+        transform[i, 3] = translation[i]
+    return transform
+
+
+@njit(cache=True)
+def rigid_size(transform):
+    """(translation in m, rotation angle in degrees) of a 4x4 rigid transform (the angle from both its sine and
+    its cosine, exact for small angles too)."""
+    r = transform
+    sine = 0.5 * np.sqrt((r[2, 1] - r[1, 2]) ** 2 + (r[0, 2] - r[2, 0]) ** 2 + (r[1, 0] - r[0, 1]) ** 2)
+    angle = np.degrees(np.arctan2(sine, 0.5 * (r[0, 0] + r[1, 1] + r[2, 2] - 1.0)))
+    translation = np.sqrt(r[0, 3] ** 2 + r[1, 3] ** 2 + r[2, 3] ** 2)
+    return translation, angle
+
+
+@njit(cache=True)
+def solve_normal_equations(a, b):
+    """The step x of A x = -b and the pseudo-inverse of A, with no step along directions A does not
+    constrain (eigenvalues under 1e-8 of the largest)."""
+    values, vectors = np.linalg.eigh(a)
+    largest = max(values[-1], 0.0)
+    inverse_values = np.zeros_like(values)
+    for i in range(len(values)):
+        if values[i] > largest * 1e-8:
+            inverse_values[i] = 1.0 / values[i]
+    inverse = (vectors * inverse_values) @ vectors.T
+    return -(inverse @ b), inverse
+
+
+@njit(cache=True)
+def gauss_newton_update(a, b, transform):
+    """One Gauss-Newton step of the ICP: the new estimate (the step's rigid motion, left of ``transform``),
+    and the step's size (m, degrees)."""
+    step, _ = solve_normal_equations(a, b)
+    update = rigid_from_vector(step[:3], step[3:])
+    translation, angle = rigid_size(update)
+    return update @ transform, translation, angle
+
+
+@njit(cache=True)
+def median_every(values, stride):
+    """The median of every ``stride``-th of ``values`` (the first included); NaN when there are none."""
+    if len(values) == 0:
+        return np.nan
+    return np.median(values[::stride])
