@@ -30,7 +30,7 @@ from mabdi.config import load_run_config, set_value
 from mabdi.evaluate import evaluate_run
 from mabdi.filters.depth_image import DepthRenderer
 from mabdi.sensor_noise import SensorNoise
-from mabdi.filters.registration import RegistrationParameters, register_depth, transform_size
+from mabdi.filters.registration import IcpWorkspace, RegistrationParameters, register_depth, transform_size
 from mabdi.loop import Simulation
 from mabdi.simulate.rig import SimulatedRig
 
@@ -53,6 +53,7 @@ def icp_alone(frames: int = 16) -> dict:
     noise = rig.sensor.noise
     rng = np.random.default_rng(0)
     before, after, render_ms, icp_ms = [], [], [], []
+    workspace = IcpWorkspace()  # kept from frame to frame, as FilterRegistration keeps it
     for i in np.linspace(0, len(rig) - 1, frames).astype(int):
         frame = rig.read(int(i))
         true = frame.world_from_camera
@@ -64,7 +65,7 @@ def icp_alone(frames: int = 16) -> dict:
         zbuffer = renderer.render_zbuffer(mesh, frame.intrinsics, given)
         expected = SensorNoise().depth_from_zbuffer(zbuffer, frame.intrinsics.near, frame.intrinsics.far, None)
         middle = time.perf_counter()
-        result = register_depth(frame.depth, expected, frame.intrinsics, noise, RegistrationParameters())
+        result = register_depth(frame.depth, expected, frame.intrinsics, noise, RegistrationParameters(), workspace=workspace)
         end = time.perf_counter()
         render_ms.append(1000 * (middle - start))
         icp_ms.append(1000 * (end - middle))
