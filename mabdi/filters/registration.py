@@ -113,9 +113,9 @@ from mabdi.filters.expected_image import MEASURED_PORT, MapAndImageAlgorithm, ma
 from mabdi.filters.map_anchor import MapAnchor
 from mabdi.noise_calibration import MAD_TO_SIGMA
 from mabdi.filters.registration_kernels import (
+    NORMAL_UNKNOWN,
     gauss_newton_update,
     median_every,
-    NORMAL_UNKNOWN,
     point_to_plane_system,
     pose_sigma_image,
     rigid_from_vector,
