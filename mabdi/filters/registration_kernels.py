@@ -188,7 +188,7 @@ def point_to_plane_system(
             e = r / g
             w = (1.0 - e * e) ** 2
         w /= s * s
-        # the upper triangle of A and b in scalars (LLVM keeps them in registers: 13% faster than arrays)
+        # the upper triangle of A, and b, in scalars: LLVM keeps them in registers (arrays are slower)
         j0, j1, j2, j3, j4, j5 = jac[0], jac[1], jac[2], jac[3], jac[4], jac[5]
         w0, w1, w2, w3, w4, w5 = w * j0, w * j1, w * j2, w * j3, w * j4, w * j5
         b0 += w0 * r
