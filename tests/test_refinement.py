@@ -73,7 +73,8 @@ def vertex_distances(loop) -> np.ndarray:
 
 
 def refining_loop(frames: FrameList, surface: str):
-    """The loop with its refinement (on by default with a noisy sensor); object removal made unable to fire,
+    """The loop with its refinement (on by default with a noisy sensor) and its replacement of faces made from a
+    noisier look (off by default, on here); object removal made unable to fire,
     so what changes the map here is the refinement alone."""
     loop = mabdi.MabdiLoop(
         frames,
@@ -82,6 +83,7 @@ def refining_loop(frames: FrameList, surface: str):
         surface_parameters=RAW[surface],
         noise="kinect",
         registration=EXACT_POSES,
+        refinement=RefinementParameters(replace=True),
     )
     assert loop.refining
     loop.removal_parameters = RemovalParameters(min_frames=60000)

@@ -7,8 +7,17 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-#: The 4 opposite-neighbour pairs, as (du, dv) of one side (the other side is (-du, -dv)).
+#: The 4 opposite-neighbour pairs of the 3 x 3 window, as (du, dv) of one side (the other side is (-du, -dv)).
 PAIR_DIRECTIONS = np.array([(1, 0), (0, 1), (1, 1), (1, -1)], dtype=np.int64)
+
+
+def pair_directions(radius: int) -> np.ndarray:
+    """The opposite-neighbour pairs of the (2 radius + 1)^2 window, as (du, dv) of one side ((2 r + 1)^2 - 1) / 2
+    pairs; radius 1 is :data:`PAIR_DIRECTIONS`."""
+    if radius == 1:
+        return PAIR_DIRECTIONS
+    pairs = [(du, dv) for du in range(radius + 1) for dv in range(-radius, radius + 1) if du > 0 or dv > 0]
+    return np.array(pairs, dtype=np.int64)
 
 
 @njit(cache=True, error_model="numpy")  # a depth of 0 divides as numpy does (inf), not raising
@@ -22,6 +31,9 @@ def smooth_depth_kernel(z, sigma, gate_scale, directions):
     for row in range(height):
         for col in range(width):
             centre = np.float64(z[row, col])
+            if not np.isfinite(centre):  # no return (or only the pixels being meshed were given): stays as it is
+                out[row, col] = np.float32(centre)
+                continue
             inverse_sum = 1.0 / centre
             count = 1.0
             limit = gate_scale * np.float64(sigma[row, col])

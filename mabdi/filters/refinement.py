@@ -64,8 +64,8 @@ as an offset t_v from its *original* position p0_v:
   through :meth:`~mabdi.filters.world_mesh.FilterWorldMesh.move_points`, one
   call per changed block; no triangle is added or removed.
 
-**Replacement** (the faces made from a much noisier look than this one). A
-pixel showing f *prefers a better look* when
+**Replacement** (``replace``, off by default: the faces made from a much
+noisier look than this one). A pixel showing f *prefers a better look* when
 sigma_f >= ``replace_ratio`` sigma(D) (2: e.g. made at 4 m, seen now from
 2.8 m or nearer) and D lies on the same surface (the gate above, which keeps
 an object in front of the face from counting). A face is replaced when
@@ -74,6 +74,11 @@ better look. :meth:`MapRefinement.step` returns the identities of those faces;
 the loop removes them (``world.remove_faces``), and their pixels are novel in
 the next frame and meshed from that better look: the surface is replaced,
 never doubled by a layer beside it. Pixels of replaced faces do not refine.
+It is off by default because the next frame may not see the surface as
+well as the one that replaced it (it has moved on, or sees it at a grazing
+angle where a structured-light camera returns nothing), and the surface
+comes back with gaps: on the structured-light runs replacement cost F@1cm
+or gained nothing (docs/benchmarks.md, "Real poses and real cameras").
 
 **When it runs** (``[classifier] refinement``): ``"auto"``, the default,
 turns it on where the noise model says neighbouring pixels err together
@@ -85,8 +90,7 @@ average it away. With independent noise the smoothed first look is already
 about three times less noisy, refinement adds little, and replacement can
 cost a quad-tree map recall: a quad-tree face is a plane fitted to many
 pixels, better than the one-pixel sigma(z_create) its prior assumes, so good
-faces are replaced and come back with gaps (``replace = false`` is the
-better setting there). The first version (label-based observations from
+faces are replaced and come back with gaps. The first version (label-based observations from
 anywhere on a face) made every map worse. The measurements, and what it
 costs a frame, are in ``docs/benchmarks.md`` ("Depth smoothing before
 meshing", "Real poses and real cameras").
@@ -167,7 +171,7 @@ class RefinementParameters:
     confidence: float = 1.0
     min_step: float = 2e-4
     min_sigma: float = 1e-4
-    replace: bool = True
+    replace: bool = False
     replace_ratio: float = 2.0
     gate_k: float = 3.0
     replace_share: float = 0.5
