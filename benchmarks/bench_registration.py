@@ -8,7 +8,7 @@ Part 2, the loop: Run 2 (and the table with --table) on exact poses, jitter 2 mm
 5 mm / 0.3 degrees per axis, drift 1 cm and 0.5 degrees per sqrt(metre), and the structured-light
 noise model; for each, the quad-tree with and without registration and Open3D's TSDF (1 and 2 cm,
 the settings tuned on exact poses in docs/benchmarks.md: truncation 4 voxels, weight > 0.5,
-half-pixel centres, depth smoothed) fed the same given poses. F@1cm, triangles, faces removed,
+half-pixel centres, depth smoothed as the surfaces smooth it: over the window the noise calls for) fed the same given poses. F@1cm, triangles, faces removed,
 the registered frames and the registered poses' median error.
 
     python benchmarks/bench_registration.py [--table] [--quick] [--out runs/bench_registration.json]
