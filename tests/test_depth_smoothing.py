@@ -146,3 +146,9 @@ def test_a_wide_window_takes_out_correlated_noise_and_keeps_planes_and_steps():
     out = smooth_depth(step, np.full(step.shape, 0.005), radius=4)
     np.testing.assert_array_equal(out[:, :30], 2.0)
     np.testing.assert_array_equal(out[:, 30:], np.float32(2.1))
+
+
+def test_a_window_radius_that_is_not_a_whole_pixel_count_is_refused():
+    for radius in (0, 2.5, True):
+        with pytest.raises(ValueError, match=r"radius must be an integer >= 1 \(pixels\), got"):
+            smooth_depth(np.ones((4, 4), np.float32), 0.01, radius=radius)

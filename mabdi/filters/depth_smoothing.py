@@ -42,8 +42,9 @@ at most ``MAX_SMOOTHING_RADIUS`` pixels: every opposite pair in it is used
 under the same gate, so planes stay unbiased and steps sharp, and a
 terrace a few pixels wide is averaged with its neighbours. The price is
 the curvature term, which grows with the window's second moment (about
-2 mm on a 10 cm radius seen from 3 m for the 9 x 9 window, against
-centimetres of correlated error). Independent noise keeps the 3 x 3 window.
+2-3 mm on a 10 cm radius seen from 3 m for the 9 x 9 window, ten times the
+3 x 3 window's, against centimetres of correlated error). Independent noise
+keeps the 3 x 3 window.
 
 ``smooth_depth = false`` in the surface's config section meshes the raw
 image.
@@ -87,6 +88,8 @@ def smooth_depth(depth: np.ndarray, sigma: np.ndarray, gate_k: float = SMOOTHING
     z = np.asarray(depth)
     if z.ndim != 2:
         raise ValueError(f"smooth_depth: need an (H, W) depth image, got shape {z.shape}")
+    if isinstance(radius, bool) or not isinstance(radius, (int, np.integer)) or radius < 1:
+        raise ValueError(f"smooth_depth: radius must be an integer >= 1 (pixels), got {radius!r}")
     sigma = np.broadcast_to(np.asarray(sigma), z.shape)
     if gate_k <= 0 or not np.any(sigma > 0):
         return np.asarray(depth, dtype=np.float32)

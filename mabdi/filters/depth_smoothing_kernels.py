@@ -22,7 +22,7 @@ def pair_directions(radius: int) -> np.ndarray:
 
 @njit(cache=True, error_model="numpy")  # a depth of 0 divides as numpy does (inf), not raising
 def smooth_depth_kernel(z, sigma, gate_scale, directions):
-    """(H, W) float32: each pixel's harmonic mean with the opposite-neighbour pairs (``directions`` (4, 2) of
+    """(H, W) float32: each pixel's harmonic mean with the opposite-neighbour pairs (``directions`` (P, 2) of
     (du, dv)) whose both members lie within ``gate_scale`` times its ``sigma`` (H, W, metres) of it; ``z``
     (H, W) metres, NaN = no return (a pair with a NaN or outside the image is left out; a NaN pixel stays
     NaN). Arithmetic in float64."""
