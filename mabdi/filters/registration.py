@@ -266,11 +266,6 @@ def transform_size(transform: np.ndarray) -> tuple[float, float]:
     return float(translation), float(angle)
 
 
-def _solve(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The step x of A x = -b and the pseudo-inverse of A, with no step along directions A does not constrain."""
-    return solve_normal_equations(a, b)
-
-
 class IcpWorkspace:
     """Memory the ICP reuses from frame to frame: the cache of E's normals (H x W x 3, float64) that its
     steps fill (:func:`~mabdi.filters.registration_kernels.cached_point_and_normal`) and which pixels it holds.
@@ -381,7 +376,7 @@ def register_depth(
             points, tiles, n_tiles, scale, gate, transform, p.huber, True
         )
     support, tile_gradients = summaries
-    _, inverse = _solve(a, b)
+    _, inverse = solve_normal_equations(a, b)
     covariance = pose_covariance(inverse, chi2, pairs, tile_gradients)
     residual = float(np.sqrt(chi2 / max(pairs, 1)))  # in units of the noise; metres below
     share = pairs / max(candidates, 1)

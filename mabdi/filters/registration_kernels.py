@@ -19,6 +19,13 @@ from numba import njit
 
 
 @njit(cache=True, inline="always")
+def pixel_ray(row, col, fx, fy, cx, cy):
+    """(x / z, y / z) of the ray through pixel (row, col)'s centre (pixel (u, v) covers [u, u + 1) x [v, v + 1)):
+    its camera-frame point at depth z is (x / z, y / z, 1) z."""
+    return (col + 0.5 - cx) / fx, (row + 0.5 - cy) / fy
+
+
+@njit(cache=True, inline="always")
 def point_and_normal(depth, row, col, fx, fy, cx, cy, step, max_jump):
     """(ok, x, y, z, nx, ny, nz): pixel (row, col)'s camera-frame point (m) and unit normal, facing the camera.
 
@@ -39,10 +46,9 @@ def point_and_normal(depth, row, col, fx, fy, cx, cy, step, max_jump):
     limit = max_jump * z
     if not (abs(left - z) <= limit and abs(right - z) <= limit and abs(up - z) <= limit and abs(down - z) <= limit):
         return False, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0  # also for NaN in the pixel or a neighbour
+    ax, ay = pixel_ray(row, col, fx, fy, cx, cy)
     across = col + 0.5 - cx  # the pixel centre's offset from the principal point (pixels)
     down_from = row + 0.5 - cy
-    ax = across / fx
-    ay = down_from / fy
     x = ax * z
     y = ay * z
     # u difference: points at columns col +- step (same row); v difference: rows row +- step (same column)
@@ -89,9 +95,8 @@ def cached_point_and_normal(depth, normals, known, row, col, fx, fy, cx, cy, ste
     if state == NORMAL_NONE:
         return False, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
     z = np.float64(depth[row, col])
-    x = (col + 0.5 - cx) / fx * z
-    y = (row + 0.5 - cy) / fy * z
-    return True, x, y, z, normals[row, col, 0], normals[row, col, 1], normals[row, col, 2]
+    ax, ay = pixel_ray(row, col, fx, fy, cx, cy)
+    return True, ax * z, ay * z, z, normals[row, col, 0], normals[row, col, 1], normals[row, col, 2]
 
 
 @njit(cache=True, inline="always")
@@ -255,8 +260,9 @@ def pose_sigma_image(e_depth, fx, fy, cx, cy, step, max_jump, covariance, min_co
             distance = 0.0
             if not ok:  # a silhouette or the border: head-on
                 z = depth
-                x = (col + 0.5 - cx) / fx * z
-                y = (row + 0.5 - cy) / fy * z
+                ax, ay = pixel_ray(row, col, fx, fy, cx, cy)
+                x = ax * z
+                y = ay * z
                 distance = np.sqrt(x * x + y * y + z * z)
                 nx, ny, nz = -x / distance, -y / distance, -z / distance
             else:
@@ -295,13 +301,13 @@ def sample_depth_points(measured, stride, fx, fy, cx, cy, tile, tiles_across):
     n = 0
     for i in range(rows):
         row = i * stride + offset
-        ay = (row + 0.5 - cy) / fy
         for j in range(cols):
             col = j * stride + offset
             z = np.float64(measured[row, col])
             if not np.isfinite(z):
                 continue
-            points[n, 0] = (col + 0.5 - cx) / fx * z
+            ax, ay = pixel_ray(row, col, fx, fy, cx, cy)
+            points[n, 0] = ax * z
             points[n, 1] = ay * z
             points[n, 2] = z
             depths[n] = z
