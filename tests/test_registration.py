@@ -499,3 +499,67 @@ def test_a_kept_workspace_registers_as_a_fresh_one(bunnies):
         assert kept.status == fresh.status == "registered"
         np.testing.assert_array_equal(kept.transform, fresh.transform)
         np.testing.assert_array_equal(kept.covariance, fresh.covariance)
+
+
+def _bunny_pair(bunnies, index: int = 0):
+    """(D from the true pose with z-buffer noise, E of the true scene from a pose 5 mm / 0.3 degrees off)."""
+    mesh, poses = bunnies
+    intrinsics = Intrinsics()
+    renderer = DepthRenderer()
+    noise = SensorNoise("zbuffer")
+    true = poses[index]
+    given = perturbed(true, [0.005, -0.003, 0.002], [0.3, -0.2, 0.1])
+    return depth_of(renderer, mesh, intrinsics, true, noise, frame=index), depth_of(renderer, mesh, intrinsics, given), intrinsics, noise
+
+
+def test_a_large_step_is_summed_in_two_halves_that_add_up_to_the_whole(bunnies):
+    """From SPLIT_MIN_POINTS samples on, a step's sums come from two halves (one on a helper thread); they
+    are the sums over all the samples, up to rounding, with the residuals in the samples' order."""
+    from mabdi.filters import registration
+    from mabdi.filters.registration_kernels import point_to_plane_system
+
+    measured, expected, intrinsics, noise = _bunny_pair(bunnies)
+    points, z, tiles, n_tiles = registration.sample_points(measured, intrinsics, 2)
+    assert len(points) >= registration.SPLIT_MIN_POINTS  # the finest level is split
+    scale = np.maximum(noise.sigma(z, intrinsics.near, intrinsics.far), 1e-4)
+    gate = np.maximum(0.02, 3 * scale)
+    transform = np.eye(4)
+    transform[:3, 3] = [0.001, -0.002, 0.0015]
+    image = registration._MapImage(expected, intrinsics, registration.IcpWorkspace())
+    split = image.system(points, tiles, n_tiles, scale, gate, transform, 1.345, True)
+    depth = np.ascontiguousarray(expected, dtype=np.float32)
+    whole = point_to_plane_system(
+        points, tiles, n_tiles, scale, gate, transform[:3, :3], np.ascontiguousarray(transform[:3, 3]), depth,
+        np.empty((*depth.shape, 3)), np.zeros(depth.shape, dtype=np.int8), intrinsics.fx, intrinsics.fy,
+        intrinsics.cx, intrinsics.cy, registration.NORMAL_STEP, registration.NORMAL_MAX_JUMP, 1.345, True,
+    )  # fmt: skip
+    for name, got, want in zip(("A", "b", "chi2"), split[:3], whole[:3], strict=True):
+        np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-9 * np.abs(want).max(), err_msg=name)
+    assert split[3] == whole[3] > 10_000 and split[4] == whole[4]  # pairs, candidates
+    np.testing.assert_array_equal(split[5], whole[5])  # residuals, in order
+    np.testing.assert_allclose(split[6], whole[6], rtol=1e-9, atol=1e-9 * np.abs(whole[6]).max())  # support
+    np.testing.assert_allclose(split[7], whole[7], rtol=1e-9, atol=1e-9 * np.abs(whole[7]).max())  # tile sums
+
+
+def test_the_registration_is_the_same_on_one_core_on_two_and_in_a_forked_child(bunnies, monkeypatch):
+    """The halves are added in a fixed order, so the pose does not depend on whether a helper thread ran
+    them; a child forked after the helper started gets its own and registers the same."""
+    import multiprocessing
+
+    from mabdi.filters import registration
+
+    measured, expected, intrinsics, noise = _bunny_pair(bunnies, 1)
+    parameters = RegistrationParameters()
+    threaded = register_depth(measured, expected, intrinsics, noise, parameters)
+    assert threaded.status == "registered"
+    if registration._cores() > 1:
+        assert registration._helper is not None  # the helper ran the second halves
+    with multiprocessing.get_context("fork").Pool(1) as pool:
+        child = pool.apply_async(register_depth, (measured, expected, intrinsics, noise, parameters)).get(timeout=120)
+    np.testing.assert_array_equal(child.transform, threaded.transform)
+    monkeypatch.setattr(registration, "_cores", lambda: 1)
+    monkeypatch.setattr(registration, "_helper", None)
+    alone = register_depth(measured, expected, intrinsics, noise, parameters)
+    assert registration._helper is None
+    np.testing.assert_array_equal(alone.transform, threaded.transform)
+    np.testing.assert_array_equal(alone.covariance, threaded.covariance)

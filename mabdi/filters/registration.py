@@ -44,7 +44,11 @@ corrects the pose the way KinectFusion's frame-to-model tracking does
    coarser level: those only bring the pose near. E's normals are computed
    once per pixel that a sample lands on and kept while the frame is
    registered (:class:`IcpWorkspace`). The tile sums and the information that the
-   checks below need are taken once, at the pose found.
+   checks below need are taken once, at the pose found. A step over many
+   samples (the finest level: :data:`SPLIT_MIN_POINTS`) sums its two halves
+   apart, the second on a helper thread where the process has a second core
+   (the kernel releases the GIL), and adds them in a fixed order: the pose is
+   the same on one core or two.
 5. **Checks**: the frame is *registered* when at least ``min_points`` pairs
    and ``min_inliers`` of the candidates (sampled points that landed on the
    map) are within the gate, every direction the map constrains is held at
@@ -97,6 +101,8 @@ with the given pose, as before registration existed).
 
 from __future__ import annotations
 
+import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -155,6 +161,9 @@ COARSE_TOLERANCE = 10.0
 #: The residuals' median is taken over every MEDIAN_STRIDE-th where there are more than MEDIAN_MANY.
 MEDIAN_STRIDE = 4
 MEDIAN_MANY = 20_000
+#: One ICP step's samples are summed in two halves from this many on (the finest levels).
+SPLIT_MIN_POINTS = 20_000
+SPLIT_PARTS = 2
 
 
 @dataclass(frozen=True)
@@ -267,42 +276,104 @@ def transform_size(transform: np.ndarray) -> tuple[float, float]:
 
 
 class IcpWorkspace:
-    """Memory the ICP reuses from frame to frame: the cache of E's normals (H x W x 3, float64) that its
-    steps fill (:func:`~mabdi.filters.registration_kernels.cached_point_and_normal`) and which pixels it holds.
+    """Memory the ICP reuses from frame to frame: a cache of E's normals (H x W x 3, float64) per half of
+    D's samples (:data:`SPLIT_MIN_POINTS`) that the steps fill
+    (:func:`~mabdi.filters.registration_kernels.cached_point_and_normal`) and which pixels each holds.
+    Each half has its own cache, so the two halves summed at once never write the same memory.
     Touching 7 MB of fresh pages for every frame costs more than the normals themselves, so a caller that
     registers many frames (:class:`FilterRegistration`) keeps one; one workspace serves one registration
     at a time."""
 
     def __init__(self) -> None:
-        self._normals = np.empty((0, 0, 3))
-        self._known = np.zeros((0, 0), dtype=np.int8)
+        self._caches: list[tuple[np.ndarray, np.ndarray]] = []
 
-    def normal_cache(self, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
-        """(normals (H, W, 3), known (H, W) int8 all unknown) for an E of ``shape``."""
-        if self._known.shape != tuple(shape):
-            self._normals = np.empty((*shape, 3))
-            self._known = np.zeros(shape, dtype=np.int8)
+    def normal_caches(self, shape: tuple[int, int]) -> list[tuple[np.ndarray, np.ndarray]]:
+        """[(normals (H, W, 3), known (H, W) int8 all unknown)] for each half of the samples, for an E of ``shape``."""
+        if not self._caches or self._caches[0][1].shape != tuple(shape):
+            self._caches = [(np.empty((*shape, 3)), np.zeros(shape, dtype=np.int8)) for _ in range(SPLIT_PARTS)]
         else:
-            self._known.fill(NORMAL_UNKNOWN)
-        return self._normals, self._known
+            for _, known in self._caches:
+                known.fill(NORMAL_UNKNOWN)
+        return self._caches
+
+
+def _split_bounds(count: int) -> list[tuple[int, int]]:
+    """The [start, stop) ranges of the samples that are summed apart: halves from :data:`SPLIT_MIN_POINTS` on."""
+    if count < SPLIT_MIN_POINTS:
+        return [(0, count)]
+    middle = count // 2
+    return [(0, middle), (middle, count)]
+
+
+_helper: ThreadPoolExecutor | None = None
+
+
+def _helper_thread() -> ThreadPoolExecutor | None:
+    """The thread that sums the second half of a step's samples, or None on a single core (both halves then
+    run one after the other, with the same sums). Started on first use; a forked child starts its own."""
+    global _helper
+    if _helper is None and _cores() > 1:
+        _helper = ThreadPoolExecutor(max_workers=1, thread_name_prefix="mabdi-icp")
+    return _helper
+
+
+def _cores() -> int:
+    """CPU cores this process may run on."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
+
+
+def _forget_helper() -> None:
+    global _helper
+    _helper = None  # the parent's thread does not exist in a forked child
+
+
+os.register_at_fork(after_in_child=_forget_helper)
 
 
 class _MapImage:
-    """E as the ICP reads it: its depth (float32) and the cache of the normals its steps computed, kept while
+    """E as the ICP reads it: its depth (float32) and the caches of the normals its steps computed, kept while
     one frame is registered."""
 
     def __init__(self, expected: np.ndarray, intrinsics: Intrinsics, workspace: IcpWorkspace) -> None:
         self.depth = np.ascontiguousarray(expected, dtype=np.float32)
-        self.normals, self.known = workspace.normal_cache(self.depth.shape)
+        self.caches = workspace.normal_caches(self.depth.shape)
         self.intrinsics = intrinsics
 
     def system(self, points, tiles, n_tiles, scale, gate, transform, huber, summaries):
         """One ICP step's normal equations at ``transform`` (E-camera from D-camera, 4x4):
-        :func:`~mabdi.filters.registration_kernels.point_to_plane_system`."""
+        :func:`~mabdi.filters.registration_kernels.point_to_plane_system`. From
+        :data:`SPLIT_MIN_POINTS` samples on, the two halves are summed apart (the second on a helper thread
+        where there is a second core: the kernel releases the GIL) and added in a fixed order, so the
+        result does not depend on the cores."""
         k = self.intrinsics
-        return point_to_plane_system(
-            points, tiles, n_tiles, scale, gate, transform[:3, :3], np.ascontiguousarray(transform[:3, 3]), self.depth,
-            self.normals, self.known, k.fx, k.fy, k.cx, k.cy, NORMAL_STEP, NORMAL_MAX_JUMP, huber, summaries,
+        rotation, translation = transform[:3, :3], np.ascontiguousarray(transform[:3, 3])
+
+        def part(index: int, start: int, stop: int):
+            normals, known = self.caches[index]
+            return point_to_plane_system(
+                points[start:stop], tiles[start:stop], n_tiles, scale[start:stop], gate[start:stop], rotation, translation,
+                self.depth, normals, known, k.fx, k.fy, k.cx, k.cy, NORMAL_STEP, NORMAL_MAX_JUMP, huber, summaries,
+            )  # fmt: skip
+
+        bounds = _split_bounds(len(points))
+        if len(bounds) == 1:
+            return part(0, *bounds[0])
+        helper = _helper_thread()
+        if helper is None:
+            second = part(1, *bounds[1])
+            first = part(0, *bounds[0])
+        else:
+            pending = helper.submit(part, 1, *bounds[1])
+            first = part(0, *bounds[0])
+            second = pending.result()
+        a, b, chi2, pairs, candidates, residuals, support, tile_gradients = first
+        a2, b2, chi22, pairs2, candidates2, residuals2, support2, tile_gradients2 = second
+        return (
+            a + a2, b + b2, chi2 + chi22, pairs + pairs2, candidates + candidates2,
+            np.concatenate((residuals, residuals2)), support + support2, tile_gradients + tile_gradients2,
         )  # fmt: skip
 
 
@@ -352,7 +423,7 @@ def register_depth(
                 # how far off the prediction is, before the first step: pairs beyond that are other surfaces
                 *_, candidates, residuals, _, _ = map_image.system(points, tiles, n_tiles, scale, gate, transform, p.huber, False)
                 if candidates:
-                    reach = min(reach, p.gate_k * MAD_TO_SIGMA * median_every(residuals, 1))
+                    reach = min(reach, p.gate_k * MAD_TO_SIGMA * _median(residuals))
                 gate = np.maximum(reach, p.gate_k * scale)
             # a finest step after a small one is likely the last: it takes what the checks need as it goes
             likely_last = level == p.levels - 1 and step_size[0] < 10 * step_translation and step_size[1] < 10 * step_rotation
@@ -366,7 +437,7 @@ def register_depth(
             transform, *step_size = gauss_newton_update(a, b, transform)
             # the spread of the residuals says how far off the pose still is (robust: a median, of every
             # MEDIAN_STRIDE-th of many)
-            spread = MAD_TO_SIGMA * median_every(residuals, MEDIAN_STRIDE if len(residuals) > MEDIAN_MANY else 1)
+            spread = MAD_TO_SIGMA * _median(residuals)
             reach = min(reach, p.gate_k * spread)
             if step_size[0] < step_translation and step_size[1] < step_rotation:
                 break
@@ -389,7 +460,7 @@ def register_depth(
         status = "not_converged"
     elif translation > p.max_translation or angle > p.max_rotation:
         status = "beyond_bound"
-    median_scale = float(np.median(scale)) if len(scale) else 0.0
+    median_scale = _median(scale) if len(scale) else 0.0
     return RegistrationResult(
         transform if status == "registered" else start,
         status,
@@ -399,6 +470,12 @@ def register_depth(
         iterations=iterations,
         covariance=covariance if status == "registered" else None,
     )
+
+
+def _median(values: np.ndarray) -> float:
+    """The median of ``values``, over every :data:`MEDIAN_STRIDE`-th where there are more than :data:`MEDIAN_MANY`
+    (a robust figure of many samples needs no more; the full median of 40,000 costs half a millisecond)."""
+    return float(median_every(values, MEDIAN_STRIDE if len(values) > MEDIAN_MANY else 1))
 
 
 def pose_covariance(inverse: np.ndarray, chi2: float, pairs: int, tile_gradients: np.ndarray) -> np.ndarray:
@@ -433,7 +510,7 @@ def constraint_support(support: np.ndarray, depths: np.ndarray) -> float:
     D's sampled depths, whose median turns rotations into lengths. Directions with under 1e-3 of the
     strongest one's information are not counted (the scene does not constrain them).
     """
-    length = float(np.median(depths)) if len(depths) else 1.0
+    length = _median(depths) if len(depths) else 1.0
     scaling = np.diag([1.0 / length] * 3 + [1.0] * 3)
     pairs = scaling @ support[0] @ scaling
     candidates = scaling @ support[1] @ scaling

@@ -111,7 +111,7 @@ def point_plane_jacobian(jac, x, y, z, nx, ny, nz):
     jac[5] = nz
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def point_to_plane_system(
     points, tiles, n_tiles, scale, gate, rotation, translation, e_depth, e_normals, e_known, fx, fy, cx, cy, step, max_jump, huber,
     summaries=True,
