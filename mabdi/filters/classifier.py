@@ -31,15 +31,19 @@ regions (8-neighbours) of fewer than ``min_region`` pixels are dropped; those
 pixels get label 1 (explained by the map). ``min_width = 1`` and
 ``min_region = 0`` turn this off.
 
-Where E says how far the map reaches (a range image's E carries
-``map_in_footprint``, :mod:`mabdi.filters.expected_image`), only a thin
-novel pixel whose footprint the map reaches into is a speck: a sliver along
-the map's silhouette, which the map already covers in part. A thin strip
-beyond the map's edge, where no map triangle lies within the pixel's
-footprint, is new surface and is kept (still subject to ``min_region``): a
-LiDAR sees the next ring of a road beyond the mapped one as a strip one or
-two beams tall. A camera's E does not carry the array, and every thin
-region goes as before.
+Only a thin novel pixel that the map covers is a speck: a sliver along the
+map's silhouette, where the map already has a surface behind D. Where E
+says how far the map reaches (a range image's E carries
+``map_in_footprint``, :mod:`mabdi.filters.expected_image`), covered means a
+map triangle lies within the pixel's footprint; a LiDAR sees the next ring
+of a road beyond the mapped one as a strip one or two beams tall, which is
+kept. A camera's E does not carry the array, and covered means E has a
+surface at the pixel: a thin region where E has none is a crack or a small
+hole in the map (between patches, or where every earlier look lost its
+returns), and it is meshed (still subject to ``min_region``) instead of
+staying a hole for good. (Before, every thin camera region went: on Run 2
+under structured light that left holes of 2-4 cm that the TSDF fills;
+docs/benchmarks.md, "Real poses and real cameras".)
 
 Output: a depth image whose ``depth`` is D on the novel pixels and on a rim
 of ``rim`` pixels around them (NaN elsewhere), plus the whole of D as the
@@ -168,6 +172,13 @@ def dilate(mask: np.ndarray, radius: int) -> np.ndarray:
     return dilate_kernel(np.ascontiguousarray(mask, dtype=bool), int(radius))
 
 
+def map_covers(expected_image, expected: np.ndarray) -> np.ndarray:
+    """(H, W) bool: the map covers the pixel, so a thin novel region there is a speck (see the module docs):
+    a triangle within its footprint where E says so (a range image), else E has a surface at the pixel."""
+    covered = map_in_footprint(expected_image)
+    return np.isfinite(expected) if covered is None else covered
+
+
 def remove_specks(novel: np.ndarray, min_width: int, min_region: int, covered: np.ndarray | None = None) -> np.ndarray:
     """The novel mask without regions thinner than ``min_width`` or smaller than ``min_region`` pixels.
 
@@ -262,7 +273,7 @@ class FilterClassifier(MabdiAlgorithm):
         labels = classify(measured, expected, tau)
         p = self._parameters
         raw_novel = labels == NOVEL
-        novel = remove_specks(raw_novel, p.min_width, p.min_region, map_in_footprint(expected_image))
+        novel = remove_specks(raw_novel, p.min_width, p.min_region, map_covers(expected_image, expected))
         specks = raw_novel & ~novel
         labels[specks] = KNOWN
         meshed = novel
