@@ -415,6 +415,35 @@ def test_a_frame_that_does_not_register_casts_no_removal_votes():
     assert sum(off.step(i).cells_removed for i in range(7)) > 0
 
 
+def test_a_frame_whose_pose_is_stated_exact_votes_though_its_checks_fail():
+    """A crate stands in the room for four frames and is gone for the next four. The ICP's checks are made
+    to fail on every frame (``min_points`` beyond the image): where the source states its poses exact, each frame is
+    meshed at its given pose anyway, so it votes and the crate leaves the map; where the source states
+    nothing, the failed frames cast no votes and the crate stays."""
+    true = room_poses(8)
+    crate_points, crate_triangles = box([0.5, 0.5, 0.5])
+    crate = (crate_points + [-0.2, 0.6, 0.25], crate_triangles)
+    with_crate = room_frames(true, extra=crate)  # the crate is in frames 4-7
+    without = room_frames(true)
+    order = [4, 5, 6, 7, 0, 1, 2, 3]  # the crate seen first, then gone
+    depths = [with_crate[i] if k < 4 else without[i] for k, i in enumerate(order)]
+    frames = [DepthFrame(d, Intrinsics(), true[i], k, k / 30) for k, (d, i) in enumerate(zip(depths, order, strict=True))]
+
+    class ExactSource(FrameList):  # as the simulator without pose noise
+        @property
+        def pose_accuracy(self):
+            return PoseNoise()
+
+    failing = RegistrationParameters(min_points=10_000_000)
+    removed = {}
+    for name, source in (("stated exact", ExactSource), ("not stated", FrameList)):
+        loop = mabdi.MabdiLoop(source(frames), surface="quadtree", registration=failing)
+        records = [loop.step(k) for k in range(len(frames))]
+        assert not any(r.registered for r in records)
+        removed[name] = sum(r.cells_removed for r in records[4:])
+    assert removed["stated exact"] > 0 and removed["not stated"] == 0, removed
+
+
 def test_registration_config_section_and_checks(tmp_path):
     config = load_run_config(REPO / "scenes" / "table.toml")
     assert config.registration.enabled

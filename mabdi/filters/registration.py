@@ -85,7 +85,9 @@ pose the source gave, float64[16]), ``world_from_map`` (the anchor's
 estimate, float64[16]),
 ``registration`` (float64[:data:`REGISTRATION_FIELDS`]: status code, the
 correction from the given pose in metres and degrees, the RMS residual of the
-pairs in metres, the inlier share, the iterations) and, when registered,
+pairs in metres, the inlier share, the support, the iterations, and 1 where the
+given pose is stated exact, so the frame is meshed at it whatever the ICP
+found: the loop lets such a frame vote even when its checks fail) and, when registered,
 ``pose_covariance`` (float64[36]: the 6x6 covariance of the pose in the
 camera frame, rotation vector in radians then translation in metres: the
 larger of the normal equations' and a tile-robust estimate that counts
@@ -137,7 +139,7 @@ WORLD_FROM_MAP_ARRAY = "world_from_map"
 REGISTRATION_ARRAY = "registration"
 POSE_COVARIANCE_ARRAY = "pose_covariance"
 #: The values of the ``registration`` field-data array, in order.
-REGISTRATION_FIELDS = ("status", "correction_m", "correction_deg", "residual_m", "inlier_share", "support", "iterations")
+REGISTRATION_FIELDS = ("status", "correction_m", "correction_deg", "residual_m", "inlier_share", "support", "iterations", "given_exact")
 #: The words ``given_sigma`` takes besides [m, deg]: the source's statement (learnt without one), or always learnt.
 GIVEN_SIGMA_WORDS = ("source", "learnt")
 #: Status codes: 0 registered; the rest leave the frame unregistered (see the module docs).
@@ -563,6 +565,7 @@ def registration_values(image) -> dict | None:
     result = dict(zip(REGISTRATION_FIELDS, (float(v) for v in values), strict=True))
     result["status"] = STATUSES[int(result["status"])]
     result["iterations"] = int(result["iterations"])
+    result["given_exact"] = bool(result["given_exact"])
     return result
 
 
@@ -749,8 +752,11 @@ class FilterRegistration(MapAndImageAlgorithm):
         _add_field(output, WORLD_FROM_MAP_ARRAY, world_from_map)
         # the correction in the world: the camera centre moved, and turned
         translation, angle = transform_size(np.linalg.inv(given) @ world_from_map @ pose)
+        # stated exact (not learnt so): the frame is meshed at its given pose, whatever the ICP found
+        given_exact = p.enabled and self.anchor.stated is not None and max(self.anchor.given_variance(self._travelled)) == 0.0
         values = (
-            STATUSES.index(result.status), translation, angle, result.residual, result.inlier_share, result.support, result.iterations
+            STATUSES.index(result.status), translation, angle, result.residual, result.inlier_share, result.support, result.iterations,
+            float(given_exact),
         )  # fmt: skip
         _add_field(output, REGISTRATION_ARRAY, values)
         if covariance is not None:

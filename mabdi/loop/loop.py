@@ -295,7 +295,7 @@ class MabdiLoop:
         t_depth = time.perf_counter()
         t_register = t_expected = t_classify = t_depth
         cells_removed = 0
-        registration = {"status": "off", "correction_m": 0.0, "correction_deg": 0.0, "residual_m": np.nan, "inlier_share": np.nan, "support": np.nan}
+        registration = {"status": "off", "correction_m": 0.0, "correction_deg": 0.0, "residual_m": np.nan, "inlier_share": np.nan, "support": np.nan, "given_exact": False}
         if self.registration is not None:
             self.registration.Update()
             registration = registration_values(self.registration.GetOutput())
@@ -311,8 +311,10 @@ class MabdiLoop:
         t_append = time.perf_counter()
         raise_pipeline_errors(*self._algorithms)
         self._poses[index] = image_pose(self.measured_image())
-        # Removal votes only from frames whose pose is known to fit the map (registered, or given as exact).
-        votes = registration["status"] in ("registered", "off")
+        # Removal votes only from frames whose pose is known to fit the map: registered, or given without
+        # registration, or stated exact by the source (the ICP's checks fail where what held the pose has
+        # left the scene: that is when the votes matter).
+        votes = registration["status"] in ("registered", "off") or registration["given_exact"]
         if self.noise.calibration is not None and self.classifier_enabled and votes:
             self._calibrate_noise()
         # Refinement and removal last: the map changes after this frame's E was used, so E is not drawn
