@@ -115,8 +115,13 @@ def _pad_even(array: np.ndarray, fill) -> np.ndarray:
     return padded
 
 
-def build_leaves(points: np.ndarray, normals: np.ndarray, n_t: float, d_t: float) -> tuple[Leaves, int]:
+def build_leaves(
+    points: np.ndarray, normals: np.ndarray, n_t: float, d_t: float, allowances=None, min_distance: float = 0.0
+) -> tuple[Leaves, int]:
     """Merge bottom-up (seed invariant 1, eq. 14 and the plane-distance test); return leaves and the root's region count.
+
+    ``allowances``: None for the seed's fixed thresholds, or the (normal, distance) (H, W) images of the
+    noise-aware test (averaged up the pyramid, halved per level above the first).
 
     Each level is padded with invalid pixels to even sides before its parents are
     formed (the same as padding the image to a power of two, without the work).
@@ -126,9 +131,13 @@ def build_leaves(points: np.ndarray, normals: np.ndarray, n_t: float, d_t: float
     count = [valid.astype(np.int64)]
     ns = [np.where(valid[..., None], normals, 0.0).astype(np.float32)]
     ps = [np.where(valid[..., None], points, 0.0).astype(np.float32)]
+    aware = allowances is not None
+    zeros = np.zeros(valid.shape, np.float32)
+    ss = [np.where(valid[..., None], np.stack(allowances if aware else (zeros, zeros), axis=-1), 0.0).astype(np.float32)]
+    shrink = np.float32(1.0)
     while single[-1].size > 1:
         s, c = _pad_even(single[-1], False), _pad_even(count[-1], 0)
-        nn, pp = _pad_even(ns[-1], 0.0), _pad_even(ps[-1], 0.0)
+        nn, pp, sn = _pad_even(ns[-1], 0.0), _pad_even(ps[-1], 0.0), _pad_even(ss[-1], 0.0)
         children = ((slice(0, None, 2), slice(0, None, 2)), (slice(0, None, 2), slice(1, None, 2)),
                     (slice(1, None, 2), slice(0, None, 2)), (slice(1, None, 2), slice(1, None, 2)))
         all_single = s[children[0]] & s[children[1]] & s[children[2]] & s[children[3]]
@@ -136,11 +145,17 @@ def build_leaves(points: np.ndarray, normals: np.ndarray, n_t: float, d_t: float
         p_avg = (pp[children[0]] + pp[children[1]] + pp[children[2]] + pp[children[3]]) * np.float32(0.25)
         length = np.linalg.norm(n_avg, axis=-1, keepdims=True)
         unit = np.divide(n_avg, length, out=np.zeros_like(n_avg), where=length > 0)
+        s_avg = (sn[children[0]] + sn[children[1]] + sn[children[2]] + sn[children[3]]) * np.float32(0.25)
+        normal_limit, distance_limit = np.float32(n_t), np.float32(d_t)
+        if aware:
+            normal_limit = np.maximum(np.float32(n_t), s_avg[..., 0] * shrink)
+            distance_limit = np.minimum(np.float32(d_t), np.maximum(np.float32(min_distance), s_avg[..., 1] * shrink))
         merged = all_single.copy()
         for k in children:
-            merged &= np.abs(n_avg - nn[k]).max(axis=-1) < n_t
-            merged &= np.abs(np.einsum("...i,...i->...", unit, pp[k] - p_avg)) < d_t
+            merged &= np.abs(n_avg - nn[k]).max(axis=-1) < normal_limit
+            merged &= np.abs(np.einsum("...i,...i->...", unit, pp[k] - p_avg)) < distance_limit
         single.append(merged)
+        shrink = shrink * np.float32(0.5)
         if not merged.any():
             # nothing merges here, so nothing can above: the regions are the children's
             total = np.zeros(merged.shape, dtype=np.int64)
@@ -148,10 +163,12 @@ def build_leaves(points: np.ndarray, normals: np.ndarray, n_t: float, d_t: float
             count.append(total)
             ns.append(n_avg)
             ps.append(p_avg)
+            ss.append(s_avg)
             break
         count.append(np.where(merged, 1, c[children[0]] + c[children[1]] + c[children[2]] + c[children[3]]))
         ns.append(np.where(merged[..., None], n_avg, np.float32(0.0)))
         ps.append(np.where(merged[..., None], p_avg, np.float32(0.0)))
+        ss.append(np.where(merged[..., None], s_avg, np.float32(0.0)))
     levels, rows, cols, normal_list, point_list = [], [], [], [], []
     for level, s in enumerate(single):
         if level + 1 < len(single):
@@ -211,7 +228,10 @@ def quadtree_leaves_of_image(depth: np.ndarray, intrinsics: Intrinsics, p, noise
         depth = smooth_depth_by_noise(depth, noise, intrinsics)
     points, reduced = reduce_points(depth, intrinsics, p.reduction)
     normals = point_normals(points, p.max_jump)
-    leaves, regions = build_leaves(points, normals, p.n_t, p.d_t)
+    from mabdi.filters.quadtree import MERGE_MIN_DISTANCE, merge_allowances, noise_merge_on
+
+    allowances = merge_allowances(points, reduced, noise, p.smooth_depth) if noise_merge_on(p, noise) else None
+    leaves, regions = build_leaves(points, normals, p.n_t, p.d_t, allowances, MERGE_MIN_DISTANCE)
     residual = plane_residual(points, leaves, p.max_jump)
     leaves = fitting_leaves(leaves, residual, reduced, noise)
     leaves.regions = regions

@@ -79,6 +79,21 @@ def smoothing_radius(noise: SensorNoise) -> int:
     return int(min(MAX_SMOOTHING_RADIUS, max(1, round(SMOOTHING_RADIUS_PER_CORRELATION * noise.correlation_px))))
 
 
+def smoothed_noise_share(noise: SensorNoise) -> float:
+    """The share of a pixel's noise (standard deviation) left after smoothing over the window for ``noise``
+    (:func:`smoothing_radius`), with every pair of the window taken: sqrt(sum over pixel pairs of their
+    correlation) / N for the N pixels of the window, the correlation exp(-d^2 / (4 L^2)) at d pixels for
+    the noise's correlation length L (:attr:`~mabdi.sensor_noise.SensorNoise.correlation_px`: a Gaussian-
+    smoothed field's), none between distinct pixels where L = 0 (a 3 x 3 window: 1 / 3)."""
+    radius = smoothing_radius(noise)
+    offsets = np.array([(du, dv) for du in range(-radius, radius + 1) for dv in range(-radius, radius + 1)], dtype=np.float64)
+    length = noise.correlation_px
+    if length <= 0:
+        return float(1.0 / np.sqrt(len(offsets)))
+    squared = ((offsets[:, None, :] - offsets[None, :, :]) ** 2).sum(axis=-1)
+    return float(np.sqrt(np.exp(-squared / (4.0 * length * length)).sum()) / len(offsets))
+
+
 def smooth_depth(depth: np.ndarray, sigma: np.ndarray, gate_k: float = SMOOTHING_GATE_K, radius: int = 1) -> np.ndarray:
     """(H, W) float32 depth (metres, NaN = no return) smoothed as the module docs say.
 

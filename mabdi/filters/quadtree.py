@@ -91,6 +91,26 @@ A single pixel's normal is no fitted plane: it keeps the jump rule's
 allowance, so one seen that steeply gets no face, as before. ``"auto"`` (the
 default) turns the rule on for range images and leaves a camera's as it was.
 
+**Merging by what the noise allows** (``noise_merge``; "auto", the default,
+where the sensor's noise is correlated across pixels: a structured-light or
+stereo camera, :attr:`~mabdi.sensor_noise.SensorNoise.correlated`). The
+seed's fixed n_t keeps a flat floor 3.5 m away in pieces of a few pixels
+when each pixel's normal scatters by more than 0.1 per component (one look
+of a structured-light camera errs by 2 cm there, and smoothing cannot
+take out errors its neighbours share), and every piece carries its own
+pixels' error. The noise-aware test allows what the noise makes children
+stray (:func:`merge_allowances`: ``MERGE_NOISE_K`` standard deviations of
+a pixel's normal, s / (sqrt(2) u) per component for a depth error s over
+a pixel spacing u, and of its point, s; s is sigma(z) times what the
+smoothing leaves of it), shrunk by the square root of the pixels each
+child averages (half per level): normals within that where it is more
+than n_t; centroids within it, at least ``MERGE_MIN_DISTANCE`` (2 mm) and
+at most d_t. So a node merges while its children are one plane within
+what the data can tell, and stops where a curved surface's sag grows past
+it (the sag grows four times per level, the allowance halves). With
+independent noise the smoothing leaves a third of it and the seed's test is
+kept (the "auto" rule); ``noise_merge = true`` applies it to any noise.
+
 Small or accurate: the defaults (the seed's 3x3 reduction, n_t = 0.1) make
 the small map. With a noisy sensor, ``reduction = 2`` and ``n_t = 0.2`` (and
 the classifier's ``min_width = 1``, refinement on with ``replace = false``)
@@ -137,7 +157,7 @@ from mabdi.depth import (
 )
 from mabdi.errors import ConfigError, check_switch
 from mabdi.sensor_noise import SensorNoise
-from mabdi.filters.depth_smoothing import measured_around, smooth_depth_by_noise
+from mabdi.filters.depth_smoothing import measured_around, smooth_depth_by_noise, smoothed_noise_share
 from mabdi.spherical import SphericalGeometry, on_for_range_images
 
 from mabdi.filters import quadtree_kernels as kernels
@@ -154,6 +174,11 @@ LIDAR_INCIDENCE = 79.0
 #: its own plane makes per pixel, up to this incidence (degrees).
 GRAZING_MARGIN = 2.0
 MAX_GRAZING_INCIDENCE = 88.0
+#: The noise-aware merge test allows this many standard deviations of what the noise makes a pixel's
+#: normal and point stray (:func:`merge_allowances`) ...
+MERGE_NOISE_K = 2.0
+#: ... and children's centroids at least this far (m) from their plane.
+MERGE_MIN_DISTANCE = 0.002
 #: Corners of leaves whose normals differ by more than 45 degrees are not merged (a crease).
 CREASE_COSINE = float(np.cos(np.radians(45.0)))
 
@@ -172,6 +197,9 @@ class QuadTreeParameters:
     #: Flat ground at grazing incidence on a range image (see the module docs): true, false, or "auto"
     #: (range images only; a camera's images keep the jump rule alone).
     grazing: bool | str = "auto"
+    #: Merge by what the noise allows (see the module docs): true, false, or "auto" (where the sensor's noise
+    #: is correlated across pixels, which smoothing cannot take out: a structured-light or stereo camera).
+    noise_merge: bool | str = "auto"
     #: Triangulate every face. Not a config key: in the MABDI loop faces are always triangulated.
     triangles: bool = field(default=False, metadata={"toml": False})
 
@@ -185,6 +213,7 @@ class QuadTreeParameters:
         if not isinstance(self.smooth_depth, bool):
             raise ConfigError(f"smooth_depth must be true or false, got {self.smooth_depth!r}")
         check_switch("grazing", self.grazing)
+        check_switch("noise_merge", self.noise_merge)
 
 
 # ---------------------------------------------------------------------------
@@ -281,6 +310,41 @@ def _leaf_jump(leaves: Leaves, p: QuadTreeParameters, k: Grid) -> np.ndarray:
     tangent = np.sqrt(1.0 - cosine**2) / cosine
     widened = np.maximum(jump, (GRAZING_MARGIN * tangent * angle)[:, None])
     return np.where((leaves.level > 0)[:, None], widened, jump)  # a single pixel's normal is no fitted plane
+
+
+def pyramid(points: np.ndarray, normals: np.ndarray, k: Grid, p: QuadTreeParameters, noise: SensorNoise):
+    """Stages 4-5, the merge pyramid and its leaves (:func:`~mabdi.filters.quadtree_kernels.pyramid_kernel`),
+    with the noise-aware test where :func:`noise_merge_on`."""
+    aware = noise_merge_on(p, noise)
+    if aware:
+        normal_noise, distance_noise = merge_allowances(points, k, noise, p.smooth_depth)
+    else:
+        normal_noise = distance_noise = np.zeros(points.shape[:2], dtype=np.float32)
+    return kernels.pyramid_kernel(points, normals, p.n_t, p.d_t, normal_noise, distance_noise, aware, MERGE_MIN_DISTANCE)
+
+
+def noise_merge_on(p: QuadTreeParameters, noise: SensorNoise) -> bool:
+    """Whether the merge test allows for the noise: ``noise_merge`` true, or "auto" where the noise is correlated."""
+    return noise.correlated if p.noise_merge == "auto" else bool(p.noise_merge)
+
+
+def merge_allowances(points: np.ndarray, k: Grid, noise: SensorNoise, smoothed: bool) -> tuple[np.ndarray, np.ndarray]:
+    """(normal, distance) float32 (H, W): how far the noise lets one reduced pixel's normal (per component)
+    and point (m, along the normal) stray from a plane through its neighbours, :data:`MERGE_NOISE_K` times
+    their standard deviations. A pixel's depth errs by s = sigma(z) (the sensor's model; times
+    :func:`~mabdi.filters.depth_smoothing.smoothed_noise_share` where the image was smoothed first), its
+    normal rests on differences over two pixels either side, s sqrt(2) over a baseline of twice the pixel
+    spacing u (z times a reduced pixel's angle): s / (sqrt(2) u) per component. Zero where the model has
+    no noise."""
+    depth = _depth(points, k)
+    sigma = np.nan_to_num(noise.sigma(np.where(np.isfinite(depth), depth, k.near), k.near, k.far), nan=0.0)
+    if smoothed:
+        sigma = sigma * smoothed_noise_share(noise)
+    angle = k.footprint if isinstance(k, ReducedSpherical) else 1.0 / min(k.fx, k.fy)
+    spacing = np.maximum(np.where(np.isfinite(depth), depth, k.near) * angle, 1e-9)
+    normal = MERGE_NOISE_K * sigma / (math.sqrt(2.0) * spacing)
+    distance = MERGE_NOISE_K * sigma
+    return np.ascontiguousarray(normal, dtype=np.float32), np.ascontiguousarray(distance, dtype=np.float32)
 
 
 def _depth(points: np.ndarray, k: Grid) -> np.ndarray:
@@ -556,7 +620,7 @@ def leaves_of_image(
         normals = kernels.point_normals_depth_kernel(points, z, p.max_jump, right, down)
     else:
         normals = kernels.point_normals_kernel(points, p.max_jump)
-    level, row, col, normal, point, regions = kernels.pyramid_kernel(points, normals, p.n_t, p.d_t)
+    level, row, col, normal, point, regions = pyramid(points, normals, reduced, p, noise)
     leaves = Leaves(level, row, col, normal, point)
     residual = kernels.plane_residual_kernel(points, level, row, col, normal, point, p.max_jump, 2)
     leaves = fitting_leaves(leaves, residual, reduced, noise)
@@ -592,7 +656,7 @@ def _range_leaves(
     else:
         right = down = np.zeros(depth.shape, dtype=bool)
     normals = kernels.point_normals_depth_kernel(points, depth, jump, right, down)
-    level, row, col, normal, point, regions = kernels.pyramid_kernel(points, normals, p.n_t, p.d_t)
+    level, row, col, normal, point, regions = pyramid(points, normals, reduced, p, noise)
     leaves = Leaves(level, row, col, normal, point)
     residual = kernels.plane_residual_depth_kernel(points, depth, level, row, col, normal, point, _depth(point, reduced), jump, 2)
     leaves = fitting_leaves(leaves, residual, reduced, noise)

@@ -138,20 +138,29 @@ def point_normals_depth_kernel(points, depth, max_jump, right, down):
 
 
 @njit(cache=True)
-def pyramid_kernel(points, normals, n_t, d_t):
+def pyramid_kernel(points, normals, n_t, d_t, normal_noise, distance_noise, noise_aware, min_distance):
     """Leaves of the merge pyramid, as the numpy reference ``build_leaves`` (tests/reference_kernels.py).
+
+    ``noise_aware`` False: the seed's test, children's normals within ``n_t`` per component of their
+    average and centroids within ``d_t`` of the averaged plane. True: ``normal_noise`` and
+    ``distance_noise`` (H, W, float32) say what the noise lets one pixel's normal (per component) and
+    point (along the normal, m) stray; a node's children each average 4**(level - 1) pixels, so the test
+    allows the mean of its pixels' values over 2**(level - 1): normals within that where it is more than
+    ``n_t``, centroids within it but no further than ``d_t`` and at least ``min_distance``.
 
     Returns (level, row, col, normal (float64, unit), point, root region count).
     """
     height, width = points.shape[0], points.shape[1]
     n_t32 = np.float32(n_t)
     d_t32 = np.float32(d_t)
+    min_distance32 = np.float32(min_distance)
     quarter = np.float32(0.25)
     # level 0
     single = np.zeros((height, width), dtype=np.bool_)
     count = np.zeros((height, width), dtype=np.int64)
     ns = np.zeros((height, width, 3), dtype=np.float32)
     ps = np.zeros((height, width, 3), dtype=np.float32)
+    ss = np.zeros((height, width, 2), dtype=np.float32)  # the noise allowances (normal, distance)
     for i in range(height):
         for j in range(width):
             if np.isfinite(normals[i, j, 0]) and np.isfinite(points[i, j, 2]):
@@ -160,23 +169,30 @@ def pyramid_kernel(points, normals, n_t, d_t):
                 for c in range(3):
                     ns[i, j, c] = np.float32(normals[i, j, c])
                     ps[i, j, c] = np.float32(points[i, j, c])
+                ss[i, j, 0] = np.float32(normal_noise[i, j])
+                ss[i, j, 1] = np.float32(distance_noise[i, j])
     singles = [single]
     normal_levels = [ns]
     point_levels = [ps]
+    noise_levels = [ss]
     regions = 0
+    shrink = np.float32(1.0)  # 1 / 2**(level - 1) of the level being formed
     while singles[-1].size > 1:
         below = singles[-1]
         nb = normal_levels[-1]
         pb = point_levels[-1]
+        sb = noise_levels[-1]
         h, w = below.shape
         ph, pw = (h + 1) // 2, (w + 1) // 2
         above = np.zeros((ph, pw), dtype=np.bool_)
         count_above = np.zeros((ph, pw), dtype=np.int64)
         n_above = np.zeros((ph, pw, 3), dtype=np.float32)
         p_above = np.zeros((ph, pw, 3), dtype=np.float32)
+        s_above = np.zeros((ph, pw, 2), dtype=np.float32)
         any_merged = False
         n_avg = np.zeros(3, dtype=np.float32)
         p_avg = np.zeros(3, dtype=np.float32)
+        s_avg = np.zeros(2, dtype=np.float32)
         for i in range(ph):
             for j in range(pw):
                 all_single = True
@@ -184,6 +200,8 @@ def pyramid_kernel(points, normals, n_t, d_t):
                 for c in range(3):
                     n_avg[c] = np.float32(0.0)
                     p_avg[c] = np.float32(0.0)
+                s_avg[0] = np.float32(0.0)
+                s_avg[1] = np.float32(0.0)
                 for a in range(2):
                     for b in range(2):
                         ci, cj = 2 * i + a, 2 * j + b
@@ -193,13 +211,22 @@ def pyramid_kernel(points, normals, n_t, d_t):
                             for c in range(3):
                                 n_avg[c] += nb[ci, cj, c]
                                 p_avg[c] += pb[ci, cj, c]
+                            s_avg[0] += sb[ci, cj, 0]
+                            s_avg[1] += sb[ci, cj, 1]
                         else:
                             all_single = False
                 for c in range(3):
                     n_avg[c] *= quarter
                     p_avg[c] *= quarter
+                s_avg[0] *= quarter
+                s_avg[1] *= quarter
                 merged = all_single
                 if merged:
+                    normal_limit = n_t32
+                    distance_limit = d_t32
+                    if noise_aware:
+                        normal_limit = max(n_t32, s_avg[0] * shrink)
+                        distance_limit = min(d_t32, max(min_distance32, s_avg[1] * shrink))
                     length = np.sqrt(n_avg[0] * n_avg[0] + n_avg[1] * n_avg[1] + n_avg[2] * n_avg[2])
                     for a in range(2):
                         for b in range(2):
@@ -210,7 +237,7 @@ def pyramid_kernel(points, normals, n_t, d_t):
                                 deviation = max(deviation, abs(n_avg[c] - nb[ci, cj, c]))
                                 if length > 0:
                                     distance += (n_avg[c] / length) * (pb[ci, cj, c] - p_avg[c])
-                            if not (deviation < n_t32 and abs(distance) < d_t32):
+                            if not (deviation < normal_limit and abs(distance) < distance_limit):
                                 merged = False
                 if merged:
                     any_merged = True
@@ -219,11 +246,15 @@ def pyramid_kernel(points, normals, n_t, d_t):
                     for c in range(3):
                         n_above[i, j, c] = n_avg[c]
                         p_above[i, j, c] = p_avg[c]
+                    s_above[i, j, 0] = s_avg[0]
+                    s_above[i, j, 1] = s_avg[1]
                 else:
                     count_above[i, j] = total
         singles.append(above)
         normal_levels.append(n_above)
         point_levels.append(p_above)
+        noise_levels.append(s_above)
+        shrink *= np.float32(0.5)
         count = count_above
         if not any_merged:
             break
