@@ -79,32 +79,6 @@ def test_specks_thin_lines_and_small_blobs_are_not_novel():
     assert remove_specks(novel, 1, 0).sum() == novel.sum()
 
 
-def test_a_thin_crack_in_the_map_is_meshed_and_a_thin_sliver_is_a_speck():
-    """A camera's thin novel region is kept only where it fills a crack of E: a crack two pixels wide
-    between surfaces of the map (D sees the plane through it) is novel and meshed; a sliver two pixels
-    wide that D sees 10 cm in front of the map is not, nor one beside the map's edge with nothing beyond;
-    a small hole still goes by ``min_region``."""
-    measured = np.full(SMALL.shape, 2.0, np.float32)
-    expected = np.full(SMALL.shape, 2.0, np.float32)
-    expected[:, 20:22] = np.nan  # a crack between two patches of the map
-    measured[30:32, 30:60] = 1.9  # a sliver nearer than the map
-    expected[5:7, 40:43] = np.nan  # a hole of 6 pixels: under min_region
-    frame, labels, classifier = run_classifier(measured, expected, ClassifierParameters(min_width=3, min_region=32, rim=0))
-    assert (labels[:, 20:22] == NOVEL).all()
-    np.testing.assert_array_equal(frame.depth[:, 20:22], 2.0)
-    assert (labels[30:32, 30:60] == KNOWN).all() and np.isnan(frame.depth[30:32, 30:60]).all()
-    assert (labels[5:7, 40:43] == KNOWN).all()
-    counts = pixel_counts(classifier.GetOutput())
-    assert counts["novel"] == 2 * SMALL.height and counts["specks"] == 2 * 30 + 6
-    # a strip two pixels wide beside the map's edge, with nothing mapped (or measured) beyond: a speck
-    measured = np.full(SMALL.shape, 2.0, np.float32)
-    expected = np.full(SMALL.shape, 2.0, np.float32)
-    expected[:, 40:] = np.nan
-    measured[:, 42:] = np.nan
-    _, labels, _ = run_classifier(measured, expected, ClassifierParameters(min_width=3, min_region=32, rim=0))
-    assert (labels[:, 40:42] == KNOWN).all()
-
-
 def test_rim_grows_the_meshed_pixels_by_one():
     measured = np.full(SMALL.shape, 2.0, np.float32)
     expected = np.full(SMALL.shape, 2.0, np.float32)

@@ -31,23 +31,15 @@ regions (8-neighbours) of fewer than ``min_region`` pixels are dropped; those
 pixels get label 1 (explained by the map). ``min_width = 1`` and
 ``min_region = 0`` turn this off.
 
-Only a thin novel pixel that the map covers is a speck: a sliver along the
-map's silhouette, where the map already has a surface behind D. Where E
-says how far the map reaches (a range image's E carries
-``map_in_footprint``, :mod:`mabdi.filters.expected_image`), covered means a
-map triangle lies within the pixel's footprint; a LiDAR sees the next ring
-of a road beyond the mapped one as a strip one or two beams tall, which is
-kept. A camera's E does not carry the array; there a thin region is kept
-where it fills a crack of E: pixels where E has no surface but E's
-surfaces close over them (a closing by a ``min_width`` square: gaps of up
-to ``min_width`` - 1 pixels between surfaces of the map, as patches leave
-between them or where every earlier look lost its returns). Those are
-meshed (still subject to ``min_region``) instead of staying holes for
-good. A thin strip beside the map's silhouette with nothing mapped beyond
-it stays a speck: meshing such slivers adds thin faces along every edge
-that no later look contradicts (an object that leaves would keep them). (Before, every thin camera region went: on Run 2
-under structured light that left holes of 2-4 cm that the TSDF fills;
-docs/benchmarks.md, "Real poses and real cameras".)
+Where E says how far the map reaches (a range image's E carries
+``map_in_footprint``, :mod:`mabdi.filters.expected_image`), only a thin
+novel pixel whose footprint the map reaches into is a speck: a sliver along
+the map's silhouette, which the map already covers in part. A thin strip
+beyond the map's edge, where no map triangle lies within the pixel's
+footprint, is new surface and is kept (still subject to ``min_region``): a
+LiDAR sees the next ring of a road beyond the mapped one as a strip one or
+two beams tall. A camera's E does not carry the array, and every thin
+region goes as before.
 
 Output: a depth image whose ``depth`` is D on the novel pixels and on a rim
 of ``rim`` pixels around them (NaN elsewhere), plus the whole of D as the
@@ -176,23 +168,6 @@ def dilate(mask: np.ndarray, radius: int) -> np.ndarray:
     return dilate_kernel(np.ascontiguousarray(mask, dtype=bool), int(radius))
 
 
-def map_covers(expected_image, expected: np.ndarray, min_width: int) -> np.ndarray:
-    """(H, W) bool: where a thin novel region is a speck (see the module docs): a range image's pixels with a
-    map triangle within their footprint (E says so); a camera's everywhere but in the cracks of E, pixels
-    without a surface that E's surfaces close over (a closing by a ``min_width`` square fills gaps of up
-    to ``min_width`` - 1 pixels, the widths the opening removes)."""
-    covered = map_in_footprint(expected_image)
-    if covered is not None:
-        return covered
-    surface = np.isfinite(expected)
-    radius = min_width // 2
-    if radius == 0:
-        return np.ones(expected.shape, dtype=bool)
-    padded = np.pad(surface, radius, mode="edge")  # a crack runs on past the image's border
-    closed = erode(dilate(padded, radius), radius)[radius:-radius, radius:-radius]
-    return ~(closed & ~surface)
-
-
 def remove_specks(novel: np.ndarray, min_width: int, min_region: int, covered: np.ndarray | None = None) -> np.ndarray:
     """The novel mask without regions thinner than ``min_width`` or smaller than ``min_region`` pixels.
 
@@ -287,7 +262,7 @@ class FilterClassifier(MabdiAlgorithm):
         labels = classify(measured, expected, tau)
         p = self._parameters
         raw_novel = labels == NOVEL
-        novel = remove_specks(raw_novel, p.min_width, p.min_region, map_covers(expected_image, expected, p.min_width))
+        novel = remove_specks(raw_novel, p.min_width, p.min_region, map_in_footprint(expected_image))
         specks = raw_novel & ~novel
         labels[specks] = KNOWN
         meshed = novel

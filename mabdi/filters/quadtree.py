@@ -91,9 +91,9 @@ A single pixel's normal is no fitted plane: it keeps the jump rule's
 allowance, so one seen that steeply gets no face, as before. ``"auto"`` (the
 default) turns the rule on for range images and leaves a camera's as it was.
 
-**Merging by what the noise allows** (``noise_merge``; "auto", the default,
-where the sensor's noise is correlated across pixels: a structured-light or
-stereo camera, :attr:`~mabdi.sensor_noise.SensorNoise.correlated`). The
+**Merging by what the noise allows** (``noise_merge``; "auto", the default:
+a camera's image whose noise model has noise; a LiDAR's range images and
+noise-free images keep the seed's test). The
 seed's fixed n_t keeps a flat floor 3.5 m away in pieces of a few pixels
 when each pixel's normal scatters by more than 0.1 per component (one look
 of a structured-light camera errs by 2 cm there, and smoothing cannot
@@ -107,9 +107,13 @@ child averages (half per level): normals within that where it is more
 than n_t; centroids within it, at least ``MERGE_MIN_DISTANCE`` (2 mm) and
 at most d_t. So a node merges while its children are one plane within
 what the data can tell, and stops where a curved surface's sag grows past
-it (the sag grows four times per level, the allowance halves). With
-independent noise the smoothing leaves a third of it and the seed's test is
-kept (the "auto" rule); ``noise_merge = true`` applies it to any noise.
+it (the sag grows four times per level, the allowance halves). Near the
+camera the test is stricter than the seed's (centroids within millimetres,
+not d_t = 2 cm), far from it looser. On Run 2 and the table it keeps F@1cm
+and makes a third to two thirds fewer faces (docs/benchmarks.md, "Real
+poses and real cameras"). Without noise (model ``none``) there is nothing
+to allow for, and the seed's fixed test is kept; a LiDAR's range images
+keep it too (measured on the street with it).
 
 Small or accurate: the defaults (the seed's 3x3 reduction, n_t = 0.1) make
 the small map. With a noisy sensor, ``reduction = 2`` and ``n_t = 0.2`` (and
@@ -176,7 +180,7 @@ GRAZING_MARGIN = 2.0
 MAX_GRAZING_INCIDENCE = 88.0
 #: The noise-aware merge test allows this many standard deviations of what the noise makes a pixel's
 #: normal and point stray (:func:`merge_allowances`) ...
-MERGE_NOISE_K = 2.0
+MERGE_NOISE_K = 1.5
 #: ... and children's centroids at least this far (m) from their plane.
 MERGE_MIN_DISTANCE = 0.002
 #: Corners of leaves whose normals differ by more than 45 degrees are not merged (a crease).
@@ -197,8 +201,8 @@ class QuadTreeParameters:
     #: Flat ground at grazing incidence on a range image (see the module docs): true, false, or "auto"
     #: (range images only; a camera's images keep the jump rule alone).
     grazing: bool | str = "auto"
-    #: Merge by what the noise allows (see the module docs): true, false, or "auto" (where the sensor's noise
-    #: is correlated across pixels, which smoothing cannot take out: a structured-light or stereo camera).
+    #: Merge by what the noise allows (see the module docs): true, false, or "auto" (a camera whose noise
+    #: model has noise; not a LiDAR's range images).
     noise_merge: bool | str = "auto"
     #: Triangulate every face. Not a config key: in the MABDI loop faces are always triangulated.
     triangles: bool = field(default=False, metadata={"toml": False})
@@ -315,7 +319,7 @@ def _leaf_jump(leaves: Leaves, p: QuadTreeParameters, k: Grid) -> np.ndarray:
 def pyramid(points: np.ndarray, normals: np.ndarray, k: Grid, p: QuadTreeParameters, noise: SensorNoise):
     """Stages 4-5, the merge pyramid and its leaves (:func:`~mabdi.filters.quadtree_kernels.pyramid_kernel`),
     with the noise-aware test where :func:`noise_merge_on`."""
-    aware = noise_merge_on(p, noise)
+    aware = noise_merge_on(p, noise, k)
     if aware:
         normal_noise, distance_noise = merge_allowances(points, k, noise, p.smooth_depth)
     else:
@@ -323,9 +327,12 @@ def pyramid(points: np.ndarray, normals: np.ndarray, k: Grid, p: QuadTreeParamet
     return kernels.pyramid_kernel(points, normals, p.n_t, p.d_t, normal_noise, distance_noise, aware, MERGE_MIN_DISTANCE)
 
 
-def noise_merge_on(p: QuadTreeParameters, noise: SensorNoise) -> bool:
-    """Whether the merge test allows for the noise: ``noise_merge`` true, or "auto" where the noise is correlated."""
-    return noise.correlated if p.noise_merge == "auto" else bool(p.noise_merge)
+def noise_merge_on(p: QuadTreeParameters, noise: SensorNoise, k: Grid) -> bool:
+    """Whether the merge test allows for the noise: ``noise_merge`` true, or "auto" on a camera's image whose
+    noise model has noise."""
+    if p.noise_merge == "auto":
+        return noise.model != "none" and not isinstance(k, ReducedSpherical)
+    return bool(p.noise_merge)
 
 
 def merge_allowances(points: np.ndarray, k: Grid, noise: SensorNoise, smoothed: bool) -> tuple[np.ndarray, np.ndarray]:
