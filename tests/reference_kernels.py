@@ -230,7 +230,7 @@ def quadtree_leaves_of_image(depth: np.ndarray, intrinsics: Intrinsics, p, noise
     normals = point_normals(points, p.max_jump)
     from mabdi.filters.quadtree import MERGE_MIN_DISTANCE, merge_allowances, noise_merge_on
 
-    allowances = merge_allowances(points, reduced, noise, p.smooth_depth) if noise_merge_on(p, noise, reduced) else None
+    allowances = merge_allowances(points, reduced, noise, p.smooth_depth) if noise_merge_on(p, noise) else None
     leaves, regions = build_leaves(points, normals, p.n_t, p.d_t, allowances, MERGE_MIN_DISTANCE)
     residual = plane_residual(points, leaves, p.max_jump)
     leaves = fitting_leaves(leaves, residual, reduced, noise)

@@ -91,9 +91,9 @@ A single pixel's normal is no fitted plane: it keeps the jump rule's
 allowance, so one seen that steeply gets no face, as before. ``"auto"`` (the
 default) turns the rule on for range images and leaves a camera's as it was.
 
-**Merging by what the noise allows** (``noise_merge``; "auto", the default:
-a camera's image whose noise model has noise; a LiDAR's range images and
-noise-free images keep the seed's test). The
+**Merging by what the noise allows** (``noise_merge``; "auto", the default,
+where the sensor's noise is correlated across pixels: a structured-light or
+stereo camera, :attr:`~mabdi.sensor_noise.SensorNoise.correlated`). The
 seed's fixed n_t keeps a flat floor 3.5 m away in pieces of a few pixels
 when each pixel's normal scatters by more than 0.1 per component (one look
 of a structured-light camera errs by 2 cm there, and smoothing cannot
@@ -109,11 +109,15 @@ at most d_t. So a node merges while its children are one plane within
 what the data can tell, and stops where a curved surface's sag grows past
 it (the sag grows four times per level, the allowance halves). Near the
 camera the test is stricter than the seed's (centroids within millimetres,
-not d_t = 2 cm), far from it looser. On Run 2 and the table it keeps F@1cm
-and makes a third to two thirds fewer faces (docs/benchmarks.md, "Real
-poses and real cameras"). Without noise (model ``none``) there is nothing
-to allow for, and the seed's fixed test is kept; a LiDAR's range images
-keep it too (measured on the street with it).
+not d_t = 2 cm), far from it looser. Under structured light it keeps or
+raises F@1cm with half the faces. With independent noise (z-buffer, Kinect)
+the smoothing has already taken most of it out, and the bigger faces cost
+more than they give: on Run 2 with the z-buffer model a third fewer faces,
+F@1cm 0.0004 lower and registered poses 1 mm further off (the ICP fits
+chords of the bunnies), so "auto" keeps the seed's test there; ``true``
+applies it to any camera (the figures: docs/benchmarks.md, "Real poses and
+real cameras"). Without noise (model ``none``) there is nothing to allow
+for.
 
 Small or accurate: the defaults (the seed's 3x3 reduction, n_t = 0.1) make
 the small map. With a noisy sensor, ``reduction = 2`` and ``n_t = 0.2`` (and
@@ -201,8 +205,8 @@ class QuadTreeParameters:
     #: Flat ground at grazing incidence on a range image (see the module docs): true, false, or "auto"
     #: (range images only; a camera's images keep the jump rule alone).
     grazing: bool | str = "auto"
-    #: Merge by what the noise allows (see the module docs): true, false, or "auto" (a camera whose noise
-    #: model has noise; not a LiDAR's range images).
+    #: Merge by what the noise allows (see the module docs): true, false, or "auto" (where the sensor's noise
+    #: is correlated across pixels, which smoothing cannot take out: a structured-light or stereo camera).
     noise_merge: bool | str = "auto"
     #: Triangulate every face. Not a config key: in the MABDI loop faces are always triangulated.
     triangles: bool = field(default=False, metadata={"toml": False})
@@ -319,7 +323,7 @@ def _leaf_jump(leaves: Leaves, p: QuadTreeParameters, k: Grid) -> np.ndarray:
 def pyramid(points: np.ndarray, normals: np.ndarray, k: Grid, p: QuadTreeParameters, noise: SensorNoise):
     """Stages 4-5, the merge pyramid and its leaves (:func:`~mabdi.filters.quadtree_kernels.pyramid_kernel`),
     with the noise-aware test where :func:`noise_merge_on`."""
-    aware = noise_merge_on(p, noise, k)
+    aware = noise_merge_on(p, noise)
     if aware:
         normal_noise, distance_noise = merge_allowances(points, k, noise, p.smooth_depth)
     else:
@@ -327,12 +331,9 @@ def pyramid(points: np.ndarray, normals: np.ndarray, k: Grid, p: QuadTreeParamet
     return kernels.pyramid_kernel(points, normals, p.n_t, p.d_t, normal_noise, distance_noise, aware, MERGE_MIN_DISTANCE)
 
 
-def noise_merge_on(p: QuadTreeParameters, noise: SensorNoise, k: Grid) -> bool:
-    """Whether the merge test allows for the noise: ``noise_merge`` true, or "auto" on a camera's image whose
-    noise model has noise."""
-    if p.noise_merge == "auto":
-        return noise.model != "none" and not isinstance(k, ReducedSpherical)
-    return bool(p.noise_merge)
+def noise_merge_on(p: QuadTreeParameters, noise: SensorNoise) -> bool:
+    """Whether the merge test allows for the noise: ``noise_merge`` true, or "auto" where the noise is correlated."""
+    return noise.correlated if p.noise_merge == "auto" else bool(p.noise_merge)
 
 
 def merge_allowances(points: np.ndarray, k: Grid, noise: SensorNoise, smoothed: bool) -> tuple[np.ndarray, np.ndarray]:
