@@ -94,11 +94,11 @@ default) turns the rule on for range images and leaves a camera's as it was.
 **Merging by what the noise allows** (``noise_merge``; "auto", the default,
 where the sensor's noise is correlated across pixels: a structured-light or
 stereo camera, :attr:`~mabdi.sensor_noise.SensorNoise.correlated`). The
-seed's fixed n_t keeps a flat floor 3.5 m away in pieces of a few pixels
-when each pixel's normal scatters by more than 0.1 per component (one look
-of a structured-light camera errs by 2 cm there, and smoothing cannot
-take out errors its neighbours share), and every piece carries its own
-pixels' error. The noise-aware test allows what the noise makes children
+seed's fixed n_t keeps a far, flat floor in pieces of a few pixels when
+each pixel's normal scatters by more than 0.1 per component (one look of
+a structured-light camera errs by centimetres at 3-4 m, and smoothing
+cannot take out errors its neighbours share), and every piece carries its
+own pixels' error. The noise-aware test allows what the noise makes children
 stray (:func:`merge_allowances`: ``MERGE_NOISE_K`` standard deviations of
 a pixel's normal, s / (sqrt(2) u) per component for a depth error s over
 a pixel spacing u, and of its point, s; s is sigma(z) times what the
@@ -110,14 +110,14 @@ what the data can tell, and stops where a curved surface's sag grows past
 it (the sag grows four times per level, the allowance halves). Near the
 camera the test is stricter than the seed's (centroids within millimetres,
 not d_t = 2 cm), far from it looser. Under structured light it keeps or
-raises F@1cm with half the faces. With independent noise (z-buffer, Kinect)
-the smoothing has already taken most of it out, and the bigger faces cost
-more than they give: on Run 2 with the z-buffer model a third fewer faces,
-F@1cm 0.0004 lower and registered poses 1 mm further off (the ICP fits
-chords of the bunnies), so "auto" keeps the seed's test there; ``true``
-applies it to any camera (the figures: docs/benchmarks.md, "Real poses and
-real cameras"). Without noise (model ``none``) there is nothing to allow
-for.
+raises F@1cm with about half the faces. With independent noise (z-buffer,
+Kinect) the smoothing has already taken most of the noise out, and the
+bigger faces cost more than they give: fewer faces, but a slightly lower
+F@1cm and registered poses further off (the ICP fits the chords of curved
+surfaces), so "auto" keeps the seed's test there; ``true`` applies it to
+any camera (the figures: docs/benchmarks.md, "Real poses and real
+cameras"). Turned on without noise (model ``none``) the allowances are
+zero: normals keep n_t and centroids must lie within 2 mm of their plane.
 
 Small or accurate: the defaults (the seed's 3x3 reduction, n_t = 0.1) make
 the small map. With a noisy sensor, ``reduction = 2`` and ``n_t = 0.2`` (and
