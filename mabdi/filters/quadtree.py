@@ -345,11 +345,12 @@ def merge_allowances(points: np.ndarray, k: Grid, noise: SensorNoise, smoothed: 
     spacing u (z times a reduced pixel's angle): s / (sqrt(2) u) per component. Zero where the model has
     no noise."""
     depth = _depth(points, k)
-    sigma = np.nan_to_num(noise.sigma(np.where(np.isfinite(depth), depth, k.near), k.near, k.far), nan=0.0)
+    depth = np.where(np.isfinite(depth), depth, k.near)  # no pixel there: its allowance is never read
+    sigma = np.nan_to_num(noise.sigma(depth, k.near, k.far), nan=0.0)
     if smoothed:
         sigma = sigma * smoothed_noise_share(noise)
     angle = k.footprint if isinstance(k, ReducedSpherical) else 1.0 / min(k.fx, k.fy)
-    spacing = np.maximum(np.where(np.isfinite(depth), depth, k.near) * angle, 1e-9)
+    spacing = np.maximum(depth * angle, 1e-9)
     normal = MERGE_NOISE_K * sigma / (math.sqrt(2.0) * spacing)
     distance = MERGE_NOISE_K * sigma
     return np.ascontiguousarray(normal, dtype=np.float32), np.ascontiguousarray(distance, dtype=np.float32)

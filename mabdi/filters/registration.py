@@ -752,8 +752,8 @@ class FilterRegistration(MapAndImageAlgorithm):
         _add_field(output, WORLD_FROM_MAP_ARRAY, world_from_map)
         # the correction in the world: the camera centre moved, and turned
         translation, angle = transform_size(np.linalg.inv(given) @ world_from_map @ pose)
-        # stated exact (not learnt so): the frame is meshed at its given pose, whatever the ICP found
-        given_exact = p.enabled and self.anchor.stated is not None and max(self.anchor.given_variance(self._travelled)) == 0.0
+        # stated exact (no white part, no drift; not learnt so): the frame is meshed at its given pose, whatever the ICP found
+        given_exact = p.enabled and self.anchor.stated is not None and not np.any(self.anchor.stated)
         values = (
             STATUSES.index(result.status), translation, angle, result.residual, result.inlier_share, result.support, result.iterations,
             float(given_exact),
