@@ -541,6 +541,27 @@ def _bunny_pair(bunnies, index: int = 0):
     return depth_of(renderer, mesh, intrinsics, true, noise, frame=index), depth_of(renderer, mesh, intrinsics, given), intrinsics, noise
 
 
+def test_a_level_ends_where_the_next_step_is_predicted_below_the_tolerance(bunnies, monkeypatch):
+    """A level ends once the step that would follow, predicted from how steps shrank at a coarser level, is
+    below the tolerance: the pose is where steps taken until they vanish lead (within that tolerance), and
+    fewer steps get there."""
+    import mabdi.filters.registration as registration
+
+    for index in range(4):
+        measured, expected, intrinsics, noise = _bunny_pair(bunnies, index)
+        predicted = register_depth(measured, expected, intrinsics, noise, RegistrationParameters())
+        # tolerances no step reaches: each level runs until its steps vanish (or ten of them)
+        monkeypatch.setattr(registration, "STEP_TRANSLATION", 1e-9)
+        monkeypatch.setattr(registration, "STEP_ROTATION", 1e-8)
+        converged = register_depth(measured, expected, intrinsics, noise, RegistrationParameters())
+        monkeypatch.undo()
+        assert predicted.status == converged.status == "registered"
+        translation, angle = transform_size(np.linalg.inv(converged.transform) @ predicted.transform)
+        assert translation < registration.STEP_TRANSLATION and angle < registration.STEP_ROTATION
+        assert predicted.iterations < converged.iterations
+        np.testing.assert_allclose(predicted.covariance, converged.covariance, rtol=0.05, atol=1e-12)
+
+
 def test_a_large_step_is_summed_in_two_halves_that_add_up_to_the_whole(bunnies):
     """From SPLIT_MIN_POINTS samples on, a step's sums come from two halves (one on a helper thread); they
     are the sums over all the samples, up to rounding, with the residuals in the samples' order."""

@@ -41,7 +41,13 @@ corrects the pose the way KinectFusion's frame-to-model tracking does
    along a plane) get no step. A level ends once a step is below
    ``STEP_TRANSLATION`` and ``STEP_ROTATION`` (0.05 mm and 0.0005 degrees,
    well below the registered pose's own precision of tenths of a millimetre), ten times that for each
-   coarser level: those only bring the pose near. E's normals are computed
+   coarser level: those only bring the pose near. Near the optimum each
+   Gauss-Newton step shrinks the one before by a steady factor; the factor
+   the last two steps of a coarser level showed predicts the step that would
+   follow, and a level also ends where that prediction is below its
+   tolerance (each level's first step moves the pose to that level's
+   optimum, tenths of a millimetre from the coarser one's, and the second
+   only confirmed it). E's normals are computed
    once per pixel that a sample lands on and kept while the frame is
    registered (:class:`IcpWorkspace`). The tile sums and the information that the
    checks below need are taken once, at the pose found. A step over many
@@ -411,6 +417,8 @@ def register_depth(
     reach = p.max_distance  # the gate beyond the noise: shrinks with the residuals as the pose converges
     start = transform.copy()
     summaries = None  # the last step's (support, tile_gradients), where it took them
+    contraction = None  # how much a step shrank the one before, at the last coarser level that took two
+    remaining = (np.inf, np.inf)  # the step that would follow the last one (its size, or a prediction of it)
     for level in range(p.levels):
         points, z, tiles, n_tiles = sample_points(measured, intrinsics, p.stride * 2 ** (p.levels - 1 - level))
         scale = np.sqrt(noise.sigma(z, intrinsics.near, intrinsics.far) ** 2 + p.model_sigma**2)
@@ -418,7 +426,8 @@ def register_depth(
         # a coarser level only brings the pose near: the finer ones end it (steps below these end the level)
         loose = COARSE_TOLERANCE ** (p.levels - 1 - level)
         step_translation, step_rotation = STEP_TRANSLATION * loose, STEP_ROTATION * loose
-        step_size = (np.inf, np.inf)
+        step_size = previous = (np.inf, np.inf)
+        finest = level == p.levels - 1
         for _ in range(p.iterations):
             gate = np.maximum(reach, p.gate_k * scale)
             if iterations == 0:
@@ -428,7 +437,10 @@ def register_depth(
                     reach = min(reach, p.gate_k * MAD_TO_SIGMA * _median(residuals))
                 gate = np.maximum(reach, p.gate_k * scale)
             # a finest step after a small one is likely the last: it takes what the checks need as it goes
-            likely_last = level == p.levels - 1 and step_size[0] < 10 * step_translation and step_size[1] < 10 * step_rotation
+            likely_last = finest and (
+                (step_size[0] < 10 * step_translation and step_size[1] < 10 * step_rotation)
+                or (contraction is not None and not np.isfinite(step_size[0]))
+            )
             a, b, chi2, pairs, candidates, residuals, support, tile_gradients = map_image.system(
                 points, tiles, n_tiles, scale, gate, transform, p.huber, likely_last
             )
@@ -436,12 +448,23 @@ def register_depth(
             iterations += 1
             if pairs < max(6, p.min_points // 4 ** (p.levels - 1 - level)):
                 return RegistrationResult(start, "few_points", iterations=iterations)
+            previous = step_size
             transform, *step_size = gauss_newton_update(a, b, transform)
-            # the spread of the residuals says how far off the pose still is (robust: a median, of every
-            # MEDIAN_STRIDE-th of many)
-            spread = MAD_TO_SIGMA * _median(residuals)
-            reach = min(reach, p.gate_k * spread)
-            if step_size[0] < step_translation and step_size[1] < step_rotation:
+            remaining = step_size
+            done = step_size[0] < step_translation and step_size[1] < step_rotation
+            if done and not finest and np.isfinite(previous[0]):
+                contraction = max(step_size[0] / max(previous[0], 1e-12), step_size[1] / max(previous[1], 1e-12))
+            elif not done and (likely_last or not finest) and contraction is not None and contraction < 1.0:
+                # Gauss-Newton near the optimum shrinks each step by about what it did at a coarser level:
+                # where the step that would follow is predicted below the tolerance, it is not taken
+                predicted = (step_size[0] * contraction, step_size[1] * contraction)
+                done = predicted[0] < step_translation and predicted[1] < step_rotation
+                remaining = predicted if done else step_size
+            if not (done and summaries is not None):
+                # the spread of the residuals says how far off the pose still is (robust: a median, of every
+                # MEDIAN_STRIDE-th of many); the last step that took the summaries needs it no more
+                reach = min(reach, p.gate_k * MAD_TO_SIGMA * _median(residuals))
+            if done:
                 break
     if summaries is None:  # the last step did not take them: the pose found, judged at its own pairs
         gate = np.maximum(reach, p.gate_k * scale)
@@ -458,7 +481,7 @@ def register_depth(
     held = constraint_support(support, z)
     if share < p.min_inliers or pairs < p.min_points or held < p.min_support:
         status = "few_inliers"
-    elif step_size[0] > CONVERGED_TRANSLATION or step_size[1] > CONVERGED_ROTATION:
+    elif remaining[0] > CONVERGED_TRANSLATION or remaining[1] > CONVERGED_ROTATION:
         status = "not_converged"
     elif translation > p.max_translation or angle > p.max_rotation:
         status = "beyond_bound"
