@@ -30,10 +30,21 @@ corrects the pose the way KinectFusion's frame-to-model tracking does
    model_sigma^2), sigma the sensor's noise model), or more while the pose
    is still off: ``gate_k`` times the residuals' spread (1.4826 times their
    median), which starts at the start's own spread (never above
-   ``max_distance``) and only shrinks. A gate sized by the residuals keeps
+   ``max_distance``) and shrinks. A gate sized by the residuals keeps
    surfaces the map does not have (the unseen side of a table leg a few
    centimetres behind the seen one) from pulling along a direction the
-   scene barely constrains. Pairs are weighted by Huber's rule (``huber``
+   scene barely constrains. The residuals' median speaks for the surfaces
+   most pixels show, though: on a table seen from a few metres the floor
+   and the table top fit as soon as height and tilt are right, while the
+   few pixels that hold the camera along the floor (the table's edges,
+   legs and cups) are still centimetres off. So the reach shrinks only
+   while the step's pairs hold every direction the map constrains at
+   least ``SHRINK_SUPPORT`` (half) of what all candidates would
+   (:func:`constraint_support`, taken at the coarser levels and on the
+   finest level's last steps); where they do not, it goes back to the
+   reach before it last shrank. A step that undoes the one before (a
+   two-cycle: pairs at the edge of the gate flip in and out, and two poses
+   swap for ever) is halved. Pairs are weighted by Huber's rule (``huber``
    noise units; 0: Tukey's biweight over the gate). Novel surfaces (nearer
    than the map, or where it has none) and objects that left fall outside
    the gate and pull on nothing. Gauss-Newton steps in (rotation vector,
@@ -169,6 +180,9 @@ COARSE_TOLERANCE = 10.0
 #: The residuals' median is taken over every MEDIAN_STRIDE-th where there are more than MEDIAN_MANY.
 MEDIAN_STRIDE = 4
 MEDIAN_MANY = 20_000
+#: The gate's reach shrinks with the residuals only while the pairs hold every direction the map constrains at
+#: least this share of what all candidates hold (:func:`constraint_support`).
+SHRINK_SUPPORT = 0.5
 #: One ICP step's samples are summed in two halves from this many on (the finest levels).
 SPLIT_MIN_POINTS = 20_000
 SPLIT_PARTS = 2
@@ -416,11 +430,15 @@ def register_depth(
     step_size = (np.inf, np.inf)
     reach = p.max_distance  # the gate beyond the noise: shrinks with the residuals as the pose converges
     start = transform.copy()
+    wide = reach  # the reach before it last shrank
+    last_step = np.zeros(6)
     summaries = None  # the last step's (support, tile_gradients), where it took them
     contraction = None  # how much a step shrank the one before, at the last coarser level that took two
     remaining = (np.inf, np.inf)  # the step that would follow the last one (its size, or a prediction of it)
     for level in range(p.levels):
         points, z, tiles, n_tiles = sample_points(measured, intrinsics, p.stride * 2 ** (p.levels - 1 - level))
+        if level == 0:
+            length = _median(z) if len(z) else 1.0  # rotations compared with translations as lengths at this depth
         scale = np.sqrt(noise.sigma(z, intrinsics.near, intrinsics.far) ** 2 + p.model_sigma**2)
         scale = np.maximum(scale, 1e-4)
         # a coarser level only brings the pose near: the finer ones end it (steps below these end the level)
@@ -441,15 +459,16 @@ def register_depth(
                 (step_size[0] < 10 * step_translation and step_size[1] < 10 * step_rotation)
                 or (contraction is not None and not np.isfinite(step_size[0]))
             )
+            held = likely_last or not finest  # which directions the pairs hold: cheap at the coarser levels
             a, b, chi2, pairs, candidates, residuals, support, tile_gradients = map_image.system(
-                points, tiles, n_tiles, scale, gate, transform, p.huber, likely_last
+                points, tiles, n_tiles, scale, gate, transform, p.huber, held
             )
             summaries = (support, tile_gradients) if likely_last else None
             iterations += 1
             if pairs < max(6, p.min_points // 4 ** (p.levels - 1 - level)):
                 return RegistrationResult(start, "few_points", iterations=iterations)
             previous = step_size
-            transform, *step_size = gauss_newton_update(a, b, transform)
+            transform, *step_size, last_step = gauss_newton_update(a, b, transform, last_step, length)
             remaining = step_size
             done = step_size[0] < step_translation and step_size[1] < step_rotation
             if done and not finest and np.isfinite(previous[0]):
@@ -463,7 +482,12 @@ def register_depth(
             if not (done and summaries is not None):
                 # the spread of the residuals says how far off the pose still is (robust: a median, of every
                 # MEDIAN_STRIDE-th of many); the last step that took the summaries needs it no more
-                reach = min(reach, p.gate_k * MAD_TO_SIGMA * _median(residuals))
+                if held and constraint_support(support, z) < SHRINK_SUPPORT:
+                    # the reach cut loose a direction the map constrains (the few pixels that hold it, a table's
+                    # edges and legs, were still off when the floor's residuals said the pose was near): back
+                    reach = max(reach, wide)
+                else:
+                    wide, reach = reach, min(reach, p.gate_k * MAD_TO_SIGMA * _median(residuals))
             if done:
                 break
     if summaries is None:  # the last step did not take them: the pose found, judged at its own pairs

@@ -71,6 +71,8 @@ def point_and_normal(depth, row, col, fx, fy, cx, cy, step, max_jump):
 
 
 #: States of a pixel in the normal cache of :func:`cached_point_and_normal`.
+#: A step whose direction is within this cosine of the opposite of the one before undoes it (a two-cycle).
+REVERSAL_COSINE = -0.9
 NORMAL_UNKNOWN = 0
 NORMAL_FOUND = 1
 NORMAL_NONE = 2
@@ -360,13 +362,31 @@ def solve_normal_equations(a, b):
 
 
 @njit(cache=True)
-def gauss_newton_update(a, b, transform):
+def gauss_newton_update(a, b, transform, previous, length):
     """One Gauss-Newton step of the ICP: the new estimate (the step's rigid motion, left of ``transform``),
-    and the step's size (m, degrees)."""
+    the step's size (m, degrees) and the step (rotation vector, translation).
+
+    ``previous``: the step before (6,), zeros for none. A step that undoes it (their directions, rotations
+    taken as lengths at ``length`` metres, within ``REVERSAL_COSINE``, and about as long) is a two-cycle:
+    pairs at the edge of the gate flip in and out, and the two poses swap for ever. Half of it is taken,
+    which lands between them."""
     step, _ = solve_normal_equations(a, b)
+    dot = 0.0
+    norm_step = 0.0
+    norm_previous = 0.0
+    for i in range(6):
+        scale = length if i < 3 else 1.0
+        dot += step[i] * previous[i] * scale * scale
+        norm_step += (step[i] * scale) ** 2
+        norm_previous += (previous[i] * scale) ** 2
+    if norm_step > 0.0 and norm_previous > 0.0:
+        cosine = dot / np.sqrt(norm_step * norm_previous)
+        ratio = np.sqrt(norm_step / norm_previous)
+        if cosine < REVERSAL_COSINE and 0.5 < ratio < 2.0:
+            step = 0.5 * step
     update = rigid_from_vector(step[:3], step[3:])
     translation, angle = rigid_size(update)
-    return update @ transform, translation, angle
+    return update @ transform, translation, angle, step
 
 
 @njit(cache=True)
