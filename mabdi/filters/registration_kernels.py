@@ -70,9 +70,9 @@ def point_and_normal(depth, row, col, fx, fy, cx, cy, step, max_jump):
     return True, x, y, z, nx * inverse, ny * inverse, nz * inverse
 
 
-#: States of a pixel in the normal cache of :func:`cached_point_and_normal`.
 #: A step whose direction is within this cosine of the opposite of the one before undoes it (a two-cycle).
 REVERSAL_COSINE = -0.9
+#: States of a pixel in the normal cache of :func:`cached_point_and_normal`.
 NORMAL_UNKNOWN = 0
 NORMAL_FOUND = 1
 NORMAL_NONE = 2
