@@ -437,8 +437,10 @@ def register_depth(
     remaining = (np.inf, np.inf)  # the step that would follow the last one (its size, or a prediction of it)
     for level in range(p.levels):
         points, z, tiles, n_tiles = sample_points(measured, intrinsics, p.stride * 2 ** (p.levels - 1 - level))
+        # rotations taken as lengths at the samples' median depth: once per level (the two-cycle test keeps the coarsest's)
+        level_length = _median(z) if len(z) else 1.0
         if level == 0:
-            length = _median(z) if len(z) else 1.0  # rotations compared with translations as lengths at this depth
+            length = level_length
         scale = np.sqrt(noise.sigma(z, intrinsics.near, intrinsics.far) ** 2 + p.model_sigma**2)
         scale = np.maximum(scale, 1e-4)
         # a coarser level only brings the pose near: the finer ones end it (steps below these end the level)
@@ -478,11 +480,12 @@ def register_depth(
                 # where the step that would follow is predicted below the tolerance, it is not taken
                 predicted = (step_size[0] * contraction, step_size[1] * contraction)
                 done = predicted[0] < step_translation and predicted[1] < step_rotation
-                remaining = predicted if done else step_size
+                if done:
+                    remaining = predicted
             if not (done and summaries is not None):
                 # the spread of the residuals says how far off the pose still is (robust: a median, of every
                 # MEDIAN_STRIDE-th of many); the last step that took the summaries needs it no more
-                if held and constraint_support(support, z) < SHRINK_SUPPORT:
+                if held and constraint_support(support, level_length) < SHRINK_SUPPORT:
                     # the reach cut loose a direction the map constrains (the few pixels that hold it, a table's
                     # edges and legs, were still off when the floor's residuals said the pose was near): back
                     reach = max(reach, wide)
@@ -502,7 +505,7 @@ def register_depth(
     share = pairs / max(candidates, 1)
     translation, angle = transform_size(np.linalg.inv(start) @ transform)
     status = "registered"
-    held = constraint_support(support, z)
+    held = constraint_support(support, level_length)
     if share < p.min_inliers or pairs < p.min_points or held < p.min_support:
         status = "few_inliers"
     elif remaining[0] > CONVERGED_TRANSLATION or remaining[1] > CONVERGED_ROTATION:
@@ -550,16 +553,15 @@ def pose_covariance(inverse: np.ndarray, chi2: float, pairs: int, tile_gradients
     return independent + (vectors * np.maximum(values, 0.0)) @ vectors.T
 
 
-def constraint_support(support: np.ndarray, depths: np.ndarray) -> float:
+def constraint_support(support: np.ndarray, length: float) -> float:
     """The least share, over the directions the map constrains, of the constraint that the pairs within the
     gate carry (1: every direction as well held as by all candidates; near 0: some direction is held only by
     points the registration left out, as when a wall is 30 cm from where the map has it).
 
-    ``support``: the pairs' and the candidates' information (2, 6, 6) from the last ICP step; ``depths``:
-    D's sampled depths, whose median turns rotations into lengths. Directions with under 1e-3 of the
+    ``support``: the pairs' and the candidates' information (2, 6, 6) from the last ICP step; ``length``:
+    the median depth of D's samples (m), which turns rotations into lengths. Directions with under 1e-3 of the
     strongest one's information are not counted (the scene does not constrain them).
     """
-    length = _median(depths) if len(depths) else 1.0
     scaling = np.diag([1.0 / length] * 3 + [1.0] * 3)
     pairs = scaling @ support[0] @ scaling
     candidates = scaling @ support[1] @ scaling
