@@ -134,6 +134,60 @@ def extract_polys(surface: vtkPolyData, cell_ids: np.ndarray) -> vtkPolyData:
     return patch
 
 
+def split_polys(surface: vtkPolyData, labels) -> list[tuple[int, vtkPolyData]]:
+    """The polygons of ``surface`` grouped by ``labels`` (one integer per cell): ``(label, patch)`` for each label,
+    ascending, where ``patch`` is :func:`extract_polys` of the cells of that label in their order. One pass over
+    the surface however many groups there are (:func:`extract_polys` per group walks the whole surface each time)."""
+    labels = np.asarray(labels)
+    if labels.shape != (surface.GetNumberOfCells(),):
+        raise ValueError(f"split_polys: {labels.shape} labels for {surface.GetNumberOfCells()} cells")
+    if not len(labels):
+        return []
+    polys = surface.GetPolys()
+    offsets = vtk_to_numpy(polys.GetOffsetsArray()).astype(np.int64)
+    connectivity = vtk_to_numpy(polys.GetConnectivityArray()).astype(np.int64)
+    order = np.argsort(labels, kind="stable")
+    sorted_labels = labels[order]
+    cell_starts = np.flatnonzero(np.r_[True, sorted_labels[1:] != sorted_labels[:-1]])
+    cell_bounds = np.r_[cell_starts, len(order)]
+    group_of_cell = np.repeat(np.arange(len(cell_starts)), np.diff(cell_bounds))
+    sizes = offsets[order + 1] - offsets[order]
+    new_offsets = np.concatenate([[0], np.cumsum(sizes)])
+    gather = np.repeat(offsets[order] - new_offsets[:-1], sizes) + np.arange(new_offsets[-1])
+    corner_group = np.repeat(group_of_cell, sizes)
+    n_points = surface.GetNumberOfPoints()
+    # each group's points, ascending within the group (as extract_polys keeps them), and each corner's place there
+    pairs, corner_pair = np.unique(corner_group * n_points + connectivity[gather], return_inverse=True)
+    pair_group, point_ids = np.divmod(pairs, n_points)
+    point_bounds = np.searchsorted(pair_group, np.arange(len(cell_starts) + 1))
+    local = corner_pair.ravel() - point_bounds[corner_group]
+    points = vtk_to_numpy(surface.GetPoints().GetData())[point_ids]
+    arrays = []  # (target: 0 point data / 1 cell data, name, values in group order)
+    for target, (source, ids) in enumerate(((surface.GetPointData(), point_ids), (surface.GetCellData(), order))):
+        for i in range(source.GetNumberOfArrays()):
+            array = source.GetArray(i)
+            if array is not None:
+                arrays.append((target, array.GetName(), vtk_to_numpy(array)[ids]))
+    out = []
+    for g in range(len(cell_starts)):
+        c0, c1 = cell_bounds[g], cell_bounds[g + 1]
+        p0, p1 = point_bounds[g], point_bounds[g + 1]
+        k0, k1 = new_offsets[c0], new_offsets[c1]
+        patch = vtkPolyData()
+        vtk_points = vtkPoints()
+        vtk_points.SetData(numpy_to_vtk(np.ascontiguousarray(points[p0:p1]), deep=True))
+        patch.SetPoints(vtk_points)
+        patch.SetPolys(_cell_array(new_offsets[c0 : c1 + 1] - k0, local[k0:k1]))
+        data = (patch.GetPointData(), patch.GetCellData())
+        for target, name, values in arrays:
+            lo, hi = (p0, p1) if target == 0 else (c0, c1)
+            vtk_values = numpy_to_vtk(np.ascontiguousarray(values[lo:hi]), deep=True)
+            vtk_values.SetName(name)
+            data[target].AddArray(vtk_values)
+        out.append((sorted_labels[c0].item(), patch))
+    return out
+
+
 def polydata_to_state(mesh: vtkPolyData) -> dict:
     """A polygonal vtkPolyData as plain numpy arrays (points, polygon offsets and connectivity, point and
     cell arrays by name), for checkpoints; :func:`polydata_from_state` rebuilds it exactly."""

@@ -53,7 +53,7 @@ from vtkmodules.vtkFiltersCore import vtkAppendPolyData
 from mabdi.face_identity import FaceIdTable, block_address, rows_by_block
 from mabdi.polydata_kernels import triangle_centres
 from mabdi.filters.removal import update_log_odds
-from mabdi.polydata import extract_polys, polydata_from_state, polydata_to_state, triangle_normals
+from mabdi.polydata import extract_polys, polydata_from_state, split_polys, polydata_to_state, triangle_normals
 
 FRAME_CELL_ARRAY = "frame"
 #: Edge of a chunk (metres): small beside what a depth camera sees at once, so culling draws little beyond the view.
@@ -340,16 +340,9 @@ class WorldMap:
         cells = self.chunk_indices(face_centres(polydata)[0]) - low  # 0 .. span per axis
         span = high - low + 1
         flat = (cells[:, 0] * span[1] + cells[:, 1]) * span[2] + cells[:, 2]
-        keys, which = np.unique(flat, return_inverse=True)
-        if len(keys) == 1:
+        if (flat == flat[0]).all():
             return [(tuple(int(i) for i in low + cells[0]), polydata)]
-        order = np.argsort(which, kind="stable")
-        starts = np.searchsorted(which[order], np.arange(len(keys) + 1))
-        parts = []
-        for n in range(len(keys)):
-            rows = order[starts[n] : starts[n + 1]]
-            parts.append((tuple(int(i) for i in low + cells[rows[0]]), extract_polys(polydata, rows)))
-        return parts
+        return [(tuple(int(i) for i in low + np.unravel_index(n, tuple(span))), part) for n, part in split_polys(polydata, flat)]
 
     def _add(self, key: str, polydata: vtkPolyData, chunk: ChunkIndex, keyed: bool) -> int:
         old = self._patches.get(key)

@@ -74,13 +74,20 @@ points), a mesh of small planar polygons out. The filter keeps a
    docs/benchmarks.md has the street's).
 4. **Incremental**: after new points, only the blocks (``block_size``, 1 m)
    holding a vertex whose neighbourhood changed are re-meshed. The mesh is
-   kept per block; the output is either the blocks re-meshed by this update
+   kept per block; the output is either the patches re-meshed by this update
    (``output="changed"``, the default, which is what the MABDI loop feeds to
    :class:`~mabdi.filters.world_mesh.FilterWorldMesh`) or the whole map
-   (``output="full"``). Every cell carries the int64 cell array ``patch_key``
-   (its block's key), and field data ``removed_patch_keys`` lists blocks that
-   lost all their faces, so the world mesh replaces a re-meshed block
-   instead of stacking a layer on it.
+   (``output="full"``). A **patch** is a block, or, where blocks are fewer
+   than :data:`PATCH_VOXELS` voxels on a side (the street's 1 m blocks of
+   0.2 m voxels), a cube of g x g x g blocks that together span at least that
+   many (:attr:`FilterVoxelPlanes.patch_blocks`): the map's patches then keep
+   the seed's size in voxels (a 1 m block of 5 cm voxels) while the
+   statistics keep their small blocks (memory follows the surface), and the
+   world mesh, E and removal handle 16 times fewer patches on a surface.
+   Every cell carries the int64 cell array ``patch_key`` (its patch's key),
+   and field data ``removed_patch_keys`` lists patches that lost all their
+   faces, so the world mesh replaces a re-meshed patch instead of stacking a
+   layer on it.
 
 5. **Colour**: when the input carries colour (a depth image's point array
    ``colour``, registered to the depth; a point set's uint8 RGB point array
@@ -137,6 +144,8 @@ from mabdi.filters.pixel_grid import PixelGridParameters, pixel_grid_surface
 from mabdi.spherical import BEAM_ELEVATIONS_ARRAY, SPHERICAL_ARRAY, on_for_range_images
 
 OUTPUTS = ("changed", "full")
+#: Voxels on a side that a patch of the output spans at least (the seed's 1 m block of 5 cm voxels; module docs).
+PATCH_VOXELS = 20
 #: The colour of a polygon whose voxels hold no coloured point (in a map that has colour: points added without it).
 NO_COLOUR = (128, 128, 128)
 
@@ -618,6 +627,17 @@ class FilterVoxelPlanes(MabdiAlgorithm):
         """Keys of the blocks re-meshed by the last update."""
         return self._changed.copy()
 
+    @property
+    def patch_blocks(self) -> int:
+        """Blocks on a side of an output patch: 1, or as many as make :data:`PATCH_VOXELS` voxels (module docs)."""
+        return max(1, -(-PATCH_VOXELS // self.map.block_voxels))
+
+    def patch_keys(self, block_keys) -> np.ndarray:
+        """The keys of the patches holding blocks ``block_keys`` (the block's own key where a patch is a block)."""
+        block_keys = np.asarray(block_keys, dtype=np.int64)
+        g = self.patch_blocks
+        return block_keys if g == 1 else pack_keys(np.floor_divide(unpack_keys(block_keys), g))
+
     def clear_free_space(self, origins: np.ndarray, ends: np.ndarray, margins) -> int:
         """Empty the voxels that rays from ``origins`` to ``ends`` (world, metres) saw through, stopping
         ``margins`` (m) short of the ends (:meth:`VoxelMap.clear_free_space`); the neighbourhoods that
@@ -747,14 +767,25 @@ class FilterVoxelPlanes(MabdiAlgorithm):
         anchor_block = self.map.block_of(anchors)
         anchor_key = pack_keys(anchors)
         blocks = np.unique(anchor_block)
-        for key in blocks.tolist():
-            mine = np.flatnonzero(polygon_block == key)
-            fresh = BlockPolygons(
-                polygon_key[mine], sizes[mine], vertices[ring_indices(sizes, mine)], polygon_normals[mine], colours[ring_indices(sizes, mine)]
-            )
+        # the polygons and the anchors grouped by block once (not a pass over all of them per block)
+        by_polygon = np.argsort(polygon_block, kind="stable")
+        rings = ring_indices(sizes, by_polygon)
+        polygon_key, sizes, polygon_normals = polygon_key[by_polygon], sizes[by_polygon], polygon_normals[by_polygon]
+        vertices, colours = vertices[rings], colours[rings]
+        ring_bounds = np.concatenate([[0], np.cumsum(sizes)])
+        polygon_lo = np.searchsorted(polygon_block[by_polygon], blocks)
+        polygon_hi = np.searchsorted(polygon_block[by_polygon], blocks, side="right")
+        by_anchor = np.argsort(anchor_block, kind="stable")
+        anchor_lo = np.searchsorted(anchor_block[by_anchor], blocks)
+        anchor_hi = np.searchsorted(anchor_block[by_anchor], blocks, side="right")
+        for n, key in enumerate(blocks.tolist()):
+            mine = slice(polygon_lo[n], polygon_hi[n])
+            mine_rings = slice(ring_bounds[polygon_lo[n]], ring_bounds[polygon_hi[n]])
+            fresh = BlockPolygons(polygon_key[mine], sizes[mine], vertices[mine_rings], polygon_normals[mine], colours[mine_rings])
             old = self._blocks.get(key)
             if old is not None:
-                fresh = BlockPolygons.merged(old.without(np.sort(anchor_key[anchor_block == key])), fresh)
+                remeshed = np.sort(anchor_key[by_anchor[anchor_lo[n] : anchor_hi[n]]])
+                fresh = BlockPolygons.merged(old.without(remeshed), fresh)
             else:
                 fresh = BlockPolygons.merged(fresh)
             if len(fresh.anchors):
@@ -764,15 +795,16 @@ class FilterVoxelPlanes(MabdiAlgorithm):
         self._changed = blocks
 
     # -- output ------------------------------------------------------------
-    def _polydata(self, keys) -> vtkPolyData:
-        meshes = [(key, self._blocks[key]) for key in keys if key in self._blocks]
+    def _polydata(self, block_keys) -> vtkPolyData:
+        block_keys = [key for key in block_keys if key in self._blocks]
+        meshes = [self._blocks[key] for key in block_keys]
         if not meshes:
             return vtkPolyData()
-        sizes = np.concatenate([m.sizes for _, m in meshes])
-        vertices = np.concatenate([m.vertices for _, m in meshes])
+        sizes = np.concatenate([m.sizes for m in meshes])
+        vertices = np.concatenate([m.vertices for m in meshes])
         triangles, polygon = fan_triangles(sizes)
-        normals = np.concatenate([m.normals for _, m in meshes])[polygon]
-        patch = np.concatenate([np.full(len(m.sizes), key, dtype=np.int64) for key, m in meshes])[polygon]
+        normals = np.concatenate([m.normals for m in meshes])[polygon]
+        patch = np.repeat(self.patch_keys(block_keys), [len(m.sizes) for m in meshes])[polygon]
         mesh = triangles_polydata(vertices, triangles, dtype=np.float32)
         normal_array = numpy_to_vtk(np.ascontiguousarray(normals, dtype=np.float32), deep=True)
         normal_array.SetName("Normals")
@@ -784,7 +816,7 @@ class FilterVoxelPlanes(MabdiAlgorithm):
         keys_array.SetName(PATCH_KEY_ARRAY)
         mesh.GetCellData().AddArray(keys_array)
         if self.map.has_colour:  # each vertex: the mean colour of its voxel (vertex_colours)
-            colours = np.concatenate([m.colours for _, m in meshes])
+            colours = np.concatenate([m.colours for m in meshes])
             mesh.GetPointData().AddArray(colour_point_array(colours))
         return mesh
 
@@ -793,9 +825,17 @@ class FilterVoxelPlanes(MabdiAlgorithm):
         return self._polydata(sorted(self._blocks))
 
     def changed_mesh(self) -> vtkPolyData:
-        """The blocks re-meshed by the last update (``removed_patch_keys``: those now empty)."""
-        mesh = self._polydata(self._changed.tolist())
-        removed = np.array([k for k in self._changed.tolist() if k not in self._blocks], dtype=np.int64)
+        """The patches that hold a block re-meshed by the last update, whole (``removed_patch_keys``: those now
+        empty)."""
+        changed = np.unique(self.patch_keys(self._changed))
+        if self.patch_blocks == 1:
+            blocks = self._changed
+        else:  # every block of a changed patch, the unchanged ones too: the patch is replaced whole
+            stored = np.array(sorted(self._blocks), dtype=np.int64)
+            blocks = stored[np.isin(self.patch_keys(stored), changed)]
+        blocks = np.array([key for key in blocks.tolist() if key in self._blocks], dtype=np.int64)
+        mesh = self._polydata(blocks.tolist())
+        removed = np.setdiff1d(changed, self.patch_keys(blocks))
         array = numpy_to_vtk(removed, deep=True)
         array.SetName(REMOVED_KEYS_ARRAY)
         mesh.GetFieldData().AddArray(array)

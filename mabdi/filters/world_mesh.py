@@ -37,7 +37,7 @@ from vtkmodules.vtkCommonDataModel import vtkMultiBlockDataSet, vtkPolyData
 from mabdi.algorithm import MabdiAlgorithm
 from mabdi.depth import FRAME_ARRAY
 from mabdi.face_identity import FaceIdTable
-from mabdi.polydata import extract_polys
+from mabdi.polydata import split_polys
 from mabdi.world_map import CHUNK_SIZE, FRAME_CELL_ARRAY, PATCHES_PER_CHUNK, WorldMap
 
 __all__ = ["FRAME_CELL_ARRAY", "PATCH_KEY_ARRAY", "REMOVED_KEYS_ARRAY", "FilterWorldMesh"]
@@ -193,11 +193,7 @@ class FilterWorldMesh(MabdiAlgorithm):
         keys = surface.GetCellData().GetArray(PATCH_KEY_ARRAY)
         if keys is None:
             return added + self.store.add_patch(f"frame_{frame}", surface, frame)
-        keys = vtk_to_numpy(keys)
-        order = np.argsort(keys, kind="stable")
-        boundaries = np.flatnonzero(np.diff(keys[order])) + 1
-        for group in np.split(order, boundaries):
-            patch = extract_polys(surface, group)
+        for key, patch in split_polys(surface, vtk_to_numpy(keys)):
             patch.GetCellData().RemoveArray(PATCH_KEY_ARRAY)
-            added += self.store.add_patch(f"patch_{int(keys[group[0]])}", patch, frame, keyed=True)
+            added += self.store.add_patch(f"patch_{key}", patch, frame, keyed=True)
         return added
