@@ -5,6 +5,8 @@ PYTHON ?= python3
 VENV ?= .venv
 BIN := $(VENV)/bin
 SCENE ?= scenes/table.toml
+# Test processes (pytest-xdist, a file's tests together): one per core, at most 4 (each full run holds 1-3 GB).
+TEST_WORKERS ?= $(shell n=$$(nproc 2>/dev/null || echo 2); [ "$$n" -gt 4 ] && n=4; echo $$n)
 
 .PHONY: run test install install-test bench clean
 
@@ -30,7 +32,7 @@ run: install
 	$(BIN)/mabdi run $(SCENE)
 
 test: install-test
-	$(BIN)/python -m pytest
+	$(BIN)/python -m pytest -n $(TEST_WORKERS) --dist loadfile
 
 bench: install-test
 	$(BIN)/python benchmarks/bench_depth_image.py

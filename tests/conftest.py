@@ -46,6 +46,18 @@ def merged(*meshes):
     return triangles_polydata(np.concatenate(points), np.concatenate(triangles))
 
 
+def pytest_collection_modifyitems(config, items):
+    """The files that hold full simulation runs first (those whose every test is marked ``slow``, then those with
+    some): ``make test`` hands whole files to its processes in this order, so the longest start first and the
+    short ones fill in beside them (no process is left running one long file at the end)."""
+    slow_share = {}
+    for item in items:
+        counts = slow_share.setdefault(item.path, [0, 0])
+        counts[0] += item.get_closest_marker("slow") is not None
+        counts[1] += 1
+    items.sort(key=lambda item: -slow_share[item.path][0] / slow_share[item.path][1])
+
+
 @pytest.fixture(scope="session")
 def scenes_dir() -> Path:
     return SCENES
