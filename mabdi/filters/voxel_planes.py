@@ -411,28 +411,6 @@ class BlockPolygons:
     def number_of_triangles(self) -> int:
         return int((self.sizes - 2).sum())
 
-    def without(self, anchor_keys: np.ndarray) -> BlockPolygons:
-        """The polygons whose anchors are not in ``anchor_keys``."""
-        keep = ~np.isin(self.anchors, anchor_keys)
-        return BlockPolygons(
-            self.anchors[keep],
-            self.sizes[keep],
-            self.vertices[np.repeat(keep, self.sizes)],
-            self.normals[keep],
-            self.colours[np.repeat(keep, self.sizes)],
-        )
-
-    @staticmethod
-    def merged(*parts: BlockPolygons) -> BlockPolygons:
-        """The polygons of all ``parts``, sorted by anchor key (so the result does not depend on the order of updates)."""
-        anchors = np.concatenate([part.anchors for part in parts])
-        sizes = np.concatenate([part.sizes for part in parts])
-        vertices = np.concatenate([part.vertices for part in parts])
-        normals = np.concatenate([part.normals for part in parts])
-        colours = np.concatenate([part.colours for part in parts])
-        order = np.argsort(anchors, kind="stable")
-        return BlockPolygons(anchors[order], sizes[order], vertices[ring_indices(sizes, order)], normals[order], colours[ring_indices(sizes, order)])
-
 
 def ring_indices(sizes: np.ndarray, selected: np.ndarray) -> np.ndarray:
     """Indices of the vertices of the ``selected`` polygons (in that order) among rings stored one after another."""
@@ -762,36 +740,41 @@ class FilterVoxelPlanes(MabdiAlgorithm):
         else:
             colours = np.empty((len(vertices), 3), dtype=np.uint8)
             colours[:] = NO_COLOUR
-        polygon_block = self.map.block_of(polygon_anchor)
-        polygon_key = pack_keys(polygon_anchor)
-        anchor_block = self.map.block_of(anchors)
         anchor_key = pack_keys(anchors)
-        blocks = np.unique(anchor_block)
-        # the polygons and the anchors grouped by block once (not a pass over all of them per block)
-        by_polygon = np.argsort(polygon_block, kind="stable")
-        rings = ring_indices(sizes, by_polygon)
-        polygon_key, sizes, polygon_normals = polygon_key[by_polygon], sizes[by_polygon], polygon_normals[by_polygon]
-        vertices, colours = vertices[rings], colours[rings]
-        ring_bounds = np.concatenate([[0], np.cumsum(sizes)])
-        polygon_lo = np.searchsorted(polygon_block[by_polygon], blocks)
-        polygon_hi = np.searchsorted(polygon_block[by_polygon], blocks, side="right")
-        by_anchor = np.argsort(anchor_block, kind="stable")
-        anchor_lo = np.searchsorted(anchor_block[by_anchor], blocks)
-        anchor_hi = np.searchsorted(anchor_block[by_anchor], blocks, side="right")
-        for n, key in enumerate(blocks.tolist()):
-            mine = slice(polygon_lo[n], polygon_hi[n])
-            mine_rings = slice(ring_bounds[polygon_lo[n]], ring_bounds[polygon_hi[n]])
-            fresh = BlockPolygons(polygon_key[mine], sizes[mine], vertices[mine_rings], polygon_normals[mine], colours[mine_rings])
-            old = self._blocks.get(key)
-            if old is not None:
-                remeshed = np.sort(anchor_key[by_anchor[anchor_lo[n] : anchor_hi[n]]])
-                fresh = BlockPolygons.merged(old.without(remeshed), fresh)
-            else:
-                fresh = BlockPolygons.merged(fresh)
-            if len(fresh.anchors):
-                self._blocks[key] = fresh
-            else:
+        blocks = np.unique(self.map.block_of(anchors))
+        # all the blocks at once: their old polygons but those of the re-meshed anchors, and the new ones, sorted by
+        # (block, anchor), each polygon's rings following it (an anchor lies in one block: old and new never share one)
+        stored = [(key, self._blocks[key]) for key in blocks.tolist() if key in self._blocks]
+        old = [polygons for _, polygons in stored]
+        old_anchor = np.concatenate([np.zeros(0, np.int64)] + [o.anchors for o in old])
+        old_sizes = np.concatenate([np.zeros(0, np.int64)] + [o.sizes for o in old])
+        kept = ~np.isin(old_anchor, anchor_key)
+        kept_rings = np.repeat(kept, old_sizes)
+        block = np.concatenate(
+            [self.map.block_of(polygon_anchor)] + [np.full(len(o.anchors), key, np.int64) for key, o in stored]
+        )
+        every = np.concatenate([np.ones(len(sizes), bool), kept])
+        anchor = np.concatenate([pack_keys(polygon_anchor), old_anchor])[every]
+        block = block[every]
+        all_sizes = np.concatenate([sizes, old_sizes])[every]
+        all_normals = np.concatenate([polygon_normals] + [o.normals for o in old])[every]
+        ring_kept = np.concatenate([np.ones(len(vertices), bool), kept_rings])
+        all_vertices = np.concatenate([vertices] + [o.vertices for o in old])[ring_kept]
+        all_colours = np.concatenate([colours] + [o.colours for o in old])[ring_kept]
+        order = np.lexsort((anchor, block))
+        rings = ring_indices(all_sizes, order)
+        anchor, block, all_sizes, all_normals = anchor[order], block[order], all_sizes[order], all_normals[order]
+        all_vertices, all_colours = all_vertices[rings], all_colours[rings]
+        ring_bounds = np.concatenate([[0], np.cumsum(all_sizes)])
+        lo, hi = np.searchsorted(block, blocks), np.searchsorted(block, blocks, side="right")
+        for key, a, b in zip(blocks.tolist(), lo.tolist(), hi.tolist(), strict=True):
+            if a == b:
                 self._blocks.pop(key, None)
+                continue
+            r = slice(ring_bounds[a], ring_bounds[b])
+            self._blocks[key] = BlockPolygons(  # copies: a block keeps no view of the whole update's arrays
+                anchor[a:b].copy(), all_sizes[a:b].copy(), all_vertices[r].copy(), all_normals[a:b].copy(), all_colours[r].copy()
+            )
         self._changed = blocks
 
     # -- output ------------------------------------------------------------
