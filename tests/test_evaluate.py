@@ -159,7 +159,7 @@ def test_bench_without_open3d_reports_mabdi_and_black_box(tmp_path, monkeypatch,
 
     monkeypatch.setattr(bench_module, "open3d_status", lambda: (False, "Open3D is not available (test)"))
     out = tmp_path / "bench"
-    status = main(["bench", "--scene", str(REPO / "scenes" / "table.toml"), "--frames", "30", "--out", str(out)])
+    status = main(["bench", "--scene", str(REPO / "scenes" / "table.toml"), "--frames", "20", "--out", str(out)])
     assert status == 0
     printed = capsys.readouterr().out
     assert "| mabdi |" in printed and "| black_box |" in printed and "tsdf_1cm skipped" in printed
