@@ -249,3 +249,36 @@ def test_osmesa_backend_matches_egl():
     egl = render(mesh, backend="egl")
     osmesa = render(mesh, backend="osmesa")
     np.testing.assert_allclose(osmesa.depth, egl.depth, atol=1e-4, equal_nan=True)
+
+
+def test_a_render_from_the_same_pose_of_the_same_unchanged_map_is_not_drawn_again():
+    from vtkmodules.util.numpy_support import vtk_to_numpy
+
+    from mabdi.filters.depth_image import DepthRenderer
+    from mabdi.filters.expected_image import render_expected
+
+    k = Intrinsics(width=64, height=48, fx=50.0, fy=50.0, cx=32.0, cy=24.0)
+    mesh = plane_mesh([0, 0, 2.0], [0, 0, -1], size=4.0, subdivisions=4)
+    renderer = DepthRenderer(face_identity=True)
+    pose = np.eye(4)
+    first = render_expected(renderer, mesh, k, pose).copy()
+    codes = renderer.render_identity().copy()
+    draws = []
+    window_render = renderer.window.Render
+    renderer.window.Render = lambda: (draws.append(1), window_render())
+    again = render_expected(renderer, mesh, k, pose.copy())  # E at a registered pose that is the given one
+    assert not draws
+    np.testing.assert_array_equal(again, first)
+    np.testing.assert_array_equal(renderer.render_identity(), codes)
+    # the map changed (its points moved 0.5 m nearer): drawn again, and it reads so
+    points = vtk_to_numpy(mesh.GetPoints().GetData())
+    points[:, 2] -= 0.5
+    mesh.GetPoints().Modified()
+    moved = render_expected(renderer, mesh, k, pose)
+    assert len(draws) == 1
+    np.testing.assert_allclose(moved, 1.5, atol=1e-3)
+    # another pose: drawn again
+    shifted = pose.copy()
+    shifted[2, 3] = -0.5
+    np.testing.assert_allclose(render_expected(renderer, mesh, k, shifted), 2.0, atol=1e-3)
+    assert len(draws) == 2

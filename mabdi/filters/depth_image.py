@@ -132,6 +132,8 @@ class DepthRenderer:
         self._renders = 0
         self._drawn: set[int] = set()
         self._zbuffer = vtkFloatArray()
+        #: what the window's buffers hold: (intrinsics, pose bytes, (id, MTime) of each leaf drawn), None: unknown
+        self._last_scene = None
         self._rgba = vtkUnsignedCharArray()
 
     def _sync_actors(self, leaves: list[tuple[str, vtkPolyData]]) -> None:
@@ -248,7 +250,15 @@ class DepthRenderer:
                 self._window.Finalize()
             self._window = self._make_window(*size)
             self._size = size
-        self._sync_actors(named_leaves(data, frustum_planes(intrinsics, world_from_camera)))
+        leaves = named_leaves(data, frustum_planes(intrinsics, world_from_camera))
+        self._sync_actors(leaves)
+        # the same leaves, unchanged, from the same pose as the last render (E at a registered pose that is the
+        # given one): its buffers are still in the window, nothing is drawn again
+        scene = (intrinsics, np.asarray(world_from_camera, dtype=np.float64).tobytes(), tuple((id(leaf), leaf.GetMTime()) for _, leaf in leaves))
+        width, height = size
+        if scene == self._last_scene:
+            return vtk_to_numpy(self._zbuffer).reshape(height, width)[::-1]
+        self._last_scene = None
         configure_vtk_camera(self._renderer.GetActiveCamera(), intrinsics, world_from_camera)
         # Polygon offsets would bias depth; the setting is global in VTK, so restore it after.
         coincident = vtkMapper.GetResolveCoincidentTopology()
@@ -257,8 +267,8 @@ class DepthRenderer:
             self._window.Render()
         finally:
             vtkMapper.SetResolveCoincidentTopology(coincident)
-        width, height = size
         self._window.GetZbufferData(0, 0, width - 1, height - 1, self._zbuffer)
+        self._last_scene = scene
         return vtk_to_numpy(self._zbuffer).reshape(height, width)[::-1]
 
     def render_identity(self) -> np.ndarray:
@@ -289,6 +299,7 @@ class DepthRenderer:
             self._window.RemoveRenderer(self._renderer)
             self._window.Finalize()
             self._window = None
+            self._last_scene = None
             self._size = None
 
 
