@@ -93,18 +93,31 @@ def test_hidden_surfaces_are_not_counted_as_missed():
     assert everything.recall_1cm < 0.9  # counting the hidden plane would call it missed
 
 
-def test_capped_distances_are_exact_below_the_cap():
+def test_distances_are_exact_near_and_far_and_capped_ones_below_the_cap():
+    from vtkmodules.util.numpy_support import numpy_to_vtk, vtk_to_numpy
+    from vtkmodules.vtkCommonCore import vtkDoubleArray
+    from vtkmodules.vtkFiltersCore import vtkImplicitPolyDataDistance
     from vtkmodules.vtkFiltersSources import vtkSphereSource
 
     sphere = vtkSphereSource()
     sphere.SetThetaResolution(120)
     sphere.SetPhiResolution(60)
     sphere.Update()
-    points = np.random.default_rng(3).normal(size=(5000, 3)) * 0.35
-    exact = distances_to_mesh(points, sphere.GetOutput())
+    rng = np.random.default_rng(3)
+    directions = rng.normal(size=(6000, 3))
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    # on the sphere (radius 0.5) within millimetres, within centimetres, and up to 20 m off
+    radii = 0.5 + np.concatenate([rng.normal(0, 0.002, 3000), rng.normal(0, 0.03, 2000), rng.uniform(-0.45, 20, 1000)])
+    points = directions * radii[:, None]
+    reference = vtkImplicitPolyDataDistance()  # VTK's locator, exact at any distance
+    reference.SetInput(sphere.GetOutput())
+    values = vtkDoubleArray()
+    reference.FunctionValue(numpy_to_vtk(points, deep=True), values)
+    exact = np.abs(vtk_to_numpy(values))
+    np.testing.assert_allclose(distances_to_mesh(points, sphere.GetOutput()), exact, atol=1e-12)
     capped = distances_within(points, sphere.GetOutput(), cap=0.05)
     near = exact < 0.05
-    assert near.sum() > 300
+    assert 3000 < near.sum() < 6000
     np.testing.assert_allclose(capped[near], exact[near], atol=1e-12)
     assert (capped[~near] >= 0.05 - 1e-12).all()
 
