@@ -202,3 +202,38 @@ def test_moving_points_changes_the_block_and_its_face_normals_only():
         world.move_points("frame_0", [0, 1], np.zeros((1, 3)))
     with pytest.raises(ValueError, match="frame_0"):
         world.move_points("frame_0", [len(points)], np.zeros((1, 3)))
+
+
+def test_a_surface_split_by_patch_key_in_one_pass_is_what_extracting_each_patch_gives():
+    from mabdi.polydata import extract_polys, split_polys, triangles_polydata
+
+    rng = np.random.default_rng(1)
+    mesh = triangles_polydata(rng.normal(size=(500, 3)), rng.integers(0, 500, (800, 3)))
+    normals = numpy_to_vtk(rng.normal(size=(500, 3)), deep=True)
+    normals.SetName("normals")
+    mesh.GetPointData().AddArray(normals)
+    kind = numpy_to_vtk(rng.integers(0, 9, 800).astype(np.int32), deep=True)
+    kind.SetName("kind")
+    mesh.GetCellData().AddArray(kind)
+    labels = rng.integers(-3, 40, 800)  # shared points between groups, negative labels, labels in no order
+
+    def arrays(patch):
+        out = [vtk_to_numpy(patch.GetPoints().GetData()), vtk_to_numpy(patch.GetPolys().GetOffsetsArray()),
+               vtk_to_numpy(patch.GetPolys().GetConnectivityArray())]  # fmt: skip
+        for data in (patch.GetPointData(), patch.GetCellData()):
+            out += [(data.GetArray(i).GetName(), vtk_to_numpy(data.GetArray(i))) for i in range(data.GetNumberOfArrays())]
+        return out
+
+    parts = split_polys(mesh, labels)
+    assert [label for label, _ in parts] == sorted(set(labels.tolist()))
+    for label, patch in parts:
+        expected = arrays(extract_polys(mesh, np.flatnonzero(labels == label)))
+        got = arrays(patch)
+        assert len(got) == len(expected) == 5
+        for a, b in zip(got, expected, strict=True):
+            if isinstance(a, tuple):
+                assert a[0] == b[0] and a[1].dtype == b[1].dtype and np.array_equal(a[1], b[1])
+            else:
+                assert a.dtype == b.dtype and np.array_equal(a, b)
+    with pytest.raises(ValueError, match=r"\(799,\) labels for 800 cells"):
+        split_polys(mesh, labels[:-1])
