@@ -628,10 +628,29 @@ def test_a_large_step_is_summed_in_two_halves_that_add_up_to_the_whole(bunnies):
     np.testing.assert_allclose(split[7], whole[7], rtol=1e-9, atol=1e-9 * np.abs(whole[7]).max())  # tile sums
 
 
-def test_the_registration_is_the_same_on_one_core_on_two_and_in_a_forked_child(bunnies, monkeypatch):
+#: Run in a fresh interpreter: register, then fork a child that registers again (the test process may hold other
+#: libraries' threads, e.g. Ray's or Rerun's from other tests, and a fork beside them can hang on their locks).
+_FORKED_CHILD = """
+import multiprocessing, pickle, sys
+import numpy as np
+from mabdi.filters import registration
+measured, expected, intrinsics, noise, parameters, transform = pickle.load(open(sys.argv[1], "rb"))
+threaded = registration.register_depth(measured, expected, intrinsics, noise, parameters)
+assert registration._cores() == 1 or registration._helper is not None  # the helper ran the second halves
+with multiprocessing.get_context("fork").Pool(1) as pool:
+    child = pool.apply_async(registration.register_depth, (measured, expected, intrinsics, noise, parameters)).get(timeout=120)
+np.testing.assert_array_equal(threaded.transform, transform)
+np.testing.assert_array_equal(child.transform, transform)
+print("same")
+"""
+
+
+def test_the_registration_is_the_same_on_one_core_on_two_and_in_a_forked_child(bunnies, monkeypatch, tmp_path):
     """The halves are added in a fixed order, so the pose does not depend on whether a helper thread ran
     them; a child forked after the helper started gets its own and registers the same."""
-    import multiprocessing
+    import pickle
+    import subprocess
+    import sys
 
     from mabdi.filters import registration
 
@@ -641,9 +660,10 @@ def test_the_registration_is_the_same_on_one_core_on_two_and_in_a_forked_child(b
     assert threaded.status == "registered"
     if registration._cores() > 1:
         assert registration._helper is not None  # the helper ran the second halves
-    with multiprocessing.get_context("fork").Pool(1) as pool:
-        child = pool.apply_async(register_depth, (measured, expected, intrinsics, noise, parameters)).get(timeout=120)
-    np.testing.assert_array_equal(child.transform, threaded.transform)
+    case = tmp_path / "case.pkl"
+    case.write_bytes(pickle.dumps((measured, expected, intrinsics, noise, parameters, threaded.transform)))
+    child = subprocess.run([sys.executable, "-c", _FORKED_CHILD, str(case)], capture_output=True, text=True, timeout=300)
+    assert child.returncode == 0 and child.stdout.strip() == "same", child.stderr[-2000:]
     monkeypatch.setattr(registration, "_cores", lambda: 1)
     monkeypatch.setattr(registration, "_helper", None)
     alone = register_depth(measured, expected, intrinsics, noise, parameters)
