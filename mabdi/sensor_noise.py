@@ -226,6 +226,23 @@ class SensorNoise:
         return 0.0
 
     @property
+    def noisy(self) -> bool:
+        """Whether the model adds noise at all (every model but ``none``)."""
+        return self.model != "none"
+
+    def mean_share(self, offsets) -> float:
+        """The share of one pixel's noise (standard deviation) left in the mean of the pixels at ``offsets``
+        ((N, 2) pixel offsets): sqrt(sum over pixel pairs of their correlation) / N, the correlation
+        exp(-d^2 / (4 L^2)) at d pixels for :attr:`correlation_px` L (a Gaussian-smoothed field's), none between
+        distinct pixels where L = 0 (so 1 / sqrt(N))."""
+        offsets = np.asarray(offsets, dtype=np.float64).reshape(-1, 2)
+        length = self.correlation_px
+        if length <= 0:
+            return float(1.0 / np.sqrt(len(offsets)))
+        squared = ((offsets[:, None, :] - offsets[None, :, :]) ** 2).sum(axis=-1)
+        return float(np.sqrt(np.exp(-squared / (4.0 * length * length)).sum()) / len(offsets))
+
+    @property
     def loses_returns(self) -> bool:
         """Whether the camera loses returns on surfaces within its range, so that a pixel without a return
         says nothing about free space: ``structured_light`` with its edge or grazing-incidence dropouts

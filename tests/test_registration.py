@@ -459,29 +459,42 @@ def test_registration_config_section_and_checks(tmp_path):
 
 
 def test_the_compiled_steps_agree_with_their_array_formulations():
-    """The ICP's compiled helpers against numpy and scipy: D's samples (points, depths, tiles) as the
-    array expressions give them, Rodrigues' formula against scipy's rotation, a transform's size, the
+    """The ICP's compiled helpers against numpy and scipy: D's samples (each the mean point of the 2 x 2 pixels
+    ending at its cell's centre that lie on the centre's surface; depths, tiles, counts) as the array
+    expressions give them, Rodrigues' formula against scipy's rotation, a transform's size, the
     normal equations' step with no step along an unconstrained direction, and a cached normal equal
     to one computed afresh."""
     from mabdi.filters import registration_kernels as kernels
-    from mabdi.filters.registration import COVARIANCE_TILE, sample_points
+    from mabdi.filters.registration import COVARIANCE_TILE, SAMPLE_BLOCK, SAMPLE_MAX_JUMP, sample_points
 
     rng = np.random.default_rng(5)
     intrinsics = Intrinsics()
-    measured = rng.uniform(0.5, 4.0, (intrinsics.height, intrinsics.width)).astype(np.float32)
-    measured[rng.random(measured.shape) < 0.3] = np.nan
+    k = intrinsics
+    shape = (intrinsics.height, intrinsics.width)
+    # half the pixels on one surface at 2 m (their neighbours are averaged in), half scattered over 0.5-4 m
+    measured = np.where(rng.random(shape) < 0.5, rng.normal(2.0, 0.02, shape), rng.uniform(0.5, 4.0, shape)).astype(np.float32)
+    measured[rng.random(shape) < 0.3] = np.nan
     for stride in (2, 3, 8):
-        points, z, tiles, n_tiles = sample_points(measured, intrinsics, stride)
+        points, z, tiles, n_tiles, counts = sample_points(measured, intrinsics, stride)
         offset = stride // 2
-        depth = measured[offset::stride, offset::stride].astype(np.float64)
-        rows, cols = np.nonzero(np.isfinite(depth))
-        u, v = cols * stride + offset + 0.5, rows * stride + offset + 0.5
-        expected_z = depth[rows, cols]
-        np.testing.assert_array_equal(z, expected_z)
-        np.testing.assert_array_equal(points[:, 0], (u - intrinsics.cx) / intrinsics.fx * expected_z)
-        np.testing.assert_array_equal(points[:, 1], (v - intrinsics.cy) / intrinsics.fy * expected_z)
+        rows, cols = np.meshgrid(np.arange(offset, k.height, stride), np.arange(offset, k.width, stride), indexing="ij")
+        centre = measured[rows, cols].astype(np.float64)
+        valid = np.isfinite(centre)
+        sums, taken = np.zeros((*rows.shape, 3)), np.zeros(rows.shape, dtype=int)
+        for dr, dc in SAMPLE_BLOCK:
+            r, c = rows + dr, cols + dc
+            pixel = measured[np.maximum(r, 0), np.maximum(c, 0)].astype(np.float64)
+            with np.errstate(invalid="ignore"):
+                take = valid & (r >= 0) & (c >= 0) & (np.abs(pixel - centre) <= SAMPLE_MAX_JUMP * centre)
+            point = np.stack([(c + 0.5 - k.cx) / k.fx * pixel, (r + 0.5 - k.cy) / k.fy * pixel, pixel], axis=-1)
+            sums += np.where(take[..., None], point, 0.0)
+            taken += take
+        np.testing.assert_array_equal(counts, taken[valid])
+        assert set(np.unique(counts)) == {1, 2, 3, 4}
+        np.testing.assert_allclose(points, sums[valid] / taken[valid][:, None], rtol=1e-12)
+        np.testing.assert_allclose(z, points[:, 2], rtol=1e-15)
         across = -(-intrinsics.width // COVARIANCE_TILE)
-        np.testing.assert_array_equal(tiles, ((v - 0.5) // COVARIANCE_TILE) * across + (u - 0.5) // COVARIANCE_TILE)
+        np.testing.assert_array_equal(tiles, (rows[valid] // COVARIANCE_TILE) * across + cols[valid] // COVARIANCE_TILE)
         assert n_tiles == across * -(-intrinsics.height // COVARIANCE_TILE)
 
     for vector in (rng.normal(0, 0.3, 3), np.zeros(3), np.array([1e-9, 0.0, 0.0])):
@@ -606,7 +619,7 @@ def test_a_large_step_is_summed_in_two_halves_that_add_up_to_the_whole(bunnies):
     from mabdi.filters.registration_kernels import point_to_plane_system
 
     measured, expected, intrinsics, noise = _bunny_pair(bunnies)
-    points, z, tiles, n_tiles = registration.sample_points(measured, intrinsics, 2)
+    points, z, tiles, n_tiles, _ = registration.sample_points(measured, intrinsics, 2)
     assert len(points) >= registration.SPLIT_MIN_POINTS  # the finest level is split
     scale = np.maximum(noise.sigma(z, intrinsics.near, intrinsics.far), 1e-4)
     gate = np.maximum(0.02, 3 * scale)

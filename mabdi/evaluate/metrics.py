@@ -98,7 +98,7 @@ def observed_ground_truth(
 def redundancy_delta(samples: SurfaceSamples, mesh: vtkPolyData, poses, noise: SensorNoise | None, intrinsics) -> np.ndarray:
     """delta = max(1 cm, 3 sigma(z)) per sample, z its depth from the pose of the frame that made it."""
     frames = mesh.GetCellData().GetArray("frame")
-    if noise is None or poses is None or frames is None or noise.model == "none" or len(samples) == 0:
+    if noise is None or poses is None or frames is None or not noise.noisy or len(samples) == 0:
         return np.full(len(samples), DELTA_MIN)
     frame_of = vtk_to_numpy(frames).astype(np.int64)[samples.faces]
     poses = np.asarray(poses)

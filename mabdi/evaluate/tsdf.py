@@ -444,7 +444,7 @@ def default_grid(intrinsics: Intrinsics, noise: SensorNoise | str | None = None)
     conventions, depth range 0.75 far (drops the noisiest far returns) or far (every return;
     anything beyond far, 5 m say, fuses the same), and depth smoothing off and on when ``noise``
     names a noise model (off only without one: there is nothing to smooth)."""
-    noisy = SensorNoise.of(noise or "none").model != "none"
+    noisy = SensorNoise.of(noise or "none").noisy
     return {
         "pixel_centre": PIXEL_CENTRES,
         "trunc_voxels": (2.0, 3.0, 4.0, 5.0, 6.0),

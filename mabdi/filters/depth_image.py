@@ -393,7 +393,7 @@ class FilterDepthImage(MabdiAlgorithm):
         if self._pose is None:
             raise ValueError("FilterDepthImage: pose is not set (assign a 4x4 world_from_camera to .pose)")
         intr = self._intrinsics
-        rng = None if self._noise.model == "none" else noise_rng(self._seed, self._frame)
+        rng = None if not self._noise.noisy else noise_rng(self._seed, self._frame)
         if isinstance(intr, SphericalGeometry):
             if self.range_renderer is None:
                 self.range_renderer = RangeRenderer(DepthRenderer(self.renderer.backend, identity_array=TRIANGLE_RGB_ARRAY))

@@ -81,17 +81,10 @@ def smoothing_radius(noise: SensorNoise) -> int:
 
 def smoothed_noise_share(noise: SensorNoise) -> float:
     """The share of a pixel's noise (standard deviation) left after smoothing over the window for ``noise``
-    (:func:`smoothing_radius`), with every pair of the window taken: sqrt(sum over pixel pairs of their
-    correlation) / N for the N pixels of the window, the correlation exp(-d^2 / (4 L^2)) at d pixels for
-    the noise's correlation length L (:attr:`~mabdi.sensor_noise.SensorNoise.correlation_px`: a Gaussian-
-    smoothed field's), none between distinct pixels where L = 0 (a 3 x 3 window: 1 / 3)."""
+    (:func:`smoothing_radius`), every pair of the window taken with its correlation
+    (:meth:`~mabdi.sensor_noise.SensorNoise.mean_share`; a 3 x 3 window of independent noise: 1 / 3)."""
     radius = smoothing_radius(noise)
-    offsets = np.array([(du, dv) for du in range(-radius, radius + 1) for dv in range(-radius, radius + 1)], dtype=np.float64)
-    length = noise.correlation_px
-    if length <= 0:
-        return float(1.0 / np.sqrt(len(offsets)))
-    squared = ((offsets[:, None, :] - offsets[None, :, :]) ** 2).sum(axis=-1)
-    return float(np.sqrt(np.exp(-squared / (4.0 * length * length)).sum()) / len(offsets))
+    return noise.mean_share([(du, dv) for du in range(-radius, radius + 1) for dv in range(-radius, radius + 1)])
 
 
 def smooth_depth(depth: np.ndarray, sigma: np.ndarray, gate_k: float = SMOOTHING_GATE_K, radius: int = 1) -> np.ndarray:
@@ -116,7 +109,7 @@ def smooth_depth_by_noise(depth: np.ndarray, noise: SensorNoise, intrinsics: Int
     """``depth`` smoothed with each pixel's sigma from the sensor's ``noise`` model at its own depth (the
     intrinsics' near and far planes) over the window the noise calls for (:func:`smoothing_radius`); a
     noise-free model returns ``depth`` itself, with no pass over it."""
-    if noise.model == "none":
+    if not noise.noisy:
         return depth
     sigma = noise.sigma(np.asarray(depth, dtype=np.float32), intrinsics.near, intrinsics.far)
     return smooth_depth(depth, sigma, radius=smoothing_radius(noise))

@@ -398,7 +398,7 @@ class MapRefinement:
         p = self.parameters
         result = RefinementResult()
         noise = image_noise(loop.measured_image())
-        if not loop.classifier_enabled or noise.model == "none":
+        if not loop.classifier_enabled or not noise.noisy:
             return result
         expected_image = loop.expected_image()
         if expected_image is None or expected_image.GetPointData().GetArray(FACE_ID_ARRAY) is None:

@@ -169,6 +169,10 @@ NORMAL_MAX_JUMP = 0.05
 #: Tiles (pixels a side) whose residuals the pose covariance takes as one unit (:func:`pose_covariance`):
 #: wider than the correlations of a camera's matching window (about 9 pixels for a Kinect v1).
 COVARIANCE_TILE = 32
+#: D's samples average the 2 x 2 pixels that end at each cell's centre pixel (these offsets from the centre, in the
+#: order they are counted) whose depths lie within this share of the centre pixel's.
+SAMPLE_BLOCK = ((0, 0), (0, -1), (-1, 0), (-1, -1))
+SAMPLE_MAX_JUMP = NORMAL_MAX_JUMP
 #: The last step of a registered frame is below these (m, degrees).
 CONVERGED_TRANSLATION = 1e-3
 CONVERGED_ROTATION = 0.05
@@ -274,15 +278,32 @@ class RegistrationResult:
         return self.status == STATUSES[REGISTERED]
 
 
-def sample_points(measured: np.ndarray, intrinsics: Intrinsics, stride: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
-    """D's points (N, 3, camera frame, m) at every ``stride``-th pixel (the centre pixel of each
-    stride x stride cell) that has a return, their depths (N,), the :data:`COVARIANCE_TILE` tile of the
-    image each lies in (N,) and the number of tiles."""
+def sample_points(
+    measured: np.ndarray, intrinsics: Intrinsics, stride: int, average: bool = True
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, np.ndarray]:
+    """D's samples, one per ``stride`` x ``stride`` cell whose centre pixel has a return. With ``average``
+    (where D is noisy), the mean point of the 2 x 2 pixels ending at that pixel that lie on its surface
+    (within :data:`SAMPLE_MAX_JUMP` of its depth): a sample then carries the information of the pixels the
+    stride passes over, and its noise is half a pixel's where pixels err apart. Without, the centre pixel's
+    point (noise-free depth: averaging would only blur it). Returns the points (N, 3, camera frame, m), their
+    depths (N,), the :data:`COVARIANCE_TILE` tile of the image each lies in (N,), the number of tiles, and
+    the pixels each sample averages (N,)."""
     tiles_across = -(-measured.shape[1] // COVARIANCE_TILE)
     n_tiles = tiles_across * -(-measured.shape[0] // COVARIANCE_TILE)
     k = intrinsics
-    points, z, tiles = sample_depth_points(measured, stride, k.fx, k.fy, k.cx, k.cy, COVARIANCE_TILE, tiles_across)
-    return points, z, tiles, n_tiles
+    tolerance = SAMPLE_MAX_JUMP if average else 0.0
+    points, z, tiles, counts = sample_depth_points(measured, stride, k.fx, k.fy, k.cx, k.cy, COVARIANCE_TILE, tiles_across, tolerance)
+    return points, z, tiles, n_tiles, counts
+
+
+def sample_scale(z: np.ndarray, counts: np.ndarray, intrinsics: Intrinsics, noise: SensorNoise, model_sigma: float) -> np.ndarray:
+    """(N,) each sample's noise (m): the sensor's sigma(z) left in the mean of its ``counts`` pixels
+    (:meth:`~mabdi.sensor_noise.SensorNoise.mean_share`: a half for four pixels that err apart, less gained
+    where neighbours err together), with ``model_sigma`` (the map's own error) added in quadrature; at
+    least 0.1 mm."""
+    shares = np.array([1.0, *(noise.mean_share(SAMPLE_BLOCK[:n]) for n in range(1, len(SAMPLE_BLOCK) + 1))])
+    sigma = noise.sigma(z, intrinsics.near, intrinsics.far) * shares[counts]
+    return np.maximum(np.sqrt(sigma**2 + model_sigma**2), 1e-4)
 
 
 def _rigid(rotation_vector: np.ndarray, translation: np.ndarray) -> np.ndarray:
@@ -435,14 +456,14 @@ def register_depth(
     summaries = None  # the last step's (support, tile_gradients), where it took them
     contraction = None  # how much a step shrank the one before, at the last coarser level that took two
     remaining = (np.inf, np.inf)  # the step that would follow the last one (its size, or a prediction of it)
+    average = noise.noisy  # D's samples average their neighbours where D is noisy
     for level in range(p.levels):
-        points, z, tiles, n_tiles = sample_points(measured, intrinsics, p.stride * 2 ** (p.levels - 1 - level))
+        points, z, tiles, n_tiles, counts = sample_points(measured, intrinsics, p.stride * 2 ** (p.levels - 1 - level), average)
         # rotations taken as lengths at the samples' median depth: once per level (the two-cycle test keeps the coarsest's)
         level_length = _median(z) if len(z) else 1.0
         if level == 0:
             length = level_length
-        scale = np.sqrt(noise.sigma(z, intrinsics.near, intrinsics.far) ** 2 + p.model_sigma**2)
-        scale = np.maximum(scale, 1e-4)
+        scale = sample_scale(z, counts, intrinsics, noise, p.model_sigma)
         # a coarser level only brings the pose near: the finer ones end it (steps below these end the level)
         loose = COARSE_TOLERANCE ** (p.levels - 1 - level)
         step_translation, step_rotation = STEP_TRANSLATION * loose, STEP_ROTATION * loose
@@ -578,8 +599,8 @@ def _best_start(measured, map_image: _MapImage, intrinsics: Intrinsics, starts, 
     (a count, not a median: a heading error leaves the floor where it was and moves only the objects)."""
     if len(starts) == 1:
         return starts[0].copy()
-    points, z, tiles, n_tiles = sample_points(measured, intrinsics, p.stride * 2 ** (p.levels - 1))
-    scale = np.maximum(np.sqrt(noise.sigma(z, intrinsics.near, intrinsics.far) ** 2 + p.model_sigma**2), 1e-4)
+    points, z, tiles, n_tiles, counts = sample_points(measured, intrinsics, p.stride * 2 ** (p.levels - 1), noise.noisy)
+    scale = sample_scale(z, counts, intrinsics, noise, p.model_sigma)
     gate = p.gate_k * scale
     best, best_pairs = starts[0], -1
     for transform in starts:

@@ -289,10 +289,13 @@ def pose_sigma_image(e_depth, fx, fy, cx, cy, step, max_jump, covariance, min_co
 
 
 @njit(cache=True)
-def sample_depth_points(measured, stride, fx, fy, cx, cy, tile, tiles_across):
-    """D's points at the centre pixel of every ``stride`` x ``stride`` cell that has a return: (points (N, 3) in
-    D's camera frame (m), depths (N,), the index of the ``tile`` x ``tile`` image tile each lies in (N,), row by
-    row with ``tiles_across`` tiles a row). See :func:`mabdi.filters.registration.sample_points`."""
+def sample_depth_points(measured, stride, fx, fy, cx, cy, tile, tiles_across, tolerance):
+    """D's samples, one per ``stride`` x ``stride`` cell whose centre pixel has a return: the mean of the
+    camera-frame points (m) of the 2 x 2 pixels that end at the centre pixel (rows and columns centre - 1 and
+    centre) whose depths lie within ``tolerance`` times the centre pixel's depth of it (the centre pixel alone
+    where ``tolerance`` is 0). Returns (points (N, 3) in D's camera frame, their mean depths (N,), the index of
+    the ``tile`` x ``tile`` image tile the centre pixel lies in (N,), row by row with ``tiles_across`` tiles a
+    row, the pixels averaged (N,)). See :func:`mabdi.filters.registration.sample_points`."""
     height, width = measured.shape
     offset = stride // 2
     rows = (height - offset + stride - 1) // stride
@@ -300,22 +303,44 @@ def sample_depth_points(measured, stride, fx, fy, cx, cy, tile, tiles_across):
     points = np.empty((rows * cols, 3))
     depths = np.empty(rows * cols)
     tiles = np.empty(rows * cols, dtype=np.int64)
+    counts = np.empty(rows * cols, dtype=np.int64)
     n = 0
     for i in range(rows):
         row = i * stride + offset
         for j in range(cols):
             col = j * stride + offset
-            z = np.float64(measured[row, col])
-            if not np.isfinite(z):
+            centre = np.float64(measured[row, col])
+            if not np.isfinite(centre):
                 continue
-            ax, ay = pixel_ray(row, col, fx, fy, cx, cy)
-            points[n, 0] = ax * z
-            points[n, 1] = ay * z
-            points[n, 2] = z
-            depths[n] = z
+            sx = sy = sz = 0.0
+            count = 0
+            for dr in range(-1, 1):
+                r = row + dr
+                for dc in range(-1, 1):
+                    c = col + dc
+                    if r < 0 or c < 0:
+                        continue
+                    if dr != 0 or dc != 0:
+                        if tolerance <= 0.0:
+                            continue
+                        z = np.float64(measured[r, c])
+                        if not (abs(z - centre) <= tolerance * centre):  # NaN: no return
+                            continue
+                    else:
+                        z = centre
+                    ax, ay = pixel_ray(r, c, fx, fy, cx, cy)
+                    sx += ax * z
+                    sy += ay * z
+                    sz += z
+                    count += 1
+            points[n, 0] = sx / count
+            points[n, 1] = sy / count
+            points[n, 2] = sz / count
+            depths[n] = sz / count
             tiles[n] = (row // tile) * tiles_across + col // tile
+            counts[n] = count
             n += 1
-    return points[:n], depths[:n], tiles[:n]
+    return points[:n], depths[:n], tiles[:n], counts[:n]
 
 
 @njit(cache=True)

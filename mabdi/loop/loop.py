@@ -179,7 +179,7 @@ class MabdiLoop:
         refinement_on = self.classifier_parameters.refinement
         if refinement_on == "auto":
             refinement_on = self.noise.correlated  # errors one look's smoothing cannot remove: average later looks in
-        self.refining = self.classifier_parameters.enabled and refinement_on and self.noise.model != "none"
+        self.refining = self.classifier_parameters.enabled and refinement_on and self.noise.noisy
         self.registration_parameters = registration if registration is not None else RegistrationParameters()
         self.refining, self.registration_parameters = lidar_rules(source.intrinsics, self.refining, self.registration_parameters)
         self.refinement = MapRefinement(refinement if refinement is not None else RefinementParameters())
