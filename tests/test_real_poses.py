@@ -15,12 +15,18 @@ from mabdi.polydata import polydata_area
 pytestmark = pytest.mark.slow
 
 
-def aligned_errors(true: np.ndarray, poses: np.ndarray) -> np.ndarray:
-    """(N, 2) pose errors (m, degrees) after the one rigid motion that best aligns the two trajectories."""
+def alignment(true: np.ndarray, poses: np.ndarray) -> np.ndarray:
+    """The one rigid motion (4x4) that best takes the ``true`` trajectory onto ``poses``."""
     rotation = Rotation.from_matrix(np.einsum("nij,nkj->nik", poses[:, :3, :3], true[:, :3, :3])).mean().as_matrix()
     align = np.eye(4)
     align[:3, :3] = rotation
     align[:3, 3] = np.mean(poses[:, :3, 3] - true[:, :3, 3] @ rotation.T, axis=0)
+    return align
+
+
+def aligned_errors(true: np.ndarray, poses: np.ndarray) -> np.ndarray:
+    """(N, 2) pose errors (m, degrees) after the one rigid motion that best aligns the two trajectories."""
+    align = alignment(true, poses)
     return np.array([transform_size(np.linalg.inv(align @ t) @ p) for t, p in zip(true, poses, strict=True)])
 
 
@@ -33,14 +39,14 @@ def noisy_run(given_sigma: str = "source", **pose_noise):
     return sim, result, evaluate_run(sim, result)
 
 
-def test_run2_with_pose_jitter_is_mapped_as_with_exact_poses(static_runs):
-    """Jitter of 2 mm / 0.15 degrees per axis (3.2 mm / 0.26 degrees median): F@1cm within 0.005 of exact
-    poses, at most 0.2% of the map removed, the second circle adds at most 15% of the first, and the
-    registered frames agree with each other within 3 mm / 0.05 degrees (median, after the one rigid
-    motion that no pose source can tell: the map's frame is the given poses' mean; measured 2.3 mm /
-    0.032 degrees, the given poses 3.5 mm / 0.26 degrees)."""
+def check_jitter_run(static_runs, jitter_translation: float, jitter_rotation: float) -> tuple[np.ndarray, np.ndarray]:
+    """A jittered Run 2 against exact poses: F@1cm within 0.005, at most 0.2% of the map removed, the second
+    circle adds at most 15% of the first, 90% of the frames registered. Returns the meshed poses' errors from
+    the true ones (N, 2: m, degrees) and the same after the one rigid motion that best aligns the two
+    trajectories, with the checks that the registration takes out at least three quarters of the given
+    poses' rotation error."""
     _, exact = static_runs("bunnies", "quadtree")
-    sim, result, metrics = noisy_run(jitter_translation=0.002, jitter_rotation=0.15)
+    sim, result, metrics = noisy_run(jitter_translation=jitter_translation, jitter_rotation=jitter_rotation)
     assert metrics.fscore_1cm >= exact.fscore_1cm - 0.005, (metrics.fscore_1cm, exact.fscore_1cm)
     removed = sum(r.area_removed for r in result.records)
     assert removed <= 0.002 * polydata_area(result.mesh), removed
@@ -48,10 +54,34 @@ def test_run2_with_pose_jitter_is_mapped_as_with_exact_poses(static_runs):
     assert growth[1] <= 0.15 * growth[0], growth
     records = result.records
     assert sum(r.registered for r in records) >= 0.9 * len(records)
-    given = np.array([transform_size(np.linalg.inv(t) @ g) for t, g in zip(sim.true_poses, sim.poses, strict=True)])
-    errors = aligned_errors(sim.true_poses, sim.meshed_poses())
-    assert np.median(errors[:, 0]) <= 0.003 and np.median(errors[:, 1]) <= 0.05, (np.median(errors, axis=0), np.median(given, axis=0))
-    assert np.median(errors[:, 1]) <= 0.25 * np.median(given[:, 1])
+    true, meshed = sim.true_poses, sim.meshed_poses()
+    given = np.array([transform_size(np.linalg.inv(t) @ g) for t, g in zip(true, sim.poses, strict=True)])
+    errors = np.array([transform_size(np.linalg.inv(t) @ p) for t, p in zip(true, meshed, strict=True)])
+    assert np.median(errors[:, 1]) <= 0.25 * np.median(given[:, 1]), (np.median(errors, axis=0), np.median(given, axis=0))
+    # the map's placement: no pose source tells more of it than the given poses' mean (white jitter), and the
+    # meshed poses' constant part is within half a millimetre of that mean's own error
+    placed, mean_given = transform_size(alignment(true, meshed)), transform_size(alignment(true, sim.poses))
+    assert placed[0] <= mean_given[0] + 0.0005, (placed, mean_given)
+    return errors, aligned_errors(true, meshed)
+
+
+def test_run2_with_pose_jitter_is_mapped_as_with_exact_poses(static_runs):
+    """Jitter of 2 mm / 0.15 degrees per axis (3.2 mm / 0.26 degrees median): the checks of
+    :func:`check_jitter_run`, and the meshed poses within 1.5 mm / 0.05 degrees of the true ones (median;
+    measured 1.40 mm / 0.016 degrees)."""
+    errors, aligned = check_jitter_run(static_runs, 0.002, 0.15)
+    assert np.median(errors[:, 0]) <= 0.0015 and np.median(errors[:, 1]) <= 0.05, np.median(errors, axis=0)
+    assert np.median(aligned[:, 0]) <= 0.0015, np.median(aligned, axis=0)
+
+
+def test_run2_with_large_pose_jitter_is_placed_as_well_as_the_given_poses_allow(static_runs):
+    """Jitter of 5 mm / 0.3 degrees per axis: the checks of :func:`check_jitter_run`; the frames agree with
+    each other within 1.5 mm / 0.05 degrees (median after the one rigid alignment; measured 1.16 mm). Against
+    the true poses they are 2.4 mm off, most of it the map's placement, which is the given poses' mean here
+    (1.7 mm off the truth in this run: 5 mm over the square root of 50 frames is 0.7 mm per axis)."""
+    errors, aligned = check_jitter_run(static_runs, 0.005, 0.3)
+    assert np.median(aligned[:, 0]) <= 0.0015 and np.median(aligned[:, 1]) <= 0.05, np.median(aligned, axis=0)
+    assert np.median(errors[:, 1]) <= 0.05, np.median(errors, axis=0)
 
 
 def test_run2_with_drift_is_mapped_as_with_exact_poses(static_runs):
