@@ -493,6 +493,12 @@ def test_the_compiled_steps_agree_with_their_array_formulations():
         assert set(np.unique(counts)) == {1, 2, 3, 4}
         np.testing.assert_allclose(points, sums[valid] / taken[valid][:, None], rtol=1e-12)
         np.testing.assert_allclose(z, points[:, 2], rtol=1e-15)
+        # noise-free D: each sample is its centre pixel
+        single, single_z, _, _, single_counts = sample_points(measured, intrinsics, stride, average=False)
+        assert (single_counts == 1).all()
+        np.testing.assert_array_equal(single_z, centre[valid])
+        np.testing.assert_array_equal(single[:, 0], (cols[valid] + 0.5 - k.cx) / k.fx * centre[valid])
+        np.testing.assert_array_equal(single[:, 1], (rows[valid] + 0.5 - k.cy) / k.fy * centre[valid])
         across = -(-intrinsics.width // COVARIANCE_TILE)
         np.testing.assert_array_equal(tiles, (rows[valid] // COVARIANCE_TILE) * across + cols[valid] // COVARIANCE_TILE)
         assert n_tiles == across * -(-intrinsics.height // COVARIANCE_TILE)

@@ -89,6 +89,20 @@ def test_errors_are_spatially_correlated_unless_white():
     assert abs(neighbour_correlation(SensorNoise("structured_light", focal=K.fx, correlation_length=0.0))) < 0.05
 
 
+@pytest.mark.parametrize("length", [0.0, 2.5])
+def test_the_noise_left_in_a_mean_of_pixels_is_what_the_correlated_field_leaves(length):
+    """SensorNoise.mean_share against the field itself: the standard deviation of the mean of a 2 x 2 block
+    over the field's, 1 / 2 for white noise and near 1 for a correlation over 2.5 pixels; one pixel keeps all."""
+    noise = SensorNoise("structured_light", focal=K.fx, correlation_length=length)
+    field = np.stack([correlated_field((480, 640), length, noise_rng(3, i)) for i in range(4)]).astype(np.float64)
+    block = (field[:, :-1:2, :-1:2] + field[:, 1::2, :-1:2] + field[:, :-1:2, 1::2] + field[:, 1::2, 1::2]) / 4
+    share = noise.mean_share([(0, 0), (0, 1), (1, 0), (1, 1)])
+    assert block.std() / field.std() == pytest.approx(share, rel=0.06)
+    assert noise.mean_share([(0, 0)]) == 1.0
+    assert (share == pytest.approx(0.5)) if length == 0 else (0.9 < share < 1.0)
+    assert noise.noisy and not SensorNoise("none").noisy
+
+
 @pytest.mark.parametrize("length", [0.0, 1.0, 2.5, 4.0])
 def test_correlated_field_has_unit_variance(length):
     field = np.stack([correlated_field((480, 640), length, noise_rng(1, i)) for i in range(8)])
