@@ -23,11 +23,17 @@ corrects the pose the way KinectFusion's frame-to-model tracking does
    translation, which is how odometry drifts). The one under which more of
    D's coarsest samples lie on E within their noise is taken.
 4. **Projective point-to-plane ICP**, coarse to fine: D is sampled every
-   ``stride * 2**k`` pixels for k = levels-1 .. 0; each sampled point, moved by
+   ``stride * 2**k`` pixels for k = levels-1 .. 0, each sample the mean point
+   of the 2 x 2 pixels at its cell's centre that lie on one surface
+   (:func:`sample_points`; a noise-free D's centre pixel alone). The pose's
+   error is D's noise: one pixel per 2 x 2 cell used a quarter of what D
+   says (the figures: docs/benchmarks.md, "Real poses and real cameras").
+   Each sampled point, moved by
    the current estimate, is projected into E and paired with the map point
    and normal at that pixel. A pair counts when its point-to-plane residual
-   is within the gate: ``gate_k`` times the point's noise (sqrt(sigma(z)^2 +
-   model_sigma^2), sigma the sensor's noise model), or more while the pose
+   is within the gate: ``gate_k`` times the point's noise (sqrt(s^2 +
+   model_sigma^2), s the sensor's sigma(z) left in the sample's mean,
+   :func:`sample_scale`), or more while the pose
    is still off: ``gate_k`` times the residuals' spread (1.4826 times their
    median), which starts at the start's own spread (never above
    ``max_distance``) and shrinks. A gate sized by the residuals keeps
