@@ -52,10 +52,20 @@ gate by it), and the field-data array ``pixel_counts`` (valid = D has a return,
 novel after speck removal, specks, contradicted; read it with
 :func:`pixel_counts`). The rim makes a new patch overlap the map by one pixel square
 instead of leaving a crack one pixel wide between them (the pixel-grid mesher
-needs four valid corners). Field data (intrinsics, pose, frame) is D's.
+needs four valid corners). A surface that meshes blocks of pixels needs a
+wider rim where the depth is noisy: the quad-tree's r x r blocks need a
+valid majority and its patches' edge corners move half a block in, so a new
+patch can start up to a block inside the novel region, and with noise both
+its edge and the map's are ragged; a rim of one pixel then leaves cracks
+along the seam, a rim of r pixels closes them. ``rim = "auto"`` (the
+default) is what the loop's surface says it needs
+(:func:`mabdi.filters.registry.seam_pixels`: the quad-tree ``reduction``
+with noisy depth; one pixel with noise-free depth, for the other surfaces
+and for a classifier used on its own). Field data (intrinsics, pose, frame)
+is D's.
 
 Defaults: tau_min = 0.01 m, k_sigma = 3, min_width = 3 px, min_region = 32 px,
-rim = 1 px.
+rim = "auto".
 """
 
 from __future__ import annotations
@@ -117,7 +127,8 @@ class ClassifierParameters:
     k_sigma: float = 3.0
     min_width: int = 3
     min_region: int = 32
-    rim: int = 1
+    #: Pixels around the novel ones passed on with them (see the module docs); "auto": what the surface needs.
+    rim: int | str = "auto"
 
     def __post_init__(self) -> None:
         check_switch("refinement", self.refinement)
@@ -127,8 +138,15 @@ class ClassifierParameters:
             raise ConfigError(f"k_sigma must be >= 0, got {self.k_sigma}")
         if self.min_width < 1:
             raise ConfigError(f"min_width must be >= 1 pixel, got {self.min_width}")
-        if self.min_region < 0 or self.rim < 0:
-            raise ConfigError(f"min_region and rim must be >= 0 pixels, got min_region={self.min_region}, rim={self.rim}")
+        if self.min_region < 0:
+            raise ConfigError(f"min_region must be >= 0 pixels, got {self.min_region}")
+        if self.rim != "auto" and (isinstance(self.rim, bool) or not isinstance(self.rim, int) or self.rim < 0):
+            raise ConfigError(f'rim must be an integer >= 0 (pixels) or "auto", got {self.rim!r}')
+
+    @property
+    def rim_pixels(self) -> int:
+        """The rim in pixels: ``rim``, or 1 where it is "auto" and no surface has set it (the loop does)."""
+        return 1 if self.rim == "auto" else self.rim
 
 
 def classify(measured: np.ndarray, expected: np.ndarray, tau: np.ndarray) -> np.ndarray:
@@ -266,8 +284,8 @@ class FilterClassifier(MabdiAlgorithm):
         specks = raw_novel & ~novel
         labels[specks] = KNOWN
         meshed = novel
-        if p.rim > 0 and novel.any():
-            meshed = dilate(novel, p.rim) & np.isfinite(measured)
+        if p.rim_pixels > 0 and novel.any():
+            meshed = dilate(novel, p.rim_pixels) & np.isfinite(measured)
         depth = np.where(meshed, measured, np.float32(np.nan)).astype(np.float32)
         output = vtkImageData.GetData(outInfo)
         fill_depth_image(output, depth, intrinsics, pose, image_frame(measured_image), image_timestamp(measured_image), noise=noise)

@@ -223,6 +223,15 @@ class QuadTreeParameters:
         check_switch("grazing", self.grazing)
         check_switch("noise_merge", self.noise_merge)
 
+    def seam_pixels(self, noisy: bool) -> int:
+        """The classifier's rim (pixels) this surface needs to close the seam between a new patch and the map:
+        ``reduction`` where the depth is ``noisy``, 1 where it is not. A block needs a valid majority and a
+        patch's edge corners move half a block in (the silhouette rule), so a new patch can start up to a block
+        inside the novel region; with noise the map's edge and the novel region's are ragged too, and only a rim
+        of a whole block closes the crack between them (tests/test_classifier.py). Noise-free edges are clean:
+        one pixel does."""
+        return self.reduction if noisy else 1
+
 
 # ---------------------------------------------------------------------------
 # 1-5: filter and reduce, transform, convert, build and locate (numba kernels: mabdi.filters.quadtree_kernels)

@@ -18,6 +18,12 @@ appended to the map. Each is registered under the name a run config uses
   the loop uses (:class:`SurfaceCapabilities`; none by default). Declared
   here, never probed on the filter object.
 
+A parameter class may say how many pixels around the novel ones the filter
+needs to close the seam with the map (a method ``seam_pixels(noisy)``; the
+quad-tree's blocks need ``reduction`` pixels where the depth is noisy): the
+loop sets the classifier's ``rim = "auto"`` to it (:func:`seam_pixels`; one
+pixel where the class says nothing).
+
 A new surface filter is one module plus one :func:`register_surface_filter`
 call: the config section, the ``--surface`` choice and its help follow.
 Filters from outside the package register the same way before the config is
@@ -134,3 +140,11 @@ register_surface_filter(
     "incremental voxel-plane patches (seed 000)",
     capabilities=SurfaceCapabilities(keeps_state=True, clears_space=True, overhang=True),
 )
+
+
+def seam_pixels(parameters, noisy: bool) -> int:
+    """The classifier's rim (pixels) a surface filter with ``parameters`` needs to close the seam between a new
+    patch and the map, for depth that is ``noisy`` or not: its ``seam_pixels(noisy)`` where the parameter class
+    has one, else 1 (the pixel grid's: a triangle needs its four corners)."""
+    method = getattr(parameters, "seam_pixels", None)
+    return 1 if method is None else int(method(noisy))

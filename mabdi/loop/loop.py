@@ -68,7 +68,7 @@ from mabdi.sensor_noise import SensorNoise
 from mabdi.filters.expected_image import MAP_PORT, MEASURED_PORT, FilterExpectedImage
 from mabdi.filters.refinement import MapRefinement, RefinementParameters
 from mabdi.filters.registration import FilterRegistration, RegistrationParameters, registration_values
-from mabdi.filters.registry import make_surface_filter, surface_filter
+from mabdi.filters.registry import make_surface_filter, seam_pixels, surface_filter
 from mabdi.loop.object_removal import ObjectRemoval
 from mabdi.filters.removal import RemovalParameters, depth_edges
 from mabdi.filters.world_mesh import FilterWorldMesh
@@ -167,6 +167,9 @@ class MabdiLoop:
         #: learns from each frame); the loop's own rules below are chosen by it.
         self.noise = SensorNoise.of(noise if noise is not None else (source.noise or "none"))
         self.surface_name = surface
+        if self.classifier_parameters.rim == "auto":  # the rim the surface needs to close its seams with the map
+            chosen = surface_parameters if surface_parameters is not None else surface_filter(surface).parameters()
+            self.classifier_parameters = replace(self.classifier_parameters, rim=seam_pixels(chosen, self.noise.noisy))
 
         #: Object removal runs when the classifier does and it is on (the default); refinement when it is
         #: on ("auto": with noise correlated between pixels), only with a noisy sensor (a noise-free
