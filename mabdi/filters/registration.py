@@ -175,8 +175,9 @@ NORMAL_MAX_JUMP = 0.05
 #: Tiles (pixels a side) whose residuals the pose covariance takes as one unit (:func:`pose_covariance`):
 #: wider than the correlations of a camera's matching window (about 9 pixels for a Kinect v1).
 COVARIANCE_TILE = 32
-#: D's samples average the 2 x 2 pixels that end at each cell's centre pixel (these offsets from the centre, in the
-#: order they are counted) whose depths lie within this share of the centre pixel's.
+#: D's samples average the 2 x 2 pixels that end at each cell's centre pixel (these offsets from the centre: the
+#: kernel's block; a sample of n pixels has its noise reckoned as the first n's) whose depths lie within this share
+#: of the centre pixel's.
 SAMPLE_BLOCK = ((0, 0), (0, -1), (-1, 0), (-1, -1))
 SAMPLE_MAX_JUMP = NORMAL_MAX_JUMP
 #: The last step of a registered frame is below these (m, degrees).
