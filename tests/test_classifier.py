@@ -140,8 +140,11 @@ def test_the_rim_closes_the_seam_between_a_new_quad_tree_patch_and_the_map():
     from mabdi.filters.registry import seam_pixels
 
     parameters = QuadTreeParameters(triangles=True)
-    assert seam_pixels(parameters, True) == 3 and seam_pixels(parameters, False) == 1
-    assert seam_pixels(QuadTreeParameters(reduction=1), True) == 1 and seam_pixels(object(), True) == 1
+    from mabdi.filters.pixel_grid import PixelGridParameters
+
+    assert seam_pixels("quadtree", parameters, True) == 3 and seam_pixels("quadtree", parameters, False) == 1
+    assert seam_pixels("quadtree", QuadTreeParameters(reduction=1), True) == 1
+    assert seam_pixels("pixel_grid", PixelGridParameters(), True) == 1
     intrinsics, pose, noise = Intrinsics(), look_at([0, -3, 1], [0, 0, 1]), SensorNoise("zbuffer")
     renderer = DepthRenderer()
     rng = np.random.default_rng(7)
@@ -169,7 +172,7 @@ def test_the_rim_closes_the_seam_between_a_new_quad_tree_patch_and_the_map():
         known = quadtree(depth_image(first, intrinsics, pose, noise=noise))
         expected = rendered(known)
         second = look()
-        for rim in (1, seam_pixels(parameters, True)):
+        for rim in (1, seam_pixels("quadtree", parameters, True)):
             classifier = FilterClassifier(ClassifierParameters(rim=rim))
             classifier.SetInputDataObject(0, depth_image(second, intrinsics, pose, frame=1, noise=noise))
             classifier.SetInputDataObject(1, depth_image(expected, intrinsics, pose, frame=1))

@@ -16,13 +16,12 @@ appended to the map. Each is registered under the name a run config uses
 * ``help``: one line for ``mabdi run --help``;
 * ``capabilities``: what the filter can do beyond meshing a frame, which
   the loop uses (:class:`SurfaceCapabilities`; none by default). Declared
-  here, never probed on the filter object.
-
-A parameter class may say how many pixels around the novel ones the filter
-needs to close the seam with the map (a method ``seam_pixels(noisy)``; the
-quad-tree's blocks need ``reduction`` pixels where the depth is noisy): the
-loop sets the classifier's ``rim = "auto"`` to it (:func:`seam_pixels`; one
-pixel where the class says nothing).
+  here, never probed on the filter object;
+* ``seam_pixels(parameters, noisy)``: how many pixels around the novel ones
+  the filter needs to close the seam between a new patch and the map (the
+  quad-tree's blocks need ``reduction`` where the depth is noisy); the loop
+  sets the classifier's ``rim = "auto"`` to it (:func:`seam_pixels`). None
+  (the default): one pixel.
 
 A new surface filter is one module plus one :func:`register_surface_filter`
 call: the config section, the ``--surface`` choice and its help follow.
@@ -65,6 +64,7 @@ class SurfaceFilterEntry:
     make: Callable
     help: str
     capabilities: SurfaceCapabilities = SurfaceCapabilities()
+    seam_pixels: Callable | None = None
 
 
 _REGISTRY: dict[str, SurfaceFilterEntry] = {}
@@ -77,6 +77,7 @@ def register_surface_filter(
     help: str,
     replace_existing: bool = False,
     capabilities: SurfaceCapabilities = SurfaceCapabilities(),
+    seam_pixels: Callable | None = None,
 ) -> None:
     """Register a surface filter under ``name`` (a config value: letters, digits, underscores)."""
     if not name.isidentifier():
@@ -89,7 +90,7 @@ def register_surface_filter(
         raise TypeError(f"surface filter {name!r}: its parameters class must build with defaults alone ({exc})") from None
     if not isinstance(capabilities, SurfaceCapabilities):
         raise TypeError(f"surface filter {name!r}: capabilities must be a SurfaceCapabilities, got {type(capabilities).__name__}")
-    _REGISTRY[name] = SurfaceFilterEntry(name, parameters, make, help, capabilities)
+    _REGISTRY[name] = SurfaceFilterEntry(name, parameters, make, help, capabilities, seam_pixels)
 
 
 def unregister_surface_filter(name: str) -> None:
@@ -132,6 +133,7 @@ register_surface_filter(
     # The loop counts triangles: quad-tree faces are always triangulated there.
     lambda parameters: FilterQuadTree(replace(parameters, triangles=True)),
     "quad-tree faces merged over flat regions (seed 002)",
+    seam_pixels=QuadTreeParameters.seam_pixels,
 )
 register_surface_filter(
     "voxel_planes",
@@ -142,9 +144,9 @@ register_surface_filter(
 )
 
 
-def seam_pixels(parameters, noisy: bool) -> int:
-    """The classifier's rim (pixels) a surface filter with ``parameters`` needs to close the seam between a new
-    patch and the map, for depth that is ``noisy`` or not: its ``seam_pixels(noisy)`` where the parameter class
-    has one, else 1 (the pixel grid's: a triangle needs its four corners)."""
-    method = getattr(parameters, "seam_pixels", None)
-    return 1 if method is None else int(method(noisy))
+def seam_pixels(name: str, parameters, noisy: bool) -> int:
+    """The classifier's rim (pixels) surface ``name`` with ``parameters`` needs to close the seam between a new
+    patch and the map, for depth that is ``noisy`` or not: its entry's ``seam_pixels``, else 1 (the pixel grid's:
+    a triangle needs its four corners)."""
+    entry = surface_filter(name)
+    return 1 if entry.seam_pixels is None else int(entry.seam_pixels(parameters, noisy))

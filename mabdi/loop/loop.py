@@ -169,7 +169,7 @@ class MabdiLoop:
         self.surface_name = surface
         if self.classifier_parameters.rim == "auto":  # the rim the surface needs to close its seams with the map
             chosen = surface_parameters if surface_parameters is not None else surface_filter(surface).parameters()
-            self.classifier_parameters = replace(self.classifier_parameters, rim=seam_pixels(chosen, self.noise.noisy))
+            self.classifier_parameters = replace(self.classifier_parameters, rim=seam_pixels(surface, chosen, self.noise.noisy))
 
         #: Object removal runs when the classifier does and it is on (the default); refinement when it is
         #: on ("auto": with noise correlated between pixels), only with a noisy sensor (a noise-free
