@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 from vtkmodules.util.numpy_support import vtk_to_numpy
@@ -77,6 +79,42 @@ def test_specks_thin_lines_and_small_blobs_are_not_novel():
     assert not kept[:25].any()
     assert kept[30:50, 30:60].all()
     assert remove_specks(novel, 1, 0).sum() == novel.sum()
+
+
+def test_specks_that_fill_a_hole_of_the_map_stay_novel():
+    """A wall at 2 m: small regions where E sees through the map, ringed by the map at D's depth, are holes
+    and stay novel; a crack of E one pixel wide, a sliver beside the map's silhouette and a speck of D
+    just in front of the map are specks."""
+    measured = np.full(SMALL.shape, 2.0, np.float32)
+    expected = np.full(SMALL.shape, 2.0, np.float32)
+    expected[5:8, 5:8] = np.nan  # a hole of the map, 3 x 3 pixels: nothing behind it
+    expected[5:7, 20:23] = 3.5  # a hole of the map, 2 x 3 pixels, the far wall behind it
+    expected[15, 5:25] = np.nan  # a crack one pixel wide between the map's triangles
+    expected[20:24, 5:9] = 2.03  # D 3 cm in front of the map: beyond tau (1 cm), not seeing through
+    measured[:, 50:] = 3.5  # the far wall beside the near one's edge at column 50 ...
+    expected[:, 48:] = 3.5  # ... which the map has two pixels short
+    parameters = ClassifierParameters(min_width=3, min_region=32, rim=0)
+    frame, labels, classifier = run_classifier(measured, expected, parameters)
+    holes = np.zeros(SMALL.shape, bool)
+    holes[5:8, 5:8] = holes[5:7, 20:23] = True
+    np.testing.assert_array_equal(labels == NOVEL, holes)
+    np.testing.assert_array_equal(np.isfinite(frame.depth), holes)
+    assert pixel_counts(classifier.GetOutput())["specks"] == 20 + 16 + 2 * 48
+    _, labels, _ = run_classifier(measured, expected, dataclasses.replace(parameters, fill_holes=False))
+    assert not (labels == NOVEL).any()
+    # a hole at the image's border: its ring is short (two sides), still within the map; a hole beside pixels
+    # D lost where the map goes on; a strip along the map's edge where nothing lies beyond (no return, no map)
+    measured = np.full(SMALL.shape, 2.0, np.float32)
+    expected = np.full(SMALL.shape, 2.0, np.float32)
+    expected[:3, 30:34] = np.nan
+    expected[30:33, 20:23] = np.nan
+    measured[29:34, 23] = np.nan
+    measured[:, 40:] = np.nan
+    expected[:, 38:] = np.nan
+    _, labels, _ = run_classifier(measured, expected, parameters)
+    holes = np.zeros(SMALL.shape, bool)
+    holes[:3, 30:34] = holes[30:33, 20:23] = True
+    np.testing.assert_array_equal(labels == NOVEL, holes)
 
 
 def test_rim_grows_the_meshed_pixels_by_one():

@@ -9,6 +9,7 @@ from scipy.spatial.transform import Rotation
 
 from conftest import simulation
 from mabdi.evaluate import evaluate_run
+from mabdi.filters.map_anchor import MapAnchor
 from mabdi.filters.registration import transform_size
 from mabdi.polydata import polydata_area
 
@@ -28,6 +29,21 @@ def aligned_errors(true: np.ndarray, poses: np.ndarray) -> np.ndarray:
     """(N, 2) pose errors (m, degrees) after the one rigid motion that best aligns the two trajectories."""
     align = alignment(true, poses)
     return np.array([transform_size(np.linalg.inv(align @ t) @ p) for t, p in zip(true, poses, strict=True)])
+
+
+def placed_with_exact_registration(sim) -> np.ndarray:
+    """(N, 2) errors (m, degrees) of the poses the run would mesh with were every frame registered exactly: the
+    loop's map anchor, told the pose accuracy the simulator states, given each frame's given pose and its true
+    pose in the frame of the map the first given pose started. What the given poses allow of the map's
+    placement, whatever the registration."""
+    true, given = sim.true_poses, sim.poses
+    anchor = MapAnchor(stated=sim.source.pose_accuracy.variances())
+    map_from_world = given[0] @ np.linalg.inv(true[0])
+    travelled = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(given[:, :3, 3], axis=0), axis=1))])
+    for g, t, s in zip(given, true, travelled, strict=True):
+        anchor.add(g, map_from_world @ t, float(s))
+    placed = anchor.world_from_map @ map_from_world @ true
+    return np.array([transform_size(np.linalg.inv(t) @ p) for t, p in zip(true, placed, strict=True)])
 
 
 def noisy_run(given_sigma: str = "source", **pose_noise):
@@ -62,6 +78,10 @@ def check_jitter_run(static_runs, jitter_translation: float, jitter_rotation: fl
     # meshed poses' constant part is within half a millimetre of that mean's own error
     placed, mean_given = transform_size(alignment(true, meshed)), transform_size(alignment(true, sim.poses))
     assert placed[0] <= mean_given[0] + 0.0005, (placed, mean_given)
+    # and within half a millimetre of what exact registration would give (median)
+    exact_registration = placed_with_exact_registration(sim)
+    assert np.median(errors[:, 0]) <= np.median(exact_registration[:, 0]) + 0.0005, (
+        np.median(errors, axis=0), np.median(exact_registration, axis=0))
     return errors, aligned_errors(true, meshed)
 
 
@@ -78,7 +98,9 @@ def test_run2_with_large_pose_jitter_is_placed_as_well_as_the_given_poses_allow(
     """Jitter of 5 mm / 0.3 degrees per axis: the checks of :func:`check_jitter_run`; the frames agree with
     each other within 1.5 mm / 0.05 degrees (median after the one rigid alignment; measured 0.78 mm). Against
     the true poses they are 2.1 mm off, most of it the map's placement, which is the given poses' mean here
-    (1.7 mm off the truth in this run: 5 mm over the square root of 50 frames is 0.7 mm per axis)."""
+    (1.7 mm off the truth in this run: 5 mm over the square root of 50 frames is 0.7 mm per axis). Exactly
+    registered frames would be placed 1.83 mm off (median; 1.1-2.4 mm over ten draws of the jitter): the
+    1.5 mm asked of this jitter is below what 50 such given poses tell."""
     errors, aligned = check_jitter_run(static_runs, 0.005, 0.3)
     assert np.median(aligned[:, 0]) <= 0.0015 and np.median(aligned[:, 1]) <= 0.05, np.median(aligned, axis=0)
     assert np.median(errors[:, 1]) <= 0.05, np.median(errors, axis=0)

@@ -121,14 +121,16 @@ def test_a_plate_seen_from_far_then_near_ends_as_good_as_the_near_looks_allow(su
     assert np.percentile(vertex_distances(loop), 95) < 0.5 * sigma(FAR)  # no far-look face is left
 
     # no layer beside (that would double the count): about what one near look makes. The pixel grid: within the
-    # drift's few new pixels; the quad-tree meets the near surface in two pieces (the first near look's novel
-    # pixels, then the rest once the far faces are gone), whose leaves cannot merge across the seam: measured +23%.
+    # drift's few new pixels and the small holes later looks fill (measured +7.7%); the quad-tree meets the near
+    # surface in two pieces (the first near look's novel pixels, then the rest once the far faces are gone),
+    # whose leaves cannot merge across the seam (+28%), and later looks fill the single blocks its first near
+    # look left out (+40% in all).
     one_look = mabdi.MabdiLoop(
         plate_frames(near_looks=1, far_look=False), surface=surface, surface_parameters=RAW[surface], noise="kinect",
         registration=EXACT_POSES,
     )
     one_look.step(0)
-    slack = {"pixel_grid": 1.05, "quadtree": 1.3}[surface]
+    slack = {"pixel_grid": 1.1, "quadtree": 1.5}[surface]
     assert loop.world.number_of_cells <= slack * one_look.world.number_of_cells, (
         loop.world.number_of_cells,
         one_look.world.number_of_cells,
@@ -182,11 +184,13 @@ def test_the_radius_follows_the_noise_correlation():
 def test_correlated_noise_is_averaged_over_its_correlation_length():
     """Ten looks at the plate with noise correlated over 2.5 pixels: the radius of four correlation lengths
     leaves the quad-tree's vertices at most 0.9 times as far from the plate as the radius for independent
-    noise (measured over three seeds: 0.81-0.85), and within a third of one look's sigma."""
+    noise (measured over three seeds: 0.81-0.87), and within a third of one look's sigma. The classifier fills no
+    holes here: a late look's fill of a hole the first look's quad-tree left adds vertices that look alone has
+    seen, which says nothing of the radius (0.91 with the fill)."""
     medians = {}
     for radius in ("auto", RADIUS_PX_INDEPENDENT):
         loop = mabdi.MabdiLoop(
-            correlated_plate_frames(), mabdi.ClassifierParameters(refinement=True), surface="quadtree",
+            correlated_plate_frames(), mabdi.ClassifierParameters(refinement=True, fill_holes=False), surface="quadtree",
             surface_parameters=RAW["quadtree"], noise=CORRELATED, registration=EXACT_POSES,
             refinement=RefinementParameters(radius_px=radius),
         )  # fmt: skip
@@ -358,14 +362,16 @@ def test_refinement_goes_on_through_the_world_maps_merges_of_frame_patches():
     """With every frame's patch merged into its chunk's (the world map's bounded draw calls), the per-vertex
     refinement state follows the merged vertices (their first-look positions, weights and offsets), and the
     plate ends as good as without merging."""
+    from mabdi.filters.refinement import _match_rows
+
     plain, _ = refining_loop(plate_frames(), "pixel_grid")
     plain_medians, _ = run_refined(plain, plain.refinement, 11)
     loop, refinement = refining_loop(plate_frames(), "pixel_grid")
     loop.world.store.chunk_of = lambda polydata: (0, 0, 0)  # the plate in one chunk (it straddles the origin),
     loop.world.store.patches_per_chunk = 1  # its frame patches merged whenever there are two
-    medians, carried = [], 0
+    medians, carried, rebuilt = [], 0, 0
     for i in range(11):
-        states = {key: (state.original.copy(), state.weight.copy()) for key, state in refinement._blocks.items()}
+        states = {key: (state.original.copy(), state.weight.copy(), state.patch) for key, state in refinement._blocks.items()}
         loop.step(i)
         medians.append(float(np.median(vertex_distances(loop))))
         for key in loop.world.patch_keys:
@@ -373,12 +379,21 @@ def test_refinement_goes_on_through_the_world_maps_merges_of_frame_patches():
             if not key.startswith("merged_") or key not in refinement._blocks or not any(p in states for p, _ in parts):
                 continue
             state, start = refinement._blocks[key], 0
+            points_now = vtk_to_numpy(state.patch.GetPoints().GetData())
             for part, points in parts:
-                if part in states and len(states[part][0]) == points:
-                    np.testing.assert_array_equal(state.original[start : start + points], states[part][0])
-                    assert (state.weight[start : start + points] >= states[part][1]).all()
-                    carried += int((states[part][1] > 0).sum())
+                if part in states:
+                    original, weight, patch = states[part]
+                    if len(original) == points:
+                        source = np.arange(points)
+                    else:  # the part lost faces after its state was taken: its kept points keep their state
+                        source = _match_rows(vtk_to_numpy(patch.GetPoints().GetData()), points_now[start : start + points])
+                        rebuilt += 1
+                    found = np.flatnonzero(source >= 0)
+                    np.testing.assert_array_equal(state.original[start + found], original[source[found]])
+                    assert (state.weight[start + found] >= weight[source[found]]).all()
+                    carried += int((weight[source[found]] > 0).sum())
                 start += points
     assert carried > 1000  # vertices observed before their patch was merged kept what they had
+    assert rebuilt > 0  # and so did those of a part rebuilt between its last refinement and the merge
     assert medians[-1] <= 0.5 * sigma(NEAR), medians
     assert abs(medians[-1] - plain_medians[-1]) <= 0.2e-3, (medians, plain_medians)

@@ -41,6 +41,26 @@ LiDAR sees the next ring of a road beyond the mapped one as a strip one or
 two beams tall. A camera's E does not carry the array, and every thin
 region goes as before.
 
+**Specks that fill a hole** (``fill_holes``, on by default): a map has small
+holes, a centimetre or two across, where no look has left a surface: the
+bands a structured-light camera loses beside depth edges, the cracks of a
+noisy seam. A later look that sees such a hole sees it as a small novel
+region, a speck by size, and it would stay a hole however often it is seen.
+A speck region is kept as novel when (:func:`hole_fills`) at least half of
+its pixels see through the map (E empty, or beyond D by more than
+:data:`HOLE_JUMP` of D's depth or 2 tau where that is more), those pixels
+hold a 2 x 2 block (a one-pixel crack of E between the map's triangles is
+no hole), and at least :data:`HOLE_RING_SHARE` of its ring (the pixels
+around it; at least :data:`HOLE_RING_MIN` of them) are the map at its depth,
+within the same jump: known pixels, or pixels without a return where E has
+a surface (the map goes on where D lost a pixel). The map lies all around
+it, on the same surface. A sliver along the map's silhouette fails the ring
+test (the surface behind the silhouette lies at another depth), and so does
+a strip along the map's edge against nothing (neither D nor E has a surface
+beyond it: a quad-tree patch stops half a block short of D's edge, and such
+a strip would be filled again at every look); a speck of noise fails the
+see-through test (its E lies just beyond tau).
+
 Output: a depth image whose ``depth`` is D on the novel pixels and on a rim
 of ``rim`` pixels around them (NaN elsewhere), plus the whole of D as the
 point array ``measured_depth`` (:data:`mabdi.depth.MEASURED_ARRAY`, a copy
@@ -65,7 +85,7 @@ and for a classifier used on its own). Field data (intrinsics, pose, frame)
 is D's.
 
 Defaults: tau_min = 0.01 m, k_sigma = 3, min_width = 3 px, min_region = 32 px,
-rim = "auto".
+rim = "auto", fill_holes = true.
 """
 
 from __future__ import annotations
@@ -129,6 +149,8 @@ class ClassifierParameters:
     min_region: int = 32
     #: Pixels around the novel ones passed on with them (see the module docs); "auto": what the surface needs.
     rim: int | str = "auto"
+    #: Keep the specks that fill a hole of the map (see the module docs).
+    fill_holes: bool = True
 
     def __post_init__(self) -> None:
         check_switch("refinement", self.refinement)
@@ -212,6 +234,51 @@ def remove_specks(novel: np.ndarray, min_width: int, min_region: int, covered: n
     return mask
 
 
+#: A speck that fills a hole sees through the map by more than this share of D's depth (or 2 tau where that
+#: is more), and its ring lies within the same jump of its depth (see the module docs).
+HOLE_JUMP = 0.05
+#: The share of a speck's ring that must be the map at its depth for it to fill a hole (see the module docs).
+HOLE_RING_SHARE = 0.8
+#: The fewest ring pixels of the map at its depth.
+HOLE_RING_MIN = 6
+
+
+def hole_fills(
+    specks: np.ndarray, measured: np.ndarray, expected: np.ndarray, labels: np.ndarray, tau: np.ndarray
+) -> np.ndarray:
+    """The specks (bool (H, W)) that fill a hole of the map: 8-connected regions most of whose pixels see
+    through the map (E empty, or beyond D by more than the jump), ringed by the map at their depth
+    (see the module docs). ``labels``: :func:`classify`'s; ``tau``: the threshold per pixel (m)."""
+    fills = np.zeros_like(specks)
+    if not specks.any():
+        return fills
+    regions, count = ndimage.label(specks, structure=_EIGHT_NEIGHBOURS)
+    index = np.arange(1, count + 1)
+    depth = np.zeros(count + 1)
+    depth[1:] = ndimage.median(measured, regions, index)
+    with np.errstate(invalid="ignore"):
+        jump = np.maximum(HOLE_JUMP * measured, 2.0 * tau)
+        through = ~np.isfinite(expected) | (expected - measured > jump)
+    sizes = np.bincount(regions.ravel(), minlength=count + 1)
+    through_share = np.bincount(regions[specks & through], minlength=count + 1) / np.maximum(sizes, 1)
+    # a hole at least 2 x 2 pixels wide: not a one-pixel crack of E between the map's triangles
+    wide = ndimage.binary_opening(specks & through, structure=np.ones((2, 2), dtype=bool))
+    wide_count = np.bincount(regions[wide], minlength=count + 1)
+    grown = ndimage.grey_dilation(regions, footprint=_EIGHT_NEIGHBOURS)
+    ring = (grown > 0) & ~specks
+    # the map around it: known pixels, and pixels without a return where E has a surface (the map goes on
+    # where D lost a pixel), at its depth; a pixel where neither has one is the map's edge against nothing
+    surface = np.where(np.isfinite(measured), measured, expected)
+    mapped = (labels == KNOWN) | (~np.isfinite(measured) & np.isfinite(expected))
+    with np.errstate(invalid="ignore"):
+        level = mapped & (np.abs(surface - depth[grown]) <= np.fmax(HOLE_JUMP * depth[grown], 2.0 * tau))
+    ring_count = np.bincount(grown[ring], minlength=count + 1)
+    ring_level = np.bincount(grown[ring & level], minlength=count + 1)
+    keep = (through_share >= 0.5) & (wide_count > 0) & (ring_level >= HOLE_RING_MIN) & (ring_level >= HOLE_RING_SHARE * ring_count)
+    keep[0] = False
+    return keep[regions]
+
+
 class FilterClassifier(MabdiAlgorithm):
     """Label D's pixels against E and pass on the novel ones (2 depth images -> depth image)."""
 
@@ -281,6 +348,8 @@ class FilterClassifier(MabdiAlgorithm):
         p = self._parameters
         raw_novel = labels == NOVEL
         novel = remove_specks(raw_novel, p.min_width, p.min_region, map_in_footprint(expected_image))
+        if p.fill_holes:
+            novel |= hole_fills(raw_novel & ~novel, measured, expected, labels, tau)
         specks = raw_novel & ~novel
         labels[specks] = KNOWN
         meshed = novel

@@ -338,14 +338,22 @@ class MapRefinement:
 
     def _merge_states(self, key: str, patch: vtkPolyData, parts: list[tuple[str, int]], loop, pose: np.ndarray) -> None:
         """The state of a block merged from ``parts`` ((key, points) in the order of its points): each part's
-        vertices keep the state they had, the others start fresh."""
+        vertices keep the state they had, the others start fresh. A part rebuilt (faces removed, points
+        compacted) after its state was last taken hands on the state of the points it kept."""
         merged = self._register(key, patch, loop, pose)
+        merged_points = _points(patch)
         start = 0
         for part, points in parts:
             state = self._blocks.get(part)
-            if state is not None and len(state.original) == points and start + points <= len(merged.original):
-                for name in _STATE:
-                    getattr(merged, name)[start : start + points] = getattr(state, name)
+            if state is not None and start + points <= len(merged.original):
+                if len(state.original) == points:
+                    for name in _STATE:
+                        getattr(merged, name)[start : start + points] = getattr(state, name)
+                else:
+                    source = self._match_points(_points(state.patch), merged_points[start : start + points])
+                    found = np.flatnonzero(source >= 0)
+                    for name in _STATE:
+                        getattr(merged, name)[start + found] = getattr(state, name)[source[found]]
             start += points
 
     def _register(self, key: str, patch: vtkPolyData, loop, pose: np.ndarray) -> _BlockState:
