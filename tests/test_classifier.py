@@ -19,6 +19,7 @@ from mabdi.filters.classifier import (
     ClassifierParameters,
     FilterClassifier,
     classify,
+    hole_fills,
     pixel_counts,
     remove_specks,
 )
@@ -115,6 +116,13 @@ def test_specks_that_fill_a_hole_of_the_map_stay_novel():
     holes = np.zeros(SMALL.shape, bool)
     holes[:3, 30:34] = holes[30:33, 20:23] = True
     np.testing.assert_array_equal(labels == NOVEL, holes)
+    # where E says the map reaches into a pixel's footprint (a range image), its beam missed the map: no hole
+    labels = classify(measured, expected, np.full(SMALL.shape, 0.01, np.float32))
+    specks = labels == NOVEL
+    np.testing.assert_array_equal(hole_fills(specks, measured, expected, labels, np.full(SMALL.shape, 0.01)), holes)
+    covered = np.zeros(SMALL.shape, bool)
+    covered[29:34, 19:24] = True
+    np.testing.assert_array_equal(hole_fills(specks, measured, expected, labels, np.full(SMALL.shape, 0.01), covered), holes & ~covered)
 
 
 def test_rim_grows_the_meshed_pixels_by_one():

@@ -59,7 +59,11 @@ test (the surface behind the silhouette lies at another depth), and so does
 a strip along the map's edge against nothing (neither D nor E has a surface
 beyond it: a quad-tree patch stops half a block short of D's edge, and such
 a strip would be filled again at every look); a speck of noise fails the
-see-through test (its E lies just beyond tau).
+see-through test (its E lies just beyond tau). Where E carries
+``map_in_footprint`` (a range image), a pixel whose footprint the map
+reaches into does not see through the map: its beam missed a map triangle
+beside it (the rings of a far road), and filling such gaps added a fifth to
+the street's map on the way back.
 
 Output: a depth image whose ``depth`` is D on the novel pixels and on a rim
 of ``rim`` pixels around them (NaN elsewhere), plus the whole of D as the
@@ -244,7 +248,12 @@ HOLE_RING_MIN = 6
 
 
 def hole_fills(
-    specks: np.ndarray, measured: np.ndarray, expected: np.ndarray, labels: np.ndarray, tau: np.ndarray
+    specks: np.ndarray,
+    measured: np.ndarray,
+    expected: np.ndarray,
+    labels: np.ndarray,
+    tau: np.ndarray,
+    covered: np.ndarray | None = None,
 ) -> np.ndarray:
     """The specks (bool (H, W)) that fill a hole of the map: 8-connected regions most of whose pixels see
     through the map (E empty, or beyond D by more than the jump), ringed by the map at their depth
@@ -259,6 +268,8 @@ def hole_fills(
     with np.errstate(invalid="ignore"):
         jump = np.maximum(HOLE_JUMP * measured, 2.0 * tau)
         through = ~np.isfinite(expected) | (expected - measured > jump)
+    if covered is not None:
+        through &= ~covered  # the map reaches into the beam's footprint: the beam missed it, no hole
     sizes = np.bincount(regions.ravel(), minlength=count + 1)
     through_share = np.bincount(regions[specks & through], minlength=count + 1) / np.maximum(sizes, 1)
     # a hole at least 2 x 2 pixels wide: not a one-pixel crack of E between the map's triangles
@@ -347,9 +358,10 @@ class FilterClassifier(MabdiAlgorithm):
         labels = classify(measured, expected, tau)
         p = self._parameters
         raw_novel = labels == NOVEL
-        novel = remove_specks(raw_novel, p.min_width, p.min_region, map_in_footprint(expected_image))
+        covered = map_in_footprint(expected_image)
+        novel = remove_specks(raw_novel, p.min_width, p.min_region, covered)
         if p.fill_holes:
-            novel |= hole_fills(raw_novel & ~novel, measured, expected, labels, tau)
+            novel |= hole_fills(raw_novel & ~novel, measured, expected, labels, tau, covered)
         specks = raw_novel & ~novel
         labels[specks] = KNOWN
         meshed = novel
