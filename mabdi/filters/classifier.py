@@ -41,20 +41,26 @@ LiDAR sees the next ring of a road beyond the mapped one as a strip one or
 two beams tall. A camera's E does not carry the array, and every thin
 region goes as before.
 
-**Specks that fill a hole** (``fill_holes``, on by default): a map has small
-holes, a centimetre or two across, where no look has left a surface: the
-bands a structured-light camera loses beside depth edges, the cracks of a
-noisy seam. A later look that sees such a hole sees it as a small novel
-region, a speck by size, and it would stay a hole however often it is seen.
-A speck region is kept as novel when (:func:`hole_fills`) at least half of
+**Specks that fill a hole** (``fill_holes``, on by default, where D is
+noisy): a map has small holes, a centimetre or two across, where no look has
+left a surface: the bands a structured-light camera loses beside depth
+edges, the cracks of a noisy seam. A later look that sees such a hole sees
+it as a small novel region, a speck by size, and it would stay a hole
+however often it is seen. Noise-free depth is left as it is: its holes are
+the surface's own cracks along seams, which a later look meshes the same
+way, so its fills are made again at every look and close nothing. A speck
+region is kept as novel when (:func:`hole_fills`) at least half of
 its pixels see through the map (E empty, or beyond D by more than
 :data:`HOLE_JUMP` of D's depth or 2 tau where that is more), those pixels
 hold a 2 x 2 block (a one-pixel crack of E between the map's triangles is
 no hole), and at least :data:`HOLE_RING_SHARE` of its ring (the pixels
 around it; at least :data:`HOLE_RING_MIN` of them) are the map at its depth,
 within the same jump: known pixels, or pixels without a return where E has
-a surface (the map goes on where D lost a pixel). The map lies all around
-it, on the same surface. A sliver along the map's silhouette fails the ring
+a surface (the map goes on where D lost a pixel). Pixels without a return
+in a band of D narrower than :data:`HOLE_BAND_PX` where E has no surface
+either are left out of the ring: a structured-light camera loses such bands
+beside depth edges, and they say nothing of the map beyond. The map lies all
+around it, on the same surface. A sliver along the map's silhouette fails the ring
 test (the surface behind the silhouette lies at another depth), and so does
 a strip along the map's edge against nothing (neither D nor E has a surface
 beyond it: a quad-tree patch stops half a block short of D's edge, and such
@@ -245,6 +251,8 @@ HOLE_JUMP = 0.05
 HOLE_RING_SHARE = 0.8
 #: The fewest ring pixels of the map at its depth.
 HOLE_RING_MIN = 6
+#: Pixels without a return in a band of D narrower than this (pixels) leave a speck's ring as if not there.
+HOLE_BAND_PX = 9
 
 
 def hole_fills(
@@ -276,7 +284,12 @@ def hole_fills(
     wide = ndimage.binary_opening(specks & through, structure=np.ones((2, 2), dtype=bool))
     wide_count = np.bincount(regions[wide], minlength=count + 1)
     grown = ndimage.grey_dilation(regions, footprint=_EIGHT_NEIGHBOURS)
-    ring = (grown > 0) & ~specks
+    # the ring leaves out pixels lost in a narrow band between D's returns where the map has no surface
+    # either: such a band (a structured-light camera's beside a depth edge) says nothing of the map beyond
+    valid = np.isfinite(measured)
+    band = np.ones((HOLE_BAND_PX, HOLE_BAND_PX), dtype=bool)
+    lost = ndimage.binary_closing(valid, structure=band, border_value=1) & ~valid & ~np.isfinite(expected)
+    ring = (grown > 0) & ~specks & ~lost
     # the map around it: known pixels, and pixels without a return where E has a surface (the map goes on
     # where D lost a pixel), at its depth; a pixel where neither has one is the map's edge against nothing
     surface = np.where(np.isfinite(measured), measured, expected)
@@ -360,7 +373,7 @@ class FilterClassifier(MabdiAlgorithm):
         raw_novel = labels == NOVEL
         covered = map_in_footprint(expected_image)
         novel = remove_specks(raw_novel, p.min_width, p.min_region, covered)
-        if p.fill_holes:
+        if p.fill_holes and noise.noisy:
             novel |= hole_fills(raw_novel & ~novel, measured, expected, labels, tau, covered)
         specks = raw_novel & ~novel
         labels[specks] = KNOWN
