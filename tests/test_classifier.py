@@ -130,6 +130,79 @@ def test_specks_that_fill_a_hole_of_the_map_stay_novel():
     np.testing.assert_array_equal(hole_fills(specks, measured, expected, labels, np.full(SMALL.shape, 0.01), covered), holes & ~covered)
 
 
+def reference_hole_fills(specks, measured, expected, labels, tau, covered=None):
+    """:func:`hole_fills` written region by region and pixel by pixel, as the module docs say it."""
+    from scipy import ndimage
+
+    from mabdi.filters.classifier import HOLE_BAND_PX, HOLE_JUMP, HOLE_RING_MIN, HOLE_RING_SHARE
+
+    valid = np.isfinite(measured)
+
+    def lost_run(r, c, along_rows):
+        run, line, at = 1, (valid[r] if along_rows else valid[:, c]), (c if along_rows else r)
+        for sign in (-1, 1):
+            k = at + sign
+            while 0 <= k < len(line) and not line[k]:
+                run, k = run + 1, k + sign
+        return run
+
+    fills = np.zeros_like(specks)
+    regions, count = ndimage.label(specks, structure=np.ones((3, 3), bool))
+    for label in range(1, count + 1):
+        region = regions == label
+        depth = np.median(measured[region])
+        jump = np.maximum(HOLE_JUMP * measured, 2.0 * tau)
+        through = region & (~np.isfinite(expected) | (expected - measured > jump))
+        if covered is not None:
+            through &= ~covered
+        wide = ndimage.binary_opening(through, structure=np.ones((2, 2), bool)).any()
+        ring = ndimage.binary_dilation(region, structure=np.ones((3, 3), bool)) & ~specks
+        counted = level = 0
+        for r, c in zip(*np.nonzero(ring)):
+            d, e = measured[r, c], expected[r, c]
+            if np.isnan(d) and np.isnan(e) and min(lost_run(r, c, True), lost_run(r, c, False)) < HOLE_BAND_PX:
+                continue
+            counted += 1
+            surface = d if np.isfinite(d) else e
+            mapped = labels[r, c] == KNOWN or (np.isnan(d) and np.isfinite(e))
+            allowed = max(HOLE_JUMP * depth, 2.0 * tau[r, c]) if np.isfinite(tau[r, c]) else HOLE_JUMP * depth
+            level += bool(mapped and abs(surface - depth) <= allowed)
+        if through.sum() >= 0.5 * region.sum() and wide and level >= HOLE_RING_MIN and level >= HOLE_RING_SHARE * counted:
+            fills |= region
+    return fills
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_hole_fills_match_their_region_by_region_formulation(seed):
+    """Random walls with holes in the map, bands D lost, specks of noise, far walls seen through holes and
+    regions that touch each other: the vectorised rule and the plain one keep the same specks."""
+    rng = np.random.default_rng(seed)
+    shape = (60, 90)
+    measured = (2.0 + 0.3 * rng.random() + 0.002 * np.arange(shape[1])[None, :] + np.zeros(shape)).astype(np.float32)
+    expected = measured.copy()
+    for _ in range(25):  # holes of the map, some with the far wall behind them
+        r, c, h, w = rng.integers(0, 58), rng.integers(0, 88), rng.integers(1, 5), rng.integers(1, 5)
+        expected[r : r + h, c : c + w] = np.nan if rng.random() < 0.6 else 3.5
+    for _ in range(6):  # bands D lost, some lost by the map too
+        c, w = rng.integers(0, 88), rng.integers(1, 12)
+        rows = slice(rng.integers(0, 30), rng.integers(30, 60))
+        measured[rows, c : c + w] = np.nan
+        if rng.random() < 0.5:
+            expected[rows, c : c + w] = np.nan
+    for _ in range(10):  # specks of D in front of the map
+        r, c = rng.integers(0, 58), rng.integers(0, 88)
+        measured[r : r + 2, c : c + 3] -= 0.05
+    tau = np.where(np.isfinite(measured), 0.02, np.nan).astype(np.float32)
+    labels = classify(measured, expected, tau)
+    novel = labels == NOVEL
+    specks = novel & ~remove_specks(novel, 3, 32)
+    covered = rng.random(shape) < 0.1
+    for cover in (None, covered):
+        fast = hole_fills(specks, measured, expected, labels, tau, cover)
+        np.testing.assert_array_equal(fast, reference_hole_fills(specks, measured, expected, labels, tau, cover))
+    assert hole_fills(specks, measured, expected, labels, tau).any()  # the case is not empty
+
+
 def test_rim_grows_the_meshed_pixels_by_one():
     measured = np.full(SMALL.shape, 2.0, np.float32)
     expected = np.full(SMALL.shape, 2.0, np.float32)

@@ -57,8 +57,8 @@ no hole), and at least :data:`HOLE_RING_SHARE` of its ring (the pixels
 around it; at least :data:`HOLE_RING_MIN` of them) are the map at its depth,
 within the same jump: known pixels, or pixels without a return where E has
 a surface (the map goes on where D lost a pixel). Pixels without a return
-in a band of D narrower than :data:`HOLE_BAND_PX` where E has no surface
-either are left out of the ring: a structured-light camera loses such bands
+in a band of D narrower than :data:`HOLE_BAND_PX` along their row or column,
+where E has no surface either, are left out of the ring: a structured-light camera loses such bands
 beside depth edges, and they say nothing of the map beyond. The map lies all
 around it, on the same surface. A sliver along the map's silhouette fails the ring
 test (the surface behind the silhouette lies at another depth), and so does
@@ -251,8 +251,30 @@ HOLE_JUMP = 0.05
 HOLE_RING_SHARE = 0.8
 #: The fewest ring pixels of the map at its depth.
 HOLE_RING_MIN = 6
-#: Pixels without a return in a band of D narrower than this (pixels) leave a speck's ring as if not there.
+#: Pixels without a return in a run of D (along a row or a column) narrower than this many pixels leave a
+#: speck's ring as if not there, where E has no surface either.
 HOLE_BAND_PX = 9
+
+
+def _lost_run_narrow(valid: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """For pixels (``rows``, ``cols``) without a return: whether the run of pixels without one through each,
+    along its row or along its column, is narrower than :data:`HOLE_BAND_PX` (the image's border ends a run)."""
+    height, width = valid.shape
+    steps = np.arange(1, HOLE_BAND_PX)
+    narrow = np.zeros(len(rows), dtype=bool)
+    for along_rows in (True, False):
+        size = width if along_rows else height
+        start = cols if along_rows else rows
+        run = np.ones(len(rows), dtype=np.int64)  # the pixel itself
+        for sign in (-1, 1):
+            at = start[:, None] + sign * steps[None, :]
+            inside = (at >= 0) & (at < size)
+            clipped = np.clip(at, 0, size - 1)
+            hit = ~inside | (valid[rows[:, None], clipped] if along_rows else valid[clipped, cols[:, None]])
+            first = np.where(hit.any(axis=1), hit.argmax(axis=1), HOLE_BAND_PX - 1)  # lost pixels before a return
+            run += first
+        narrow |= run < HOLE_BAND_PX
+    return narrow
 
 
 def hole_fills(
@@ -265,42 +287,71 @@ def hole_fills(
 ) -> np.ndarray:
     """The specks (bool (H, W)) that fill a hole of the map: 8-connected regions most of whose pixels see
     through the map (E empty, or beyond D by more than the jump), ringed by the map at their depth
-    (see the module docs). ``labels``: :func:`classify`'s; ``tau``: the threshold per pixel (m)."""
+    (see the module docs). ``labels``: :func:`classify`'s; ``tau``: the threshold per pixel (m).
+    Works on the speck pixels and their rings alone (a frame holds a few thousand)."""
     fills = np.zeros_like(specks)
     if not specks.any():
         return fills
+    height, width = specks.shape
     regions, count = ndimage.label(specks, structure=_EIGHT_NEIGHBOURS)
-    index = np.arange(1, count + 1)
+    pixels = np.flatnonzero(specks)
+    region = regions.ravel()[pixels]
+    d = measured.ravel()[pixels].astype(np.float64)
+    e = expected.ravel()[pixels].astype(np.float64)
+    sizes = np.bincount(region, minlength=count + 1)
+    # each region's median depth (every label 1..count has pixels)
+    ordered = d[np.lexsort((d, region))]
+    first = np.concatenate([[0], np.cumsum(sizes[1:-1])])
     depth = np.zeros(count + 1)
-    depth[1:] = ndimage.median(measured, regions, index)
+    depth[1:] = 0.5 * (ordered[first + (sizes[1:] - 1) // 2] + ordered[first + sizes[1:] // 2])
     with np.errstate(invalid="ignore"):
-        jump = np.maximum(HOLE_JUMP * measured, 2.0 * tau)
-        through = ~np.isfinite(expected) | (expected - measured > jump)
+        through = ~np.isfinite(e) | (e - d > np.maximum(HOLE_JUMP * d, 2.0 * tau.ravel()[pixels]))
     if covered is not None:
-        through &= ~covered  # the map reaches into the beam's footprint: the beam missed it, no hole
-    sizes = np.bincount(regions.ravel(), minlength=count + 1)
-    through_share = np.bincount(regions[specks & through], minlength=count + 1) / np.maximum(sizes, 1)
+        through &= ~covered.ravel()[pixels]  # the map reaches into the beam's footprint: the beam missed it, no hole
+    through_share = np.bincount(region[through], minlength=count + 1) / np.maximum(sizes, 1)
     # a hole at least 2 x 2 pixels wide: not a one-pixel crack of E between the map's triangles
-    wide = ndimage.binary_opening(specks & through, structure=np.ones((2, 2), dtype=bool))
-    wide_count = np.bincount(regions[wide], minlength=count + 1)
-    grown = ndimage.grey_dilation(regions, footprint=_EIGHT_NEIGHBOURS)
+    seeing = np.zeros(specks.size, dtype=bool)
+    seeing[pixels[through]] = True
+    row, col = np.divmod(pixels, width)
+    corner = through & (row < height - 1) & (col < width - 1)
+    top_left = pixels[corner]
+    block = seeing[top_left + 1] & seeing[top_left + width] & seeing[top_left + width + 1]
+    wide_count = np.bincount(region[corner][block], minlength=count + 1)
+    # the ring: pixels beside a region that are not specks, once per region they touch
+    ring_pixels, ring_regions = [], []
+    flat_specks = specks.ravel()
+    for dr in (-1, 0, 1):
+        for dc in (-1, 0, 1):
+            r, c = row + dr, col + dc
+            inside = (r >= 0) & (r < height) & (c >= 0) & (c < width)
+            q = r[inside] * width + c[inside]
+            beside = ~flat_specks[q]
+            ring_pixels.append(q[beside])
+            ring_regions.append(region[inside][beside])
+    key = np.unique(np.concatenate(ring_pixels) * (count + 1) + np.concatenate(ring_regions))
+    q, owner = np.divmod(key, count + 1)
+    d_ring = measured.ravel()[q].astype(np.float64)
+    e_ring = expected.ravel()[q].astype(np.float64)
+    has_d, has_e = np.isfinite(d_ring), np.isfinite(e_ring)
     # the ring leaves out pixels lost in a narrow band between D's returns where the map has no surface
     # either: such a band (a structured-light camera's beside a depth edge) says nothing of the map beyond
-    valid = np.isfinite(measured)
-    band = np.ones((HOLE_BAND_PX, HOLE_BAND_PX), dtype=bool)
-    lost = ndimage.binary_closing(valid, structure=band, border_value=1) & ~valid & ~np.isfinite(expected)
-    ring = (grown > 0) & ~specks & ~lost
+    counted = np.ones(len(q), dtype=bool)
+    unknown = np.flatnonzero(~has_d & ~has_e)
+    if len(unknown):
+        r, c = np.divmod(q[unknown], width)
+        counted[unknown] = ~_lost_run_narrow(np.isfinite(measured), r, c)
     # the map around it: known pixels, and pixels without a return where E has a surface (the map goes on
     # where D lost a pixel), at its depth; a pixel where neither has one is the map's edge against nothing
-    surface = np.where(np.isfinite(measured), measured, expected)
-    mapped = (labels == KNOWN) | (~np.isfinite(measured) & np.isfinite(expected))
+    surface = np.where(has_d, d_ring, e_ring)
+    mapped = (labels.ravel()[q] == KNOWN) | (~has_d & has_e)
     with np.errstate(invalid="ignore"):
-        level = mapped & (np.abs(surface - depth[grown]) <= np.fmax(HOLE_JUMP * depth[grown], 2.0 * tau))
-    ring_count = np.bincount(grown[ring], minlength=count + 1)
-    ring_level = np.bincount(grown[ring & level], minlength=count + 1)
+        level = mapped & (np.abs(surface - depth[owner]) <= np.fmax(HOLE_JUMP * depth[owner], 2.0 * tau.ravel()[q]))
+    ring_count = np.bincount(owner[counted], minlength=count + 1)
+    ring_level = np.bincount(owner[counted & level], minlength=count + 1)
     keep = (through_share >= 0.5) & (wide_count > 0) & (ring_level >= HOLE_RING_MIN) & (ring_level >= HOLE_RING_SHARE * ring_count)
     keep[0] = False
-    return keep[regions]
+    fills.ravel()[pixels[keep[region]]] = True
+    return fills
 
 
 class FilterClassifier(MabdiAlgorithm):
