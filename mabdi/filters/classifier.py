@@ -317,7 +317,13 @@ def hole_fills(
     top_left = pixels[corner]
     block = seeing[top_left + 1] & seeing[top_left + width] & seeing[top_left + width + 1]
     wide_count = np.bincount(region[corner][block], minlength=count + 1)
-    # the ring: pixels beside a region that are not specks, once per region they touch
+    candidate = (through_share >= 0.5) & (wide_count > 0)
+    candidate[0] = False
+    if not candidate.any():
+        return fills
+    # the ring of each candidate: pixels beside it that are not specks, once per region they touch
+    chosen = candidate[region]
+    row, col, chosen_region = row[chosen], col[chosen], region[chosen]
     ring_pixels, ring_regions = [], []
     flat_specks = specks.ravel()
     for dr in (-1, 0, 1):
@@ -327,8 +333,9 @@ def hole_fills(
             q = r[inside] * width + c[inside]
             beside = ~flat_specks[q]
             ring_pixels.append(q[beside])
-            ring_regions.append(region[inside][beside])
-    key = np.unique(np.concatenate(ring_pixels) * (count + 1) + np.concatenate(ring_regions))
+            ring_regions.append(chosen_region[inside][beside])
+    key = np.sort(np.concatenate(ring_pixels) * (count + 1) + np.concatenate(ring_regions))
+    key = key[np.concatenate([[True], key[1:] != key[:-1]])]  # each (pixel, region) once
     q, owner = np.divmod(key, count + 1)
     d_ring = measured.ravel()[q].astype(np.float64)
     e_ring = expected.ravel()[q].astype(np.float64)
@@ -348,8 +355,7 @@ def hole_fills(
         level = mapped & (np.abs(surface - depth[owner]) <= np.fmax(HOLE_JUMP * depth[owner], 2.0 * tau.ravel()[q]))
     ring_count = np.bincount(owner[counted], minlength=count + 1)
     ring_level = np.bincount(owner[counted & level], minlength=count + 1)
-    keep = (through_share >= 0.5) & (wide_count > 0) & (ring_level >= HOLE_RING_MIN) & (ring_level >= HOLE_RING_SHARE * ring_count)
-    keep[0] = False
+    keep = candidate & (ring_level >= HOLE_RING_MIN) & (ring_level >= HOLE_RING_SHARE * ring_count)
     fills.ravel()[pixels[keep[region]]] = True
     return fills
 
