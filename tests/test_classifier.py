@@ -158,7 +158,7 @@ def reference_hole_fills(specks, measured, expected, labels, tau, covered=None):
         wide = ndimage.binary_opening(through, structure=np.ones((2, 2), bool)).any()
         ring = ndimage.binary_dilation(region, structure=np.ones((3, 3), bool)) & ~specks
         counted = level = 0
-        for r, c in zip(*np.nonzero(ring)):
+        for r, c in zip(*np.nonzero(ring), strict=True):
             d, e = measured[r, c], expected[r, c]
             if np.isnan(d) and np.isnan(e) and min(lost_run(r, c, True), lost_run(r, c, False)) < HOLE_BAND_PX:
                 continue

@@ -42,34 +42,37 @@ two beams tall. A camera's E does not carry the array, and every thin
 region goes as before.
 
 **Specks that fill a hole** (``fill_holes``, on by default, where D is
-noisy): a map has small holes, a centimetre or two across, where no look has
-left a surface: the bands a structured-light camera loses beside depth
-edges, the cracks of a noisy seam. A later look that sees such a hole sees
-it as a small novel region, a speck by size, and it would stay a hole
-however often it is seen. Noise-free depth is left as it is: its holes are
-the surface's own cracks along seams, which a later look meshes the same
-way, so its fills are made again at every look and close nothing. A speck
-region is kept as novel when (:func:`hole_fills`) at least half of
-its pixels see through the map (E empty, or beyond D by more than
-:data:`HOLE_JUMP` of D's depth or 2 tau where that is more), those pixels
-hold a 2 x 2 block (a one-pixel crack of E between the map's triangles is
-no hole), and at least :data:`HOLE_RING_SHARE` of its ring (the pixels
-around it; at least :data:`HOLE_RING_MIN` of them) are the map at its depth,
-within the same jump: known pixels, or pixels without a return where E has
-a surface (the map goes on where D lost a pixel). Pixels without a return
-in a band of D narrower than :data:`HOLE_BAND_PX` along their row or column,
-where E has no surface either, are left out of the ring: a structured-light camera loses such bands
-beside depth edges, and they say nothing of the map beyond. The map lies all
-around it, on the same surface. A sliver along the map's silhouette fails the ring
-test (the surface behind the silhouette lies at another depth), and so does
-a strip along the map's edge against nothing (neither D nor E has a surface
-beyond it: a quad-tree patch stops half a block short of D's edge, and such
-a strip would be filled again at every look); a speck of noise fails the
-see-through test (its E lies just beyond tau). Where E carries
-``map_in_footprint`` (a range image), a pixel whose footprint the map
-reaches into does not see through the map: its beam missed a map triangle
-beside it (the rings of a far road), and filling such gaps added a fifth to
-the street's map on the way back.
+noisy): a map has small holes, a centimetre or two across, where no look
+has left a surface: the bands a structured-light camera loses beside depth
+edges, the cracks of a noisy seam. A later look sees such a hole as a small
+novel region, a speck by size, and it would stay a hole however often it is
+seen. A speck region is kept as novel (:func:`hole_fills`) when
+
+* at least half of its pixels see through the map: E empty, or beyond D by
+  more than :data:`HOLE_JUMP` of D's depth (or 2 tau where that is more);
+* those pixels hold a 2 x 2 block (a one-pixel crack of E between the map's
+  triangles is no hole);
+* at least :data:`HOLE_RING_SHARE` of its ring (the pixels around it, and
+  at least :data:`HOLE_RING_MIN` of them) are the map at its depth, within
+  the same jump: known pixels, or pixels without a return where E has a
+  surface (the map goes on where D lost a pixel). Pixels without a return
+  in a run narrower than :data:`HOLE_BAND_PX` along their row or column,
+  where E has no surface either, are left out of the ring: a
+  structured-light camera loses such bands beside depth edges, and they say
+  nothing of the map beyond.
+
+A sliver along the map's silhouette fails the ring test (the surface behind
+the silhouette lies at another depth), and so does a strip along the map's
+edge against nothing (neither D nor E has a surface beyond it: a quad-tree
+patch stops half a block short of D's edge, and such a strip would be
+filled again at every look); a speck of noise fails the see-through test
+(its E lies just beyond tau). Where E carries ``map_in_footprint`` (a range
+image), a pixel whose footprint the map reaches into does not see through
+the map: its beam missed a map triangle beside it (the rings of a far
+road), and filling such gaps added a fifth to the street's map on the way
+back. Noise-free depth is left as it is: its holes are the surface's own
+cracks along seams, which a later look meshes the same way, so its fills
+would be made again at every look and close nothing.
 
 Output: a depth image whose ``depth`` is D on the novel pixels and on a rim
 of ``rim`` pixels around them (NaN elsewhere), plus the whole of D as the
@@ -288,7 +291,7 @@ def hole_fills(
     """The specks (bool (H, W)) that fill a hole of the map: 8-connected regions most of whose pixels see
     through the map (E empty, or beyond D by more than the jump), ringed by the map at their depth
     (see the module docs). ``labels``: :func:`classify`'s; ``tau``: the threshold per pixel (m).
-    Works on the speck pixels and their rings alone (a frame holds a few thousand)."""
+    Works on the speck pixels and the rings of the candidate regions alone, not on whole images."""
     fills = np.zeros_like(specks)
     if not specks.any():
         return fills
