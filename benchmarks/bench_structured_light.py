@@ -25,6 +25,7 @@ from mabdi.config import load_run_config, set_value
 from mabdi.evaluate import evaluate_run
 from mabdi.evaluate.metrics import evaluate_map, observed_ground_truth, scenes_per_pose
 from mabdi.evaluate.tsdf import TsdfSettings, open3d_status, run_tsdf
+from mabdi.io.atomic import write_text
 from mabdi.loop import Simulation
 
 REPO = Path(__file__).resolve().parents[1]
@@ -78,7 +79,7 @@ def main() -> None:
             gaps = np.array([results[s]["mabdi"][key] - results[s][voxel][key] for s in args.seeds])
             print(f"mabdi - {voxel}, {key}: mean {gaps.mean():+.4f}, from {gaps.min():+.4f} to {gaps.max():+.4f}")
     if args.out:
-        args.out.write_text(json.dumps({"scene": args.scene, "machine": platform.processor() or platform.machine(), "rows": results}, indent=1))
+        write_text(args.out, json.dumps({"scene": args.scene, "machine": platform.processor() or platform.machine(), "rows": results}, indent=1))
 
 
 if __name__ == "__main__":
