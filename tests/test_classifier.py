@@ -213,6 +213,35 @@ def test_rim_grows_the_meshed_pixels_by_one():
     assert meshed[9:31, 9:41].all() and meshed.sum() == 22 * 32
 
 
+def test_the_rim_on_the_map_carries_e_where_d_agrees_with_it_and_d_elsewhere():
+    """``rim_on_map``: the rim's known pixels take E's depth (the seam's strip on the map's surface); novel
+    pixels keep D's, and so do rim pixels that disagree with the map (contradicted, or a speck in front of
+    it); off, the rim is D throughout."""
+    measured = np.full(SMALL.shape, 2.004, np.float32)  # within tau (1 cm) of the map: known
+    expected = np.full(SMALL.shape, 2.0, np.float32)
+    expected[10:30, 10:40] = np.nan  # a hole of the map: novel
+    measured[10:30, 40:42] = 2.1  # beside it, D beyond the map: contradicted
+    measured[30, 20] = 1.9  # a one-pixel speck in front of the map, in the rim
+    on = ClassifierParameters(min_width=3, min_region=32, rim=2, rim_on_map=True)
+    frame, labels, _ = run_classifier(measured, expected, on)
+    novel = labels == NOVEL
+    assert novel[10:30, 10:40].all() and novel.sum() == 20 * 30
+    rim = np.isfinite(frame.depth) & ~novel
+    assert rim.sum() == 24 * 34 - 20 * 30  # two pixels all round
+    np.testing.assert_array_equal(frame.depth[novel], measured[novel])
+    agrees = rim & (labels == KNOWN)
+    agrees[30, 20] = False  # the speck is relabelled known, but D lies 10 cm in front of the map there
+    assert agrees.sum() == rim.sum() - 2 * 20 - 1
+    np.testing.assert_array_equal(frame.depth[agrees], expected[agrees])
+    assert np.allclose(frame.depth[10:30, 40:42], 2.1) and np.isclose(frame.depth[30, 20], 1.9)
+    off = ClassifierParameters(min_width=3, min_region=32, rim=2, rim_on_map=False)
+    frame_off, _, _ = run_classifier(measured, expected, off)
+    np.testing.assert_array_equal(frame_off.depth[rim], measured[rim])
+    # "auto" on a classifier of its own is D's (the loop decides it by whether it refines the map)
+    frame_auto, _, _ = run_classifier(measured, expected, ClassifierParameters(min_width=3, min_region=32, rim=2))
+    np.testing.assert_array_equal(frame_auto.depth[rim], measured[rim])
+
+
 def test_all_nan_measurement_gives_nothing_and_does_not_fail():
     measured = np.full(SMALL.shape, np.nan, np.float32)
     expected = np.full(SMALL.shape, 2.0, np.float32)
@@ -238,6 +267,8 @@ def test_bad_parameters():
 
     with pytest.raises(ConfigError, match="tau_min"):
         ClassifierParameters(tau_min=0.0)
+    with pytest.raises(ConfigError, match='rim_on_map must be true, false or "auto", got 1'):
+        ClassifierParameters(rim_on_map=1)
 
 
 @pytest.mark.parametrize("radius", [1, 2])

@@ -254,7 +254,15 @@ def test_refinement_auto_follows_whether_the_noise_is_correlated(tmp_path):
     ):
         loop = mabdi.MabdiLoop(frames, classifier=ClassifierParameters(refinement=setting), noise=noise)
         assert bool(loop.refining) is refining, (noise, setting)
+        # the rim's known pixels carry the map's depth where the map is refined ("auto"), unless set outright
+        assert loop.classifier.parameters.rim_on_map is refining, (noise, setting)
+        for outright in (True, False):
+            chosen = mabdi.MabdiLoop(frames, classifier=ClassifierParameters(refinement=setting, rim_on_map=outright), noise=noise)
+            assert chosen.classifier.parameters.rim_on_map is outright
     assert ClassifierParameters().refinement == "auto"
+    path = tmp_path / "rim.toml"
+    path.write_text("[classifier]\nrim_on_map = false\n")
+    assert load_run_config(path).classifier.rim_on_map is False
     with pytest.raises(ConfigError, match="refinement"):
         ClassifierParameters(refinement="sometimes")
     path = tmp_path / "run.toml"

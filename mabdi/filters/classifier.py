@@ -97,8 +97,22 @@ with noisy depth; one pixel with noise-free depth, for the other surfaces
 and for a classifier used on its own). Field data (intrinsics, pose, frame)
 is D's.
 
+**The rim on the map** (``rim_on_map``): the rim's pixels that agree with
+the map (known: |D - E| <= tau) carry E's depth instead of D's, so the
+seam's strip lies on the map's surface. The loop turns it on where it
+refines the map (``"auto"``; :mod:`mabdi.filters.refinement`: with noise
+correlated between pixels). There a look's error is a terrace that
+smoothing cannot take out, 1-3 cm at 3-4 m for a structured-light camera,
+and a strip of rim faces meshed from D is a second layer that much off the
+map's surface: the map hides it from every later look, so no later look
+refines it or removes it, while the map's own faces are averaged over every
+look. Where the map is not refined (independent noise, smoothed away in one
+look) the rim keeps D's depth: a strip on the map would carry the map's
+first-look error twice. A classifier on its own keeps D's. The measurements
+are in docs/benchmarks.md ("The rim on the map").
+
 Defaults: tau_min = 0.01 m, k_sigma = 3, min_width = 3 px, min_region = 32 px,
-rim = "auto", fill_holes = true.
+rim = "auto", rim_on_map = "auto", fill_holes = true.
 """
 
 from __future__ import annotations
@@ -162,11 +176,14 @@ class ClassifierParameters:
     min_region: int = 32
     #: Pixels around the novel ones passed on with them (see the module docs); "auto": what the surface needs.
     rim: int | str = "auto"
+    #: The rim's known pixels carry E's depth (see the module docs); "auto": where the loop refines the map.
+    rim_on_map: bool | str = "auto"
     #: Keep the specks that fill a hole of the map (see the module docs).
     fill_holes: bool = True
 
     def __post_init__(self) -> None:
         check_switch("refinement", self.refinement)
+        check_switch("rim_on_map", self.rim_on_map)
         if not self.tau_min > 0:
             raise ConfigError(f"tau_min must be > 0 metres, got {self.tau_min}")
         if self.k_sigma < 0:
@@ -436,11 +453,15 @@ class FilterClassifier(MabdiAlgorithm):
         if p.fill_holes and noise.noisy:
             novel |= hole_fills(raw_novel & ~novel, measured, expected, labels, tau, covered)
         specks = raw_novel & ~novel
+        on_map = labels == KNOWN  # D and E agree (a speck does not: it lies in front of the map)
         labels[specks] = KNOWN
         meshed = novel
         if p.rim_pixels > 0 and novel.any():
             meshed = dilate(novel, p.rim_pixels) & np.isfinite(measured)
         depth = np.where(meshed, measured, np.float32(np.nan)).astype(np.float32)
+        if p.rim_on_map is True:
+            rim_on_map = meshed & ~novel & on_map
+            depth[rim_on_map] = expected[rim_on_map]
         output = vtkImageData.GetData(outInfo)
         fill_depth_image(output, depth, intrinsics, pose, image_frame(measured_image), image_timestamp(measured_image), noise=noise)
         copy_colour(measured_image, output)  # D's colour image, for the surface filters

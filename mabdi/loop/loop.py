@@ -185,6 +185,8 @@ class MabdiLoop:
         self.refining = self.classifier_parameters.enabled and refinement_on and self.noise.noisy
         self.registration_parameters = registration if registration is not None else RegistrationParameters()
         self.refining, self.registration_parameters = lidar_rules(source.intrinsics, self.refining, self.registration_parameters)
+        if self.classifier_parameters.rim_on_map == "auto":  # the seam on the map's surface where the map is refined
+            self.classifier_parameters = replace(self.classifier_parameters, rim_on_map=bool(self.refining))
         self.refinement = MapRefinement(refinement if refinement is not None else RefinementParameters())
         self.measured = SourceDepthFrames(source, noise=self.noise)
         # compacted at the end of each frame (step)
