@@ -9,6 +9,11 @@ import os as _os
 
 _os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
 
+# a Ctrl-C during the imports below is noted, should a library swallow it (mabdi/interrupts.py)
+from mabdi import interrupts as _interrupts  # noqa: E402
+
+_interrupts.watch()
+
 from mabdi.algorithm import MabdiAlgorithm, raise_pipeline_errors  # noqa: E402
 from mabdi.camera import Intrinsics, backproject, check_pose, look_at, project  # noqa: E402
 from mabdi.config import RunConfig, load_run_config  # noqa: E402
@@ -33,6 +38,8 @@ from mabdi.filters.registry import register_surface_filter  # noqa: E402
 from mabdi.loop import MabdiLoop, RunObserver, RunPipeline, Simulation  # noqa: E402
 from mabdi.simulate import SimulatedRig, helical_path  # noqa: E402
 from mabdi.sources import FrameSource, SourceDepthFrames, SourceScene  # noqa: E402
+
+_interrupts.unwatch()  # Python's own handler again, for programs that import mabdi
 
 __version__ = "0.1.0"
 

@@ -247,7 +247,7 @@ def cmd_run(args) -> int:
     from mabdi.config import RunConfig, load_run_config
     from mabdi.errors import ConfigError
     from mabdi.loop import Simulation
-    from mabdi.loop.run_pipeline import ProgressBar, RunPipeline
+    from mabdi.loop.run_pipeline import InterruptCheck, ProgressBar, RunPipeline
 
     if args.resume is not None:
         from mabdi.loop.runner import resume_run
@@ -261,7 +261,9 @@ def cmd_run(args) -> int:
                 "with it (only --quiet and --no-eval, which change no map); start a new run to change them"
             )
         report = RunReport(heading=f"resumed {args.resume}")
-        pipeline = resume_run(args.resume, [ProgressBar(None, not args.quiet), report], evaluate=_evaluate, no_eval=args.no_eval or None)
+        pipeline = resume_run(
+            args.resume, [ProgressBar(None, not args.quiet), InterruptCheck(), report], evaluate=_evaluate, no_eval=args.no_eval or None
+        )
         if args.no_eval and not pipeline.run_options.get("no_eval"):
             report.heading += "\nnote: --no-eval: the resumed run is not evaluated (its map is the same)"
         return _report_run(pipeline, pipeline.run(), None)
@@ -304,7 +306,7 @@ def cmd_run(args) -> int:
         name = config.run.name or args.config.stem
         simulation = Simulation(config)
     out_dir = Path(config.output.dir) if config.output.dir else Path("runs") / name
-    observers = [ProgressBar(simulation.frames, not args.quiet)]
+    observers = [ProgressBar(simulation.frames, not args.quiet), InterruptCheck()]
     if args.rerun is not None:
         from mabdi.viz.rerun_log import rerun_progress
 
@@ -592,6 +594,9 @@ def cmd_plan(args) -> int:
 
 
 def main(argv=None) -> int:
+    from mabdi import interrupts
+
+    watching = interrupts.watch()  # for the whole command: a Ctrl-C a library swallows still stops it (mabdi/interrupts.py)
     args = _parser().parse_args(argv)
     import re
 
@@ -626,6 +631,7 @@ def main(argv=None) -> int:
             "bench": cmd_bench,
             "sweep": cmd_sweep,
         }
+        interrupts.raise_if_interrupted()  # one that came while mabdi was imported
         status = commands[args.command](args)
         sys.stdout.flush()  # a closed pipe shows here, inside the try
         failed = status != 0
@@ -644,6 +650,8 @@ def main(argv=None) -> int:
         os.close(devnull)
         return 141  # 128 + SIGPIPE, the status of a tool the pipe stopped
     finally:
+        if watching:
+            interrupts.unwatch()
         warnings.showwarning = previous_show
         vtkOutputWindow.SetInstance(previous_window)
         vtkLogger.SetStderrVerbosity(verbosity)

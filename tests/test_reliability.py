@@ -103,6 +103,67 @@ def test_ctrl_c_while_starting_never_exits_0(tmp_path):
 
 
 @pytest.mark.slow
+def test_a_ctrl_c_that_a_library_swallowed_still_stops_the_run(tmp_path):
+    """A SIGINT whose KeyboardInterrupt something caught (a library's import turning it into an ImportError
+    it takes for a missing optional module) still ends ``mabdi run``: 130 before the first frame, no map."""
+    out = tmp_path / "run"
+    script = (
+        "import os, signal, sys\n"
+        "from mabdi import interrupts\n"
+        "from mabdi.cli import main\n"
+        "assert interrupts.watch()\n"
+        "try:\n"
+        "    os.kill(os.getpid(), signal.SIGINT)\n"
+        "    for _ in range(100000):\n"
+        "        pass\n"
+        "except KeyboardInterrupt:\n"
+        "    pass  # swallowed\n"
+        f"sys.exit(main(['run', 'scenes/table.toml', '--frames', '3', '--out', {str(out)!r}, '--no-eval', '--quiet']))\n"
+    )
+    process = subprocess.Popen(
+        [sys.executable, "-c", script], cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        preexec_fn=_default_sigint,
+    )  # fmt: skip
+    code, stdout, stderr = _finish(process)
+    assert code == 130, f"exit {code}\nstderr: {stderr[-2000:]}"
+    assert "mabdi: interrupted" in stderr and "Traceback" not in stderr
+    assert not (out / "world_mesh.vtp").exists() and not (out / "summary.json").exists()
+
+
+def test_a_noted_interrupt_stops_a_run_pipeline_before_its_first_frame(tmp_path, monkeypatch):
+    """:class:`~mabdi.loop.run_pipeline.InterruptCheck` (the command line's observer): a SIGINT noted while the
+    run set up, its KeyboardInterrupt swallowed, ends the run before any frame, and the folder is not final."""
+    from conftest import simulation
+
+    from mabdi import interrupts
+    from mabdi.loop.run_pipeline import InterruptCheck, RunPipeline
+
+    monkeypatch.setattr(interrupts, "_interrupted", True)
+    sim = simulation("table", "pixel_grid", run__frames=3)
+    with pytest.raises(KeyboardInterrupt):
+        RunPipeline(sim, tmp_path / "run", [InterruptCheck()]).run()
+    assert sim.loop.trajectory().shape[0] == 3 and not np.isfinite(sim.loop.trajectory()).any(), "a frame ran"
+    assert not (tmp_path / "run" / "world_mesh.vtp").exists()
+
+
+def test_the_sigint_note_raises_as_python_does_and_import_mabdi_gives_the_handler_back(monkeypatch):
+    """:mod:`mabdi.interrupts`: the handler notes the signal and raises KeyboardInterrupt; a program that
+    imports mabdi has Python's own handler afterwards; :func:`raise_if_interrupted` raises once noted."""
+    from mabdi import interrupts
+
+    monkeypatch.setattr(interrupts, "_interrupted", False)
+    interrupts.raise_if_interrupted()  # nothing noted: nothing raised
+    with pytest.raises(KeyboardInterrupt):
+        interrupts._interrupt(signal.SIGINT, None)
+    assert interrupts.interrupted()
+    with pytest.raises(KeyboardInterrupt):
+        interrupts.raise_if_interrupted()
+    check = "import signal, mabdi; print(signal.getsignal(signal.SIGINT) is signal.default_int_handler)"
+    done = subprocess.run([sys.executable, "-c", check], cwd=REPO, capture_output=True, text=True, preexec_fn=_default_sigint)
+    assert done.stdout.strip() == "True", done.stderr[-2000:]
+
+
+@pytest.mark.slow
 def test_ctrl_c_during_evaluation_exits_130(tmp_path):
     """SIGINT once the frames are done (the map is scored against the scene): 130, no summary with metrics."""
     out = tmp_path / "run"

@@ -53,6 +53,7 @@ import time
 from dataclasses import asdict, dataclass, field
 
 from mabdi.config import dump_toml
+from mabdi.interrupts import raise_if_interrupted
 from mabdi.io.atomic import write_text
 from mabdi.io.checkpoint import write_tree
 from mabdi.io.fingerprint import fingerprint, run_inputs
@@ -92,6 +93,17 @@ class FrameCallback(RunObserver):
 
     def on_frame(self, pipeline: RunPipeline, record) -> None:
         self.progress(record)
+
+
+class InterruptCheck(RunObserver):
+    """Stops the run (KeyboardInterrupt) at its start and after each frame if a SIGINT came that something
+    swallowed on its way out (:mod:`mabdi.interrupts`: the command line watches for them)."""
+
+    def on_start(self, pipeline: RunPipeline) -> None:
+        raise_if_interrupted()
+
+    def on_frame(self, pipeline: RunPipeline, record) -> None:
+        raise_if_interrupted()
 
 
 class ProgressBar(RunObserver):

@@ -1,0 +1,61 @@
+"""Ctrl-C that a library swallowed: a note of every SIGINT, which the command line checks.
+
+Python turns SIGINT into a KeyboardInterrupt wherever the main thread is.
+Raised inside a third-party import, it can come out as that import's
+ImportError ("Failed to load vtkRenderingOpenGL2: No module named ..."), and
+a library that takes the module for optional carries on without it: the
+interrupt is lost, and ``mabdi run`` would go on to the end of its frames.
+
+So while ``import mabdi`` runs, and for the whole of a command-line run,
+SIGINT goes through :func:`_interrupt`, which raises KeyboardInterrupt as
+Python's own handler does and also notes that it came. The command line
+checks the note before a run starts and after every frame
+(:func:`raise_if_interrupted`). A program that imports mabdi has Python's
+handler back once the import is done; one that installed its own handler
+keeps it throughout (:func:`watch` only takes Python's default).
+"""
+
+from __future__ import annotations
+
+import signal
+import threading
+
+_interrupted = False
+
+
+def _interrupt(signum, frame) -> None:
+    """SIGINT: note it, then raise KeyboardInterrupt (what Python's own handler does)."""
+    global _interrupted
+    _interrupted = True
+    raise KeyboardInterrupt
+
+
+def _in_main_thread() -> bool:
+    return threading.current_thread() is threading.main_thread()
+
+
+def watch() -> bool:
+    """Route SIGINT through :func:`_interrupt` where Python's default handler holds it (main thread only:
+    only it may set handlers). Returns whether it did."""
+    if not _in_main_thread() or signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
+        return False
+    signal.signal(signal.SIGINT, _interrupt)
+    return True
+
+
+def unwatch() -> None:
+    """Give SIGINT back to Python's default handler, where :func:`watch` took it."""
+    if _in_main_thread() and signal.getsignal(signal.SIGINT) is _interrupt:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+
+
+def interrupted() -> bool:
+    """Whether a SIGINT came while watched (swallowed or not)."""
+    return _interrupted
+
+
+def raise_if_interrupted() -> None:
+    """Raise KeyboardInterrupt if a SIGINT came while watched: one that something caught on its way out
+    still stops the command."""
+    if _interrupted:
+        raise KeyboardInterrupt
