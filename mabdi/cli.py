@@ -650,6 +650,7 @@ def main(argv=None) -> int:
         os.close(devnull)
         return 141  # 128 + SIGPIPE, the status of a tool the pipe stopped
     finally:
+        interrupts.clear()  # the next command in this process (a notebook's) starts clean
         if watching:
             interrupts.unwatch()
         warnings.showwarning = previous_show

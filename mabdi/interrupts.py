@@ -10,7 +10,8 @@ So while ``import mabdi`` runs, and for the whole of a command-line run,
 SIGINT goes through :func:`_interrupt`, which raises KeyboardInterrupt as
 Python's own handler does and also notes that it came. The command line
 checks the note before a run starts and after every frame
-(:func:`raise_if_interrupted`). A program that imports mabdi has Python's
+(:func:`raise_if_interrupted`), and forgets it when the command ends
+(:func:`clear`). A program that imports mabdi has Python's
 handler back once the import is done; one that installed its own handler
 keeps it throughout (:func:`watch` only takes Python's default).
 """
@@ -52,6 +53,12 @@ def unwatch() -> None:
 def interrupted() -> bool:
     """Whether a SIGINT came while watched (swallowed or not)."""
     return _interrupted
+
+
+def clear() -> None:
+    """Forget the note (a command that ended, interrupted or not: the next one in the same process starts clean)."""
+    global _interrupted
+    _interrupted = False
 
 
 def raise_if_interrupted() -> None:

@@ -146,6 +146,21 @@ def test_a_noted_interrupt_stops_a_run_pipeline_before_its_first_frame(tmp_path,
     assert not (tmp_path / "run" / "world_mesh.vtp").exists()
 
 
+def test_the_note_is_forgotten_when_a_command_ends(tmp_path, monkeypatch):
+    """``main`` called twice in one process (a notebook): the interrupt noted for the first run stops it alone."""
+    from mabdi import interrupts
+    from mabdi.cli import main
+
+    def run(name):
+        return ["run", str(REPO / "scenes" / "table.toml"), "--frames", "2", "--out", str(tmp_path / name), "--no-eval", "--quiet"]
+
+    monkeypatch.setattr(interrupts, "_interrupted", True)
+    assert main(run("first")) == 130
+    assert not (tmp_path / "first" / "world_mesh.vtp").exists()
+    assert main(run("second")) == 0
+    assert (tmp_path / "second" / "world_mesh.vtp").exists()
+
+
 def test_the_sigint_note_raises_as_python_does_and_import_mabdi_gives_the_handler_back(monkeypatch):
     """:mod:`mabdi.interrupts`: the handler notes the signal and raises KeyboardInterrupt; a program that
     imports mabdi has Python's own handler afterwards; :func:`raise_if_interrupted` raises once noted."""

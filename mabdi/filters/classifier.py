@@ -102,8 +102,8 @@ the map (known: |D - E| <= tau) carry E's depth instead of D's, so the
 seam's strip lies on the map's surface. The loop turns it on where it
 refines the map (``"auto"``; :mod:`mabdi.filters.refinement`: with noise
 correlated between pixels). There a look's error is a terrace that
-smoothing cannot take out, 1-3 cm at 3-4 m for a structured-light camera,
-and a strip of rim faces meshed from D is a second layer that much off the
+smoothing cannot take out (centimetres at 3-4 m for a structured-light
+camera), and a strip of rim faces meshed from D is a second layer that far off the
 map's surface: the map hides it from every later look, so no later look
 refines it or removes it, while the map's own faces are averaged over every
 look. Where the map is not refined (independent noise, smoothed away in one
