@@ -14,7 +14,7 @@ closes that hole:
   (the original type and traceback), and hides VTK's own "returned failure"
   dump since the Python exception says what went wrong;
 * **Ctrl-C** during ``Update()`` (in the main thread, with Python's default
-  SIGINT handler) is held until the update returns and then raised as
+  SIGINT handler or the command line's, :mod:`mabdi.interrupts`) is held until the update returns and then raised as
   ``KeyboardInterrupt`` by ``Update()``, so it never lands in Python code that
   VTK calls outside a request of ours (where VTK would print and drop it). A
   second Ctrl-C while the first is held raises at once;
@@ -38,6 +38,8 @@ from typing import Any
 import numpy as np
 from vtkmodules.util.vtkAlgorithm import VTKPythonAlgorithmBase
 from vtkmodules.vtkCommonCore import vtkLogger, vtkOutputWindow, vtkStringOutputWindow
+
+from mabdi.interrupts import note as note_interrupt, raising_handlers
 
 
 class MabdiAlgorithm(VTKPythonAlgorithmBase):
@@ -144,8 +146,10 @@ _held = {"depth": 0, "pending": False}
 def interrupts_held():
     """Hold Ctrl-C (SIGINT) inside the block and raise ``KeyboardInterrupt`` when it ends.
 
-    Only in the main thread and only while Python's default SIGINT handler is
-    installed (a program with its own handler keeps it). Nested blocks hold
+    Only in the main thread and only while Python's default SIGINT handler, or
+    the command line's (:mod:`mabdi.interrupts`: it raises the same), is
+    installed (a program with its own handler keeps it); that one is back when
+    the block ends. Nested blocks hold
     until the outermost one ends. A second SIGINT while one is held raises
     ``KeyboardInterrupt`` at once (for an update that never returns).
     """
@@ -156,11 +160,14 @@ def interrupts_held():
         finally:
             _held["depth"] -= 1
         return
-    if threading.current_thread() is not threading.main_thread() or signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
+    previous = signal.getsignal(signal.SIGINT) if threading.current_thread() is threading.main_thread() else None
+    if previous not in raising_handlers():
         yield
         return
 
     def hold(signum, frame):
+        if previous is not signal.default_int_handler:  # the command line's: its note, should the interrupt be lost later
+            note_interrupt()
         if _held["pending"]:
             raise KeyboardInterrupt
         _held["pending"] = True
@@ -170,7 +177,7 @@ def interrupts_held():
     try:
         yield
     finally:
-        signal.signal(signal.SIGINT, signal.default_int_handler)
+        signal.signal(signal.SIGINT, previous)
         _held["depth"] = 0
         pending, _held["pending"] = _held["pending"], False
         if pending:

@@ -24,11 +24,22 @@ import threading
 _interrupted = False
 
 
-def _interrupt(signum, frame) -> None:
-    """SIGINT: note it, then raise KeyboardInterrupt (what Python's own handler does)."""
+def note() -> None:
+    """Note a SIGINT (:func:`_interrupt`; and :func:`mabdi.algorithm.interrupts_held` for one it holds)."""
     global _interrupted
     _interrupted = True
+
+
+def _interrupt(signum, frame) -> None:
+    """SIGINT: note it, then raise KeyboardInterrupt (what Python's own handler does)."""
+    note()
     raise KeyboardInterrupt
+
+
+def raising_handlers() -> tuple:
+    """The SIGINT handlers that raise KeyboardInterrupt as Python's does: its own and :func:`_interrupt`
+    (code that holds Ctrl-C for a while takes over from either and gives the same one back)."""
+    return (signal.default_int_handler, _interrupt)
 
 
 def _in_main_thread() -> bool:

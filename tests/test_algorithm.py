@@ -124,3 +124,24 @@ def test_ctrl_c_during_update_is_held_until_the_update_ends(python_sigint_handle
     source.signal_mid_way = False
     source.Modified()
     assert source.Update()  # nothing is left pending
+
+
+def test_ctrl_c_is_held_under_the_command_lines_handler_too(python_sigint_handler, monkeypatch):
+    """``mabdi run`` routes SIGINT through :mod:`mabdi.interrupts` for the whole command: an update holds it
+    all the same (else it lands in Python code VTK calls, which prints a traceback and drops it), notes it,
+    and gives the command line's handler back."""
+    import signal
+
+    from mabdi import interrupts
+
+    monkeypatch.setattr(interrupts, "_interrupted", False)
+    assert interrupts.watch()
+    try:
+        source = InterruptedSource(signal_mid_way=True)
+        with pytest.raises(KeyboardInterrupt):
+            source.Update()
+        assert source.finished  # held to the end of the request
+        assert interrupts.interrupted()
+        assert signal.getsignal(signal.SIGINT) is interrupts._interrupt
+    finally:
+        interrupts.unwatch()
