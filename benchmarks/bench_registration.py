@@ -135,7 +135,7 @@ def tsdf_rows(scene: str, overrides: dict) -> list[dict]:
     observed = observed_ground_truth(ground_truth, scenes_per_pose(rig.scene, frames), rig.true_poses, rig.intrinsics)
     rows = []
     for voxel in (0.01, 0.02):
-        settings = TsdfSettings(voxel_size=voxel, trunc_voxels=4.0, weight_threshold=0.5, smooth_depth=noise.model != "none")
+        settings = TsdfSettings.tuned(voxel, noisy=noise.model != "none")
         run = run_tsdf(rig, settings, mesh_every=None, noise=noise)
         metrics = evaluate_map(run.mesh, ground_truth, observed).as_dict()
         rows.append({"method": f"TSDF {voxel * 100:g} cm", "fscore_1cm": metrics["fscore_1cm"], "triangles": int(run.mesh.GetNumberOfCells())})

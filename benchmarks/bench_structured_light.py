@@ -48,7 +48,7 @@ def one_seed(scene: str, seed: int) -> dict:
     truth = rig.scene.mesh_at(frames - 1)
     observed = observed_ground_truth(truth, scenes_per_pose(rig.scene, frames), rig.true_poses, rig.intrinsics)
     for voxel in (0.01, 0.02):
-        settings = TsdfSettings(voxel_size=voxel, trunc_voxels=4.0, weight_threshold=0.5, smooth_depth=True)
+        settings = TsdfSettings.tuned(voxel)
         run = run_tsdf(rig, settings, mesh_every=None, noise=rig.sensor.noise)
         tsdf = evaluate_map(run.mesh, truth, observed)
         rows[f"TSDF {voxel * 100:g} cm"] = {"fscore_1cm": tsdf.fscore_1cm, "precision_1cm": tsdf.precision_1cm,

@@ -297,7 +297,7 @@ def test_the_table_under_structured_light_is_mapped_at_least_as_well_as_the_tune
     truth = rig.scene.mesh_at(frames - 1)
     observed = observed_ground_truth(truth, scenes_per_pose(rig.scene, frames), rig.true_poses, rig.intrinsics)
     for voxel in (0.01, 0.02):
-        settings = TsdfSettings(voxel_size=voxel, trunc_voxels=4.0, weight_threshold=0.5, smooth_depth=True)
+        settings = TsdfSettings.tuned(voxel)
         tsdf = run_tsdf(rig, settings, mesh_every=None, noise=rig.sensor.noise)
         tsdf_f = evaluate_map(tsdf.mesh, truth, observed).fscore_1cm
         assert mabdi_f >= tsdf_f, (voxel, mabdi_f, tsdf_f)

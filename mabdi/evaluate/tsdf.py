@@ -130,6 +130,13 @@ class TsdfSettings:
     block_resolution: int = 16
     block_count: int = 4000
 
+    @classmethod
+    def tuned(cls, voxel_size: float, noisy: bool = True) -> TsdfSettings:
+        """The settings tuned on the bench scenes (docs/benchmarks.md, "The peer at its best"): truncation 4
+        voxels, weight above 0.5, half-pixel centres, the depth smoothed as the surfaces smooth it where it is
+        ``noisy``. What a comparison runs the TSDF with."""
+        return cls(voxel_size=voxel_size, trunc_voxels=4.0, weight_threshold=0.5, smooth_depth=noisy)
+
     def __post_init__(self) -> None:
         def number(name: str) -> float:
             value = getattr(self, name)
