@@ -397,7 +397,7 @@ def _on_silhouette(pixel_depth: np.ndarray, corner_u: np.ndarray, corner_v: np.n
             inside = (row >= 0) & (row < h) & (col >= 0) & (col < w)
             z = pixel_depth[np.clip(row, 0, h - 1), np.clip(col, 0, w - 1)]
             with np.errstate(invalid="ignore"):
-                same = inside & (np.abs(z - depth) <= max_jump * depth)
+                same = ~inside | (np.abs(z - depth) <= max_jump * depth)
             outside |= ~same
     return outside
 
