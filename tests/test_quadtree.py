@@ -76,10 +76,39 @@ def test_smooth_surface_with_mixed_quad_sizes_is_closed(reduction):
     points = vtk_to_numpy(edges.GetOutput().GetPoints().GetData()).astype(np.float64)
     uv, _ = project(points, K, np.eye(4))
     size = 256 // reduction * reduction
-    # the image border is a silhouette: its corners sit half a (reduced) pixel in, at the border pixels' centres
-    band = 0.5 * reduction + 1e-2
+    # the image's border is no silhouette (the surface goes on beyond the field of view): the open edges lie on it
+    band = 1e-3
     on_border = (uv[:, 0] < band) | (uv[:, 1] < band) | (uv[:, 0] > size - band) | (uv[:, 1] > size - band)
     assert on_border.all(), f"{(~on_border).sum()} open-edge points inside the image"
+
+
+@pytest.mark.parametrize("beyond", [np.nan, 4.0])
+def test_a_silhouette_ends_at_the_outermost_input_pixel_on_the_surface(beyond):
+    """A wall 2 m away over input columns [102, 201) and rows [90, 200), nothing (or a wall 4 m away) around
+    it, reduced by 3. Where a block's outermost input pixel is on the wall (columns 102 and 200, row 90) the
+    face ends at that pixel's centre, not half a block in (which lost a pixel along every silhouette); where
+    the outermost pixel of a block is off it (row 200, in the blocks of rows 198-200) it ends at the block's
+    middle pixel, 199.5, the centre of the last pixel on the wall either way."""
+    depth = np.full((256, 256), beyond)
+    depth[90:200, 102:201] = 2.0
+    mesh = mesh_of(depth, reduction=3)
+    points = vtk_to_numpy(mesh.GetPoints().GetData()).astype(np.float64)
+    uv, _ = project(points[points[:, 2] < 3.0], K, np.eye(4))
+    np.testing.assert_allclose(uv.min(axis=0), [102.5, 90.5], atol=1e-6)
+    np.testing.assert_allclose(uv.max(axis=0), [200.5, 199.5], atol=1e-6)
+    # the outline is the rectangle: every open edge lies on one of its four sides (corners that leaves along
+    # a side share move across it only)
+    edges = vtkFeatureEdges()
+    edges.SetInputData(mesh)
+    edges.BoundaryEdgesOn()
+    edges.NonManifoldEdgesOff()
+    edges.FeatureEdgesOff()
+    edges.ManifoldEdgesOff()
+    edges.Update()
+    outline = vtk_to_numpy(edges.GetOutput().GetPoints().GetData()).astype(np.float64)
+    uv, _ = project(outline[outline[:, 2] < 3.0], K, np.eye(4))
+    on_side = np.isclose(uv[:, 0], 102.5) | np.isclose(uv[:, 0], 200.5) | np.isclose(uv[:, 1], 90.5) | np.isclose(uv[:, 1], 199.5)
+    assert on_side.all(), uv[~on_side]
 
 
 def test_only_valid_pixels_are_meshed():

@@ -274,11 +274,12 @@ def test_refinement_auto_follows_whether_the_noise_is_correlated(tmp_path):
 
 
 @pytest.mark.slow
-def test_the_table_under_structured_light_is_mapped_at_least_as_well_as_the_tuned_tsdf():
-    """The table with the structured-light model, quad-tree, `mabdi run` defaults: F@1cm at least that of Open3D's
-    TSDF at 1 cm and at 2 cm, tuned as docs/benchmarks.md says (truncation 4 voxels, weight above 0.5, depth
-    smoothed as the surfaces smooth it) on the same frames, and at most 0.2% of the map removed (measured 0.9767
-    against 0.9741-0.9743 and 0.947-0.948 over runs of Open3D, with a nineteenth of the 1 cm TSDF's triangles)."""
+@pytest.mark.parametrize("scene", ["table", "bunnies"])
+def test_structured_light_scenes_are_mapped_at_least_as_well_as_the_tuned_tsdf(scene):
+    """The table and Run 2 with the structured-light model, quad-tree, `mabdi run` defaults: F@1cm at least that
+    of Open3D's TSDF at 1 cm and at 2 cm, tuned as docs/benchmarks.md says (truncation 4 voxels, weight above
+    0.5, depth smoothed as the surfaces smooth it) on the same frames, with fewer triangles, and at most 0.2%
+    of the map removed (the margins, over draws of the noise, are in docs/benchmarks.md)."""
     from test_evaluate import open3d_or_skip
     from conftest import simulation
     from mabdi.evaluate import evaluate_run
@@ -287,7 +288,7 @@ def test_the_table_under_structured_light_is_mapped_at_least_as_well_as_the_tune
     from mabdi.polydata import polydata_area
 
     open3d_or_skip()
-    sim = simulation("table", "quadtree", sensor__noise="structured_light")
+    sim = simulation(scene, "quadtree", sensor__noise="structured_light")
     result = sim.run()
     mabdi_f = evaluate_run(sim, result).fscore_1cm
     removed = sum(r.area_removed for r in result.records)

@@ -64,7 +64,7 @@ seen. A speck region is kept as novel (:func:`hole_fills`) when
 A sliver along the map's silhouette fails the ring test (the surface behind
 the silhouette lies at another depth), and so does a strip along the map's
 edge against nothing (neither D nor E has a surface beyond it: a quad-tree
-patch stops half a block short of D's edge, and such a strip would be
+patch stops up to half a block short of D's edge, and such a strip would be
 filled again at every look); a speck of noise fails the see-through test
 (its E lies just beyond tau). Where E carries ``map_in_footprint`` (a range
 image), a pixel whose footprint the map reaches into does not see through
@@ -87,7 +87,7 @@ novel after speck removal, specks, contradicted; read it with
 instead of leaving a crack one pixel wide between them (the pixel-grid mesher
 needs four valid corners). A surface that meshes blocks of pixels needs a
 wider rim where the depth is noisy: the quad-tree's r x r blocks need a
-valid majority and its patches' edge corners move half a block in, so a new
+valid majority and its patches' edge corners move up to half a block in, so a new
 patch can start up to a block inside the novel region, and with noise both
 its edge and the map's are ragged; a rim of one pixel then leaves cracks
 along the seam, a rim of r pixels closes them. ``rim = "auto"`` (the

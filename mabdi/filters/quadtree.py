@@ -46,11 +46,17 @@ Beyond the seed (its own "future work"):
   corners on the big leaf's edge are moved onto that edge and become extra
   vertices (T-vertices) of the big face, so the mesh is closed along it.
 * **Silhouettes**: a corner whose surrounding pixels are not all on the
-  leaf's surface moves half a pixel in, to the border pixels' centres, so a
-  face does not hang past the edge of a surface seen at a grazing angle. A
-  single pixel with silhouettes on two opposite sides collapses to a line:
-  its triangles have no area, and they are left out (nothing could show
-  them, or see through them to remove them).
+  leaf's surface moves in, to the centre of the outermost input pixel of its
+  block that lies on the leaf's plane (walking diagonally in from the
+  corner's own input pixel; on the plane: within :func:`plane_allowance`),
+  at most to the block's middle pixel, so a face neither hangs past the edge
+  of a surface seen at a grazing angle nor stops short of the samples it
+  has (with r = 3, half a block in would lose one input pixel along every
+  silhouette). A single pixel with silhouettes on two opposite sides keeps
+  the middle and collapses to a line: its triangles have no area, and they
+  are left out (nothing could show them, or see through them to remove
+  them). The image's border is no silhouette: the surface goes on beyond
+  the field of view, and a corner on the border stays there.
 * **Planar faces**: a quad whose corners are not coplanar within
   ``planarity`` (max(1 mm, 0.2% of the depth)) is split into two triangles;
   a face with T-vertices that is not planar becomes a fan around its centre.
@@ -226,7 +232,7 @@ class QuadTreeParameters:
     def seam_pixels(self, noisy: bool) -> int:
         """The classifier's rim (pixels) this surface needs to close the seam between a new patch and the map:
         ``reduction`` where the depth is ``noisy``, 1 where it is not. A block needs a valid majority and a
-        patch's edge corners move half a block in (the silhouette rule), so a new patch can start up to a block
+        patch's edge corners move up to half a block in (the silhouette rule), so a new patch can start up to a block
         inside the novel region; with noise the map's edge and the novel region's are ragged too, and only a rim
         of a whole block closes the crack between them (tests/test_classifier.py). Noise-free edges are clean:
         one pixel does."""
@@ -287,6 +293,15 @@ class ReducedSpherical:
 
 #: The grid the quad-tree meshes: a camera's (reduced) intrinsics or a LiDAR's reduced range-image grid.
 Grid = Intrinsics | ReducedSpherical
+
+
+@dataclass(frozen=True)
+class SilhouetteEvidence:
+    """The image a reduced point map was made from (``depth``: a camera's z or a LiDAR's range per input pixel,
+    NaN where invalid, after smoothing) and its noise: where inside a border block a silhouette lies."""
+
+    depth: np.ndarray
+    noise: SensorNoise
 
 
 def _ray(u: np.ndarray, v: np.ndarray, k: Grid) -> np.ndarray:
@@ -402,24 +417,54 @@ def _on_silhouette(pixel_depth: np.ndarray, corner_u: np.ndarray, corner_v: np.n
     return outside
 
 
+def _silhouette_inset(
+    leaves: Leaves, k: Grid, p: QuadTreeParameters, fine: SilhouetteEvidence,
+    corner_u: np.ndarray, corner_v: np.ndarray, step_u: np.ndarray, step_v: np.ndarray,
+) -> np.ndarray:
+    """How far (reduced pixels) each silhouette corner moves in: to the centre of the first input pixel on the
+    leaf's plane, walking diagonally in from the corner's own input pixel (``step_u``/``step_v``: +1 or -1
+    towards the leaf's centre), at most to the block's middle pixel; half a reduced pixel (the middle) where
+    none of those lies on the plane, or r is 1."""
+    r = p.reduction
+    inset = np.full(corner_u.shape, 0.5)
+    h, w = fine.depth.shape[:2]
+    normal, point = leaves.normal[:, None, :], leaves.point[:, None, :]
+    for step in reversed(range((r - 1) // 2)):  # the outermost pixel on the plane wins
+        col = r * corner_u + np.where(step_u > 0, step, -1 - step)
+        row = r * corner_v + np.where(step_v > 0, step, -1 - step)
+        inside = (row >= 0) & (row < h) & (col >= 0) & (col < w)
+        value = fine.depth[np.clip(row, 0, h - 1), np.clip(col, 0, w - 1)]
+        ray = _ray((col + 0.5) / r, (row + 0.5) / r, k)
+        with np.errstate(invalid="ignore"):
+            off_plane = np.abs(np.einsum("...i,...i->...", normal, ray * value[..., None] - point))
+            on_plane = inside & (off_plane <= plane_allowance(value, k, fine.noise))
+        inset = np.where(on_plane, (step + 0.5) / r, inset)
+    return inset
+
+
 def leaf_corners(
-    leaves: Leaves, k: Grid, p: QuadTreeParameters, points: np.ndarray | None = None
+    leaves: Leaves, k: Grid, p: QuadTreeParameters, points: np.ndarray | None = None, fine: SilhouetteEvidence | None = None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The leaves' quad corners: (corner_u, corner_v (L, 4) lattice points, corners (L, 4, 3) sensor frame,
-    wild (L, 4): corners the leaf's plane put too far from its depth, put at its depth instead)."""
+    wild (L, 4): corners the leaf's plane put too far from its depth, put at its depth instead).
+
+    ``points``: the reduced point map (None: no silhouette rule); ``fine``: the image it was reduced from, which
+    tells how far into its border block a silhouette lies (None: half a block in)."""
     size = leaves.size
     u0, v0 = leaves.col * size, leaves.row * size
     corner_u = np.stack([u0, u0, u0 + size, u0 + size], axis=1)  # TL, BL, BR, TR (faces the sensor)
     corner_v = np.stack([v0, v0 + size, v0 + size, v0], axis=1)
     ray_u, ray_v = corner_u.astype(float), corner_v.astype(float)
     if points is not None:
-        # On a silhouette the surface ends inside the border pixel: the corner moves half a pixel
-        # in, to the border pixels' centres (where the samples are), instead of hanging past it.
+        # On a silhouette the surface ends inside the border pixel: the corner moves in, to the centre of
+        # the outermost input pixel on the surface (where the samples are), instead of hanging past it.
         rim = _on_silhouette(_depth(points, k), corner_u, corner_v, _depth(leaves.point, k)[:, None], _leaf_jump(leaves, p, k))
-        centre_u = ((leaves.col + 0.5) * size)[:, None]
-        centre_v = ((leaves.row + 0.5) * size)[:, None]
-        ray_u = np.where(rim, ray_u + 0.5 * np.sign(centre_u - ray_u), ray_u)
-        ray_v = np.where(rim, ray_v + 0.5 * np.sign(centre_v - ray_v), ray_v)
+        step_u = np.sign(((leaves.col + 0.5) * size)[:, None] - ray_u)
+        step_v = np.sign(((leaves.row + 0.5) * size)[:, None] - ray_v)
+        sliver = (size == 1) & rim.all(axis=1)
+        inset = 0.5 if fine is None else np.where(sliver[:, None], 0.5, _silhouette_inset(leaves, k, p, fine, corner_u, corner_v, step_u, step_v))
+        ray_u = np.where(rim, ray_u + inset * step_u, ray_u)
+        ray_v = np.where(rim, ray_v + inset * step_v, ray_v)
     corner_rays = _ray(ray_u, ray_v, k)
     corners = _on_plane(corner_rays, leaves.normal[:, None, :], leaves.point[:, None, :], k)
     # A single pixel's one-sided normal (beside an edge or a hole) is no plane to extrapolate: its
@@ -437,11 +482,12 @@ def leaf_corners(
 
 
 def quad_mesh(
-    leaves: Leaves, k: Grid, p: QuadTreeParameters, points: np.ndarray | None = None
+    leaves: Leaves, k: Grid, p: QuadTreeParameters, points: np.ndarray | None = None, fine: SilhouetteEvidence | None = None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Faces of the leaves: (vertices (V, 3) camera frame, offsets, connectivity, face leaf index, face normals)."""
+    """Faces of the leaves: (vertices (V, 3) camera frame, offsets, connectivity, face leaf index, face normals).
+    ``points`` and ``fine``: as :func:`leaf_corners` takes them."""
     count = len(leaves.level)
-    corner_u, corner_v, corners, _ = leaf_corners(leaves, k, p, points)
+    corner_u, corner_v, corners, _ = leaf_corners(leaves, k, p, points, fine)
     # one vertex per lattice point and depth cluster
     stride = int(max(k.width, k.height)) * 2 + 4
     keys = (corner_v * stride + corner_u).ravel()
@@ -571,7 +617,7 @@ def _faces(vertices, starts, members, sizes, leaves: Leaves, k: Grid, p: QuadTre
     if not out_members:
         return np.zeros(1, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), vertices
     sizes_out, members_out, leaf_out = np.concatenate(out_offsets), np.concatenate(out_members), np.concatenate(out_leaf)
-    # A single pixel on a silhouette on two sides has corners moved half a pixel in onto the same centre: its
+    # A single pixel on a silhouette on two sides has corners moved to its middle, onto the same line: its
     # triangles have no area. Nothing shows them or can see through them; they go.
     starts_out = np.concatenate([[0], np.cumsum(sizes_out)])[:-1]
     triangle = np.flatnonzero(sizes_out == 3)
@@ -601,8 +647,9 @@ def leaves_of_image(
     p: QuadTreeParameters,
     noise: SensorNoise,
     measured: np.ndarray | None = None,
-) -> tuple[np.ndarray, Grid, Leaves]:
-    """Smoothing, stages 1-5 and the small-leaf plane test: (reduced points, reduced grid, kept leaves).
+) -> tuple[np.ndarray, Grid, Leaves, np.ndarray]:
+    """Smoothing, stages 1-5 and the small-leaf plane test: (reduced points, reduced grid, kept leaves, the
+    smoothed image they were reduced from).
 
     ``measured``: the whole measured image behind ``depth`` (which may hold only the novel pixels), where the
     grazing rule finds the pixels beyond an edge; None: ``depth`` itself.
@@ -618,7 +665,7 @@ def leaves_of_image(
     if measured is not None:
         measured = measured_around(depth, measured, noise, intrinsics, p.smooth_depth)
     if isinstance(intrinsics, SphericalGeometry):
-        return _range_leaves(depth, intrinsics, p, noise, measured)
+        return (*_range_leaves(depth, intrinsics, p, noise, measured), depth)
     k = intrinsics
     r = p.reduction
 
@@ -645,7 +692,7 @@ def leaves_of_image(
     if grazing:
         leaves = fitted_planes(leaves, points)
     leaves.regions = regions
-    return points, reduced, leaves
+    return points, reduced, leaves, depth
 
 
 def _range_leaves(
@@ -738,10 +785,14 @@ def fitting_leaves(leaves: Leaves, residual: np.ndarray, reduced: Grid, noise: S
     """The leaves whose plane fits their own and their neighbouring same-surface pixels: a small leaf whose
     plane misses one by more than :data:`RESIDUAL_FOOTPRINTS` pixel footprints and 3 sigma of the noise
     (``residual``, metres) sits on a crease or a corner and gets no face."""
-    depth_of_leaf = _depth(leaves.point, reduced)
-    footprint = depth_of_leaf * reduced.footprint if isinstance(reduced, ReducedSpherical) else depth_of_leaf / reduced.fx
-    allowed = np.maximum(RESIDUAL_FOOTPRINTS * footprint, 3.0 * noise.sigma(depth_of_leaf, reduced.near, reduced.far))
-    return select(leaves, residual <= allowed)
+    return select(leaves, residual <= plane_allowance(_depth(leaves.point, reduced), reduced, noise))
+
+
+def plane_allowance(depth: np.ndarray, reduced: Grid, noise: SensorNoise) -> np.ndarray:
+    """How far (metres) a pixel at ``depth`` may lie from a leaf's plane and still be on it: the larger of
+    :data:`RESIDUAL_FOOTPRINTS` reduced pixel footprints and 3 sigma(z) of the noise."""
+    footprint = depth * reduced.footprint if isinstance(reduced, ReducedSpherical) else depth / reduced.fx
+    return np.maximum(RESIDUAL_FOOTPRINTS * footprint, 3.0 * noise.sigma(depth, reduced.near, reduced.far))
 
 
 class FilterQuadTree(MabdiAlgorithm):
@@ -770,18 +821,18 @@ class FilterQuadTree(MabdiAlgorithm):
         intrinsics = image_intrinsics(image)
         pose = image_pose(image)
         p = self._parameters
-        points, reduced, leaves = leaves_of_image(
-            depth_array(image), intrinsics, p, image_noise(image), measured_depth(image)
-        )
+        noise = image_noise(image)
+        points, reduced, leaves, smoothed = leaves_of_image(depth_array(image), intrinsics, p, noise, measured_depth(image))
+        fine = SilhouetteEvidence(smoothed, noise)
         self.regions = leaves.regions
         if isinstance(reduced, ReducedSpherical) and len(leaves.level):
             # a LiDAR's beams lie far apart: a leaf whose plane puts a corner far from its range is a surface
             # seen edge-on between two beams, and its corners at its own range would float off it: no face
-            leaves = select(leaves, ~leaf_corners(leaves, reduced, p, points)[3].any(axis=1))
+            leaves = select(leaves, ~leaf_corners(leaves, reduced, p, points, fine)[3].any(axis=1))
         output = vtkPolyData.GetData(outInfo)
         mesh = vtkPolyData()
         if len(leaves.level):
-            vertices, starts, members, _, sizes = quad_mesh(leaves, reduced, p, points)
+            vertices, starts, members, _, sizes = quad_mesh(leaves, reduced, p, points, fine)
             offsets, connectivity, face_leaf, vertices = _faces(vertices, starts, members, sizes, leaves, reduced, p)
             world = vertices @ pose[:3, :3].T + pose[:3, 3]
             vtk_points = vtkPoints()
