@@ -48,7 +48,8 @@ Beyond the seed (its own "future work"):
 * **Silhouettes**: a corner whose surrounding pixels are not all on the
   leaf's surface moves in, to the centre of the outermost input pixel of its
   block that lies on the leaf's plane (walking diagonally in from the
-  corner's own input pixel; on the plane: within :func:`plane_allowance`),
+  corner's own input pixel; on the plane: its depth within
+  :func:`plane_allowance` of the plane's along its ray),
   at most to the block's middle pixel, so a face neither hangs past the edge
   of a surface seen at a grazing angle nor stops short of the samples it
   has (with r = 3, half a block in would lose one input pixel along every
@@ -419,12 +420,14 @@ def _on_silhouette(pixel_depth: np.ndarray, corner_u: np.ndarray, corner_v: np.n
 
 def _silhouette_inset(
     leaves: Leaves, k: Grid, p: QuadTreeParameters, fine: SilhouetteEvidence,
-    corner_u: np.ndarray, corner_v: np.ndarray, step_u: np.ndarray, step_v: np.ndarray,
+    corner_u: np.ndarray, corner_v: np.ndarray, step_u: np.ndarray, step_v: np.ndarray, reach: np.ndarray,
 ) -> np.ndarray:
     """How far (reduced pixels) each silhouette corner moves in: to the centre of the first input pixel on the
-    leaf's plane, walking diagonally in from the corner's own input pixel (``step_u``/``step_v``: +1 or -1
+    leaf's plane (its depth within :func:`plane_allowance` of the plane's along its ray), walking diagonally in from the corner's own input pixel (``step_u``/``step_v``: +1 or -1
     towards the leaf's centre), at most to the block's middle pixel; half a reduced pixel (the middle) where
-    none of those lies on the plane, or r is 1."""
+    none of those lies on the plane, or r is 1. A pixel where the plane's depth is further than ``reach``
+    (metres, (L, 1)) from the leaf's own does not count: a corner there would fall back to the leaf's depth
+    (a plane seen at a grazing angle, steeper than a surface turns within the leaf)."""
     r = p.reduction
     inset = np.full(corner_u.shape, 0.5)
     h, w = fine.depth.shape[:2]
@@ -435,9 +438,12 @@ def _silhouette_inset(
         inside = (row >= 0) & (row < h) & (col >= 0) & (col < w)
         value = fine.depth[np.clip(row, 0, h - 1), np.clip(col, 0, w - 1)]
         ray = _ray((col + 0.5) / r, (row + 0.5) / r, k)
-        with np.errstate(invalid="ignore"):
-            off_plane = np.abs(np.einsum("...i,...i->...", normal, ray * value[..., None] - point))
-            on_plane = inside & (off_plane <= plane_allowance(value, k, fine.noise))
+        with np.errstate(invalid="ignore", divide="ignore"):
+            # along the pixel's ray, where the corner would go: a plane seen at a grazing angle passes
+            # close (perpendicular) to the surface behind a silhouette while its depth there is far off
+            plane_depth = np.einsum("...i,...i->...", normal, point) / np.einsum("...i,...i->...", normal, ray)
+            on_plane = inside & (np.abs(value - plane_depth) <= plane_allowance(value, k, fine.noise))
+            on_plane &= np.abs(plane_depth - _depth(leaves.point, k)[:, None]) <= reach
         inset = np.where(on_plane, (step + 0.5) / r, inset)
     return inset
 
@@ -455,6 +461,9 @@ def leaf_corners(
     corner_u = np.stack([u0, u0, u0 + size, u0 + size], axis=1)  # TL, BL, BR, TR (faces the sensor)
     corner_v = np.stack([v0, v0 + size, v0 + size, v0], axis=1)
     ray_u, ray_v = corner_u.astype(float), corner_v.astype(float)
+    centre_depth = _depth(leaves.point, k)[:, None]
+    # a surface changes depth by at most max_jump per pixel: how far a corner may lie from the leaf's depth
+    allowed = _leaf_jump(leaves, p, k) * centre_depth * (0.71 * size)[:, None]
     if points is not None:
         # On a silhouette the surface ends inside the border pixel: the corner moves in, to the centre of
         # the outermost input pixel on the surface (where the samples are), instead of hanging past it.
@@ -462,7 +471,7 @@ def leaf_corners(
         step_u = np.sign(((leaves.col + 0.5) * size)[:, None] - ray_u)
         step_v = np.sign(((leaves.row + 0.5) * size)[:, None] - ray_v)
         sliver = (size == 1) & rim.all(axis=1)
-        inset = 0.5 if fine is None else np.where(sliver[:, None], 0.5, _silhouette_inset(leaves, k, p, fine, corner_u, corner_v, step_u, step_v))
+        inset = 0.5 if fine is None else np.where(sliver[:, None], 0.5, _silhouette_inset(leaves, k, p, fine, corner_u, corner_v, step_u, step_v, allowed))
         ray_u = np.where(rim, ray_u + inset * step_u, ray_u)
         ray_v = np.where(rim, ray_v + inset * step_v, ray_v)
     corner_rays = _ray(ray_u, ray_v, k)
@@ -472,8 +481,6 @@ def leaf_corners(
     # plane seen at a grazing angle can still put a corner far away; a surface changes depth by
     # at most max_jump per pixel, so a corner further than max_jump * z * 0.71 * size (its
     # distance from the centre in pixels) from the leaf's depth falls back the same way.
-    centre_depth = _depth(leaves.point, k)[:, None]
-    allowed = _leaf_jump(leaves, p, k) * centre_depth * (0.71 * size)[:, None]
     with np.errstate(invalid="ignore"):
         misses = np.einsum("...i,...i->...", leaves.normal[:, None, :], corner_rays) * np.einsum("...i,...i->...", leaves.normal, leaves.point)[:, None] <= 0
     wild = (np.abs(_depth(corners, k) - centre_depth) > allowed) | misses  # (a ray that misses the plane: at its depth too)
