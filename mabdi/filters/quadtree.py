@@ -423,15 +423,17 @@ def _silhouette_inset(
     corner_u: np.ndarray, corner_v: np.ndarray, step_u: np.ndarray, step_v: np.ndarray, reach: np.ndarray,
 ) -> np.ndarray:
     """How far (reduced pixels) each silhouette corner moves in: to the centre of the first input pixel on the
-    leaf's plane (its depth within :func:`plane_allowance` of the plane's along its ray), walking diagonally in from the corner's own input pixel (``step_u``/``step_v``: +1 or -1
-    towards the leaf's centre), at most to the block's middle pixel; half a reduced pixel (the middle) where
-    none of those lies on the plane, or r is 1. A pixel where the plane's depth is further than ``reach``
+    leaf's plane (its depth within :func:`plane_allowance` of the plane's along its ray), walking diagonally
+    in from the corner's own input pixel (``step_u``/``step_v``: +1 or -1 towards the leaf's centre), at most
+    to the block's middle pixel; half a reduced pixel (the middle) where none of those lies on the plane, or
+    r is 1. A pixel where the plane's depth is further than ``reach``
     (metres, (L, 1)) from the leaf's own does not count: a corner there would fall back to the leaf's depth
     (a plane seen at a grazing angle, steeper than a surface turns within the leaf)."""
     r = p.reduction
     inset = np.full(corner_u.shape, 0.5)
     h, w = fine.depth.shape[:2]
     normal, point = leaves.normal[:, None, :], leaves.point[:, None, :]
+    leaf_depth = _depth(leaves.point, k)[:, None]
     for step in reversed(range((r - 1) // 2)):  # the outermost pixel on the plane wins
         col = r * corner_u + np.where(step_u > 0, step, -1 - step)
         row = r * corner_v + np.where(step_v > 0, step, -1 - step)
@@ -443,7 +445,7 @@ def _silhouette_inset(
             # close (perpendicular) to the surface behind a silhouette while its depth there is far off
             plane_depth = np.einsum("...i,...i->...", normal, point) / np.einsum("...i,...i->...", normal, ray)
             on_plane = inside & (np.abs(value - plane_depth) <= plane_allowance(value, k, fine.noise))
-            on_plane &= np.abs(plane_depth - _depth(leaves.point, k)[:, None]) <= reach
+            on_plane &= np.abs(plane_depth - leaf_depth) <= reach
         inset = np.where(on_plane, (step + 0.5) / r, inset)
     return inset
 
@@ -467,11 +469,15 @@ def leaf_corners(
     if points is not None:
         # On a silhouette the surface ends inside the border pixel: the corner moves in, to the centre of
         # the outermost input pixel on the surface (where the samples are), instead of hanging past it.
-        rim = _on_silhouette(_depth(points, k), corner_u, corner_v, _depth(leaves.point, k)[:, None], _leaf_jump(leaves, p, k))
+        rim = _on_silhouette(_depth(points, k), corner_u, corner_v, centre_depth, _leaf_jump(leaves, p, k))
         step_u = np.sign(((leaves.col + 0.5) * size)[:, None] - ray_u)
         step_v = np.sign(((leaves.row + 0.5) * size)[:, None] - ray_v)
         sliver = (size == 1) & rim.all(axis=1)
-        inset = 0.5 if fine is None else np.where(sliver[:, None], 0.5, _silhouette_inset(leaves, k, p, fine, corner_u, corner_v, step_u, step_v, allowed))
+        if fine is None:
+            inset = 0.5
+        else:
+            inset = _silhouette_inset(leaves, k, p, fine, corner_u, corner_v, step_u, step_v, allowed)
+            inset = np.where(sliver[:, None], 0.5, inset)
         ray_u = np.where(rim, ray_u + inset * step_u, ray_u)
         ray_v = np.where(rim, ray_v + inset * step_v, ray_v)
     corner_rays = _ray(ray_u, ray_v, k)
