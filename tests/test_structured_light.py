@@ -277,8 +277,8 @@ def test_refinement_auto_follows_whether_the_noise_is_correlated(tmp_path):
 @pytest.mark.parametrize("scene", ["table", "bunnies"])
 def test_structured_light_scenes_are_mapped_at_least_as_well_as_the_tuned_tsdf(scene):
     """The table and Run 2 with the structured-light model, quad-tree, `mabdi run` defaults: F@1cm at least that
-    of Open3D's TSDF at 1 cm and at 2 cm, tuned as docs/benchmarks.md says (truncation 4 voxels, weight above
-    0.5, depth smoothed as the surfaces smooth it) on the same frames, with fewer triangles, and at most 0.2%
+    of Open3D's TSDF at 1 cm and at 2 cm with its tuned settings (``TsdfSettings.tuned``) on the same frames,
+    with fewer triangles, and at most 0.2%
     of the map removed (the margins, over draws of the noise, are in docs/benchmarks.md)."""
     from test_evaluate import open3d_or_skip
     from conftest import simulation

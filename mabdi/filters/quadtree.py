@@ -49,7 +49,9 @@ Beyond the seed (its own "future work"):
   leaf's surface moves in, to the centre of the outermost input pixel of its
   block that lies on the leaf's plane (walking diagonally in from the
   corner's own input pixel; on the plane: its depth within
-  :func:`plane_allowance` of the plane's along its ray),
+  :func:`plane_allowance` of the plane's along its ray, and the plane's
+  depth there within the leaf's reach, so a corner on a plane seen at a
+  grazing angle does not fall back to the leaf's depth, off the surface),
   at most to the block's middle pixel, so a face neither hangs past the edge
   of a surface seen at a grazing angle nor stops short of the samples it
   has (with r = 3, half a block in would lose one input pixel along every
