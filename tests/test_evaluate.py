@@ -196,3 +196,23 @@ def test_run_reports_ground_truth_metrics(tmp_path, capsys):
     summary = json.loads((out / "summary.json").read_text())
     assert summary["metrics"]["fscore_2cm"] > 0.9
     assert summary["metrics"]["triangles"] == summary["cells"]
+
+
+def test_bench_frames_state_what_the_simulator_states():
+    """The bench keeps the simulation's frames in memory and states what the simulator states: the noise
+    model and the given poses' accuracy (exact poses are stated exact, so the registration weighs them as
+    ``mabdi run`` does, not as a recording of unknown accuracy)."""
+    from mabdi.config import load_run_config, with_overrides
+    from mabdi.evaluate.bench import bench_frames
+    from mabdi.filters.registration import RegistrationParameters
+    from mabdi.pose_noise import PoseNoise
+
+    config = with_overrides(load_run_config(REPO / "scenes" / "table.toml"), {"run.frames": 2}, where="test")
+    rig, frames = bench_frames(config)
+    assert frames.pose_accuracy == PoseNoise() and frames.noise == rig.noise
+    assert RegistrationParameters().given_variance(frames.pose_accuracy) == ((0.0, 0.0), (0.0, 0.0))
+    jittered = with_overrides(config, {"sensor.pose_noise.jitter_translation": 0.003}, where="test")
+    rig, frames = bench_frames(jittered)
+    assert frames.pose_accuracy == PoseNoise(jitter_translation=0.003) == rig.pose_accuracy
+    np.testing.assert_array_equal(frames.true_poses, rig.true_poses)
+    assert not np.array_equal(frames.poses, frames.true_poses)

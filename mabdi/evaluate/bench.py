@@ -2,8 +2,10 @@
 
 Methods, all fed the same depth frames: the scene's simulated rig
 (:class:`~mabdi.simulate.rig.SimulatedRig`) is built once, its frames are
-rendered once and kept in memory (:class:`~mabdi.sources.frames.FrameList`),
-and every method reads them from there:
+rendered once and kept in memory (:class:`~mabdi.sources.frames.FrameList`,
+stating what the rig states: the noise model, and how far the given poses
+are off, so that the registration weighs them as in ``mabdi run``), and
+every method reads them from there:
 
 * ``mabdi``: the MABDI loop with the config's surface filter and classifier;
 * ``black_box``: the same runner with the classifier off;
@@ -140,9 +142,16 @@ def observed_samples(rig: SimulatedRig, config: RunConfig, samples: int):
 
 
 def bench_frames(config: RunConfig) -> tuple[SimulatedRig, FrameList]:
-    """The scene's rig (built once) and its frames, rendered once and kept for every method."""
+    """The scene's rig (built once) and its frames, rendered once and kept for every method, stating what
+    the rig states (true poses, noise model, how far the given poses are off) as ``mabdi run`` does."""
     rig = SimulatedRig.from_config(config)
-    frames = FrameList([rig.read(i) for i in range(len(rig))], description=rig.description, true_poses=rig.true_poses)
+    frames = FrameList(
+        [rig.read(i) for i in range(len(rig))],
+        description=rig.description,
+        true_poses=rig.true_poses,
+        noise=rig.noise,
+        pose_accuracy=rig.pose_accuracy,
+    )
     return rig, frames
 
 

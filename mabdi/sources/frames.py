@@ -133,13 +133,27 @@ class FrameSource:
 
 
 class FrameList(FrameSource):
-    """A source over frames already in memory (tests, or frames a user built with numpy)."""
+    """A source over frames already in memory (tests, or frames a user built with numpy).
 
-    def __init__(self, frames: list[DepthFrame], description: str = "frames in memory", true_poses=None) -> None:
+    ``true_poses``, ``noise`` and ``pose_accuracy`` are what the maker of the frames knows and states (the
+    bench keeps a simulation's frames here and states what the simulator does, so a method run on them
+    is run as ``mabdi run`` runs it); None: not stated (as a recording).
+    """
+
+    def __init__(
+        self,
+        frames: list[DepthFrame],
+        description: str = "frames in memory",
+        true_poses=None,
+        noise: SensorNoise | None = None,
+        pose_accuracy: PoseNoise | None = None,
+    ) -> None:
         if not frames:
             raise ValueError("FrameList needs at least one frame")
         self._frames = list(frames)
         self.description = description
+        self._noise = noise
+        self._pose_accuracy = pose_accuracy
         self._true_poses = None if true_poses is None else np.array(true_poses, dtype=np.float64)
         if self._true_poses is not None and self._true_poses.shape != (len(self._frames), 4, 4):
             raise ValueError(f"FrameList: true_poses must be ({len(self._frames)}, 4, 4), got shape {self._true_poses.shape}")
@@ -162,6 +176,14 @@ class FrameList(FrameSource):
     @property
     def true_poses(self) -> np.ndarray | None:
         return None if self._true_poses is None else self._true_poses.copy()
+
+    @property
+    def noise(self) -> SensorNoise | None:
+        return self._noise
+
+    @property
+    def pose_accuracy(self) -> PoseNoise | None:
+        return self._pose_accuracy
 
     @property
     def has_colour(self) -> bool:
