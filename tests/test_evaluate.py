@@ -93,6 +93,33 @@ def test_hidden_surfaces_are_not_counted_as_missed():
     assert everything.recall_1cm < 0.9  # counting the hidden plane would call it missed
 
 
+def test_a_surface_is_observed_only_by_poses_that_saw_it_there():
+    """In a world that changes, a sample of the final scene counts as observed only from a pose whose scene
+    held its surface: from a pose before the door closed the line of sight to the door's back face was
+    clear (free space then), yet no pose ever saw that face."""
+    from mabdi.evaluate.visibility import observed_mask
+
+    wall = square(-1, 1, -1, 1, z=0.0)
+    door_front = square(-0.3, 0.3, -0.3, 0.3, z=1.0)
+    door_back = square(-0.25, 0.25, -0.25, 0.25, z=0.96)  # facing away from the cameras (inset: a silhouette
+    # lets a sample one pixel behind pass, the 2x2 rule's slack)
+    final = merged(wall, door_front, door_back)
+    poses = np.stack([look_at([0.0, 0.0, 2.5], [0.0, 0.0, 0.0], up=(0, 1, 0)), look_at([0.2, 0.0, 2.5], [0.0, 0.0, 0.0], up=(0, 1, 0))])
+    intrinsics = Intrinsics(width=320, height=240, fx=130.0, fy=130.0, cx=160.0, cy=120.0, near=0.5, far=4.0)
+    samples = sample_surface(final, 20_000).points
+    on_front = np.abs(samples[:, 2] - 1.0) < 1e-6
+    on_back = np.abs(samples[:, 2] - 0.96) < 1e-6
+    behind_door = (np.abs(samples[:, 2]) < 1e-6) & (np.abs(samples[:, 0]) < 0.25) & (np.abs(samples[:, 1]) < 0.25)
+    assert on_front.sum() > 100 and on_back.sum() > 100 and behind_door.sum() > 100
+
+    open_both = observed_mask(samples, [wall, wall], poses, intrinsics)  # the door closes after both poses
+    assert not open_both[on_front | on_back].any()
+    assert open_both[behind_door].all()
+    closed_later = observed_mask(samples, [wall, final], poses, intrinsics)
+    assert closed_later[on_front].mean() > 0.99 and not closed_later[on_back].any()
+    assert closed_later[behind_door].all()  # seen by the first pose, while the door was open
+
+
 def test_distances_are_exact_near_and_far_and_capped_ones_below_the_cap():
     from vtkmodules.util.numpy_support import numpy_to_vtk, vtk_to_numpy
     from vtkmodules.vtkCommonCore import vtkDoubleArray
