@@ -81,6 +81,41 @@ def test_icp_recovers_the_true_pose_against_a_known_map(bunnies):
     assert np.all(np.median(np.array(errors), axis=0) < [0.001, 0.03]), errors
 
 
+def test_a_wall_with_a_recess_holds_the_pose_across_it_and_leaves_the_height_as_given():
+    """A wall with a recess 3 cm deep (a closed door in its frame) running the whole height of the view: the
+    wall holds the distance and the recess's edges the slide along the wall, and nothing holds the height.
+    The height stays as given (the normals that the sensor's noise tilts held it at a few hundred-thousandths
+    of the wall's information, and moved the pose centimetres up or down), the rest is corrected, and the
+    covariance says the height is known far less than the rest (at most what
+    :data:`~mabdi.filters.registration_kernels.UNCONSTRAINED` of the information would tell)."""
+    wall = merged(
+        _moved(box((0.1, 9.5, 20.0)), [2.55, -5.25, 0.0]),
+        _moved(box((0.1, 9.5, 20.0)), [2.55, 5.25, 0.0]),
+        _moved(box((0.1, 1.0, 20.0)), [2.58, 0.0, 0.0]),  # the recess's back, 3 cm behind the wall's face
+    )
+    intrinsics = Intrinsics()
+    renderer = DepthRenderer()
+    noise = SensorNoise("zbuffer")
+    true = look_at([0.0, -0.3, 0.0], [2.5, 0.1, 0.05])
+    for frame, offset in enumerate(([0.004, 0.003, 0.006], [-0.003, -0.004, -0.008])):
+        given = perturbed(true, offset, [0.0, 0.0, 0.0])
+        measured = depth_of(renderer, wall, intrinsics, true, noise, frame=frame)
+        expected = depth_of(renderer, wall, intrinsics, given)
+        result = register_depth(measured, expected, intrinsics, noise, RegistrationParameters())
+        assert result.registered, result.status
+        registered = given @ result.transform
+        error = registered[:3, 3] - true[:3, 3]
+        assert abs(error[0]) < 0.001 and abs(error[1]) < 0.0015, error  # held by the wall and the recess's edges
+        assert registered[2, 3] == pytest.approx(given[2, 3], abs=0.0005), error  # nothing holds the height
+        sigma = np.sqrt(np.diag(true[:3, :3] @ result.covariance[3:, 3:] @ true[:3, :3].T))
+        assert sigma[2] > 50 * sigma[0], sigma  # the height far less known than the distance to the wall
+
+
+def _moved(mesh, offset):
+    points, triangles = mesh
+    return points + np.asarray(offset), triangles
+
+
 def test_a_plane_alone_fixes_only_what_it_constrains():
     """Seen head-on, a plane fixes the distance to it and the tilt, not a slide along it: the slide is
     left as given (no step along an unconstrained direction), the rest is corrected."""
@@ -512,9 +547,17 @@ def test_the_compiled_steps_agree_with_their_array_formulations():
 
     a = np.diag([4.0, 2.0, 1.0, 1e-12, 3.0, 5.0])  # the fourth direction unconstrained
     b = np.array([4.0, 2.0, 1.0, 7.0, 6.0, 5.0])
-    step, inverse = kernels.solve_normal_equations(a, b)
+    step, inverse = kernels.solve_normal_equations(a, b, 1.0)
     np.testing.assert_allclose(step, [-1.0, -1.0, -1.0, 0.0, -2.0, -1.0])
-    assert inverse[3, 3] == 0.0
+    assert inverse[3, 3] == pytest.approx(1.0 / (kernels.UNCONSTRAINED * 5.0))  # not known: the floor's variance
+    np.testing.assert_allclose(np.diag(inverse)[[0, 1, 2, 4, 5]], [0.25, 0.5, 1.0, 1 / 3, 0.2])
+    # a weakly held direction (a translation along a wall, held by noise in the normals) takes no step either;
+    # rotations count as lengths at ``length`` metres: 0.4 rad^-2 is 0.1 m^-2 at 2 m
+    a = np.diag([0.4, 1.0, 1.0, 1.0, 1.0, 1e-5])
+    step, inverse = kernels.solve_normal_equations(a, np.array([0.4, 1.0, 1.0, 1.0, 1.0, 1e-4]), 2.0)
+    np.testing.assert_allclose(step, [-1.0, -1.0, -1.0, -1.0, -1.0, 0.0])
+    np.testing.assert_allclose(inverse[0, 0], 2.5)
+    assert inverse[5, 5] == pytest.approx(1.0 / (kernels.UNCONSTRAINED * 1.0))
 
     expected = measured.copy()
     normals, known = np.empty((*expected.shape, 3)), np.zeros(expected.shape, dtype=np.int8)

@@ -169,6 +169,9 @@ GIVEN_SIGMA_WORDS = ("source", "learnt")
 STATUSES = ("registered", "off", "no_map", "few_points", "few_inliers", "not_converged", "beyond_bound")
 REGISTERED = 0
 
+#: The support check (:func:`constraint_support`) asks the pairs to hold the directions with at least this share
+#: of the strongest direction's information.
+SUPPORTED = 1e-3
 #: Normals of E: central differences over this many pixels; none across a relative depth jump above this.
 NORMAL_STEP = 2
 NORMAL_MAX_JUMP = 0.05
@@ -527,7 +530,7 @@ def register_depth(
             points, tiles, n_tiles, scale, gate, transform, p.huber, True
         )
     support, tile_gradients = summaries
-    _, inverse = solve_normal_equations(a, b)
+    _, inverse = solve_normal_equations(a, b, length)
     covariance = pose_covariance(inverse, chi2, pairs, tile_gradients)
     residual = float(np.sqrt(chi2 / max(pairs, 1)))  # in units of the noise; metres below
     share = pairs / max(candidates, 1)
@@ -587,8 +590,10 @@ def constraint_support(support: np.ndarray, length: float) -> float:
     points the registration left out, as when a wall is 30 cm from where the map has it).
 
     ``support``: the pairs' and the candidates' information (2, 6, 6) from the last ICP step; ``length``:
-    the median depth of D's samples (m), which turns rotations into lengths. Directions with under 1e-3 of the
-    strongest one's information are not counted (the scene does not constrain them).
+    the median depth of D's samples (m), which turns rotations into lengths. Directions with under
+    :data:`SUPPORTED` of the strongest one's information are not counted (the scene does not constrain them,
+    or too weakly to ask it of the pairs; under
+    :data:`~mabdi.filters.registration_kernels.UNCONSTRAINED` the ICP takes no step along them).
     """
     scaling = np.diag([1.0 / length] * 3 + [1.0] * 3)
     pairs = scaling @ support[0] @ scaling
@@ -596,7 +601,7 @@ def constraint_support(support: np.ndarray, length: float) -> float:
     values, vectors = np.linalg.eigh(candidates)
     if values[-1] <= 0:
         return 0.0
-    constrained = values > 1e-3 * values[-1]
+    constrained = values > SUPPORTED * values[-1]
     shares = np.einsum("ij,jk,ki->i", vectors.T, pairs, vectors)[constrained] / values[constrained]
     return float(shares.min())
 

@@ -72,6 +72,12 @@ def point_and_normal(depth, row, col, fx, fy, cx, cy, step, max_jump):
 
 #: A step whose direction is within this cosine of the opposite of the one before undoes it (a two-cycle).
 REVERSAL_COSINE = -0.9
+#: A direction of the pose with less than this share of the best constrained direction's information (rotations
+#: taken as lengths at the samples' median depth) is held by noise alone and takes no ICP step: a plain wall
+#: says nothing of where the camera is along it, and the few normals that noise tilts would slide the pose
+#: centimetres that way (a doorway's wall seen without its floor or lintel: 3e-5 along the height; the edges
+#: that hold the pose along the wall: 1e-3 and more).
+UNCONSTRAINED = 1e-4
 #: States of a pixel in the normal cache of :func:`cached_point_and_normal`.
 NORMAL_UNKNOWN = 0
 NORMAL_FOUND = 1
@@ -373,17 +379,29 @@ def rigid_size(transform):
 
 
 @njit(cache=True)
-def solve_normal_equations(a, b):
-    """The step x of A x = -b and the pseudo-inverse of A, with no step along directions A does not
-    constrain (eigenvalues under 1e-8 of the largest)."""
-    values, vectors = np.linalg.eigh(a)
+def solve_normal_equations(a, b, length):
+    """The step x of A x = -b and A's inverse, with rotations (the first three) taken as lengths at
+    ``length`` metres. Along directions the scene does not constrain (information under
+    :data:`UNCONSTRAINED` of the best constrained one's) there is no step, and the inverse holds the
+    variance that share of information would give, the least that direction may have: the pose stays
+    where it started there, and says it does not know it (a fusion with a prior keeps the prior's)."""
+    scaling = np.ones(6)
+    scaling[:3] = 1.0 / length
+    scaled = a * np.outer(scaling, scaling)
+    values, vectors = np.linalg.eigh(scaled)
     largest = max(values[-1], 0.0)
     inverse_values = np.zeros_like(values)
+    step_values = np.zeros_like(values)
+    floor = largest * UNCONSTRAINED
     for i in range(len(values)):
-        if values[i] > largest * 1e-8:
+        if values[i] > floor:
             inverse_values[i] = 1.0 / values[i]
-    inverse = (vectors * inverse_values) @ vectors.T
-    return -(inverse @ b), inverse
+            step_values[i] = inverse_values[i]
+        elif floor > 0.0:
+            inverse_values[i] = 1.0 / floor
+    inverse = ((vectors * inverse_values) @ vectors.T) * np.outer(scaling, scaling)
+    step_inverse = ((vectors * step_values) @ vectors.T) * np.outer(scaling, scaling)
+    return -(step_inverse @ b), inverse
 
 
 @njit(cache=True)
@@ -395,7 +413,7 @@ def gauss_newton_update(a, b, transform, previous, length):
     taken as lengths at ``length`` metres, within ``REVERSAL_COSINE``, and about as long) is a two-cycle:
     pairs at the edge of the gate flip in and out, and the two poses swap for ever. Half of it is taken,
     which lands between them."""
-    step, _ = solve_normal_equations(a, b)
+    step, _ = solve_normal_equations(a, b, length)
     dot = 0.0
     norm_step = 0.0
     norm_previous = 0.0
