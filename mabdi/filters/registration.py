@@ -55,7 +55,10 @@ corrects the pose the way KinectFusion's frame-to-model tracking does
    than the map, or where it has none) and objects that left fall outside
    the gate and pull on nothing. Gauss-Newton steps in (rotation vector,
    translation); directions the scene does not constrain (a camera sliding
-   along a plane) get no step. A level ends once a step is below
+   along a plane, or up a wall whose floor and top are out of view: under
+   ``UNCONSTRAINED`` of the best held direction's information, rotations
+   taken as lengths, where only the normals that noise tilts would pull)
+   get no step, and the covariance says they are barely known. A level ends once a step is below
    ``STEP_TRANSLATION`` and ``STEP_ROTATION`` (0.05 mm and 0.0005 degrees,
    well below the registered pose's own precision of tenths of a millimetre), ten times that for each
    coarser level: those only bring the pose near. Near the optimum each
