@@ -243,3 +243,9 @@ def test_bench_frames_state_what_the_simulator_states():
     assert frames.pose_accuracy == PoseNoise(jitter_translation=0.003) == rig.pose_accuracy
     np.testing.assert_array_equal(frames.true_poses, rig.true_poses)
     assert not np.array_equal(frames.poses, frames.true_poses)
+    from mabdi.sources.frames import FrameList
+
+    with pytest.raises(TypeError, match="FrameList: pose_accuracy must be a PoseNoise or None, got 0.003"):
+        FrameList([frames.read(0)], pose_accuracy=0.003)
+    with pytest.raises(TypeError, match="FrameList: noise must be a SensorNoise or None, got 'kinect'"):
+        FrameList([frames.read(0)], noise="kinect")

@@ -384,7 +384,7 @@ def solve_normal_equations(a, b, length):
     ``length`` metres. Along directions the scene does not constrain (information under
     :data:`UNCONSTRAINED` of the best constrained one's) there is no step, and the inverse holds the
     variance that share of information would give, the least that direction may have: the pose stays
-    where it started there, and says it does not know it (a fusion with a prior keeps the prior's)."""
+    where it started there, and says that direction is known far less than the held ones."""
     scaling = np.ones(6)
     scaling[:3] = 1.0 / length
     scaled = a * np.outer(scaling, scaling)

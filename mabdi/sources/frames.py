@@ -150,6 +150,10 @@ class FrameList(FrameSource):
     ) -> None:
         if not frames:
             raise ValueError("FrameList needs at least one frame")
+        if noise is not None and not isinstance(noise, SensorNoise):
+            raise TypeError(f"FrameList: noise must be a SensorNoise or None, got {noise!r}")
+        if pose_accuracy is not None and not isinstance(pose_accuracy, PoseNoise):
+            raise TypeError(f"FrameList: pose_accuracy must be a PoseNoise or None, got {pose_accuracy!r}")
         self._frames = list(frames)
         self.description = description
         self._noise = noise
