@@ -75,8 +75,7 @@ REVERSAL_COSINE = -0.9
 #: A direction of the pose with less than this share of the best constrained direction's information (rotations
 #: taken as lengths at the samples' median depth) is held by noise alone and takes no ICP step: a plain wall
 #: says nothing of where the camera is along it, and the few normals that noise tilts would slide the pose
-#: centimetres that way (a doorway's wall seen without its floor or lintel: 3e-5 along the height; the edges
-#: that hold the pose along the wall: 1e-3 and more).
+#: that way (docs/benchmarks.md, "No ICP step where the scene holds nothing", has the shares measured).
 UNCONSTRAINED = 1e-4
 #: States of a pixel in the normal cache of :func:`cached_point_and_normal`.
 NORMAL_UNKNOWN = 0
