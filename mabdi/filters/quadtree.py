@@ -422,20 +422,20 @@ def _on_silhouette(pixel_depth: np.ndarray, corner_u: np.ndarray, corner_v: np.n
 
 def _silhouette_inset(
     leaves: Leaves, k: Grid, p: QuadTreeParameters, fine: SilhouetteEvidence,
-    corner_u: np.ndarray, corner_v: np.ndarray, step_u: np.ndarray, step_v: np.ndarray, reach: np.ndarray,
+    corner_u: np.ndarray, corner_v: np.ndarray, step_u: np.ndarray, step_v: np.ndarray, leaf_depth: np.ndarray,
+    reach: np.ndarray,
 ) -> np.ndarray:
     """How far (reduced pixels) each silhouette corner moves in: to the centre of the first input pixel on the
     leaf's plane (its depth within :func:`plane_allowance` of the plane's along its ray), walking diagonally
     in from the corner's own input pixel (``step_u``/``step_v``: +1 or -1 towards the leaf's centre), at most
     to the block's middle pixel; half a reduced pixel (the middle) where none of those lies on the plane, or
     r is 1. A pixel where the plane's depth is further than ``reach``
-    (metres, (L, 1)) from the leaf's own does not count: a corner there would fall back to the leaf's depth
+    (metres, (L, 1)) from the leaf's own (``leaf_depth``, (L, 1)) does not count: a corner there would fall back to the leaf's depth
     (a plane seen at a grazing angle, steeper than a surface turns within the leaf)."""
     r = p.reduction
     inset = np.full(corner_u.shape, 0.5)
     h, w = fine.depth.shape[:2]
     normal, point = leaves.normal[:, None, :], leaves.point[:, None, :]
-    leaf_depth = _depth(leaves.point, k)[:, None]
     for step in reversed(range((r - 1) // 2)):  # the outermost pixel on the plane wins
         col = r * corner_u + np.where(step_u > 0, step, -1 - step)
         row = r * corner_v + np.where(step_v > 0, step, -1 - step)
@@ -466,19 +466,20 @@ def leaf_corners(
     corner_v = np.stack([v0, v0 + size, v0 + size, v0], axis=1)
     ray_u, ray_v = corner_u.astype(float), corner_v.astype(float)
     centre_depth = _depth(leaves.point, k)[:, None]
+    jump = _leaf_jump(leaves, p, k)
     # a surface changes depth by at most max_jump per pixel: how far a corner may lie from the leaf's depth
-    allowed = _leaf_jump(leaves, p, k) * centre_depth * (0.71 * size)[:, None]
+    allowed = jump * centre_depth * (0.71 * size)[:, None]
     if points is not None:
         # On a silhouette the surface ends inside the border pixel: the corner moves in, to the centre of
         # the outermost input pixel on the surface (where the samples are), instead of hanging past it.
-        rim = _on_silhouette(_depth(points, k), corner_u, corner_v, centre_depth, _leaf_jump(leaves, p, k))
+        rim = _on_silhouette(_depth(points, k), corner_u, corner_v, centre_depth, jump)
         step_u = np.sign(((leaves.col + 0.5) * size)[:, None] - ray_u)
         step_v = np.sign(((leaves.row + 0.5) * size)[:, None] - ray_v)
-        sliver = (size == 1) & rim.all(axis=1)
         if fine is None:
             inset = 0.5
         else:
-            inset = _silhouette_inset(leaves, k, p, fine, corner_u, corner_v, step_u, step_v, allowed)
+            inset = _silhouette_inset(leaves, k, p, fine, corner_u, corner_v, step_u, step_v, centre_depth, allowed)
+            sliver = (size == 1) & rim.all(axis=1)
             inset = np.where(sliver[:, None], 0.5, inset)
         ray_u = np.where(rim, ray_u + inset * step_u, ray_u)
         ray_v = np.where(rim, ray_v + inset * step_v, ray_v)
