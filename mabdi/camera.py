@@ -29,6 +29,12 @@ from mabdi.errors import ConfigError, PoseError
 #: Tolerance for rigidity checks of a pose's rotation block.
 RIGID_TOLERANCE = 1e-6
 
+#: How far from orthonormal (max |R^T R - I|) a pose file's rotation block may be and still be read as a
+#: rotation: files written to 6-7 significant digits, or from float32 trackers, carry 1e-7 to 1e-4; four
+#: decimals about 3e-4. Beyond 5e-3 (a 0.25% scale or shear) the matrix is not a rigid motion written
+#: coarsely, and reading it is an error.
+POSE_FILE_TOLERANCE = 5e-3
+
 
 @dataclass(frozen=True)
 class Intrinsics:
@@ -138,6 +144,79 @@ def check_pose(pose, name: str = "pose") -> np.ndarray:
     if np.linalg.det(r) < 0:
         raise PoseError(f"{name} is not rigid: rotation block is a reflection (det < 0)")
     return m
+
+
+def nearest_rotation(rotation) -> np.ndarray:
+    """The rotation matrix nearest (Frobenius) to a 3x3 ``rotation``: U V^T of its SVD, det +1."""
+    u, _, vt = np.linalg.svd(np.asarray(rotation, dtype=np.float64))
+    if np.linalg.det(u @ vt) < 0:
+        u[:, -1] = -u[:, -1]
+    return u @ vt
+
+
+def pose_from_file(pose, name: str = "pose", tolerance: float = POSE_FILE_TOLERANCE) -> tuple[np.ndarray, float]:
+    """A pose as a file wrote it, made rigid: (the 4x4 pose with its rotation block replaced by the nearest
+    rotation, max |R^T R - I| of the block as read), or :class:`PoseError`.
+
+    A block within ``tolerance`` of orthonormal is a rotation written to a few digits (see
+    :data:`POSE_FILE_TOLERANCE`); beyond it, a reflection, a last row other than (0, 0, 0, 1), or a
+    non-finite entry, the matrix is no rigid motion and ``name`` (file and line) is named.
+    """
+    try:
+        m = np.array(pose, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise PoseError(f"{name} must be a 4x4 numeric matrix: {exc}") from None
+    if m.shape != (4, 4):
+        raise PoseError(f"{name} must be a 4x4 world_from_camera matrix, got shape {m.shape}")
+    if not np.isfinite(m).all():
+        raise PoseError(f"{name} has non-finite entries")
+    if np.abs(m[3] - (0.0, 0.0, 0.0, 1.0)).max() > tolerance:
+        raise PoseError(f"{name} last row must be (0, 0, 0, 1), got {m[3].tolist()}")
+    r = m[:3, :3]
+    error = float(np.abs(r.T @ r - np.eye(3)).max())
+    if error > tolerance:
+        raise PoseError(
+            f"{name} is not rigid: rotation block is not orthonormal (max |R^T R - I| = {error:.3g}, "
+            f"more than the {tolerance:g} a rotation written to a few digits carries)"
+        )
+    if np.linalg.det(r) < 0:
+        raise PoseError(f"{name} is not rigid: rotation block is a reflection (det < 0)")
+    m[:3, :3] = nearest_rotation(r)
+    m[3] = (0.0, 0.0, 0.0, 1.0)
+    return m, error
+
+
+@dataclass
+class PoseRepairs:
+    """What reading a pose file made rigid: how many rotation blocks were not orthonormal to
+    :data:`RIGID_TOLERANCE`, the largest max |R^T R - I| among them, and how far the largest replacement moved a
+    point 1 m from the camera (metres)."""
+
+    poses: int = 0
+    repaired: int = 0
+    worst_error: float = 0.0
+    worst_shift: float = 0.0
+
+    def read(self, pose, name: str = "pose") -> np.ndarray:
+        """:func:`pose_from_file` of ``pose``, counted."""
+        rigid, error = pose_from_file(pose, name)
+        self.poses += 1
+        if error > RIGID_TOLERANCE:
+            self.repaired += 1
+            self.worst_error = max(self.worst_error, error)
+            shift = float(np.linalg.norm(np.asarray(pose, dtype=np.float64)[:3, :3] - rigid[:3, :3], ord=2))
+            self.worst_shift = max(self.worst_shift, shift)
+        return rigid
+
+    def note(self, where: str) -> str | None:
+        """One line on the repairs for a user (None when none was needed)."""
+        if not self.repaired:
+            return None
+        return (
+            f"{where}: {self.repaired} of {self.poses} poses have rotation blocks up to {self.worst_error:.2g} "
+            f"from orthonormal (max |R^T R - I|, as poses written to a few digits do); each was replaced by its "
+            f"nearest rotation, moving a point 1 m from the camera by at most {self.worst_shift * 1000:.2g} mm"
+        )
 
 
 @functools.lru_cache(maxsize=8)

@@ -21,6 +21,10 @@ class PoseError(MabdiError, ValueError):
     """A pose is not a rigid 4x4 ``world_from_camera`` matrix."""
 
 
+class PoseFileWarning(UserWarning):
+    """A recording's pose file held rotations written to a few digits, which mabdi made rigid (how many, by how much)."""
+
+
 class AssetNotFoundError(MabdiError, FileNotFoundError):
     """A mesh file or built-in asset (the bunny) could not be found."""
 

@@ -12,8 +12,11 @@ the rules below are written once:
 * **Poses**: 4x4 ``world_from_camera`` (camera-to-world, camera frame x
   right, y down, z forward as OpenCV's) matrices, used as they are. A pose
   that holds a NaN or an infinity (ScanNet marks frames its tracking lost
-  so) is skipped and counted (``skipped``, and in ``description``); a finite
-  pose that is not rigid is a :class:`SequenceError` naming its file and line.
+  so) is skipped and counted (``skipped``, and in ``description``). A rotation
+  block written to a few digits is replaced by its nearest rotation
+  (:func:`mabdi.camera.pose_from_file`; one :class:`~mabdi.errors.PoseFileWarning`
+  says how many and by how much); a finite pose that is not rigid is a
+  :class:`SequenceError` naming its file and line.
 * **Intrinsics**: the layout's camera file (if it has one), then the keys of
   a ``[camera]`` table in the folder's ``mabdi.toml`` replace its values
   (``near`` / ``far`` alone, say), then a ``camera=`` argument (an
@@ -37,13 +40,14 @@ from __future__ import annotations
 
 import math
 import struct
+import warnings
 from pathlib import Path
 
 import numpy as np
 
-from mabdi.camera import Intrinsics, check_pose
+from mabdi.camera import Intrinsics, PoseRepairs
 from mabdi.depth import DepthFrame
-from mabdi.errors import PoseError
+from mabdi.errors import PoseError, PoseFileWarning
 from mabdi.sources.frames import FrameSource
 from mabdi.sources.sequence_files import (  # noqa: F401 (read_colour_image, write_colour_png: the readers' and writers' own)
     SequenceError,
@@ -234,11 +238,14 @@ class ImageSequence(FrameSource):
         if len(poses) != len(depth_files):
             raise SequenceError(f"{self.layout} {self.path}: {len(depth_files)} depth images but {len(poses)} poses")
         finite = np.isfinite(poses).all(axis=(1, 2))
+        repairs = PoseRepairs()
         for index in np.flatnonzero(finite):
             try:
-                check_pose(poses[index], "pose")
+                poses[index] = repairs.read(poses[index], "pose")
             except PoseError as exc:
                 raise SequenceError(f"{pose_sources[index]}: {exc}") from None
+        if (note := repairs.note(f"{self.layout} {self.path}")) is not None:
+            warnings.warn(note, PoseFileWarning, stacklevel=3)
         self.skipped = int((~finite).sum())
         keep = np.flatnonzero(finite)
         if not len(keep):

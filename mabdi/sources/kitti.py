@@ -31,13 +31,14 @@ files have no ring index).
 from __future__ import annotations
 
 import re
+import warnings
 from pathlib import Path
 
 import numpy as np
 
-from mabdi.camera import check_pose
+from mabdi.camera import PoseRepairs
 from mabdi.depth import DepthFrame
-from mabdi.errors import PoseError
+from mabdi.errors import PoseError, PoseFileWarning
 from mabdi.io.atomic import atomic_output, write_text
 from mabdi.io.toml_writer import toml_lines
 from mabdi.sources.frames import FrameSource
@@ -65,6 +66,7 @@ def read_matrix_rows(path: Path, what: str) -> np.ndarray:
     """(N, 4, 4) poses of a file of 3x4 row-major matrices, one a line (blank lines skipped), or a SequenceError
     naming the file and line."""
     matrices = []
+    repairs = PoseRepairs()
     with open(path, encoding="utf-8", errors="replace") as stream:
         for number, line in enumerate(stream, start=1):
             fields = line.split()
@@ -76,7 +78,9 @@ def read_matrix_rows(path: Path, what: str) -> np.ndarray:
                 raise SequenceError(f"{path}:{number}: {what}: a field is not a number: {line.strip()!r}") from None
             if len(values) != 12 or not np.isfinite(values).all():
                 raise SequenceError(f"{path}:{number}: {what}: expected 12 finite numbers (a 3x4 matrix row-major), got {len(values)}")
-            matrices.append(_homogeneous(values, f"{path}:{number}"))
+            matrices.append(_homogeneous(values, f"{path}:{number}", repairs))
+    if (note := repairs.note(str(path))) is not None:
+        warnings.warn(note, PoseFileWarning, stacklevel=2)
     return np.array(matrices, dtype=np.float64).reshape(-1, 4, 4)
 
 
@@ -96,11 +100,13 @@ def read_calibration(path: Path) -> np.ndarray:
     raise SequenceError(f"{path}: no 'Tr:' line (the Velodyne-to-camera-0 transform)")
 
 
-def _homogeneous(values, where: str) -> np.ndarray:
+def _homogeneous(values, where: str, repairs: PoseRepairs | None = None) -> np.ndarray:
+    """The 4x4 of a 3x4 row-major matrix, its rotation made rigid (:func:`mabdi.camera.pose_from_file`; counted
+    in ``repairs`` when given), or a SequenceError naming ``where``."""
     matrix = np.eye(4)
     matrix[:3, :] = np.asarray(values, dtype=np.float64).reshape(3, 4)
     try:
-        return check_pose(matrix, where)
+        return (repairs or PoseRepairs()).read(matrix, where)
     except PoseError as exc:
         raise SequenceError(f"{where}: not a rigid transform: {exc}") from None
 
