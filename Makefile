@@ -8,7 +8,12 @@ SCENE ?= scenes/table.toml
 # Test processes (pytest-xdist, a file's tests together): one per core, at most 4 (each full run holds 1-3 GB).
 TEST_WORKERS ?= $(shell n=$$(nproc 2>/dev/null || echo 2); [ "$$n" -gt 4 ] && n=4; echo $$n)
 
-.PHONY: run test install install-test bench clean
+.PHONY: run test install install-test bench clean system-packages
+
+# The system libraries (Mesa EGL/OSMesa, libusb): installed with apt-get as root on Debian, else a stop
+# before anything else, naming the command to run.
+system-packages:
+	@bash tools/system-packages.sh
 
 $(VENV)/bin/python:
 	$(PYTHON) -m venv $(VENV)
@@ -28,13 +33,13 @@ install: $(VENV)/.installed
 
 install-test: $(VENV)/.installed-test
 
-run: install
+run: system-packages install
 	$(BIN)/mabdi run $(SCENE)
 
-test: install-test
+test: system-packages install-test
 	$(BIN)/python -m pytest -n $(TEST_WORKERS) --dist loadfile
 
-bench: install-test
+bench: system-packages install-test
 	$(BIN)/python benchmarks/bench_depth_image.py
 
 clean:
