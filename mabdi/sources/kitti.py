@@ -5,7 +5,8 @@ poses file copied in as ``poses.txt``):
 
 * ``velodyne/NNNNNN.bin``: one scan a file, float32 ``x y z intensity`` per
   point (sensor frame: x forward, y left, z up; metres); frames are the
-  files in name order. The intensity is not used.
+  files in name order (a file's size is a whole number of 16-byte points,
+  else an error). The intensity is not used.
 * ``poses.txt``: one line a scan, the 12 numbers of a 3x4 matrix row-major:
   the pose of KITTI's camera 0 (x right, y down, z forward) in the frame of
   the first camera 0 (KITTI's ground truth, ``poses/NN.txt``).
@@ -17,7 +18,12 @@ poses file copied in as ``poses.txt``):
 * ``mabdi.toml`` (optional): a ``[lidar]`` table, the range image's
   geometry (:mod:`mabdi.sources.range_images`: beams, columns, fov_up,
   fov_down, range_min, range_max, beam_elevations); without it
-  :data:`~mabdi.sources.range_images.KITTI_GEOMETRY` (the HDL-64E).
+  :data:`~mabdi.sources.range_images.KITTI_GEOMETRY` (the HDL-64E), unless
+  the first scan mostly misses it: then the geometry learnt from that scan
+  (:func:`~mabdi.sources.range_images.learn_geometry`). A scan with more than
+  a quarter of its points outside the image (above, below, beyond range_max)
+  is said once, as a :class:`~mabdi.sources.range_images.LidarGeometryWarning`
+  with the numbers and the ``[lidar]`` keys to set.
 
 The pose of scan i is ``world_from_sensor = Tr^-1 P_i Tr`` (SemanticKITTI's
 reading of the poses): the LiDAR's motion in a world that is the first
@@ -30,6 +36,7 @@ files have no ring index).
 
 from __future__ import annotations
 
+import os
 import re
 import warnings
 from pathlib import Path
@@ -42,7 +49,17 @@ from mabdi.errors import PoseError, PoseFileWarning
 from mabdi.io.atomic import atomic_output, write_text
 from mabdi.io.toml_writer import toml_lines
 from mabdi.sources.frames import FrameSource
-from mabdi.sources.range_images import KITTI_GEOMETRY, geometry_from_table, lidar_table, range_image, range_image_points
+from mabdi.sources.range_images import (
+    KITTI_GEOMETRY,
+    OUTSIDE_SHARE_WARNING,
+    LidarGeometryWarning,
+    geometry_from_table,
+    learn_geometry,
+    lidar_table,
+    range_image,
+    range_image_points,
+    scan_fit,
+)
 from mabdi.sources.sequence_files import SequenceError, metadata_path, prepare_folder, read_sequence_metadata
 from mabdi.spherical import SphericalGeometry
 
@@ -52,6 +69,8 @@ CALIB_FILE = "calib.txt"
 TIMES_FILE = "times.txt"
 #: float32 values per point in a scan file: x, y, z, intensity.
 POINT_FIELDS = 4
+#: Bytes per point in a scan file.
+POINT_BYTES = 4 * POINT_FIELDS
 #: The Tr of the folders :func:`write_kitti` writes: KITTI's axes (camera 0 = x right, y down, z forward from the
 #: LiDAR's x forward, y left, z up) and a lever arm (m) like KITTI's, so a reader that skips Tr is caught by a test.
 WRITTEN_TR = np.array([[0.0, -1.0, 0.0, -0.004], [0.0, 0.0, -1.0, -0.076], [1.0, 0.0, 0.0, -0.272], [0.0, 0.0, 0.0, 1.0]])
@@ -112,13 +131,18 @@ def _homogeneous(values, where: str, repairs: PoseRepairs | None = None) -> np.n
 
 
 def read_scan(path: Path) -> np.ndarray:
-    """(N, 3) float32 sensor-frame points of a KITTI ``.bin`` scan (float32 x y z intensity), or a SequenceError."""
+    """(N, 3) float32 sensor-frame points of a KITTI ``.bin`` scan (float32 x y z intensity), or a SequenceError
+    naming the file when it cannot be read or its size is not a whole number of 16-byte points."""
     try:
+        size = os.stat(path).st_size
         raw = np.fromfile(path, dtype="<f4")
     except OSError as exc:
         raise SequenceError(f"{path}: cannot read the scan: {exc}") from None
-    if raw.size % POINT_FIELDS:
-        raise SequenceError(f"{path}: {raw.size * 4} bytes is not a whole number of points (16 bytes: float32 x y z intensity)")
+    if size % POINT_BYTES or raw.size * 4 != size:
+        raise SequenceError(
+            f"{path}: {size} bytes is not a whole number of points: a scan holds {POINT_BYTES}-byte points "
+            f"(float32 x y z intensity), so its size is a multiple of {POINT_BYTES} ({size % POINT_BYTES} bytes left over)"
+        )
     return raw.reshape(-1, POINT_FIELDS)[:, :3]
 
 
@@ -149,10 +173,46 @@ class KittiSequence(FrameSource):
             if len(times) != len(self._scans):
                 raise SequenceError(f"{path / TIMES_FILE}: {len(times)} timestamps, but {SCAN_FOLDER}/ holds {len(self._scans)} scans")
             self._times = times
-        if geometry is None:
-            table = read_sequence_metadata(path).get("lidar")
-            geometry = KITTI_GEOMETRY if table is None else geometry_from_table(table, metadata_path(path), KITTI_GEOMETRY)
+        self._warned = False
+        if geometry is not None:
+            self._geometry_from = "the geometry given"
+        elif (table := read_sequence_metadata(path).get("lidar")) is not None:
+            geometry = geometry_from_table(table, metadata_path(path), KITTI_GEOMETRY)
+            self._geometry_from = f"the [lidar] table of {metadata_path(path)}"
+        else:
+            geometry = self._learn_geometry()
         self.geometry = geometry
+
+    def _learn_geometry(self) -> SphericalGeometry:
+        """The default geometry (the HDL-64E), or, when the first scan mostly misses it, the one learnt from that
+        scan, said once (:class:`LidarGeometryWarning`)."""
+        self._geometry_from = "the default geometry (KITTI's Velodyne HDL-64E; the recording has no [lidar] table)"
+        points = read_scan(self._scans[0])
+        learnt, fit = learn_geometry(points, KITTI_GEOMETRY)
+        if learnt is None:
+            if fit.share > OUTSIDE_SHARE_WARNING:
+                self._warn(0, fit)
+            return KITTI_GEOMETRY
+        settings = f"fov_up = {learnt.fov_up:g}, fov_down = {learnt.fov_down:g}, beams = {learnt.beams}"
+        self.description += f" (LiDAR geometry learnt from {self._scans[0].name}: {settings})"
+        self._warn(0, fit, f"mabdi learnt {settings} from that scan (columns, range_min, range_max kept) and uses them")
+        return learnt
+
+    def _warn(self, index: int, fit, done: str = "") -> None:
+        """Say once that scan ``index`` mostly misses the geometry (``fit`` against :attr:`geometry`, or the default)."""
+        geometry = getattr(self, "geometry", KITTI_GEOMETRY)
+        fix = (
+            f"put the sensor's own geometry in the [lidar] table of {metadata_path(self.path)}: fov_up, fov_down "
+            "(degrees, the image's top and bottom edges), beams, and as needed columns, range_min, range_max (m), "
+            "beam_elevations (degrees, one a beam, top first)"
+        )
+        warnings.warn(
+            f"KITTI folder {self.path}: scan {self._scans[index].name} does not fit {self._geometry_from}: "
+            f"{fit.describe(geometry)}; " + (f"{done}; " if done else "the map will miss those points; ") + fix,
+            LidarGeometryWarning,
+            stacklevel=4,
+        )
+        self._warned = True
 
     @property
     def intrinsics(self) -> SphericalGeometry:
@@ -170,7 +230,10 @@ class KittiSequence(FrameSource):
         return self._times.copy()
 
     def read_frame(self, index: int) -> DepthFrame:
-        depth = range_image(read_scan(self._scans[index]), self.geometry)
+        points = read_scan(self._scans[index])
+        if not self._warned and (fit := scan_fit(points, self.geometry)).share > OUTSIDE_SHARE_WARNING:
+            self._warn(index, fit)
+        depth = range_image(points, self.geometry)
         return DepthFrame(depth, self.geometry, self._poses[index], index, float(self._times[index]))
 
 

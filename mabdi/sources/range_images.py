@@ -24,7 +24,12 @@ sensor (:data:`KITTI_GEOMETRY` for KITTI's Velodyne HDL-64E).
 
 A recording carries its geometry in the ``[lidar]`` table of its
 ``mabdi.toml`` (:func:`lidar_table`, :func:`geometry_from_table`): the keys
-of :class:`SphericalGeometry`.
+of :class:`SphericalGeometry`. A wrong or missing table loses points without
+an error: :func:`scan_fit` counts a scan's points outside the image (above its
+top edge, below its bottom one, at or beyond ``range_max``), for a
+:class:`LidarGeometryWarning`, and :func:`learn_geometry` learns the vertical
+field of view (and, where the scan's rings are clearly apart, the beam count)
+of a scan that does not fit a default.
 """
 
 from __future__ import annotations
@@ -46,6 +51,115 @@ KITTI_GEOMETRY = SphericalGeometry(beams=64, columns=1024, fov_up=3.0, fov_down=
 
 #: Keys of a ``[lidar]`` table: the fields of :class:`SphericalGeometry`.
 LIDAR_KEYS = tuple(f.name for f in dataclasses.fields(SphericalGeometry))
+
+#: A scan with more than this share of its points outside the range image is warned of (:class:`LidarGeometryWarning`).
+OUTSIDE_SHARE_WARNING = 0.25
+#: The percentiles of a scan's elevations :func:`learn_geometry` takes as its outer beams when it cannot count them.
+LEARNT_PERCENTILES = (0.5, 99.5)
+
+
+class LidarGeometryWarning(UserWarning):
+    """Many of a LiDAR scan's points fall outside the range image: the recording's ``[lidar]`` table is missing or wrong."""
+
+
+@dataclasses.dataclass(frozen=True)
+class ScanFit:
+    """How a scan's points fit a geometry: its returns (finite, off the origin) and those outside the image."""
+
+    returns: int
+    above: int  # above the image's top edge
+    below: int  # below its bottom edge
+    beyond: int  # between the edges, at or beyond range_max
+    elevation_high: float  # the returns' 99.5th percentile elevation, degrees (NaN: no return)
+    elevation_low: float  # their 0.5th percentile
+
+    @property
+    def outside(self) -> int:
+        return self.above + self.below + self.beyond
+
+    @property
+    def share(self) -> float:
+        """The share of the returns outside the image (0 for a scan of none)."""
+        return self.outside / self.returns if self.returns else 0.0
+
+    def describe(self, geometry: SphericalGeometry) -> str:
+        """The numbers in words: the share outside, why, and the points' elevations against the image's."""
+        top, bottom = image_edges(geometry)
+        return (
+            f"{100 * self.share:.0f}% of its {self.returns} points fall outside the range image ({self.above} above its "
+            f"top edge, {self.below} below its bottom edge, {self.beyond} at or beyond range_max {geometry.range_max:g} m): "
+            f"the points' elevations span {self.elevation_high:+.1f} to {self.elevation_low:+.1f} degrees "
+            f"(0.5-99.5 percentiles), the image's {top:+.1f} to {bottom:+.1f}"
+        )
+
+
+def image_edges(geometry: SphericalGeometry) -> tuple[float, float]:
+    """The elevations (degrees) of a range image's top and bottom edges, as :meth:`SphericalGeometry.pixels` bounds them."""
+    rays = geometry.rays_at(np.zeros(2), np.array([0.0, geometry.beams]))
+    top, bottom = np.degrees(np.arcsin(np.clip(rays[:, 2], -1.0, 1.0)))
+    return float(top), float(bottom)
+
+
+def _returns(points) -> tuple[np.ndarray, np.ndarray]:
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    with np.errstate(invalid="ignore"):
+        keep = np.isfinite(points).all(axis=1) & (np.abs(points).sum(axis=1) > 0)
+    points = points[keep]
+    return points, np.degrees(np.arctan2(points[:, 2], np.hypot(points[:, 0], points[:, 1])))
+
+
+def scan_fit(points, geometry: SphericalGeometry) -> ScanFit:
+    """How sensor-frame ``points`` (N, 3) m fit the range image of ``geometry`` (:class:`ScanFit`)."""
+    points, elevation = _returns(points)
+    uv, distance = geometry.pixels(points)
+    above, below = uv[:, 1] < 0, uv[:, 1] >= geometry.beams
+    beyond = ~above & ~below & (distance >= geometry.range_max)
+    high, low = (np.percentile(elevation, LEARNT_PERCENTILES[::-1]) if len(elevation) else (np.nan, np.nan))
+    return ScanFit(len(points), int(above.sum()), int(below.sum()), int(beyond.sum()), float(high), float(low))
+
+
+def beam_elevations_of(elevation, step: float = 0.05) -> np.ndarray | None:
+    """The beams' elevations (degrees, top first) of a scan's point elevations (degrees) when its rings stand
+    clearly apart, else None: a histogram of ``step``-degree bins whose filled runs are the rings, taken only
+    when they hold 95% of the points, fill at most half the span, and number 2 to 512."""
+    elevation = np.asarray(elevation, dtype=np.float64)
+    if len(elevation) < 100 or np.ptp(elevation) < 4 * step:
+        return None
+    index = np.floor((elevation - elevation.min()) / step).astype(np.int64)
+    counts = np.bincount(index)
+    filled = counts >= max(2, 0.01 * counts.max())
+    start = filled & ~np.concatenate([[False], filled[:-1]])
+    run = np.cumsum(start) - 1  # each bin's run (ring), meaningful where filled
+    beams = int(start.sum())
+    in_rings = filled[index]
+    if not (2 <= beams <= 512 and in_rings.mean() >= 0.95 and filled.sum() <= 0.5 * len(filled)):
+        return None
+    ring = run[index[in_rings]]
+    centres = np.bincount(ring, weights=elevation[in_rings], minlength=beams) / np.bincount(ring, minlength=beams)
+    return centres[::-1]
+
+
+def learn_geometry(points, default: SphericalGeometry) -> tuple[SphericalGeometry | None, ScanFit]:
+    """The geometry of a scan that does not fit ``default`` (more than :data:`OUTSIDE_SHARE_WARNING` of its points
+    above or below the image), and how it fit ``default``; None when it fits, or misses by range only.
+
+    Uniform beams: the counted rings (:func:`beam_elevations_of`) when they stand apart, else ``default``'s count
+    between the :data:`LEARNT_PERCENTILES` of the elevations; the edges half a beam spacing beyond the outer beams
+    (so each beam lies on a row's centre). Columns and range are ``default``'s.
+    """
+    fit = scan_fit(points, default)
+    if not fit.returns or fit.above + fit.below <= OUTSIDE_SHARE_WARNING * fit.returns:
+        return None, fit
+    centres = beam_elevations_of(_returns(points)[1])
+    if centres is not None:
+        beams, top, bottom = len(centres), float(centres[0]), float(centres[-1])
+    else:
+        beams, top, bottom = default.beams, fit.elevation_high, fit.elevation_low
+    if not top > bottom:
+        return None, fit
+    half = (top - bottom) / (2 * (beams - 1)) if beams > 1 else 0.5
+    fov_up, fov_down = min(90.0, round(top + half, 3)), max(-90.0, round(bottom - half, 3))
+    return dataclasses.replace(default, beams=beams, fov_up=fov_up, fov_down=fov_down, beam_elevations=()), fit
 
 
 def range_image(points, geometry: SphericalGeometry, rows=None) -> np.ndarray:
@@ -149,9 +263,16 @@ def geometry_from_table(table, file, default: SphericalGeometry | None = None) -
 __all__ = [
     "KITTI_GEOMETRY",
     "LIDAR_KEYS",
+    "OUTSIDE_SHARE_WARNING",
+    "LidarGeometryWarning",
+    "ScanFit",
+    "beam_elevations_of",
     "geometry_from_table",
+    "image_edges",
+    "learn_geometry",
     "lidar_table",
     "range_image",
     "range_image_points",
     "rows_from_rings",
+    "scan_fit",
 ]

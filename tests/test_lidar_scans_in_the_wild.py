@@ -1,0 +1,144 @@
+"""LiDAR recordings as they come: a KITTI folder whose sensor is not the default one, scan files of odd sizes."""
+
+from __future__ import annotations
+
+import re
+import warnings
+
+import numpy as np
+import pytest
+
+import mabdi.sources.range_images as range_images
+from mabdi.sources.kitti import KittiSequence, read_scan
+from mabdi.sources.range_images import KITTI_GEOMETRY
+from mabdi.sources.sequences import SequenceError, open_sequence
+
+
+def _scan(elevations, columns=360, half=(20.0, 15.0, 3.0), jitter=0.0, seed=0):
+    """(N, 4) float32 points of a spinning LiDAR at the centre of a box room: one ring per elevation (degrees)."""
+    rng = np.random.default_rng(seed)
+    el = np.radians(np.asarray(elevations, dtype=np.float64))[:, None] + np.radians(jitter) * rng.standard_normal((len(elevations), columns))
+    az = np.linspace(-np.pi, np.pi, columns, endpoint=False)[None, :]
+    rays = np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el) + 0 * az], axis=-1).reshape(-1, 3)
+    with np.errstate(divide="ignore"):
+        t = np.min(np.abs(np.asarray(half) / rays), axis=-1)
+    points = np.zeros((len(rays), 4), dtype="<f4")
+    points[:, :3] = rays * t[:, None]
+    points[:, 3] = 0.3
+    return points
+
+
+def _folder(path, elevations, scans=3, jitter=0.0, lidar=None):
+    """A KITTI folder of ``scans`` scans of the sensor with beams at ``elevations``; ``lidar``: a [lidar] table's text."""
+    (path / "velodyne").mkdir(parents=True)
+    for i in range(scans):
+        _scan(elevations, jitter=jitter, seed=i).tofile(path / "velodyne" / f"{i:06d}.bin")
+    (path / "poses.txt").write_text("".join(f"1 0 0 {0.1 * i} 0 1 0 0 0 0 1 0\n" for i in range(scans)))
+    if lidar is not None:
+        (path / "mabdi.toml").write_text("[lidar]\n" + lidar)
+    return path
+
+
+def _read_all(source):
+    """Every frame of ``source`` and the LidarGeometryWarnings raised while opening and reading it."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        source = source()
+        frames = [source.read(i) for i in range(len(source))]
+    ours = [w for w in caught if issubclass(w.category, range_images.LidarGeometryWarning)]
+    return source, frames, ours
+
+
+WIDE_32 = np.linspace(45.0, -45.0, 32)  # a +-45 degree sensor of 32 evenly spread beams
+HDL_64 = np.linspace(2.0, -24.8, 64)  # the Velodyne HDL-64E's span
+
+
+def test_wide_sensor_without_lidar_table_is_learnt_and_said_once(tmp_path):
+    folder = _folder(tmp_path / "seq", WIDE_32, jitter=0.02)
+    source, frames, said = _read_all(lambda: open_sequence(folder))
+    assert len(said) == 1  # once a run, not once a scan
+    message = str(said[0].message)
+    # The share of the first scan outside the default geometry, their elevations against the image's.
+    inside = np.isfinite(range_images.range_image(_scan(WIDE_32, jitter=0.02)[:, :3], KITTI_GEOMETRY)).sum()
+    share = 1 - inside / (32 * 360)
+    assert f"{100 * share:.0f}% of" in message
+    assert re.search(r"\+45\.\d to -45\.\d degrees", message) and "+3.0 to -25.0" in message
+    assert str(folder / "mabdi.toml") in message and "[lidar]" in message
+    for key in ("fov_up", "fov_down", "beams"):
+        assert key in message
+    # The geometry learnt from the first scan: the sensor's span (half a beam spacing beyond the outer beams) and
+    # its 32 beams, one a row, so nearly every point of every scan lands in the image.
+    geometry = source.intrinsics
+    spacing = 90.0 / 31
+    assert geometry.beams == 32 and geometry.columns == KITTI_GEOMETRY.columns
+    assert geometry.fov_up == pytest.approx(45 + spacing / 2, abs=0.05) and geometry.fov_down == pytest.approx(-45 - spacing / 2, abs=0.05)
+    assert f"fov_up = {geometry.fov_up:g}" in message and "beams = 32" in message
+    assert "learnt" in source.description
+    # An HDL-64E's scans without a table fit the default geometry: no warning, nothing learnt.
+    hdl = _folder(tmp_path / "hdl", HDL_64, jitter=0.02)
+    source, _, said = _read_all(lambda: open_sequence(hdl))
+    assert said == [] and source.intrinsics == KITTI_GEOMETRY and source.description == f"KITTI folder {hdl}"
+    for frame in frames:
+        assert frame.intrinsics == geometry
+        rows_hit = np.isfinite(frame.depth).any(axis=1)
+        assert rows_hit.all()  # every row holds its beam
+        assert np.isfinite(frame.depth).sum() > 0.95 * 32 * 360
+
+
+def test_wide_sensor_of_unclear_rings_keeps_the_beam_count(tmp_path):
+    # Elevations spread evenly (no rings to count): the span is learnt, the default beam count kept.
+    folder = tmp_path / "seq"
+    (folder / "velodyne").mkdir(parents=True)
+    rng = np.random.default_rng(3)
+    el, az = np.radians(rng.uniform(-40.0, 40.0, 20000)), rng.uniform(-np.pi, np.pi, 20000)
+    points = np.zeros((20000, 4), dtype="<f4")
+    points[:, :3] = 10.0 * np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], axis=1)
+    points.tofile(folder / "velodyne" / "000000.bin")
+    (folder / "poses.txt").write_text("1 0 0 0 0 1 0 0 0 0 1 0\n")
+    source, _, said = _read_all(lambda: KittiSequence(folder))
+    assert len(said) == 1 and "beams = 64" in str(said[0].message)
+    assert source.intrinsics.beams == 64
+    assert source.intrinsics.fov_up == pytest.approx(40.0, abs=1.0) and source.intrinsics.fov_down == pytest.approx(-40.0, abs=1.0)
+
+
+def test_wrong_lidar_table_is_said_once_and_kept(tmp_path):
+    table = "beams = 64\ncolumns = 1024\nfov_up = 3.0\nfov_down = -25.0\nrange_min = 1.0\nrange_max = 120.0\n"
+    folder = _folder(tmp_path / "seq", WIDE_32, lidar=table)
+    source, _, said = _read_all(lambda: KittiSequence(folder))
+    assert len(said) == 1
+    message = str(said[0].message)
+    assert source.intrinsics == KITTI_GEOMETRY  # the table is the user's word: kept, but questioned
+    assert "000000.bin" in message and re.search(r"\d+% of", message) and "+45.0 to -45.0" in message
+    assert str(folder / "mabdi.toml") in message and "fov_up" in message and "fov_down" in message
+    # The sensor's own table: quiet.
+    right = _folder(tmp_path / "right", WIDE_32, lidar="beams = 32\nfov_up = 46.5\nfov_down = -46.5\n")
+    source, _, said = _read_all(lambda: open_sequence(right))
+    assert said == [] and source.intrinsics.beams == 32
+
+
+def test_scans_beyond_range_are_said(tmp_path):
+    table = "fov_up = 50.0\nfov_down = -50.0\nrange_max = 5.0\n"
+    folder = _folder(tmp_path / "seq", WIDE_32, lidar=table)
+    _, _, said = _read_all(lambda: KittiSequence(folder))
+    assert len(said) == 1 and "range_max" in str(said[0].message)
+
+
+@pytest.mark.parametrize("extra", [1, 2, 3])
+def test_scan_with_trailing_bytes_is_refused_with_its_size(tmp_path, extra):
+    path = tmp_path / "000000.bin"
+    path.write_bytes(_scan(HDL_64[:4], columns=16).tobytes() + b"\0" * extra)
+    size = 4 * 16 * 16 + extra
+    with pytest.raises(SequenceError) as caught:
+        read_scan(path)
+    message = str(caught.value)
+    assert str(path) in message and f"{size} bytes" in message and "16" in message
+    assert f"{size - extra} bytes" not in message
+
+
+def test_scan_with_trailing_bytes_stops_the_folder(tmp_path):
+    folder = _folder(tmp_path / "seq", HDL_64, scans=2)
+    with open(folder / "velodyne" / "000001.bin", "ab") as stream:
+        stream.write(b"\1\2")
+    source = KittiSequence(folder)
+    with pytest.raises(SequenceError, match=re.escape(f"{folder / 'velodyne' / '000001.bin'}: {64 * 360 * 16 + 2} bytes")):
+        source.read(1)
