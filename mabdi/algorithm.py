@@ -11,8 +11,10 @@ closes that hole:
   a ``KeyboardInterrupt`` (Ctrl-C) or ``SystemExit`` raised inside a request
   would otherwise be printed by VTK and forgotten, and the run would go on;
 * ``Update()`` called on a mabdi algorithm re-raises the stored exception
-  (the original type and traceback), and hides VTK's own "returned failure"
-  dump since the Python exception says what went wrong;
+  (the original type and traceback; one that Ctrl-C caused, numba's SystemError
+  around it say, as ``KeyboardInterrupt``: :func:`mabdi.interrupts.caused_by_interrupt`),
+  and hides VTK's own "returned failure" dump since the Python exception says
+  what went wrong;
 * **Ctrl-C** during ``Update()`` (in the main thread, with Python's default
   SIGINT handler or the command line's, :mod:`mabdi.interrupts`) is held until the update returns and then raised as
   ``KeyboardInterrupt`` by ``Update()``, so it never lands in Python code that
@@ -39,7 +41,7 @@ import numpy as np
 from vtkmodules.util.vtkAlgorithm import VTKPythonAlgorithmBase
 from vtkmodules.vtkCommonCore import vtkLogger, vtkOutputWindow, vtkStringOutputWindow
 
-from mabdi.interrupts import note as note_interrupt, raising_handlers
+from mabdi.interrupts import caused_by_interrupt, note as note_interrupt, raising_handlers
 
 
 class MabdiAlgorithm(VTKPythonAlgorithmBase):
@@ -85,6 +87,8 @@ class MabdiAlgorithm(VTKPythonAlgorithmBase):
     def raise_if_failed(self) -> None:
         """Raise (and clear) the exception stored by a failed request, if any."""
         error, self._pending_error = self._pending_error, None
+        if isinstance(error, Exception) and caused_by_interrupt(error):  # Ctrl-C wrapped by a library (numba)
+            raise KeyboardInterrupt from error
         if error is not None:
             raise error
 

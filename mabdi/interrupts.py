@@ -14,10 +14,20 @@ checks the note before a run starts and after every frame
 (:func:`clear`). A program that imports mabdi has Python's
 handler back once the import is done; one that installed its own handler
 keeps it throughout (:func:`watch` only takes Python's default).
+
+A library can also wrap the KeyboardInterrupt in an exception of its own:
+numba raises ``SystemError: ... returned a result with an exception set``,
+the KeyboardInterrupt its cause, when Ctrl-C lands while it unpickles (a
+cached kernel's first call, a kernel's result boxed). :func:`caused_by_interrupt`
+tells such an exception (a KeyboardInterrupt in its chain, or any raised once
+a SIGINT was noted), and :func:`interrupts_unwrapped` raises it as the
+KeyboardInterrupt it stands for (the loop's frames and the pipeline's
+requests go through it).
 """
 
 from __future__ import annotations
 
+import contextlib
 import signal
 import threading
 
@@ -77,3 +87,31 @@ def raise_if_interrupted() -> None:
     still stops the command."""
     if _interrupted:
         raise KeyboardInterrupt
+
+
+def caused_by_interrupt(error: BaseException) -> bool:
+    """Whether ``error`` is Ctrl-C's doing: a KeyboardInterrupt, an exception with one in its chain
+    (``__cause__`` or ``__context__``, at any depth: numba's SystemError), or any exception once a SIGINT
+    was noted."""
+    pending, seen = [error], set()
+    while pending:
+        current = pending.pop()
+        if current is None or id(current) in seen:
+            continue
+        if isinstance(current, KeyboardInterrupt):
+            return True
+        seen.add(id(current))
+        pending += [current.__cause__, current.__context__]
+    return _interrupted
+
+
+@contextlib.contextmanager
+def interrupts_unwrapped():
+    """Raise an exception of the block that Ctrl-C caused (:func:`caused_by_interrupt`) as KeyboardInterrupt
+    (from it: the traceback keeps it)."""
+    try:
+        yield
+    except Exception as error:
+        if caused_by_interrupt(error):
+            raise KeyboardInterrupt from error
+        raise

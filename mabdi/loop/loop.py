@@ -54,6 +54,7 @@ from vtkmodules.vtkCommonDataModel import vtkImageData, vtkPolyData
 
 from mabdi.algorithm import raise_pipeline_errors
 from mabdi.camera import Intrinsics
+from mabdi.interrupts import interrupts_unwrapped
 from mabdi.depth import depth_array, image_pose
 from mabdi.spherical import SphericalGeometry
 from mabdi.filters.classifier import (
@@ -293,7 +294,13 @@ class MabdiLoop:
             self.noise.calibration.set_state(state["noise_calibration"])
 
     def step(self, index: int) -> FrameRecord:
-        """Run frame ``index``: read D, render E, classify, mesh, append. Times each stage."""
+        """Run frame ``index``: read D, render E, classify, mesh, append. Times each stage. An error that Ctrl-C
+        caused (numba's SystemError around it: :func:`mabdi.interrupts.caused_by_interrupt`) is raised as
+        KeyboardInterrupt."""
+        with interrupts_unwrapped():
+            return self._step(index)
+
+    def _step(self, index: int) -> FrameRecord:
         start = time.perf_counter()
         self.measured.frame = index
         self.measured.Update()
