@@ -9,7 +9,7 @@
     mabdi record CONFIG --format tum|rosbag2|kitti --out PATH [--storage sqlite3|mcap] [--encoding 32FC1|16UC1]
     mabdi export IN OUT [--layout mesh_tools|lvr2]   convert a map between VTP, PLY, OBJ, STL and HDF5
     mabdi info MAP               counts, bounds, layers, labels and cluster sets of a map
-    mabdi view PATH [--colour frame|normal|rgb|LAYER] [--out PNG] [--from-frame N]   look at a map or a run folder
+    mabdi view PATH [--colour frame|normal|rgb|LAYER] [--out PNG] [--from-frame N] [--up AXIS|X,Y,Z]   look at a map or a run folder
     mabdi plan MAP --start x,y,z --goal x,y,z [--planner dijkstra|fmm] [--out path.vtp]
     mabdi bench [--scene NAME|CONFIG] [--methods M ...] [--frames N] [--out DIR] [--no-tune]
     mabdi sweep SWEEP.toml [--workers N] [--address ADDR] [--out DIR]
@@ -151,6 +151,11 @@ def _parser() -> argparse.ArgumentParser:
     view.add_argument(
         "--from-frame", type=int, metavar="N",
         help="look from the sensor's pose of frame N (a run folder) instead of framing the whole map from above and aside",
+    )
+    view.add_argument(
+        "--up", metavar="AXIS|X,Y,Z",
+        help="the world's up for the default view: z, y, ... or x,y,z; a leading minus needs '=': --up=-y "
+        "(default: the run's cameras' mean up, snapped to a world axis within 20 degrees, else +z)",
     )
 
     plan = commands.add_parser("plan", help="plan a path on a map (Dijkstra or fast marching)")
@@ -443,7 +448,7 @@ def cmd_record(args) -> int:
 def cmd_view(args) -> int:
     from mabdi.viz.viewer import view
 
-    written = view(args.path, colour=args.colour, screenshot=args.out, from_frame=args.from_frame)
+    written = view(args.path, colour=args.colour, screenshot=args.out, from_frame=args.from_frame, up=args.up, log=print)
     if written is not None:
         print(f"no display: wrote {written}" if args.out is None else f"wrote {written}")
     return 0

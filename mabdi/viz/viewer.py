@@ -16,9 +16,25 @@ its path. Colour modes:
 A run folder shows ``world_mesh.vtp`` (or ``.h5``) with the scene
 (``scene.vtp``, grey, translucent) and the sensor path (``path.vtp``).
 
+**Up.** Recordings' worlds are not all z up: 7-Scenes, 3DMatch and
+ScanNet-like exports keep the first camera's frame (y down). :func:`view_up`
+takes up from ``up`` when given (``--up z``, ``--up=-y`` or ``--up x,y,z``),
+else from the run's cameras: the mean of each camera's up (-y of its OpenCV
+axes, -R[:, 1] of world_from_camera; +z of a LiDAR's own axes, from
+``[sensor] kind = "lidar"`` of the run's ``config.toml``) over the run's
+``poses.npy`` (or an ``.h5`` map's own poses), normalised. A mean within
+:data:`SNAP_DEGREES` of a world axis is that axis (a circling camera's pitch
+does not tilt a simulated world's z; the first camera of a y-down world was
+held about level), and a mean shorter than :data:`MIN_MEAN_UP` (cameras
+rolled every way) or no poses (a map file alone) give the world's +z. No
+supported layout carries a gravity vector, so none is read. ``view`` says
+which up it used (``up: -y, the cameras' mean up (...) snapped``).
+
 **Framing.** By default the camera looks at the map's bounding box from
-above and aside (:data:`VIEW_AZIMUTH` degrees about z from the -y side,
-:data:`VIEW_ELEVATION` above the horizon) with a parallel projection, and is
+above and aside (:data:`VIEW_AZIMUTH` degrees about up from the first of
+:func:`horizon_axes`, towards minus the second: from the -y side when up is
+z, from the -z side when up is -y; :data:`VIEW_ELEVATION` above the horizon)
+with a parallel projection, the world's up up the picture, and is
 fitted to the box's eight corners so they fill :data:`FILL` of the picture's
 width or height, whichever binds: the map, not the scene or the path (which
 may reach far beyond it), sets the frame. A parallel projection has one
@@ -87,17 +103,141 @@ def face_colours(mesh_map, colour: str) -> tuple[np.ndarray | None, np.ndarray |
     raise ConfigError(f"unknown colour {colour!r}: use frame, normal or a layer of this map ({', '.join(layers) or 'none'})")
 
 
-#: The default view: degrees about world z (0 = looking from +x; -60: from the -y side, a little to +x) and above the horizon.
+#: The default view: degrees about up (0 = looking from the horizon's first axis, +x when up is z; -60: from
+#: the -y side, a little to +x) and above the horizon.
 VIEW_AZIMUTH = -60.0
 VIEW_ELEVATION = 35.0
 #: The share of the picture's width or height (whichever binds) the map's projected bounding box fills.
 FILL = 0.85
+#: The cameras' mean up within this many degrees of a world axis (+-x, +-y, +-z) is taken as that axis.
+SNAP_DEGREES = 20.0
+#: The length of the mean of the cameras' unit up vectors below which they disagree too much to say up (+z then).
+MIN_MEAN_UP = 0.3
+Z_UP = np.array([0.0, 0.0, 1.0])
+_AXES = {"x": 0, "y": 1, "z": 2}
 
 
-def view_direction(azimuth: float = VIEW_AZIMUTH, elevation: float = VIEW_ELEVATION) -> np.ndarray:
-    """Unit vector from the map's centre towards the camera (world frame, z up)."""
+def parse_up(text: str) -> np.ndarray:
+    """The unit world vector of ``--up``: an axis (``z``, ``+z``, ``-y``) or three numbers ``x,y,z``."""
+    name = str(text).strip().lower()
+    sign = -1.0 if name.startswith("-") else 1.0
+    if name.lstrip("+-") in _AXES and len(name) <= 2:
+        up = np.zeros(3)
+        up[_AXES[name.lstrip("+-")]] = sign
+        return up
+    try:
+        up = np.array([float(value) for value in name.split(",")], dtype=np.float64)
+    except ValueError:
+        up = np.zeros(0)
+    if up.shape != (3,) or not np.all(np.isfinite(up)) or np.linalg.norm(up) < 1e-9:
+        raise ConfigError(f"view: --up {text!r}: give an axis (x, y, z, -y, ...) or three numbers x,y,z, not all zero")
+    return up / np.linalg.norm(up)
+
+
+def cameras_up(poses, axes: str = "camera") -> np.ndarray | None:
+    """The mean of the sensors' up vectors in the world over ``poses`` ((N, 4, 4) world_from_sensor), unnormalised.
+
+    A camera's up is -y of its OpenCV axes (-R[:, 1]); a LiDAR's (``axes="lidar"``: x forward, y left, z up) its
+    +z (R[:, 2]). Unit vectors averaged: the length (0 .. 1) says how far they agree. None without poses.
+    """
+    poses = np.asarray(poses, dtype=np.float64) if poses is not None else np.zeros((0, 4, 4))
+    if poses.ndim != 3 or poses.shape[1:] != (4, 4) or len(poses) == 0:
+        return None
+    ups = poses[:, :3, 2] if axes == "lidar" else -poses[:, :3, 1]
+    ups = ups[np.all(np.isfinite(ups), axis=1)]
+    lengths = np.linalg.norm(ups, axis=1)
+    ups = ups[lengths > 1e-9] / lengths[lengths > 1e-9, None]
+    return ups.mean(axis=0) if len(ups) else None
+
+
+def _vector(up: np.ndarray) -> str:
+    return "(" + ", ".join(f"{round(float(value), 2) + 0.0:.2f}" for value in up) + ")"  # + 0.0: no -0.00
+
+
+def _axis_name(up: np.ndarray) -> str | None:
+    """``+z``, ``-y``, ... when ``up`` is exactly a world axis, else None."""
+    index = int(np.argmax(np.abs(up)))
+    if abs(up[index]) != 1.0:
+        return None
+    return ("+" if up[index] > 0 else "-") + "xyz"[index]
+
+
+def up_from_poses(poses, axes: str = "camera") -> tuple[np.ndarray, str]:
+    """(up, why): the unit world vector the sensors' mean up gives (module docs: snapped to a world axis within
+    :data:`SNAP_DEGREES`, +z when shorter than :data:`MIN_MEAN_UP` or without poses) and the line that says so."""
+    mean = cameras_up(poses, axes)
+    sensors = "LiDAR's" if axes == "lidar" else "cameras'"
+    if mean is None:
+        return Z_UP.copy(), "up: +z (the world's: no poses to take it from; --up sets it)"
+    length = float(np.linalg.norm(mean))
+    if length < MIN_MEAN_UP:
+        return Z_UP.copy(), (
+            f"up: +z (the world's: the {sensors} up vectors disagree, their mean {_vector(mean)} is {length:.2f} long; "
+            "--up sets it)"
+        )
+    mean = mean / length
+    index = int(np.argmax(np.abs(mean)))
+    off = float(np.degrees(np.arccos(min(abs(mean[index]), 1.0))))
+    if off <= SNAP_DEGREES:
+        axis = np.zeros(3)
+        axis[index] = np.sign(mean[index])
+        return axis, f"up: {_axis_name(axis)}, the {sensors} mean up {_vector(mean)} snapped ({off:.0f} degrees off)"
+    return mean, f"up: {_vector(mean)}, the {sensors} mean up"
+
+
+def _sensor_axes(folder: Path) -> str:
+    """``"lidar"`` when the run's ``config.toml`` says ``[sensor] kind = "lidar"`` (its poses are then the LiDAR's
+    own axes), else ``"camera"``."""
+    import tomllib
+
+    config = folder / "config.toml"
+    if not config.is_file():
+        return "camera"
+    try:
+        kind = tomllib.loads(config.read_text()).get("sensor", {}).get("kind")
+    except (tomllib.TOMLDecodeError, OSError, AttributeError):
+        return "camera"
+    return "lidar" if kind == "lidar" else "camera"
+
+
+def view_up(path, up=None, mesh_map=None) -> tuple[np.ndarray, str]:
+    """(up, line): the world's up direction (unit vector) for viewing a run folder or map file, and the line that
+    says where it came from (module docs). ``up``: the ``--up`` text or a vector, taken as given; ``mesh_map``:
+    the map already loaded from a map file (its own poses, an ``.h5``'s)."""
+    if up is not None:
+        vector = parse_up(up) if isinstance(up, str) else parse_up(",".join(str(float(v)) for v in np.ravel(up)))
+        name = _axis_name(vector)
+        return vector, f"up: {name if name else _vector(vector)}, given"
+    path = Path(path)
+    if path.is_dir():
+        poses_file = path / "poses.npy"
+        poses = np.load(poses_file, allow_pickle=False) if poses_file.is_file() else None
+        return up_from_poses(poses, _sensor_axes(path))
+    if mesh_map is None:
+        mesh_map = load_map(path)
+    return up_from_poses(mesh_map.poses, _sensor_axes(path.parent))
+
+
+def horizon_axes(up) -> tuple[np.ndarray, np.ndarray]:
+    """(first, second): unit vectors across the horizon of ``up`` with (first, second, up) right-handed. The first
+    is the world axis most across ``up`` (x before y before z on a tie), made level: x and y when up is +z;
+    x and z when up is -y (so the default view comes from -z, behind a y-down world's first camera)."""
+    up = np.asarray(up, dtype=np.float64)
+    up = up / np.linalg.norm(up)
+    index = int(np.argmin(np.round(np.abs(up), 12)))
+    first = np.eye(3)[index] - up * up[index]
+    first /= np.linalg.norm(first)
+    return first, np.cross(up, first)
+
+
+def view_direction(azimuth: float = VIEW_AZIMUTH, elevation: float = VIEW_ELEVATION, up=Z_UP) -> np.ndarray:
+    """Unit vector (world frame) from the map's centre towards the camera: ``azimuth`` degrees about ``up`` from
+    the first of :func:`horizon_axes`, ``elevation`` degrees above the horizon."""
+    up = np.asarray(up, dtype=np.float64)
+    up = up / np.linalg.norm(up)
+    first, second = horizon_axes(up)
     a, e = np.radians(azimuth), np.radians(elevation)
-    return np.array([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)])
+    return np.cos(e) * (np.cos(a) * first + np.sin(a) * second) + np.sin(e) * up
 
 
 def box_corners(bounds) -> np.ndarray:
@@ -106,13 +246,15 @@ def box_corners(bounds) -> np.ndarray:
     return np.array([[a, b, c] for a in x for b in y for c in z], dtype=np.float64)
 
 
-def fit_parallel_camera(camera, bounds, aspect: float, direction=None, fill: float = FILL) -> float:
-    """Point a parallel-projection ``vtkCamera`` along -``direction`` at the box ``bounds`` so its eight corners
-    fill ``fill`` of the picture's width or height (``aspect`` = width / height); returns metres per unit of
-    picture height (2 x the parallel scale)."""
-    direction = view_direction() if direction is None else np.asarray(direction, dtype=np.float64)
+def fit_parallel_camera(camera, bounds, aspect: float, direction=None, fill: float = FILL, up=Z_UP) -> float:
+    """Point a parallel-projection ``vtkCamera`` along -``direction`` (default: :func:`view_direction` about
+    ``up``) at the box ``bounds`` so its eight corners fill ``fill`` of the picture's width or height (``aspect`` =
+    width / height), the world's ``up`` up the picture; returns metres per unit of picture height (2 x the
+    parallel scale)."""
+    up = np.asarray(up, dtype=np.float64)
+    up = up / np.linalg.norm(up)
+    direction = view_direction(up=up) if direction is None else np.asarray(direction, dtype=np.float64)
     direction = direction / np.linalg.norm(direction)
-    up = np.array([0.0, 0.0, 1.0])
     right = np.cross(up, direction)
     right /= np.linalg.norm(right)
     screen_up = np.cross(direction, right)
@@ -198,11 +340,13 @@ def _frame_pose(run_folder: Path | None, frame: int):
 
 def view(
     path, colour: str = "frame", screenshot=None, window_size=(1280, 800), interactive: bool | None = None,
-    from_frame: int | None = None,
+    from_frame: int | None = None, up=None, log=None,
 ) -> Path | None:
     """Show a map file or run folder; without a display (or with ``screenshot``) write a PNG and return its path.
 
-    The camera frames the map (see the module docs), or looks from the pose of frame ``from_frame`` of a run.
+    The camera frames the map (see the module docs) with ``up`` (``--up`` text, a vector, or None: from the run,
+    :func:`view_up`) up the picture, or looks from the pose of frame ``from_frame`` of a run. ``log`` (a callable
+    taking a line, e.g. ``print``) is told which up was used.
     """
     import pyvista as pv
 
@@ -221,6 +365,12 @@ def view(
     if mesh_map.number_of_faces == 0:
         raise ConfigError(f"view: {map_file} is an empty map (no triangles): nothing to show")
     rgb, scalars, where = face_colours(mesh_map, colour)
+    if pose is None:
+        up_vector, line = view_up(path, up, mesh_map)
+        if log is not None:
+            log(line)
+    elif up is not None:
+        view_up(path, up)  # checked, though the frame's pose sets the picture's up
     mesh = pv.wrap(mesh_map.to_polydata())
     interactive = has_display() and screenshot is None if interactive is None else interactive
     plotter = pv.Plotter(off_screen=not interactive, window_size=list(window_size))
@@ -246,7 +396,7 @@ def view(
         plotter.renderer.ResetCameraClippingRange()
         title += f", from frame {from_frame}"
     else:
-        metres = fit_parallel_camera(plotter.camera, bounds, window_size[0] / window_size[1])
+        metres = fit_parallel_camera(plotter.camera, bounds, window_size[0] / window_size[1], up=up_vector)
         plotter.renderer.ResetCameraClippingRange()  # the scene and the path, where they reach past the map, too
         _add_scale_bar(plotter, metres, window_size)
     plotter.add_text(title, font_size=10, color="black")
