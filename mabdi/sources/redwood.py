@@ -4,7 +4,8 @@ The layout (the Redwood indoor scenes, and what Open3D's reconstruction
 system reads and writes):
 
 * ``depth/*.png``: 16-bit PNG in millimetres (:data:`DEPTH_SCALE`), 0 = no
-  return; frames are the images in file-name order;
+  return; frames are the images in file-name order, numbers compared as
+  numbers (``2.png`` before ``10.png``), of the camera's size;
 * ``color/*.png`` or ``.jpg`` (also ``image/`` or ``rgb/``): colour images, as
   many as depth images, optional;
 * ``trajectory.log`` (or the folder's only ``*.log``), Redwood's log format:
@@ -39,7 +40,7 @@ from mabdi.sources.image_sequence import (
     write_colour_png,
     write_range_metadata,
 )
-from mabdi.sources.sequence_files import SequenceError, prepare_folder
+from mabdi.sources.sequence_files import SequenceError, camera_origin, check_depth_size, natural_sorted, prepare_folder
 from mabdi.sources.tum import write_depth_png
 
 #: Depth units per metre: millimetres.
@@ -109,7 +110,7 @@ def camera_file(folder: Path) -> Path | None:
 
 
 def _images(folder: Path) -> list[Path]:
-    return sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES) if folder.is_dir() else []
+    return natural_sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES) if folder.is_dir() else []
 
 
 class RedwoodSequence(ImageSequence):
@@ -139,6 +140,9 @@ class RedwoodSequence(ImageSequence):
         json_file = camera_file(path)
         found = read_camera_json(json_file) if json_file is not None else None
         intrinsics = resolve_intrinsics(path, found, camera, {}, self.layout)
+        origin = None if json_file is None else f"{json_file} says width {found.width}, height {found.height}"
+        if camera is None:  # a camera given is checked against each image as it is read
+            check_depth_size(intrinsics, depth_files[0], camera_origin(path, origin), path)
         self._setup(
             path, depth_files, poses, sources, intrinsics, DEPTH_SCALE if depth_scale is None else depth_scale, NO_RETURN,
             colour_files,

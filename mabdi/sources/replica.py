@@ -8,7 +8,8 @@ The layout (``Replica/room0`` and the other scenes of NICE-SLAM's download):
 * ``traj.txt``: one 4x4 camera-to-world matrix a line, 16 numbers row-major;
   the camera frame is OpenCV's (x right, y down, z forward: NICE-SLAM flips
   y and z only for its own renderer), so it is mabdi's ``world_from_camera``
-  as it is. Line k is the pose of the k-th depth image (in name order).
+  as it is. Line k is the pose of the k-th depth image (in name order,
+  numbers compared as numbers: ``depth2`` before ``depth10``).
 * no camera file: the intrinsics come from a ``mabdi.toml`` ``[camera]``
   table, or ``camera=`` (``--camera``): ``replica`` is the camera of
   NICE-SLAM's ``replica.yaml`` (1200x680, f = 600, cx 599.5, cy 339.5 with
@@ -28,7 +29,7 @@ from mabdi.camera import Intrinsics
 from mabdi.io.atomic import write_text
 from mabdi.sources.frames import FrameSource
 from mabdi.sources.image_sequence import ImageSequence, matching_files, read_number_rows, resolve_intrinsics, write_colour_png
-from mabdi.sources.sequence_files import SequenceError, prepare_folder, write_metadata
+from mabdi.sources.sequence_files import SequenceError, camera_origin, check_depth_size, natural_sorted, prepare_folder, write_metadata
 from mabdi.sources.tum import write_depth_png
 
 #: Depth units per metre (NICE-SLAM's ``png_depth_scale``).
@@ -64,7 +65,7 @@ class ReplicaSequence(ImageSequence):
         path = Path(path)
         if not is_replica(path):
             raise SequenceError(f"{self.layout} {path}: needs traj.txt and a results/ folder")
-        depth_files = sorted((path / "results").glob("depth*.png"))
+        depth_files = natural_sorted((path / "results").glob("depth*.png"))
         if not depth_files:
             raise SequenceError(f"{self.layout} {path}: no results/depth*.png")
         poses, sources = read_traj(path / TRAJECTORY_FILE)
@@ -73,6 +74,8 @@ class ReplicaSequence(ImageSequence):
         stems = ["frame" + file.stem[len("depth") :] for file in depth_files]
         colour_files = matching_files(path / "results", stems, COLOUR_SUFFIXES)
         intrinsics = resolve_intrinsics(path, None, camera, PRESETS, self.layout)
+        if camera is None:  # a camera given is checked against each image as it is read
+            check_depth_size(intrinsics, depth_files[0], camera_origin(path, None), path)
         self._setup(
             path, depth_files, poses, sources, intrinsics, DEPTH_SCALE if depth_scale is None else depth_scale, NO_RETURN,
             colour_files,

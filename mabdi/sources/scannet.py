@@ -10,7 +10,9 @@ The layout (``python reader.py --export_depth_images --export_poses
   are skipped and counted;
 * ``intrinsic/intrinsic_depth.txt``: the depth camera's 4x4 matrix whose
   upper-left 3x3 is K (pixel centres at integers: mabdi's cx, cy are K's
-  + 0.5); the image size is the depth images';
+  + 0.5); the image size is the depth images' (refused, naming both sizes,
+  when K's principal point is far from their centre: images of another
+  resolution than K's);
 * ``color/N.jpg`` (or ``.png``), optional, with
   ``intrinsic/intrinsic_color.txt``: ScanNet's colour camera is larger
   (1296x968) than its depth camera (640x480); the exporter's frames share
@@ -39,7 +41,14 @@ from mabdi.sources.image_sequence import (
     write_colour_png,
     write_range_metadata,
 )
-from mabdi.sources.sequence_files import SequenceError, prepare_folder
+from mabdi.sources.sequence_files import (
+    SequenceError,
+    camera_origin,
+    check_depth_size,
+    matrix_image_size,
+    matrix_origin,
+    prepare_folder,
+)
 from mabdi.sources.tum import write_depth_png
 
 #: Depth units per metre: millimetres.
@@ -75,11 +84,14 @@ class ScanNetSequence(ImageSequence):
         depth_files = [depth[n] for n in numbers]
         pose_files = [path / "pose" / f"{n}.txt" for n in numbers]
         poses = np.array([read_matrix_file(file, 4, 4, "pose") for file in pose_files])
-        width, height = png_size(depth_files[0])
-        found = None
+        found = origin = None
         if (path / DEPTH_INTRINSICS).is_file():
-            found = intrinsics_from_matrix(read_matrix_file(path / DEPTH_INTRINSICS, 3, 3, "camera matrix"), width, height, path / DEPTH_INTRINSICS)
+            matrix = read_matrix_file(path / DEPTH_INTRINSICS, 3, 3, "camera matrix")
+            found = intrinsics_from_matrix(matrix, *matrix_image_size(matrix, png_size(depth_files[0])), path / DEPTH_INTRINSICS)
+            origin = matrix_origin(path / DEPTH_INTRINSICS, found)
         intrinsics = resolve_intrinsics(path, found, camera, {}, self.layout)
+        if camera is None:  # a camera given is checked against each image as it is read
+            check_depth_size(intrinsics, depth_files[0], camera_origin(path, origin), path)
         colour_files = colour_camera = None
         for suffix in COLOUR_SUFFIXES:
             colour = _numbered(path / "color", suffix)

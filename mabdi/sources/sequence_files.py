@@ -9,9 +9,15 @@ any of them, sits above them all and re-exports these names.
 ``mabdi.toml``: any sequence may carry one in its folder with a ``[camera]``
 table (intrinsics in mabdi's conventions: pixel (u, v) has its centre at
 (u + 0.5, v + 0.5); focal lengths and principal point in pixels, near and far
-in metres) and any other tables a writer put there (``[recorded]`` with the
-scene a simulated sequence came from, for example);
-:func:`read_sequence_metadata` returns them.
+in metres), optionally a ``[sequence]`` table whose ``format`` names the
+format to read the folder as (for a folder holding the files of two), and
+any other tables a writer put there (``[recorded]`` with the scene a
+simulated sequence came from, for example); :func:`read_sequence_metadata`
+returns them.
+
+A depth image of another size than its camera's is refused
+(:func:`check_depth_size`), and frames numbered without zero padding are
+listed in natural order (:func:`natural_sorted`).
 
 Pillow is imported inside the functions that use it (a start-up memory
 choice: ``import mabdi`` and a run of a simulated scene do not load it).
@@ -21,6 +27,8 @@ from __future__ import annotations
 
 import dataclasses
 import io
+import re
+import struct
 import tomllib
 from pathlib import Path
 
@@ -88,6 +96,92 @@ def intrinsics_with(base: Intrinsics | None, table: dict, file) -> Intrinsics:
         raise SequenceError(f"{file}: [camera]: {exc}") from None
 
 
+def camera_from_text(text: str, where) -> Intrinsics:
+    """:class:`Intrinsics` of ``"fx,fy,cx,cy,width,height"`` (mabdi's pixel centres, as in ``mabdi.toml``)."""
+    try:
+        values = [float(field) for field in text.split(",")]
+        if len(values) != 6:
+            raise ValueError
+        return Intrinsics(*values[:4], width=int(values[4]), height=int(values[5]))
+    except (ValueError, TypeError) as exc:
+        detail = f": {exc}" if str(exc) else ""
+        raise SequenceError(f"{where}: camera {text!r} is not fx,fy,cx,cy,width,height{detail}") from None
+
+
+# ---------------------------------------------------------------------------
+# The depth images' size against the camera's
+
+
+def depth_png_size(path) -> tuple[int, int]:
+    """(width, height) of a depth PNG from its header, or a :class:`SequenceError` naming it."""
+    try:
+        with open(path, "rb") as stream:
+            head = stream.read(24)
+    except FileNotFoundError:
+        raise SequenceError(f"{path}: depth image missing") from None
+    except OSError as exc:
+        raise SequenceError(f"{path}: cannot read depth PNG: {exc}") from None
+    if head[:8] != b"\x89PNG\r\n\x1a\n" or head[12:16] != b"IHDR":
+        raise SequenceError(f"{path}: cannot read depth PNG: no PNG header")
+    return struct.unpack(">II", head[16:24])
+
+
+def matrix_image_size(matrix, size: tuple[int, int]) -> tuple[int, int]:
+    """The image size a camera matrix K (integer pixel centres) without one is for: ``size`` (the depth images')
+    when K's principal point lies within an eighth of it from its centre, as every real camera's does; else the
+    size whose centre the principal point is (round(2 cx), round(2 cy) in mabdi's pixel centres), which
+    :func:`check_depth_size` then refuses against the images."""
+    k = np.asarray(matrix, dtype=np.float64)
+    centre = np.array([k[0, 2], k[1, 2]]) + 0.5
+    extent = np.asarray(size, dtype=np.float64)
+    if np.all(np.abs(centre - extent / 2) <= extent / 8):
+        return int(size[0]), int(size[1])
+    implied = np.rint(2 * centre)
+    if not np.isfinite(implied).all():
+        return int(size[0]), int(size[1])  # Intrinsics names the bad principal point
+    return max(int(implied[0]), 1), max(int(implied[1]), 1)
+
+
+def matrix_origin(file, intrinsics: Intrinsics) -> str:
+    """Words for a camera matrix file without an image size, whose size :func:`matrix_image_size` gave."""
+    return (
+        f"{file} gives no size; its principal point ({intrinsics.cx:g}, {intrinsics.cy:g}) is the centre of a "
+        f"{intrinsics.width}x{intrinsics.height} image"
+    )
+
+
+def camera_origin(folder, found: str | None) -> str:
+    """Words for where a sequence's camera size comes from when no ``camera=`` is given: the ``[camera]``
+    table of its ``mabdi.toml``, else ``found`` (the layout's own file)."""
+    file = metadata_path(folder)
+    table = read_sequence_metadata(folder).get("camera", {})
+    if isinstance(table, dict) and ("width" in table or "height" in table):
+        return f"the [camera] table of {file}"
+    if isinstance(table, dict) and "preset" in table:
+        return f"camera.preset {table['preset']} in {file}"
+    return found or "the default camera"
+
+
+#: What to do about a depth image of another size than its camera's (the end of the messages that say so).
+GIVE_THE_CAMERA = (
+    "give the camera of these images: --camera fx,fy,cx,cy,width,height (camera= in Python; mabdi's pixel "
+    "centres, +0.5 on OpenCV's cx, cy) or a [camera] table (fx, fy, cx, cy, width, height) in"
+)
+
+
+def check_depth_size(intrinsics: Intrinsics, depth_file, origin: str, folder) -> None:
+    """A :class:`SequenceError` unless the depth image ``depth_file`` is ``intrinsics``' size; the message names
+    both sizes, where the camera came from (``origin``) and how to give the right one (``folder``: the
+    sequence's, where its ``mabdi.toml`` goes)."""
+    width, height = depth_png_size(depth_file)
+    if (width, height) == (intrinsics.width, intrinsics.height):
+        return
+    raise SequenceError(
+        f"{depth_file}: image is {width}x{height}, intrinsics say {intrinsics.width}x{intrinsics.height} ({origin}); "
+        f"a depth image read with another size's camera makes a distorted map: {GIVE_THE_CAMERA} {metadata_path(folder)}"
+    )
+
+
 # ---------------------------------------------------------------------------
 # Writing mabdi.toml
 
@@ -126,6 +220,19 @@ def write_metadata(folder, intrinsics: Intrinsics, extra: dict | None = None) ->
 
 # ---------------------------------------------------------------------------
 # Helpers shared by the readers and writers
+
+
+def natural_key(name) -> tuple:
+    """Sort key of a file name (or path) with its numbers compared as numbers: ``frame-2`` before ``frame-10``."""
+    text = str(name)
+    parts = re.split(r"(\d+)", text)
+    return tuple(int(part) if i % 2 else part for i, part in enumerate(parts)), text
+
+
+def natural_sorted(names) -> list:
+    """``names`` (strings or paths) in natural order (:func:`natural_key`), as dataset tools list frames
+    numbered without zero padding (``frame-1``, ``frame-2``, ..., ``frame-10``)."""
+    return sorted(names, key=natural_key)
 
 
 def nearest_within(query, reference, tolerance: float):

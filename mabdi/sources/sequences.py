@@ -18,7 +18,10 @@ Formats read and written (each a :class:`~mabdi.sources.frames.FrameSource`):
 :func:`sequence_format`: ``depth.txt`` is TUM; ``metadata.yaml`` or a
 ``.db3`` / ``.mcap`` is a bag; ``velodyne/`` with ``poses.txt`` is KITTI; ``traj.txt`` with ``results/`` is Replica;
 ``depth/`` with ``pose/`` is ScanNet; ``depth/`` with a ``.log`` is Redwood;
-``frame-*.depth.png`` (here or in ``seq-*`` folders) is 3DMatch.
+``frame-*.depth.png`` (here or in ``seq-*`` folders) is 3DMatch. A folder
+that holds the files of two formats is read as the first, with a warning
+naming the other; a ``[sequence]`` table in its ``mabdi.toml`` with
+``format = "3dmatch"`` (a name in :data:`FORMATS`) chooses.
 
 This module sits above the format modules. What they share (the
 ``mabdi.toml`` a sequence may carry beside it, :class:`SequenceError`, pose
@@ -29,6 +32,7 @@ below them all, and re-exported here.
 from __future__ import annotations
 
 import importlib
+import warnings
 from pathlib import Path
 
 from mabdi.camera import quaternions_from_rotations  # re-exported (it was defined here)
@@ -116,37 +120,99 @@ _WHAT_IS_READ = (
 )
 
 
-def sequence_format(path) -> str:
-    """The name in :data:`FORMATS` of the sequence at ``path``, or a :class:`SequenceError` saying what was found."""
-    path = Path(path)
+#: What shows each format in a folder, for messages.
+_CLUES = {
+    "tum": "depth.txt",
+    "rosbag2": "metadata.yaml, .db3 or .mcap",
+    "kitti": "velodyne/ and poses.txt",
+    "replica": "results/ and traj.txt",
+    "scannet": "depth/ and pose/",
+    "redwood": "depth/ and a .log",
+    "3dmatch": "frame-*.depth.png",
+}
+
+
+def _formats_in(folder: Path) -> list[str]:
+    """Every format whose files the folder holds, in the order :func:`sequence_format` tries them."""
+    found = []
+    if (folder / "depth.txt").is_file():
+        found.append("tum")
+    if (folder / "metadata.yaml").is_file() or any(folder.glob("*.db3")) or any(folder.glob("*.mcap")):
+        found.append("rosbag2")
+    for name, test in (("kitti", is_kitti), ("replica", is_replica), ("scannet", is_scannet), ("redwood", is_redwood), ("3dmatch", is_3dmatch)):
+        if test(folder):
+            found.append(name)
+    return found
+
+
+def _named_format(folder: Path) -> str | None:
+    """The format a ``[sequence]`` table of the folder's ``mabdi.toml`` names (``format = "..."``), or None."""
+    table = read_sequence_metadata(folder).get("sequence")
+    if table is None:
+        return None
+    file = metadata_path(folder)
+    if not isinstance(table, dict):
+        raise SequenceError(f"{file}: 'sequence' must be a table")
+    for key in table:
+        if key != "format":
+            raise SequenceError(f"{file}: unknown key 'sequence.{key}' (known: format)")
+    name = table.get("format")
+    if name is None:
+        return None
+    if name not in FORMATS:
+        raise SequenceError(f"{file}: 'sequence.format' is {name!r}; known formats: {', '.join(FORMATS)}")
+    return name
+
+
+def _choose_format(path: Path) -> tuple[str, list[str]]:
+    """The format of the sequence at ``path`` and the others whose files it also holds (none when the
+    ``mabdi.toml`` names the format)."""
     if not path.exists():
         raise SequenceError(f"recorded sequence {path} does not exist")
     if path.is_file():
         if path.suffix in (".db3", ".mcap"):
-            return "rosbag2"
+            return "rosbag2", []
         raise SequenceError(f"{path}: not a recorded sequence (expected {_WHAT_IS_READ})")
-    if (path / "depth.txt").is_file():
-        return "tum"
-    if (path / "metadata.yaml").is_file() or any(path.glob("*.db3")) or any(path.glob("*.mcap")):
-        return "rosbag2"
-    for name, test in (("kitti", is_kitti), ("replica", is_replica), ("scannet", is_scannet), ("redwood", is_redwood), ("3dmatch", is_3dmatch)):
-        if test(path):
-            return name
-    raise SequenceError(f"{path}: not a recorded sequence: expected {_WHAT_IS_READ}")
+    named = _named_format(path)
+    if named is not None:
+        return named, []
+    found = _formats_in(path)
+    if not found:
+        raise SequenceError(f"{path}: not a recorded sequence: expected {_WHAT_IS_READ}")
+    return found[0], found[1:]
+
+
+def sequence_format(path) -> str:
+    """The name in :data:`FORMATS` of the sequence at ``path``, or a :class:`SequenceError` saying what was found.
+
+    A folder's ``mabdi.toml`` may name it (``[sequence]`` ``format = "..."``);
+    else the first format whose files the folder holds, in the module docs' order.
+    """
+    return _choose_format(Path(path))[0]
 
 
 def open_sequence(path, **options):
     """Open a recorded depth sequence as a :class:`~mabdi.sources.frames.FrameSource`, whatever its format.
 
-    :func:`sequence_format` tells the formats apart (:data:`FORMATS`);
+    :func:`sequence_format` tells the formats apart (:data:`FORMATS`), with a
+    warning when a folder holds the files of another format too;
     ``options`` go to that reader (``camera=``, ``depth_scale=``,
     ``tolerance=`` for TUM; ``camera=``, ``depth_scale=`` for the dataset
     layouts; ``depth_topic=``, ``pose_topic=``, ``cloud_topic=``, ... for bags).
     """
-    kind = sequence_format(path)
+    path = Path(path)
+    kind, others = _choose_format(path)
+    if others:
+        also = "; ".join(f"a {FORMATS[other][0]} ({_CLUES[other]})" for other in others)
+        warnings.warn(
+            f"{path}: read as a {FORMATS[kind][0]} ({_CLUES[kind]}), but it also holds {also}; to read it as "
+            f'the {FORMATS[others[0]][0]}, put [sequence] format = "{others[0]}" in {metadata_path(path)} '
+            f"(the formats: {', '.join(FORMATS)})",
+            UserWarning,
+            stacklevel=2,
+        )
     _, module, name = FORMATS[kind]
     reader = getattr(importlib.import_module(module), name)
-    path = Path(path)
     if kind == "rosbag2" and path.is_dir() and not (path / "metadata.yaml").is_file():
         files = sorted(path.glob("*.db3")) + sorted(path.glob("*.mcap"))
         if len(files) != 1:

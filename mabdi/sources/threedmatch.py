@@ -15,9 +15,13 @@ The layout (Microsoft's 7-Scenes, and 3DMatch's RGB-D scenes built on it):
   published camera (585, 585, 320, 240).
 
 PATH may be one sequence (a folder of ``frame-*.depth.png``) or the scene
-folder: its ``seq-*`` sequences are read one after the other, in name
-order, as one run (the datasets' poses of one scene share its world frame).
-Frames are taken in file-name order. Everything else is
+folder: its ``seq-*`` sequences are read one after the other, in natural
+name order, as one run (the datasets' poses of one scene share its world frame).
+Frames are taken in file-name order, numbers compared as numbers
+(``frame-2`` before ``frame-10``, as ``seq-2`` before ``seq-10``). K holds no
+image size: the depth images' is taken when K's principal point lies near
+their centre, and images of another size (K's principal point far from their
+centre: twice or half the camera's resolution) are refused, naming both sizes. Everything else is
 :mod:`mabdi.sources.image_sequence`'s (poses with NaN or infinity skipped
 and counted, ``mabdi.toml``, ``camera=``, colour).
 """
@@ -43,7 +47,15 @@ from mabdi.sources.image_sequence import (
     write_colour_png,
     write_range_metadata,
 )
-from mabdi.sources.sequence_files import SequenceError, prepare_folder
+from mabdi.sources.sequence_files import (
+    SequenceError,
+    camera_origin,
+    check_depth_size,
+    matrix_image_size,
+    matrix_origin,
+    natural_sorted,
+    prepare_folder,
+)
 from mabdi.sources.tum import write_depth_png
 from mabdi.io.atomic import write_text
 
@@ -65,7 +77,7 @@ def sequence_folders(path: Path) -> list[Path]:
     path = Path(path)
     if any(path.glob("frame-*" + DEPTH_SUFFIX)):
         return [path]
-    return sorted(p for p in path.glob("seq-*") if p.is_dir() and any(p.glob("frame-*" + DEPTH_SUFFIX)))
+    return natural_sorted(p for p in path.glob("seq-*") if p.is_dir() and any(p.glob("frame-*" + DEPTH_SUFFIX)))
 
 
 def is_3dmatch(path: Path) -> bool:
@@ -89,7 +101,7 @@ class ThreeDMatchSequence(ImageSequence):
             raise SequenceError(f"{self.layout} {path}: no frame-*{DEPTH_SUFFIX} here nor in a seq-* folder")
         depth_files, poses, sources, colour_files = [], [], [], []
         for folder in folders:
-            files = sorted(folder.glob("frame-*" + DEPTH_SUFFIX))
+            files = natural_sorted(folder.glob("frame-*" + DEPTH_SUFFIX))
             stems = [file.name[: -len(DEPTH_SUFFIX)] for file in files]
             for stem in stems:
                 pose_file = folder / (stem + POSE_SUFFIX)
@@ -98,13 +110,17 @@ class ThreeDMatchSequence(ImageSequence):
             colours = matching_files(folder, stems, COLOUR_SUFFIXES)
             colour_files = None if colours is None or colour_files is None else colour_files + colours
             depth_files += files
-        width, height = png_size(depth_files[0])
-        found = None
+        found = origin = None
         for folder in (folders[0], folders[0].parent):
-            if (folder / INTRINSICS_FILE).is_file():
-                found = intrinsics_from_matrix(read_matrix_file(folder / INTRINSICS_FILE, 3, 3, "camera matrix"), width, height, folder / INTRINSICS_FILE)
+            file = folder / INTRINSICS_FILE
+            if file.is_file():
+                matrix = read_matrix_file(file, 3, 3, "camera matrix")
+                found = intrinsics_from_matrix(matrix, *matrix_image_size(matrix, png_size(depth_files[0])), file)
+                origin = matrix_origin(file, found)
                 break
         intrinsics = resolve_intrinsics(path, found, camera, PRESETS, self.layout)
+        if camera is None:  # a camera given is checked against each image as it is read
+            check_depth_size(intrinsics, depth_files[0], camera_origin(path, origin), path)
         self._setup(
             path, depth_files, np.array(poses), sources, intrinsics, DEPTH_SCALE if depth_scale is None else depth_scale,
             NO_RETURN, colour_files or None,

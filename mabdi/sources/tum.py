@@ -5,12 +5,15 @@ The layout (https://cvg.cit.tum.de/data/datasets/rgbd-dataset/file_formats):
 * ``depth/<timestamp>.png``: 16-bit single-channel PNG, 5000 units per
   metre (0.2 mm steps, at most 65535 / 5000 = 13.107 m), 0 = no return;
 * ``depth.txt``: lines ``timestamp filename`` (seconds; filename relative to
-  the folder), ``#`` starts a comment;
+  the folder), ``#`` starts a comment; a line repeated is read once, two
+  images at one timestamp are an error naming both lines;
 * ``rgb/<timestamp>.png`` and ``rgb.txt`` (lines ``timestamp filename``),
   optional: the colour images, registered to the depth images;
 * ``groundtruth.txt``: lines ``timestamp tx ty tz qx qy qz qw``: the position
   (metres) and orientation (unit quaternion, scalar last) of the camera's
-  optical centre in the world (the motion-capture frame), ``#`` comments.
+  optical centre in the world (the motion-capture frame), ``#`` comments; a
+  sample repeated at its timestamp is read once, two that disagree (by more
+  than 1 mm or 0.1 degree) are an error naming both lines.
 
 **Poses.** A ground-truth line is the pose of the camera's *optical* frame
 (x right, y down, z forward, as OpenCV) in the world: it maps camera points
@@ -36,10 +39,12 @@ them so; the two cameras run at 30 Hz, a few milliseconds apart), read as
 8-bit RGB; frames whose nearest colour image is more than ``tolerance``
 away still get it, and are counted in ``description``.
 
-**Intrinsics** come from the ``camera=`` argument (an :class:`Intrinsics`
-or a preset name), else from the ``[camera]`` table of a ``mabdi.toml`` in
-the folder (keys fx, fy, cx, cy, width, height, near, far, and optionally
-``preset`` = a preset name whose values the other keys override). Values
+**Intrinsics** come from the ``camera=`` argument (an :class:`Intrinsics`,
+a preset name or ``"fx,fy,cx,cy,width,height"``), else from the
+``[camera]`` table of a ``mabdi.toml`` in the folder (keys fx, fy, cx, cy,
+width, height, near, far, and optionally ``preset`` = a preset name whose
+values the other keys override); depth images of another size than the
+camera's are refused when the folder is opened. Values
 are in mabdi's pixel convention: pixel (u, v) has its centre at
 (u + 0.5, v + 0.5). TUM's documentation (like ROS and OpenCV) puts pixel
 centres at integers, so principal points copied from it need cx + 0.5 and
@@ -66,8 +71,12 @@ from mabdi.sources.frames import FrameSource
 from mabdi.sources.png import decode_gray16_png
 from mabdi.sources.sequence_files import (
     METADATA_FILE,
+    GIVE_THE_CAMERA,
     SequenceError,
+    camera_from_text,
+    camera_origin,
     camera_table,
+    check_depth_size,
     frame_timestamps,
     intrinsics_with,
     metadata_path,
@@ -118,10 +127,17 @@ def read_tum_list(path: Path, columns: int) -> tuple[np.ndarray, list[list[str]]
     Every line must have exactly ``columns`` fields (timestamp included) and a
     numeric timestamp; otherwise a :class:`SequenceError` names the file and line.
     """
+    times, rows, _ = read_tum_lines(path, columns)
+    return times, rows
+
+
+def read_tum_lines(path: Path, columns: int) -> tuple[np.ndarray, list[list[str]], list[int]]:
+    """:func:`read_tum_list`'s timestamps and fields, and the line number of each."""
     if not path.is_file():
         raise SequenceError(f"TUM folder {path.parent}: missing {path.name}")
     times: list[float] = []
     rows: list[list[str]] = []
+    numbers: list[int] = []
     with open(path, encoding="utf-8", errors="replace") as stream:
         for number, line in enumerate(stream, start=1):
             line = line.split("#", 1)[0].strip()
@@ -138,12 +154,35 @@ def read_tum_list(path: Path, columns: int) -> tuple[np.ndarray, list[list[str]]
                 raise SequenceError(f"{path}:{number}: timestamp {fields[0]!r} is not finite")
             times.append(time)
             rows.append(fields[1:])
-    return np.array(times, dtype=np.float64), rows
+            numbers.append(number)
+    return np.array(times, dtype=np.float64), rows, numbers
+
+
+def repeated_times(times) -> list[tuple[int, int]]:
+    """(first, later) index pairs of the entries of ``times`` whose timestamp an earlier entry has."""
+    first: dict[float, int] = {}
+    pairs = []
+    for index, time in enumerate(np.asarray(times, dtype=np.float64).tolist()):
+        if time in first:
+            pairs.append((first[time], index))
+        else:
+            first[time] = index
+    return pairs
+
+
+#: Two ground-truth samples at one timestamp that agree within these are one sample written twice.
+SAME_SAMPLE_METRES = 1e-3
+SAME_SAMPLE_DEGREES = 0.1
 
 
 def read_groundtruth(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    """Timestamps (s) and (N, 4, 4) world_from_camera poses of a TUM ``groundtruth.txt``."""
-    times, rows = read_tum_list(path, 8)
+    """Timestamps (s) and (N, 4, 4) world_from_camera poses of a TUM ``groundtruth.txt``.
+
+    A sample repeated at its timestamp (within :data:`SAME_SAMPLE_METRES` and
+    :data:`SAME_SAMPLE_DEGREES`) is read once; two that disagree at one timestamp
+    are a :class:`SequenceError` naming their lines (which is the camera's is unknown).
+    """
+    times, rows, numbers = read_tum_lines(path, 8)
     values = np.empty((len(rows), 7), dtype=np.float64)
     for index, fields in enumerate(rows):
         try:
@@ -155,7 +194,35 @@ def read_groundtruth(path: Path) -> tuple[np.ndarray, np.ndarray]:
     bad = ~np.isfinite(values).all(axis=1) | (np.linalg.norm(values[:, 3:], axis=1) < 1e-9)
     if bad.any():
         raise SequenceError(f"{path}: pose at timestamp {float(times[np.argmax(bad)])!r} is not finite or has a zero quaternion")
-    return times, poses_from_translations_quaternions(values[:, :3], values[:, 3:])
+    poses = poses_from_translations_quaternions(values[:, :3], values[:, 3:])
+    repeated = repeated_times(times)
+    for first, later in repeated:
+        metres = float(np.linalg.norm(poses[first, :3, 3] - poses[later, :3, 3]))
+        cosine = (np.trace(poses[first, :3, :3].T @ poses[later, :3, :3]) - 1.0) / 2.0
+        degrees = float(np.degrees(np.arccos(np.clip(cosine, -1.0, 1.0))))
+        if metres > SAME_SAMPLE_METRES or degrees > SAME_SAMPLE_DEGREES:
+            raise SequenceError(
+                f"{path}: lines {numbers[first]} and {numbers[later]} give two poses at timestamp {float(times[first])!r}, "
+                f"{metres:.3g} m and {degrees:.3g} degrees apart: which is the camera's is unknown; remove one"
+            )
+    keep = np.setdiff1d(np.arange(len(times)), [later for _, later in repeated])
+    return times[keep], poses[keep]
+
+
+def read_depth_list(path: Path) -> tuple[np.ndarray, list[list[str]]]:
+    """Timestamps and fields of a ``depth.txt``. An image listed twice is read once; two images at one
+    timestamp are a :class:`SequenceError` naming their lines: the benchmark's tools (``associate.py``)
+    key frames by timestamp and would keep one silently, and which was taken then is unknown."""
+    times, rows, numbers = read_tum_lines(path, 2)
+    repeated = repeated_times(times)
+    for first, later in repeated:
+        if rows[first] != rows[later]:
+            raise SequenceError(
+                f"{path}: lines {numbers[first]} and {numbers[later]} list two depth images at timestamp "
+                f"{float(times[first])!r} ({rows[first][0]}, {rows[later][0]}): which was taken then is unknown; remove one"
+            )
+    keep = np.setdiff1d(np.arange(len(times)), [later for _, later in repeated])
+    return times[keep], [rows[i] for i in keep]
 
 
 def read_depth_units(path: Path, shape: tuple[int, int] | None) -> np.ndarray:
@@ -185,7 +252,10 @@ def read_depth_units(path: Path, shape: tuple[int, int] | None) -> np.ndarray:
                 raise
             raise SequenceError(f"{path}: cannot read depth PNG: {exc}") from None
     if shape is not None and raw.shape != tuple(shape):
-        raise SequenceError(f"{path}: image is {raw.shape[1]}x{raw.shape[0]}, intrinsics say {shape[1]}x{shape[0]}")
+        raise SequenceError(
+            f"{path}: image is {raw.shape[1]}x{raw.shape[0]}, intrinsics say {shape[1]}x{shape[0]}: every depth image "
+            f"must be its camera's size; if the camera is wrong, {GIVE_THE_CAMERA} the sequence's {METADATA_FILE}"
+        )
     return raw
 
 
@@ -224,10 +294,11 @@ class TumSequence(FrameSource):
     """A TUM RGB-D benchmark folder as a :class:`FrameSource` (see the module docs).
 
     Parameters: ``folder`` (the sequence folder), ``camera`` (an
-    :class:`Intrinsics` or a preset name in :data:`PRESETS`; wins over the
-    folder's ``mabdi.toml``), ``tolerance`` (seconds between a depth frame and
-    its ground-truth pose, default 0.02), ``depth_scale`` (PNG units per
-    metre, default :data:`DEPTH_SCALE`). Frames are the depth images that
+    :class:`Intrinsics`, a preset name in :data:`PRESETS` or
+    ``"fx,fy,cx,cy,width,height"``; wins over the folder's ``mabdi.toml``),
+    ``tolerance`` (seconds between a depth frame and its ground-truth pose,
+    default 0.02), ``depth_scale`` (PNG units per metre, default
+    :data:`DEPTH_SCALE`). Frames are the depth images that
     have a pose, in ``depth.txt``'s order; ``skipped`` counts the others.
     ``read(i)`` decodes one PNG; timestamps and poses are known at open.
     """
@@ -247,7 +318,7 @@ class TumSequence(FrameSource):
         if not (isinstance(self.depth_scale, (int, float)) and np.isfinite(self.depth_scale) and self.depth_scale > 0):
             raise SequenceError(f"TUM folder {self.folder}: depth scale must be a positive number of units per metre, got {depth_scale!r}")
 
-        depth_times, depth_rows = read_tum_list(self.folder / "depth.txt", 2)
+        depth_times, depth_rows = read_depth_list(self.folder / "depth.txt")
         pose_times, poses = read_groundtruth(self.folder / "groundtruth.txt")
         matched = interpolate_poses(depth_times, pose_times, poses, self.tolerance)
         keep = np.isfinite(matched[:, 0, 0])
@@ -275,10 +346,14 @@ class TumSequence(FrameSource):
                 f"TUM folder {self.folder}: no depth frame has a ground-truth pose within {self.tolerance * 1000:g} ms "
                 f"({len(depth_times)} frames in depth.txt, {len(pose_times)} poses in groundtruth.txt)"
             )
+        if camera is None:  # a camera given is checked against each image as it is read
+            check_depth_size(self._intrinsics, self._files[0], camera_origin(self.folder, None), self.folder)
 
     def _resolve_camera(self, camera) -> Intrinsics:
         if isinstance(camera, Intrinsics):
             return camera
+        if isinstance(camera, str) and "," in camera:
+            return camera_from_text(camera, f"TUM folder {self.folder}: camera=")
         if camera is not None:
             return tum_preset(camera, f"TUM folder {self.folder}: camera=")
         file = metadata_path(self.folder)
