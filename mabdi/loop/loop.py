@@ -47,6 +47,7 @@ frame produced is read through public accessors (:meth:`measured_image`,
 from __future__ import annotations
 
 import time
+import warnings
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -68,7 +69,8 @@ from mabdi.filters.depth_image import BACKENDS
 from mabdi.sensor_noise import SensorNoise
 from mabdi.filters.expected_image import MAP_PORT, MEASURED_PORT, FilterExpectedImage
 from mabdi.filters.refinement import MapRefinement, RefinementParameters
-from mabdi.filters.registration import FilterRegistration, RegistrationParameters, registration_values
+from mabdi.filters.registration import STATUSES, FilterRegistration, RegistrationParameters, registration_values
+from mabdi.filters.registration_check import PosesDisagreeWarning, poses_disagree
 from mabdi.filters.registry import make_surface_filter, seam_pixels, surface_filter
 from mabdi.loop.object_removal import ObjectRemoval
 from mabdi.filters.removal import RemovalParameters, depth_edges
@@ -221,6 +223,11 @@ class MabdiLoop:
         )
         #: (N, 4, 4) the pose each frame was meshed with (registered, or as given); NaN for frames not run
         self._poses = np.full((len(source), 4, 4), np.nan)
+        #: (N, 3) each frame's registration status (its index in STATUSES; "off" where the source states its poses
+        #: exact) and correction (m, degrees), for the check of the run's poses; NaN for frames not run
+        self._registrations = np.full((len(source), 3), np.nan)
+        self._poses_checked = False
+        self._given_exact = False  # the last frame's pose stated exact by the source
         self._removed = vtkPolyData()
         self._refined = None
 
@@ -266,13 +273,18 @@ class MabdiLoop:
         if self.noise.calibration is not None:
             self.noise.calibration.reset()
         self._poses[:] = np.nan
+        self._registrations[:] = np.nan
+        self._poses_checked = False
         if self.surface_capabilities.keeps_state:
             self.surface.reset()
 
     def state(self) -> dict:
         """The loop's state between frames, for checkpoints: the map, refinement's and a stateful surface
         filter's memory. Plain data only (dicts, lists, numbers, strings, numpy arrays: :mod:`mabdi.io.checkpoint`)."""
-        state = {"world": self.world.state(), "refinement": self.refinement.state(self.world), "poses": self._poses.copy()}
+        state = {
+            "world": self.world.state(), "refinement": self.refinement.state(self.world), "poses": self._poses.copy(),
+            "registrations": self._registrations.copy(),
+        }  # fmt: skip
         if self.surface_capabilities.keeps_state:
             state["surface"] = self.surface.state()
         if self.registration is not None:
@@ -288,6 +300,8 @@ class MabdiLoop:
         if "surface" in state:
             self.surface.set_state(state["surface"])
         self._poses = np.array(state["poses"], dtype=np.float64)
+        if "registrations" in state:  # (checkpoints before it: the check sees the frames run since)
+            self._registrations = np.array(state["registrations"], dtype=np.float64)
         if self.registration is not None:
             self.registration.set_state(state["registration"])
         if self.noise.calibration is not None:
@@ -296,9 +310,26 @@ class MabdiLoop:
     def step(self, index: int) -> FrameRecord:
         """Run frame ``index``: read D, render E, classify, mesh, append. Times each stage. An error that Ctrl-C
         caused (numba's SystemError around it: :func:`mabdi.interrupts.caused_by_interrupt`) is raised as
-        KeyboardInterrupt."""
+        KeyboardInterrupt. After the source's last frame, a :class:`PosesDisagreeWarning` when the run's poses
+        disagree with its depth (:mod:`mabdi.filters.registration_check`), once a run."""
         with interrupts_unwrapped():
-            return self._step(index)
+            record = self._step(index)
+        judged = "off" if self._given_exact else record.registration
+        self._registrations[index] = (STATUSES.index(judged), record.correction_mm / 1000.0, record.correction_deg)
+        if index == len(self._registrations) - 1:
+            self._check_poses()
+        return record
+
+    def _check_poses(self) -> None:
+        """Warn (once a run) when the frames' registrations say the poses disagree with the depth. Not for a
+        source that states how far its poses are off (the simulator): no pose file, no depth scale to blame."""
+        if self._poses_checked or self.source.pose_accuracy is not None:
+            return
+        self._poses_checked = True
+        done = self._registrations[np.isfinite(self._registrations[:, 0])]
+        message = poses_disagree([STATUSES[int(code)] for code in done[:, 0]], done[:, 1], done[:, 2])
+        if message is not None:
+            warnings.warn(message, PosesDisagreeWarning, stacklevel=3)
 
     def _step(self, index: int) -> FrameRecord:
         start = time.perf_counter()
@@ -327,6 +358,7 @@ class MabdiLoop:
         # registration, or stated exact by the source (the ICP's checks fail where what held the pose has
         # left the scene: that is when the votes matter).
         votes = registration["status"] in ("registered", "off") or registration["given_exact"]
+        self._given_exact = registration["given_exact"]
         if self.noise.calibration is not None and self.classifier_enabled and votes:
             self._calibrate_noise()
         # Refinement and removal last: the map changes after this frame's E was used, so E is not drawn

@@ -1,0 +1,79 @@
+"""Whether a run's poses agree with its depth: the rule behind :class:`PosesDisagreeWarning`.
+
+Registration (:mod:`mabdi.filters.registration`) fits each frame's depth to
+the map near its given pose. With poses that are right to millimetres
+(motion capture, a SLAM system, a simulation) nearly every frame registers,
+corrected by millimetres and tenths of a degree; odometry that drifts by
+centimetres over a run stays within a few centimetres. Two mistakes in the
+inputs show instead, and nothing else in the run says so (the map is made,
+exit 0):
+
+* poses given as camera_from_world (mabdi reads world_from_camera): each
+  frame's depth lands metres from the map, and no frame registers;
+* a wrong depth scale (``--depth-scale``): the depth is a few per cent to
+  several times too long or short, no frame fits the map where its pose
+  puts it, and the frames that register are moved by decimetres.
+
+The rule, over the frames judged against the map (registered or not; not
+the first, which has no map to fit, nor frames whose poses are stated
+exact, nor runs with registration off; and only for a source that does not
+state how far its poses are off, a recording: the simulator knows its pose
+noise, and has no pose file or depth scale to get wrong): with at least
+:data:`MIN_JUDGED` of them, the poses disagree when fewer than
+:data:`MIN_REGISTERED_SHARE` of them registered, or when at least
+:data:`MIN_REGISTERED` registered and their median correction is beyond
+:data:`MAX_CORRECTION_M` or :data:`MAX_CORRECTION_DEG`. The loop checks it
+once a run's last frame is done and warns once.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+#: Frames judged against the map that the rule needs.
+MIN_JUDGED = 4
+#: Fewer than this share of the judged frames registered: the depth does not fit the map near the given poses.
+MIN_REGISTERED_SHARE = 1.0 / 3.0
+#: The registered frames' median correction beyond these (metres, degrees), taken over at least
+#: :data:`MIN_REGISTERED` frames: more than any ordinary pose source is off by.
+MAX_CORRECTION_M = 0.05
+MAX_CORRECTION_DEG = 2.0
+MIN_REGISTERED = 3
+#: The statuses of frames not judged (:data:`mabdi.filters.registration.STATUSES`).
+NOT_JUDGED = ("off", "no_map")
+#: The likely causes, named in the warning.
+CAUSES = (
+    "likely causes: poses given as camera_from_world (mabdi reads world_from_camera: invert them), "
+    "or a wrong depth scale (--depth-scale, depth units per metre)"
+)
+
+
+class PosesDisagreeWarning(UserWarning):
+    """A run's poses disagree with its depth (:func:`poses_disagree`)."""
+
+
+def poses_disagree(statuses: Sequence[str], corrections_m: Sequence[float], corrections_deg: Sequence[float]) -> str | None:
+    """Why the frames' poses disagree with their depth, in one line, or None when they agree (the rule: the
+    module docs). One entry per frame: its registration status, correction (m) and correction (degrees);
+    frames not to be judged carry ``"off"`` or ``"no_map"``."""
+    judged = [i for i, status in enumerate(statuses) if status not in NOT_JUDGED]
+    if len(judged) < MIN_JUDGED:
+        return None
+    registered = [i for i in judged if statuses[i] == "registered"]
+    if len(registered) < MIN_REGISTERED_SHARE * len(judged):
+        return (
+            f"the poses disagree with the depth: only {len(registered)} of {len(judged)} frames registered to the map "
+            f"near their given poses; {CAUSES}"
+        )
+    if len(registered) >= MIN_REGISTERED:
+        metres = float(np.median([corrections_m[i] for i in registered]))
+        degrees = float(np.median([corrections_deg[i] for i in registered]))
+        if metres > MAX_CORRECTION_M or degrees > MAX_CORRECTION_DEG:
+            return (
+                f"the poses disagree with the depth: registration moved the frames {1000 * metres:.0f} mm and "
+                f"{degrees:.1f} deg from their given poses (median of {len(registered)} registered frames; poses "
+                f"that fit are off by millimetres); {CAUSES}"
+            )
+    return None

@@ -1,0 +1,107 @@
+"""Poses that disagree with the depth (camera_from_world poses, a wrong depth scale): the run says so once,
+naming the likely causes; a recording whose poses fit stays quiet."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from mabdi.filters.registration_check import MAX_CORRECTION_DEG, MAX_CORRECTION_M, poses_disagree
+
+REPO = Path(__file__).resolve().parents[1]
+WARNING = "the poses disagree with the depth"
+
+
+def test_the_rule_judges_registered_shares_and_median_corrections():
+    """Fewer than a third of the judged frames registered, or a median correction beyond 5 cm / 2 degrees."""
+    good = ["no_map", "few_points", "few_points"] + ["registered"] * 7
+    assert poses_disagree(good, [0.0] * 3 + [0.002] * 7, [0.0] * 3 + [0.01] * 7) is None
+    failing = ["no_map"] + ["few_points"] * 5
+    message = poses_disagree(failing, [0.0] * 6, [0.0] * 6)
+    assert message and "only 0 of 5 frames registered" in message
+    assert "camera_from_world" in message and "--depth-scale" in message and "\n" not in message
+    assert poses_disagree(["no_map"] + ["few_points"] * 3, [0.0] * 4, [0.0] * 4) is None, "too few frames to judge"
+    assert poses_disagree(["off"] * 10, [0.0] * 10, [0.0] * 10) is None, "registration off: nothing judged"
+    moved = ["no_map"] + ["registered"] * 6
+    far = [0.0] + [0.152] * 6
+    message = poses_disagree(moved, far, [0.0] + [0.3] * 6)
+    assert message and "152 mm" in message and "median of 6 registered frames" in message
+    assert poses_disagree(moved, [0.0] + [0.9 * MAX_CORRECTION_M] * 6, [0.0] * 7) is None
+    assert poses_disagree(moved, [0.0] * 7, [0.0] + [1.1 * MAX_CORRECTION_DEG] * 6) is not None
+
+
+def _small_table(folder: Path) -> Path:
+    """Run 1's table seen by a 160 x 120 camera over a quarter circle in 10 frames (quick, and frames overlap)."""
+    text = (REPO / "scenes" / "table.toml").read_text()
+    text = text.replace("frames = 30", "frames = 10")
+    text = text.replace('noise = "none"', 'noise = "none"\nwidth = 160\nheight = 120\nfx = 130.0\nfy = 130.0\ncx = 80.0\ncy = 60.0')
+    text = text.replace("look_to = [0.0, 0.0, 0.9]", "look_to = [0.0, 0.0, 0.9]\nturns = 0.25")
+    config = folder / "small_table.toml"
+    config.write_text(text)
+    return config
+
+
+@pytest.fixture(scope="module")
+def recording(tmp_path_factory) -> Path:
+    from mabdi.cli import main
+
+    folder = tmp_path_factory.mktemp("poses")
+    assert main(["record", str(_small_table(folder)), "--format", "tum", "--out", str(folder / "tum")]) == 0
+    return folder / "tum"
+
+
+def _inverted(recording: Path, out: Path) -> Path:
+    """The recording with every pose written as camera_from_world (the inverse of what TUM files hold)."""
+    shutil.copytree(recording, out)
+    lines = []
+    for line in (recording / "groundtruth.txt").read_text().splitlines():
+        if line.startswith("#") or not line.strip():
+            lines.append(line)
+            continue
+        stamp, *values = line.split()
+        pose = np.eye(4)
+        pose[:3, :3] = Rotation.from_quat([float(v) for v in values[3:]]).as_matrix()
+        pose[:3, 3] = [float(v) for v in values[:3]]
+        inverse = np.linalg.inv(pose)
+        quaternion = Rotation.from_matrix(inverse[:3, :3]).as_quat()
+        lines.append(" ".join([stamp, *(repr(float(v)) for v in (*inverse[:3, 3], *quaternion))]))
+    (out / "groundtruth.txt").write_text("\n".join(lines) + "\n")
+    return out
+
+
+def _run(sequence: Path, out: Path, capsys, *options: str) -> str:
+    from mabdi.cli import main
+
+    code = main(["run", "--sequence", str(sequence), "--noise", "none", "--out", str(out), "--no-eval", "--quiet", *options])
+    captured = capsys.readouterr()
+    assert code == 0, captured.err[-2000:]
+    return captured.err
+
+
+def test_camera_from_world_poses_are_named_and_poses_that_fit_are_quiet(recording, tmp_path, capsys):
+    """The recording as written runs quietly; its poses inverted, the run warns once, naming both causes."""
+    assert WARNING not in _run(recording, tmp_path / "run", capsys)
+    err = _run(_inverted(recording, tmp_path / "inverted"), tmp_path / "inverted_run", capsys)
+    assert err.count(WARNING) == 1, err
+    line = next(line for line in err.splitlines() if WARNING in line)
+    assert line.startswith("mabdi: warning: ") and "camera_from_world" in line and "--depth-scale" in line
+
+
+def test_a_wrong_depth_scale_is_named_and_a_simulation_stating_its_pose_noise_is_not(recording, tmp_path, capsys):
+    """The depth read at 4000 units per metre, written at 5000 (TUM's): every depth 25% long, the run warns once.
+    Drifting simulated poses that this small camera cannot register either (1 cm and 0.5 degrees per
+    sqrt(metre)) are not blamed: the simulator states its pose noise, and has no pose file or depth scale."""
+    from mabdi.cli import main
+
+    err = _run(recording, tmp_path / "run", capsys, "--depth-scale", "4000")
+    assert err.count(WARNING) == 1, err
+    assert "--depth-scale" in err and "camera_from_world" in err
+
+    drift = ["--set", "sensor.pose_noise.drift_translation=0.01", "--set", "sensor.pose_noise.drift_rotation=0.5"]
+    config = _small_table(tmp_path)
+    assert main(["run", str(config), "--out", str(tmp_path / "simulated"), "--no-eval", "--quiet", *drift]) == 0
+    assert WARNING not in capsys.readouterr().err
