@@ -14,6 +14,11 @@ exit 0):
   several times too long or short, no frame fits the map where its pose
   puts it, and the frames that register are moved by decimetres.
 
+Large corrections of frames that do register have a third cause the run
+cannot tell from these: registration itself drifting away from good given
+poses (a real camera's depth against a map of single looks), so that
+warning names it too.
+
 The rule, over the frames judged against the map (registered or not; not
 the first, which has no map to fit, nor frames whose poses are stated
 exact, nor runs with registration off; and only for a source that does not
@@ -74,6 +79,7 @@ def poses_disagree(statuses: Sequence[str], corrections_m: Sequence[float], corr
             return (
                 f"the poses disagree with the depth: registration moved the frames {1000 * metres:.0f} mm and "
                 f"{degrees:.1f} deg from their given poses (median of {len(registered)} registered frames; poses "
-                f"that fit are off by millimetres); {CAUSES}"
+                f"that fit are off by millimetres); {CAUSES}; or, where the given poses are known to be good "
+                f"(a dataset's own), registration drifting away from them (--no-registration keeps them)"
             )
     return None
