@@ -2,7 +2,9 @@
 
 A run reads its config file, the mesh files of its scene's ``type = "mesh"``
 objects (the built-in bunny included) and, on a recording, every file of the
-recording. :func:`run_inputs` lists them; :func:`fingerprint` gives each one's
+recording (a mabdi run folder inside a recording's folder, the run's own
+``--out`` included, is no part of it: :func:`recording_files`).
+:func:`run_inputs` lists them; :func:`fingerprint` gives each one's
 SHA-256 (of the bytes; every file is read whole, about 1 GB/s, so a TUM
 sequence of thousands of PNGs costs a second or two; sizes and times are not
 trusted, a copy or a touch changes them and an edit in place need not).
@@ -16,7 +18,10 @@ any differs, naming it; sweeps key their cells by the meshes' hashes
 from __future__ import annotations
 
 import hashlib
+import os
 from pathlib import Path
+
+from mabdi.io.run_folder import LOCK, MANIFEST, PROBE, STAGING, read_manifest
 
 _CHUNK = 1 << 20
 
@@ -60,12 +65,38 @@ def scene_mesh_digests(config) -> list[str]:
     return digests
 
 
+def is_run_folder(folder) -> bool:
+    """Whether a folder is a mabdi run's output folder (it holds a run's manifest, lock or staging folder)."""
+    folder = Path(folder)
+    return any(os.path.lexists(folder / name) for name in (MANIFEST, LOCK, STAGING))
+
+
 def recording_files(path) -> list[Path]:
-    """Every file of a recording (a folder: all files below it, sorted; a file: itself)."""
+    """Every file of a recording (a folder: all files below it, sorted; a file: itself).
+
+    A mabdi run folder below it (:func:`is_run_folder`: a run written into the recording's folder, or
+    being written there) is left out whole; when the recording's folder is itself a run's output
+    folder, that run's files (its bookkeeping, staging folder and manifest's files) are left out."""
     path = Path(path)
-    if path.is_dir():
-        return sorted(p.resolve() for p in path.rglob("*") if p.is_file())
-    return [path.resolve()] if path.exists() else []
+    if not path.is_dir():
+        return [path.resolve()] if path.exists() else []
+    skip: set[str] = set()
+    if is_run_folder(path):
+        manifest = read_manifest(path)
+        skip = {MANIFEST, LOCK, *(str(name) for name in (manifest["files"] if manifest is not None else ()))}
+    files = []
+    for folder, subfolders, names in os.walk(path):
+        here = Path(folder)
+        if here == path:
+            subfolders[:] = [name for name in subfolders if name != STAGING]
+        subfolders[:] = [name for name in subfolders if not is_run_folder(here / name)]
+        for name in names:
+            file = here / name
+            relative = file.relative_to(path).as_posix()
+            if relative in skip or (here == path and name.startswith(PROBE)) or not file.is_file():
+                continue
+            files.append(file.resolve())
+    return sorted(files)
 
 
 def run_inputs(config, recording: str | Path | None = None, scene: bool = True) -> dict[str, str]:

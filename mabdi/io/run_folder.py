@@ -10,7 +10,14 @@
   its own staged files (and checkpoint) for ``--resume``.
 * A folder that holds files mabdi did not write (no manifest lists them) is
   refused with an error naming them, unless ``overwrite=True``; even then
-  those files are left as they are (only mabdi's own names are written).
+  those files are left as they are: a run never replaces a file it did not
+  write. One under a name a run writes (:data:`RUN_FILES`: a user's own
+  ``trajectory.txt``, ``summary.json``, ``metrics.csv``, ``config.toml``...)
+  is refused up front, ``overwrite`` or not, before any frame is run (and
+  by ``--resume``), with an error naming it: move or rename it, or choose
+  another folder. One that appears there while the run goes on is refused
+  when the run completes (the user's file stays, the run's files stay
+  staged).
 * The run's own input config is never overwritten: an output folder where
   ``config.toml`` is the input file is refused, overwrite or not.
 * One run at a time per folder: a run (and ``--resume``) takes an exclusive
@@ -32,6 +39,7 @@
 from __future__ import annotations
 
 import fcntl
+import fnmatch
 import json
 import os
 import shutil
@@ -47,6 +55,13 @@ PROBE = ".mabdi-write-test"
 LOCK = ".mabdi-lock"
 #: Where a run writes until it completes (inside the output folder).
 STAGING = ".mabdi-partial"
+#: Every name a mabdi run may write into its folder (glob patterns of relative POSIX paths): a file that
+#: mabdi did not write under one of them is refused, ``overwrite`` or not (see the module docs).
+RUN_FILES = (
+    "config.toml", "world_mesh.vtp", "world_mesh.ply", "world_mesh.h5", "metrics.csv", "elements.png",
+    "poses.npy", "poses_given.npy", "poses_true.npy", "trajectory.txt", "path.vtp", "scene.vtp",
+    "summary.json", "movie.mp4", "movie.gif", "depth/*.vti", "dashboard_*.png",
+)
 
 
 class OutputError(MabdiError, OSError):
@@ -77,6 +92,16 @@ def _files_under(folder: Path) -> list[str]:
     return sorted(p.relative_to(folder).as_posix() for p in folder.rglob("*") if p.is_file() or p.is_symlink())
 
 
+def _shown(names: list[str]) -> str:
+    """The first few of ``names``, for an error message."""
+    return ", ".join(names[:5]) + (f" and {len(names) - 5} more" if len(names) > 5 else "")
+
+
+def run_writes(name: str) -> bool:
+    """Whether a run may write a file of this name (relative POSIX path; :data:`RUN_FILES`)."""
+    return any(fnmatch.fnmatchcase(name, pattern) for pattern in RUN_FILES)
+
+
 def read_manifest(folder) -> dict | None:
     """The manifest of a run folder, or None when there is none (or it is unreadable)."""
     path = Path(folder) / MANIFEST
@@ -103,6 +128,7 @@ class RunFolder:
         self._files: list[str] = []
         self._complete = False
         self._lock: int | None = None
+        self._ours: set[str] = set()  # the files of the folder's previous run (its manifest)
 
     def _acquire(self) -> None:
         """Take the folder's lock, or raise :class:`OutputError` when another run holds it (see the module docs)."""
@@ -172,6 +198,11 @@ class RunFolder:
             run.release()
             raise OutputError(f"cannot resume {out}: that run is complete already (nothing interrupted is staged)")
         run._files = [str(name) for name in staged["files"]]
+        try:
+            run._refuse_clashes(run._user_files(), "cannot resume")
+        except BaseException:
+            run.release()
+            raise
         return run
 
     @classmethod
@@ -197,24 +228,53 @@ class RunFolder:
                     f"output folder {out} holds this run's own config file ({target}), which the run would replace "
                     "with the resolved config: choose another --out"
                 )
-        previous = read_manifest(out)
-        ours = set(previous["files"]) if previous is not None else set()
-        present = [name for name in _files_under(out) if name not in (MANIFEST, LOCK) and not name.startswith((STAGING + "/", PROBE))]
-        foreign = [name for name in present if name not in ours]
+        foreign = self._user_files()
+        self._refuse_clashes(foreign, "cannot write the run into", overwrite)
         if foreign and not overwrite:
-            shown = ", ".join(foreign[:5]) + (f" and {len(foreign) - 5} more" if len(foreign) > 5 else "")
             raise OutputError(
-                f"output folder {out} holds files mabdi did not write ({shown}); choose an empty or new folder, "
+                f"output folder {out} holds files mabdi did not write ({_shown(foreign)}); "
+                "choose an empty or new folder, "
                 "or pass --overwrite (mabdi's own files are then replaced and the others left as they are)"
             )
         shutil.rmtree(self.staging, ignore_errors=True)  # an earlier interrupted run: this one replaces it
         self.staging.mkdir()
         self._write_manifest()
 
+    def _user_files(self) -> list[str]:
+        """The files in the folder that mabdi did not write (not its bookkeeping, not in its manifest), sorted."""
+        previous = read_manifest(self.folder)
+        self._ours = set(previous["files"]) if previous is not None else set()
+        return [
+            name for name in _files_under(self.folder)
+            if name not in (MANIFEST, LOCK) and not name.startswith((STAGING + "/", PROBE)) and name not in self._ours
+        ]
+
+    def _refuse_clashes(self, foreign: list[str], what: str, overwrite: bool = True) -> None:
+        """Raise :class:`OutputError` naming the ``foreign`` files under names this run writes, if any."""
+        clashing = [name for name in foreign if run_writes(name) or name in self._files]
+        if not clashing:
+            return
+        others = [name for name in foreign if name not in clashing]
+        note = ""
+        if others and not overwrite:
+            note = f" (its other files, {_shown(others)}, need --overwrite to stay beside the run's)"
+        raise OutputError(
+            f"{what} {self.folder}: it holds files mabdi did not write under names a run writes ({_shown(clashing)}); "
+            "mabdi never replaces a file it did not write, --overwrite or not: move or rename them, "
+            "or choose another --out" + note
+        )
+
     def path(self, *names: str) -> Path:
         """Where to write ``names[0]`` (relative, POSIX): its place in the staging folder, listed in the
-        manifest before it is written. Several names are listed in one manifest write."""
+        manifest before it is written. Several names are listed in one manifest write. A name under which
+        the folder holds a file mabdi did not write is refused (:class:`OutputError`)."""
         new = [n for n in names if n not in self._files]
+        clashing = [n for n in new if n not in self._ours and os.path.lexists(self.folder / n)]
+        if clashing:
+            raise OutputError(
+                f"cannot write {_shown(clashing)} into {self.folder}: a file of that name is there that mabdi did not "
+                "write, and a run never replaces one: move or rename it, or choose another --out"
+            )
         if new:
             self._files.extend(new)
             self._write_manifest()
@@ -242,8 +302,21 @@ class RunFolder:
 
     def complete(self) -> None:
         """The run is done: the previous run's files go, this run's staged files take their places, and
-        the folder's manifest lists them as complete."""
+        the folder's manifest lists them as complete. Refused (:class:`OutputError`, the folder left as it
+        is and this run's files staged) when a file mabdi did not write has appeared under one of its names."""
         previous = read_manifest(self.folder)
+        ours = set(previous["files"]) if previous is not None else set()
+        clashing = [
+            name for name in self._files
+            if name not in ours and (self.staging / name).is_file() and os.path.lexists(self.folder / name)
+        ]
+        if clashing:
+            self.release()
+            raise OutputError(
+                f"cannot complete the run in {self.folder}: {_shown(clashing)} appeared there while it ran, and mabdi "
+                f"never replaces a file it did not write; they are left as they are and this run's files stay in "
+                f"{self.staging}: move or rename them and run again"
+            )
         for name in sorted(set(previous["files"]) if previous is not None else ()):
             target = self.folder / name
             if target.is_file() or target.is_symlink():
