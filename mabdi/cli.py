@@ -3,7 +3,7 @@
     mabdi run CONFIG [--frames N] [--out DIR] [--noise MODEL] [--seed N] [--surface NAME] [--set KEY=VALUE]
                      [--no-classifier] [--no-removal] [--no-registration] [--refinement] [--depth-images] [--h5] [--movie]
                      [--rerun [FILE.rrd]] [--backend B] [--overwrite] [--quiet] [--no-eval]
-    mabdi run --sequence PATH [CONFIG] [--camera PRESET|fx,fy,cx,cy,w,h] [--depth-scale UNITS] [--depth-topic T] ...
+    mabdi run --sequence PATH [CONFIG] [--frames N] [--camera PRESET|fx,fy,cx,cy,w,h[,near,far]] [--depth-scale UNITS] ...
     mabdi run --resume OUT [--quiet] [--no-eval]   finish an interrupted run from its last checkpoint (its inputs
                                                    must be unchanged; the run's own options are kept)
     mabdi record CONFIG --format tum|rosbag2|kitti --out PATH [--storage sqlite3|mcap] [--encoding 32FC1|16UC1]
@@ -48,7 +48,10 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument(
         "config", type=Path, nargs="?", help="run config (TOML), e.g. scenes/bunnies.toml (optional with --sequence)"
     )
-    run.add_argument("--frames", type=int, help="number of frames (overrides run.frames)")
+    run.add_argument(
+        "--frames", type=int,
+        help="number of frames (overrides run.frames); with --sequence, the recording's first N frames (all when it has fewer)",
+    )
     run.add_argument("--out", type=Path, help="output folder (default: runs/<config name>)")
     run.add_argument(
         "--noise",
@@ -100,12 +103,13 @@ def _parser() -> argparse.ArgumentParser:
         help="run on a recorded sequence (a TUM RGB-D folder, a ROS 2 bag, or a 3DMatch / 7-Scenes, Redwood / Open3D, "
         "ScanNet, Replica (NICE-SLAM) or KITTI-style LiDAR folder, told apart by their files) instead of the simulated sensor; "
         "CONFIG then gives the classifier, surface and output settings (its [sensor] noise sets the thresholds; "
-        "with neither CONFIG nor --noise a depth camera's noise is learnt from the run, noise = auto)",
+        "when neither CONFIG's [sensor] nor --noise names a noise model, a depth camera's is learnt from the run, noise = auto)",
     )
     sequence.add_argument(
         "--camera",
         help="the camera when the sequence has none (or to replace it): a preset (TUM fr1, fr2, fr3, ros; 7scenes; "
-        "replica) or fx,fy,cx,cy,width,height in pixels (pixel centres at +0.5, as in mabdi.toml)",
+        "replica) or fx,fy,cx,cy,width,height in pixels (pixel centres at +0.5, as in mabdi.toml; width and height "
+        "whole numbers), optionally ,near,far in metres (default 0.5 and 4)",
     )
     sequence.add_argument(
         "--depth-scale", type=float,
@@ -293,13 +297,18 @@ def cmd_run(args) -> int:
             "cloud_topic": args.cloud_topic,
             "tolerance": args.tolerance,
         }
-        set_keys = {setting.partition("=")[0].strip() for setting in getattr(args, "settings", [])}
-        noise_stated = args.config is not None or args.noise is not None or "sensor.noise" in set_keys
-        simulation, note = recorded_simulation(config, args.sequence, noise_stated=noise_stated, **options)
-        recording = {"path": str(args.sequence.resolve()), "options": options}
+        noise_stated = "sensor.noise" in config.stated  # by the config file, --noise or --set
+        frames = config.run.frames if "run.frames" in config.stated else None  # --frames, [run] frames or --set
+        simulation, note = recorded_simulation(config, args.sequence, noise_stated=noise_stated, frames=frames, **options)
+        recording = {"path": str(args.sequence.resolve()), "options": options, "frames": frames}
         print(f"source: {simulation.source.description}")
+        source = simulation.source
+        if frames is not None and frames > source.available:
+            asked = "--frames" if args.frames is not None else "run.frames"
+            print(f"note: {asked} {frames}, but the recording has {source.available} frames: all {source.available} are run")
         if not noise_stated and simulation.config.sensor.noise != config.sensor.noise:
-            print(f"noise: {simulation.config.sensor.noise} (learnt from the run: no config and no --noise name the camera's model)")
+            unstated = "the config does not set [sensor] noise" if args.config is not None else "no config"
+            print(f"noise: {simulation.config.sensor.noise} (learnt from the run: {unstated} and no --noise name the camera's model)")
     else:
         for option in ("camera", "depth_scale", "depth_topic", "info_topic", "pose_topic", "colour_topic", "cloud_topic", "tolerance"):
             if getattr(args, option) is not None:

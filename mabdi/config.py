@@ -327,6 +327,10 @@ class RunConfig:
     #: Whether ``run.frames`` was taken from a waypoint or trajectory path (the config left it out): changing a
     #: ``path`` key with :func:`set_value` then takes it again (not a TOML key).
     frames_from_path: bool = field(default=False, compare=False, repr=False, metadata={"toml": False})
+    #: The dotted keys the config file or an override set (``"sensor.noise"``, ``"run.frames"``, ...), to tell a
+    #: key left unset from one set to its default value (not a TOML key). A config read back from a run's
+    #: resolved ``config.toml`` states every key.
+    stated: frozenset = field(default=frozenset(), compare=False, repr=False, metadata={"toml": False})
 
 
 # ---------------------------------------------------------------------------
@@ -364,9 +368,22 @@ def run_config_from_dict(data: dict, where: str = "<config>", base_dir=None, val
     if config.path.kind != "helix" and not (isinstance(run_table, dict) and "frames" in run_table):
         config.frames_from_path = True
         _frames_from_path(config, where, base_dir)
+    config.stated = stated_keys(data)
     if validate:
         validate_run_config(config, where)
     return config
+
+
+def stated_keys(data: dict, prefix: str = "") -> frozenset:
+    """The dotted keys of parsed TOML ``data`` that hold values (tables opened, arrays of tables by their own key)."""
+    keys = set()
+    for name, value in data.items():
+        key = f"{prefix}.{name}" if prefix else name
+        if isinstance(value, dict):
+            keys |= stated_keys(value, key)
+        else:
+            keys.add(key)
+    return frozenset(keys)
 
 
 def _frames_from_path(config: RunConfig, where: str, base_dir=None) -> None:
@@ -504,6 +521,7 @@ def _overridden(config: RunConfig, overrides: dict, where: str, whole: bool) -> 
     base_dir = config.source.parent if config.source is not None else None
     resolved = run_config_from_dict(data, where=where, base_dir=base_dir, validate=whole)
     resolved.source = config.source
+    resolved.stated = config.stated | frozenset(overrides)  # the file's keys and the overrides, not every key dumped
     return resolved
 
 

@@ -8,6 +8,8 @@ the folder follows :mod:`mabdi.io.run_folder`):
   with ``output.h5``, ``world_mesh.h5`` (:func:`annotated_map`);
 * ``metrics.csv``: one row per frame, columns :data:`METRICS_COLUMNS` first;
 * ``summary.json``: totals, timings, the source, the machine's render backend,
+  for a recording ``depth_returns`` (pixels dropped as no return, nearer than
+  near, beyond far: :func:`depth_returns_summary`),
   and the metrics against the ground truth when the run was evaluated
   (written last, by :func:`finish_run`: a folder with a ``summary.json``
   holds a finished run);
@@ -44,6 +46,7 @@ from pathlib import Path
 import numpy as np
 from vtkmodules.vtkCommonDataModel import vtkPolyData
 
+from mabdi.camera import Intrinsics
 from mabdi.config import RunConfig
 from mabdi.io.atomic import atomic_output, write_text
 from mabdi.io.checkpoint import VERSION as CHECKPOINT_FORMAT_VERSION
@@ -110,6 +113,9 @@ class RunResult:
     evaluation: str | None = None
     #: Seconds the evaluation took.
     evaluation_seconds: float = 0.0
+    #: A recording's depth before the loop saw it: pixels, and those dropped as no return, nearer than near,
+    #: beyond far (:func:`depth_returns_summary`); None for a simulated run.
+    depth_returns: dict | None = None
 
     @property
     def cells(self) -> np.ndarray:
@@ -142,6 +148,7 @@ class RunResult:
             "registration": registration_summary(records),
             "noise_calibration": self.noise_calibration,
             "intrinsics": self.intrinsics,
+            **({"depth_returns": self.depth_returns} if self.depth_returns is not None else {}),
         }
 
 
@@ -241,20 +248,149 @@ class EmptyMapWarning(UserWarning):
     """A run ended with a map of no triangles."""
 
 
-def empty_map_reason(result: RunResult, simulation) -> str:
-    """Why a run's map is empty, in words: no objects, nothing in view, or everything filtered."""
-    config = result.config
-    if simulation.rig is not None and not config.scene.objects:
-        return "the map is empty: the scene has no objects ([[scene.objects]] in the config)"
-    if not any(r.valid_pixels for r in result.records):
-        far = simulation.source.intrinsics.far
-        return (
-            f"the map is empty: no frame had a depth return (nothing in view within the sensor's range, "
-            f"{simulation.source.intrinsics.near:g}-{far:g} m); check the objects' positions, the path and the intrinsics"
-        )
+class DepthRangeWarning(UserWarning):
+    """A recording's frames lost more than :data:`DROPPED_SHARE_NOTE` of their depth values to near and far."""
+
+
+#: The share of a recording's depth values dropped as nearer than near or beyond far above which a run says so.
+DROPPED_SHARE_NOTE = 0.02
+
+
+def depth_range_counts(depth, near: float, far: float) -> np.ndarray:
+    """float64[6] of a depth image as read (metres, before :func:`mabdi.depth.only_returns`): pixels, no return
+    (not finite, or <= 0), nearer than near (0 < z <= near), beyond far (z >= far), and the smallest and largest
+    depth value (NaN when there is none): the rule of :func:`mabdi.depth.returns`, counted by cause."""
+    depth = np.asarray(depth)
+    with np.errstate(invalid="ignore"):
+        values = depth[np.isfinite(depth) & (depth > 0)]
+    nearer = np.count_nonzero(values <= near)
+    beyond = np.count_nonzero(values >= far)
+    low, high = (float(values.min()), float(values.max())) if values.size else (np.nan, np.nan)
+    return np.array([depth.size, depth.size - values.size, nearer, beyond, low, high], dtype=np.float64)
+
+
+def depth_returns_summary(rows, near: float, far: float) -> dict:
+    """The frames' :func:`depth_range_counts` rows summed: ``frames``, ``pixels``, ``no_return``,
+    ``nearer_than_near``, ``beyond_far``, ``returns`` (what the loop kept), the ``near`` and ``far`` used
+    (m), and ``depth_min``, ``depth_max`` of the depth values (m; None when no pixel had one)."""
+    rows = np.asarray(rows, dtype=np.float64).reshape(-1, 6)
+    pixels, no_return, nearer, beyond = (int(v) for v in rows[:, :4].sum(axis=0))
+    lows, highs = rows[:, 4][np.isfinite(rows[:, 4])], rows[:, 5][np.isfinite(rows[:, 5])]
+    return {
+        "frames": len(rows),
+        "pixels": pixels,
+        "no_return": no_return,
+        "nearer_than_near": nearer,
+        "beyond_far": beyond,
+        "returns": pixels - no_return - nearer - beyond,
+        "near": float(near),
+        "far": float(far),
+        "depth_min": float(lows.min()) if lows.size else None,
+        "depth_max": float(highs.max()) if highs.size else None,
+    }
+
+
+def dropped_share(counts: dict) -> float:
+    """The share of the depth values (pixels that had one) dropped as nearer than near or beyond far."""
+    valued = counts["pixels"] - counts["no_return"]
+    return (counts["nearer_than_near"] + counts["beyond_far"]) / valued if valued else 0.0
+
+
+def _dropped_words(counts: dict) -> str:
+    """What the frames' depth lost, in words and numbers (near and far as shares of the depth values)."""
+    pixels = counts["pixels"]
+    valued = pixels - counts["no_return"]
+    frames = f"{counts['frames']} frame{'s' if counts['frames'] != 1 else ''}"
+    if not valued:
+        return f"none of the {pixels:,} pixels of {frames} had a depth value"
+
+    def share(n: int) -> str:
+        return f"{100.0 * n / valued:.1f}%"
+
     return (
-        "the map is empty: frames had depth returns, but the surface filter made no triangles of them "
-        f"({config.surface.method}; e.g. too few points per voxel, or every pixel classified known)"
+        f"of the {valued:,} depth values of {frames} ({100.0 * valued / max(pixels, 1):.1f}% of the pixels had one), "
+        f"{share(counts['nearer_than_near'])} were nearer than near ({counts['near']:g} m) and "
+        f"{share(counts['beyond_far'])} beyond far ({counts['far']:g} m); the depth values run "
+        f"{counts['depth_min']:.3g} .. {counts['depth_max']:.3g} m"
     )
 
 
+def _range_remedy(counts: dict, source) -> str:
+    """How to keep the dropped depth of a recording: its near and far, or its depth unit, by the options it takes."""
+    from mabdi.sources.sequences import metadata_path
+
+    path = getattr(source, "path", None)
+    options = getattr(source, "options", ())
+    file = metadata_path(path) if path is not None else "mabdi.toml"
+    lidar = not isinstance(getattr(source, "intrinsics", None), Intrinsics)  # a range image: [lidar] range_min, range_max
+    near, far, sensor, table = ("range_min", "range_max", "LiDAR", "lidar") if lidar else ("near", "far", "camera", "camera")
+    change = [
+        words
+        for words, count in ((f"a lower {near}", counts["nearer_than_near"]), (f"a higher {far}", counts["beyond_far"]))
+        if count
+    ]
+    text = f"to keep them, give the {sensor} {' and '.join(change) or f'another {near} and {far}'}: {near} and {far} in the [{table}] table of {file}"
+    if "camera" in options and not lidar:
+        text += " or --camera fx,fy,cx,cy,width,height,near,far"
+    valued = counts["pixels"] - counts["no_return"]
+    one_side = max(counts["nearer_than_near"], counts["beyond_far"])
+    if "depth_scale" in options and valued and one_side >= valued / 2:
+        scale = getattr(source, "depth_scale", None)
+        used = f" ({scale:g} units per metre here)" if isinstance(scale, (int, float)) else ""
+        unit = f"if the depth is in another unit than the reader takes{used}, give --depth-scale (units per metre)"
+        # every value on one side: a wrong unit is the likelier cause (a near or far moved to fit it makes a map of the wrong size)
+        return f"{unit[0].upper()}{unit[1:]}. Otherwise, {text}." if one_side == valued else f"{text[0].upper()}{text[1:]}; {unit}."
+    return f"{text[0].upper()}{text[1:]}."
+
+
+def dropped_depth_note(counts: dict | None, source) -> str | None:
+    """A line on the depth values a recording's frames lost to near and far, when more than
+    :data:`DROPPED_SHARE_NOTE` of them; None otherwise."""
+    if counts is None or dropped_share(counts) <= DROPPED_SHARE_NOTE:
+        return None
+    return (
+        f"{100.0 * dropped_share(counts):.1f}% of the depth values were dropped as outside near..far: "
+        f"{_dropped_words(counts)}. {_range_remedy(counts, source)}"
+    )
+
+
+def empty_map_reason(result: RunResult, simulation) -> str:
+    """Why a run's map is empty, in words: no objects, nothing in view, depth dropped by near and far
+    (with the counts, for a recording), or everything filtered."""
+    config = result.config
+    if simulation.rig is not None and not config.scene.objects:
+        return "the map is empty: the scene has no objects ([[scene.objects]] in the config)"
+    counts = result.depth_returns
+    no_returns = not any(r.valid_pixels for r in result.records)
+    if counts is not None and counts["pixels"]:
+        if no_returns:
+            if counts["nearer_than_near"] + counts["beyond_far"] == 0:
+                return f"the map is empty: {_dropped_words(counts)}"
+            return (
+                f"the map is empty: no frame kept a depth return between near and far: {_dropped_words(counts)}. "
+                f"{_range_remedy(counts, simulation.source)}"
+            )
+        if dropped_share(counts) >= 0.5:
+            return (
+                f"the map is empty: most depth values were dropped as outside near..far, and the surface filter "
+                f"({config.surface.method}) made no triangles of the rest: {_dropped_words(counts)}. "
+                f"{_range_remedy(counts, simulation.source)}"
+            )
+    if no_returns:
+        intrinsics = simulation.source.intrinsics
+        reach = f"{intrinsics.near:g}-{intrinsics.far:g} m"
+        if simulation.rig is not None:
+            return (
+                f"the map is empty: no frame had a depth return (nothing in view within the sensor's range, "
+                f"{reach}); check the objects' positions, the path and the intrinsics"
+            )
+        return (
+            f"the map is empty: no frame had a depth return within the camera's range ({reach}); "
+            "check its near and far, and the depth's unit (--depth-scale)"
+        )
+    reason = (
+        "the map is empty: frames had depth returns, but the surface filter made no triangles of them "
+        f"({config.surface.method}; e.g. too few points per voxel, or every pixel classified known)"
+    )
+    note = dropped_depth_note(counts, simulation.source)
+    return reason + (f". Also, {note}" if note else "")

@@ -11,7 +11,8 @@ in order (:data:`STEPS`; :meth:`RunPipeline.run` calls a method per step)::
     outputs     the run folder opened (refused if another run holds it), config.toml,
                 the input files' fingerprint (for --resume)
     loop        frame by frame: MabdiLoop.step(i), then each observer's on_frame
-    results     the RunResult (map, records, timings) and the run's files (mabdi.loop.run_outputs)
+    results     the RunResult (map, records, timings) and the run's files (mabdi.loop.run_outputs);
+                a recording that lost over 2% of its depth values to near and far says so (DepthRangeWarning)
     evaluation  the map scored against the ground truth by the ``evaluate`` callable, or why not
     summary     summary.json written last, the checkpoint dropped, the folder complete
 
@@ -50,6 +51,7 @@ from __future__ import annotations
 
 import sys
 import time
+import warnings
 from dataclasses import asdict, dataclass, field
 
 from mabdi.config import dump_toml
@@ -60,7 +62,7 @@ from mabdi.io.fingerprint import fingerprint, run_inputs
 from mabdi.io.run_folder import RunFolder
 from mabdi.io.vtk_files import write_image
 from mabdi.loop.frame_records import FrameRecords
-from mabdi.loop.run_outputs import CHECKPOINT, RunResult, finish_run, write_run_outputs
+from mabdi.loop.run_outputs import CHECKPOINT, DepthRangeWarning, RunResult, dropped_depth_note, finish_run, write_run_outputs
 
 #: The steps of a run, in order (see the module docs).
 STEPS = ("source", "outputs", "loop", "results", "evaluation", "summary")
@@ -298,9 +300,14 @@ class RunPipeline:
             folder=self.folder,
             noise_calibration=calibration.summary() if calibration is not None else None,
             intrinsics=asdict(simulation.source.intrinsics),
+            depth_returns=simulation.source.depth_returns() if hasattr(simulation.source, "depth_returns") else None,
         )
         if self.folder is not None:
-            write_run_outputs(result, simulation)
+            write_run_outputs(result, simulation)  # an empty map: EmptyMapWarning says why
+        if result.mesh.GetNumberOfCells():
+            note = dropped_depth_note(result.depth_returns, simulation.source)
+            if note is not None:
+                warnings.warn(note, DepthRangeWarning, stacklevel=2)
         self.result = result
         self._notify("on_loop_end", result)
 
@@ -360,4 +367,6 @@ class RunPipeline:
             "inputs": self.inputs,
             "loop": self.simulation.loop.state(),
         }
+        if hasattr(self.simulation.source, "counts_state"):  # a recording's dropped depth so far (a resume counts it too)
+            state["depth_returns"] = self.simulation.source.counts_state()
         write_tree(self.folder.path(CHECKPOINT), state)

@@ -6,7 +6,10 @@ scene, sensor, helical path) feeding the MABDI loop
 surface, world mesh). ``Simulation(config, source=...)`` runs the same loop
 on any other :class:`~mabdi.sources.frames.FrameSource` (a recorded
 sequence), with ``scene=`` the ground truth when it is known;
-:func:`recorded_simulation` builds one over a recording on disk.
+:func:`recorded_simulation` builds one over a recording on disk, its
+frames read through :class:`RecordedFrames` (the first ``frames`` of them,
+and per frame the pixels dropped as no return, nearer than near or beyond
+far, for the run's summary and its warnings).
 
 A run of it is a :class:`~mabdi.loop.run_pipeline.RunPipeline` (the
 steps and the observers are listed there; the files a run writes in
@@ -46,6 +49,8 @@ from mabdi.loop.run_outputs import (  # noqa: F401 - re-exported: the runner's n
     EmptyMapWarning,
     RunResult,
     annotated_map,
+    depth_range_counts,
+    depth_returns_summary,
     empty_map_reason,
     finish_run,
     metrics_csv,
@@ -157,7 +162,9 @@ def resume_run(out_dir, observers=(), **options) -> RunPipeline:
         if recording is None:
             simulation = Simulation(config)
         else:
-            simulation, note = recorded_simulation(config, recording["path"], **recording["options"])
+            simulation, note = recorded_simulation(
+                config, recording["path"], frames=recording.get("frames"), **recording["options"]
+            )
         first = int(checkpoint["next_frame"])
         if first > simulation.frames:
             raise OutputError(
@@ -175,6 +182,9 @@ def resume_run(out_dir, observers=(), **options) -> RunPipeline:
                 f"cannot resume {folder.folder}: its checkpoint's loop state does not fit this run "
                 f"({type(exc).__name__}: {exc})"
             ) from None
+        counts = checkpoint.get("depth_returns")
+        if counts is not None and hasattr(simulation.source, "set_counts_state"):
+            simulation.source.set_counts_state(counts)
     except BaseException:
         folder.release()
         raise
@@ -215,24 +225,150 @@ def read_checkpoint(folder: Path) -> dict:
     return state
 
 
-#: The noise model of a depth camera's recording whose run states none (no config file, no ``--noise``):
-#: learnt from the run (:mod:`mabdi.noise_calibration`), since every real camera has noise and its
-#: model is unknown; ``none`` would hold the thresholds at ``tau_min`` at every depth.
+#: The noise model of a depth camera's recording whose run states none (no config file, or one whose ``[sensor]``
+#: leaves ``noise`` out, and no ``--noise``): learnt from the run (:mod:`mabdi.noise_calibration`), since every
+#: real camera has noise and its model is unknown; ``none`` would hold the thresholds at ``tau_min`` at every depth.
 RECORDING_NOISE = "auto"
 
+#: The fields of ``--camera fx,fy,cx,cy,width,height[,near,far]``, in order.
+CAMERA_FIELDS = ("fx", "fy", "cx", "cy", "width", "height", "near", "far")
 
-def recorded_simulation(config: RunConfig, path, noise_stated: bool = True, **options) -> tuple[Simulation, str | None]:
-    """A Simulation over the recording at ``path`` (``options`` go to the reader), and a note when
-    the ground truth is unknown (the evaluation is then skipped). ``noise_stated`` False (the run gave
-    no config file and no noise model): a depth camera's recording runs with :data:`RECORDING_NOISE`,
-    a LiDAR's with the config's."""
+
+def camera_option(text: str) -> Intrinsics:
+    """``--camera fx,fy,cx,cy,width,height[,near,far]`` as :class:`Intrinsics` (mabdi's pixel centres, metres):
+    fx, fy positive, width and height positive whole numbers of pixels; a :class:`ConfigError` names the field."""
+    fields = [field.strip() for field in text.split(",")]
+    if len(fields) not in (6, 8):
+        raise ConfigError(
+            f"--camera {text}: expected 6 numbers fx,fy,cx,cy,width,height (or 8, with near,far in metres), got {len(fields)}"
+        )
+    values = {}
+    for name, field in zip(CAMERA_FIELDS, fields):
+        try:
+            value = float(field)
+        except ValueError:
+            raise ConfigError(f"--camera {text}: {name} must be a number, got {field!r}") from None
+        if not np.isfinite(value):
+            raise ConfigError(f"--camera {text}: {name} must be finite, got {field!r}")
+        if name in ("width", "height"):
+            if not (value.is_integer() and value > 0):
+                raise ConfigError(f"--camera {text}: {name} must be a positive whole number of pixels, got {field}")
+            value = int(value)
+        elif name in ("fx", "fy", "near", "far") and value <= 0:
+            raise ConfigError(f"--camera {text}: {name} must be positive, got {field}")
+        values[name] = value
+    try:
+        return Intrinsics(**values)
+    except ConfigError as exc:
+        raise ConfigError(f"--camera {text}: {str(exc).removeprefix('intrinsics: ')}") from None
+
+
+class RecordedFrames(FrameSource):
+    """A recording's first ``frames`` frames (all when None, or when it has fewer), counting per frame the pixels
+    its depth loses before the loop sees it: no return, nearer than near, beyond far (:meth:`depth_returns`).
+
+    Everything else is the recording's (``recording``: the reader). ``asked``: the frames asked for (None: all).
+    """
+
+    def __init__(self, recording: FrameSource, frames: int | None = None, path=None) -> None:
+        self.recording = recording
+        self.available = len(recording)
+        self.asked = None if frames is None else int(frames)
+        if self.asked is not None and self.asked < 1:
+            raise ConfigError(f"{recording.description}: frames must be at least 1, got {self.asked}")
+        self.count = self.available if self.asked is None else min(self.asked, self.available)
+        self.description = recording.description
+        if self.count < self.available:
+            self.description += f", its first {self.count} frame{'s' if self.count != 1 else ''} run"
+        self.path = None if path is None else Path(path)
+        self._counts: dict[int, np.ndarray] = {}
+
+    def __getattr__(self, name):
+        if name == "recording":  # not set yet: no recursion
+            raise AttributeError(name)
+        return getattr(self.recording, name)  # the reader's own (depth_scale, folder, skipped, ...)
+
+    @property
+    def intrinsics(self):
+        return self.recording.intrinsics
+
+    def __len__(self) -> int:
+        return self.count
+
+    @property
+    def poses(self) -> np.ndarray:
+        return self.recording.poses[: self.count]
+
+    @property
+    def timestamps(self) -> np.ndarray:
+        return self.recording.timestamps[: self.count]
+
+    @property
+    def true_poses(self) -> np.ndarray | None:
+        poses = self.recording.true_poses
+        return None if poses is None else poses[: self.count]
+
+    @property
+    def has_colour(self) -> bool:
+        return self.recording.has_colour
+
+    @property
+    def noise(self):
+        return self.recording.noise
+
+    @property
+    def pose_accuracy(self):
+        return self.recording.pose_accuracy
+
+    def read_frame(self, index: int):
+        frame = self.recording.read_frame(index)
+        geometry = frame.intrinsics
+        self._counts[index] = depth_range_counts(frame.depth, geometry.near, geometry.far)
+        return frame
+
+    def depth_returns(self) -> dict | None:
+        """The counts over the frames read so far (:func:`mabdi.loop.run_outputs.depth_returns_summary`); None before any."""
+        if not self._counts:
+            return None
+        geometry = self.intrinsics
+        return depth_returns_summary(np.stack(list(self._counts.values())), geometry.near, geometry.far)
+
+    def counts_state(self) -> np.ndarray:
+        """The per-frame counts as one (N, 7) array: frame index, then :func:`depth_range_counts`'s six (a checkpoint's)."""
+        rows = [np.concatenate(([index], counts)) for index, counts in sorted(self._counts.items())]
+        return np.array(rows, dtype=np.float64).reshape(-1, 7)
+
+    def set_counts_state(self, state) -> None:
+        """Take back :meth:`counts_state` (a resumed run counts its first frames too)."""
+        state = np.asarray(state, dtype=np.float64).reshape(-1, 7)
+        self._counts = {int(row[0]): row[1:].copy() for row in state}
+
+    def close(self) -> None:
+        self.recording.close()
+
+
+def recorded_simulation(
+    config: RunConfig, path, noise_stated: bool = True, frames: int | None = None, **options
+) -> tuple[Simulation, str | None]:
+    """A Simulation over the recording at ``path`` (``options`` go to the reader; ``camera`` may also be
+    ``"fx,fy,cx,cy,width,height[,near,far]"``, :func:`camera_option`), and a note when the ground truth is
+    unknown (the evaluation is then skipped). ``frames``: run the recording's first ``frames`` frames (None, or
+    more than it has: all of them; :class:`RecordedFrames`). ``noise_stated`` False (no config file, or one that
+    leaves ``[sensor] noise`` out, and no noise model given): a depth camera's recording runs with
+    :data:`RECORDING_NOISE`, a LiDAR's with the config's."""
     kind = sequence_format(path)
     wanted = READER_OPTIONS[kind]
     for name, value in options.items():
         if value is not None and name not in wanted:
             flag = "--" + name.replace("_", "-")
             raise ConfigError(f"{path} is a {FORMATS[kind][0]}: {flag} does not apply to it")
-    source = open_sequence(path, **{k: v for k, v in options.items() if v is not None and k in wanted})
+    reader_options = {k: v for k, v in options.items() if v is not None and k in wanted}
+    camera = reader_options.get("camera")
+    if isinstance(camera, str) and "," in camera:
+        reader_options["camera"] = camera_option(camera)
+    recording = open_sequence(path, **reader_options)
+    source = RecordedFrames(recording, frames, path=path)
+    source.options = wanted  # the remedies a message may name (--camera, --depth-scale)
     if not noise_stated and isinstance(source.intrinsics, Intrinsics):
         config = with_overrides(config, {"sensor.noise": RECORDING_NOISE}, f"{path} (no noise model stated)")
     recorded = read_sequence_metadata(path).get("recorded", {})
@@ -240,7 +376,7 @@ def recorded_simulation(config: RunConfig, path, noise_stated: bool = True, **op
     note = None
     if not config.scene.objects:
         note = f"{path}: no scene in the config, so no ground truth: the evaluation is skipped"
-    elif recorded.get("scene_digest") != scene_digest(config.scene, recorded.get("frames", len(source))):
+    elif recorded.get("scene_digest") != scene_digest(config.scene, recorded.get("frames", source.available)):
         note = (
             f"{path}: the recording does not say it came from this config's scene "
             "(its mabdi.toml [recorded] scene_digest differs or is absent): the evaluation is skipped"
@@ -252,6 +388,6 @@ def recorded_simulation(config: RunConfig, path, noise_stated: bool = True, **op
     true_file = metadata_path(path).with_name(TRUE_POSES)  # beside the recording's mabdi.toml
     if scene is not None and true_file.is_file():
         true_poses = np.load(true_file, allow_pickle=False)
-        if true_poses.shape == simulation.poses.shape:
-            simulation.true_poses = true_poses
+        if true_poses.shape == (source.available, 4, 4):
+            simulation.true_poses = true_poses[: source.count]
     return simulation, note
