@@ -244,3 +244,26 @@ def test_depth_beyond_far_is_counted_and_said_once(recording, tmp_path, capsys):
     assert 0.02 < share < 0.5 and counts["far"] == 3.0 and counts["frames"] == 4
     assert f"{100 * share:.1f}% of the depth values were dropped" in lines[0]
     assert "beyond far (3 m)" in lines[0] and "a higher far" in lines[0] and "--camera fx,fy,cx,cy,width,height,near,far" in lines[0]
+
+
+def test_a_recorded_simulation_of_the_first_frames_resumes_to_them_without_being_told(recording, tmp_path):
+    """The API: a run of recorded_simulation(..., frames=2) whose recording dict does not repeat the frames
+    still resumes to 2 frames (the pipeline keeps the source's own count in the checkpoint)."""
+    from mabdi.config import load_run_config, with_overrides
+    from mabdi.loop.runner import recorded_simulation, resume_run
+
+    config = with_overrides(
+        load_run_config(recording.parent / "small.toml"),
+        {"output.checkpoint_every": 1, "registration.enabled": False, "surface.method": "pixel_grid"},
+    )
+    simulation, _ = recorded_simulation(config, recording, frames=2)
+
+    def interrupt(record):
+        if record.frame == 0:
+            raise KeyboardInterrupt
+
+    out = tmp_path / "api"
+    with pytest.raises(KeyboardInterrupt):
+        simulation.run(out, progress=interrupt, recording={"path": str(recording), "options": {}})
+    result = resume_run(out).run()
+    assert len(result.records) == 2

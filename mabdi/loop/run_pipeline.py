@@ -179,8 +179,9 @@ class RunPipeline:
     empty map is not scored (``mabdi run`` says so) unless ``evaluate_empty``
     (a sweep's or the bench's row: F-score 0).
     ``overwrite``: write into a folder holding files mabdi did not write.
-    ``recording``: a recorded source as ``{"path": ..., "options": {...}}``
-    (kept in checkpoints, so a resume can reopen it). ``run_options``: plain
+    ``recording``: a recorded source as ``{"path": ..., "options": {...}, "frames": N}``
+    (kept in checkpoints, so a resume can reopen it; ``frames``, the first N
+    frames run, None for all, defaults to the source's). ``run_options``: plain
     data kept in checkpoints for the resumed run (``{"no_eval": True}``: the
     run stays unevaluated). ``no_eval``: skip the evaluation (default: as
     ``run_options`` says). ``note``: why the ground truth is unknown (the
@@ -206,6 +207,9 @@ class RunPipeline:
     def __post_init__(self) -> None:
         self.observers = list(self.observers)
         self.run_options = dict(self.run_options or {})
+        asked = getattr(getattr(self.simulation, "source", None), "asked", None)  # a recording's first N frames (RecordedFrames)
+        if self.recording is not None and "frames" not in self.recording and asked is not None:
+            self.recording = {**self.recording, "frames": asked}  # kept in checkpoints: a resume runs the same frames
         if self.no_eval is None:
             self.no_eval = bool(self.run_options.get("no_eval"))
         self.folder: RunFolder | None = None
