@@ -306,6 +306,13 @@ def cmd_run(args) -> int:
         if frames is not None and frames > source.available:
             asked = "--frames" if args.frames is not None else "run.frames"
             print(f"note: {asked} {frames}, but the recording has {source.available} frames: all {source.available} are run")
+        elif frames is not None and args.frames is None and frames < source.available:
+            set_keys = {setting.partition("=")[0].strip() for setting in args.settings}
+            where = "--set" if "run.frames" in set_keys else str(args.config)
+            print(
+                f"note: run.frames = {frames} ({where}) runs the first {frames} of the recording's {source.available} frames; "
+                "--frames N runs another number (all of them when N is past the end)"
+            )
         if not noise_stated and simulation.config.sensor.noise != config.sensor.noise:
             unstated = "the config does not set [sensor] noise" if args.config is not None else "no config"
             print(f"noise: {simulation.config.sensor.noise} (learnt from the run: {unstated} and no --noise name the camera's model)")

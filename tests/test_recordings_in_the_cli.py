@@ -103,12 +103,13 @@ def test_frames_runs_the_first_frames_of_a_recording(recording, tmp_path, capsys
     assert "its first 2 frames run" in capsys.readouterr().out
 
 
-def test_run_frames_of_a_config_applies_to_a_recording(recording, tmp_path):
+def test_run_frames_of_a_config_applies_to_a_recording(recording, tmp_path, capsys):
     config = tmp_path / "three.toml"
     config.write_text("[run]\nframes = 3\n" + NO_NOISE)
     out = tmp_path / "three"
     assert main(["run", str(config), "--sequence", str(recording), *FAST, "--out", str(out)]) == 0
     assert _summary(out)["frames"] == 3
+    assert f"note: run.frames = 3 ({config}) runs the first 3 of the recording's 4 frames" in capsys.readouterr().out
 
 
 def test_frames_beyond_the_recording_runs_them_all_with_a_note(recording, tmp_path, capsys):
