@@ -653,7 +653,8 @@ def main(argv=None) -> int:
             "sweep": cmd_sweep,
         }
         interrupts.raise_if_interrupted()  # one that came while mabdi was imported
-        status = commands[args.command](args)
+        with interrupts.interrupts_unwrapped():  # Ctrl-C that a library wrapped in an error of its own (numba's)
+            status = commands[args.command](args)
         sys.stdout.flush()  # a closed pipe shows here, inside the try
         failed = status != 0
         return status

@@ -100,6 +100,21 @@ def test_any_error_after_a_noted_sigint_exits_130(tmp_path, monkeypatch, capsys)
     assert "mabdi: interrupted" in stderr and "Traceback" not in stderr
 
 
+def test_a_wrapped_interrupt_outside_the_frames_exits_130(tmp_path, monkeypatch, capsys):
+    """The same while the run's outputs are written (after the last frame): the command, not only the frame
+    loop, takes a wrapped interrupt for Ctrl-C."""
+    from mabdi.cli import main
+    from mabdi.loop import run_pipeline
+
+    def interrupted(*args, **kwargs):
+        raise _wrapped_interrupt()
+
+    monkeypatch.setattr(run_pipeline, "write_run_outputs", interrupted)
+    assert main(_run(tmp_path / "run")) == 130
+    stderr = capsys.readouterr().err
+    assert "mabdi: interrupted" in stderr and "Traceback" not in stderr and "SystemError" not in stderr
+
+
 def _default_sigint() -> None:
     signal.signal(signal.SIGINT, signal.SIG_DFL)
 
