@@ -39,7 +39,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from mabdi.camera import Intrinsics
-from mabdi.errors import ConfigError
+from mabdi.errors import ConfigError, check_switch
 from mabdi.io.toml_writer import toml_lines
 from mabdi.filters.classifier import ClassifierParameters
 from mabdi.filters.refinement import RefinementParameters
@@ -150,6 +150,11 @@ class SensorConfig:
     true ones (``jitter_translation`` m, ``jitter_rotation`` degrees per frame;
     ``drift_translation``, ``drift_rotation``: the random walk's spread after
     one metre travelled, growing with sqrt(distance)); zero: exact poses.
+
+    ``fill_pixel_holes`` (true, false or ``"auto"``, the default): a camera's
+    one-pixel holes filled where the pixels on either side agree
+    (:mod:`mabdi.depth_holes`); "auto" on fragmented frames only, as depth
+    registered to a colour camera gives.
     """
 
     kind: str = "pinhole"
@@ -180,6 +185,7 @@ class SensorConfig:
     beam_elevations: list[float] = field(default_factory=list)
     range_sigma: float = SensorNoise.range_sigma
     backend: str = BACKENDS[0]
+    fill_pixel_holes: bool | str = "auto"
     pose_noise: PoseNoise = field(default_factory=PoseNoise)
 
     def intrinsics(self) -> Intrinsics:
@@ -686,6 +692,10 @@ def validate_run_config(config: RunConfig, where: str = "<config>") -> None:
     _check_choice(sensor.kind, SENSOR_KINDS, where, "sensor.kind")
     _check_choice(sensor.noise, RANGE_NOISE_MODELS if sensor.kind == "lidar" else tuple(m for m in NOISE_MODELS if m != "range"), where, "sensor.noise")
     _check_choice(sensor.backend, BACKENDS, where, "sensor.backend")
+    try:
+        check_switch("sensor.fill_pixel_holes", sensor.fill_pixel_holes)
+    except ConfigError as exc:
+        raise ConfigError(f"{where}: key {exc}") from None
     try:
         sensor.geometry()
         sensor.sensor_noise()

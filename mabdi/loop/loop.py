@@ -116,6 +116,8 @@ class FrameRecord:
     inlier_share: float = float("nan")
     constraint_support: float = float("nan")
     t_register_ms: float = 0.0
+    #: One-pixel holes of D filled before the frame was used (:mod:`mabdi.depth_holes`).
+    filled_pixels: int = 0
 
     @property
     def registered(self) -> bool:
@@ -163,6 +165,7 @@ class MabdiLoop:
         removal: RemovalParameters | None = None,
         refinement: RefinementParameters | None = None,
         registration: RegistrationParameters | None = None,
+        pixel_holes: bool | str = "auto",
     ) -> None:
         self.source = source
         self.classifier_parameters = classifier if classifier is not None else ClassifierParameters()
@@ -191,7 +194,7 @@ class MabdiLoop:
         if self.classifier_parameters.rim_on_map == "auto":  # the seam on the map's surface where the map is refined
             self.classifier_parameters = replace(self.classifier_parameters, rim_on_map=bool(self.refining))
         self.refinement = MapRefinement(refinement if refinement is not None else RefinementParameters())
-        self.measured = SourceDepthFrames(source, noise=self.noise)
+        self.measured = SourceDepthFrames(source, noise=self.noise, pixel_holes=pixel_holes)
         # compacted at the end of each frame (step)
         self.world = FilterWorldMesh(chunk_size=chunk_size_for(source.intrinsics), compact_on_append=False)
         self.expected = FilterExpectedImage(backend=backend, identity=self.removal or self.refining)
@@ -253,6 +256,7 @@ class MabdiLoop:
             removal=config.removal,
             refinement=config.refinement,
             registration=config.registration,
+            pixel_holes=config.sensor.fill_pixel_holes,
         )
 
     # -- running -----------------------------------------------------------
@@ -416,6 +420,7 @@ class MabdiLoop:
             inlier_share=registration["inlier_share"],
             constraint_support=registration["support"],
             t_register_ms=ms * (t_register - t_depth),
+            filled_pixels=self.measured.filled_pixels,
         )
 
     def _calibrate_noise(self) -> None:

@@ -146,6 +146,10 @@ class RunResult:
             "mean_ms": {s: float(sum(getattr(r, s) for r in records) / n) for s in stages},
             "render": self.backend,
             "registration": registration_summary(records),
+            "pixel_holes_filled": {
+                "frames": sum(1 for r in records if r.filled_pixels),
+                "pixels": int(sum(r.filled_pixels for r in records)),
+            },
             "noise_calibration": self.noise_calibration,
             "intrinsics": self.intrinsics,
             **({"depth_returns": self.depth_returns} if self.depth_returns is not None else {}),

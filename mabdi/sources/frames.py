@@ -38,6 +38,8 @@ from vtkmodules.vtkCommonExecutionModel import vtkStreamingDemandDrivenPipeline
 from mabdi.algorithm import MabdiAlgorithm
 from mabdi.camera import Intrinsics
 from mabdi.depth import DepthFrame, fill_depth_image, only_returns
+from mabdi.depth_holes import fill_pixel_holes, is_fragmented
+from mabdi.errors import check_switch
 from mabdi.pose_noise import PoseNoise
 from mabdi.sensor_noise import SensorNoise
 
@@ -207,13 +209,22 @@ class SourceDepthFrames(MabdiAlgorithm):
     read as noise-free), and the point array ``colour`` when the frame has a
     colour image; depths that are not returns are NaN. With ``noise = "auto"``
     D carries the calibrated curve as it stands when D is made.
+
+    ``pixel_holes``: a camera's one-pixel holes filled where the pixels on
+    either side agree (:mod:`mabdi.depth_holes`): ``"auto"`` (the default) on
+    fragmented frames only, true on every frame, false never; ``filled_pixels``
+    says how many the last frame got. Range images are left as they are.
     """
 
-    def __init__(self, source: FrameSource, noise: SensorNoise | str | None = None) -> None:
+    def __init__(self, source: FrameSource, noise: SensorNoise | str | None = None, pixel_holes: bool | str = "auto") -> None:
         super().__init__(nInputPorts=0, nOutputPorts=1, outputType="vtkImageData")
+        check_switch("pixel_holes", pixel_holes)
         self._source = source
         self._frame = 0
         self._noise = SensorNoise.of(noise) if noise is not None else source.noise
+        self._pixel_holes = pixel_holes
+        #: One-pixel holes filled in the last frame made (:mod:`mabdi.depth_holes`).
+        self.filled_pixels = 0
 
     @property
     def source(self) -> FrameSource:
@@ -233,6 +244,11 @@ class SourceDepthFrames(MabdiAlgorithm):
     def frame(self, value: int) -> None:
         self._set("_frame", self._source.check_index(value))
 
+    def _fills_holes(self, depth: np.ndarray, geometry) -> bool:
+        if self._pixel_holes is False or not isinstance(geometry, Intrinsics):
+            return False
+        return self._pixel_holes is True or is_fragmented(depth)
+
     def RequestInformation(self, request, inInfo, outInfo):  # noqa: N802 (VTK API)
         intrinsics = self._source.intrinsics
         info = outInfo.GetInformationObject(0)
@@ -245,6 +261,12 @@ class SourceDepthFrames(MabdiAlgorithm):
     def RequestData(self, request, inInfo, outInfo):  # noqa: N802 (VTK API)
         frame = self._source.read(self._frame)
         depth = frame.depth.copy()  # the output image owns its buffers
+        self.filled_pixels = 0
+        if self._fills_holes(depth, frame.intrinsics):
+            geometry = frame.intrinsics
+            noisy = self._noise is not None and self._noise.noisy
+            sigma = (lambda z: self._noise.sigma(z, geometry.near, geometry.far)) if noisy else None
+            depth, self.filled_pixels = fill_pixel_holes(depth, sigma)
         colour = None if frame.colour is None else frame.colour.copy()
         fill_depth_image(
             vtkImageData.GetData(outInfo), depth, frame.intrinsics, frame.world_from_camera, self._frame, frame.timestamp, colour,
