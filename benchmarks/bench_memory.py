@@ -113,7 +113,9 @@ def run_steps(frames: int, surface: str | None) -> tuple[list[dict], list[str]]:
     if surface:
         mabdi.config.set_value(config, "surface.method", surface)
     mabdi.config.set_value(config, "run.frames", max(frames, 1))
-    simulation = mabdi.simulate.Simulation(config)
+    from mabdi.loop.runner import Simulation
+
+    simulation = Simulation(config)
     mark("after building the run", time.perf_counter() - start)
     start = time.perf_counter()
     simulation.step(0)
