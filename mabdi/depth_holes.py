@@ -17,10 +17,9 @@ wider than a pixel stays.
 
 **When** (:func:`is_fragmented`): only on a frame whose returns are
 fragmented, fewer than :data:`FRAGMENTED_SHARE` of them with all four
-neighbours returning (about 10% on a colour-registered recording; above 90%
-on a raw depth camera's frames and the simulator's, where holes are real
-no-returns: black or shiny surfaces, depth edges), so those frames are left
-as they are.
+neighbours returning. A raw depth camera's frames and the simulator's have
+nearly all of them surrounded, their holes being real no-returns (black or
+shiny surfaces, depth edges), and are left as they are.
 """
 
 from __future__ import annotations
