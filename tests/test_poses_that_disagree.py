@@ -25,6 +25,11 @@ def test_the_rule_judges_registered_shares_and_median_corrections():
     assert message and "only 0 of 5 frames registered" in message
     assert "camera_from_world" in message and "--depth-scale" in message and "\n" not in message
     assert poses_disagree(["no_map"] + ["few_points"] * 3, [0.0] * 4, [0.0] * 4) is None, "too few frames to judge"
+    # frames that see through the map (a tenth or more of their pixels: inverted poses, a wrong scale) are blamed;
+    # frames that fit it but give the registration too few samples (a small image) see through almost none
+    through = [0.0] + [0.2] * 5
+    assert poses_disagree(failing, [0.0] * 6, [0.0] * 6, through) is not None
+    assert poses_disagree(failing, [0.0] * 6, [0.0] * 6, [0.0] + [0.0003] * 5) is None
     assert poses_disagree(["off"] * 10, [0.0] * 10, [0.0] * 10) is None, "registration off: nothing judged"
     moved = ["no_map"] + ["registered"] * 6
     far = [0.0] + [0.152] * 6
@@ -105,3 +110,4 @@ def test_a_wrong_depth_scale_is_named_and_a_simulation_stating_its_pose_noise_is
     config = _small_table(tmp_path)
     assert main(["run", str(config), "--out", str(tmp_path / "simulated"), "--no-eval", "--quiet", *drift]) == 0
     assert WARNING not in capsys.readouterr().err
+

@@ -21,7 +21,7 @@ SCENES = Path(__file__).resolve().parents[1] / "scenes"
 TABLE_3_TRIANGLES = 370_182
 SUMMARY_KEYS = {
     "cells", "cells_removed", "classifier", "frames", "frames_per_second", "intrinsics", "map_bytes", "mean_ms",
-    "name", "noise", "noise_calibration", "points", "registration", "removal", "render", "seconds", "seed", "source",
+    "name", "noise", "noise_calibration", "pixel_holes_filled", "points", "registration", "removal", "render", "seconds", "seed", "source",
     "surface", "surface_parameters",
 }
 RUN_FILES = {

@@ -25,7 +25,10 @@ exact, nor runs with registration off; and only for a source that does not
 state how far its poses are off, a recording: the simulator knows its pose
 noise, and has no pose file or depth scale to get wrong): with at least
 :data:`MIN_JUDGED` of them, the poses disagree when fewer than
-:data:`MIN_REGISTERED_SHARE` of them registered, or when at least
+:data:`MIN_REGISTERED_SHARE` of them registered while more than a few of their pixels
+saw through the map at the given poses (:data:`MIN_SEEN_THROUGH_SHARE`;
+frames that fit the map but give the registration too few samples, a
+small image, see through almost none of it), or when at least
 :data:`MIN_REGISTERED` registered and their median correction is beyond
 :data:`MAX_CORRECTION_M` or :data:`MAX_CORRECTION_DEG`. The loop checks it
 once a run's last frame is done and warns once.
@@ -39,8 +42,12 @@ import numpy as np
 
 #: Frames judged against the map that the rule needs.
 MIN_JUDGED = 4
-#: Fewer than this share of the judged frames registered: the depth does not fit the map near the given poses.
+#: Fewer than this share of the judged frames registered: the depth does not fit the map near the given poses ...
 MIN_REGISTERED_SHARE = 1.0 / 3.0
+#: ... when, at the given poses, more than this share of their pixels (median over the judged frames) saw through
+#: the map (contradicted): in a static scene, poses that fit leave almost none however few samples the
+#: registration gets (a small image); camera_from_world poses and a wrong depth scale leave a tenth or more
+MIN_SEEN_THROUGH_SHARE = 0.05
 #: The registered frames' median correction beyond these (metres, degrees), taken over at least
 #: :data:`MIN_REGISTERED` frames: more than any ordinary pose source is off by.
 MAX_CORRECTION_M = 0.05
@@ -59,15 +66,24 @@ class PosesDisagreeWarning(UserWarning):
     """A run's poses disagree with its depth (:func:`poses_disagree`)."""
 
 
-def poses_disagree(statuses: Sequence[str], corrections_m: Sequence[float], corrections_deg: Sequence[float]) -> str | None:
+def poses_disagree(
+    statuses: Sequence[str],
+    corrections_m: Sequence[float],
+    corrections_deg: Sequence[float],
+    seen_through_shares: Sequence[float] | None = None,
+) -> str | None:
     """Why the frames' poses disagree with their depth, in one line, or None when they agree (the rule: the
-    module docs). One entry per frame: its registration status, correction (m) and correction (degrees);
-    frames not to be judged carry ``"off"`` or ``"no_map"``."""
+    module docs). One entry per frame: its registration status, correction (m) and correction (degrees), and
+    the share of its valid pixels that saw through the map (contradicted; None: not known, not asked);
+    frames not to be judged carry
+    ``"off"`` or ``"no_map"``."""
     judged = [i for i, status in enumerate(statuses) if status not in NOT_JUDGED]
     if len(judged) < MIN_JUDGED:
         return None
     registered = [i for i in judged if statuses[i] == "registered"]
-    if len(registered) < MIN_REGISTERED_SHARE * len(judged):
+    shares = [] if seen_through_shares is None else [seen_through_shares[i] for i in judged]
+    seen_through = float(np.nanmedian(shares)) if np.isfinite(shares).any() else 1.0
+    if len(registered) < MIN_REGISTERED_SHARE * len(judged) and seen_through > MIN_SEEN_THROUGH_SHARE:
         return (
             f"the poses disagree with the depth: only {len(registered)} of {len(judged)} frames registered to the map "
             f"near their given poses; {CAUSES}"

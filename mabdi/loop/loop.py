@@ -228,7 +228,9 @@ class MabdiLoop:
         self._poses = np.full((len(source), 4, 4), np.nan)
         #: (N, 3) each frame's registration status (its index in STATUSES; "off" where the source states its poses
         #: exact) and correction (m, degrees), for the check of the run's poses; NaN for frames not run
-        self._registrations = np.full((len(source), 3), np.nan)
+        #: per frame: registration status code, correction (m, degrees), the share of its valid pixels that saw
+        #: through the map (contradicted)
+        self._registrations = np.full((len(source), 4), np.nan)
         self._poses_checked = False
         self._given_exact = False  # the last frame's pose stated exact by the source
         self._removed = vtkPolyData()
@@ -305,7 +307,8 @@ class MabdiLoop:
             self.surface.set_state(state["surface"])
         self._poses = np.array(state["poses"], dtype=np.float64)
         if "registrations" in state:  # (checkpoints before it: the check sees the frames run since)
-            self._registrations = np.array(state["registrations"], dtype=np.float64)
+            registrations = np.array(state["registrations"], dtype=np.float64)
+            self._registrations[:, : registrations.shape[1]] = registrations
         if self.registration is not None:
             self.registration.set_state(state["registration"])
         if self.noise.calibration is not None:
@@ -319,7 +322,8 @@ class MabdiLoop:
         with interrupts_unwrapped():
             record = self._step(index)
         judged = "off" if self._given_exact else record.registration
-        self._registrations[index] = (STATUSES.index(judged), record.correction_mm / 1000.0, record.correction_deg)
+        seen_through = record.contradicted_pixels / record.valid_pixels if record.valid_pixels else np.nan
+        self._registrations[index] = (STATUSES.index(judged), record.correction_mm / 1000.0, record.correction_deg, seen_through)
         if index == len(self._registrations) - 1:
             self._check_poses()
         return record
@@ -331,7 +335,7 @@ class MabdiLoop:
             return
         self._poses_checked = True
         done = self._registrations[np.isfinite(self._registrations[:, 0])]
-        message = poses_disagree([STATUSES[int(code)] for code in done[:, 0]], done[:, 1], done[:, 2])
+        message = poses_disagree([STATUSES[int(code)] for code in done[:, 0]], done[:, 1], done[:, 2], done[:, 3])
         if message is not None:
             warnings.warn(message, PosesDisagreeWarning, stacklevel=3)
 
