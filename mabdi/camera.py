@@ -121,12 +121,10 @@ class Intrinsics:
 # Poses
 
 
-def check_pose(pose, name: str = "pose") -> np.ndarray:
-    """Return ``pose`` as a float64 4x4 array, or raise :class:`PoseError`.
-
-    A pose must be 4x4, finite, with last row (0, 0, 0, 1) and an orthonormal,
-    right-handed rotation block (tolerance :data:`RIGID_TOLERANCE`).
-    """
+def _checked_pose(pose, name: str, tolerance: float, reason: str = "") -> tuple[np.ndarray, float]:
+    """(``pose`` as a float64 4x4 array, max |R^T R - I| of its rotation block), or :class:`PoseError`: 4x4,
+    finite, last row (0, 0, 0, 1) and a right-handed rotation block orthonormal within ``tolerance``
+    (``reason`` follows the figure in the message)."""
     try:
         m = np.array(pose, dtype=np.float64)
     except (TypeError, ValueError) as exc:
@@ -135,15 +133,24 @@ def check_pose(pose, name: str = "pose") -> np.ndarray:
         raise PoseError(f"{name} must be a 4x4 world_from_camera matrix, got shape {m.shape}")
     if not np.isfinite(m).all():
         raise PoseError(f"{name} has non-finite entries")
-    if np.abs(m[3] - (0.0, 0.0, 0.0, 1.0)).max() > RIGID_TOLERANCE:
+    if np.abs(m[3] - (0.0, 0.0, 0.0, 1.0)).max() > tolerance:
         raise PoseError(f"{name} last row must be (0, 0, 0, 1), got {m[3].tolist()}")
     r = m[:3, :3]
-    error = np.abs(r.T @ r - np.eye(3)).max()
-    if error > RIGID_TOLERANCE:
-        raise PoseError(f"{name} is not rigid: rotation block is not orthonormal (max |R^T R - I| = {error:.3g})")
+    error = float(np.abs(r.T @ r - np.eye(3)).max())
+    if error > tolerance:
+        raise PoseError(f"{name} is not rigid: rotation block is not orthonormal (max |R^T R - I| = {error:.3g}{reason})")
     if np.linalg.det(r) < 0:
         raise PoseError(f"{name} is not rigid: rotation block is a reflection (det < 0)")
-    return m
+    return m, error
+
+
+def check_pose(pose, name: str = "pose") -> np.ndarray:
+    """Return ``pose`` as a float64 4x4 array, or raise :class:`PoseError`.
+
+    A pose must be 4x4, finite, with last row (0, 0, 0, 1) and an orthonormal,
+    right-handed rotation block (tolerance :data:`RIGID_TOLERANCE`).
+    """
+    return _checked_pose(pose, name, RIGID_TOLERANCE)[0]
 
 
 def nearest_rotation(rotation) -> np.ndarray:
@@ -162,26 +169,9 @@ def pose_from_file(pose, name: str = "pose", tolerance: float = POSE_FILE_TOLERA
     :data:`POSE_FILE_TOLERANCE`); beyond it, a reflection, a last row other than (0, 0, 0, 1), or a
     non-finite entry, the matrix is no rigid motion and ``name`` (file and line) is named.
     """
-    try:
-        m = np.array(pose, dtype=np.float64)
-    except (TypeError, ValueError) as exc:
-        raise PoseError(f"{name} must be a 4x4 numeric matrix: {exc}") from None
-    if m.shape != (4, 4):
-        raise PoseError(f"{name} must be a 4x4 world_from_camera matrix, got shape {m.shape}")
-    if not np.isfinite(m).all():
-        raise PoseError(f"{name} has non-finite entries")
-    if np.abs(m[3] - (0.0, 0.0, 0.0, 1.0)).max() > tolerance:
-        raise PoseError(f"{name} last row must be (0, 0, 0, 1), got {m[3].tolist()}")
-    r = m[:3, :3]
-    error = float(np.abs(r.T @ r - np.eye(3)).max())
-    if error > tolerance:
-        raise PoseError(
-            f"{name} is not rigid: rotation block is not orthonormal (max |R^T R - I| = {error:.3g}, "
-            f"more than the {tolerance:g} a rotation written to a few digits carries)"
-        )
-    if np.linalg.det(r) < 0:
-        raise PoseError(f"{name} is not rigid: rotation block is a reflection (det < 0)")
-    m[:3, :3] = nearest_rotation(r)
+    reason = f", more than the {tolerance:g} a rotation written to a few digits carries"
+    m, error = _checked_pose(pose, name, tolerance, reason)
+    m[:3, :3] = nearest_rotation(m[:3, :3])
     m[3] = (0.0, 0.0, 0.0, 1.0)
     return m, error
 

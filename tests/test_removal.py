@@ -262,7 +262,7 @@ def test_casting_pixels_in_their_triangles_boxes_finds_what_casting_against_ever
     rays, _ = unit_rays(sensor, np.float64)
     directions = rays.reshape(-1, 3) @ pose[:3, :3].T
     slots = np.arange(directions.shape[0], dtype=np.int64).reshape(sensor.shape)
-    hits, distances = nearest_hits_in_boxes_kernel(pose[:3, 3], directions, slots, pixel_boxes(corner, edge1, edge2, sensor, pose), corner, edge1, edge2)
+    hits, distances = nearest_hits_in_boxes_kernel(pose[:3, 3], directions, slots, pixel_boxes(corner, edge1, edge2, sensor, pose), corner, edge1, edge2, 0.0)
 
     # every pixel against every triangle (Moller-Trumbore in numpy)
     best = np.full(len(directions), np.inf)

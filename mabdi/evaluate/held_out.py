@@ -14,8 +14,8 @@ camera and compare the map's depth with the frame's measured depth D:
 
 The map's depth comes from exact ray casting of its triangles
 (:class:`MapRaycaster`: Moller-Trumbore on the triangles whose projection
-may cover a pixel, as :func:`~mabdi.loop.ray_triangle_kernels.nearest_hits_in_boxes_kernel`
-does it, with a tolerance of :data:`EDGE_TOLERANCE` on the barycentric
+may cover a pixel: :func:`~mabdi.loop.ray_triangle_kernels.nearest_hits_in_boxes_kernel`,
+with a tolerance of :data:`EDGE_TOLERANCE` on the barycentric
 coordinates so that a ray through the edge two triangles share meets one of
 them: a closed surface has no cracks),
 through mabdi's pixel centres (pixel (u, v) centred on (u + 0.5, v + 0.5),
@@ -40,11 +40,11 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
-from numba import njit
 from vtkmodules.vtkCommonDataModel import vtkPolyData
 
 from mabdi.camera import Intrinsics, project, unit_rays
 from mabdi.depth import DepthFrame
+from mabdi.loop.ray_triangle_kernels import nearest_hits_in_boxes_kernel
 from mabdi.polydata import triangle_frames
 from mabdi.sources.frames import FrameSource
 
@@ -56,41 +56,6 @@ ERROR_BIN_M = 1e-4
 ERROR_RANGE_M = 5.0
 #: How far outside a triangle (in barycentric coordinates) a ray may pass and still meet it.
 EDGE_TOLERANCE = 1e-9
-
-
-@njit(cache=True)
-def _first_hits_kernel(origin, directions, boxes, corner, edge1, edge2, width, tolerance):
-    """(N,) float64 distance along each ray (N = H * W, row-major pixels; ``directions`` unit, world frame) from
-    ``origin`` to the first triangle it meets (inf: none); triangle j (``corner`` + a ``edge1`` + b ``edge2``,
-    either side) is tested against the pixels of ``boxes[j]`` (u0, u1, v0, v1 inclusive)."""
-    n = directions.shape[0]
-    distances = np.full(n, np.inf)
-    ox, oy, oz = origin[0], origin[1], origin[2]
-    for j in range(corner.shape[0]):
-        e1x, e1y, e1z = edge1[j, 0], edge1[j, 1], edge1[j, 2]
-        e2x, e2y, e2z = edge2[j, 0], edge2[j, 1], edge2[j, 2]
-        sx, sy, sz = ox - corner[j, 0], oy - corner[j, 1], oz - corner[j, 2]
-        qx, qy, qz = sy * e1z - sz * e1y, sz * e1x - sx * e1z, sx * e1y - sy * e1x
-        t_num = e2x * qx + e2y * qy + e2z * qz
-        for v in range(boxes[j, 2], boxes[j, 3] + 1):
-            for u in range(boxes[j, 0], boxes[j, 1] + 1):
-                i = v * width + u
-                dx, dy, dz = directions[i, 0], directions[i, 1], directions[i, 2]
-                px, py, pz = dy * e2z - dz * e2y, dz * e2x - dx * e2z, dx * e2y - dy * e2x
-                det = e1x * px + e1y * py + e1z * pz
-                if abs(det) < 1e-15:
-                    continue
-                inv = 1.0 / det
-                a = (sx * px + sy * py + sz * pz) * inv
-                if a < -tolerance or a > 1.0 + tolerance:
-                    continue
-                b = (dx * qx + dy * qy + dz * qz) * inv
-                if b < -tolerance or a + b > 1.0 + tolerance:
-                    continue
-                t = t_num * inv
-                if 0.0 < t < distances[i]:
-                    distances[i] = t
-    return distances
 
 
 def held_out_split(frames: int, every: int) -> tuple[np.ndarray, np.ndarray]:
@@ -218,10 +183,11 @@ class MapRaycaster:
             return out
         rays, length = unit_rays(intrinsics, np.float64)
         directions = np.ascontiguousarray(rays.reshape(-1, 3) @ pose[:3, :3].T)
-        distances = _first_hits_kernel(
-            np.ascontiguousarray(pose[:3, 3]), directions, np.ascontiguousarray(boxes[keep]),
+        slots = np.arange(height * width, dtype=np.int64).reshape(height, width)  # every pixel cast, row-major
+        _, distances = nearest_hits_in_boxes_kernel(
+            np.ascontiguousarray(pose[:3, 3]), directions, slots, np.ascontiguousarray(boxes[keep]),
             np.ascontiguousarray(self.corner[keep]), np.ascontiguousarray(self.edge1[keep]), np.ascontiguousarray(self.edge2[keep]),
-            width, EDGE_TOLERANCE,
+            EDGE_TOLERANCE,
         )
         found = np.isfinite(distances)
         flat = out.reshape(-1)

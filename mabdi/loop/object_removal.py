@@ -277,7 +277,7 @@ class ObjectRemoval:
             slots.reshape(-1)[pixels] = np.arange(len(pixels))
             boxes = pixel_boxes(corner, edge1, edge2, geometry, pose)
             hit, distance = nearest_hits_in_boxes_kernel(
-                pose[:3, 3].astype(np.float64), rays[pixels] @ pose[:3, :3].T, slots, boxes, corner, edge1, edge2
+                pose[:3, 3].astype(np.float64), rays[pixels] @ pose[:3, :3].T, slots, boxes, corner, edge1, edge2, 0.0
             )
             found = hit >= 0
             if len(cell_of):

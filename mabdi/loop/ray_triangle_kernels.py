@@ -12,10 +12,11 @@ from numba import njit
 
 
 @njit(cache=True)
-def nearest_hits_in_boxes_kernel(origin, directions, slots, boxes, corner, edge1, edge2):
+def nearest_hits_in_boxes_kernel(origin, directions, slots, boxes, corner, edge1, edge2, tolerance):
     """(N,) int64 the triangle each ray ``directions`` (N, 3, world frame, unit) from ``origin`` (3,) meets
     first (-1: none), and (N,) float64 the distance along the ray (metres; inf: none). Triangle ``i`` is
-    ``corner[i]`` + a ``edge1[i]`` + b ``edge2[i]`` (a, b >= 0, a + b <= 1), met from either side
+    ``corner[i]`` + a ``edge1[i]`` + b ``edge2[i]`` (a, b >= -tolerance, a + b <= 1 + tolerance: a ray through
+    the edge two triangles share meets one of them when ``tolerance`` > 0), met from either side
     (Moller-Trumbore), and tested only against the rays of the pixels in its box:
 
     ``slots`` (H, W) int64: the ray (row of ``directions``) of each pixel, -1 for pixels not cast;
@@ -45,10 +46,10 @@ def nearest_hits_in_boxes_kernel(origin, directions, slots, boxes, corner, edge1
                     continue
                 inv = 1.0 / det
                 a = (sx * px + sy * py + sz * pz) * inv
-                if a < 0.0 or a > 1.0:
+                if a < -tolerance or a > 1.0 + tolerance:
                     continue
                 b = (dx * qx + dy * qy + dz * qz) * inv
-                if b < 0.0 or a + b > 1.0:
+                if b < -tolerance or a + b > 1.0 + tolerance:
                     continue
                 t = t_num * inv
                 if 0.0 < t < distances[i]:
