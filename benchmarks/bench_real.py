@@ -13,7 +13,7 @@ Maps, all from the same integrated frames and the same given poses:
   --sequence PATH`` runs a recording with no config (default settings,
   ``sensor.noise = "auto"`` for a depth camera:
   :func:`mabdi.loop.runner.recorded_simulation`), on the integrated frames
-  only (:class:`~mabdi.evaluate.held_out.FrameSubset`). It registers each
+  only (:class:`~mabdi.sources.frames.FrameSubset`). It registers each
   frame to its map, so it meshes each frame with a corrected pose; the map is
   scored at the held-out frames' given poses (``held_out``) and also at those
   poses corrected as the run corrected the frames around them
@@ -61,10 +61,11 @@ import numpy as np
 from mabdi.camera import Intrinsics
 from mabdi.config import RunConfig, with_overrides
 from mabdi.evaluate.bench import machine_info
-from mabdi.evaluate.held_out import THRESHOLDS, FrameSubset, corrected_poses, held_out_split, pose_differences, score_map
+from mabdi.evaluate.held_out import THRESHOLDS, corrected_poses, held_out_split, pose_differences, score_map
 from mabdi.evaluate.tsdf import TsdfSettings, open3d_status, run_tsdf
 from mabdi.io.atomic import write_text
 from mabdi.loop.runner import RECORDING_NOISE, Simulation
+from mabdi.sources.frames import FrameSubset
 from mabdi.sources.sequences import open_sequence
 
 

@@ -8,7 +8,6 @@ import pytest
 from mabdi.camera import Intrinsics, look_at
 from mabdi.depth import DepthFrame
 from mabdi.evaluate.held_out import (
-    FrameSubset,
     HeldOutTally,
     MapRaycaster,
     corrected_poses,
@@ -19,7 +18,7 @@ from mabdi.evaluate.held_out import (
     score_map,
 )
 from mabdi.polydata import triangles_polydata
-from mabdi.sources.frames import FrameList
+from mabdi.sources.frames import FrameList, FrameSubset
 
 #: A small camera whose principal point is the image's centre (mabdi's pixel centres at u + 0.5).
 CAMERA = Intrinsics(fx=60.0, fy=60.0, cx=40.0, cy=30.0, width=80, height=60, near=0.3, far=6.0)

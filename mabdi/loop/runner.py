@@ -58,7 +58,7 @@ from mabdi.loop.run_outputs import (  # noqa: F401 - re-exported: the runner's n
     write_run_outputs,
 )
 from mabdi.loop.run_pipeline import FrameCallback, ResumePoint, RunPipeline
-from mabdi.sources.frames import FrameSource
+from mabdi.sources.frames import FrameSource, FrameSubset
 from mabdi.sources.scene import SourceScene
 from mabdi.sources.sequences import FORMATS, READER_OPTIONS, metadata_path, open_sequence, read_sequence_metadata, sequence_format
 
@@ -263,7 +263,7 @@ def camera_option(text: str) -> Intrinsics:
         raise ConfigError(f"--camera {text}: {str(exc).removeprefix('intrinsics: ')}") from None
 
 
-class RecordedFrames(FrameSource):
+class RecordedFrames(FrameSubset):
     """A recording's first ``frames`` frames (all when None, or when it has fewer), counting per frame the pixels
     its depth loses before the loop sees it: no return, nearer than near, beyond far (:meth:`depth_returns`).
 
@@ -277,6 +277,7 @@ class RecordedFrames(FrameSource):
         if self.asked is not None and self.asked < 1:
             raise ConfigError(f"{recording.description}: frames must be at least 1, got {self.asked}")
         self.count = self.available if self.asked is None else min(self.asked, self.available)
+        super().__init__(recording, np.arange(self.count))
         self.description = recording.description
         if self.count < self.available:
             self.description += f", its first {self.count} frame{'s' if self.count != 1 else ''} run"
@@ -288,40 +289,8 @@ class RecordedFrames(FrameSource):
             raise AttributeError(name)
         return getattr(self.recording, name)  # the reader's own (depth_scale, folder, skipped, ...)
 
-    @property
-    def intrinsics(self):
-        return self.recording.intrinsics
-
-    def __len__(self) -> int:
-        return self.count
-
-    @property
-    def poses(self) -> np.ndarray:
-        return self.recording.poses[: self.count]
-
-    @property
-    def timestamps(self) -> np.ndarray:
-        return self.recording.timestamps[: self.count]
-
-    @property
-    def true_poses(self) -> np.ndarray | None:
-        poses = self.recording.true_poses
-        return None if poses is None else poses[: self.count]
-
-    @property
-    def has_colour(self) -> bool:
-        return self.recording.has_colour
-
-    @property
-    def noise(self):
-        return self.recording.noise
-
-    @property
-    def pose_accuracy(self):
-        return self.recording.pose_accuracy
-
     def read_frame(self, index: int):
-        frame = self.recording.read_frame(index)
+        frame = self.recording.read_frame(index)  # as the recording has it: the counts come before the near/far cut
         geometry = frame.intrinsics
         self._counts[index] = depth_range_counts(frame.depth, geometry.near, geometry.far)
         return frame
@@ -342,10 +311,6 @@ class RecordedFrames(FrameSource):
         """Take back :meth:`counts_state` (a resumed run counts its first frames too)."""
         state = np.asarray(state, dtype=np.float64).reshape(-1, 7)
         self._counts = {int(row[0]): row[1:].copy() for row in state}
-
-    def close(self) -> None:
-        self.recording.close()
-
 
 def recorded_simulation(
     config: RunConfig, path, noise_stated: bool = True, frames: int | None = None, **options

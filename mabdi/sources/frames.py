@@ -200,6 +200,62 @@ class FrameList(FrameSource):
         return DepthFrame(frame.depth, frame.intrinsics, frame.world_from_camera, index, frame.timestamp, frame.colour)
 
 
+class FrameSubset(FrameSource):
+    """The frames ``indices`` of ``source``, renumbered 0 .. len - 1 (read lazily, one at a time).
+
+    The source's statements (noise, pose accuracy, true poses) are passed on for those frames.
+    """
+
+    def __init__(self, source: FrameSource, indices) -> None:
+        indices = np.asarray(indices, dtype=np.int64)
+        if indices.ndim != 1 or len(indices) == 0:
+            raise ValueError("FrameSubset needs a non-empty 1-D list of frame indices")
+        if indices.min() < 0 or indices.max() >= len(source):
+            raise IndexError(f"{source.description}: frame indices must be in 0 .. {len(source) - 1}")
+        self.base = source
+        self.indices = indices
+        self.description = f"{source.description}: {len(indices)} of its frames"
+
+    @property
+    def intrinsics(self):
+        return self.base.intrinsics
+
+    def __len__(self) -> int:
+        return len(self.indices)
+
+    def read_frame(self, index: int) -> DepthFrame:
+        frame = self.base.read(int(self.indices[index]))
+        return DepthFrame(frame.depth, frame.intrinsics, frame.world_from_camera, index, frame.timestamp, frame.colour)
+
+    @property
+    def poses(self) -> np.ndarray:
+        return self.base.poses[self.indices]
+
+    @property
+    def timestamps(self) -> np.ndarray:
+        return self.base.timestamps[self.indices]
+
+    @property
+    def has_colour(self) -> bool:
+        return self.base.has_colour
+
+    @property
+    def true_poses(self):
+        true = self.base.true_poses
+        return None if true is None else true[self.indices]
+
+    @property
+    def noise(self):
+        return self.base.noise
+
+    @property
+    def pose_accuracy(self):
+        return self.base.pose_accuracy
+
+    def close(self) -> None:
+        self.base.close()
+
+
 class SourceDepthFrames(MabdiAlgorithm):
     """A :class:`FrameSource` as a VTK source: no input, the depth image of frame ``frame`` out.
 

@@ -51,6 +51,7 @@ from mabdi.errors import PoseError, PoseFileWarning
 from mabdi.sources.frames import FrameSource
 from mabdi.sources.sequence_files import (  # noqa: F401 (read_colour_image, write_colour_png: the readers' and writers' own)
     SequenceError,
+    camera_from_text,
     camera_table,
     intrinsics_with,
     metadata_path,
@@ -143,15 +144,7 @@ def parse_camera_option(camera, presets: dict[str, Intrinsics], where: str) -> I
     if isinstance(camera, str) and camera in presets:
         return presets[camera]
     if isinstance(camera, str) and "," in camera:
-        fields = camera.split(",")
-        try:
-            values = [float(field) for field in fields]
-            if len(values) != 6:
-                raise ValueError
-            return Intrinsics(*values[:4], width=int(values[4]), height=int(values[5]))
-        except (ValueError, TypeError) as exc:
-            detail = f": {exc}" if str(exc) else ""
-            raise SequenceError(f"{where}: camera {camera!r} is not fx,fy,cx,cy,width,height{detail}") from None
+        return camera_from_text(camera, where)
     raise SequenceError(
         f"{where}: unknown camera {camera!r} (known presets: {', '.join(presets)}; or give fx,fy,cx,cy,width,height)"
     )
