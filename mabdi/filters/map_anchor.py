@@ -43,16 +43,30 @@ the run (the first always).
 (E, the classifier and the surfaces all work there) and turns the map and
 the trajectory into the world with it when they are handed out.
 
-**How good the given poses are** (:meth:`MapAnchor.given_variance`): the
-same fit says how far a given pose, moved into the map frame, is from the
-truth: sigma^2 + q s per component (rotation in rad^2, translation in m^2).
-The offsets are registered minus given, so their spread holds the
-registration's own error too; each frame brings its registration's variance
-(the mean of the pose covariance's diagonal, per block), and their mean is
-taken off the white part. Exact poses then read as exact however noisy the
-registration (a structured-light camera's correlated error moves each
-registered pose a millimetre or more), and the registration can weigh the
-given pose against its own result (:func:`mabdi.filters.registration.fuse_with_given`).
+**How good the given poses are** (:meth:`MapAnchor.given_variance`): a
+source that states it is taken at its word (sigma^2 + q s per component,
+rotation in rad^2, translation in m^2). Otherwise it is learnt from the
+offsets (registered minus given): their spread about their mean, per
+component, less the two errors the registration brings of its own. One is
+its noise (each frame's pose covariance, the mean of the diagonal per
+block). The other is the map's own placement error, which no number of
+pixels averages away: the map was meshed from earlier frames of the same
+sensor, whose error is partly correlated across the image (depth
+calibration and distortion, a structured-light camera's correlated noise,
+the surfaces' chords), so a frame registered to it is off by about the
+sensor's depth noise at the depth it sees: sigma(z) in translation and
+sigma(z) over the half-width of the view at z in rotation (each frame
+brings it: :func:`mabdi.filters.registration.map_placement_variance`).
+Given poses whose offsets stay within what the map itself resolves are
+kept as they are (a good tracker's); jitter or a drift beyond it spreads
+the offsets further and the registration takes over. The spread, not the
+variogram's extrapolation q s: a fit that reads the map's slowly changing
+error as a drift (one pass, no returns) has the registration follow it;
+the map it then builds walks with it, which the next offsets read as more
+drift, and the poses walk away from good ones (docs/benchmarks.md, "Real
+frames: 7-Scenes redkitchen, held out"). Where the run has come back to
+places, the returns' fit below says it instead, with both errors taken off
+its white part.
 
 **Offsets bound to a place, not to the distance travelled.** A map is not
 exact: a voxel-plane map cuts chords through a curved surface, a terrace of
@@ -248,8 +262,11 @@ class MapAnchor:
         self._looks = np.zeros((0, 3))  # the points the given poses look at (m)
         self._travelled = np.zeros(0)  # s (m)
         self._registration_variances = np.zeros((0, 2))  # the registration's variance per frame (rad^2, m^2)
-        self._map_from_world = np.eye(4)
+        self._map_errors = np.zeros((0, 2))  # the map's own placement variance per frame (rad^2, m^2)
+        self._spreads = (0.0, 0.0)  # the offsets' mean squared spread about their mean (rad^2, m^2 per component)
         self._fits = ((1.0, 0.0), (1.0, 0.0))  # (sigma^2, q) of the rotations and the translations
+        self._returned = False  # whether the fits come from returns to a place (_revisit_fit)
+        self._map_from_world = np.eye(4)
 
     def __len__(self) -> int:
         return len(self._travelled)
@@ -265,15 +282,23 @@ class MapAnchor:
         return np.linalg.inv(self._map_from_world)
 
     def add(
-        self, given: np.ndarray, registered: np.ndarray, travelled: float, covariance: np.ndarray | None = None, depth: float = 0.0
+        self,
+        given: np.ndarray,
+        registered: np.ndarray,
+        travelled: float,
+        covariance: np.ndarray | None = None,
+        depth: float = 0.0,
+        map_error: tuple[float, float] = (0.0, 0.0),
     ) -> None:
         """One frame that fits the map: its given pose (world), its registered pose (map frame), the
         distance (m) the given poses travelled from the first frame to it, the registration's 6x6
-        pose covariance (rotation vector in rad, then translation in m; None: exact) and the median depth (m)
-        the frame sees along its optical axis (its place is where it is and what it looks at). Updates the
+        pose covariance (rotation vector in rad, then translation in m; None: exact), the median depth (m)
+        the frame sees along its optical axis (its place is where it is and what it looks at) and the
+        map's own placement variance there (rad^2, m^2 per component; see the module docs). Updates the
         estimate."""
         variances = np.zeros(2) if covariance is None else np.array([np.trace(covariance[:3, :3]), np.trace(covariance[3:, 3:])]) / 3.0
         self._registration_variances = np.vstack([self._registration_variances, variances])
+        self._map_errors = np.vstack([self._map_errors, np.asarray(map_error, dtype=np.float64).reshape(1, 2)])
         rotation = Rotation.from_matrix(registered[:3, :3] @ given[:3, :3].T).as_rotvec()
         self._rotations = np.vstack([self._rotations, rotation])
         self._translations = np.vstack([self._translations, registered[:3, 3] - given[:3, 3]])
@@ -296,6 +321,8 @@ class MapAnchor:
         residual = self._translations[use] - (self._positions[use] @ (start - np.eye(3)).T)
         fit_translation = _offsets_fit(residual, s, pairs) if self.stated is None else self.stated[1]
         self._fits = (fit_rotation, fit_translation)
+        self._returned = pairs is not None and len(s) >= MIN_FRAMES_FOR_DRIFT
+        self._spreads = tuple(float(np.mean((v - v.mean(axis=0)) ** 2)) for v in (rotations, residual))
         if self.stated is None and len(s) < MIN_FRAMES_FOR_DRIFT:
             # too few frames to say how the orientations' noise compares with the places': orientations alone
             self._map_from_world = np.eye(4)
@@ -314,22 +341,27 @@ class MapAnchor:
 
     def given_variance(self, travelled: float) -> tuple[float, float] | None:
         """The variance (rad^2, m^2 per component) of a given pose's error in the map frame at ``travelled``
-        metres, with the registration's own variance taken off (see the module docs); None while fewer
-        than :data:`MIN_FRAMES_FOR_DRIFT` frames say how the given poses behave."""
+        metres: as stated, or learnt as the offsets' spread less what the registration's noise and the
+        map's own placement error explain (see the module docs); None while fewer than
+        :data:`MIN_FRAMES_FOR_DRIFT` frames say how the given poses behave."""
         if self.stated is not None:
             return tuple(sigma2 + q * max(float(travelled), 0.0) for sigma2, q in self.stated)
         if len(self._travelled) < MIN_FRAMES_FOR_DRIFT:
             return None
-        registration = self._registration_variances.mean(axis=0)
-        return tuple(
-            max(sigma2 - own, 0.0) + q * max(float(travelled), 0.0)
-            for (sigma2, q), own in zip(self._fits, registration, strict=True)
-        )
+        own = self._registration_variances.mean(axis=0)
+        placement = self._map_errors.mean(axis=0)
+        if self._returned:  # returns to places tell drift from the map's error bound to a place
+            return tuple(
+                max(sigma2 - o - m, 0.0) + q * max(float(travelled), 0.0)
+                for (sigma2, q), o, m in zip(self._fits, own, placement, strict=True)
+            )
+        return tuple(max(spread - o - m, 0.0) for spread, o, m in zip(self._spreads, own, placement, strict=True))
 
     def state(self) -> dict:
         """Plain arrays (for checkpoints)."""
         return {
             "registration_variances": self._registration_variances.copy(),
+            "map_errors": self._map_errors.copy(),
             "rotations": self._rotations.copy(),
             "translations": self._translations.copy(),
             "positions": self._positions.copy(),
@@ -345,7 +377,11 @@ class MapAnchor:
         self._looks = np.array(state.get("looks", self._positions), dtype=np.float64).reshape(-1, 3)
         variances = state.get("registration_variances", np.zeros((len(self._travelled), 2)))
         self._registration_variances = np.array(variances, dtype=np.float64).reshape(-1, 2)
+        map_errors = state.get("map_errors", np.zeros((len(self._travelled), 2)))
+        self._map_errors = np.array(map_errors, dtype=np.float64).reshape(-1, 2)
         self._map_from_world = np.eye(4)
+        self._spreads = (0.0, 0.0)
         self._fits = ((1.0, 0.0), (1.0, 0.0))
+        self._returned = False
         if len(self._travelled):
             self._estimate()

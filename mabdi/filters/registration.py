@@ -91,8 +91,11 @@ corrects the pose the way KinectFusion's frame-to-model tracking does
 6. **Weighed against the given pose**: the ICP's pose and the given one
    are two estimates of the same pose. Once the anchor has seen enough
    frames to say how good the given poses are
-   (:meth:`~mabdi.filters.map_anchor.MapAnchor.given_variance`: their
-   spread about the map frame, less the registration's own), the
+   (:meth:`~mabdi.filters.map_anchor.MapAnchor.given_variance`: the
+   offsets' spread less the registration's own noise and less the map's
+   own placement error, :func:`map_placement_variance`: about the
+   sensor's depth noise at the depth the frame sees, over the view's
+   half-width in rotation), the
    correction is shrunk by the two covariances (:func:`fuse_with_given`):
    exact poses stay exact, jittery ones follow the registration. A pose
    source that states its accuracy is weighed by that from the first frame
@@ -717,6 +720,21 @@ def fuse_with_given(
     return pose, frame.T @ (0.5 * (posterior + posterior.T)) @ frame
 
 
+def map_placement_variance(depth: float, noise: SensorNoise, intrinsics: Intrinsics) -> tuple[float, float]:
+    """How far a frame registered to the map can be off the world for the map's own error, whatever its pose
+    covariance says (rad^2, m^2 per component). The map was meshed from earlier frames of the same sensor,
+    and the part of their error that is correlated across the image (depth calibration, distortion,
+    correlated noise, a surface's chords) moves or tilts the map as a whole; no number of pixels averages
+    it away. Its size: the sensor's depth noise sigma(z) at the median ``depth`` (m) the frame sees, in
+    translation, and that over the half-width of the view at that depth (the lever a depth error tilts a
+    fit by; at most the depth itself) in rotation. (0, 0) without a depth."""
+    if not depth > 0:
+        return 0.0, 0.0
+    sigma = float(noise.sigma(np.array([depth], dtype=np.float64), intrinsics.near, intrinsics.far)[0])
+    lever = depth * min(1.0, 0.5 * intrinsics.width / intrinsics.fx)
+    return (sigma / lever) ** 2, sigma**2
+
+
 def _median_depth(depth: np.ndarray) -> float:
     """The median of a depth image's returns (m; every 4th pixel each way), 0 without any: where the
     frame looks (:meth:`MapAnchor.add`)."""
@@ -823,7 +841,9 @@ class FilterRegistration(MapAndImageAlgorithm):
         if p.enabled and new_frame:
             if result.registered:
                 self._correction = correction_between(given_in_map, pose)
-                self.anchor.add(given, given_in_map @ result.transform, self._travelled, result.covariance, _median_depth(measured))
+                depth = _median_depth(measured)
+                map_error = map_placement_variance(depth, noise, intrinsics)
+                self.anchor.add(given, given_in_map @ result.transform, self._travelled, result.covariance, depth, map_error)
             elif result.status == "no_map" and len(self.anchor) == 0:
                 self.anchor.add(given, pose, self._travelled)  # the first frame starts the map where it is given
         if new_frame:
