@@ -177,6 +177,9 @@ class RemovalParameters:
     k_sigma: float = 3.0
     no_return_is_free: bool = True
     far_margin: float = 0.5
+    #: Hold back a contradiction that a depth edge misplaced by a few pixels explains (module docs); a depth
+    #: camera's edges are (:func:`for_geometry` turns it off for a LiDAR's range images).
+    misplaced_edges: bool = True
 
     def __post_init__(self) -> None:
         if not (self.hit > 0 and self.miss >= 0 and self.floor <= 0 < self.threshold <= self.ceiling):
@@ -195,13 +198,16 @@ def for_geometry(parameters: RemovalParameters, geometry) -> RemovalParameters:
     """The rules as they apply to images of ``geometry``: a camera's as given; for a LiDAR's range images,
     whose beams lie further apart (:func:`mabdi.depth.jump_scale` times a camera's pixel angle), ``edge_jump``
     scaled up by that factor (the same surface at the same incidence jumps that much more between beams) and
-    the margins in pixels scaled down by it, to the same angle (at least one beam)."""
+    the margins in pixels scaled down by it, to the same angle (at least one beam), and no contradiction held
+    back as a misplaced edge's: a LiDAR times each return along its own beam, with none of a depth camera's
+    edge shadows, and a small object's few beams all lie near its silhouette."""
     scale = jump_scale(geometry)
     if scale == 1.0:
         return parameters
     margin = max(1, math.ceil(parameters.edge_margin / scale)) if parameters.edge_margin else 0
     return replace(
         parameters,
+        misplaced_edges=False,
         edge_jump=parameters.edge_jump * scale,
         edge_margin=margin,
         max_edge_margin=max(margin, math.ceil(parameters.max_edge_margin / scale)),
@@ -273,7 +279,7 @@ def removal_votes(
         silhouettes = map_edges
         edges = dilate(edges, margin)
         map_edges = dilate(map_edges, margin)
-        if contradicting_pixels.any():
+        if parameters.misplaced_edges and contradicting_pixels.any():
             # within twice the margin of a silhouette of E (the map's edge and the sensor's may each be off by the
             # margin), a misplaced edge explains a contradiction where E shows D's depth (or beyond) nearby and D
             # shows E's (or nearer): the surface the map shows is still there, a few pixels off
