@@ -145,6 +145,22 @@ class SensorConfig:
     :mod:`mabdi.sensor_noise`). The path gives a LiDAR's poses in its
     own axes (:func:`mabdi.simulate.path.path_from_config`, ``axes="lidar"``).
 
+    A LiDAR's sweep and mount (:mod:`mabdi.simulate.lidar_sweep`; written to a
+    run's resolved config only when set): ``sweep`` is ``"instant"`` (the
+    default: each range image rendered from the frame's pose, every return at
+    its pixel's centre) or ``"deskewed"`` (the sensor moves during its sweep:
+    each column fired at its own time from the path's pose then, the sweep
+    ending at the frame's pose and timestamp, the returns deskewed with the
+    path's true poses into the sensor frame of that pose and binned into the
+    range image as a recorded scan is, :func:`mabdi.sources.range_images.range_image`;
+    needs Open3D). ``sweep_time`` is the seconds one sweep takes (0, the
+    default: the time between frames, the path's 1 / ``rate``).
+    ``mount_tilt`` and ``mount_roll`` (degrees, 0) turn the sensor on the
+    path's pose, ``base_from_sensor = R_y(mount_tilt) R_x(mount_roll)``
+    (positive tilt tips its forward x axis down, positive roll lifts its left
+    side); the frames' poses are the path's times the mount, so the range
+    image is in the tilted sensor's frame.
+
     ``[sensor.pose_noise]`` (:class:`mabdi.pose_noise.PoseNoise`): jitter and
     drift of the poses the frames carry, while the sensor renders from the
     true ones (``jitter_translation`` m, ``jitter_rotation`` degrees per frame;
@@ -187,6 +203,10 @@ class SensorConfig:
     backend: str = BACKENDS[0]
     fill_pixel_holes: bool | str = "auto"
     pose_noise: PoseNoise = field(default_factory=PoseNoise)
+    sweep: str = "instant"
+    sweep_time: float = 0.0
+    mount_tilt: float = 0.0
+    mount_roll: float = 0.0
 
     def intrinsics(self) -> Intrinsics:
         return Intrinsics(self.fx, self.fy, self.cx, self.cy, self.width, self.height, self.near, self.far)
@@ -203,6 +223,13 @@ class SensorConfig:
 
     def sensor_noise(self) -> SensorNoise:
         return SensorNoise.from_config(self)
+
+    def sweep_settings(self):
+        """The LiDAR's sweep and mount (:class:`mabdi.simulate.lidar_sweep.SweepSettings`: ``sweep``,
+        ``sweep_time``, ``mount_tilt``, ``mount_roll``)."""
+        from mabdi.simulate.lidar_sweep import SweepSettings
+
+        return SweepSettings(self.sweep, self.sweep_time, self.mount_tilt, self.mount_roll)
 
 
 @dataclass
@@ -701,6 +728,18 @@ def validate_run_config(config: RunConfig, where: str = "<config>") -> None:
         sensor.sensor_noise()
     except ConfigError as exc:
         raise ConfigError(f"{where}: [sensor] {exc}") from None
+    from mabdi.simulate.lidar_sweep import SWEEP_KEYS, SWEEP_MODES
+
+    _check_choice(sensor.sweep, SWEEP_MODES, where, "sensor.sweep")
+    try:
+        sweep = sensor.sweep_settings()
+    except ConfigError as exc:
+        raise ConfigError(f"{where}: [sensor] {exc}") from None
+    if sensor.kind != "lidar" and (sweep.deskewed or sweep.mounted or sweep.duration):
+        given = [k for k in SWEEP_KEYS if getattr(sensor, k) != getattr(SensorConfig, k)]
+        raise ConfigError(
+            f"{where}: key 'sensor.{given[0]}' is a LiDAR's (its sweep and mount); this sensor is kind = {sensor.kind!r}"
+        )
     path = config.path
     from mabdi.simulate.routes import PATH_KINDS, waypoint_distances
 
@@ -746,6 +785,8 @@ def _toml_table(obj) -> dict:
         if isinstance(obj, PathConfig) and not _path_key_written(obj, f.name):
             continue
         value = getattr(obj, f.name)
+        if isinstance(obj, SensorConfig) and f.name in _SENSOR_KEYS_WHEN_SET and value == f.default:
+            continue  # a LiDAR's sweep and mount keys only when set: the configs of runs without them are unchanged
         if value is None:
             continue  # absent key = default None
         if dataclasses.is_dataclass(value):
@@ -755,6 +796,10 @@ def _toml_table(obj) -> dict:
         else:
             table[f.name] = value
     return table
+
+
+#: ``[sensor]`` keys written only when they differ from their default (:data:`mabdi.simulate.lidar_sweep.SWEEP_KEYS`).
+_SENSOR_KEYS_WHEN_SET = ("sweep", "sweep_time", "mount_tilt", "mount_roll")
 
 
 def _path_key_written(path: PathConfig, name: str) -> bool:

@@ -16,6 +16,13 @@ the frame carries the *given* pose i, the true one with the run config's
 run seed), as a robot's odometry or SLAM would give it. ``poses`` are the
 given poses, ``true_poses`` the true ones; without pose noise they are equal.
 
+A LiDAR's sweep (``[sensor] sweep``, :class:`~mabdi.simulate.lidar_sweep.SweepSettings`): ``"instant"``
+(the default) renders each range image from the frame's pose, every return at its pixel's centre;
+``"deskewed"`` fires each column from its own pose along the path during the sweep that ends at frame i,
+deskews the returns into frame i's pose and bins them into the range image
+(:mod:`mabdi.simulate.lidar_sweep`). A tilted mount (``mount_tilt``, ``mount_roll``) turns the sensor on
+the path's poses: the frames' poses are the path's times the mount.
+
 Timestamps: the simulated sensor runs at :data:`FRAME_RATE` frames per
 second (frame i at i / 30 s), like the Kinect it imitates, unless the path
 gives times (``timestamps``: a waypoint path's rate, a trajectory's file;
@@ -40,7 +47,9 @@ from mabdi.depth import DepthFrame, depth_array
 from mabdi.filters.depth_image import FilterDepthImage
 from mabdi.sensor_noise import SensorNoise
 from mabdi.pose_noise import PoseNoise
+from mabdi.simulate.lidar_sweep import SceneRayCaster, Sweep, SweepSettings, simulate_sweep, sweep_noise_rng
 from mabdi.simulate.path import path_from_config, path_timestamps
+from mabdi.sources.range_images import range_image
 from mabdi.sources.frames import FrameSource
 from mabdi.sources.scene import OBJECT_COLOUR_ARRAY, SourceScene
 from mabdi.spherical import SphericalGeometry
@@ -64,11 +73,19 @@ class SimulatedRig(FrameSource):
         pose_noise: PoseNoise | None = None,
         colour: bool | None = None,
         timestamps=None,
+        sweep: SweepSettings | None = None,
     ) -> None:
         self.scene = scene
         self._true_poses = np.asarray(poses, dtype=np.float64)
         if self._true_poses.ndim != 3 or self._true_poses.shape[1:] != (4, 4) or len(self._true_poses) == 0:
             raise ValueError(f"SimulatedRig: poses must be (N, 4, 4) with N >= 1, got shape {self._true_poses.shape}")
+        #: A LiDAR's sweep and mount (None: the ideal instant range image, no mount).
+        self.sweep = sweep if sweep is not None and (sweep.deskewed or sweep.mounted) else None
+        if self.sweep is not None:
+            if not isinstance(intrinsics, SphericalGeometry):
+                raise ValueError("SimulatedRig: a sweep and a mount are a LiDAR's (intrinsics must be a SphericalGeometry)")
+            if self.sweep.mounted:  # the path carries the vehicle; the sensor sits on it turned by the mount
+                self._true_poses = self._true_poses @ self.sweep.base_from_sensor()
         #: The noise of the given poses (the frames' poses); the sensor renders from the true ones.
         self.pose_noise = pose_noise if pose_noise is not None else PoseNoise()
         self._poses = self.pose_noise.given_poses(self._true_poses, seed)
@@ -85,6 +102,7 @@ class SimulatedRig(FrameSource):
             raise ValueError("SimulatedRig: a LiDAR's range images carry no colour image")
         self.colour = False if lidar else scene.coloured if colour is None else bool(colour)
         self._rgb = vtkUnsignedCharArray()
+        self._caster: tuple[tuple[int, ...], SceneRayCaster] | None = None
         if self.colour:  # the depth render draws each triangle in its object's colour: one render gives both
             self.sensor.renderer.identity_array = OBJECT_COLOUR_ARRAY
 
@@ -108,6 +126,7 @@ class SimulatedRig(FrameSource):
             backend=sensor.backend,
             description=f"simulated {config.run.name or 'scene'}",
             pose_noise=sensor.pose_noise,
+            sweep=sensor.sweep_settings() if isinstance(geometry, SphericalGeometry) else None,
         )
 
     @property
@@ -148,7 +167,11 @@ class SimulatedRig(FrameSource):
 
     def read_frame(self, index: int) -> DepthFrame:
         """Render frame ``index``: the scene at that frame, from true pose ``index``, with its noise; the
-        frame carries the given pose ``index``."""
+        frame carries the given pose ``index``. A deskewed sweep's frame: :meth:`read_sweep`'s points binned into
+        the range image (:func:`mabdi.sources.range_images.range_image`)."""
+        if self.sweep is not None and self.sweep.deskewed:
+            depth = range_image(self.read_sweep(index).points, self.sensor.intrinsics)
+            return DepthFrame(depth, self.sensor.intrinsics, self._poses[index], index, float(self._timestamps[index]))
         self.scene.set_frame(index)
         self.sensor.pose = self._true_poses[index]
         self.sensor.frame = index
@@ -157,6 +180,41 @@ class SimulatedRig(FrameSource):
         depth = depth_array(self.sensor.GetOutput(), raw=True)
         colour = self._read_colour() if self.colour else None
         return DepthFrame(depth, self.sensor.intrinsics, self._poses[index], index, float(self._timestamps[index]), colour)
+
+    def sweep_time(self) -> float:
+        """Seconds one sweep takes: the sweep's ``duration``, else the time between frames (their median step;
+        1 / :data:`FRAME_RATE` for a single frame)."""
+        if self.sweep is not None and self.sweep.duration > 0:
+            return self.sweep.duration
+        steps = np.diff(self._timestamps)
+        steps = steps[np.isfinite(steps) & (steps > 0)]
+        return float(np.median(steps)) if len(steps) else 1.0 / FRAME_RATE
+
+    def read_sweep(self, index: int) -> Sweep:
+        """The deskewed sweep that ends at frame ``index`` (:func:`mabdi.simulate.lidar_sweep.simulate_sweep`):
+        the scene as it stands at that frame, each column from its true pose along the path, the frame's noise,
+        the points in the sensor frame of true pose ``index``."""
+        if self.sweep is None or not self.sweep.deskewed:
+            raise ValueError('SimulatedRig.read_sweep: the sensor is not a deskewed sweep ([sensor] sweep = "deskewed")')
+        if not 0 <= index < len(self):
+            raise IndexError(f"frame {index} is outside 0 .. {len(self) - 1}")
+        noise = self.sensor.noise
+        return simulate_sweep(
+            self._scene_caster(index), self.sensor.intrinsics, float(self._timestamps[index]), self.sweep_time(),
+            self._timestamps, self._true_poses, self._true_poses[index], noise, sweep_noise_rng(noise, self.sensor.seed, index),
+        )
+
+    def _scene_caster(self, index: int) -> SceneRayCaster:
+        """The ray caster of the scene as it stands at frame ``index`` (kept while the same objects exist)."""
+        active = self.scene.active_objects(index)
+        if self._caster is None or self._caster[0] != active:
+            objects = [self.scene.objects[i] for i in active]
+            offsets = np.cumsum([0] + [len(o.points) for o in objects[:-1]])
+            points = np.concatenate([o.points for o in objects]) if objects else np.zeros((0, 3))
+            triangles = (np.concatenate([o.triangles + k for o, k in zip(objects, offsets, strict=True)])
+                         if objects else np.zeros((0, 3), dtype=np.int64))  # fmt: skip
+            self._caster = (active, SceneRayCaster(points, triangles))
+        return self._caster[1]
 
     def _read_colour(self) -> np.ndarray:
         """(H, W, 3) uint8 colour buffer of the last render (each object flat in its colour), top row first."""
