@@ -59,7 +59,7 @@ def test_wide_sensor_without_lidar_table_is_learnt_and_said_once(tmp_path):
     assert len(said) == 1  # once a run, not once a scan
     message = str(said[0].message)
     # The share of the first scan outside the default geometry, their elevations against the image's.
-    inside = np.isfinite(range_images.range_image(_scan(WIDE_32, jitter=0.02)[:, :3], KITTI_GEOMETRY)).sum()
+    inside = np.isfinite(range_images.range_image(_scan(WIDE_32, jitter=0.02)[:, :3], KITTI_GEOMETRY, centred=False)).sum()
     share = 1 - inside / (32 * 360)
     assert f"{100 * share:.0f}% of" in message
     assert re.search(r"\+45\.\d to -45\.\d degrees", message) and "+3.0 to -25.0" in message
@@ -99,6 +99,28 @@ def test_wide_sensor_of_unclear_rings_keeps_the_beam_count(tmp_path):
     assert len(said) == 1 and "beams = 64" in str(said[0].message)
     assert source.intrinsics.beams == 64
     assert source.intrinsics.fov_up == pytest.approx(40.0, abs=1.0) and source.intrinsics.fov_down == pytest.approx(-40.0, abs=1.0)
+
+
+def test_uneven_smeared_beams_with_stray_returns_are_counted(tmp_path):
+    # A wide sensor's 32 beams spaced 2.2 and 3.6 degrees in turn, each ring smeared 0.3 degrees (a deskewed
+    # sweep), with a few stray returns between some rings: 32 beams learnt, and no row of the image left empty.
+    steps = np.where(np.arange(31) % 2 == 0, 2.2, 3.6)
+    elevations = 45.0 - np.concatenate([[0.0], np.cumsum(steps)])
+    rng = np.random.default_rng(5)
+    rings = [_scan(elevations, columns=1024, jitter=0.08, seed=1)]
+    strays = elevations[::3][:8] - 1.1  # between a ring and the next, a tenth as many returns
+    rings.append(_scan(strays, columns=1024, seed=2)[rng.random(8 * 1024) < 0.1])
+    folder = tmp_path / "seq"
+    (folder / "velodyne").mkdir(parents=True)
+    np.concatenate(rings).tofile(folder / "velodyne" / "000000.bin")
+    (folder / "poses.txt").write_text("1 0 0 0 0 1 0 0 0 0 1 0\n")
+    source, frames, said = _read_all(lambda: KittiSequence(folder))
+    assert len(said) == 1 and "beams = 32" in str(said[0].message)
+    geometry = source.intrinsics
+    assert geometry.beams == 32
+    assert geometry.fov_up > elevations[0] and geometry.fov_down < elevations[-1]
+    rows_filled = np.isfinite(frames[0].depth).mean(axis=1)
+    assert rows_filled.min() > 0.9  # every row holds returns carried to its centre
 
 
 def test_wrong_lidar_table_is_said_once_and_kept(tmp_path):

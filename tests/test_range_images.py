@@ -26,10 +26,60 @@ def _wall_points(geometry, distance, jitter=0.0, seed=0):
 
 def test_a_wall_reads_its_ranges_at_every_beam():
     points, expected = _wall_points(GEOMETRY, 5.0, jitter=0.9)
-    image = range_image(points, GEOMETRY)
+    image = range_image(points, GEOMETRY, centred=False)
     assert image.shape == (16, 64) and image.dtype == np.float32
     np.testing.assert_array_equal(np.isnan(image), np.isnan(expected))
     np.testing.assert_allclose(image, expected, rtol=1e-6, equal_nan=True)  # each point's own range, in its pixel
+
+
+WIDE = SphericalGeometry(beams=32, columns=512, fov_up=45.0, fov_down=-45.0, range_min=0.5, range_max=50.0)
+
+
+def _room_scan(geometry, elevation_jitter=0.0, seed=0, box=None):
+    """Points of a sensor 1.5 m above the floor of a 12 x 8 x 3 m room, one a pixel, each moved off its pixel
+    centre's elevation by up to ``elevation_jitter`` of a row (as a deskewed sweep's are); ``box``: (x0, x1) of a
+    box in front of the sensor from floor to ceiling, |y| < 1. Returns the points and the range of each centre's ray."""
+    rng = np.random.default_rng(seed)
+    step = np.radians((geometry.fov_up - geometry.fov_down) / geometry.beams)
+    az = np.broadcast_to(geometry.azimuths()[None, :], geometry.shape)
+
+    def ranges(el):
+        rays = np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el) * np.ones_like(az)], axis=-1)
+        with np.errstate(divide="ignore"):
+            t = np.min(np.abs(np.array([6.0, 4.0, 1.5]) / rays), axis=-1)
+            if box is not None:
+                at = box[0] / rays[..., 0]
+                inside = (rays[..., 0] > 0) & (np.abs(rays[..., 1] * at) < 1.0) & (np.abs(rays[..., 2] * at) < 1.5)
+                t = np.where(inside, np.minimum(t, at), t)
+        return rays, t
+
+    el = geometry.elevations()[:, None] + elevation_jitter * step * rng.uniform(-0.5, 0.5, geometry.shape)
+    rays, t = ranges(el)
+    return (rays * t[..., None]).reshape(-1, 3), ranges(geometry.elevations()[:, None] + 0 * az)[1]
+
+
+def test_returns_off_their_rows_are_carried_to_the_pixel_centres():
+    # A deskewed sweep's returns lie anywhere in their rows: binned as they are, the floor and ceiling seen at
+    # grazing incidence read ranges far from their pixel centres' rays'.
+    points, expected = _room_scan(WIDE, elevation_jitter=0.9)
+    binned = np.abs(range_image(points, WIDE, centred=False) - expected)
+    centred = np.abs(range_image(points, WIDE) - expected)
+    assert np.isfinite(centred).all()
+    assert np.percentile(binned, 90) > 0.1  # what binning leaves
+    assert np.median(centred) < 0.004 and np.percentile(centred, 90) < 0.04
+    # Returns exactly on their centres read as they are.
+    points, expected = _room_scan(WIDE)
+    np.testing.assert_allclose(range_image(points, WIDE), expected, rtol=1e-6)
+
+
+def test_a_depth_edge_is_not_bridged():
+    # A box 3 m ahead against the wall at 6 m: no pixel takes a range between the two.
+    points, expected = _room_scan(WIDE, elevation_jitter=0.9, box=(3.0, 3.5))
+    image = range_image(points, WIDE)
+    ahead = np.abs(WIDE.azimuths()) < np.radians(10)
+    between = (image[:, ahead] > 3.6) & (image[:, ahead] < 5.5) & (np.abs(WIDE.elevations()) < np.radians(20))[:, None]
+    assert not between.any()
+    assert np.median(np.abs(image - expected)) < 0.004
 
 
 def test_the_nearest_point_of_a_pixel_wins_and_non_returns_are_left_out():

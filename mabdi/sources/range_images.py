@@ -17,10 +17,30 @@ one convention, :mod:`mabdi.spherical`), the one place this is done:
   at the origin, outside ``range_min < range < range_max``) and points
   outside the image's rows are left out; a pixel no point falls in is NaN.
 
-The image's rays (:meth:`SphericalGeometry.rays`) are the pixel centres'
-directions, so a point off a pixel's centre is meshed up to half a pixel
-(in angle) from where it was measured: choose the geometry to match the
-sensor (:data:`KITTI_GEOMETRY` for KITTI's Velodyne HDL-64E).
+**Returns carried to the pixel centres** (rows by elevation). Every stage
+reads a pixel as its centre's ray times its range (E is drawn along it,
+removal votes along it, the surfaces mesh along it), but a deskewed sweep's
+returns lie anywhere in their pixels (their elevations continuous, a real
+sensor's beams unevenly spread). On a floor 10 m off, seen at 6 degrees, a
+return half a degree off its row's centre reads a range 0.9 m from the
+centre ray's. So in each column the returns are sorted by elevation, and a
+row whose centre elevation lies between two returns of one surface takes
+the range at which the straight segment between them (in the column's
+vertical plane) passes that elevation: one surface when their ranges differ
+by at most :data:`SURFACE_STEP` plus what a surface at
+:data:`SURFACE_INCIDENCE` changes over their gap, or when a third return at
+least half a row beyond continues their line (a floor or wall at grazing
+incidence; a depth edge does not). The pair may be :data:`WIDEST_GAP_ROWS`
+rows apart (one beam missing between them), or :data:`WIDEST_GAP_EMPTY_ROWS`
+for a pixel no return fell in (a return that slid into the next row). A pixel
+still empty whose left and right neighbours are one surface (the same test
+over two columns), one of them holding two returns, takes their mean: a
+return that slid into the next column (deskewing moves returns across
+columns too). Other pixels keep their
+nearest return. Within each column the returns' own
+azimuths are taken as the column's (1024 columns: a return within 0.18
+degrees of it). With a ring index (``rows`` given) each pixel keeps its
+nearest return.
 
 A recording carries its geometry in the ``[lidar]`` table of its
 ``mabdi.toml`` (:func:`lidar_table`, :func:`geometry_from_table`): the keys
@@ -37,6 +57,7 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+from numba import njit
 
 from mabdi.errors import ConfigError
 from mabdi.sources.sequence_files import SequenceError
@@ -56,6 +77,18 @@ LIDAR_KEYS = tuple(f.name for f in dataclasses.fields(SphericalGeometry))
 OUTSIDE_SHARE_WARNING = 0.25
 #: The percentiles of a scan's elevations :func:`learn_geometry` takes as its outer beams when it cannot count them.
 LEARNT_PERCENTILES = (0.5, 99.5)
+
+#: Two returns of a column on either side of a pixel centre's elevation are one surface when their ranges differ
+#: by at most this (m) plus what a surface at :data:`SURFACE_INCIDENCE` from the rays changes over their gap ...
+SURFACE_STEP = 0.02
+#: ... (degrees); a steeper pair is one surface only when a third return continues its straight line, within
+#: :data:`LINE_TOLERANCE`: metres plus a share of the range (a gently curved surface, the column's width).
+SURFACE_INCIDENCE = 70.0
+LINE_TOLERANCE = (0.02, 0.01)
+#: The widest elevation gap (in row spacings) a pixel centre is carried across: a beam that missed between two;
+#: for a pixel no return fell in, returns off their rows only (a missed beam leaves a gap of two rows).
+WIDEST_GAP_ROWS = 2.5
+WIDEST_GAP_EMPTY_ROWS = 1.5
 
 
 class LidarGeometryWarning(UserWarning):
@@ -120,23 +153,41 @@ def scan_fit(points, geometry: SphericalGeometry) -> ScanFit:
 
 def beam_elevations_of(elevation, step: float = 0.05) -> np.ndarray | None:
     """The beams' elevations (degrees, top first) of a scan's point elevations (degrees) when its rings stand
-    clearly apart, else None: a histogram of ``step``-degree bins whose filled runs are the rings, taken only
-    when they hold 95% of the points, fill at most half the span, and number 2 to 512."""
+    clearly apart, else None.
+
+    A histogram of ``step``-degree bins whose filled runs are the rings (runs one empty bin apart joined: a ring
+    smeared by deskewing); a run holding under a quarter of the median run's points is no beam (stray returns
+    between rings), and runs closer than half the median spacing are one beam. Taken only when the beams hold
+    90% of the points, fill at most half the span, and number 2 to 512.
+    """
     elevation = np.asarray(elevation, dtype=np.float64)
     if len(elevation) < 100 or np.ptp(elevation) < 4 * step:
         return None
     index = np.floor((elevation - elevation.min()) / step).astype(np.int64)
     counts = np.bincount(index)
     filled = counts >= max(2, 0.01 * counts.max())
+    before = np.concatenate([[False], filled[:-1]])
+    after = np.concatenate([filled[1:], [False]])
+    filled |= before & after
     start = filled & ~np.concatenate([[False], filled[:-1]])
-    run = np.cumsum(start) - 1  # each bin's run (ring), meaningful where filled
-    beams = int(start.sum())
-    in_rings = filled[index]
-    if not (2 <= beams <= 512 and in_rings.mean() >= 0.95 and filled.sum() <= 0.5 * len(filled)):
+    runs = int(start.sum())
+    if not (2 <= runs and filled.sum() <= 0.5 * len(filled)):
         return None
-    ring = run[index[in_rings]]
-    centres = np.bincount(ring, weights=elevation[in_rings], minlength=beams) / np.bincount(ring, minlength=beams)
-    return centres[::-1]
+    run = (np.cumsum(start) - 1)[index]
+    in_runs = filled[index]
+    held = np.bincount(run[in_runs], minlength=runs)
+    sums = np.bincount(run[in_runs], weights=elevation[in_runs], minlength=runs)
+    beam = held >= 0.25 * np.median(held)
+    held, sums = held[beam], sums[beam]
+    if len(held) >= 2:
+        centres = sums / held
+        spacing = np.median(np.diff(centres))
+        group = np.concatenate([[0], np.cumsum(np.diff(centres) >= 0.5 * spacing)])
+        held, sums = np.bincount(group, weights=held), np.bincount(group, weights=sums)
+    beams = len(held)
+    if not (2 <= beams <= 512 and held.sum() >= 0.9 * len(elevation)):
+        return None
+    return (sums / held)[::-1]
 
 
 def learn_geometry(points, default: SphericalGeometry) -> tuple[SphericalGeometry | None, ScanFit]:
@@ -162,13 +213,23 @@ def learn_geometry(points, default: SphericalGeometry) -> tuple[SphericalGeometr
     return dataclasses.replace(default, beams=beams, fov_up=fov_up, fov_down=fov_down, beam_elevations=()), fit
 
 
-def range_image(points, geometry: SphericalGeometry, rows=None) -> np.ndarray:
+def range_image(points, geometry: SphericalGeometry, rows=None, centred: bool = True) -> np.ndarray:
     """(beams, columns) float32 range image (m, NaN = no point) of sensor-frame ``points`` (N, 3) m.
 
     ``rows`` (N,) integers: each point's row (top beam 0), from its ring index (:func:`rows_from_rings`);
-    None: the row follows from the point's elevation. The nearest point of a pixel wins (module docs).
+    None: the row follows from the point's elevation, and with ``centred`` each pixel holds the range along its
+    centre's ray where the returns around it allow (module docs). Otherwise the nearest point of a pixel wins.
     """
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    binned, fell, chosen = _binned(points, geometry, rows)
+    if rows is None and centred:
+        return _carried_to_centres(points, geometry, binned, fell, chosen)
+    return binned
+
+
+def _binned(points: np.ndarray, geometry: SphericalGeometry, rows) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The range image whose pixels hold the nearest point that falls in them, (H, W) how many fell in each,
+    and (H, W) the index in ``points`` of the one each holds (-1: none)."""
     uv, distance = geometry.pixels(points)
     with np.errstate(invalid="ignore"):
         keep = (distance > geometry.range_min) & (distance < geometry.range_max)
@@ -185,14 +246,149 @@ def range_image(points, geometry: SphericalGeometry, rows=None) -> np.ndarray:
     column = np.minimum(np.floor(np.where(keep, uv[:, 0], 0.0)).astype(np.int64), geometry.columns - 1)
     pixel = (row * geometry.columns + column)[keep]
     distance = distance[keep]
+    index = np.flatnonzero(keep)
     image = np.full(geometry.beams * geometry.columns, np.nan, dtype=np.float32)
+    chosen = np.full(image.size, -1, dtype=np.int64)
+    fell = np.bincount(pixel, minlength=image.size).astype(np.int32).reshape(geometry.shape)
     if len(pixel):
         order = np.lexsort((distance, pixel))  # by pixel, nearest first
-        pixel, distance = pixel[order], distance[order]
+        pixel, distance, index = pixel[order], distance[order], index[order]
         first = np.ones(len(pixel), dtype=bool)
         first[1:] = pixel[1:] != pixel[:-1]
         image[pixel[first]] = distance[first]
-    return image.reshape(geometry.shape)
+        chosen[pixel[first]] = index[first]
+    return image.reshape(geometry.shape), fell, chosen.reshape(geometry.shape)
+
+
+def _carried_to_centres(points, geometry: SphericalGeometry, binned, fell, chosen) -> np.ndarray:
+    """``binned`` with each pixel's range carried to its centre's ray where the returns around it show one
+    surface (module docs): along its column (elevation), then along its row (azimuth)."""
+    uv, distance = geometry.pixels(points)
+    with np.errstate(invalid="ignore"):
+        keep = (distance > geometry.range_min) & (distance < geometry.range_max) & np.isfinite(uv).all(axis=1)
+    if keep.sum() < 3:
+        return binned
+    kept = np.flatnonzero(keep)
+    centres = geometry.elevations()  # (beams,) radians, decreasing down the image
+    spacing = abs(float(centres[0] - centres[-1])) / (geometry.beams - 1) if geometry.beams > 1 else np.radians(1.0)
+    column = np.minimum(np.floor(uv[kept, 0]).astype(np.int64), geometry.columns - 1)
+    elevation = np.arctan2(points[kept, 2], np.hypot(points[kept, 0], points[kept, 1]))
+    low = min(float(elevation.min()), float(centres.min())) - 1e-6
+    span = max(float(elevation.max()), float(centres.max())) + 1e-6 - low
+    key = column + (elevation - low) / span  # in [column, column + 1): by column, then by elevation
+    order = np.argsort(key, kind="stable")
+    key, sorted_index = key[order], kept[order]
+    upper = np.searchsorted(key, np.arange(geometry.columns)[None, :] + ((centres - low) / span)[:, None], side="left")
+    image = binned.copy()
+    _carry_kernel(image, fell, chosen, upper.astype(np.int64), key, column[order], elevation[order], sorted_index, points,
+                  centres, geometry.azimuths(), spacing / span, spacing)
+    return image
+
+
+@njit(cache=True)
+def _one_surface(ra, rb, angle, steep, pa, pb, po, tolerance):
+    """Whether returns a and b (ranges ``ra``, ``rb`` m, ``angle`` radians apart) are one surface: their ranges
+    within SURFACE_STEP plus a ``steep`` surface's change, or the 2-D point ``po`` (a third return beyond a)
+    continuing the line b-a in the plane of ``pa``, ``pb``, ``po`` within ``tolerance`` (NaN ``po``: none)."""
+    if abs(rb - ra) <= SURFACE_STEP + 0.5 * (ra + rb) * angle * steep:
+        return True
+    if not np.isfinite(po[0]):
+        return False
+    lx, ly = po[0] - pb[0], po[1] - pb[1]
+    sx, sy = pa[0] - pb[0], pa[1] - pb[1]
+    length = np.hypot(lx, ly)
+    return length > 1e-9 and abs(lx * sy - ly * sx) / length <= tolerance
+
+
+@njit(cache=True)
+def _carry_kernel(image, fell, chosen, upper, key, column, elevation, index, points, centres, azimuths, half_key, spacing):
+    """In place (module docs): (1) each pixel whose centre elevation lies between the sorted returns
+    ``upper[r, c] - 1`` and ``upper[r, c]`` of its column, one surface in the column's vertical plane, takes
+    the point where their segment passes that elevation, else its own nearest return (``chosen``); (2) each
+    pixel's point and the next one's in its row on the other side of the centre's azimuth, one surface in
+    the horizontal plane, give the point at the centre's azimuth; (3) a pixel still empty between two of its
+    row's, one holding two or more returns (``fell``), takes their mean. ``index`` maps the sorted returns to
+    ``points``; ``half_key`` is a row spacing in units of ``key``; ``spacing`` in radians."""
+    rows, columns = image.shape
+    n = len(key)
+    steep = np.tan(np.radians(SURFACE_INCIDENCE))
+    nowhere = np.array([np.nan, np.nan])
+    carried = np.full((rows, columns, 3), np.nan)
+    for r in range(rows):
+        for c in range(columns):
+            if chosen[r, c] >= 0:
+                carried[r, c] = points[chosen[r, c]]
+            hi = upper[r, c]
+            lo = hi - 1
+            if lo < 0 or hi >= n or column[lo] != c or column[hi] != c:
+                continue
+            gap = elevation[hi] - elevation[lo]
+            widest = WIDEST_GAP_ROWS if chosen[r, c] >= 0 else WIDEST_GAP_EMPTY_ROWS
+            if gap > widest * spacing:
+                continue
+            a, b = points[index[lo]], points[index[hi]]
+            ra, rb = np.sqrt(np.sum(a * a)), np.sqrt(np.sum(b * b))
+            pa = np.array([np.hypot(a[0], a[1]), a[2]])
+            pb = np.array([np.hypot(b[0], b[1]), b[2]])
+            one = False
+            for side in range(2):  # a third return at least half a row beyond either end
+                if side == 0:
+                    outer = np.searchsorted(key, key[lo] - 0.5 * half_key, side="right") - 1
+                else:
+                    outer = np.searchsorted(key, key[hi] + 0.5 * half_key, side="left")
+                po = nowhere
+                if 0 <= outer < n and column[outer] == c:
+                    o = points[index[outer]]
+                    po = np.array([np.hypot(o[0], o[1]), o[2]])
+                near_range = ra if side == 0 else rb
+                tolerance = LINE_TOLERANCE[0] + LINE_TOLERANCE[1] * near_range
+                if (side == 0 and _one_surface(ra, rb, gap, steep, pa, pb, po, tolerance)) or (
+                    side == 1 and _one_surface(rb, ra, gap, steep, pb, pa, po, tolerance)
+                ):
+                    one = True
+                    break
+            if not one:
+                continue
+            t = min(max((centres[r] - elevation[lo]) / gap if gap > 0 else 0.0, 0.0), 1.0)
+            carried[r, c] = a + t * (b - a)
+    # along the rows: to the centre's azimuth (column c's azimuth falls as c grows)
+    step = 2.0 * np.pi / columns
+    for r in range(rows):
+        for c in range(columns):
+            p = carried[r, c]
+            if not np.isfinite(p[0]):
+                continue
+            az = np.arctan2(p[1], p[0])
+            off = np.angle(np.exp(1j * (az - azimuths[c])))  # radians, wrapped
+            value = np.sqrt(np.sum(p * p))
+            other = (c + 1) % columns if off > 0 else (c - 1) % columns  # the neighbour across the centre
+            beyond = (c - 1) % columns if off > 0 else (c + 1) % columns
+            q = carried[r, other]
+            if off != 0.0 and np.isfinite(q[0]):
+                qaz = np.arctan2(q[1], q[0])
+                qoff = np.angle(np.exp(1j * (qaz - azimuths[c])))
+                if qoff * off < 0:
+                    rq = np.sqrt(np.sum(q * q))
+                    o = carried[r, beyond]
+                    po = np.array([o[0], o[1]]) if np.isfinite(o[0]) else nowhere
+                    tolerance = LINE_TOLERANCE[0] + LINE_TOLERANCE[1] * value
+                    if _one_surface(value, rq, abs(qoff - off), steep, np.array([p[0], p[1]]), np.array([q[0], q[1]]), po, tolerance):
+                        t = off / (off - qoff)
+                        x = p + t * (q - p)
+                        value = np.sqrt(np.sum(x * x))
+            image[r, c] = np.float32(value)
+    # a pixel still empty between its row's neighbours, one surface: a return that slid into the next column
+    filled = image.copy()
+    for r in range(rows):
+        for c in range(columns):
+            if np.isfinite(image[r, c]):
+                continue
+            left, right = image[r, (c - 1) % columns], image[r, (c + 1) % columns]
+            slid = fell[r, (c - 1) % columns] >= 2 or fell[r, (c + 1) % columns] >= 2
+            if slid and np.isfinite(left) and np.isfinite(right):
+                if abs(left - right) <= SURFACE_STEP + 0.5 * (left + right) * 2.0 * step * steep:
+                    filled[r, c] = 0.5 * (left + right)
+    image[:, :] = filled
 
 
 def range_image_points(depth, geometry: SphericalGeometry) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
