@@ -69,7 +69,10 @@ except
   (``no_return_is_free``, on): in the simulator a ray without a return met
   nothing within the range, and behind a departed object there is often
   nothing within 4 m. Only where E is at least ``far_margin`` (0.5 m) inside
-  the range: near the far limit noise alone pushes returns out of it. (A
+  the range: near the far limit noise alone pushes returns out of it; and
+  only in a region without returns (none in the pixel's 3x3 neighbourhood): a
+  lone hole between returns is where a deskewed sweep's return slid into the
+  next pixel (2,000 such holes voted a scan on a simulated 128-beam sweep). (A
   real sensor also loses returns at depth edges, at grazing incidence and on
   black or shiny surfaces: the loop turns it off when the noise model says
   the camera loses returns,
@@ -152,7 +155,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy import ndimage
 
-from mabdi.depth import jump_scale
+from mabdi.depth import jump_scale, pixel_angle
 from mabdi.errors import ConfigError
 from mabdi.face_identity import unique_codes
 from mabdi.filters.image_kernels import depth_edges_kernel
@@ -177,9 +180,13 @@ class RemovalParameters:
     k_sigma: float = 3.0
     no_return_is_free: bool = True
     far_margin: float = 0.5
-    #: Hold back a contradiction that a depth edge misplaced by a few pixels explains (module docs); a depth
-    #: camera's edges are (:func:`for_geometry` turns it off for a LiDAR's range images).
+    #: Hold back a contradiction that a depth edge misplaced by a few pixels explains (module docs), within
+    #: ``misplaced_reach`` pixels: "auto" twice the edge margin for a camera, one beam for a LiDAR.
     misplaced_edges: bool = True
+    misplaced_reach: int | str = "auto"
+    #: The uncertainty (radians, one sigma) of a return's direction against the map (module docs, "within the
+    #: noise"); "auto": a LiDAR's beam spacing over sqrt(12), none for a camera (:func:`for_geometry`).
+    ray_sigma: float | str = "auto"
 
     def __post_init__(self) -> None:
         if not (self.hit > 0 and self.miss >= 0 and self.floor <= 0 < self.threshold <= self.ceiling):
@@ -190,6 +197,10 @@ class RemovalParameters:
             raise ConfigError(f"removal: k_sigma must be >= 0, got {self.k_sigma}")
         if self.min_gap < 0:
             raise ConfigError(f"removal: min_gap must be >= 0 metres, got {self.min_gap}")
+        if self.misplaced_reach != "auto" and (isinstance(self.misplaced_reach, (bool, str)) or not isinstance(self.misplaced_reach, int) or self.misplaced_reach < 1):
+            raise ConfigError(f"removal: misplaced_reach must be \"auto\" or a whole number of pixels >= 1, got {self.misplaced_reach!r}")
+        if self.ray_sigma != "auto" and (isinstance(self.ray_sigma, (bool, str)) or not 0 <= self.ray_sigma < 0.5):
+            raise ConfigError(f"removal: ray_sigma must be \"auto\" or 0 <= ray_sigma < 0.5 (radians), got {self.ray_sigma!r}")
         if self.min_frames < 1 or self.edge_margin < 0 or self.max_edge_margin < self.edge_margin or not 0 < self.grazing_deg < 90 or self.edge_jump <= 0:
             raise ConfigError("removal: need min_frames >= 1, 0 <= edge_margin <= max_edge_margin, 0 < grazing_deg < 90, edge_jump > 0")
 
@@ -200,14 +211,18 @@ def for_geometry(parameters: RemovalParameters, geometry) -> RemovalParameters:
     scaled up by that factor (the same surface at the same incidence jumps that much more between beams) and
     the margins in pixels scaled down by it, to the same angle (at least one beam), and no contradiction held
     back as a misplaced edge's: a LiDAR times each return along its own beam, with none of a depth camera's
-    edge shadows, and a small object's few beams all lie near its silhouette."""
+    edge shadows, and a small object's few beams all lie near its silhouette. ``ray_sigma`` "auto": a
+    LiDAR's widest beam spacing (:func:`mabdi.depth.pixel_angle`) over sqrt(12) (a return anywhere within
+    its pixel), none for a camera."""
     scale = jump_scale(geometry)
+    if parameters.ray_sigma == "auto":
+        parameters = replace(parameters, ray_sigma=pixel_angle(geometry) / math.sqrt(12.0) if scale != 1.0 else 0.0)
     if scale == 1.0:
         return parameters
     margin = max(1, math.ceil(parameters.edge_margin / scale)) if parameters.edge_margin else 0
     return replace(
         parameters,
-        misplaced_edges=False,
+        misplaced_reach=1 if parameters.misplaced_reach == "auto" else parameters.misplaced_reach,
         edge_jump=parameters.edge_jump * scale,
         edge_margin=margin,
         max_edge_margin=max(margin, math.ceil(parameters.max_edge_margin / scale)),
@@ -250,7 +265,7 @@ def removal_votes(
     if parameters.no_return_is_free:
         # a pixel with no return sees through only where E is well inside the range: near the far limit noise alone loses returns
         inside = np.isfinite(expected) & (expected < np.float32(far - parameters.far_margin))
-        seen_through = (labels == CONTRADICTED) | ((labels == NO_RETURN) & inside)
+        seen_through = (labels == CONTRADICTED) | ((labels == NO_RETURN) & inside & np.isfinite(measured))
     else:
         seen_through = labels == CONTRADICTED
     contradicting_pixels = seen_through & (face_ids > 0)
@@ -283,9 +298,10 @@ def removal_votes(
             # within twice the margin of a silhouette of E (the map's edge and the sensor's may each be off by the
             # margin), a misplaced edge explains a contradiction where E shows D's depth (or beyond) nearby and D
             # shows E's (or nearer): the surface the map shows is still there, a few pixels off
-            farthest, nearest = farthest_nearby(expected, 2 * margin), nearest_nearby(measured, 2 * margin)
+            reach = 2 * margin if parameters.misplaced_reach == "auto" else parameters.misplaced_reach
+            farthest, nearest = farthest_nearby(expected, reach), nearest_nearby(measured, reach)
             with np.errstate(invalid="ignore"):
-                explained = contradicting_pixels & dilate(silhouettes, 2 * margin)
+                explained = contradicting_pixels & (dilate(silhouettes, reach) if parameters.misplaced_reach == "auto" else True)
                 explained &= ~(measured - farthest > gap) & ~(nearest - expected > gap)
             contradicting_pixels &= ~explained
             candidates &= ~explained
@@ -326,11 +342,14 @@ def removal_votes(
 
 
 def free_space_filled(measured, parameters: RemovalParameters, far: float) -> np.ndarray:
-    """D (float32) as removal reads it: with ``no_return_is_free`` a pixel with no return met nothing up to the
-    sensor's range ``far`` (m), so it reads ``far``; without it, D as it is."""
+    """D (float32) as removal reads it: with ``no_return_is_free`` a pixel with no return in a region of them
+    (none in its 3x3 neighbourhood) met nothing up to the sensor's range ``far`` (m), so it reads ``far``; a
+    lone hole between returns stays without one (a deskewed sweep's return that slid into the next pixel
+    leaves one where a surface is). Without it, D as it is."""
     if not parameters.no_return_is_free:
         return measured
-    return np.where(np.isnan(measured), np.float32(far), measured).astype(np.float32)
+    region = np.isnan(measured) & ~dilate(np.isfinite(measured), 1)
+    return np.where(region, np.float32(far), measured).astype(np.float32)
 
 
 def farthest_nearby(expected: np.ndarray, margin: int) -> np.ndarray:
@@ -352,16 +371,24 @@ def contradiction_gap(measured, expected, parameters: RemovalParameters, sigma=N
     ``k_sigma`` times the noise of the difference, sqrt(sigma(D)^2 + sigma(E)^2 + pose_sigma^2), and at least
     ``min_gap``. ``sigma(depth)`` -> the sensor's noise (None: ``min_gap`` alone); ``pose_sigma`` (N,) or None;
     ``cosine`` (N,) |cos(incidence)| on the face E shows, or None: the map's share sigma(E) lies across the
-    face's plane, so along the ray it is sigma(E) / cosine (infinite edge-on)."""
+    face's plane, so along the ray it is sigma(E) / cosine (infinite edge-on), and a return's direction, off
+    by ``ray_sigma`` (a number: :func:`for_geometry` resolves "auto"), moves where its ray meets the face by
+    E ray_sigma tan(incidence) along it."""
     measured = np.asarray(measured, dtype=np.float32)
     gap = np.full(measured.shape, np.float32(parameters.min_gap))
     if sigma is None:
         return gap
-    map_sigma = sigma(np.asarray(expected, dtype=np.float32))
+    expected = np.asarray(expected, dtype=np.float32)
+    map_sigma = sigma(expected)
+    variance = sigma(measured) ** 2
     if cosine is not None:
+        cosine = np.asarray(cosine, dtype=np.float32)
         with np.errstate(divide="ignore", invalid="ignore"):
-            map_sigma = np.where(cosine > 0, map_sigma / np.asarray(cosine, dtype=np.float32), np.float32(np.inf))
-    variance = sigma(measured) ** 2 + map_sigma**2
+            map_sigma = np.where(cosine > 0, map_sigma / cosine, np.float32(np.inf))
+            if parameters.ray_sigma not in ("auto", 0):
+                tangent = np.where(cosine > 0, np.sqrt(np.maximum(1 - cosine * cosine, 0)) / cosine, np.float32(np.inf))
+                variance = variance + (expected * np.float32(parameters.ray_sigma) * tangent) ** 2
+    variance = variance + map_sigma**2
     if pose_sigma is not None:
         variance = variance + np.nan_to_num(pose_sigma, nan=0.0) ** 2
     return np.maximum(gap, np.float32(parameters.k_sigma) * np.sqrt(variance).astype(np.float32))
@@ -433,9 +460,12 @@ def votes_between_pixels(
     length = ray_length[v, u]
     d = measured[v, u].astype(np.float64)
     crossing = (t / length).astype(np.float32)  # the crossing in D's own units (z-depth or range)
-    gap = contradiction_gap(d, crossing, parameters, sigma, None if pose_sigma is None else pose_sigma[v, u])
+    crossing_sigma = None if pose_sigma is None else pose_sigma[v, u]
+    needed = gap_along_ray(contradiction_gap(d, crossing, parameters, sigma, crossing_sigma), cosine, parameters)
+    if sigma is not None and parameters.ray_sigma not in ("auto", 0):  # a LiDAR's: the return's direction too
+        needed = np.maximum(needed, contradiction_gap(d, crossing, parameters, sigma, crossing_sigma, cosine))
     with np.errstate(invalid="ignore"):
-        beyond = (d * length - t) > gap_along_ray(gap, cosine, parameters) * length
+        beyond = (d * length - t) > needed * length
     hit[faces] = near_face & beyond
     return hit
 

@@ -182,8 +182,9 @@ class MabdiLoop:
         #: measurement is exact the first time).
         self.removal = self.classifier_parameters.enabled and self.classifier_parameters.removal
         removal_parameters = removal if removal is not None else RemovalParameters()
-        if removal_parameters.no_return_is_free and self.noise.loses_returns:
-            # a camera that loses returns on real surfaces: a pixel without one is not free space
+        if removal_parameters.no_return_is_free and (self.noise.loses_returns or source.loses_returns):
+            # a sensor that loses returns on real surfaces (a camera's noise model says so, a recording's source
+            # does): a pixel without one is not free space
             removal_parameters = replace(removal_parameters, no_return_is_free=False)
         refinement_on = self.classifier_parameters.refinement
         if refinement_on == "auto":

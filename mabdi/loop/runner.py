@@ -229,6 +229,10 @@ def read_checkpoint(folder: Path) -> dict:
 #: leaves ``noise`` out, and no ``--noise``): learnt from the run (:mod:`mabdi.noise_calibration`), since every
 #: real camera has noise and its model is unknown; ``none`` would hold the thresholds at ``tau_min`` at every depth.
 RECORDING_NOISE = "auto"
+#: The noise model of a LiDAR's recording whose run states none: ``range``, at the config's ``range_sigma``
+#: (0.02 m, the figure spinning LiDARs' datasheets give); ``none`` would take every range as exact and see
+#: through the map wherever a real scan's 2-5 cm of noise meets it at grazing incidence.
+RECORDING_LIDAR_NOISE = "range"
 
 #: The fields of ``--camera fx,fy,cx,cy,width,height[,near,far]``, in order.
 CAMERA_FIELDS = ("fx", "fy", "cx", "cy", "width", "height", "near", "far")
@@ -320,7 +324,7 @@ def recorded_simulation(
     unknown (the evaluation is then skipped). ``frames``: run the recording's first ``frames`` frames (None, or
     more than it has: all of them; :class:`RecordedFrames`). ``noise_stated`` False (no config file, or one that
     leaves ``[sensor] noise`` out, and no noise model given): a depth camera's recording runs with
-    :data:`RECORDING_NOISE`, a LiDAR's with the config's."""
+    :data:`RECORDING_NOISE`, a LiDAR's with :data:`RECORDING_LIDAR_NOISE`."""
     kind = sequence_format(path)
     wanted = READER_OPTIONS[kind]
     for name, value in options.items():
@@ -334,8 +338,12 @@ def recorded_simulation(
     recording = open_sequence(path, **reader_options)
     source = RecordedFrames(recording, frames, path=path)
     source.options = wanted  # the remedies a message may name (--camera, --depth-scale)
-    if not noise_stated and isinstance(source.intrinsics, Intrinsics):
-        config = with_overrides(config, {"sensor.noise": RECORDING_NOISE}, f"{path} (no noise model stated)")
+    if not noise_stated:
+        if isinstance(source.intrinsics, Intrinsics):
+            stated = {"sensor.noise": RECORDING_NOISE}
+        else:
+            stated = {"sensor.kind": "lidar", "sensor.noise": RECORDING_LIDAR_NOISE}
+        config = with_overrides(config, stated, f"{path} (no noise model stated)")
     recorded = read_sequence_metadata(path).get("recorded", {})
     scene = None
     note = None

@@ -86,6 +86,9 @@ class SimulatedRig(FrameSource):
                 raise ValueError("SimulatedRig: a sweep and a mount are a LiDAR's (intrinsics must be a SphericalGeometry)")
             if self.sweep.mounted:  # the path carries the vehicle; the sensor sits on it turned by the mount
                 self._true_poses = self._true_poses @ self.sweep.base_from_sensor()
+            # a deskewed sweep's range image has pixels no ray was cast along (rows the motion moved its returns
+            # out of, at the image's edges): there, as in a real scan, a pixel without a return is not free space
+            self.loses_returns = bool(self.sweep.deskewed)
         #: The noise of the given poses (the frames' poses); the sensor renders from the true ones.
         self.pose_noise = pose_noise if pose_noise is not None else PoseNoise()
         self._poses = self.pose_noise.given_poses(self._true_poses, seed)

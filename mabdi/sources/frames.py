@@ -55,6 +55,10 @@ class FrameSource:
 
     #: A short description for messages and ``summary.json`` ("simulated table", "TUM folder ...").
     description: str = "depth frames"
+    #: Whether the sensor loses returns on surfaces within its range (glass, black or shiny surfaces, grazing
+    #: incidence), so that a pixel without a return says nothing about free space: every recording a reader
+    #: opens (:func:`mabdi.sources.sequences.open_sequence`); the simulator's sensors return every surface.
+    loses_returns: bool = False
 
     @property
     def intrinsics(self) -> Intrinsics:
@@ -238,6 +242,10 @@ class FrameSubset(FrameSource):
     @property
     def has_colour(self) -> bool:
         return self.base.has_colour
+
+    @property
+    def loses_returns(self) -> bool:
+        return self.base.loses_returns
 
     @property
     def true_poses(self):

@@ -221,4 +221,6 @@ def open_sequence(path, **options):
                 "open one of them, or restore metadata.yaml"
             )
         path = files[0]
-    return reader(path, **options)
+    recording = reader(path, **options)
+    recording.loses_returns = True  # a real sensor's, or of unknown origin: a pixel without a return is not free space
+    return recording
