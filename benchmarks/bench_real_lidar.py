@@ -1,0 +1,468 @@
+"""Real LiDAR scans, held out: how close each map lies to scans it was never given, and how much of it they confirm.
+
+A LiDAR recording has no ground-truth mesh, but each scan is a measurement.
+Every K-th scan (``--every``, default 5) of a KITTI-layout folder
+(:mod:`mabdi.sources.kitti`) is held out and never integrated; each map is
+built from the other scans, then compared with the held-out scans' points
+(:mod:`mabdi.evaluate.held_out_scans`): the points of the ``.bin`` files as
+they are (not the range images), moved to the world by the file's given
+poses, keeping the returns within the range limits of the geometry the run
+used (``range_min < r < range_max``):
+
+* recall at 5 cm and 10 cm: the share of the held-out points within that
+  distance of the map (point to nearest triangle);
+* precision at 10 cm: the share of the map's area (one sample per 25 cm^2,
+  at most 3 million) within 10 cm of a held-out point, counting only the
+  samples some held-out scan could see: within its range limits and the
+  vertical field of view of the run's geometry, and not hidden behind the
+  map's own triangles (the ray from that scan's sensor meets nothing more
+  than 3 cm before the sample);
+* F at 10 cm: the harmonic mean of the two.
+
+Maps, all from the same integrated scans and the same given poses:
+
+* ``mabdi`` (one per ``--surface``, default pixel_grid, quadtree and
+  voxel_planes): the MABDI loop run as ``mabdi run --sequence PATH`` runs a
+  recording with no config (default settings; a LiDAR keeps the config's
+  noise model; the geometry as the reader has it: the folder's ``[lidar]``
+  table, else learnt from the first scan), on the integrated scans only
+  (:class:`~mabdi.sources.frames.FrameSubset`). It registers each scan to its
+  map; the map is scored at the held-out scans' given poses;
+* ``poisson``: Open3D's screened Poisson reconstruction of the integrated
+  scans' points (as PUMA meshes LiDAR scans): each scan's returns (same range
+  limits) get normals from their neighbours (hybrid search: radius 3 voxels,
+  at most 30 neighbours) turned towards that scan's sensor, all scans are
+  gathered in the world frame, voxel-downsampled (5 cm; normals averaged and
+  renormalised; a voxel whose normals cancel out is dropped), reconstructed
+  at an octree depth (scale 1.1, no linear fit), and the vertices whose
+  density is below a quantile (the trim) are dropped with their triangles.
+  Default depth 11, trim 5%; ``--tune`` runs every depth of ``--depths``
+  (default 10, 11, 12) by every trim of ``--trims`` (default 2%, 5%, 10%),
+  scores each the same way, and reports the one with the best F at 10 cm
+  (chosen on these held-out scans: the peer at its best). Needs Open3D, as
+  the scoring does.
+
+Also per map: triangles; for mabdi the faces removal deleted (the run's
+records, ``cells_removed``: as a count and as a share of the final map's
+triangles) and the meshed poses against the given ones; time per scan,
+measured in this one run (mabdi: everything after reading the scan,
+``t_total_ms - t_depth_ms`` of the records; Poisson: normals, gathering,
+downsampling, reconstruction and trim, divided by the integrated scans;
+reading the files is not counted for either).
+
+    .venv/bin/python benchmarks/bench_real_lidar.py PATH [--every 5] [--frames N]
+        [--surface pixel_grid quadtree voxel_planes] [--tune [--depths 10 11 12] [--trims 0.02 0.05 0.10]]
+        [--no-poisson] [--out results.json]
+
+``--surface`` with no value runs no mabdi map (the peer alone).
+
+Prints a markdown table; ``--out`` writes every number as JSON (atomically).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import shlex
+import subprocess
+import sys
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from mabdi.config import RunConfig, with_overrides
+from mabdi.evaluate.bench import machine_info
+from mabdi.evaluate.held_out import held_out_split, pose_differences
+from mabdi.evaluate.held_out_scans import (
+    MAX_SAMPLES,
+    PRECISION_THRESHOLD_M,
+    RECALL_THRESHOLDS_M,
+    SAMPLE_AREA_M2,
+    SEEN_TOLERANCE_M,
+    HeldOutScans,
+    score_map,
+)
+from mabdi.evaluate.tsdf import open3d_status
+from mabdi.io.atomic import write_text
+from mabdi.loop.runner import Simulation
+from mabdi.polydata import triangles_polydata
+from mabdi.sources.frames import FrameSubset
+from mabdi.sources.kitti import SCAN_FOLDER, is_kitti, read_scan
+from mabdi.sources.sequences import open_sequence
+from mabdi.spherical import SphericalGeometry
+
+SURFACES = ("pixel_grid", "quadtree", "voxel_planes")
+#: The loop's stage times (ms) averaged into each mabdi row.
+STAGES = (
+    "t_depth_ms", "t_register_ms", "t_expected_ms", "t_classify_ms", "t_surface_ms", "t_append_ms", "t_refine_ms",
+    "t_remove_ms", "t_total_ms",
+)
+#: The Poisson peer's voxel (m), the normals' search radius (in voxels) and most neighbours.
+POISSON_VOXEL = 0.05
+NORMAL_RADIUS_VOXELS = 3.0
+NORMAL_NEIGHBOURS = 30
+#: Default octree depth and density trim (quantile) of the peer; the grid ``--tune`` runs.
+POISSON_DEPTH = 11
+POISSON_TRIM = 0.05
+TUNE_DEPTHS = (10, 11, 12)
+TUNE_TRIMS = (0.02, 0.05, 0.10)
+
+
+def log(message: str) -> None:
+    print(f"[{time.strftime('%H:%M:%S')}] {message}", file=sys.stderr, flush=True)
+
+
+def git_state() -> dict:
+    """The commit the numbers were measured at and the tracked files changed since (empty outside a git checkout)."""
+    root = Path(__file__).resolve().parent.parent
+    try:
+        head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=root, capture_output=True, text=True, timeout=10)
+        status = subprocess.run(
+            ["git", "status", "--porcelain", "--untracked-files=no"], cwd=root, capture_output=True, text=True, timeout=10
+        )
+    except (OSError, subprocess.SubprocessError):
+        return {}
+    if head.returncode or status.returncode:
+        return {}
+    return {"head": head.stdout.strip(), "uncommitted": [line[3:] for line in status.stdout.splitlines() if line.strip()]}
+
+
+def scan_files(path: Path) -> list[Path]:
+    """The folder's scan files in the reader's order (:class:`~mabdi.sources.kitti.KittiSequence`)."""
+    return sorted(p for p in (path / SCAN_FOLDER).iterdir() if p.suffix == ".bin")
+
+
+def scored(mesh, held: HeldOutScans) -> tuple[dict, float]:
+    start = time.perf_counter()
+    score = score_map(mesh, held).as_dict()
+    return score, time.perf_counter() - start
+
+
+def run_mabdi(subset, held: HeldOutScans, surface: str) -> dict:
+    config = with_overrides(RunConfig(), {"surface.method": surface}, where="bench_real_lidar")
+    simulation = Simulation(config, source=subset)
+    name = f"mabdi ({surface})"
+    log(f"{name}: running {len(subset)} scans")
+    result = simulation.run()
+    records = result.records
+    after_read = np.array([r.t_total_ms - r.t_depth_ms for r in records])
+    removed = int(sum(r.cells_removed for r in records))
+    mesh = result.mesh
+    triangles = int(mesh.GetNumberOfCells())
+    statuses = {}
+    for r in records:
+        statuses[r.registration] = statuses.get(r.registration, 0) + 1
+    meshed = simulation.meshed_poses()
+    simulation.loop.close()
+    log(f"{name}: {triangles:,} triangles, {after_read.mean():.0f} ms a scan ({result.seconds:.0f} s); scoring")
+    score, seconds = scored(mesh, held)
+    log(f"{name}: scored in {seconds:.0f} s: F@10cm {score['fscore']:.3f}")
+    return {
+        "method": name,
+        "surface": surface,
+        "settings": f"defaults, surface {surface}",
+        "triangles": triangles,
+        "ms_per_scan": float(after_read.mean()),
+        "ms_per_scan_median": float(np.median(after_read)),
+        "stage_ms": {
+            stage: float(np.mean([getattr(r, stage) for r in records]))
+            for stage in STAGES
+        },
+        "run_seconds": float(result.seconds),
+        "faces_removed": removed,
+        "faces_removed_of_map": removed / triangles if triangles else math.nan,
+        "faces_removed_of_made": removed / (triangles + removed) if triangles + removed else 0.0,
+        "area_removed_m2": float(sum(r.area_removed for r in records)),
+        "meshed_poses_vs_given": pose_differences(subset.poses, meshed),
+        "registration": statuses,
+        "noise": config.sensor.noise,
+        "score": score,
+        "score_seconds": seconds,
+    }
+
+
+class PoissonPeer:
+    """The integrated scans as one oriented point cloud (module docs), ready for Poisson at any depth."""
+
+    def __init__(self, files, poses, range_min: float, range_max: float, voxel: float = POISSON_VOXEL) -> None:
+        import open3d as o3d
+
+        self.o3d = o3d
+        self.voxel = voxel
+        self.scans = len(files)
+        points, normals = [], []
+        self.read_seconds = 0.0
+        start = time.perf_counter()
+        search = o3d.geometry.KDTreeSearchParamHybrid(radius=NORMAL_RADIUS_VOXELS * voxel, max_nn=NORMAL_NEIGHBOURS)
+        for path, pose in zip(files, poses):
+            read = time.perf_counter()
+            xyz = read_scan(path).astype(np.float64)
+            self.read_seconds += time.perf_counter() - read
+            r = np.linalg.norm(xyz, axis=1)
+            xyz = xyz[np.isfinite(xyz).all(axis=1) & (r > range_min) & (r < range_max)]
+            cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(xyz))
+            cloud.estimate_normals(search)
+            cloud.orient_normals_towards_camera_location(np.zeros(3))  # the sensor, in its own frame
+            points.append(xyz @ pose[:3, :3].T + pose[:3, 3])
+            normals.append(np.asarray(cloud.normals) @ pose[:3, :3].T)
+        gathered = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.concatenate(points)))
+        gathered.normals = o3d.utility.Vector3dVector(np.concatenate(normals))
+        self.points_gathered = len(gathered.points)
+        self.cloud = gathered.voxel_down_sample(voxel)
+        averaged = np.asarray(self.cloud.normals)
+        length = np.linalg.norm(averaged, axis=1)
+        keep = length > 1e-3  # a voxel whose normals cancel out has no direction to give Poisson
+        self.cancelled = int((~keep).sum())
+        self.cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(self.cloud.points)[keep]))
+        self.cloud.normals = o3d.utility.Vector3dVector(averaged[keep] / length[keep, None])
+        self.points = len(self.cloud.points)
+        self.prepare_seconds = time.perf_counter() - start - self.read_seconds
+
+    def reconstruct(self, depth: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+        """(vertices, triangles, densities, seconds) of the Poisson surface at octree ``depth``."""
+        start = time.perf_counter()
+        with self.o3d.utility.VerbosityContextManager(self.o3d.utility.VerbosityLevel.Error):
+            mesh, densities = self.o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(
+                self.cloud, depth=depth, width=0, scale=1.1, linear_fit=False
+            )
+        seconds = time.perf_counter() - start
+        return np.asarray(mesh.vertices).copy(), np.asarray(mesh.triangles).astype(np.int64), np.asarray(densities).copy(), seconds
+
+
+def trimmed(vertices, triangles, densities, trim: float):
+    """The triangles whose three vertices have a density at or above its ``trim`` quantile (a vtkPolyData)."""
+    keep = densities >= np.quantile(densities, trim)
+    return triangles_polydata(vertices, triangles[keep[triangles].all(axis=1)])
+
+
+def poisson_name(depth: int, trim: float, voxel: float = POISSON_VOXEL) -> str:
+    return f"poisson (voxel {voxel * 100:g} cm, depth {depth}, trim {trim * 100:g}%)"
+
+
+def run_poisson(files, poses, geometry: SphericalGeometry, held: HeldOutScans, depths, trims) -> tuple[dict, list[dict]]:
+    """(the peer's row, every setting's row): the best F at 10 cm of ``depths`` by ``trims``."""
+    log(f"poisson: normals of {len(files)} scans")
+    peer = PoissonPeer(files, poses, geometry.range_min, geometry.range_max)
+    log(
+        f"poisson: {peer.points_gathered:,} points gathered, {peer.points:,} after the {peer.voxel * 100:g} cm voxels "
+        f"({peer.cancelled} dropped: normals cancelled out) "
+        f"({peer.prepare_seconds:.0f} s, reading {peer.read_seconds:.0f} s not counted)"
+    )
+    rows = []
+    for depth in depths:
+        vertices, triangles, densities, seconds = peer.reconstruct(depth)
+        log(f"poisson depth {depth}: {len(triangles):,} triangles in {seconds:.0f} s")
+        for trim in trims:
+            start = time.perf_counter()
+            mesh = trimmed(vertices, triangles, densities, trim)
+            trim_seconds = time.perf_counter() - start
+            total = peer.prepare_seconds + seconds + trim_seconds
+            name = poisson_name(depth, trim)
+            score, score_seconds = scored(mesh, held)
+            log(f"{name}: {mesh.GetNumberOfCells():,} triangles; scored in {score_seconds:.0f} s: F@10cm {score['fscore']:.3f}")
+            rows.append(
+                {
+                    "method": name,
+                    "settings": {
+                        "voxel_m": peer.voxel,
+                        "normal_radius_m": NORMAL_RADIUS_VOXELS * peer.voxel,
+                        "normal_max_nn": NORMAL_NEIGHBOURS,
+                        "depth": depth,
+                        "scale": 1.1,
+                        "linear_fit": False,
+                        "density_trim_quantile": trim,
+                    },
+                    "triangles": int(mesh.GetNumberOfCells()),
+                    "ms_per_scan": 1000.0 * total / peer.scans,
+                    "seconds": {
+                        "normals_and_voxels": peer.prepare_seconds,
+                        "poisson": seconds,
+                        "trim": trim_seconds,
+                        "read_not_counted": peer.read_seconds,
+                    },
+                    "points_gathered": peer.points_gathered,
+                    "points_after_voxels": peer.points,
+                    "voxels_dropped_normals_cancelled": peer.cancelled,
+                    "faces_removed": None,
+                    "score": score,
+                    "score_seconds": score_seconds,
+                }
+            )
+    best = max(rows, key=lambda row: -math.inf if math.isnan(row["score"]["fscore"]) else row["score"]["fscore"])
+    return best, rows
+
+
+def percent(x) -> str:
+    return "-" if x is None or (isinstance(x, float) and math.isnan(x)) else f"{100.0 * x:.1f}%"
+
+
+def markdown(bench: dict) -> str:
+    lines = [
+        f"{bench['frames']} scans of {bench['source']}: {bench['integrated']} integrated, {bench['held_out']} held out "
+        f"(every {bench['every']}th; {bench['held_out_points']:,} held-out points within {bench['range_limits_m'][0]:g}-"
+        f"{bench['range_limits_m'][1]:g} m)",
+        "",
+        "| map | triangles | recall@5cm | recall@10cm | precision@10cm | F@10cm | faces removed (% of map) | ms / scan |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|",
+    ]
+    for row in bench["methods"]:
+        s = row["score"]
+        removed = "-" if row["faces_removed"] is None else f"{row['faces_removed']:,} ({percent(row['faces_removed_of_map'])})"
+        lines.append(
+            f"| {row['method']} | {row['triangles']:,} | {percent(s['recall']['5cm'])} | {percent(s['recall']['10cm'])} "
+            f"| {percent(s['precision'])} | {s['fscore']:.3f} | {removed} | {row['ms_per_scan']:.0f} |"
+        )
+    lines.append("")
+    for row in bench["methods"]:
+        s = row["score"]
+        line = (
+            f"- {row['method']}: {s['area_m2']:.0f} m^2 of map, {s['area_seen_m2']:.0f} m^2 of it seen from the held-out "
+            f"scans ({s['samples_seen']:,} of {s['samples']:,} samples)"
+        )
+        bands = ", ".join(
+            (f"{b['from_m']:g}-{b['to_m']:g} m" if b["to_m"] is not None else f"over {b['from_m']:g} m") + f" {percent(b['precision'])}"
+            for b in s["by_range"]
+        )
+        line += f"; precision by distance from the nearest held-out sensor: {bands}"
+        if "meshed_poses_vs_given" in row:
+            d = row["meshed_poses_vs_given"]
+            line += (
+                f"; meshed poses against the given ones: translation median {d['translation_mm_median']:.0f} mm (max "
+                f"{d['translation_mm_max']:.0f}), rotation median {d['rotation_deg_median']:.2f} deg (max {d['rotation_deg_max']:.2f}); "
+                f"registration {row['registration']}"
+            )
+        lines.append(line)
+    if bench.get("poisson_grid") and len(bench["poisson_grid"]) > 1:
+        lines += [
+            "",
+            "Poisson settings tried (--tune; the best F@10cm is the peer above):",
+            "",
+            "| depth | trim | triangles | recall@10cm | precision@10cm | F@10cm | ms / scan |",
+            "|---:|---:|---:|---:|---:|---:|---:|",
+        ]
+        for row in bench["poisson_grid"]:
+            s, k = row["score"], row["settings"]
+            lines.append(
+                f"| {k['depth']} | {percent(k['density_trim_quantile'])} | {row['triangles']:,} | {percent(s['recall']['10cm'])} "
+                f"| {percent(s['precision'])} | {s['fscore']:.3f} | {row['ms_per_scan']:.0f} |"
+            )
+    lines.append("")
+    for note in bench["notes"]:
+        lines.append(f"- {note}")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("sequence", type=Path, help="a KITTI-layout LiDAR folder (velodyne/NNNNNN.bin, poses.txt)")
+    parser.add_argument("--every", type=int, default=5, help="hold out every K-th scan (default 5)")
+    parser.add_argument("--frames", type=int, help="take the first N scans of the recording (default: all)")
+    parser.add_argument(
+        "--surface", nargs="*", default=list(SURFACES), help="mabdi surface filter(s) (default: all three; none: no mabdi map)"
+    )
+    parser.add_argument("--tune", action="store_true", help="run the Poisson peer at every --depths by --trims and report the best")
+    parser.add_argument("--depths", type=int, nargs="+", default=list(TUNE_DEPTHS), help="--tune: Poisson octree depths (default 10 11 12)")
+    parser.add_argument(
+        "--trims", type=float, nargs="+", default=list(TUNE_TRIMS), help="--tune: density quantiles trimmed (default 0.02 0.05 0.10)"
+    )
+    parser.add_argument("--no-poisson", action="store_true", help="run no Poisson peer")
+    parser.add_argument("--out", type=Path, help="write every number here as JSON")
+    args = parser.parse_args(argv)
+
+    if not is_kitti(args.sequence):
+        parser.error(f"{args.sequence}: not a KITTI-layout folder ({SCAN_FOLDER}/ of .bin scans and poses.txt)")
+    usable, reason = open3d_status()
+    if not usable:
+        parser.error(f"the scoring needs Open3D: {reason}")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        source = open_sequence(args.sequence)
+    where = str(args.sequence)
+    notes = [str(w.message).replace(where, args.sequence.name) for w in caught]
+    for note in notes:
+        log(f"note: {note}")
+    geometry = source.intrinsics
+    if not isinstance(geometry, SphericalGeometry):
+        parser.error(f"{args.sequence}: read as depth images, not LiDAR scans")
+    frames = len(source) if args.frames is None else min(args.frames, len(source))
+    integrated, held_index = held_out_split(frames, args.every)
+    subset = FrameSubset(source, integrated)
+    files = scan_files(args.sequence)
+    poses = source.poses
+    log(f"{source.description}: {frames} scans, {len(integrated)} integrated, {len(held_index)} held out")
+
+    held_scans = [read_scan(files[i]) for i in held_index]
+    held = HeldOutScans.from_scans(
+        held_scans, poses[held_index], geometry.range_min, geometry.range_max, (geometry.fov_down, geometry.fov_up)
+    )
+    # how many held-out returns lie outside the image's rows (no map built from range images can hold them)
+    pooled = np.concatenate([s.astype(np.float64) for s in held_scans])
+    r = np.linalg.norm(pooled, axis=1)
+    returns = np.isfinite(pooled).all(axis=1) & (r > geometry.range_min) & (r < geometry.range_max)
+    elevation = np.degrees(np.arcsin(np.clip(pooled[returns, 2] / r[returns], -1.0, 1.0)))
+    outside_fov = float(np.mean((elevation < geometry.fov_down) | (elevation > geometry.fov_up))) if returns.any() else 0.0
+    del pooled, held_scans
+
+    git = git_state()
+    if git.get("uncommitted"):
+        notes.append(f"measured at {git['head'][:10]} with uncommitted changes to: {', '.join(git['uncommitted'])}")
+    rows, grid = [], []
+    started = time.perf_counter()
+    for surface in args.surface:
+        rows.append(run_mabdi(subset, held, surface))
+    mabdi_seconds = time.perf_counter() - started
+    poisson_seconds = 0.0
+    if not args.no_poisson:
+        started = time.perf_counter()
+        depths, trims = (args.depths, args.trims) if args.tune else ([POISSON_DEPTH], [POISSON_TRIM])
+        best, grid = run_poisson([files[i] for i in integrated], poses[integrated], geometry, held, depths, trims)
+        rows.append(best)
+        poisson_seconds = time.perf_counter() - started
+        if args.tune:
+            notes.append(
+                f"the Poisson peer is the best F@10cm of {len(grid)} settings (depth {', '.join(map(str, depths))} by trim "
+                f"{', '.join(f'{t * 100:g}%' for t in trims)}), chosen on these held-out scans"
+            )
+    notes.append(
+        f"held-out returns outside the run's vertical field of view ({geometry.fov_down:g} to {geometry.fov_up:g} deg): "
+        f"{percent(outside_fov)} (counted in recall; no map built from the range images holds them)"
+    )
+    bench = {
+        "source": source.description.replace(where, args.sequence.name),
+        "sequence": args.sequence.name,
+        "frames": frames,
+        "every": args.every,
+        "integrated": int(len(integrated)),
+        "held_out": int(len(held_index)),
+        "held_out_frames": held_index.tolist(),
+        "held_out_points": len(held),
+        "held_out_outside_fov_share": outside_fov,
+        "geometry": {k: getattr(geometry, k) for k in ("beams", "columns", "fov_up", "fov_down", "range_min", "range_max")},
+        "range_limits_m": [geometry.range_min, geometry.range_max],
+        "recall_thresholds_m": list(RECALL_THRESHOLDS_M),
+        "precision_threshold_m": PRECISION_THRESHOLD_M,
+        "sample_area_m2": SAMPLE_AREA_M2,
+        "max_samples": MAX_SAMPLES,
+        "seen_tolerance_m": SEEN_TOLERANCE_M,
+        "command": "benchmarks/bench_real_lidar.py "
+        + " ".join(shlex.quote(a.replace(where, args.sequence.name)) for a in (argv if argv is not None else sys.argv[1:])),
+        "machine": machine_info(),
+        "git": git,
+        "seconds": {"mabdi_runs_and_scoring": mabdi_seconds, "poisson_and_scoring": poisson_seconds},
+        "methods": rows,
+        "poisson_grid": grid,
+        "notes": notes,
+    }
+    text = markdown(bench)
+    print(text)
+    if args.out is not None:
+        write_text(args.out, json.dumps(bench, indent=2, default=float) + "\n")
+        log(f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
