@@ -221,16 +221,16 @@ def range_image(points, geometry: SphericalGeometry, rows=None, centred: bool = 
     centre's ray where the returns around it allow (module docs). Otherwise the nearest point of a pixel wins.
     """
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    binned, fell, chosen = _binned(points, geometry, rows)
+    uv, distance = geometry.pixels(points)
+    binned, fell, chosen = _binned(uv, distance, geometry, rows)
     if rows is None and centred:
-        return _carried_to_centres(points, geometry, binned, fell, chosen)
+        return _carried_to_centres(points, uv, distance, geometry, binned, fell, chosen)
     return binned
 
 
-def _binned(points: np.ndarray, geometry: SphericalGeometry, rows) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The range image whose pixels hold the nearest point that falls in them, (H, W) how many fell in each,
-    and (H, W) the index in ``points`` of the one each holds (-1: none)."""
-    uv, distance = geometry.pixels(points)
+def _binned(uv, distance, geometry: SphericalGeometry, rows) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The range image whose pixels hold the nearest of the points (their pixel coordinates ``uv`` and ranges)
+    that fall in them, (H, W) how many fell in each, and (H, W) the index of the one each holds (-1: none)."""
     with np.errstate(invalid="ignore"):
         keep = (distance > geometry.range_min) & (distance < geometry.range_max)
     if rows is None:
@@ -240,8 +240,8 @@ def _binned(points: np.ndarray, geometry: SphericalGeometry, rows) -> tuple[np.n
         row = np.where(keep, np.floor(np.where(keep, v, 0.0)), 0).astype(np.int64)
     else:
         row = np.asarray(rows).reshape(-1).astype(np.int64)
-        if row.shape != (len(points),):
-            raise ValueError(f"range_image: {len(points)} points but {row.shape[0]} rows")
+        if row.shape != (len(distance),):
+            raise ValueError(f"range_image: {len(distance)} points but {row.shape[0]} rows")
         keep &= (row >= 0) & (row < geometry.beams)
     column = np.minimum(np.floor(np.where(keep, uv[:, 0], 0.0)).astype(np.int64), geometry.columns - 1)
     pixel = (row * geometry.columns + column)[keep]
@@ -260,10 +260,9 @@ def _binned(points: np.ndarray, geometry: SphericalGeometry, rows) -> tuple[np.n
     return image.reshape(geometry.shape), fell, chosen.reshape(geometry.shape)
 
 
-def _carried_to_centres(points, geometry: SphericalGeometry, binned, fell, chosen) -> np.ndarray:
+def _carried_to_centres(points, uv, distance, geometry: SphericalGeometry, binned, fell, chosen) -> np.ndarray:
     """``binned`` with each pixel's range carried to its centre's ray where the returns around it show one
     surface (module docs): along its column (elevation), then along its row (azimuth)."""
-    uv, distance = geometry.pixels(points)
     with np.errstate(invalid="ignore"):
         keep = (distance > geometry.range_min) & (distance < geometry.range_max) & np.isfinite(uv).all(axis=1)
     if keep.sum() < 3:
