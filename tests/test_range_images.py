@@ -72,18 +72,6 @@ def test_returns_off_their_rows_are_carried_to_the_pixel_centres():
     np.testing.assert_allclose(range_image(points, WIDE), expected, rtol=1e-6)
 
 
-def test_a_pixel_without_a_return_between_returns_of_one_surface_gets_one():
-    # A sweep's columns stretched by its motion leave a column with no return every few dozen; a lone missing
-    # return on a wall too. A hole two pixels wide stays.
-    points, expected = _room_scan(WIDE)
-    rows, columns = np.divmod(np.arange(len(points)), WIDE.columns)
-    lost = (columns == 100) | ((rows == 10) & (columns == 300)) | ((rows >= 12) & (rows <= 13) & (columns >= 400) & (columns <= 401))
-    image = range_image(points[~lost], WIDE)
-    assert np.isfinite(image[:, 100]).all() and np.isfinite(image[10, 300])
-    np.testing.assert_allclose(image[:, 100], expected[:, 100], rtol=0.02)
-    assert np.isnan(image[12:14, 400:402]).all()
-
-
 def test_a_depth_edge_is_not_bridged():
     # A box 3 m ahead against the wall at 6 m: no pixel takes a range between the two.
     points, expected = _room_scan(WIDE, elevation_jitter=0.9, box=(3.0, 3.5))

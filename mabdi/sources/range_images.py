@@ -31,15 +31,16 @@ by at most :data:`SURFACE_STEP` plus what a surface at
 :data:`SURFACE_INCIDENCE` changes over their gap, or when a third return at
 least half a row beyond continues their line (a floor or wall at grazing
 incidence; a depth edge does not). The pair may be :data:`WIDEST_GAP_ROWS`
-rows apart, so a pixel no return fell in between two of one surface gets
-one: deskewing moves returns into the next pixel and stretches a sweep's
-columns, so that every few dozen columns one gets none (one missing return
-on a surface is filled the same way). Then each pixel's point is carried
-along its row to the centre's azimuth by the same rule (one surface in the
-horizontal plane), and a pixel still empty whose left and right neighbours
-are one surface takes their mean. Other pixels keep their nearest return; a
-hole two pixels wide stays. With a ring index (``rows`` given) each pixel
-keeps its nearest return.
+rows apart (one beam missing between them), or :data:`WIDEST_GAP_EMPTY_ROWS`
+for a pixel no return fell in (a return that slid into the next row). A pixel
+still empty whose left and right neighbours are one surface (the same test
+over two columns), one of them holding two returns, takes their mean: a
+return that slid into the next column (deskewing moves returns across
+columns too). Other pixels keep their
+nearest return. Within each column the returns' own
+azimuths are taken as the column's (1024 columns: a return within 0.18
+degrees of it). With a ring index (``rows`` given) each pixel keeps its
+nearest return.
 
 A recording carries its geometry in the ``[lidar]`` table of its
 ``mabdi.toml`` (:func:`lidar_table`, :func:`geometry_from_table`): the keys
@@ -84,8 +85,10 @@ SURFACE_STEP = 0.02
 #: :data:`LINE_TOLERANCE`: metres plus a share of the range (a gently curved surface, the column's width).
 SURFACE_INCIDENCE = 70.0
 LINE_TOLERANCE = (0.02, 0.01)
-#: The widest elevation gap (in row spacings) a pixel centre is carried across: one return missing between two.
+#: The widest elevation gap (in row spacings) a pixel centre is carried across: a beam that missed between two;
+#: for a pixel no return fell in, returns off their rows only (a missed beam leaves a gap of two rows).
 WIDEST_GAP_ROWS = 2.5
+WIDEST_GAP_EMPTY_ROWS = 1.5
 
 
 class LidarGeometryWarning(UserWarning):
@@ -219,15 +222,15 @@ def range_image(points, geometry: SphericalGeometry, rows=None, centred: bool = 
     """
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     uv, distance = geometry.pixels(points)
-    binned, chosen = _binned(uv, distance, geometry, rows)
+    binned, fell, chosen = _binned(uv, distance, geometry, rows)
     if rows is None and centred:
-        return _carried_to_centres(points, uv, distance, geometry, binned, chosen)
+        return _carried_to_centres(points, uv, distance, geometry, binned, fell, chosen)
     return binned
 
 
-def _binned(uv, distance, geometry: SphericalGeometry, rows) -> tuple[np.ndarray, np.ndarray]:
+def _binned(uv, distance, geometry: SphericalGeometry, rows) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The range image whose pixels hold the nearest of the points (their pixel coordinates ``uv`` and ranges)
-    that fall in them, and (H, W) the index of the one each holds (-1: none)."""
+    that fall in them, (H, W) how many fell in each, and (H, W) the index of the one each holds (-1: none)."""
     with np.errstate(invalid="ignore"):
         keep = (distance > geometry.range_min) & (distance < geometry.range_max)
     if rows is None:
@@ -246,6 +249,7 @@ def _binned(uv, distance, geometry: SphericalGeometry, rows) -> tuple[np.ndarray
     index = np.flatnonzero(keep)
     image = np.full(geometry.beams * geometry.columns, np.nan, dtype=np.float32)
     chosen = np.full(image.size, -1, dtype=np.int64)
+    fell = np.bincount(pixel, minlength=image.size).astype(np.int32).reshape(geometry.shape)
     if len(pixel):
         order = np.lexsort((distance, pixel))  # by pixel, nearest first
         pixel, distance, index = pixel[order], distance[order], index[order]
@@ -253,10 +257,10 @@ def _binned(uv, distance, geometry: SphericalGeometry, rows) -> tuple[np.ndarray
         first[1:] = pixel[1:] != pixel[:-1]
         image[pixel[first]] = distance[first]
         chosen[pixel[first]] = index[first]
-    return image.reshape(geometry.shape), chosen.reshape(geometry.shape)
+    return image.reshape(geometry.shape), fell, chosen.reshape(geometry.shape)
 
 
-def _carried_to_centres(points, uv, distance, geometry: SphericalGeometry, binned, chosen) -> np.ndarray:
+def _carried_to_centres(points, uv, distance, geometry: SphericalGeometry, binned, fell, chosen) -> np.ndarray:
     """``binned`` with each pixel's range carried to its centre's ray where the returns around it show one
     surface (module docs): along its column (elevation), then along its row (azimuth)."""
     with np.errstate(invalid="ignore"):
@@ -275,7 +279,7 @@ def _carried_to_centres(points, uv, distance, geometry: SphericalGeometry, binne
     key, sorted_index = key[order], kept[order]
     upper = np.searchsorted(key, np.arange(geometry.columns)[None, :] + ((centres - low) / span)[:, None], side="left")
     image = binned.copy()
-    _carry_kernel(image, chosen, upper.astype(np.int64), key, column[order], elevation[order], sorted_index, points,
+    _carry_kernel(image, fell, chosen, upper.astype(np.int64), key, column[order], elevation[order], sorted_index, points,
                   centres, geometry.azimuths(), spacing / span, spacing)
     return image
 
@@ -296,13 +300,13 @@ def _one_surface(ra, rb, angle, steep, pa, pb, po, tolerance):
 
 
 @njit(cache=True)
-def _carry_kernel(image, chosen, upper, key, column, elevation, index, points, centres, azimuths, half_key, spacing):
+def _carry_kernel(image, fell, chosen, upper, key, column, elevation, index, points, centres, azimuths, half_key, spacing):
     """In place (module docs): (1) each pixel whose centre elevation lies between the sorted returns
     ``upper[r, c] - 1`` and ``upper[r, c]`` of its column, one surface in the column's vertical plane, takes
     the point where their segment passes that elevation, else its own nearest return (``chosen``); (2) each
     pixel's point and the next one's in its row on the other side of the centre's azimuth, one surface in
     the horizontal plane, give the point at the centre's azimuth; (3) a pixel still empty between two of its
-    row's of one surface takes their mean. ``index`` maps the sorted returns to
+    row's, one holding two or more returns (``fell``), takes their mean. ``index`` maps the sorted returns to
     ``points``; ``half_key`` is a row spacing in units of ``key``; ``spacing`` in radians."""
     rows, columns = image.shape
     n = len(key)
@@ -318,7 +322,8 @@ def _carry_kernel(image, chosen, upper, key, column, elevation, index, points, c
             if lo < 0 or hi >= n or column[lo] != c or column[hi] != c:
                 continue
             gap = elevation[hi] - elevation[lo]
-            if gap > WIDEST_GAP_ROWS * spacing:
+            widest = WIDEST_GAP_ROWS if chosen[r, c] >= 0 else WIDEST_GAP_EMPTY_ROWS
+            if gap > widest * spacing:
                 continue
             a, b = points[index[lo]], points[index[hi]]
             ra, rb = np.sqrt(np.sum(a * a)), np.sqrt(np.sum(b * b))
@@ -378,7 +383,8 @@ def _carry_kernel(image, chosen, upper, key, column, elevation, index, points, c
             if np.isfinite(image[r, c]):
                 continue
             left, right = image[r, (c - 1) % columns], image[r, (c + 1) % columns]
-            if np.isfinite(left) and np.isfinite(right):
+            slid = fell[r, (c - 1) % columns] >= 2 or fell[r, (c + 1) % columns] >= 2
+            if slid and np.isfinite(left) and np.isfinite(right):
                 if abs(left - right) <= SURFACE_STEP + 0.5 * (left + right) * 2.0 * step * steep:
                     filled[r, c] = 0.5 * (left + right)
     image[:, :] = filled
