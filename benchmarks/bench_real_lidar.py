@@ -23,11 +23,12 @@ Maps, all from the same integrated scans and the same given poses:
 
 * ``mabdi`` (one per ``--surface``, default pixel_grid, quadtree and
   voxel_planes): the MABDI loop run as ``mabdi run --sequence PATH`` runs a
-  recording with no config (default settings; a LiDAR keeps the config's
-  noise model; the geometry as the reader has it: the folder's ``[lidar]``
-  table, else learnt from the first scan), on the integrated scans only
-  (:class:`~mabdi.sources.frames.FrameSubset`). It registers each scan to its
-  map; the map is scored at the held-out scans' given poses;
+  recording with no config (default settings; the noise model a LiDAR
+  recording that states none gets, ``range`` at 0.02 m; the geometry as the
+  reader has it: the folder's ``[lidar]`` table, else learnt from the first
+  scan; ``--set KEY=VALUE`` changes any setting, as ``mabdi run --set``), on
+  the integrated scans only (:class:`~mabdi.sources.frames.FrameSubset`),
+  at the given poses (a LiDAR's registration is off);
 * ``poisson``: Open3D's screened Poisson reconstruction of the integrated
   scans' points (as PUMA meshes LiDAR scans): each scan's returns (same range
   limits) get normals from their neighbours (hybrid search: radius 3 voxels,
@@ -68,6 +69,7 @@ import shlex
 import subprocess
 import sys
 import time
+import tomllib
 import warnings
 from pathlib import Path
 
@@ -87,7 +89,7 @@ from mabdi.evaluate.held_out_scans import (
 )
 from mabdi.evaluate.tsdf import open3d_status
 from mabdi.io.atomic import write_text
-from mabdi.loop.runner import Simulation
+from mabdi.loop.runner import RECORDING_LIDAR_NOISE, Simulation
 from mabdi.polydata import triangles_polydata
 from mabdi.sources.frames import FrameSubset
 from mabdi.sources.kitti import SCAN_FOLDER, is_kitti, read_scan
@@ -141,8 +143,10 @@ def scored(mesh, held: HeldOutScans) -> tuple[dict, float]:
     return score, time.perf_counter() - start
 
 
-def run_mabdi(subset, held: HeldOutScans, surface: str) -> dict:
-    config = with_overrides(RunConfig(), {"surface.method": surface}, where="bench_real_lidar")
+def run_mabdi(subset, held: HeldOutScans, surface: str, overrides: dict | None = None) -> dict:
+    # the settings mabdi run --sequence gives a LiDAR recording that states no noise model, then --set's
+    stated = {"surface.method": surface, "sensor.kind": "lidar", "sensor.noise": RECORDING_LIDAR_NOISE, **(overrides or {})}
+    config = with_overrides(RunConfig(), stated, where="bench_real_lidar")
     simulation = Simulation(config, source=subset)
     name = f"mabdi ({surface})"
     log(f"{name}: running {len(subset)} scans")
@@ -163,7 +167,7 @@ def run_mabdi(subset, held: HeldOutScans, surface: str) -> dict:
     return {
         "method": name,
         "surface": surface,
-        "settings": f"defaults, surface {surface}",
+        "settings": f"defaults, surface {surface}" + "".join(f", {k} = {v!r}" for k, v in (overrides or {}).items()),
         "triangles": triangles,
         "ms_per_scan": float(after_read.mean()),
         "ms_per_scan_median": float(np.median(after_read)),
@@ -355,6 +359,20 @@ def markdown(bench: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
+def parse_sets(items, parser) -> dict:
+    """{dotted key: value} of ``--set KEY=VALUE`` items (TOML value syntax, else a string)."""
+    values = {}
+    for item in items:
+        key, sep, text = item.partition("=")
+        if not sep or not key.strip():
+            parser.error(f"--set {item!r}: expected KEY=VALUE")
+        try:
+            values[key.strip()] = tomllib.loads(f"v = {text}")["v"]
+        except tomllib.TOMLDecodeError:
+            values[key.strip()] = text
+    return values
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("sequence", type=Path, help="a KITTI-layout LiDAR folder (velodyne/NNNNNN.bin, poses.txt)")
@@ -369,8 +387,10 @@ def main(argv=None) -> int:
         "--trims", type=float, nargs="+", default=list(TUNE_TRIMS), help="--tune: density quantiles trimmed (default 0.02 0.05 0.10)"
     )
     parser.add_argument("--no-poisson", action="store_true", help="run no Poisson peer")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="set a mabdi config value (as mabdi run --set; repeatable)")
     parser.add_argument("--out", type=Path, help="write every number here as JSON")
     args = parser.parse_args(argv)
+    overrides = parse_sets(args.set, parser)
 
     if not is_kitti(args.sequence):
         parser.error(f"{args.sequence}: not a KITTI-layout folder ({SCAN_FOLDER}/ of .bin scans and poses.txt)")
@@ -412,7 +432,7 @@ def main(argv=None) -> int:
     rows, grid = [], []
     started = time.perf_counter()
     for surface in args.surface:
-        rows.append(run_mabdi(subset, held, surface))
+        rows.append(run_mabdi(subset, held, surface, overrides))
     mabdi_seconds = time.perf_counter() - started
     poisson_seconds = 0.0
     if not args.no_poisson:
