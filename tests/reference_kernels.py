@@ -224,6 +224,9 @@ def plane_residual(points: np.ndarray, leaves: Leaves, max_jump: float, largest:
 
 def quadtree_leaves_of_image(depth: np.ndarray, intrinsics: Intrinsics, p, noise) -> tuple[np.ndarray, Intrinsics, Leaves]:
     """:func:`mabdi.filters.quadtree.leaves_of_image` with the numpy stages above instead of the numba kernels."""
+    from mabdi.filters.quadtree import resolved
+
+    p = resolved(p, intrinsics)
     if p.smooth_depth:
         depth = smooth_depth_by_noise(depth, noise, intrinsics)
     points, reduced = reduce_points(depth, intrinsics, p.reduction)

@@ -616,3 +616,25 @@ def test_thin_novel_strips_go_only_where_the_map_reaches_into_their_footprint():
     assert not kept[10].any() and kept[12:15, 40:52].all()
     without = remove_specks(novel, 3, 32)  # no word on the map's reach (a camera): every thin region goes
     assert not without[5].any() and without[12:15, 40:52].all()
+
+
+def test_the_quadtree_s_reduction_is_a_camera_s_3_and_a_range_image_s_1():
+    # A LiDAR's beams are further apart than a camera's 3 x 3 pixels: "auto" reduces a range image by 1.
+    from vtkmodules.util.numpy_support import vtk_to_numpy
+
+    from mabdi.camera import Intrinsics
+    from mabdi.filters.quadtree import FilterQuadTree, QuadTreeParameters, resolved
+
+    geometry = SphericalGeometry(32, 512, 10.0, -20.0, 0.5, 50.0)
+    assert resolved(QuadTreeParameters(), geometry).reduction == 1
+    assert resolved(QuadTreeParameters(), Intrinsics()).reduction == 3
+    assert resolved(QuadTreeParameters(reduction=2), geometry).reduction == 2  # a number stays
+    wall = plane((4.0, -8.0, -3.0), (4.0, 8.0, -3.0), (4.0, -8.0, 3.0))
+    image = render(wall, geometry, np.eye(4))
+    meshes = []
+    for parameters in (QuadTreeParameters(), QuadTreeParameters(reduction=1)):
+        quadtree = FilterQuadTree(parameters)
+        quadtree.SetInputDataObject(image)
+        quadtree.Update()
+        meshes.append(vtk_to_numpy(quadtree.GetOutput().GetPoints().GetData()))
+    np.testing.assert_array_equal(meshes[0], meshes[1])

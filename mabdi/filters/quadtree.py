@@ -7,8 +7,9 @@ the sensor's noise model (``smooth_depth``, on by default; see
 then the stages of seed 002:
 
 1. **Filter and reduce**: the NaN-aware median of each ``reduction`` x
-   ``reduction`` block (3 by default, the seed's 3x3 median then reduce by 3;
-   1 = off). A block needs a valid majority. The intrinsics scale with it
+   ``reduction`` block ("auto", the default: 3 for a camera, the seed's 3x3
+   median then reduce by 3; 1 = off, a LiDAR's range image, whose beams are
+   already further apart than a camera's 3 x 3 pixels: :func:`resolved`). A block needs a valid majority. The intrinsics scale with it
    (fx / r, cx / r: block k covers input pixels [rk, rk + r)).
 2. **Transform**: every block to a camera-frame point with the exact pinhole
    model, through the centre of the pixel that holds the median (so a block
@@ -150,7 +151,7 @@ takes the pixel to its lower right).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from vtkmodules.util.numpy_support import numpy_to_vtk, numpy_to_vtkIdTypeArray
@@ -206,7 +207,8 @@ class QuadTreeParameters:
 
     n_t: float = 0.1
     d_t: float = 0.02
-    reduction: int = 3
+    #: Block size of the first stage: an integer, or "auto" (3 for a camera, 1 for a range image: :func:`resolved`).
+    reduction: int | str = "auto"
     max_jump: float = 0.05
     planarity: float = 0.002
     #: Smooth the depth image by the sensor's noise model first (:mod:`mabdi.filters.depth_smoothing`).
@@ -223,8 +225,8 @@ class QuadTreeParameters:
     def __post_init__(self) -> None:
         if self.n_t < 0 or self.d_t <= 0:
             raise ConfigError(f"need n_t >= 0 and d_t > 0 (metres), got n_t={self.n_t}, d_t={self.d_t}")
-        if not isinstance(self.reduction, (int, np.integer)) or self.reduction < 1:
-            raise ConfigError(f"reduction must be an integer >= 1, got {self.reduction!r}")
+        if self.reduction != "auto" and (isinstance(self.reduction, bool) or not isinstance(self.reduction, (int, np.integer)) or self.reduction < 1):
+            raise ConfigError(f"reduction must be \"auto\" or an integer >= 1, got {self.reduction!r}")
         if self.max_jump <= 0 or self.planarity <= 0:
             raise ConfigError(f"max_jump and planarity must be > 0, got max_jump={self.max_jump}, planarity={self.planarity}")
         if not isinstance(self.smooth_depth, bool):
@@ -238,8 +240,22 @@ class QuadTreeParameters:
         patch's edge corners move up to half a block in (the silhouette rule), so a new patch can start up to a block
         inside the novel region; with noise the map's edge and the novel region's are ragged too, and only a rim
         of a whole block closes the crack between them (tests/test_classifier.py). Noise-free edges are clean:
-        one pixel does."""
-        return self.reduction if noisy else 1
+        one pixel does. ("auto" unresolved: a camera's 3.)"""
+        reduction = CAMERA_REDUCTION if self.reduction == "auto" else self.reduction
+        return reduction if noisy else 1
+
+
+#: The reduction "auto" gives a camera's images (the seed's 3 x 3); a range image's is 1.
+CAMERA_REDUCTION = 3
+
+
+def resolved(p: QuadTreeParameters, geometry) -> QuadTreeParameters:
+    """``p`` with ``reduction = "auto"`` made a number for images of ``geometry``: 3 for a camera (the seed's), 1
+    for a LiDAR's range image (on a real 64-beam sweep a 3 x 3 block spans 4 degrees of elevation: its faces
+    stood in front of the walls, and removal took a fifth of the map)."""
+    if p.reduction != "auto":
+        return p
+    return replace(p, reduction=1 if isinstance(geometry, SphericalGeometry) else CAMERA_REDUCTION)
 
 
 # ---------------------------------------------------------------------------
@@ -674,6 +690,7 @@ def leaves_of_image(
     The leaves carry ``regions``, the pyramid root's region count. A LiDAR's range image
     (``intrinsics`` a :class:`~mabdi.spherical.SphericalGeometry`) goes through :func:`_range_leaves`.
     """
+    p = resolved(p, intrinsics)
     if not grazing_on(p, intrinsics):
         measured = None  # only the grazing rule looks beyond the pixels it meshes
     if p.smooth_depth:
@@ -836,7 +853,7 @@ class FilterQuadTree(MabdiAlgorithm):
         image = vtkImageData.GetData(inInfo[0])
         intrinsics = image_intrinsics(image)
         pose = image_pose(image)
-        p = self._parameters
+        p = resolved(self._parameters, intrinsics)
         noise = image_noise(image)
         points, reduced, leaves, smoothed = leaves_of_image(depth_array(image), intrinsics, p, noise, measured_depth(image))
         fine = SilhouetteEvidence(smoothed, noise)

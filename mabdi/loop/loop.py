@@ -69,6 +69,7 @@ from mabdi.filters.depth_image import BACKENDS
 from mabdi.sensor_noise import SensorNoise
 from mabdi.filters.expected_image import MAP_PORT, MEASURED_PORT, FilterExpectedImage
 from mabdi.filters.refinement import MapRefinement, RefinementParameters
+from mabdi.filters.quadtree import QuadTreeParameters, resolved as resolved_quadtree
 from mabdi.filters.registration import STATUSES, FilterRegistration, RegistrationParameters, registration_values
 from mabdi.filters.registration_check import PosesDisagreeWarning, poses_disagree
 from mabdi.filters.registry import make_surface_filter, seam_pixels, surface_filter
@@ -175,6 +176,8 @@ class MabdiLoop:
         self.surface_name = surface
         if self.classifier_parameters.rim == "auto":  # the rim the surface needs to close its seams with the map
             chosen = surface_parameters if surface_parameters is not None else surface_filter(surface).parameters()
+            if isinstance(chosen, QuadTreeParameters):
+                chosen = resolved_quadtree(chosen, source.intrinsics)  # its reduction, "auto", by the sensor
             self.classifier_parameters = replace(self.classifier_parameters, rim=seam_pixels(surface, chosen, self.noise.noisy))
 
         #: Object removal runs when the classifier does and it is on (the default); refinement when it is
