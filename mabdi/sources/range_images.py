@@ -300,14 +300,14 @@ def _one_surface(ra, rb, angle, steep, pa, pb, po, tolerance):
 
 
 @njit(cache=True)
-def _carry_kernel(image, fell, chosen, upper, key, column, elevation, index, points, centres, azimuths, half_key, spacing):
+def _carry_kernel(image, fell, chosen, upper, key, column, elevation, index, points, centres, azimuths, row_key, spacing):
     """In place (module docs): (1) each pixel whose centre elevation lies between the sorted returns
     ``upper[r, c] - 1`` and ``upper[r, c]`` of its column, one surface in the column's vertical plane, takes
     the point where their segment passes that elevation, else its own nearest return (``chosen``); (2) each
     pixel's point and the next one's in its row on the other side of the centre's azimuth, one surface in
     the horizontal plane, give the point at the centre's azimuth; (3) a pixel still empty between two of its
     row's, one holding two or more returns (``fell``), takes their mean. ``index`` maps the sorted returns to
-    ``points``; ``half_key`` is a row spacing in units of ``key``; ``spacing`` in radians."""
+    ``points``; ``row_key`` is a row spacing in units of ``key``; ``spacing`` in radians."""
     rows, columns = image.shape
     n = len(key)
     steep = np.tan(np.radians(SURFACE_INCIDENCE))
@@ -332,9 +332,9 @@ def _carry_kernel(image, fell, chosen, upper, key, column, elevation, index, poi
             one = False
             for side in range(2):  # a third return at least half a row beyond either end
                 if side == 0:
-                    outer = np.searchsorted(key, key[lo] - 0.5 * half_key, side="right") - 1
+                    outer = np.searchsorted(key, key[lo] - 0.5 * row_key, side="right") - 1
                 else:
-                    outer = np.searchsorted(key, key[hi] + 0.5 * half_key, side="left")
+                    outer = np.searchsorted(key, key[hi] + 0.5 * row_key, side="left")
                 po = nowhere
                 if 0 <= outer < n and column[outer] == c:
                     o = points[index[outer]]
