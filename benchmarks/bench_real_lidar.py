@@ -70,13 +70,13 @@ import shlex
 import subprocess
 import sys
 import time
-import tomllib
 import warnings
 from pathlib import Path
 
 import numpy as np
 
-from mabdi.config import RunConfig, with_overrides
+from mabdi.config import RunConfig, settings_overrides, with_overrides
+from mabdi.errors import ConfigError
 from mabdi.evaluate.bench import machine_info
 from mabdi.evaluate.held_out import held_out_split, pose_differences
 from mabdi.evaluate.held_out_scans import (
@@ -361,20 +361,6 @@ def markdown(bench: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def parse_sets(items, parser) -> dict:
-    """{dotted key: value} of ``--set KEY=VALUE`` items (TOML value syntax, else a string)."""
-    values = {}
-    for item in items:
-        key, sep, text = item.partition("=")
-        if not sep or not key.strip():
-            parser.error(f"--set {item!r}: expected KEY=VALUE")
-        try:
-            values[key.strip()] = tomllib.loads(f"v = {text}")["v"]
-        except tomllib.TOMLDecodeError:
-            values[key.strip()] = text
-    return values
-
-
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("sequence", type=Path, help="a KITTI-layout LiDAR folder (velodyne/NNNNNN.bin, poses.txt)")
@@ -392,7 +378,10 @@ def main(argv=None) -> int:
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="set a mabdi config value (as mabdi run --set; repeatable)")
     parser.add_argument("--out", type=Path, help="write every number here as JSON")
     args = parser.parse_args(argv)
-    overrides = parse_sets(args.set, parser)
+    try:
+        overrides = settings_overrides(args.set)
+    except ConfigError as exc:
+        parser.error(str(exc))
 
     if not is_kitti(args.sequence):
         parser.error(f"{args.sequence}: not a KITTI-layout folder ({SCAN_FOLDER}/ of .bin scans and poses.txt)")

@@ -218,10 +218,7 @@ def _find_config(scene: str) -> Path:
 def _apply_overrides(config, args):
     """The config with the command line's options and ``--set KEY=VALUE`` values on it, through
     :func:`mabdi.config.with_overrides` (typed and checked as a config file is); returns the new config."""
-    import tomllib
-
-    from mabdi.config import with_overrides
-    from mabdi.errors import ConfigError
+    from mabdi.config import settings_overrides, with_overrides
 
     options = {
         "run.frames": getattr(args, "frames", None),
@@ -239,15 +236,7 @@ def _apply_overrides(config, args):
         "output.movie": True if getattr(args, "movie", False) else None,
     }
     overrides = {key: value for key, value in options.items() if value is not None}
-    for setting in getattr(args, "settings", []):
-        key, equals, text = setting.partition("=")
-        if not equals or not key.strip():
-            raise ConfigError(f"command line: --set wants KEY=VALUE, got {setting!r}")
-        try:
-            value = tomllib.loads(f"value = {text}")["value"]
-        except tomllib.TOMLDecodeError:
-            value = text  # a bare word is a string: --set surface.method=quadtree
-        overrides[key.strip()] = value  # after the options: --set has the last word
+    overrides.update(settings_overrides(getattr(args, "settings", [])))  # after the options: --set has the last word
     return with_overrides(config, overrides, where="command line") if overrides else config
 
 

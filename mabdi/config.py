@@ -558,6 +558,22 @@ def _overridden(config: RunConfig, overrides: dict, where: str, whole: bool) -> 
     return resolved
 
 
+def settings_overrides(settings, where: str = "command line") -> dict:
+    """{dotted key: value} of ``--set KEY=VALUE`` settings (TOML value syntax; a bare word is a string:
+    ``surface.method=quadtree``), for :func:`with_overrides`; a setting without ``=`` is a ConfigError."""
+    overrides = {}
+    for setting in settings:
+        key, equals, text = setting.partition("=")
+        if not equals or not key.strip():
+            raise ConfigError(f"{where}: --set wants KEY=VALUE, got {setting!r}")
+        try:
+            value = tomllib.loads(f"value = {text}")["value"]
+        except tomllib.TOMLDecodeError:
+            value = text
+        overrides[key.strip()] = value
+    return overrides
+
+
 def with_overrides(config: RunConfig, overrides: dict, where: str = "<overrides>", whole: bool = True) -> RunConfig:
     """A new RunConfig: ``config`` with the values of ``overrides`` (dotted key -> value) set, the whole checked.
 

@@ -27,6 +27,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 from vtkmodules.vtkCommonDataModel import vtkPolyData
 
+from mabdi.evaluate import metrics
 from mabdi.evaluate.sampling import SAMPLE_SEED, SurfaceSamples, sample_surface
 from mabdi.polydata import polydata_area, polydata_arrays
 
@@ -229,10 +230,10 @@ def by_band(ranges, hits, bands=RANGE_BANDS_M) -> list[tuple[float, float, int, 
 
 
 def fscore(precision: float, recall_: float) -> float:
-    """2 P R / (P + R); 0 when both are 0, NaN when either is NaN."""
+    """2 P R / (P + R) (:func:`mabdi.evaluate.metrics.fscore`); NaN when either is NaN."""
     if math.isnan(precision) or math.isnan(recall_):
         return math.nan
-    return 0.0 if precision + recall_ == 0 else 2.0 * precision * recall_ / (precision + recall_)
+    return metrics.fscore(precision, recall_)
 
 
 @dataclass
