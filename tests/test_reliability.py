@@ -16,7 +16,10 @@ import pytest
 from mabdi.io.run_folder import STAGING
 
 REPO = Path(__file__).resolve().parents[1]
-INTERRUPTED = (130, -signal.SIGINT)  # main's exit status, or death by SIGINT (an interrupt while importing)
+# main's exit status, or death by SIGINT: the interpreter ends so itself when the interrupt reached it outside
+# main (while importing, or at its shutdown: seen under load, once in 5-10 runs, after "mabdi: interrupted");
+# a shell reports both as 130.
+INTERRUPTED = (130, -signal.SIGINT)
 
 
 def _default_sigint() -> None:
@@ -80,7 +83,7 @@ def test_ctrl_c_during_a_run_exits_130(tmp_path, seconds_into_run):
     assert process.poll() is None, "the run ended before it was interrupted"
     process.send_signal(signal.SIGINT)
     code, stdout, stderr = _finish(process)
-    assert code == 130, f"exit {code}\nstdout: {stdout[-2000:]}\nstderr: {stderr[-2000:]}"
+    assert code in INTERRUPTED, f"exit {code}\nstdout: {stdout[-2000:]}\nstderr: {stderr[-2000:]}"
     assert "mabdi: interrupted" in stderr
     assert "Traceback" not in stderr
     assert not (out / "summary.json").exists() and not (staging / "summary.json").exists()
@@ -194,7 +197,8 @@ def test_ctrl_c_during_evaluation_exits_130(tmp_path):
     assert _wait_for(evaluating, process, timeout=240), f"no 'map:' line: {lines}"
     process.send_signal(signal.SIGINT)
     code, stdout, stderr = _finish(process)  # the evaluation takes seconds: the signal lands in it
-    assert code == 130, f"exit {code}\nstderr: {stderr[-2000:]}"
+    assert code in INTERRUPTED, f"exit {code}\nstderr: {stderr[-2000:]}"
+    assert "Traceback" not in stderr, stderr[-2000:]
     summary = out / "summary.json"
     assert not summary.exists() or "metrics" not in json.loads(summary.read_text())
 
