@@ -1,54 +1,28 @@
 """NoiseCalibration: the sensor's sigma(z) learnt online from D - E, for ``noise = "auto"``.
 
-A user with a camera of unknown noise need not pick a model: with
-``[sensor] noise = "auto"`` the loop measures it. Where the map already
-explains a pixel, D - E is the sensor's error there (plus the map's own,
-which was averaged over several looks and smoothed, so it is smaller, and
-what is left of the pose's after registration). Each frame the loop hands
-:meth:`NoiseCalibration.observe` the residuals of D's returns on the map
-(every ``stride``-th pixel; E and D both valid; away from E's silhouettes,
-where a pixel may show either side; within ``gate_k`` times the current
-sigma or ``min_gate``, so new surfaces in front of the map and objects that
-left are not counted), from registered frames only. Per depth bin
-(``bin_width`` metres) it keeps the most recent ``samples_per_bin`` absolute
-residuals and reads sigma as 1.4826 times their median (the median absolute
-deviation: robust to the few pairs of different surfaces the gate lets in).
+With ``[sensor] noise = "auto"`` the loop measures a camera's noise: where
+the map already explains a pixel, D - E is the sensor's error there. Each
+registered frame hands :meth:`NoiseCalibration.observe` the residuals of
+D's returns on the map (every ``stride``-th pixel, away from E's
+silhouettes, within ``gate_k`` sigma or ``min_gate``). Per depth bin
+(``bin_width`` metres) it keeps the last ``samples_per_bin`` residuals and
+reads sigma as 1.4826 times their median absolute value.
 
-The curve is sigma(z) = sqrt(a^2 + (c z^2)^2): the z^2 law of every
-triangulating camera (structured light, stereo) plus a floor a that does not
-grow with depth. The floor is mostly the map's own error (the chord of a
-big flat face across a curved surface, about a millimetre or two whatever
-the depth), so the *sensor's* curve is read as c z^2
-(:meth:`NoiseCalibration.sensor_sigma`); a sensor's own depth-independent
-error (quantisation at short range) lands in the floor too. The thresholds
-use the whole curve, since D - E is what they judge. a^2 and c^2 are fitted by
-least squares on the relative error of sigma^2 to the bins holding at least
-``min_samples`` residuals, weighted by their sample counts. Until the first fit (the first frame has
-no map to compare with) it is the Kinect v1's c = 1.425e-3 / m, a = 0
-(Khoshelham & Elberink 2012), a typical consumer depth camera.
+The curve is sigma(z) = sqrt(a^2 + (c z^2)^2) (metres): the z^2 law of
+triangulating cameras plus a floor a, mostly the map's own error; the
+sensor's own curve is c z^2 (:meth:`NoiseCalibration.sensor_sigma`). Before
+the first fit it is the Kinect v1's c = 1.425e-3 / m, a = 0.
 
-**How far errors reach across pixels** (``correlation``, pixels): a
-structured-light or stereo camera's matching window makes neighbouring
-pixels err together, and refinement (:mod:`mabdi.filters.refinement`)
-needs to know over how many pixels, to average past them. The loop's
-residuals, each divided by sigma(E), give the correlation rho(k) of pixels
-``CORRELATION_LAGS`` = 1, 2, 4 and 8 apart (along every eighth row and column,
-summed over the run). Neighbouring errors that are
-mostly independent (rho(1) below ``MIN_NEIGHBOUR_CORRELATION`` = 0.25: an
-ideal sensor's noise over a map's slowly varying error, which makes a few
-per cent) give 0. Otherwise rho(k) = f exp(-k^2 / (4 L^2)), the correlation
-of white noise smoothed by a Gaussian of L pixels with a share f of
-independent noise beside it, fitted by least squares on ln rho over the
-lags where rho > 0.02, gives L. Before ``min_correlation_pairs`` pairs at
-every lag (and before any fit) it is the prior ``PRIOR_CORRELATION`` = 2.5
-pixels, the structured-light model's, a Kinect v1.
+``correlation`` (pixels) is how far errors reach across pixels, fitted to
+the residuals' correlation at ``CORRELATION_LAGS`` as a Gaussian-smoothed
+field; 0 where neighbours are mostly independent
+(``MIN_NEIGHBOUR_CORRELATION``), ``PRIOR_CORRELATION`` before enough pairs.
 
 Everything that uses the sensor's noise reads this curve through
-:meth:`mabdi.sensor_noise.SensorNoise.sigma` (the classifier's tau,
-depth smoothing, registration's weights, removal's gate), so it follows the
-calibration frame by frame: each depth image carries the curve as it stood
-when the image was made (a :class:`NoiseCurve`, in its field data). The calibrated curve and its bins go into a
-run's ``summary.json`` (:meth:`summary`).
+:meth:`mabdi.sensor_noise.SensorNoise.sigma`; each depth image carries the
+curve as it stood when it was made (a :class:`NoiseCurve`). The result goes
+into ``summary.json`` (:meth:`summary`). Why: docs/architecture.md
+(``mabdi.noise_calibration``).
 """
 
 from __future__ import annotations

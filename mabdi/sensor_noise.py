@@ -2,76 +2,28 @@
 
 A depth image carries its sensor's noise model in its field data beside the
 intrinsics (:func:`mabdi.depth.image_noise`), so every filter that needs
-sigma(z) (the classifier's tau, registration's weights, the surfaces'
-smoothing, removal's gate) reads it from the image it is given.
+sigma(z) (metres, at depth z in metres) reads it from the image it is given.
 
 Models:
 
-* ``none``
-* ``zbuffer`` (seed 001): D_noisy = d + d N(0, sigma) on the normalised
-  z-buffer value d (sigma = 0.001), then converted to metres; about 1, 6 and
-  15 mm standard deviation at 1, 2 and 3 m for near = 0.5 m, far = 4 m. A
-  value pushed to d >= 1 is beyond the far plane: NaN.
-* ``kinect``: axial sigma(z) = 1.425e-3 z^2 m (Khoshelham & Elberink 2012),
-  added in metres.
-* ``structured_light``: a structured-light / stereo camera, modelled where
-  its error arises, in disparity. The true depth z becomes the disparity
-  d = f b / z (f = :attr:`SensorNoise.focal` in pixels, b = ``baseline`` in
-  metres); d gets ``disparity_sigma`` pixels times a spatially correlated
-  unit-variance Gaussian field (white noise smoothed by a Gaussian of
-  ``correlation_length`` pixels, :func:`correlated_field`), is rounded to the
-  disparity lattice (``disparity_step`` pixels) and turned back into
-  z = f b / d. So the depth error grows with z^2, neighbouring pixels err
-  together, and every depth lies on the lattice f b / (k step). Returns are
-  lost (NaN) where a real camera loses them: within ``edge_dropout`` pixels
-  of a depth discontinuity of the true image (neighbours whose depths differ
-  by more than ``edge_jump`` times the nearer one, or a surface next to
-  background), and at grazing incidence (the angle between the pixel's ray
-  and the surface normal, estimated from the true depth image, beyond
-  ``max_incidence`` degrees). Per-pixel standard deviation:
-  sigma(z) = z^2 sigma_eff / (f b) with sigma_eff^2 = disparity_sigma^2 +
-  disparity_step^2 / 12 (the quantisation as uniform error).
+* ``none``;
+* ``zbuffer`` (seed 001): d + d N(0, sigma) on the normalised z-buffer value
+  d (sigma = 0.001), then converted to metres; d >= 1 is NaN;
+* ``kinect``: axial sigma(z) = 1.425e-3 z^2 m (Khoshelham & Elberink 2012);
+* ``structured_light``: a structured-light / stereo camera modelled in
+  disparity d = f b / z: ``disparity_sigma`` pixels of spatially correlated
+  noise (``correlation_length``), rounded to ``disparity_step``, with returns
+  lost beside depth edges (``edge_dropout``, ``edge_jump``) and at grazing
+  incidence (``max_incidence``); sigma(z) = z^2 sigma_eff / (f b). The
+  defaults are a Kinect v1;
+* ``auto``: a camera of unknown noise, learnt by the loop
+  (:mod:`mabdi.noise_calibration`); the simulator refuses it;
+* ``range``: a LiDAR's Gaussian range noise of ``range_sigma`` metres (0.02,
+  Velodyne HDL-64E S2's datasheet figure).
 
-  The defaults are a Kinect v1 (PrimeSense). Khoshelham & Elberink,
-  "Accuracy and resolution of Kinect depth data for indoor mapping
-  applications", Sensors 12 (2012) 1437-1454: base length b = 7.5 cm, and
-  the random error sigma_z = 1.425e-3 z^2 m, which they derive from a
-  disparity error of half a disparity unit with m / (f b) = 2.85e-3 per unit
-  and metre. Konolige & Mihelich, "Technical description of Kinect
-  calibration" (ROS wiki, 2011): disparity in units of 1/8 pixel
-  (``disparity_step`` = 0.125), IR focal length about 580 px at 640 x 480
-  (``focal`` = 580; (1/8) / (580 x 0.075) = 2.87e-3 agrees with the m / (f b)
-  above), block matching over a window of about 9 x 9 pixels. So
-  sigma_eff = 1.425e-3 f b = 0.062 px, and ``disparity_sigma`` = 0.05 px once
-  the quantisation's 0.125 / sqrt(12) = 0.036 px is counted (sigma(z) =
-  1.42e-3 z^2 m). Our choices, with their reasons: ``correlation_length`` =
-  2.5 px, because neighbouring pixels share most of their 9-pixel matching
-  window, whose box profile has a standard deviation of 9 / sqrt(12) = 2.6 px;
-  ``edge_dropout`` = 2 px, because a window that straddles an occluding edge
-  fails to match (Kinect images show an invalid band of a few pixels around
-  objects); ``max_incidence`` = 75 degrees, because the projected pattern
-  seen more obliquely is too stretched to match (real images lose such
-  surfaces); ``edge_jump`` = 0.05, a jump no plane makes between neighbours
-  unless tilted past about 87 degrees. For an active stereo camera such as
-  the RealSense D435, Intel's D400 datasheet gives a 50 mm baseline and a
-  subpixel RMS error of about 0.08 px: ``baseline`` = 0.05,
-  ``disparity_sigma`` = 0.08, a fine ``disparity_step`` (its disparity has
-  sub-pixel resolution) and ``focal`` its fx.
-* ``auto``: a camera of unknown noise (a recording): the loop learns
-  sigma(z) from the run itself (:mod:`mabdi.noise_calibration`), and each
-  depth image carries the curve as it stood when the image was made. There
-  is nothing to draw, so the simulator refuses it.
-* ``range`` (a spinning LiDAR's range images, :mod:`mabdi.filters.range_rendering`):
-  Gaussian noise of ``range_sigma`` metres on the range along each beam,
-  the same at every range. The default, 0.02 m, is the figure Velodyne's
-  HDL-64E S2 datasheet gives for its 64 beams ("accuracy < 2 cm, one sigma
-  at 25 m"); Ouster's OS1 datasheets give a precision of 1-3 cm over most of
-  the range, the same order. Only ``none`` and ``range`` apply to a LiDAR.
-
-Noise is reproducible: frame i of a run with seed s always draws from the
-random stream ``numpy.random.default_rng([s, i])``, independent of every
-other frame and of the order frames are rendered in.
-
+Noise is reproducible: frame i of a run with seed s draws from
+``numpy.random.default_rng([s, i])``. Where each default comes from (the
+Kinect v1 and RealSense figures): docs/architecture.md (``mabdi.sensor_noise``).
 """
 
 from __future__ import annotations

@@ -18,47 +18,15 @@ SWEEP.toml::
     "surface.method" = ["pixel_grid", "quadtree"]
     "run.seed" = [0, 1]
 
-* ``configs``: run config files (``scenes/*.toml``), relative to the sweep
-  file's folder or, failing that, to the working folder; a bare name such
-  as ``"table"`` is ``scenes/table.toml``.
-* ``[grid]``: the cells are the product configs x every grid list (in file
-  order). A key is a dotted path into the run config: any key of
-  :mod:`mabdi.config`, e.g. ``"surface.method"``, ``"sensor.noise"``, or a
-  surface filter's parameter ``"surface.quadtree.n_t"``; list items by index
-  (``"scene.objects.0.position"``). Unquoted dotted keys (``surface.method
-  = [...]``) mean the same. A value that is itself a list (a position) is
-  given as a list of lists.
-* ``[set]``: the same dotted keys with one value each, applied to every cell
-  before the grid's.
-
-An unknown key in ``[sweep]`` or at the top level, or a grid entry that is
-not a non-empty list, is a :class:`ConfigError` naming the key and the file.
-An override that names no config key, or a value the config rejects, makes
-only that cell fail: it is reported with its error and the others run.
-
-Each cell resolves its config (file + overrides, validated), is keyed by a
-hash of the resolved config, the evaluation settings and the content
-(SHA-256) of every mesh file its scene reads (so a mesh replaced at the same
-path makes new cells), and runs in
-``OUT/cells/<id>/``: the run's own outputs (:mod:`mabdi.loop.runner`)
-and, after success, ``row.json`` (written atomically). A cell whose
-``row.json`` exists is not run again, so an interrupted or extended sweep
-re-runs only what is missing or failed; a changed config or default changes
-the hash, so stale rows are never reused.
-
-The sweep writes ``results.csv`` (one row per cell; the ``overrides`` column
-as JSON, then one column per grid key), ``results.md`` (the same as a
-Markdown table) and ``fscore_triangles.png`` (F@1cm against triangles, one
-colour per surface) into ``OUT``.
-
-Ray: a local instance with ``workers`` CPUs by default (one cell per CPU;
-started and shut down by the sweep, or an instance already initialised in
-this process is used as it is), or an existing cluster with ``address``
-(``ray start --head`` on one node; every node needs mabdi installed, and
-``OUT`` on a shared filesystem for the per-cell run files; the table and
-rows are written by the driver). ``workers`` also caps the cells in flight.
-Ray is imported only when a cell needs to run (the optional ``sweep``
-extra: ``pip install "mabdi[sweep]"``).
+The cells are the product configs x every grid list; a key is a dotted path
+into the run config (:mod:`mabdi.config`). A bad override fails only its
+cell. Each cell is keyed by a hash of its resolved config, the evaluation
+settings and the content of every mesh file its scene reads, runs in
+``OUT/cells/<id>/`` and writes ``row.json``; a cell whose row exists is not
+run again. The sweep writes ``results.csv``, ``results.md`` and
+``fscore_triangles.png`` into ``OUT``. Ray (the ``sweep`` extra) runs a
+local instance of ``workers`` CPUs or joins a cluster at ``address``.
+The rules in full: docs/architecture.md (``mabdi.sweep``).
 """
 
 from __future__ import annotations

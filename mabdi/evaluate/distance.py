@@ -155,7 +155,7 @@ def distances_to_mesh(points, mesh: vtkPolyData) -> np.ndarray:
     """Exact unsigned distance (m) from each of (N, 3) ``points`` to ``mesh``'s surface.
 
     :func:`distances_within` up to :data:`NEAR` (a map's samples against its ground truth lie mostly within
-    millimetres of it: 2-3 times faster than VTK's locator there), VTK's vtkImplicitPolyDataDistance for the
+    millimetres of it, where it is faster than VTK's locator), VTK's vtkImplicitPolyDataDistance for the
     points beyond (exact at any distance, without the ball queries a far point would need). An empty mesh gives
     +inf everywhere.
     """

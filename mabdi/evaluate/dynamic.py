@@ -2,52 +2,27 @@
 
 When an object leaves the scene, the map still holds its surface until the
 loop removes it: a **ghost**. These metrics judge a map against the scene as
-it stands at each frame (:meth:`mabdi.sources.scene.SourceScene.mesh_at`).
+it stands at each frame (:meth:`mabdi.sources.scene.SourceScene.mesh_at`):
 
-* **ghost share** (:func:`ghost_share`): the share of the map's *area* lying
-  more than ``threshold`` (3 cm) from the scene as it is. Measured with
-  area-weighted random samples of the map (:func:`~mabdi.evaluate.sampling.sample_surface`,
-  fixed seed; 20,000 by default, standard error below 0.4 points of share)
-  and exact point-to-mesh distances (:func:`~mabdi.evaluate.distance.distances_within`),
-  rather than one test per face centroid: a large triangle that is half
-  ghost counts half, and the cost does not grow with the map. The share
-  includes any map surface far from the truth, so sensor noise beyond 3 cm
-  (far surfaces of a noisy pixel grid) is a floor under it; the ghost of a
-  departed object (below) is free of that floor.
-* **ghost of a departed object** (``GhostRun.by_object``): the share of the
-  map's area within ``near`` (3 cm) of the object's former surface and more
-  than ``threshold`` from the scene as it is.
-* **first seen** (:func:`first_seen`): the first frame at or after an object's
-  departure from which at least ``min_pixels`` pixels of its former surface
-  are in view and not hidden by the scene as it now is: the object's former
-  geometry is rendered alone and the scene without it, both from the pose,
-  and a pixel counts where the former surface is in the image and not behind
-  the scene's depth there (by more than max(5 mm, 0.5 % z)). From that frame
-  on the sensor looks through the place, so a map can know the object left.
-* **frames to clear** (:func:`frames_to_clear`): frames from that first
-  sight until the departed object's ghost falls below ``clear_below`` (1 %)
-  of the map's area; 0 when the frame that first sees the place clears it,
-  None when it never falls below (or the place is never seen).
-* **static loss** (:class:`StaticCoverage`, :func:`static_loss`): area of
-  surfaces that exist for the whole run (objects with no schedule) that the
-  map covered (a map point within ``tau`` = 2 cm) at some measured earlier
-  frame and no longer covers at the end. Measured on area-weighted samples
-  of those static surfaces: loss (m^2) = static area x share of samples
-  covered before and uncovered at the end. Only what the map once covered
-  counts, so unobserved surfaces need no visibility test, and a map that
-  only grows has a loss of exactly 0. Caveat: a static sample within 2 cm of
-  a departed object's map (the floor under a bunny's feet) counts as covered
-  by it, so removing that ghost may show as a few cm^2 of loss.
-* **static and dynamic accuracy** (the KTH DynamicMap benchmark's SA, DA and
-  their geometric mean, :mod:`mabdi.evaluate.removal_accuracy`): on the
-  vertices of every measured map, labelled against the scene as it stands
-  at the end and the departed objects, the share of static ones the final
-  map keeps and of dynamic ones it removed (``GhostRun.removal``).
+* **ghost share** (:func:`ghost_share`): the share of the map's area more
+  than ``threshold`` (3 cm) from the scene as it is, on area-weighted
+  samples with exact point-to-mesh distances; per departed object,
+  ``GhostRun.by_object``;
+* **first seen** (:func:`first_seen`): the first frame after a departure
+  from which at least ``min_pixels`` pixels of the object's former surface
+  are in view and not hidden;
+* **frames to clear** (:func:`frames_to_clear`): frames from then until the
+  object's ghost falls below ``clear_below`` (1 %) of the map's area;
+* **static loss** (:class:`StaticCoverage`, :func:`static_loss`): area (m^2)
+  of surfaces present all run that the map covered (within ``tau`` = 2 cm)
+  earlier and no longer covers at the end;
+* **static and dynamic accuracy** (the KTH DynamicMap benchmark's SA, DA
+  and AA, :mod:`mabdi.evaluate.removal_accuracy`; ``GhostRun.removal``).
 
 :class:`GhostObserver` measures all of this as a run goes (an observer of
-:class:`mabdi.loop.run_pipeline.RunPipeline`; :func:`run_with_ghosts`
-runs a Simulation with one); :class:`GhostTracker` does the measuring for
-any map one hands it (a TSDF's extracted mesh, say).
+:class:`mabdi.loop.run_pipeline.RunPipeline`; :func:`run_with_ghosts` runs a
+Simulation with one); :class:`GhostTracker` measures any map handed to it.
+Details and caveats: docs/architecture.md (``mabdi.evaluate.dynamic``).
 """
 
 from __future__ import annotations

@@ -1,63 +1,25 @@
 """The TSDF baseline: Open3D's VoxelBlockGrid (tensor API) fed the same depth frames as MABDI, at its best.
 
 Open3D is an optional extra (``pip install "mabdi[compare]"``; on Debian its
-import also needs ``apt-get install libusb-1.0-0``). :func:`open3d_status`
+import also needs ``apt-get install libusb-1.0-0``); :func:`open3d_status`
 says whether it can be used, and why not.
 
-**Settings** (:class:`TsdfSettings`, defaults and checks in one place):
-voxel size; truncation in voxels (2-12; Open3D's ``trunc_voxel_multiplier``);
-the weight threshold of the extraction (0.5-3: Open3D keeps a voxel only
-when its weight, the number of frames fused into it, is *above* the
-threshold, so 0.5 keeps what a single frame saw and 1 drops it; on the
-table with ``kinect`` noise that costs recall, R@1cm 0.86 at 1); the depth range handed to Open3D
-(``depth_max``; returns are < the sensor's far plane by definition, so any
-``depth_max`` >= far is the same as far); and the pixel convention.
+* **Settings** (:class:`TsdfSettings`): voxel size (metres), truncation in
+  voxels, the extraction's weight threshold (Open3D keeps a voxel whose
+  weight is *above* it), ``depth_max``, the pixel convention
+  (``pixel_centre``) and ``smooth_depth`` (the depth smoothed by the
+  sensor's noise model, as MABDI's surfaces mesh it).
+* **Range images** (a spinning LiDAR's) are fused point-wise along each beam
+  into the same grid, as LiDAR TSDF mappers do (VDBFusion's scheme).
+* **Runs**: :func:`run_tsdf` integrates every frame of a
+  :class:`mabdi.sources.frames.FrameSource`, extracting the mesh at the end
+  and every ``mesh_every`` frames.
+* **Tuning**: :func:`tune_tsdf` searches truncation, weight threshold, depth
+  range, pixel convention and smoothing at one voxel size against a score
+  the caller gives.
 
-**Depth smoothing** (``smooth_depth``): integrate each depth image smoothed
-by the sensor's noise model, as MABDI's pixel grid and quad-tree mesh it
-(:mod:`mabdi.filters.depth_smoothing`; the mapper, :func:`run_tsdf` and
-:func:`tune_tsdf` take the sensor's ``noise``; without one, or with the
-``none`` model, it changes nothing). The tuner tries it whenever a noise
-model is given. It lifts the tuned TSDF at 1 cm from F@1cm 0.982 to 0.991
-on the table with ``kinect`` noise, and from 0.987 to 0.990 on Run 2.
-
-**Pixel convention** (``pixel_centre``), which cx, cy Open3D is given:
-``"half"`` hands it mabdi's own cx, cy (pixel (u, v) centred on (u + 0.5,
-v + 0.5)); ``"integer"`` hands it cx - 0.5, cy - 0.5, right for a library
-with integer pixel centres. Open3D's back-projection
-(``create_from_depth_image``) has integer centres, but its VoxelBlockGrid
-integration projects a voxel to a continuous (u, v) and reads pixel
-``int(u), int(v)``, so pixel i covers [i, i + 1) there: mabdi's convention,
-and ``"half"`` is right. :func:`alignment_error` and ``tests/test_tsdf.py``
-(a tilted plane) measure it; the tuner searches both.
-
-**Range images** (a spinning LiDAR's, :class:`mabdi.spherical.SphericalGeometry`):
-Open3D integrates pinhole depth images only, so a range image is fused
-*along each beam* into the same VoxelBlockGrid and meshed by the same
-marching cubes. Every beam with a return updates the voxels its ray crosses
-within the truncation distance of the hit (sampled every half voxel along
-the ray, each voxel once per beam), with the signed distance from the
-voxel's grid point to the hit measured along the beam, positive in front,
-truncated and normalised like Open3D's, and weight 1 per beam: the
-point-wise scheme of LiDAR TSDF mappers (VDBFusion's, without its optional
-space carving). A projective integration (each voxel reads the beam it
-projects to) would be the other choice; with a LiDAR's beams 0.4 degrees
-apart it marks the ground between two rings as free space from the ring
-beyond (a projective TSDF's distance is along the ray, metres there at
-grazing incidence), so the point-wise one is the peer at its best.
-``pixel_centre`` does not apply to rays.
-
-**Runs**: :func:`run_tsdf` integrates every frame of a
-:class:`mabdi.sources.frames.FrameSource` and extracts the mesh at the end
-(optionally at several weight thresholds from the one integration: the
-threshold is an extraction parameter), and every ``mesh_every`` frames and
-at each circle's end to give the triangles-per-frame curve and the cost of
-keeping a mesh up to date.
-
-**Tuning**: :func:`tune_tsdf` searches truncation, weight threshold, depth
-range, pixel convention and depth smoothing at one voxel size against a score the caller
-gives (F@1cm against the ground truth, in the benchmarks), by coordinate
-search (default) or the full grid; see its docs for what is searched.
+Why these choices: docs/architecture.md (``mabdi.evaluate.tsdf``); what the
+tuned TSDF scores: docs/benchmarks.md.
 """
 
 from __future__ import annotations

@@ -1,18 +1,11 @@
 """FilterClassifier: which pixels of the measured image D are novel, given the expected image E.
 
-Port 0 is D (what the sensor measured), port 1 is E (what the map predicts
-from the same pose, rendered without noise). Both are depth images
-(:mod:`mabdi.depth`) of the same size, intrinsics and pose.
-
-Per pixel, with tau = max(tau_min, k_sigma * sqrt(sigma(z)^2 + sigma_pose^2))
-metres at the measured depth z = D, sigma the active noise model's standard
-deviation (:meth:`mabdi.sensor_noise.SensorNoise.sigma`, of the model D carries in its
-field data, :func:`mabdi.depth.image_noise`) and
-sigma_pose the depth uncertainty that the pose's own uncertainty causes at
-that pixel of E (0 unless D carries a ``pose_covariance``, which frame-to-map
-registration puts there, :func:`mabdi.filters.registration.pose_depth_sigma`:
-a lateral pose error d becomes d tan(theta) in depth at incidence theta, so
-tau widens on surfaces seen at grazing angles, as far as the pose is uncertain):
+Port 0 is D (what the sensor measured), port 1 is E (the map rendered from
+the same pose); both are depth images (:mod:`mabdi.depth`, metres) of the
+same size, intrinsics and pose. Per pixel, with
+tau = max(tau_min, k_sigma * sqrt(sigma(z)^2 + sigma_pose^2)) at z = D
+(sigma from D's noise model, sigma_pose from D's ``pose_covariance`` when
+registration put one there):
 
 ====  ============  ====================================================
 label  name          rule
@@ -21,98 +14,20 @@ label  name          rule
 1     known         |D - E| <= tau
 2     novel         E is NaN (the map has no surface there), or D < E - tau
 3     contradicted  D > E + tau: the sensor sees through a surface of the map
-                    (kept for object removal later; not meshed)
 ====  ============  ====================================================
 
-Specks: rendering and edge effects leave thin slivers and small blobs of
-"novel" pixels along the map's silhouettes. The novel mask is opened with a
-``min_width`` x ``min_width`` square (anything thinner goes) and connected
-regions (8-neighbours) of fewer than ``min_region`` pixels are dropped; those
-pixels get label 1 (explained by the map). ``min_width = 1`` and
-``min_region = 0`` turn this off.
+Specks: the novel mask is opened with a ``min_width`` square and regions of
+fewer than ``min_region`` pixels go (label 1); a speck that fills a hole of
+the map stays novel (``fill_holes``, :func:`hole_fills`).
 
-Where E says how far the map reaches (a range image's E carries
-``map_in_footprint``, :mod:`mabdi.filters.expected_image`), only a thin
-novel pixel whose footprint the map reaches into is a speck: a sliver along
-the map's silhouette, which the map already covers in part. A thin strip
-beyond the map's edge, where no map triangle lies within the pixel's
-footprint, is new surface and is kept (still subject to ``min_region``): a
-LiDAR sees the next ring of a road beyond the mapped one as a strip one or
-two beams tall. A camera's E does not carry the array, and every thin
-region goes as before.
-
-**Specks that fill a hole** (``fill_holes``, on by default, where D is
-noisy): a map has small holes, a centimetre or two across, where no look
-has left a surface: the bands a structured-light camera loses beside depth
-edges, the cracks of a noisy seam. A later look sees such a hole as a small
-novel region, a speck by size, and it would stay a hole however often it is
-seen. A speck region is kept as novel (:func:`hole_fills`) when
-
-* at least half of its pixels see through the map: E empty, or beyond D by
-  more than :data:`HOLE_JUMP` of D's depth (or 2 tau where that is more);
-* those pixels hold a 2 x 2 block (a one-pixel crack of E between the map's
-  triangles is no hole);
-* at least :data:`HOLE_RING_SHARE` of its ring (the pixels around it, and
-  at least :data:`HOLE_RING_MIN` of them) are the map at its depth, within
-  the same jump: known pixels, or pixels without a return where E has a
-  surface (the map goes on where D lost a pixel). Pixels without a return
-  in a run narrower than :data:`HOLE_BAND_PX` along their row or column,
-  where E has no surface either, are left out of the ring: a
-  structured-light camera loses such bands beside depth edges, and they say
-  nothing of the map beyond.
-
-A sliver along the map's silhouette fails the ring test (the surface behind
-the silhouette lies at another depth), and so does a strip along the map's
-edge against nothing (neither D nor E has a surface beyond it: a quad-tree
-patch stops up to half a block short of D's edge, and such a strip would be
-filled again at every look); a speck of noise fails the see-through test
-(its E lies just beyond tau). Where E carries ``map_in_footprint`` (a range
-image), a pixel whose footprint the map reaches into does not see through
-the map: its beam missed a map triangle beside it (the rings of a far
-road), and filling such gaps added a fifth to the street's map on the way
-back. Noise-free depth is left as it is: its holes are the surface's own
-cracks along seams, which a later look meshes the same way, so its fills
-would be made again at every look and close nothing.
-
-Output: a depth image whose ``depth`` is D on the novel pixels and on a rim
-of ``rim`` pixels around them (NaN elsewhere), plus the whole of D as the
-point array ``measured_depth`` (:data:`mabdi.depth.MEASURED_ARRAY`, a copy
-of the input's values: the surfaces' flat-ground test looks at the samples
-beyond the pixels they mesh), the uint8 point array
-``label``, the float32 point array ``pose_sigma`` when D carries a pose
-covariance (metres, NaN where E has no surface; object removal widens its
-gate by it), and the field-data array ``pixel_counts`` (valid = D has a return,
-novel after speck removal, specks, contradicted; read it with
-:func:`pixel_counts`). The rim makes a new patch overlap the map by one pixel square
-instead of leaving a crack one pixel wide between them (the pixel-grid mesher
-needs four valid corners). A surface that meshes blocks of pixels needs a
-wider rim where the depth is noisy: the quad-tree's r x r blocks need a
-valid majority and its patches' edge corners move up to half a block in, so a new
-patch can start up to a block inside the novel region, and with noise both
-its edge and the map's are ragged; a rim of one pixel then leaves cracks
-along the seam, a rim of r pixels closes them. ``rim = "auto"`` (the
-default) is what the loop's surface says it needs
-(:func:`mabdi.filters.registry.seam_pixels`: the quad-tree ``reduction``
-with noisy depth; one pixel with noise-free depth, for the other surfaces
-and for a classifier used on its own). Field data (intrinsics, pose, frame)
-is D's.
-
-**The rim on the map** (``rim_on_map``): the rim's pixels that agree with
-the map (known: |D - E| <= tau) carry E's depth instead of D's, so the
-seam's strip lies on the map's surface. The loop turns it on where it
-refines the map (``"auto"``; :mod:`mabdi.filters.refinement`: with noise
-correlated between pixels). There a look's error is a terrace that
-smoothing cannot take out (centimetres at 3-4 m for a structured-light
-camera), and a strip of rim faces meshed from D is a second layer that far off the
-map's surface: the map hides it from every later look, so no later look
-refines it or removes it, while the map's own faces are averaged over every
-look. Where the map is not refined (independent noise, smoothed away in one
-look) the rim keeps D's depth: a strip on the map would carry the map's
-first-look error twice. A classifier on its own keeps D's. The measurements
-are in docs/benchmarks.md ("The rim on the map").
-
+Output: ``depth`` is D on the novel pixels and a ``rim`` of pixels around
+them (NaN elsewhere; ``rim_on_map`` puts the rim's known pixels on E), plus
+the point arrays ``measured_depth``, ``label`` and ``pose_sigma`` and the
+field-data ``pixel_counts`` (:func:`pixel_counts`); field data is D's.
 Defaults: tau_min = 0.01 m, k_sigma = 3, min_width = 3 px, min_region = 32 px,
 rim = "auto", rim_on_map = "auto", fill_holes = true.
+
+Why the rules are what they are: docs/architecture.md (``mabdi.filters.classifier``).
 """
 
 from __future__ import annotations

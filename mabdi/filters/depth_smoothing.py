@@ -1,53 +1,27 @@
 """Noise-aware smoothing of a depth image before it is meshed (``smooth_depth`` of the pixel grid and quad-tree).
 
-A single noisy look is what a map is first made of, and the first look
-stays: the classifier calls later looks of the same surface "known". With
-the ``kinect`` model a surface seen from 3.5 m has sigma = 17 mm, so a
-pixel-grid vertex made from it is more than 1 cm off the surface about
-half the time. The sensor's noise is independent from pixel to pixel, so
-averaging each pixel with its neighbours on the same surface removes most
-of it before the surface filter meshes the image.
+A map is first made of a single noisy look, and the first look stays; the
+sensor's noise is largely independent from pixel to pixel, so averaging
+each pixel with its neighbours on the same surface removes most of it.
 
 The rule, per pixel with depth z (metres) and sigma = sigma(z) from the
-sensor's noise model (:meth:`mabdi.sensor_noise.SensorNoise.sigma`):
+image's noise model (:meth:`mabdi.sensor_noise.SensorNoise.sigma`):
 
-* The 8 neighbours form 4 opposite pairs (left/right, up/down and the two
-  diagonals). A pair is used when *both* its pixels lie within
-  ``gate_k sqrt(2) sigma`` of the centre's depth (3 by default: two
-  noisy samples of the same surface differ by sigma sqrt(2)), so a depth
-  step, a silhouette or a hole (NaN) removes the pairs that cross it and
-  edges stay sharp.
-* The result is the mean of the *inverse* depth 1/z over the centre and the
-  used pairs (1, 3, 5, 7 or 9 pixels). A plane's inverse depth is an
-  affine function of the pixel coordinates, and a symmetric pair's mean of
-  an affine function is its value at the centre, so planes at any
-  orientation come out unbiased; a curved surface is bent by its curvature
-  over one pixel (under 0.3 mm for a 10 cm radius seen from 3.5 m).
-* With all 4 pairs the noise falls to sigma/3. Pixels with no usable pair
-  keep their depth, NaN stays NaN, and a noise-free sensor (sigma = 0)
+* the 8 neighbours form 4 opposite pairs; a pair is used when both its
+  pixels lie within ``gate_k sqrt(2) sigma`` of the centre's depth, so
+  steps, silhouettes and holes (NaN) keep their edges;
+* the result is the mean of the inverse depth 1/z over the centre and the
+  used pairs: a plane at any orientation comes out unbiased;
+* pixels with no usable pair keep their depth, NaN stays NaN, and sigma = 0
   leaves the image as it is.
 
-What it gains (F@1cm and P@1cm of both surfaces on the noisy runs, raw against
-smoothed): docs/benchmarks.md, section "Depth smoothing before meshing".
+Where the noise model says pixels err together
+(:attr:`~mabdi.sensor_noise.SensorNoise.correlated`), the window grows to
+``SMOOTHING_RADIUS_PER_CORRELATION`` correlation lengths each way, at most
+``MAX_SMOOTHING_RADIUS`` pixels. ``smooth_depth = false`` meshes the raw image.
 
-**Noise correlated across pixels** (a structured-light or stereo camera
-matches its disparity over a window, so neighbouring pixels err together,
-and a surface comes as terraces): the 3 x 3 window then averages pixels
-that share one error and takes out little of it. Where the noise model says
-so (:attr:`~mabdi.sensor_noise.SensorNoise.correlated`), the window grows to
-``SMOOTHING_RADIUS_PER_CORRELATION`` (1.5) correlation lengths each way
-(:attr:`~mabdi.sensor_noise.SensorNoise.correlation_px`: the model's, or
-the one ``noise = "auto"`` learns; 2.5 px gives a 9 x 9 window, 40 pairs),
-at most ``MAX_SMOOTHING_RADIUS`` pixels: every opposite pair in it is used
-under the same gate, so planes stay unbiased and steps sharp, and a
-terrace a few pixels wide is averaged with its neighbours. The price is
-the curvature term, which grows with the window's second moment (about
-2-3 mm on a 10 cm radius seen from 3 m for the 9 x 9 window, ten times the
-3 x 3 window's, against centimetres of correlated error). Independent noise
-keeps the 3 x 3 window.
-
-``smooth_depth = false`` in the surface's config section meshes the raw
-image.
+Why: docs/architecture.md (``mabdi.filters.depth_smoothing``); what it
+gains: docs/benchmarks.md ("Depth smoothing before meshing").
 """
 
 from __future__ import annotations

@@ -1,93 +1,26 @@
 """MapAnchor: where the map's frame lies in the world, from the given poses and the registered ones.
 
-Frame-to-map registration (:mod:`mabdi.filters.registration`) makes every
-frame agree with the map, but the map itself was started from a given pose:
-the first frame is meshed where its pose says, error included, and every
-later frame is registered into that frame. A map whose first pose was
-0.2 degrees off is 0.2 degrees off as a whole (1.4 cm at 4 m), however well
-the frames fit it. The given poses are the only link to the world, so the
-map's frame is tied to them as a whole, not to the first one alone.
+The map is built in a frame of its own, started at the first frame's given
+pose; registration (:mod:`mabdi.filters.registration`) makes every frame
+agree with it. The anchor ties that frame to the given poses as a whole.
 
-Each frame that fits the map gives the *apparent offset* between its
-registered pose C (map frame) and its given pose G (world): the rotation
-dR = R_C R_G^T (a rotation vector) and the translation dt = t_C - t_G. If
-the map frame is the world moved by A = (R_A, t_A), then dR = R_A and
-dt = (R_A - I) t_G + t_A, up to the errors of the given pose. How those
-errors behave decides which frames to believe:
-
-* **jitter** (a motion-capture system, a SLAM with loop closures): errors
-  independent from frame to frame, so the mean over all frames is best;
-* **drift** (odometry): errors that start at zero and grow as a random walk
-  with the distance travelled s, so the first frames are best.
-
-The anchor learns which it is from the offsets themselves: half the mean
-squared difference of two frames' offsets, per component, is modelled as
-sigma^2 + q |s_i - s_j| / 2 (the variogram of white noise plus a random
-walk in s) and fitted by the method of moments (:func:`_variogram_fit`),
-and A is the best linear unbiased estimate under the covariance
-sigma^2 I + q min(s_i, s_j) across frames: the mean for pure jitter, the
-first frame for pure drift, in between for both. A's rotation is estimated
-from both halves of each offset together (:func:`_anchor_fit`, generalised
-least squares over rotation and translation): the orientations say R_A
-directly, and the places say it through (R_A - I) t_G, a lever as long as
-the cameras are far from the origin. With a camera circling 3 m out, 2 mm
-of positional jitter pins the rotation to 2 mm / 3 m / sqrt(N/2), three
-times better than 0.15 degrees of orientation jitter does
-(0.15 / sqrt(N)); each half is weighted by its own noise. Until
-:data:`MIN_FRAMES_FOR_DRIFT` frames say how the two noises compare (learnt),
-the rotation is the orientations' mean and the translation the mean of what
-is left. At most :data:`MAX_FRAMES` frames take part, spread evenly over
-the run (the first always).
+Each frame that fits the map gives the offset between its registered pose
+C (map frame) and its given pose G (world): dR = R_C R_G^T (a rotation
+vector, radians) and dt = t_C - t_G (metres). The anchor A (map frame =
+world moved by A) is their best linear unbiased estimate under a model of
+the given poses' errors, learnt from the offsets: jitter (white, sigma^2)
+plus drift (a random walk, q per metre travelled), fitted as a variogram
+(:func:`_variogram_fit`; on a run that returns to places, :func:`_revisit_fit`
+also separates the map's own error bound to a place). Pure jitter gives the
+mean of all frames, pure drift the first frame.
 
 ``world_from_map`` is A's inverse: the loop builds the map in the map frame
-(E, the classifier and the surfaces all work there) and turns the map and
-the trajectory into the world with it when they are handed out.
+and hands the map and the trajectory out in the world with it.
+:meth:`MapAnchor.given_variance` says how good the given poses are (a
+source's stated accuracy, else learnt from the offsets' spread less the
+registration's noise and the map's placement error).
 
-**How good the given poses are** (:meth:`MapAnchor.given_variance`): a
-source that states it is taken at its word (sigma^2 + q s per component,
-rotation in rad^2, translation in m^2). Otherwise it is learnt from the
-offsets (registered minus given): their spread about their mean, per
-component, less the two errors the registration brings of its own. One is
-its noise (each frame's pose covariance, the mean of the diagonal per
-block). The other is the map's own placement error, which no number of
-pixels averages away: the map was meshed from earlier frames of the same
-sensor, whose error is partly correlated across the image (depth
-calibration and distortion, a structured-light camera's correlated noise,
-the surfaces' chords), so a frame registered to it is off by about the
-sensor's depth noise at the depth it sees: sigma(z) in translation and
-sigma(z) over the half-width of the view at z in rotation (each frame
-brings it: :func:`mabdi.filters.registration.map_placement_variance`).
-Given poses whose offsets stay within what the map itself resolves are
-kept as they are (a good tracker's); jitter or a drift beyond it spreads
-the offsets further and the registration takes over. The spread, not the
-variogram's extrapolation q s: a fit that reads the map's slowly changing
-error as a drift (one pass, no returns) has the registration follow it;
-the map it then builds walks with it, which the next offsets read as more
-drift, and the poses walk away from good ones (docs/benchmarks.md, "Real
-frames: 7-Scenes redkitchen, held out"). Where the run has come back to
-places, the returns' fit below says it instead, with both errors taken off
-its white part.
-
-**Offsets bound to a place, not to the distance travelled.** A map is not
-exact: a voxel-plane map cuts chords through a curved surface, a terrace of
-correlated noise meshed from a first look stays in the map. Frames that see
-such a part of the map register a few millimetres off however exact their
-given poses, and frames that see the same part again, a circle later, are
-off by the same amount. Over one pass these offsets change slowly from frame
-to frame, which is what a drift looks like; only a return to a place tells
-them apart: under drift the offsets on a return differ by the walk since the
-first visit, offsets of the map's own error agree. So when the run has come
-back (at least :data:`MIN_REVISITS` pairs of frames within
-:data:`PLACE_RADIUS` of each other that travelled :data:`REVISIT_DISTANCE`
-or more between them), the variogram is fitted on pairs of nearby frames
-only, with a third term growing with their place distance (the map's error
-changing from place to place): sigma^2 + q |s_i - s_j| / 2 + c d_ij, by
-non-negative least squares (:func:`_revisit_fit`). A frame's place is its
-given camera centre and the point it looks at (along the optical axis at
-the median depth of its image); d_ij is the mean of the two distances.
-Without returns (a straight drive) the two cannot be told apart and the
-offsets are read as drift, the safe side: a map that is off is then followed
-rather than a pose source trusted that may be drifting.
+The reasoning behind the model: docs/architecture.md (``mabdi.filters.map_anchor``).
 """
 
 from __future__ import annotations

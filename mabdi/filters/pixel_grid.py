@@ -1,67 +1,27 @@
 """FilterPixelGrid: the seed's pixel-grid surface (``pixel_grid`` in configs; formerly FilterDepthImageToSurface).
 
-Depth image in, triangle mesh in world coordinates out. The topology lives in
-the image: every 2x2 square of pixels (u, v), (u+1, v), (u, v+1), (u+1, v+1)
-gives two triangles, (a, c, b) and (b, c, d) with a the top-left and d the
-bottom-right corner, each kept when its three corners are valid (finite
-depth) and do not straddle a depth discontinuity:
+Depth image in (metres), triangle mesh in the world frame out (the image's
+pose). Every 2x2 square of pixels gives two triangles, (a, c, b) and
+(b, c, d) with a the top-left and d the bottom-right corner, each kept when
+its three corners are valid and do not straddle a depth discontinuity:
 
     max(z) - min(z) <= max_jump * min(z)        (max_jump = 0.01: 1% of the depth)
 
-Between neighbouring pixels a spread of 1% of the depth is what a surface
-seen at about 79 degrees from its normal makes (tan = 0.01 f with a 525 px
-focal length). Steeper triangles are mostly bridges across a silhouette or
-chords of a surface seen edge-on, and with sensor noise the corners of far
-triangles spread too: both are left out, their pixels stay novel, and a later,
-better look meshes them. Against the looser 0.05 this gives a higher F@1cm with
-fewer triangles, and object removal no longer finds bridges to take out of the
-static runs (the figures: docs/benchmarks.md, sections "Against the ground
-truth" and "Object removal").
+which is what a surface seen at about 79 degrees from its normal makes
+between neighbouring pixels at a 525 px focal length. A LiDAR's range image
+(:mod:`mabdi.spherical`) is meshed the same way along its rays, with
+``max_jump`` scaled to its pixel angle (:func:`mabdi.depth.jump_scale`) and
+the azimuth seam joined. ``grazing`` (on for range images) also keeps an
+edge whose two samples continue one straight line with the samples beyond
+(:func:`mabdi.depth.straight_continuations`): flat ground at grazing incidence.
 
-A LiDAR's range image (:mod:`mabdi.spherical`) is meshed the same way,
-range along unit rays for depth along z = 1 rays; its beams lie further
-apart than a camera's pixels, so ``max_jump`` is scaled by
-:func:`mabdi.depth.jump_scale` (its pixel angle over the default camera's:
-the same 79 degrees of incidence). Its columns go round 360 degrees, so
-the last column and the first are neighbours, meshed like any other two
-(the azimuth seam is joined).
+Triangles face the sensor; vertices are the pixel-centre rays scaled by the
+depth (:func:`mabdi.camera.pixel_rays`). The output keeps the input's field
+data, and point data ``colour`` when the image carries colour. The image is
+first smoothed by the sensor's noise model (``smooth_depth``,
+:mod:`mabdi.filters.depth_smoothing`).
 
-**Flat ground at grazing incidence** (``grazing``): a LiDAR on a vehicle sees
-the ground beyond about 10 m at more than 79 degrees from its normal on every
-scan, and no later look is better, so the jump rule alone never meshes it.
-With ``grazing`` on, a triangle edge that fails the jump rule is kept where
-the two samples continue one straight line, within the noise of the line
-through the two samples before them (:func:`mabdi.depth.straight_continuations`:
-3 sigma of the extrapolation plus 0.1 mm per metre): a plane is straight along
-every image line however steeply it is seen; a silhouette's two sides, and a
-curved surface seen edge-on, are not. Both samples are tested where the line
-goes on beyond them; one suffices where the sample beyond ends the line (the
-road's last ring before its end or before a wall's foot), unless the sample it
-admits also starts the next surface's line (a facade sample that happens to lie
-on a car roof's extrapolated line). ``"auto"`` (the default) turns it on for
-range images and leaves a camera's rule as it was (a camera moving around a
-scene gets better looks). The samples before an edge come from the whole
-measured image when the input carries it (the classifier's output,
-:func:`mabdi.depth.measured_depth`): a new strip of ground one or two beams
-beyond the mapped ground has its straight line through the mapped beams
-below it, which the classifier does not pass on as novel.
-
-Triangles are wound so their normals face the sensor. Vertex positions are
-the pixel-centre rays scaled by the depth and moved into the world by the
-image's pose.
-
-Vectorised: the corner tests are slices of the (H, W) arrays, the vertex ids
-of a square follow from its top-left pixel id p (a = p, b = p + 1, c = p + W,
-d = p + W + 1), and the rays for an image size are computed once and cached
-(:func:`mabdi.camera.pixel_rays`).
-The output keeps the input's field data (intrinsics, pose, frame). When the
-image carries a colour image (point array ``colour``), each vertex gets its
-pixel's colour (point array ``colour``, uint8 RGB).
-
-Before meshing, the depth image is smoothed by the sensor's noise model
-(``smooth_depth``, on by default: :mod:`mabdi.filters.depth_smoothing`, each
-pixel averaged with the opposite-neighbour pairs on its surface). A noise-free
-sensor's image is meshed as it is.
+Why these rules: docs/architecture.md (``mabdi.filters.pixel_grid``).
 """
 
 from __future__ import annotations

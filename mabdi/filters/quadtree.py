@@ -1,151 +1,35 @@
 """FilterQuadTree: quad-tree meshing of a depth image (seed 002), closed and without bridges.
 
 Depth image in (D, or the classifier's output: only its valid pixels are
-meshed), mesh in world coordinates out. First the image is smoothed by
-the sensor's noise model (``smooth_depth``, on by default; see
-:mod:`mabdi.filters.depth_smoothing`; a noise-free image stays as it is),
-then the stages of seed 002:
+meshed; a camera's depth in metres along z, or a LiDAR's range image of
+:mod:`mabdi.spherical`), mesh in the world frame out (the image's pose).
+The image is first smoothed by the sensor's noise model (``smooth_depth``,
+:mod:`mabdi.filters.depth_smoothing`), then seed 002's stages:
 
-1. **Filter and reduce**: the NaN-aware median of each ``reduction`` x
-   ``reduction`` block ("auto", the default: 3 for a camera, the seed's 3x3
-   median then reduce by 3; 1 = off, a LiDAR's range image, whose beams are
-   already further apart than a camera's 3 x 3 pixels: :func:`resolved`). A block needs a valid majority. The intrinsics scale with it
-   (fx / r, cx / r: block k covers input pixels [rk, rk + r)).
-2. **Transform**: every block to a camera-frame point with the exact pinhole
-   model, through the centre of the pixel that holds the median (so a block
-   straddling an edge gives a point on one of the surfaces, not between).
-3. **Convert**: per-pixel normals from differences of the point map (seed
-   eqs. 4-6): central where both neighbours exist, one-sided at the border
-   and beside invalid pixels or a depth jump (``max_jump``); no normal only
-   where a direction has no neighbour at all. Normals face the sensor.
-4. **Build**: a mip-map pyramid, bottom up (image padded with invalid pixels
-   to a power of two). Each node holds the averaged normal and point of its
-   four children and its region count (the seed's invariant). Four children
-   merge when each is a single region, every child's normal deviates from
-   their average by less than ``n_t`` per component (eq. 14), and every
-   child's centroid lies within ``d_t`` of the averaged plane,
-   |n_avg . (p_i - p_avg)| < d_t (a distance from the plane, so oblique planes
-   still merge). Defaults n_t = 0.1, d_t = 0.02 m.
-5. **Locate**: the leaves (single regions whose parent is not one), level by
-   level with array masks.
-6. **Project**: each leaf is a quad over its pixel block; its corners are the
-   intersections of the rays through the block's pixel corners with the
-   leaf's plane (averaged normal through the averaged point). A corner that
-   lands further from the leaf's depth than a surface can turn within the
-   leaf (``max_jump`` per pixel: a plane seen at a grazing angle) is put at
-   the leaf's depth instead, and so are the corners of single-pixel leaves
-   whose normal is one-sided (beside an edge or a hole: no plane to
-   extrapolate; shared corners average the pixels around them).
+1. reduce: the NaN-aware median of ``reduction`` x ``reduction`` blocks
+   ("auto": 3 for a camera, 1 for a range image);
+2. back-project each block to a camera-frame point, and take per-pixel
+   normals from the point map (seed eqs. 4-6), facing the sensor;
+3. build a mip-map pyramid: four children merge when each is one region,
+   their normals agree within ``n_t`` per component (eq. 14) and their
+   centroids lie within ``d_t`` of the averaged plane (defaults 0.1 and
+   0.02 m; ``noise_merge`` sizes both by the sensor's noise instead);
+4. every leaf becomes a face over its pixel block, its corners the rays
+   through the block's corners cut with the leaf's plane.
 
-Beyond the seed (its own "future work"):
+Beyond the seed: no face spans invalid pixels or a depth jump; corners of
+neighbouring leaves merge only when their depths (``max_jump``) and normals
+(45 degrees) agree; T-vertices close the cracks between leaf sizes;
+silhouette corners move in onto the surface; non-planar faces are split.
+``grazing`` meshes flat ground a LiDAR sees at grazing incidence.
 
-* **No bridges**: leaves never span invalid pixels or a depth jump (d_t);
-  corners of neighbouring leaves are merged into one vertex only when their
-  depths agree within ``max_jump`` (5%) and their normals within 45 degrees,
-  so a step keeps two separate edges and a crease is not rounded off.
-* **No cracks**: where a smaller leaf meets a bigger one, the small leaves'
-  corners on the big leaf's edge are moved onto that edge and become extra
-  vertices (T-vertices) of the big face, so the mesh is closed along it.
-* **Silhouettes**: a corner whose surrounding pixels are not all on the
-  leaf's surface moves in, to the centre of the outermost input pixel of its
-  block that lies on the leaf's plane (walking diagonally in from the
-  corner's own input pixel; on the plane: its depth within
-  :func:`plane_allowance` of the plane's along its ray, and the plane's
-  depth there within the leaf's reach, so a corner on a plane seen at a
-  grazing angle does not fall back to the leaf's depth, off the surface),
-  at most to the block's middle pixel, so a face neither hangs past the edge
-  of a surface seen at a grazing angle nor stops short of the samples it
-  has (with r = 3, half a block in would lose one input pixel along every
-  silhouette). A single pixel with silhouettes on two opposite sides keeps
-  the middle and collapses to a line: its triangles have no area, and they
-  are left out (nothing could show them, or see through them to remove
-  them). The image's border is no silhouette: the surface goes on beyond
-  the field of view, and a corner on the border stays there.
-* **Planar faces**: a quad whose corners are not coplanar within
-  ``planarity`` (max(1 mm, 0.2% of the depth)) is split into two triangles;
-  a face with T-vertices that is not planar becomes a fan around its centre.
-  ``triangles=True`` triangulates every face (the MABDI loop counts
-  triangles).
+Output: vtkPolyData of polygons or triangles (``triangles=True``), cell
+data ``level`` and ``Normals`` (world frame), the input's field data, and
+point data ``colour`` when the image carries colour. Stages 1-3 and finding
+the leaves run as numba kernels (:mod:`mabdi.filters.quadtree_kernels`).
 
-**A LiDAR's range image** (:mod:`mabdi.spherical`: range along unit rays by
-beam and azimuth) is meshed by the same stages with seed 002 §3.2's
-transform for a sensor of angles theta and phi: each block becomes the
-sensor-frame point range x unit ray (where a straight wall, curved in the
-range image, is flat again), §3.3's normals are the differences of those
-points, the depth tests compare ranges, corners are the unit rays through
-the block corners (:meth:`~mabdi.spherical.SphericalGeometry.rays_at`) on the
-leaf's plane, and neighbouring beams are on one surface when their ranges
-differ by no more than a surface seen at ``LIDAR_INCIDENCE`` (79) degrees
-makes between them (the pixel grid's rule; corners shared by leaves still
-merge within ``max_jump``). A leaf whose plane puts a
-corner further from its range than that allows (a surface seen nearly
-edge-on between two beams) gets no face, rather than the camera's corners
-at the leaf's depth, which between beams that far apart float off the
-surface. The azimuth seam is not joined (the pixel grid joins it): a leaf
-never spans the last and the first column.
-
-**Flat ground at grazing incidence** (``grazing``, the pixel grid's rule,
-:mod:`mabdi.filters.pixel_grid`): a LiDAR on a vehicle sees the road beyond
-about 10 m at more than 79 degrees from its normal, where neighbouring beams'
-ranges jump more than the jump rule allows, so its pixels got no normal and
-no face. With ``grazing`` on, a neighbour that fails the jump rule is used for
-the normal all the same where the two continue one straight line with the
-pixels beyond them (:func:`mabdi.depth.straight_continuations`, within the
-noise; the pixels beyond come from the whole measured image when the input
-carries it, :func:`mabdi.depth.measured_depth`). Leaves of two or more pixels a side then take the least-squares plane
-of their own points (a leaf may stretch metres along the road, where each
-pixel's normal rests on neighbours a beam apart), and their silhouette and
-wild-corner tests allow the depth change their own plane makes per pixel
-(twice tan(incidence) times the pixel's angle, incidence up to 88 degrees).
-A single pixel's normal is no fitted plane: it keeps the jump rule's
-allowance, so one seen that steeply gets no face, as before. ``"auto"`` (the
-default) turns the rule on for range images and leaves a camera's as it was.
-
-**Merging by what the noise allows** (``noise_merge``; "auto", the default,
-where the sensor's noise is correlated across pixels: a structured-light or
-stereo camera, :attr:`~mabdi.sensor_noise.SensorNoise.correlated`). The
-seed's fixed n_t keeps a far, flat floor in pieces of a few pixels when
-each pixel's normal scatters by more than 0.1 per component (one look of
-a structured-light camera errs by centimetres at 3-4 m, and smoothing
-cannot take out errors its neighbours share), and every piece carries its
-own pixels' error. The noise-aware test allows what the noise makes children
-stray (:func:`merge_allowances`: ``MERGE_NOISE_K`` standard deviations of
-a pixel's normal, s / (sqrt(2) u) per component for a depth error s over
-a pixel spacing u, and of its point, s; s is sigma(z) times what the
-smoothing leaves of it), shrunk by the square root of the pixels each
-child averages (half per level): normals within that where it is more
-than n_t; centroids within it, at least ``MERGE_MIN_DISTANCE`` (2 mm) and
-at most d_t. So a node merges while its children are one plane within
-what the data can tell, and stops where a curved surface's sag grows past
-it (the sag grows four times per level, the allowance halves). Near the
-camera the test is stricter than the seed's (centroids within millimetres,
-not d_t = 2 cm), far from it looser. Under structured light it keeps or
-raises F@1cm with about half the faces. With independent noise (z-buffer,
-Kinect) the smoothing has already taken most of the noise out, and the
-bigger faces cost more than they give: fewer faces, but a slightly lower
-F@1cm and registered poses further off (the ICP fits the chords of curved
-surfaces), so "auto" keeps the seed's test there; ``true`` applies it to
-any camera (the figures: docs/benchmarks.md, "Real poses and real
-cameras"). Turned on without noise (model ``none``) the allowances are
-zero: normals keep n_t and centroids must lie within 2 mm of their plane.
-
-Small or accurate: the defaults (the seed's 3x3 reduction, n_t = 0.1) make
-the small map. With a noisy sensor, ``reduction = 2`` and ``n_t = 0.2`` (and
-the classifier's ``min_width = 1``, refinement on with ``replace = false``)
-trade more triangles for recall (the figures, beside the tuned TSDF:
-docs/benchmarks.md, section "Depth smoothing before meshing").
-
-Speed: stages 1-5 and the small-leaf plane test run as numba kernels
-(:mod:`mabdi.filters.quadtree_kernels`, one pass per pixel or node); their
-numpy reference versions live with the test that checks both give the same
-leaves (tests/reference_kernels.py).
-
-Output: vtkPolyData of polygons (quads, or polygons with T-vertices) or
-triangles, cell data ``level`` (the face's size in input pixels) and
-``Normals`` (world frame), field data as the input (intrinsics, pose, frame);
-when the image carries a colour image, point data ``colour`` (uint8 RGB): each
-vertex the colour of the pixel it projects into (a corner on a pixel border
-takes the pixel to its lower right).
+The reasoning behind each rule: docs/architecture.md (``mabdi.filters.quadtree``);
+measured figures: docs/benchmarks.md.
 """
 
 from __future__ import annotations

@@ -1,121 +1,30 @@
 """Refinement of known faces: a map that gets better with every look.
 
-Without it the first look at a surface wins: a wall first seen from 4 m
-(Kinect sigma(z) = 1.425e-3 z^2: 2.3 cm) keeps that noise although the robot
-later sees it from 1.5 m (3.2 mm). Once per frame, after the world mesh has
-appended the frame's novel surface, :class:`MapRefinement` reads D, E (with
-the identity of the face each pixel shows), the classifier's labels and the
-pose, and does two things with the pixels that show a map face:
+Without it the first look at a surface wins: a wall first seen from far
+keeps that look's noise although the robot later sees it from near. Once a
+frame, after the world mesh has appended the frame's novel surface,
+:class:`MapRefinement` reads D, E (with the face each pixel shows), the
+labels and the pose, and:
 
-**Refinement** (the faces seen about as well as they were made). Every vertex
-v keeps a running estimate of where the surface is along its normal n_v (the
-area-weighted mean of its faces' normals when the refinement first met it),
-as an offset t_v from its *original* position p0_v:
+* **refines**: every vertex keeps a running estimate of the surface along
+  its normal, an offset t_v (metres) from its original position: a prior of
+  weight sigma(z_create)^-2, and each pixel that shows one of its faces and
+  lies on that face's surface within ``gate_k`` sigma adds an observation
+  weighted cos(incidence) / sigma(D)^2, near the corner only
+  (``radius_px``). A vertex moves to its estimate once the observations
+  weigh ``confidence`` times its prior and the move is at least ``min_step``;
+* **replaces** (``replace``, off by default): a face made from a much
+  noisier look (``replace_ratio``) is removed, and its pixels are meshed
+  again from the better look in the next frame.
 
-* **Prior**: weight W0_v = sigma(z_create)^-2, z_create the vertex's depth in
-  the camera of the frame that made it (cell data ``frame``; the pose of that
-  frame is remembered from the frames the refinement saw, else taken from the
-  source's poses). The prior says "t = 0".
-* **Same surface**: a pixel that shows a triangle f and has a return in D
-  observes f only when D lies on f's surface within a gate that allows for
-  both uncertainties, |D - E| <= ``gate_k`` sqrt(sigma(D)^2 + sigma_f^2)
-  (gate_k = 3; sigma_f^2 is the face's variance, the mean over its corners
-  of 1 / (W0 + W)), whatever the classifier's label. The label is the wrong
-  test both ways: the classifier calls thin slivers of "novel" pixels in
-  front of the map "known" (speck removal), and a face made 2 cm off is
-  beyond tau = 1 cm when seen from 1.5 m, so the pixels that would correct
-  it most are "novel" or "contradicted". Observing by the label let a tail
-  of vertices drift to centimetres off (below).
-* **Observations**: along the pixel's unit world ray w, the map's surface is
-  at e = E l and the measured one at d = D l (l: ray length per metre of
-  z-depth): the measured point is m = camera centre + w d, and the ray
-  meets f at h = camera centre + w e, with barycentric weights beta on f's
-  corners (from their current positions). Each corner k gets the
-  observation s_k = n_k . (m - p0_k), the measured point's offset from the
-  corner's original position along the corner's normal, with weight
-  beta_k w_p, w_p = cos(theta) / sigma(D)^2 (theta the angle of incidence,
-  cos theta = |w . n_f|): sigma^-2 is the measurement's information, and the
-  cosine discounts oblique looks, whose pixel footprints are longer and
-  whose depths are more sensitive to a misplaced edge. Corner k accumulates
-  W_k += beta_k w_p and S_k += beta_k w_p s_k. Pixels within
-  ``grazing_deg`` (75 degrees) of the face's plane do not observe.
-* **Near the corner only**: m counts for corner k only if it lies within
-  ``radius_px`` pixel footprints (D / f metres, f the focal length)
-  of p0_k across n_k. s_k extrapolates the surface from m to the corner
-  along the plane normal to n_k; an error alpha of the vertex normal tilts
-  it by u sin(alpha) at a distance u, and a quad-tree face's corner is
-  30-100 mm from most of its pixels (a 10 degree error: 5-17 mm, the same
-  sign for every pixel on that side). ``radius_px = "auto"`` (the default)
-  is 2.5 footprints where pixels err independently, and
-  ``RADIUS_PER_CORRELATION`` (4) times the noise's correlation length L
-  where that is more (:attr:`~mabdi.sensor_noise.SensorNoise.correlation_px`:
-  the structured-light model's, or the one ``noise = "auto"`` learns): the
-  pixels near a corner then err together, and one look averages only as
-  many independent errors as there are correlation lengths in the radius
-  (a Gaussian-smoothed field's correlation is exp(-4) = 2% at 4 L).
-* **Estimate**: the weighted mean of prior and observations,
-  t_v = S_v / (W0_v + W_v), with variance 1 / (W0_v + W_v), kept within
-  3 / sqrt(W0_v) (three sigma of the first look) of the original position.
-* **Moving**: a vertex moves to its estimate, p0_v + t_v n_v, once the
-  observations weigh at least as much as its prior (W_v >= ``confidence``
-  W0_v, default 1: the estimate has at least halved the prior's variance)
-  and the estimate differs from where the vertex is by at least ``min_step``
-  (0.2 mm, so a converged block is not re-uploaded for nothing). Moves go
-  through :meth:`~mabdi.filters.world_mesh.FilterWorldMesh.move_points`, one
-  call per changed block; no triangle is added or removed.
+It runs where the noise model says neighbouring pixels err together
+(``[classifier] refinement = "auto"``). Only pixel-grid and quad-tree
+triangles (``frame_<i>`` blocks) are refined; voxel-plane patches average
+their own statistics. The per-pixel work is a numba kernel
+(:mod:`mabdi.filters.refinement_kernels`).
 
-**Replacement** (``replace``, off by default: the faces made from a much
-noisier look than this one). A pixel showing f *prefers a better look* when
-sigma_f >= ``replace_ratio`` sigma(D) (2: e.g. made at 4 m, seen now from
-2.8 m or nearer) and D lies on the same surface (the gate above, which keeps
-an object in front of the face from counting). A face is replaced when
-at least ``replace_share`` (half) of its facing pixels with a return prefer a
-better look. :meth:`MapRefinement.step` returns the identities of those faces;
-the loop removes them (``world.remove_faces``), and their pixels are novel in
-the next frame and meshed from that better look: the surface is replaced,
-never doubled by a layer beside it. Pixels of replaced faces do not refine.
-It is off by default because the next frame may not see the surface as
-well as the one that replaced it (it has moved on, or sees it at a grazing
-angle where a structured-light camera returns nothing), and the surface
-comes back with gaps: on the structured-light runs replacement cost F@1cm
-or gained nothing (docs/benchmarks.md, "Real poses and real cameras").
-
-**When it runs** (``[classifier] refinement``): ``"auto"``, the default,
-turns it on where the noise model says neighbouring pixels err together
-(:attr:`~mabdi.sensor_noise.SensorNoise.correlated`: a
-structured-light or stereo camera, a real camera under ``noise = "auto"``).
-There a first look's error is a terrace or a patch that smoothing the depth
-(:mod:`mabdi.filters.depth_smoothing`) cannot take out, and only later looks
-average it away. With independent noise the smoothed first look is already
-about three times less noisy, refinement adds little, and replacement can
-cost a quad-tree map recall: a quad-tree face is a plane fitted to many
-pixels, better than the one-pixel sigma(z_create) its prior assumes, so good
-faces are replaced and come back with gaps. The first version (label-based observations from
-anywhere on a face) made every map worse. The measurements, and what it
-costs a frame, are in ``docs/benchmarks.md`` ("Depth smoothing before
-meshing", "Real poses and real cameras").
-
-**No noise** (noise model ``none``, sigma = 0): every measurement is exact,
-and so is every vertex as it was made; there is nothing to average, and the
-refinement returns at once, moving nothing (no weight is ever 1/0). With a
-noise model whose sigma can be 0 at some depth, sigma is floored at
-``min_sigma``.
-
-Which faces: triangles of the pixel-grid and quad-tree blocks (``frame_<i>``);
-voxel-plane patches (``patch_<key>``) average their own statistics and are
-left alone, and so are non-triangle faces.
-
-Cost: ``stride`` samples every stride-th pixel in u and v (2: a quarter of the
-pixels; the samples of successive frames fall on different surface points as
-the camera moves). The per-pixel work on each block in view runs in one
-numba kernel (:mod:`mabdi.filters.refinement_kernels`) that adds straight
-into the block's sums (its numpy reference lives with the test that compares
-the two, tests/reference_kernels.py). Per block only the state
-arrays are kept (original positions, normals, prior, sums, offsets); a block
-rebuilt with faces removed keeps its points in order, so its state is
-carried over by one in-order walk. What it costs a frame is in
-docs/benchmarks.md ("Refinement on the runs"); most of it is moving the
-points in the world mesh and the Python work per block.
+The reasoning behind each rule: docs/architecture.md
+(``mabdi.filters.refinement``); measured figures: docs/benchmarks.md.
 """
 
 from __future__ import annotations

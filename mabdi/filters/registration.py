@@ -1,133 +1,35 @@
 """FilterRegistration: align the measured image D to the map before it is classified (frame-to-map tracking).
 
 MABDI compares D and E pixel by pixel, so it is only as right as the pose
-it is given: 0.2 degrees of pose error moves a surface 1.4 cm sideways at
-4 m, and at grazing incidence that is centimetres in depth, which the
-classifier would mesh as a second layer and removal would count against
-the map. Every robot's pose has such errors (jitter of a few millimetres
-and tenths of a degree; drift of centimetres over a run). This filter
-corrects the pose the way KinectFusion's frame-to-model tracking does
-(Newcombe et al. 2011), against the E that MABDI renders anyway:
+it is given. This filter corrects the given pose G as KinectFusion's
+frame-to-model tracking does (Newcombe et al. 2011), against the E the
+loop renders anyway:
 
-1. **The map's frame**: the map is built in a frame of its own, started at
-   the first frame's given pose and tied to the given poses as a whole by
-   a :class:`~mabdi.filters.map_anchor.MapAnchor` (the mean of jittery
-   poses, the start of drifting ones). The given pose G is first moved
-   into that frame.
-2. **E at the given pose**: the map rendered from G (the loop passes the
-   renderer of its expected image, so the map's geometry is uploaded once).
-   E's points and normals come straight from its depth (central
-   differences over 2 pixels; none at silhouettes, where depth jumps by 5%).
-3. **Two starts**: G itself, and G with the last registered frame's
-   correction carried over (a rotation about the camera centre and a
-   translation, which is how odometry drifts). The one under which more of
-   D's coarsest samples lie on E within their noise is taken.
-4. **Projective point-to-plane ICP**, coarse to fine: D is sampled every
-   ``stride * 2**k`` pixels for k = levels-1 .. 0, each sample the mean point
-   of the 2 x 2 pixels at its cell's centre that lie on one surface
-   (:func:`sample_points`; a noise-free D's centre pixel alone). The pose's
-   error is D's noise: one pixel per 2 x 2 cell used a quarter of what D
-   says (the figures: docs/benchmarks.md, "Real poses and real cameras").
-   Each sampled point, moved by
-   the current estimate, is projected into E and paired with the map point
-   and normal at that pixel. A pair counts when its point-to-plane residual
-   is within the gate: ``gate_k`` times the point's noise (sqrt(s^2 +
-   model_sigma^2), s the sensor's sigma(z) left in the sample's mean,
-   :func:`sample_scale`), or more while the pose
-   is still off: ``gate_k`` times the residuals' spread (1.4826 times their
-   median), which starts at the start's own spread (never above
-   ``max_distance``) and shrinks. A gate sized by the residuals keeps
-   surfaces the map does not have (the unseen side of a table leg a few
-   centimetres behind the seen one) from pulling along a direction the
-   scene barely constrains. The residuals' median speaks for the surfaces
-   most pixels show, though: on a table seen from a few metres the floor
-   and the table top fit as soon as height and tilt are right, while the
-   few pixels that hold the camera along the floor (the table's edges,
-   legs and cups) are still centimetres off. So the reach shrinks only
-   while the step's pairs hold every direction the map constrains at
-   least ``SHRINK_SUPPORT`` (half) of what all candidates would
-   (:func:`constraint_support`, taken at the coarser levels and on the
-   finest level's last steps); where they do not, it goes back to the
-   reach before it last shrank. A step that undoes the one before (a
-   two-cycle: pairs at the edge of the gate flip in and out, and two poses
-   swap for ever) is halved. Pairs are weighted by Huber's rule (``huber``
-   noise units; 0: Tukey's biweight over the gate). Novel surfaces (nearer
-   than the map, or where it has none) and objects that left fall outside
-   the gate and pull on nothing. Gauss-Newton steps in (rotation vector,
-   translation); directions the scene does not constrain (a camera sliding
-   along a plane, or up a wall whose floor and top are out of view: under
-   ``UNCONSTRAINED`` of the best held direction's information, rotations
-   taken as lengths, where only the normals that noise tilts would pull)
-   get no step, and the covariance says they are barely known. A level ends once a step is below
-   ``STEP_TRANSLATION`` and ``STEP_ROTATION`` (0.05 mm and 0.0005 degrees,
-   well below the registered pose's own precision of tenths of a millimetre), ten times that for each
-   coarser level: those only bring the pose near. Near the optimum each
-   Gauss-Newton step shrinks the one before by a steady factor; the factor
-   the last two steps of a coarser level showed predicts the step that would
-   follow, and a level also ends where that prediction is below its
-   tolerance (each level's first step moves the pose to that level's
-   optimum, tenths of a millimetre from the coarser one's, and the second
-   only confirmed it). E's normals are computed
-   once per pixel that a sample lands on and kept while the frame is
-   registered (:class:`IcpWorkspace`). The tile sums and the information that the
-   checks below need are taken once, at the pose found. A step over many
-   samples (the finest level: :data:`SPLIT_MIN_POINTS`) sums its two halves
-   apart, the second on a helper thread where the process has a second core
-   (the kernel releases the GIL), and adds them in a fixed order: the pose is
-   the same on one core or two.
-5. **Checks**: the frame is *registered* when at least ``min_points`` pairs
-   and ``min_inliers`` of the candidates (sampled points that landed on the
-   map) are within the gate, every direction the map constrains is held at
-   least ``min_support`` by those pairs (:func:`constraint_support`: a pose
-   30 cm off along a wall fits the floor and the other wall, and only the
-   left-out points of that wall say where it is), the last step is below a
-   millimetre and 0.05 degrees, and the correction from the start is within
-   ``max_translation`` and ``max_rotation``. Otherwise it is *not
-   registered*: the frame is meshed with its start (the given pose, or the
-   given pose with the last correction where that fitted better: under
-   drift the given pose alone may be degrees off), its correction is not
-   carried on, and the loop lets it cast no removal votes.
+1. G is moved into the map's own frame (:mod:`mabdi.filters.map_anchor`);
+2. E is rendered at G; its points and normals come from its depth;
+3. two starts (G, and G with the last frame's correction carried over);
+   the one that puts more of D's coarse samples on E is taken;
+4. projective point-to-plane ICP, coarse to fine, over samples of D
+   (:func:`sample_points`), with a gate of ``gate_k`` noise units or the
+   residuals' robust spread, Huber weights, and no step along directions
+   the scene does not constrain;
+5. checks (``min_points``, ``min_inliers``, ``min_support``, the last step,
+   ``max_translation``, ``max_rotation``): a frame that fails them is
+   meshed at its start and casts no removal votes;
+6. the ICP's pose is weighed against the given one by their covariances
+   (:func:`fuse_with_given`).
 
-6. **Weighed against the given pose**: the ICP's pose and the given one
-   are two estimates of the same pose. Once the anchor has seen enough
-   frames to say how good the given poses are
-   (:meth:`~mabdi.filters.map_anchor.MapAnchor.given_variance`: the
-   offsets' spread less the registration's own noise and less the map's
-   own placement error, :func:`map_placement_variance`: about the
-   sensor's depth noise at the depth the frame sees, over the view's
-   half-width in rotation), the
-   correction is shrunk by the two covariances (:func:`fuse_with_given`):
-   exact poses stay exact, jittery ones follow the registration. A pose
-   source that states its accuracy is weighed by that from the first frame
-   on, instead of by what the anchor learns: a map that biases the fit (a
-   voxel-plane map moves ICP by millimetres even when built at the true
-   poses) then cannot pull poses known to be good. The statement comes
-   from the frame source (``pose_accuracy``: the simulator knows its
-   ``[sensor.pose_noise]``, jitter and drift) or from ``given_sigma``
-   (``[m, deg]``, white: a motion-capture system's figure), which
-   overrides it; ``given_sigma = "learnt"`` learns even where the source
-   states (what a recording of unknown accuracy gets).
-
-Output: D with the registered pose (in the map's frame) as its
-``world_from_camera`` and in field data ``given_world_from_camera`` (the
-pose the source gave, float64[16]), ``world_from_map`` (the anchor's
-estimate, float64[16]),
-``registration`` (float64[:data:`REGISTRATION_FIELDS`]: status code, the
-correction from the given pose in metres and degrees, the RMS residual of the
-pairs in metres, the inlier share, the support, the iterations, and 1 where the
-given pose is stated exact, so the frame is meshed at it whatever the ICP
-found: the loop lets such a frame vote even when its checks fail) and, when registered,
-``pose_covariance`` (float64[36]: the 6x6 covariance of the pose in the
-camera frame, rotation vector in radians then translation in metres: the
-larger of the normal equations' and a tile-robust estimate that counts
-correlated pixels once, :func:`pose_covariance`; after step 6 the fused
-pose's). The classifier
-turns that covariance into each pixel's depth uncertainty
+Units: metres and degrees in parameters; poses are 4x4 ``world_from_camera``
+in the map's frame. Output: D with the registered pose, and in field data
+``given_world_from_camera``, ``world_from_map``, ``registration``
+(:data:`REGISTRATION_FIELDS`) and, when registered, ``pose_covariance``
+(6x6, rotation vector in radians then translation in metres, camera frame),
+which the classifier turns into each pixel's depth uncertainty
 (:func:`pose_depth_sigma`).
 
-Parameters: :class:`RegistrationParameters` (``[registration]`` of a run
-config; ``enabled = false`` or ``mabdi run --no-registration`` passes D on
-with the given pose, as before registration existed).
+Parameters: :class:`RegistrationParameters` (``[registration]``; ``enabled =
+false`` or ``--no-registration`` passes D on with the given pose). The
+reasoning behind each step: docs/architecture.md (``mabdi.filters.registration``).
 """
 
 from __future__ import annotations

@@ -1,150 +1,32 @@
 """Object removal by free-space contradiction (seed 001 §3 and §6): which map faces are gone.
 
-The sign of D - E says more than its magnitude. Where the sensor measures
-*farther* than the map predicts (D > E + tau, the classifier's
-"contradicted" label), it sees through a surface of the map: that surface is
-not there any more. Where D and E agree (|D - E| <= tau, "known"), the face
-is confirmed. E carries the identity of the face each pixel shows
-(:class:`~mabdi.filters.expected_image.FilterExpectedImage`), so every such
-pixel is a vote on one face.
+Where the sensor measures *farther* than the map predicts (D > E + tau,
+the classifier's "contradicted"), it sees through a surface of the map;
+where D and E agree ("known"), the face is confirmed. E carries the face
+each pixel shows (:class:`~mabdi.filters.expected_image.FilterExpectedImage`),
+so every such pixel is a vote on one face. Only frames whose pose fits the
+map vote (registered frames, :mod:`mabdi.filters.registration`).
 
-**Which frames vote**: only frames whose pose is known to fit the map: with
-frame-to-map registration on (the default), the frames it registered
-(:mod:`mabdi.filters.registration`); a frame whose pose it could not
-confirm may see "through" the map only because it is misplaced, so its
-pixels cast no vote. (A view in which everything changed at once, with
-nothing static left to register on, therefore removes nothing until some
-of the known world is back in view.)
+Which pixels vote (:func:`removal_votes`): not at depth discontinuities
+(``edge_jump``, ``edge_margin`` pixels, widened by a surface's
+``face_overhang``), not at grazing incidence (``grazing_deg``), not where a
+misplaced edge explains D (:func:`farthest_nearby`, :func:`nearest_nearby`),
+and a contradiction only when D lies beyond E by more than ``k_sigma``
+times the noise of D - E and ``min_gap`` (:func:`contradiction_gap`).
+Pixels with no return see through to the far limit (``no_return_is_free``)
+unless the noise model loses returns.
 
-**Which pixels vote** (:func:`removal_votes`): pixels whose E shows a face and
-whose label is known (a confirmation) or contradicted (a contradiction),
-except
+The rule (:func:`update_log_odds`): each face keeps the log-odds L that it
+is gone, from 0; a frame with a majority of contradictions adds ``hit``,
+otherwise confirmations subtract ``miss``; L stays in [``floor``,
+``ceiling``]; a face goes when L >= ``threshold`` and at least
+``min_frames`` frames contradicted it. Faces smaller than a pixel are voted
+on between pixels (:func:`votes_between_pixels`), and a removed face's
+contradicted and never-voted neighbours follow it
+(:meth:`~mabdi.world_map.WorldMap.remove_faces`).
 
-* at depth discontinuities of D (silhouettes of what the sensor sees): a
-  pixel whose 3x3 neighbourhood in D holds a depth jump of more than
-  ``edge_jump`` (5%) or a pixel with no return, dilated by ``edge_margin``
-  pixels (5). A map object's silhouette in E lies within a few pixels of
-  the same object's silhouette in D (big quad-tree faces on a curved surface
-  overhang it by up to 4 px), so this keeps a misplaced edge from voting
-  against the surface beside it (docs/benchmarks.md, "Object removal", has
-  what the margin saves). A surface whose faces overhang real
-  edges by more states it as ``face_overhang`` (metres; voxel planes: a face
-  fills its voxel, 5 cm), and the loop widens the margin to that length in
-  pixels at the median depth of E (up to ``max_edge_margin``, 20). (A LiDAR's
-  beams lie further apart: :func:`for_geometry` scales the jump up and the
-  margins down to the same angles.) A *contradiction*
-  is masked only where E has a silhouette within the margin too: an
-  overhang lies between the map's edge and the sensor's, so both are near,
-  while a ghost beside a real edge at its depth (the closed door's panel
-  beside the jamb in Run 5) continues the map's surface smoothly in E: there
-  the votes are wanted (with the D mask alone 2.2% of the closed door stayed
-  while it was open, with both 1.8%, all of it at the hinge, beside the open
-  door's real silhouette). Confirmations keep the D mask alone. A silhouette
-  in E with no silhouette in D near it is not masked either: that is the
-  edge of a ghost (the world behind it is smooth);
-* at grazing incidence: the angle between the pixel's ray and the face's
-  normal is over ``grazing_deg`` (75 degrees), where tiny depth errors along
-  the ray are large. A confirmation there does not count; a contradiction
-  does where D lies beyond E by the gap below stretched along the ray,
-  cos(grazing_deg) / cos(incidence) times it (:func:`gap_along_ray`: a
-  face's error across its plane is 1 / cos(incidence) times longer along
-  the ray). A car's roof seen from a LiDAR 1.9 m up across the street lies
-  86 degrees from the beams; once the car has gone they pass it by metres;
-* where a misplaced edge explains D (:func:`farthest_nearby`,
-  :func:`nearest_nearby`): within twice ``edge_margin`` pixels of a
-  silhouette of E (the margin as widened and scaled above), a contradiction
-  does not count where E shows, within those pixels, a surface as far as D
-  (less than the gap short of it) and D shows one as near as E. A real
-  sensor misplaces depth edges by a few pixels (a structured-light camera's
-  edges and shadows, mixed pixels), and the map's edges, made from such
-  images, are as far off: its foreground overhangs the background D sees
-  beside it, the foreground itself still in D a few pixels on. Where a
-  surface left, D beside it shows nothing as near as it was. Each edge may
-  be off by the margin, hence twice it. (The D-and-E silhouette mask above
-  holds back only pixels within the margin of both edges: on a Kinect v1's
-  static kitchen, 7-Scenes with its given poses, the contradictions against
-  faces later removed that a gap of 5 cm along the faces' normals left lay
-  a median 4.5 pixels from E's silhouettes and 7 from D's);
-* pixels with no return count as seeing through to the far limit
-  (``no_return_is_free``, on): in the simulator a ray without a return met
-  nothing within the range, and behind a departed object there is often
-  nothing within 4 m. Only where E is at least ``far_margin`` (0.5 m) inside
-  the range: near the far limit noise alone pushes returns out of it; and
-  only in a region without returns (none in the pixel's 3x3 neighbourhood): a
-  lone hole between returns is where a deskewed sweep's return slid into the
-  next pixel (2,000 such holes voted a scan on a simulated 128-beam sweep). (A
-  real sensor also loses returns at depth edges, at grazing incidence and on
-  black or shiny surfaces: the loop turns it off when the noise model says
-  the camera loses returns,
-  :attr:`~mabdi.sensor_noise.SensorNoise.loses_returns`, as
-  ``structured_light`` and ``auto`` do; set it false for any other such data.)
-  The edge of a no-return region is a silhouette like any other;
-* within the noise: a contradiction counts only when D is beyond E by more
-  than ``k_sigma`` (3) times the noise of the *difference*, sqrt(sigma(D)^2 +
-  (sigma(E) / cos(incidence))^2) (the map was itself made from a
-  measurement as noisy as D, so D - E spreads wider than D alone; the
-  classifier's tau only knows D's; and the map's error lies across its
-  plane, 1 / cos(incidence) times longer along the ray: at 60 degrees the
-  gap is 6.7 sigma, not 4.2) and of the registered pose (the classifier's
-  ``pose_sigma``: a lateral pose error seen at grazing incidence), and by
-  more than ``min_gap`` (5 cm) too (:func:`contradiction_gap`). On the
-  kitchen above, 80% of the pixels that voted against faces later removed
-  lay 5-7 cm beyond E along rays 50-75 degrees off the face's normal (2-4 cm
-  along it; Kinect v1: about 1 cm at 2.5 m). Smaller gaps are where a map of flat faces cuts across a
-  concave crease (the chord of a pixel-grid triangle bridging floor and wall
-  runs in front of the corner): no vote either way. An object thinner than
-  5 cm lying on a surface is therefore not removed.
-
-**The rule** (:func:`update_log_odds`): each face keeps the log-odds L that it
-is gone, starting at 0 when the face is made. In a frame where a face gets
-votes, a majority of contradictions adds ``hit`` (1.1: a probability of 0.75
-that one such frame means the face is gone) and counts the frame; otherwise
-confirmations subtract ``miss`` (0.4). L stays within [``floor``,
-``ceiling``] = [-0.7, 3]: a surface seen often is not made unremovable, and
-the floor is what lets a departed object go within two or three frames. A
-face is removed when L >= ``threshold`` (1.5) *and* it was contradicted in
-at least ``min_frames`` (2) frames: never from one noisy frame. A face
-confirmed all along (L = -0.7) goes after two contradicting frames with no
-confirming frame between them; a confirming frame between costs a third.
-Frames in which a face gets no vote (not in view, or too small to cover a
-pixel centre) leave its L as it is.
-
-**Faces smaller than a pixel** (:func:`votes_between_pixels`). A surface
-meshed from close and seen later from afar, or at grazing incidence, has
-faces smaller than the pixels' spacing there: few of them are shown by a
-pixel centre in any frame, so they rarely get the two contradicting frames
-the rule asks for and stay when the object has gone (a LiDAR's beams are
-0.4 degrees apart: a departed car's roof, meshed on the way past it, is
-seen from across the street by two or three beams). Around the faces voted against this frame, in
-every patch E drew (not only theirs: a remnant patch of faces that small, meshed in one frame, never gets
-a pixel of its own), each face that no pixel showed is contradicted where
-its centre projects into a pixel that voted a contradiction, that pixel's
-ray crosses the face's plane near the face (within the face's radius and
-the pixel's footprint on the plane) and D lies beyond the crossing by the
-(stretched) gap. The crossing, not the centre's depth, is compared with D,
-so a face of the surface D reaches (the road beside the car) is not seen
-through. The loop looks only at voting pixels with a voting neighbour (a
-surface seen through, not a lone pixel of noise) and only at faces whose
-first corner falls within a pixel of one
-(:class:`~mabdi.loop.object_removal.ObjectRemoval`). These votes enter the
-same rule (two frames, the threshold);
-faces edge-connected to a removed face that were contradicted before
-follow it, and so do its never-voted direct neighbours and the contradicted
-faces beside those (:meth:`~mabdi.world_map.WorldMap.remove_faces`). The
-order does not matter: a face beside one removed earlier goes at its first
-contradicting frame (:meth:`~mabdi.world_map.WorldMap.update_evidence`). A
-LiDAR passing a departed car sees each small roof face with one beam in one
-frame, often after the faces around it went. A patch pools the evidence of its
-faces when nothing in it stands: once ``min_frames`` frames have contradicted
-some face of a patch and every face of it that was ever voted on is
-contradicted (none confirmed since), its contradicted faces go (the roof's
-faces contradicted once each, by different scans).
-
-The removed faces leave their blocks in the world mesh
-(:meth:`~mabdi.filters.world_mesh.FilterWorldMesh.remove_faces`), the blocks
-are re-uploaded for E, and the surface behind them is novel in the next
-frame. Voxel planes also clear the statistics along the rays that saw
-through removed faces (:meth:`~mabdi.filters.voxel_planes.FilterVoxelPlanes.clear_free_space`).
+Units: metres (depths, gaps), degrees (angles), pixels (margins).
+Why each rule is what it is: docs/architecture.md (``mabdi.filters.removal``).
 """
 
 from __future__ import annotations

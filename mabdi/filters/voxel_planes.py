@@ -1,124 +1,30 @@
 """FilterVoxelPlanes: incremental voxel-plane meshing of points (seed 000), ``voxel_planes`` in configs.
 
-Points in (a depth image's valid pixels, back-projected with its pose: the
-classifier's output gives only the novel ones; or a vtkPolyData of world
-points), a mesh of small planar polygons out. The filter keeps a
-:class:`~mabdi.voxels.voxel_map.VoxelMap` across updates.
+Points in (a depth image's valid pixels back-projected with its pose, or a
+vtkPolyData of world points; metres, world frame), a mesh of small planar
+polygons out. The filter keeps a :class:`~mabdi.voxels.voxel_map.VoxelMap`
+across updates:
 
-1. **Statistics**: every point is added to its voxel's count, sum and sum of
-   outer products (:class:`VoxelMap`, a semi-sparse blockwise grid).
-2. **Sliding window** (§IV-A): every grid vertex V with points around it is
-   the centre of a ``window`` x ``window`` x ``window`` neighbourhood (2 x 2 x 2
-   by default: the eight voxels that share V). Their Gaussians combine by
-   eqs. (2)-(3); a batched eigen-decomposition gives eigenvalues
-   l0 >= l1 >= l2. The neighbourhood is **planar** when it holds at least
-   ``min_points`` points (default 10: a plane through fewer is mostly noise)
-   and
+1. every point is added to its voxel's statistics;
+2. every grid vertex is the centre of a ``window``^3 neighbourhood whose
+   Gaussians combine by eqs. (2)-(3); it is planar when it holds at least
+   ``min_points`` points and its eigenvalues pass l1 > lambda_large and
+   l2 < epsilon^2 (epsilon the point noise, 0.02 m by default);
+3. the plane is cut with the voxel-sized cube around the vertex (eq. 4),
+   and the 3-6 points make a convex polygon;
+4. only the blocks whose neighbourhoods changed are re-meshed; the output
+   is the changed patches (``output="changed"``) or the whole map;
+5. with colour input, each vertex takes the mean colour of its voxel.
 
-       l1 > lambda_large   and   l2 < lambda_t = epsilon^2,
+For range images ``between_beams`` adds samples of the pixel grid between
+a LiDAR's rings, and ``refine`` meshes creases at half the voxel size.
 
-   epsilon the anticipated point noise (default 0.02 m, the seed's). The
-   seed uses lambda_t for both tests; but a plane that fills the whole
-   window has in-plane variance (window * s)^2 / 12, which falls below
-   epsilon^2 at fine voxels (at 0.02 m voxels and the default epsilon no
-   plane could pass at all). So lambda_large = min(epsilon^2,
-   (window * s)^2 / 24), half a full window's variance: at the defaults
-   (2 x 0.05 m windows, 8.3e-4 m^2 full) it is the seed's 4e-4 m^2. A
-   lower bound matters: a thin sliver of a plane across a window fits a
-   plane tilted by the noise (10 degrees at sigma = 5 mm, measured). With an odd window (1: the seed's
-   per-voxel PCA, Fig. 2 centre) the neighbourhood is centred on a voxel.
-3. **Meshing** (§IV-B): the plane (normal = eigenvector of l2, through the
-   neighbourhood's centroid) is cut with the voxel-sized cube centred on V
-   (for odd windows: the centre voxel). Eq. (4) gives each of the 12 edges'
-   parameter t, kept for 0 <= t <= 1; intersections at a cube corner are
-   found on up to three edges and de-duplicated; 3-6 points make a convex
-   polygon, ordered by angle around the normal and triangulated as a fan.
-   The cubes of neighbouring vertices tile space, so neighbouring patches
-   meet along the cubes' shared faces.
-   **Voxel size for a LiDAR**: the default 5 cm suits a camera's dense
-   pixels. A spinning LiDAR's beams lie 0.2-0.4 degrees apart, 10-20 cm at
-   20-30 m, so a 10 cm window gathers ``min_points`` hits only after many
-   scans, and the far road and facades stay unmeshed; choose a voxel about
-   the beams' spacing where the scene is seen (``scenes/street.toml``: 0.2 m;
-   docs/benchmarks.md has the street at both sizes).
-   **Between beams** (``between_beams``, on for range images): a LiDAR's
-   rings on the road lie metres apart beyond 20 m, so most voxels between
-   them hold no point, and no window around them has ``min_points``. The
-   depth image's pixel grid is sampled at half a voxel wherever its triangles
-   are larger (:func:`triangle_samples`), the triangles whose every edge lies
-   on a straight line with the samples beyond it
-   (:func:`mabdi.filters.pixel_grid.pixel_grid_surface`, ``straight_only``:
-   the jump rule would also admit the chord across the foot of a wall), and
-   those points join the beams' own in the statistics: the voxels between two rings get the plane the rings
-   lie on. Where samples lie closer than half a voxel (a camera's pixels)
-   nothing is added. ``"auto"`` (the default) turns it on for range images
-   and leaves a camera's input as it was.
-   **Creases** (``refine``): a window that holds ``min_points`` but is not
-   planar holds two surfaces (the foot of a wall, a kerb, a car's edge), and
-   the seed's rule leaves its cube open, so every crease gets an open band a
-   window wide (0.2-0.4 m along every wall's foot at a LiDAR's 0.2 m voxels).
-   The filter keeps a second map of the same points at half the voxel size
-   (``halved_map``), its grid shifted by a quarter voxel for even windows so
-   that the cubes of the half-size anchors 2 V + {0, 1}^3 are exactly the
-   eight octants of anchor V's cube (:class:`HalvedGrid`). Each octant of a
-   cube that is not planar takes the polygon of its own half-size window, by
-   the same test at half the size; those polygons belong to V (re-meshed,
-   replaced and removed with it). Free space and removal empty the half-size
-   voxels as they empty the full-size ones. ``"auto"`` (the default) refines
-   where a half-size window spans enough for the test to stay the seed's
-   (its full in-plane variance (window * voxel_size / 2)^2 / 24 at least
-   epsilon^2: voxels of 0.1 m and more at the default epsilon); at a camera's
-   5 cm a 5 cm window would pass any crease as a plane, so it stays off.
-   Refinement costs the statistics twice and the memory of the half-size map
-   (blocks of half the size, so its memory grows with the surface it holds:
-   docs/benchmarks.md has the street's).
-4. **Incremental**: after new points, only the blocks (``block_size``, 1 m)
-   holding a vertex whose neighbourhood changed are re-meshed. The mesh is
-   kept per block; the output is either the patches re-meshed by this update
-   (``output="changed"``, the default, which is what the MABDI loop feeds to
-   :class:`~mabdi.filters.world_mesh.FilterWorldMesh`) or the whole map
-   (``output="full"``). A **patch** is a block, or, where blocks are fewer
-   than :data:`PATCH_VOXELS` voxels on a side (the street's 1 m blocks of
-   0.2 m voxels), a cube of g x g x g blocks that together span at least that
-   many (:attr:`FilterVoxelPlanes.patch_blocks`): the map's patches then keep
-   the seed's size in voxels (a 1 m block of 5 cm voxels) while the
-   statistics keep their small blocks (memory follows the surface), and the
-   world mesh, E and removal handle 16 times fewer patches on a surface.
-   Every cell carries the int64 cell array ``patch_key`` (its patch's key),
-   and field data ``removed_patch_keys`` lists patches that lost all their
-   faces, so the world mesh replaces a re-meshed patch instead of stacking a
-   layer on it.
+Output cell data: ``Normals``, ``rgb`` (seed 000 eqs. 5-7) and
+``patch_key``; point data ``rgb_colors`` with colour input; a depth
+image's field data is passed on.
 
-5. **Colour**: when the input carries colour (a depth image's point array
-   ``colour``, registered to the depth; a point set's uint8 RGB point array
-   ``colour`` or ``rgb_colors``), every point's colour goes into its voxel
-   with its statistics: the map keeps per voxel the number of coloured points
-   and the sums of their red, green and blue (:class:`VoxelMap`: a float32
-   array beside the statistics, filled in the same compiled pass; cleared
-   with the voxel when free space or removal empties it; in
-   :meth:`VoxelMap.state`, so checkpoints and ``--resume`` keep it). Each
-   polygon vertex gets the **mean colour of the voxel it lies in**
-   (:func:`vertex_colours`): a polygon is cut from the
-   voxel-sized cube of its anchor, which for even windows straddles the
-   2 x 2 x 2 voxels around the anchor vertex, so its vertices lie in
-   different voxels, and each takes the colour of the points there: colour at
-   the voxel's 5 cm rather than the window's 10 cm. Where the vertex's voxel
-   holds no coloured point (the plane reaches into an empty voxel), it takes
-   the polygon's colour, the count-weighted mean of the voxels its cube
-   overlaps (:func:`cube_colours`: those 2 x 2 x 2 voxels, the whole window
-   at the default 2; for odd windows the centre voxel), then the window's,
-   then :data:`NO_COLOUR`. Colours are recomputed with their polygon (new
-   points or cleared voxels in its window). A voxel that holds two objects'
-   points (the lowest 5 cm of a table leg, with the floor) gives its vertices
-   their blend. Without colour input the map keeps no colour and the output
-   has no colour array.
-
-Output cell data: ``Normals`` (unit, oriented by eq. 5 with n_z >= 0: the
-points do not say which side is out), ``rgb`` (uint8, seed 000 eqs. 5-7,
-:func:`mabdi.maps.colours.colours_by_normal`) and ``patch_key``; point data,
-with colour input, ``rgb_colors`` (uint8 RGB, step 5; the world mesh keeps it
-as the map's vertex colours). Field data of a depth-image input (intrinsics,
-pose, frame) is passed on.
+The reasoning behind the thresholds and options: docs/architecture.md
+(``mabdi.filters.voxel_planes``).
 """
 
 from __future__ import annotations

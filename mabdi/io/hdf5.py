@@ -2,50 +2,24 @@
 
 Two layouts; :func:`read_map` detects which one a file holds.
 
-**``mesh_tools``** (default): seed 003 Fig. 3, as the Mesh Tools
-``hdf5_map_io::HDF5MapIO`` reader (naturerobots/mesh_tools) accesses it. All
-five top-level groups exist, even when empty (that reader refuses a file
-without them)::
+* ``mesh_tools`` (default): seed 003 Fig. 3, as the Mesh Tools
+  ``hdf5_map_io::HDF5MapIO`` reader accesses it: ``/geometry/vertices``
+  (float32, flat, metres), ``/geometry/faces`` (uint32, flat),
+  ``/attributes/<layer>`` (normals, ``rgb_colors``, cost layers),
+  ``/clustersets``, ``/textures`` (empty) and ``/labels/<group>/<label>``
+  (face ids); all five groups exist, even when empty.
+* ``lvr2``: lvr2's ``hdf5features::MeshIO`` layout, which mesh_navigation's
+  ``mesh_map`` loads: the group ``/mesh`` (attributes ``IO = "MeshIO"``,
+  ``CLASS = "MeshBuffer"``) with 2-D channels ``vertices``,
+  ``face_indices``, ``vertex_normals``, ``vertex_colors`` and layers; mabdi
+  keeps labels and cluster sets beside them.
 
-    /geometry/vertices          float32 (3N,)   x0 y0 z0 x1 ...
-    /geometry/faces             uint32  (3M,)   triangles
-    /attributes/normals         float32 (3N,)   vertex normals        (if the map has them)
-    /attributes/rgb_colors      uint8   (3N,)   vertex colours        (if the map has them)
-    /attributes/roughness       float32 (N,)    (if computed)
-    /attributes/height_difference float32 (N,)  (if computed)
-    /attributes/<layer>         any further vertex or face layer, flat 1-D, with HDF5
-                                attributes element = "vertex" | "face" and components = k
-    /clustersets/<set>/<cluster> uint32 face ids
-    /textures/                  (empty: mabdi maps have no textures)
-    /labels/<group>/<label>     uint32 face ids (label "tree_1" is group "tree", label "1"; a name
-                                without "_", such as "floor", is group "floor", label "0"); the
-                                dataset's attribute name keeps the full name for our reader
+Both: float layers as float32, gzip-compressed and chunked; the run's poses
+(F, 4, 4) and intrinsics (8,) in ``/source``; the root carries
+``mabdi_layout``. A file is written to a temporary file beside the target
+and renamed, so a failure never leaves a half-written map.
 
-**``lvr2``**: the newer layout of lvr2's ``hdf5features::MeshIO`` (uos/lvr2,
-read at commit 199968bc), through which mesh_navigation's ``mesh_map``
-loads a map. The mesh part is the group ``/mesh``, which must carry the
-string attributes ``IO = "MeshIO"`` and ``CLASS = "MeshBuffer"`` (that reader
-checks both), with 2-D channels::
-
-    /mesh/channels/vertices        float32 (N, 3)
-    /mesh/channels/face_indices    uint32  (M, 3)
-    /mesh/channels/vertex_normals  float32 (N, 3)     (if the map has normals)
-    /mesh/channels/vertex_colors   uint8   (N, 3)     (if the map has colours)
-    /mesh/channels/<layer>         (N, k) or (M, k), attribute element = "vertex" | "face"
-    /mesh/textures/, /mesh/materials/   (empty)
-
-lvr2 has no labels or cluster sets in this layout; mabdi keeps them at
-``/mesh/labels/<group>/<label>`` and ``/mesh/clustersets/<set>/<cluster>``,
-which that reader ignores.
-
-Both layouts: float layers are stored as float32 (what the C++ readers
-load), gzip-compressed (level 4; readable by any HDF5 build, unlike lzf) and
-chunked; the run's poses and intrinsics, when given, go to
-``/source/poses`` (F, 4, 4) and ``/source/intrinsics`` (8,), float64: seed
-003 keeps the source data beside the map. The root carries
-``mabdi_layout``. Files are built in memory, written to a temporary file
-beside the target and renamed: a failure (a full disk included) never leaves
-a half-written map where a good one was.
+The datasets one by one: docs/architecture.md (``mabdi.io.hdf5``).
 """
 
 from __future__ import annotations

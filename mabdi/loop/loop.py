@@ -5,43 +5,26 @@
          ^                                                                                                      |
          +---------- FilterWorldMesh <-- surface filter (by name, registry) <-----------------------------------+
 
-Registration (``[registration]``, on by default with the classifier,
-:mod:`mabdi.filters.registration`) corrects each frame's given pose against
-the map before anything is classified; the map is built in a frame of its
-own, tied to the given poses as a whole (:mod:`mabdi.filters.map_anchor`),
-and :meth:`MabdiLoop.mesh` and :meth:`MabdiLoop.trajectory` hand it out in
-the world. Frames it cannot register are meshed unregistered and cast no
-removal votes. With ``noise = "auto"`` the loop feeds each registered
-frame's D - E to the noise calibration (:mod:`mabdi.noise_calibration`).
+Frame i: registration corrects D's pose against the map (built in a frame of
+its own, :mod:`mabdi.filters.map_anchor`); E is rendered from the map as it
+stood after frame i - 1; the classifier labels D's pixels; the surface
+meshes the novel ones and the world mesh appends them; then refinement
+(:mod:`mabdi.filters.refinement`) and object removal
+(:mod:`mabdi.loop.object_removal`, rules in :mod:`mabdi.filters.removal`;
+votes from registered frames only) change the map. With ``noise = "auto"``
+the frame's D - E feeds the noise calibration (:mod:`mabdi.noise_calibration`).
 
-With removal on (``[classifier] removal = true``, the default), E also says
-which map face each pixel shows, and pixels that see through a face
-(D > E + tau) vote it out of the map at the end of the frame (the stage:
-:mod:`mabdi.loop.object_removal`; its rules: :mod:`mabdi.filters.removal`); voxel planes also clear the voxels those rays crossed
-(re-meshed with the next frame's points).
+The frame index is set in one place, :class:`SourceDepthFrames`; D carries
+it with its pose, timestamp and noise model in its field data, and every
+filter takes them from there. With the classifier off (the "black box") the
+surface meshes every valid pixel of D. A LiDAR's range images run through
+the same loop; registration and refinement are camera-only for now
+(:func:`lidar_rules`).
 
-The frame index is set in one place, :class:`SourceDepthFrames`; D carries it
-with its pose, timestamp and the sensor's noise model in its field data, and
-E, registration, the classifier, the surface and removal take them from
-there (a filter holds no noise model of its own). With ``noise = "auto"`` D
-carries the calibrated curve as it stood when the frame began, and the
-whole frame is judged by it; the frame's residuals then refine the curve
-for the next. E is rendered from the map as it stood after
-the previous frame: the world mesh appends frame i's surface only at the end
-of frame i. With the classifier off (``enabled = false``, the "black box")
-the surface filter meshes D itself: every valid pixel, every frame.
-
-A LiDAR's range images (:mod:`mabdi.spherical`) run through the same loop:
-E is the map's range image (:mod:`mabdi.filters.range_rendering`), the
-classifier compares ranges with tau of the range noise, and removal votes
-along the beams. Registration and refinement are camera-only for now (their
-kernels use the pinhole projection): with a LiDAR both are off and the
-poses are taken as given (the rule is :func:`lidar_rules`).
-
-``loop.step(i)`` runs frame i and returns its :class:`FrameRecord`. What a
-frame produced is read through public accessors (:meth:`measured_image`,
-:meth:`expected_image`, :meth:`labels`, :meth:`novel_surface`, :meth:`mesh`,
-``world``), which is what the runner, the dashboard and the metrics use.
+``loop.step(i)`` runs frame i and returns its :class:`FrameRecord`; what a
+frame produced is read through :meth:`measured_image`,
+:meth:`expected_image`, :meth:`labels`, :meth:`novel_surface`, :meth:`mesh`
+and ``world``. The frame path as a whole: docs/architecture.md.
 """
 
 from __future__ import annotations

@@ -1,50 +1,28 @@
 """A run, assembled once: :class:`RunPipeline` and the observers that watch it.
 
-Every way of running the loop goes through one object: ``mabdi run`` (and
-``--resume``), the movie (:mod:`mabdi.viz.record`), the dynamic-scene metrics
-(:func:`mabdi.evaluate.dynamic.run_with_ghosts`), the bench
-(:mod:`mabdi.evaluate.bench`), a sweep's cells (:mod:`mabdi.sweep`) and
-:meth:`Simulation.run <mabdi.loop.runner.Simulation.run>`. Its steps,
+Every way of running the loop goes through one object (``mabdi run`` and
+``--resume``, the movie, the dynamic-scene metrics, the bench, a sweep's
+cells, :meth:`Simulation.run <mabdi.loop.runner.Simulation.run>`). Its steps,
 in order (:data:`STEPS`; :meth:`RunPipeline.run` calls a method per step)::
 
-    source      the frames: the Simulation's source (simulated rig or recording) and its MabdiLoop
+    source      the frames: the Simulation's source and its MabdiLoop
     outputs     the run folder opened (refused if another run holds it), config.toml,
                 the input files' fingerprint (for --resume)
     loop        frame by frame: MabdiLoop.step(i), then each observer's on_frame
-    results     the RunResult (map, records, timings) and the run's files (mabdi.loop.run_outputs);
-                a recording that lost over 2% of its depth values to near and far says so (DepthRangeWarning)
+    results     the RunResult and the run's files (mabdi.loop.run_outputs)
     evaluation  the map scored against the ground truth by the ``evaluate`` callable, or why not
     summary     summary.json written last, the checkpoint dropped, the folder complete
 
-Observers watch it without changing the map: any object with some of these
-hooks (:class:`RunObserver` has them all, doing nothing), called in the
-order the observers are given:
+Observers watch without changing the map: objects with some of the hooks
+``on_start``, ``on_frame``, ``on_loop_end``, ``on_finish``, ``on_abort``
+(:class:`RunObserver` has them all), called in the order given. Here:
+:class:`ProgressBar`, :class:`FrameCallback`, :class:`DepthImages` and
+:class:`Checkpoints`.
 
-* ``on_start(pipeline)``: the folder is open, no frame has run yet;
-* ``on_frame(pipeline, record)``: after every frame, in order (the loop's
-  state is that frame's: ``pipeline.simulation.loop``);
-* ``on_loop_end(pipeline, result)``: the last frame has run and the run's
-  files are written; before the evaluation and ``summary.json``;
-* ``on_finish(pipeline, result)``: the run is complete;
-* ``on_abort(pipeline, error)``: the run stopped on an error or Ctrl-C.
-
-The observers here: :class:`ProgressBar` (the command line's bar),
-:class:`FrameCallback` (a plain ``progress(record)`` function),
-:class:`DepthImages` (``output.depth_images``) and :class:`Checkpoints`
-(``output.checkpoint_every``; both added by the pipeline itself when it
-writes a folder). Elsewhere: :class:`mabdi.viz.record.MovieObserver`
-(``--movie``), :class:`mabdi.viz.rerun_log.RerunProgress` (``--rerun``),
-:class:`mabdi.evaluate.dynamic.GhostObserver` (ghosts and static loss).
-
-**Checkpoints** (``.mabdi-partial/checkpoint.npz``, :mod:`mabdi.io.checkpoint`
-format version 2: arrays and a JSON header, loaded without pickle, so a
-checkpoint from elsewhere runs no code). They hold the resolved config, the
-recording and its options, the run's own options (``run_options``: whether
-it is evaluated), the next frame, the seconds run so far, the frame records,
-:meth:`MabdiLoop.state <mabdi.loop.loop.MabdiLoop.state>` and the
-fingerprint of every input file (:mod:`mabdi.io.fingerprint`). A resumed run
-(:func:`mabdi.loop.runner.resume_run`) is the same pipeline started at
-the checkpoint's frame.
+Checkpoints (``.mabdi-partial/checkpoint.npz``, :mod:`mabdi.io.checkpoint`)
+hold arrays and a JSON header, loaded without pickle; a resumed run
+(:func:`mabdi.loop.runner.resume_run`) is the same pipeline started at the
+checkpoint's frame. More: docs/architecture.md (``mabdi.loop.run_pipeline``).
 """
 
 from __future__ import annotations

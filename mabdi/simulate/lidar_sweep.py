@@ -1,58 +1,26 @@
 """A spinning LiDAR that moves during its sweep, deskewed as a driver deskews it, and its mount.
 
-The ideal simulated LiDAR (``[sensor] sweep = "instant"``, the default) renders
-each frame's range image from one pose, every return at its pixel's centre
-(:mod:`mabdi.filters.range_rendering`). A real one does not: it fires one
-column of beams after another while it turns, and while the vehicle moves, so
-each column is measured from its own pose; its driver then *deskews* the sweep,
-moving every point into the frame of one pose with the path, so that the
-points' elevations are continuous (not the beams' discrete values) and some
-pixels of a range image get two points and others none.
-``sweep = "deskewed"`` (:class:`SweepSettings`) simulates that:
+The ideal simulated LiDAR (``[sensor] sweep = "instant"``, the default)
+renders each frame's range image from one pose. A real one fires one column
+of beams after another while it turns and the vehicle moves, and its driver
+*deskews* the sweep into the frame of one pose. ``sweep = "deskewed"``
+(:class:`SweepSettings`) simulates that:
 
-1. **The sweep** of frame i takes ``duration`` seconds (``[sensor] sweep_time``;
-   0: the time between frames, the path's 1 / ``rate``, so sweeps follow each
-   other as a spinning sensor's do) and *ends* at frame i's timestamp t_i: its
-   columns are fired over [t_i - duration, t_i], column c (azimuth
-   pi (1 - 2 (c + 0.5) / columns), :mod:`mabdi.spherical`) at
-   t_i - duration + (c + 0.5) duration / columns, so the sensor turns clockwise
-   seen from above (as Velodyne and Ouster sensors do), starting and ending
-   behind itself, where the range image's azimuth seam is.
-2. **Each column from its own pose**: the path's true pose at that time
-   (:func:`poses_at`: the frames' poses interpolated, translation linearly and
-   rotation along the shortest arc; before the first frame, the first step's
-   motion continued), times the mount. Its beams are the sensor's beam layout
-   (uniform between ``fov_up`` and ``fov_down``, or ``beam_elevations``) at
-   the column's azimuth, in the sensor's own frame; they are cast against the
-   scene as it stands at frame i (:class:`SceneRayCaster`, Open3D's
-   ``RaycastingScene``, each hit's range recomputed in float64 on the plane of
-   the triangle it hit). A return is a range strictly between ``range_min`` and
-   ``range_max`` (a nearer surface hides what lies behind it, as on the
-   ideal sensor), with the range noise of the ``noise`` model
-   (:meth:`mabdi.sensor_noise.SensorNoise.ranges_with_noise`, the frame's stream
-   (seed, i), drawn over the returns in beam-major order as the ideal sensor
-   draws it).
-3. **Deskewed into the sweep's end**: every return is moved with the path's
-   true poses into the sensor frame of the pose at the sweep's end, t_i, which
-   is frame i's pose (the end, not the start: the frame's pose and timestamp
-   are then those of its newest point, as drivers that deskew to the scan's end
-   give it). The deskew is exact (the true path, no odometry error): the
-   deskewed points lie on the scene's surfaces. :class:`Sweep` holds them.
-4. **The range image** is :func:`mabdi.sources.range_images.range_image` of
-   those points with the sensor's own geometry (the ``[lidar]`` table a
-   recording of this sensor carries, which a reader of a real folder gets from
-   it): rows by elevation, columns by azimuth, the nearest point of a pixel
-   kept; points beyond the image's top or bottom edge are lost, as a real
-   scan's are.
+1. frame i's sweep takes ``duration`` seconds (``sweep_time``; 0: the time
+   between frames) and ends at frame i's timestamp; columns fire in turn,
+   clockwise seen from above, the seam behind the sensor;
+2. each column is cast from the path's true pose at its time
+   (:func:`poses_at`) times the mount, against the scene as it stands at
+   frame i (:class:`SceneRayCaster`), with the ``noise`` model's range noise;
+3. every return is moved with the true path into the sensor frame at the
+   sweep's end, frame i's pose (:class:`Sweep`);
+4. the range image is :func:`mabdi.sources.range_images.range_image` of those
+   points with the sensor's own geometry.
 
-**The mount** (``[sensor] mount_tilt``, ``mount_roll``, degrees; either
-sweep): a fixed rotation between the path's pose (the vehicle) and the sensor,
-``base_from_sensor = R_y(mount_tilt) R_x(mount_roll)``: ``mount_tilt``
-turns the sensor about its y axis (positive tips its x axis, the forward
-direction, down), ``mount_roll`` about its x axis (positive lifts its left,
-+y, side). The sensor's pose (the frame's ``world_from_sensor``) is the path's
-pose times the mount, so its beams' elevations are the sensor's own and the
-ground is tilted in its range image; the pose puts it back level in the world.
+The mount (``[sensor] mount_tilt``, ``mount_roll``, degrees; either sweep):
+``base_from_sensor = R_y(mount_tilt) R_x(mount_roll)``; the sensor's pose
+(``world_from_sensor``) is the path's pose times the mount.
+More: docs/architecture.md (``mabdi.simulate.lidar_sweep``).
 """
 
 from __future__ import annotations

@@ -3,52 +3,29 @@
 ``[path] kind`` (:class:`mabdi.config.PathConfig`) picks one:
 
 ``helix`` (the default)
-    The sensor circles the scene ``turns`` times (twice by default) on an
-    ellipse with radii ``radius_x``, ``radius_y`` (m) about ``center`` (x, y),
-    rising linearly from height ``z0`` to ``z1``, and looks at a point that
-    moves linearly from ``look_from`` to ``look_to``: each pass sees the scene
-    from a slightly different place, and the second pass returns to parts
-    already mapped. Frame i of N sits at t = i / (N - 1) along the whole path,
-    so N frames always span the same helix; more frames are finer steps.
+    ``turns`` circles on an ellipse (``radius_x``, ``radius_y``, metres)
+    about ``center``, rising from ``z0`` to ``z1``, looking at a point that
+    moves from ``look_from`` to ``look_to``; ``run.frames`` frames span it.
 
 ``waypoints``
-    ``points`` is a polyline (at least two points, no two consecutive ones
-    equal) driven at ``speed`` (m/s) with one frame every 1 / ``rate``
-    seconds: frame i is at arc length s_i = i * speed / rate (so the first
-    frame sits on the first point), its position linear between the two
-    waypoints around s_i. The route gives floor(length * rate / speed) + 1
-    frames; the last reaches the last point when the length is a whole number
-    of steps. Rows of ``points``:
-
-    * ``[x, y, z]``: the heading (yaw) is the direction of travel of the
-      segment being driven (the robot turns on the spot at a waypoint; a
-      vertical segment keeps the heading before it);
-    * ``[x, y, z, heading]``: heading in degrees, counter-clockwise from +x
-      seen from above, turned linearly in arc length through the shorter angle
-      from one waypoint's heading to the next (a half turn turns
-      counter-clockwise);
-    * ``[x, y, z, qx, qy, qz, qw]``: full world_from_sensor poses (the
-      quaternion of the sensor's own frame, scalar last), the rotation slerped.
+    A polyline ``points`` driven at ``speed`` (m/s), one frame every
+    1 / ``rate`` seconds. Rows are ``[x, y, z]`` (heading along travel),
+    ``[x, y, z, heading]`` (degrees, counter-clockwise from +x) or
+    ``[x, y, z, qx, qy, qz, qw]`` (full poses, slerped).
 
 ``trajectory``
-    ``file`` is a TUM trajectory (``timestamp tx ty tz qx qy qz qw`` per
-    line, ``#`` comments; relative to the config file): one frame per pose,
-    in the file's order, taken as they are (world_from_sensor in the sensor's
-    own frame).
+    ``file`` is a TUM trajectory (``timestamp tx ty tz qx qy qz qw``), one
+    frame per pose, taken as it is.
 
-Frames: the helix takes ``run.frames`` frames. A waypoint or trajectory path
-has its own number of frames (:func:`path_frame_count`); a config without
-``run.frames`` runs all of them (:func:`mabdi.config.run_config_from_dict`
-sets ``run.frames`` from the path), one with ``run.frames`` runs the first
-``run.frames`` of them (more than the path has is an error).
+A waypoint or trajectory path has its own number of frames
+(:func:`path_frame_count`); ``run.frames`` may run the first of them.
 
-Frames of a pose: every pose is ``world_from_sensor``. For a camera
-(``axes="camera"``: OpenCV optical frame, z forward, y down) a heading makes
-the camera look horizontally along it with image-up = world +z; for a LiDAR
-(``axes="lidar"``: x forward, y left, z up) the sensor's x axis points along
-the heading and z up. The helix's look-at poses are camera poses; for a LiDAR
-its x axis takes the camera's viewing direction and its z axis image-up
-(:data:`CAMERA_FROM_LIDAR`). Full poses and trajectories are not turned.
+Frames of a pose: every pose is ``world_from_sensor``. A camera
+(``axes="camera"``: OpenCV optical frame, z forward, y down) looks along a
+heading with image-up = world +z; a LiDAR (``axes="lidar"``: x forward,
+y left, z up) has x along the heading and z up (the helix's look-at poses
+are turned by :data:`CAMERA_FROM_LIDAR`). Full poses are not turned.
+Details: docs/architecture.md (``mabdi.simulate.path``).
 """
 
 from __future__ import annotations

@@ -8,48 +8,23 @@ into the range image of a :class:`~mabdi.spherical.SphericalGeometry` (the
 one convention, :mod:`mabdi.spherical`), the one place this is done:
 
 * the column of a point is its azimuth, by :meth:`SphericalGeometry.pixels`;
-* its row is its ring (beam) index when the scan has one (a ``ring`` field,
-  or the row of an organised cloud: :func:`rows_from_rings` turns rings into
-  rows, top beam first, whichever way the sensor numbers them), else its
-  elevation by :meth:`SphericalGeometry.pixels`;
+* its row is its ring (beam) index when the scan has one
+  (:func:`rows_from_rings`: top beam first), else its elevation;
 * a pixel holds the range (m, along the point's own direction) of the
-  nearest point that falls in it; points that are not returns (NaN,
-  at the origin, outside ``range_min < range < range_max``) and points
-  outside the image's rows are left out; a pixel no point falls in is NaN.
+  nearest point that falls in it; non-returns (NaN, at the origin, outside
+  ``range_min < range < range_max``) are left out; an empty pixel is NaN.
 
-**Returns carried to the pixel centres** (rows by elevation). Every stage
-reads a pixel as its centre's ray times its range (E is drawn along it,
-removal votes along it, the surfaces mesh along it), but a deskewed sweep's
-returns lie anywhere in their pixels (their elevations continuous, a real
-sensor's beams unevenly spread). On a floor 10 m off, seen at 6 degrees, a
-return half a degree off its row's centre reads a range 0.9 m from the
-centre ray's. So in each column the returns are sorted by elevation, and a
-row whose centre elevation lies between two returns of one surface takes
-the range at which the straight segment between them (in the column's
-vertical plane) passes that elevation: one surface when their ranges differ
-by at most :data:`SURFACE_STEP` plus what a surface at
-:data:`SURFACE_INCIDENCE` changes over their gap, or when a third return at
-least half a row beyond continues their line (a floor or wall at grazing
-incidence; a depth edge does not). The pair may be :data:`WIDEST_GAP_ROWS`
-rows apart (one beam missing between them), or :data:`WIDEST_GAP_EMPTY_ROWS`
-for a pixel no return fell in (a return that slid into the next row). A pixel
-still empty whose left and right neighbours are one surface (the same test
-over two columns), one of them holding two returns, takes their mean: a
-return that slid into the next column (deskewing moves returns across
-columns too). Other pixels keep their
-nearest return. Within each column the returns' own
-azimuths are taken as the column's (1024 columns: a return within 0.18
-degrees of it). With a ring index (``rows`` given) each pixel keeps its
-nearest return.
+Rows by elevation: each pixel's range is carried to its centre's ray (the
+straight segment between two returns of one surface, within
+:data:`SURFACE_STEP` and :data:`SURFACE_INCIDENCE`), and a pixel left empty
+between two returns of one surface takes their mean.
 
 A recording carries its geometry in the ``[lidar]`` table of its
-``mabdi.toml`` (:func:`lidar_table`, :func:`geometry_from_table`): the keys
-of :class:`SphericalGeometry`. A wrong or missing table loses points without
-an error: :func:`scan_fit` counts a scan's points outside the image (above its
-top edge, below its bottom one, at or beyond ``range_max``), for a
+``mabdi.toml`` (:func:`lidar_table`, :func:`geometry_from_table`);
+:func:`scan_fit` counts a scan's points outside the image, for a
 :class:`LidarGeometryWarning`, and :func:`learn_geometry` learns the vertical
-field of view (and, where the scan's rings are clearly apart, the beam count)
-of a scan that does not fit a default.
+field of view (and, where clear, the beam count) of a scan that does not fit.
+Why the centre rule: docs/architecture.md (``mabdi.sources.range_images``).
 """
 
 from __future__ import annotations

@@ -1,99 +1,31 @@
 """ROS 2 bags (sqlite3 and MCAP storage) as a frame source, and any frame source written as a bag.
 
-Reading and writing use the pure-Python ``rosbags`` package; message layouts
-are those of ROS 2 Humble (``sensor_msgs/msg/Image``, ``CameraInfo``,
-``geometry_msgs/msg/PoseStamped``, ``tf2_msgs/msg/TFMessage``; unchanged in
-later distributions).
+Reading and writing use the pure-Python ``rosbags`` package (imported when a
+bag is first opened or written, :func:`_rosbags`); message layouts are
+ROS 2 Humble's.
 
-**Depth**: ``sensor_msgs/msg/Image`` with encoding ``16UC1`` (millimetres,
-0 = no return) or ``32FC1`` (metres, NaN or 0 = no return); rows may be
-padded (``step``) and big-endian. Any other encoding is an error naming the
-topic.
+* **Depth**: ``sensor_msgs/msg/Image``, ``16UC1`` (millimetres, 0 = no
+  return) or ``32FC1`` (metres, NaN or 0 = no return).
+* **LiDAR**: ``sensor_msgs/msg/PointCloud2`` scans (``cloud_topic``), each
+  turned into a range image by :func:`mabdi.sources.range_images.range_image`
+  (fields ``x``, ``y``, ``z`` in metres, ``ring`` when present; the
+  geometry from the ``[lidar]`` table of a ``mabdi.toml`` beside the bag,
+  else the first scan).
+* **Colour** (optional): an ``rgb8`` or ``bgr8`` Image topic registered to
+  the depth, matched by nearest header stamp.
+* **Intrinsics**: the first ``CameraInfo``: fx = K[0], fy = K[4],
+  cx = K[2] + 0.5, cy = K[5] + 0.5 (ROS puts pixel centres at integers);
+  distortion is ignored.
+* **Poses** (``world_from_camera``; the image's ``header.frame_id`` is an
+  optical frame, x right, y down, z forward, as mabdi's): a
+  ``PoseStamped`` topic, or ``/tf`` and ``/tf_static`` chained from the
+  world frame to the image's frame as tf2 does (interpolated in time).
 
-**LiDAR** (instead of depth images): ``sensor_msgs/msg/PointCloud2`` scans
-(``cloud_topic=`` / ``--cloud-topic``; found by type when the bag has no
-depth image topic and one cloud topic), each turned into a range image by
-:func:`mabdi.sources.range_images.range_image`. Fields read: ``x``, ``y``,
-``z`` (float32 or float64, metres, in the cloud's ``header.frame_id``) and
-``ring`` (any integer type) when present; the others (``intensity``,
-``t`` / ``time``, ``range``, ``reflectivity``, ...) are not used (points
-are placed where the scan's x, y, z put them: no motion compensation within
-a scan). The row of a point is its ring (Velodyne numbers rings from the
-bottom, Ouster from the top: :func:`~mabdi.sources.range_images.rows_from_rings`
-tells them apart), else the row of an organised cloud (``height`` > 1: the
-Ouster layout, row 0 = the top beam), else its elevation; points at the
-origin or NaN (no return) are left out. The geometry is the ``[lidar]``
-table of a ``mabdi.toml`` in the bag folder where it has one
-(:mod:`mabdi.sources.range_images`); the keys it leaves out come from the
-first scan: ``beams`` = the number of rings (or the organised cloud's
-height), their elevations (``beam_elevations``: each ring's mean elevation
-in that scan), ``columns`` = an organised cloud's width, else 1024. An
-unorganised cloud without rings needs ``beams``, ``fov_up`` and
-``fov_down`` there. Poses as for depth images, of the cloud's frame.
-
-**Colour** (optional): a ``sensor_msgs/msg/Image`` topic in ``rgb8`` or
-``bgr8`` (the only one, or ``colour_topic=`` / ``--colour-topic``),
-registered to the depth (the same size, as a camera driver's
-``depth_registered`` images are); each depth frame carries the colour
-image nearest in header stamp (those further than ``tolerance`` are counted
-in ``description``).
-
-**Intrinsics**: the first ``sensor_msgs/msg/CameraInfo`` message: fx = K[0],
-fy = K[4], cx = K[2] + 0.5, cy = K[5] + 0.5 (ROS puts pixel centres at
-integers, mabdi at u + 0.5), width and height; distortion is ignored. near
-and far are :class:`Intrinsics`' defaults unless a ``mabdi.toml`` in the bag
-folder has ``[camera]`` ``near`` / ``far``.
-
-**Poses** (``world_from_camera``, camera = the depth image's
-``header.frame_id``, which REP 103 makes an optical frame: x right, y down,
-z forward, as mabdi's camera frame; it is used without any rotation):
-
-* from a ``geometry_msgs/msg/PoseStamped`` topic: the pose of the camera's
-  optical frame in ``header.frame_id`` (the world);
-* or from ``/tf`` and ``/tf_static``: the transform tree is built from every
-  ``TransformStamped`` (parent ``header.frame_id``, child
-  ``child_frame_id``; the transform is parent_from_child) and chained, per
-  depth image, from the world frame down to the image's frame, as tf2 does:
-  a ``/tf_static`` link holds at all times; a ``/tf`` link is interpolated
-  between its two samples around the image's stamp (linear in position,
-  slerp in rotation) however far apart they are (AMCL's map -> odom comes
-  at a few Hz), and held from its nearest sample within ``tolerance`` past
-  its first or last one. An image that some link does not reach is skipped
-  and counted, and the description names that link; when no image has a
-  pose, the error names the links that failed. The world frame is
-  ``frame_id=`` or, by default, the root of the camera frame's tree; a tree
-  with several roots (a link missing between the camera's part and the
-  rest, say base_link -> camera_link) is an error naming the missing link,
-  never a map in the wrong frame.
-* every transform's (and PoseStamped's) quaternion must be finite and of
-  non-zero length, its translation finite: otherwise an error names the
-  topic, the link (parent -> child) and the stamp.
-
-Topics are found by message type when there is one candidate: the depth
-image among the Image topics (those whose first message has a depth
-encoding), the CameraInfo beside it (``<namespace>/camera_info``) or the only
-one, a single PoseStamped topic, else ``/tf``. When there are several
-candidates, or none, the error lists what the bag has and names the argument
-that chooses (``--depth-topic``, ``--info-topic``, ``--pose-topic`` on the
-command line; ``depth_topic=``, ``info_topic=``, ``pose_topic=`` in Python).
-
-**Matching**: depth frames and poses are matched by header stamps: a
-PoseStamped topic's nearest pose within ``tolerance`` seconds (default 20
-ms), /tf as above; frames without a pose are skipped and counted
-(:attr:`Rosbag2Sequence.skipped`, and in ``description``, with the /tf links
-that did not reach them).
-
-**Reading by index**: at open the depth topic is scanned once (header stamps,
-bag time and position among messages of the same bag time; messages are
-deserialised as views, the pixels are not decoded); ``read(i)`` asks the bag
-for the messages at frame i's bag time only (an indexed query in sqlite3, the
-one chunk that holds it in MCAP) and decodes that image.
-
-**Start-up memory**: ``rosbags`` (and the sqlite, MCAP, YAML and compression
-packages it brings, about 10 MB resident) is imported when a bag is first
-opened or written (:func:`_rosbags`), not when ``mabdi`` is imported: a run of
-a simulated scene never reads a bag. The message type store is built then too
-(``_TYPESTORE`` stays readable as a module attribute).
+Topics are found by message type when there is one candidate, else named
+(``--depth-topic``, ``--info-topic``, ``--pose-topic``). Frames and poses
+are matched by header stamps within ``tolerance`` (20 ms); frames without a
+pose are skipped and counted. ``read(i)`` decodes frame i only.
+The rules in full: docs/architecture.md (``mabdi.sources.rosbag2``).
 """
 
 from __future__ import annotations

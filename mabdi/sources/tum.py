@@ -2,58 +2,27 @@
 
 The layout (https://cvg.cit.tum.de/data/datasets/rgbd-dataset/file_formats):
 
-* ``depth/<timestamp>.png``: 16-bit single-channel PNG, 5000 units per
-  metre (0.2 mm steps, at most 65535 / 5000 = 13.107 m), 0 = no return;
-* ``depth.txt``: lines ``timestamp filename`` (seconds; filename relative to
-  the folder), ``#`` starts a comment; a line repeated is read once, two
-  images at one timestamp are an error naming both lines;
-* ``rgb/<timestamp>.png`` and ``rgb.txt`` (lines ``timestamp filename``),
-  optional: the colour images, registered to the depth images;
-* ``groundtruth.txt``: lines ``timestamp tx ty tz qx qy qz qw``: the position
-  (metres) and orientation (unit quaternion, scalar last) of the camera's
-  optical centre in the world (the motion-capture frame), ``#`` comments; a
-  sample repeated at its timestamp is read once, two that disagree (by more
-  than 1 mm or 0.1 degree) are an error naming both lines.
+* ``depth/<timestamp>.png``: 16-bit PNG, 5000 units per metre, 0 = no
+  return; ``depth.txt``: lines ``timestamp filename``;
+* ``rgb/<timestamp>.png`` and ``rgb.txt`` (optional): colour images
+  registered to the depth images;
+* ``groundtruth.txt``: lines ``timestamp tx ty tz qx qy qz qw``: the camera's
+  optical frame in the world (metres, unit quaternion scalar last).
 
-**Poses.** A ground-truth line is the pose of the camera's *optical* frame
-(x right, y down, z forward, as OpenCV) in the world: it maps camera points
-to world points, which is exactly mabdi's ``world_from_camera``; it is used
-as it is. The benchmark's world is the motion-capture frame (metres; its z
-axis is not guaranteed to point up). The ground truth tracks the colour
-camera; the benchmark's depth images are registered to the colour camera, so
-the same pose and intrinsics apply to them.
+Poses: a ground-truth line maps camera points (x right, y down, z forward)
+to world points, exactly mabdi's ``world_from_camera``, used as it is. Each
+depth frame's pose is interpolated between the ground-truth samples around
+its timestamp within ``tolerance`` seconds (default 0.02 s), else the
+nearest within it; frames with neither are skipped and counted. Each frame
+carries the colour image nearest in time.
 
-**Matching.** Each depth frame's pose is interpolated between the two
-ground-truth samples around its timestamp (linear in position, slerp in
-rotation; :func:`~mabdi.sources.sequences.interpolate_poses`) when both lie
-within ``tolerance`` seconds of it (default 20 ms; the motion capture runs
-at 100 Hz, the depth camera at 30 Hz, so the nearest sample alone would be up
-to 5 ms off); otherwise (the ends of the ground truth, a gap in it) the
-nearest sample within ``tolerance`` is taken as it is. Frames with neither
-are skipped and counted (:attr:`TumSequence.skipped`, and in
-``description``).
+Intrinsics: the ``camera=`` argument (an :class:`Intrinsics`, a preset name
+or ``"fx,fy,cx,cy,width,height"``), else the ``[camera]`` table of a
+``mabdi.toml`` in the folder; values in mabdi's pixel convention (pixel
+(u, v) centred on (u + 0.5, v + 0.5)); lens distortion is ignored.
 
-**Colour.** When the folder has ``rgb.txt``, each depth frame carries the
-colour image nearest to it in time (the benchmark's ``associate.py`` pairs
-them so; the two cameras run at 30 Hz, a few milliseconds apart), read as
-8-bit RGB; frames whose nearest colour image is more than ``tolerance``
-away still get it, and are counted in ``description``.
-
-**Intrinsics** come from the ``camera=`` argument (an :class:`Intrinsics`,
-a preset name or ``"fx,fy,cx,cy,width,height"``), else from the
-``[camera]`` table of a ``mabdi.toml`` in the folder (keys fx, fy, cx, cy,
-width, height, near, far, and optionally ``preset`` = a preset name whose
-values the other keys override); depth images of another size than the
-camera's are refused when the folder is opened. Values
-are in mabdi's pixel convention: pixel (u, v) has its centre at
-(u + 0.5, v + 0.5). TUM's documentation (like ROS and OpenCV) puts pixel
-centres at integers, so principal points copied from it need cx + 0.5 and
-cy + 0.5; the presets below have it applied. near and far default to
-:class:`Intrinsics`' defaults. Lens distortion is ignored (fr3 images come
-undistorted; fr1/fr2 have small radial distortion).
-
-Pillow is imported inside the functions that use it (a start-up memory
-choice: ``import mabdi`` and a run of a simulated scene do not load it).
+Pillow is imported inside the functions that use it. Details:
+docs/architecture.md (``mabdi.sources.tum``).
 """
 
 from __future__ import annotations

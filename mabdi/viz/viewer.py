@@ -1,50 +1,22 @@
 """The map viewer: a map file or a run folder, coloured by creation frame, by normal or by a layer.
 
 ``view(path)`` opens an interactive pyvista window when a display exists;
-without one (a robot, a server, CI) it renders a PNG off-screen and returns
-its path. Colour modes:
+without one it renders a PNG off-screen and returns its path. Colour modes:
+``frame`` (the frame that created each face,
+:func:`mabdi.maps.colours.colours_by_frame`), ``normal`` (seed 000 eqs. 5-7,
+:func:`mabdi.maps.colours.colours_by_normal`), ``rgb`` (the map's vertex
+colours) or any vertex or face layer by name, on the viridis ramp. A run
+folder shows ``world_mesh.vtp`` (or ``.h5``) with the scene and the path.
 
-* ``frame``: each face by the frame that created it (viridis, first dark,
-  last bright; :func:`mabdi.maps.colours.colours_by_frame`);
-* ``normal``: each face by its unoriented normal, seed 000 eqs. 5-7 with
-  atan2 (:func:`mabdi.maps.colours.colours_by_normal`);
-* ``rgb``: the map's own vertex colours (the layer ``rgb_colors``: the
-  camera's colour, from a coloured source), blended across each face;
-* any vertex or face layer of the map by name (``cost``, ``roughness``, ...;
-  an HDF5 map from ``mabdi run --h5`` has them), on the viridis ramp.
+Up: from ``up`` when given, else the mean up of the run's cameras
+(:func:`view_up`: -y of an OpenCV camera, +z of a LiDAR), snapped to a world
+axis within :data:`SNAP_DEGREES`; +z without poses.
 
-A run folder shows ``world_mesh.vtp`` (or ``.h5``) with the scene
-(``scene.vtp``, grey, translucent) and the sensor path (``path.vtp``).
-
-**Up.** Recordings' worlds are not all z up: 7-Scenes, 3DMatch and
-ScanNet-like exports keep the first camera's frame (y down). :func:`view_up`
-takes up from ``up`` when given (``--up z``, ``--up=-y`` or ``--up x,y,z``),
-else from the run's cameras: the mean of each camera's up (-y of its OpenCV
-axes, -R[:, 1] of world_from_camera; +z of a LiDAR's own axes, from
-``[sensor] kind = "lidar"`` of the run's ``config.toml``) over the run's
-``poses.npy`` (or an ``.h5`` map's own poses), normalised. A mean within
-:data:`SNAP_DEGREES` of a world axis is that axis (a circling camera's pitch
-does not tilt a simulated world's z; the first camera of a y-down world was
-held about level), and a mean shorter than :data:`MIN_MEAN_UP` (cameras
-rolled every way) or no poses (a map file alone) give the world's +z. No
-supported layout carries a gravity vector, so none is read. ``view`` says
-which up it used (``up: -y, the cameras' mean up (...) snapped``).
-
-**Framing.** By default the camera looks at the map's bounding box from
-above and aside (:data:`VIEW_AZIMUTH` degrees about up from the first of
-:func:`horizon_axes`, towards minus the second: from the -y side when up is
-z, from the -z side when up is -y; :data:`VIEW_ELEVATION` above the horizon)
-with a parallel projection, the world's up up the picture, and is
-fitted to the box's eight corners so they fill :data:`FILL` of the picture's
-width or height, whichever binds: the map, not the scene or the path (which
-may reach far beyond it), sets the frame. A parallel projection has one
-scale over the whole picture, so the picture carries a scale bar (a round
-length, 1, 2 or 5 times a power of ten metres, near a fifth of the picture's
-width) and its title gives the map's name, triangles and size (the box's x,
-y and z extents, metres). ``from_frame=N`` (``--from-frame N``) looks
-instead from the pose the run meshed frame N with (``poses.npy`` of a run
-folder, with the intrinsics in its ``summary.json``), in perspective as the
-sensor saw it; there is no scale bar then.
+Framing: a parallel projection from above and aside (:data:`VIEW_AZIMUTH`,
+:data:`VIEW_ELEVATION`) fitted to the map's bounding box (:data:`FILL`),
+with a scale bar (metres) and a title giving the map's name, triangles and
+size; ``from_frame=N`` looks from frame N's pose in perspective instead.
+Details: docs/architecture.md (``mabdi.viz.viewer``).
 """
 
 from __future__ import annotations

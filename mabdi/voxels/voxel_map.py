@@ -1,59 +1,24 @@
 """VoxelMap: per-voxel sufficient statistics in a semi-sparse blockwise grid (seed 000, §IV-A, §IV-C).
 
-Space is cut into voxels of ``voxel_size`` metres; voxel (i, j, k) (int64
-indices, negative fine) covers [i s, (i + 1) s) x [j s, ...) x [k s, ...)
-in the world frame. Voxels are grouped into cubic blocks of ``block_size``
-metres (B = block_size / voxel_size voxels a side; 1 m / 0.05 m = 20 by
-default). A block is allocated, dense, the first time a point falls in it and
-never before, so memory grows with the occupied blocks, not with the
-bounding box: the seed's "dense coarse grid of pointers to fine grids",
-with the coarse grid replaced by a sorted table of block keys so it has no
-bounds at all.
+Space is cut into voxels of ``voxel_size`` metres in the world frame; voxel
+(i, j, k) (int64, negative fine) covers [i s, (i + 1) s) x [j s, ...) x
+[k s, ...). Voxels are grouped into cubic blocks of ``block_size`` metres,
+allocated dense the first time a point falls in one, found by a sorted table
+of block keys: memory grows with the occupied blocks, with no bounds.
 
-Per voxel the map keeps the sufficient statistics of its points, in float64:
+Per voxel, in float64: n, S1 = sum(q), S2 = sum(q q^T) with q = p - the
+voxel's lower corner (so the covariance does not cancel far from the
+origin). Adding points only adds to the sums: incremental and order-free.
+With colour input (uint8 RGB) the map also keeps per voxel the count and
+sums of the coloured points (float32, a parallel array ``_colour``).
 
-    n,  S1 = sum(q),  S2 = sum(q q^T)   (6 unique entries)
-
-with q = p - (voxel's lower corner), so the sums stay small numbers and the
-covariance does not cancel catastrophically far from the origin. The
-centroid is corner + S1 / n and the covariance S2 / n - (S1 / n)(S1 / n)^T.
-Adding points only adds to these sums, so the map is incremental and the
-order of the points does not matter (up to float64 rounding). The sums are
-accumulated by three compiled passes over the points (numba) when the
-touched blocks fit a dense box of a million blocks, else by numpy
-bincounts.
-
-Colour: when points come with colours (uint8 RGB, :meth:`VoxelMap.add_points`'s
-``colours``), the map keeps beside the statistics, per voxel, the number of
-coloured points and the sums of their red, green and blue (float32: the sums
-of uint8 values are exact up to 2^24, 65,000 white points in one voxel, and
-within a relative 1e-7 beyond; 128 kB per block of 20^3 voxels beside the
-statistics' 640 kB). The mean colour of a voxel is sum / count; colour is
-stored only once coloured points arrive (a map fed without colour has none
-and costs nothing more). The colour sums are a parallel array
-(``_colour``, slots x voxels x 4) rather than more columns of the
-statistics, so the free-space kernels that read the statistics are
-unchanged; the compiled accumulate pass adds them in the same walk over the
-points when colours are given (numba compiles that case apart, so adding
-points without colour runs the kernel as before; with colour it costs up to
-a fifth more, docs/benchmarks.md), and the numpy path adds them by
-bincounts as it does the statistics. Clearing a voxel clears its colour; :meth:`VoxelMap.state`
-carries the sums, and :meth:`VoxelMap.from_state` reads states without them.
-
-Free space (object removal): where the sensor sees through a surface of the
-map, the voxels its rays cross are empty now. :meth:`VoxelMap.clear_free_space`
-walks those rays (:mod:`mabdi.voxels.traversal`, Amanatides & Woo,
-stopping a margin before the measured point and never clearing the voxel that
-holds it) and zeroes the statistics of every voxel they cross;
-:meth:`VoxelMap.clear_voxels` zeroes given voxels. Both return the voxels
-that held points (:class:`ClearedVoxels`), which is what a mesher re-meshes
-around, exactly as for the voxels :meth:`VoxelMap.add_points` returns. Emptied
-blocks stay allocated (a later point reuses them).
-
-Neighbourhoods (the seed's sliding window, eqs. 2-3) combine the statistics
-of ``window``^3 voxels. Eqs. (2)-(3) mix Gaussians weighted by p_i = N_i / N;
-in raw moments that is exactly the sum of the shifted sums, which is what
-:meth:`VoxelMap.neighbourhood_moments` computes.
+Free space (object removal): :meth:`VoxelMap.clear_free_space` walks the rays
+that saw through the map (:mod:`mabdi.voxels.traversal`, Amanatides & Woo)
+and zeroes the voxels they cross; :meth:`VoxelMap.clear_voxels` zeroes given
+voxels; both return the voxels that held points (:class:`ClearedVoxels`).
+:meth:`VoxelMap.neighbourhood_moments` combines ``window``^3 voxels (the
+seed's eqs. 2-3, exactly the sum of the shifted sums).
+Details: docs/architecture.md (``mabdi.voxels.voxel_map``).
 """
 
 from __future__ import annotations
