@@ -75,7 +75,8 @@ def test_a_generator_of_frames_with_no_length_runs_the_loop_and_maps_as_the_inde
         len(generator)
     config = with_overrides(config, {"output.checkpoint_every": 2})  # a stream cannot be resumed: none written
     seen = []
-    result = map_frames(generator, config, pose_accuracy=stated["pose_accuracy"], out_dir=tmp_path / "run", progress=seen.append)
+    accuracy = stated["pose_accuracy"]
+    result = map_frames(generator, config, pose_accuracy=accuracy, out_dir=tmp_path / "run", progress=seen.append)
     assert [r.frame for r in result.records] == [r.frame for r in seen] == list(range(FRAMES))
     assert_same_map(result.mesh, indexed.mesh)
     assert [r.cells_total for r in result.records] == [r.cells_total for r in indexed.records]
@@ -147,7 +148,8 @@ def test_a_stream_without_frames_is_a_clear_error():
 
 def test_a_stream_refuses_what_is_not_a_frame_of_the_run():
     frames = list(synthetic(2))
-    other = DepthFrame(np.full((12, 16), 2.0), Intrinsics(fx=20.0, fy=20.0, cx=7.5, cy=5.5, width=16, height=12), np.eye(4))
+    small = Intrinsics(fx=20.0, fy=20.0, cx=7.5, cy=5.5, width=16, height=12)
+    other = DepthFrame(np.full((12, 16), 2.0), small, np.eye(4))
     source = StreamedFrames(iter([frames[0], other]))
     source.read(0)
     with pytest.raises(ValueError, match="frame 1 has other intrinsics than frame 0"):

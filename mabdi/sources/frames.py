@@ -263,13 +263,16 @@ class StreamedFrames(FrameSource):
         except StopIteration:
             self._ended = True
             return False
+        index = self._first + len(self._pulled)
         if not isinstance(frame, DepthFrame):
-            raise TypeError(f"{self.description}: frame {self._first + len(self._pulled)} is a {type(frame).__name__}, not a DepthFrame")
+            raise TypeError(f"{self.description}: frame {index} is a {type(frame).__name__}, not a DepthFrame")
         if self._first_frame is None:
             self._first_frame = frame
-        index = self._first + len(self._pulled)
         if frame.intrinsics != self._first_frame.intrinsics:
-            raise ValueError(f"{self.description}: frame {index} has other intrinsics than frame 0 ({frame.intrinsics} != {self._first_frame.intrinsics})")
+            raise ValueError(
+                f"{self.description}: frame {index} has other intrinsics than frame 0 "
+                f"({frame.intrinsics} != {self._first_frame.intrinsics})"
+            )
         self._pulled.append(frame)
         self._poses.append(np.array(frame.world_from_camera, dtype=np.float64))
         self._timestamps.append(float(frame.timestamp))
@@ -313,7 +316,8 @@ class StreamedFrames(FrameSource):
                 f"{self._first + len(self._pulled)}): streamed frames are read in order"
             )
         if index == self._first + len(self._pulled) and not self._pull():
-            raise IndexError(f"{self.description}: frame {index} out of range (the stream ended after {self._first + len(self._pulled)} frames)")
+            ended = self._first + len(self._pulled)
+            raise IndexError(f"{self.description}: frame {index} out of range (the stream ended after {ended} frames)")
         return index
 
     def read_frame(self, index: int) -> DepthFrame:
