@@ -35,9 +35,9 @@ from mabdi.maps import MeshMap  # noqa: E402
 from mabdi.sensor_noise import SensorNoise  # noqa: E402
 from mabdi.filters.expected_image import FilterExpectedImage  # noqa: E402
 from mabdi.filters.registry import register_surface_filter  # noqa: E402
-from mabdi.loop import MabdiLoop, RunObserver, RunPipeline, Simulation  # noqa: E402
+from mabdi.loop import FrameStep, MabdiLoop, Mapper, RunObserver, RunPipeline, Simulation, map_frames  # noqa: E402
 from mabdi.simulate import SimulatedRig, helical_path  # noqa: E402
-from mabdi.sources import FrameSource, SourceDepthFrames, SourceScene  # noqa: E402
+from mabdi.sources import FrameSource, SourceDepthFrames, SourceScene, StreamedFrames  # noqa: E402
 
 _interrupts.unwatch()  # Python's own handler again, for programs that import mabdi
 
@@ -54,7 +54,9 @@ __all__ = [
     "FilterExpectedImage",
     "FilterPixelGrid",
     "FrameSource",
+    "FrameStep",
     "MabdiLoop",
+    "Mapper",
     "SimulatedRig",
     "SourceDepthFrames",
     "register_surface_filter",
@@ -74,12 +76,14 @@ __all__ = [
     "SensorNoise",
     "Simulation",
     "SourceScene",
+    "StreamedFrames",
     "backproject",
     "check_pose",
     "depth_image",
     "helical_path",
     "load_run_config",
     "look_at",
+    "map_frames",
     "project",
     "raise_pipeline_errors",
 ]

@@ -222,7 +222,8 @@ class MapRefinement:
         pose = self._poses.get(frame)
         if pose is not None:
             return pose
-        if self._source_poses is None:
+        streamed = getattr(loop.source, "frames_known", 0) is None  # its poses: the frames' read so far
+        if self._source_poses is None or (streamed and frame >= len(self._source_poses)):
             try:
                 self._source_poses = np.asarray(loop.source.poses, dtype=np.float64)
             except Exception:  # a source that cannot list its poses: the current one stands in

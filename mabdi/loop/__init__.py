@@ -9,7 +9,11 @@
 """
 
 from mabdi.loop.loop import FrameRecord, MabdiLoop
+from mabdi.loop.mapper import FrameStep, Mapper, map_frames
 from mabdi.loop.run_pipeline import RunObserver, RunPipeline
 from mabdi.loop.runner import RunResult, Simulation
 
-__all__ = ["FrameRecord", "MabdiLoop", "RunObserver", "RunPipeline", "RunResult", "Simulation"]
+__all__ = [
+    "FrameRecord", "FrameStep", "MabdiLoop", "Mapper", "RunObserver", "RunPipeline", "RunResult", "Simulation",
+    "map_frames",
+]

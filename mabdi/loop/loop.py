@@ -211,13 +211,17 @@ class MabdiLoop:
         self._algorithms = tuple(
             a for a in (self.measured, self.registration, self.expected, self.classifier, self.surface, self.world) if a is not None
         )
+        #: The frames the per-frame arrays cover: the source's length when known, else the frames run so far
+        #: (a stream's: the arrays grow as frames come)
+        self._known = source.frames_known or 0
+        self._frames = self._known
         #: (N, 4, 4) the pose each frame was meshed with (registered, or as given); NaN for frames not run
-        self._poses = np.full((len(source), 4, 4), np.nan)
+        self._poses = np.full((self._frames, 4, 4), np.nan)
         #: (N, 3) each frame's registration status (its index in STATUSES; "off" where the source states its poses
         #: exact) and correction (m, degrees), for the check of the run's poses; NaN for frames not run
         #: per frame: registration status code, correction (m, degrees), the share of its valid pixels that saw
         #: through the map (contradicted)
-        self._registrations = np.full((len(source), 4), np.nan)
+        self._registrations = np.full((self._frames, 4), np.nan)
         self._poses_checked = False
         self._given_exact = False  # the last frame's pose stated exact by the source
         self._removed = vtkPolyData()
@@ -265,6 +269,7 @@ class MabdiLoop:
             self.registration.reset()
         if self.noise.calibration is not None:
             self.noise.calibration.reset()
+        self._frames = self._known
         self._poses[:] = np.nan
         self._registrations[:] = np.nan
         self._poses_checked = False
@@ -275,8 +280,8 @@ class MabdiLoop:
         """The loop's state between frames, for checkpoints: the map, refinement's and a stateful surface
         filter's memory. Plain data only (dicts, lists, numbers, strings, numpy arrays: :mod:`mabdi.io.checkpoint`)."""
         state = {
-            "world": self.world.state(), "refinement": self.refinement.state(self.world), "poses": self._poses.copy(),
-            "registrations": self._registrations.copy(),
+            "world": self.world.state(), "refinement": self.refinement.state(self.world),
+            "poses": self._poses[: self._frames].copy(), "registrations": self._registrations[: self._frames].copy(),
         }  # fmt: skip
         if self.surface_capabilities.keeps_state:
             state["surface"] = self.surface.state()
@@ -292,10 +297,14 @@ class MabdiLoop:
         self.refinement.set_state(state["refinement"], self.world)
         if "surface" in state:
             self.surface.set_state(state["surface"])
-        self._poses = np.array(state["poses"], dtype=np.float64)
+        poses = np.array(state["poses"], dtype=np.float64).reshape(-1, 4, 4)
+        self._frames = max(self._known, len(poses))
+        self._poses = np.full((self._frames, 4, 4), np.nan)
+        self._poses[: len(poses)] = poses
+        self._registrations = np.full((self._frames, 4), np.nan)
         if "registrations" in state:  # (checkpoints before it: the check sees the frames run since)
             registrations = np.array(state["registrations"], dtype=np.float64)
-            self._registrations[:, : registrations.shape[1]] = registrations
+            self._registrations[: len(registrations), : registrations.shape[1]] = registrations
         if self.registration is not None:
             self.registration.set_state(state["registration"])
         if self.noise.calibration is not None:
@@ -304,16 +313,35 @@ class MabdiLoop:
     def step(self, index: int) -> FrameRecord:
         """Run frame ``index``: read D, render E, classify, mesh, append. Times each stage. An error that Ctrl-C
         caused (numba's SystemError around it: :func:`mabdi.interrupts.caused_by_interrupt`) is raised as
-        KeyboardInterrupt. After the source's last frame, a :class:`PosesDisagreeWarning` when the run's poses
-        disagree with its depth (:mod:`mabdi.filters.registration_check`), once a run."""
+        KeyboardInterrupt. Frames come in order from any source, one of known length or a stream; the run's
+        poses are checked when it ends (:meth:`finish`)."""
+        self._cover(index)
         with interrupts_unwrapped():
             record = self._step(index)
         judged = "off" if self._given_exact else record.registration
         seen_through = record.contradicted_pixels / record.valid_pixels if record.valid_pixels else np.nan
         self._registrations[index] = (STATUSES.index(judged), record.correction_mm / 1000.0, record.correction_deg, seen_through)
-        if index == len(self._registrations) - 1:
-            self._check_poses()
         return record
+
+    def finish(self) -> None:
+        """End the run: a :class:`PosesDisagreeWarning` when the run's poses disagree with its depth
+        (:mod:`mabdi.filters.registration_check`), once a run. The runner calls it after the last frame; a
+        script stepping the loop itself calls it when its frames end."""
+        self._check_poses()
+
+    def _cover(self, index: int) -> None:
+        """Make the per-frame arrays reach frame ``index`` (a stream's grow as its frames come; doubling)."""
+        if isinstance(index, bool) or not isinstance(index, (int, np.integer)) or index < 0:
+            return  # the source's check_index says what is wrong with it
+        if self._known and index >= self._known:
+            return  # past the end of a source of known length: its check_index says so
+        if index >= len(self._poses):
+            capacity = max(index + 1, 2 * len(self._poses), 16)
+            poses, registrations = np.full((capacity, 4, 4), np.nan), np.full((capacity, 4), np.nan)
+            poses[: len(self._poses)] = self._poses
+            registrations[: len(self._registrations)] = self._registrations
+            self._poses, self._registrations = poses, registrations
+        self._frames = max(self._frames, int(index) + 1)
 
     def _check_poses(self) -> None:
         """Warn (once a run) when the frames' registrations say the poses disagree with the depth. Not for a
@@ -321,7 +349,8 @@ class MabdiLoop:
         if self._poses_checked or self.source.pose_accuracy is not None:
             return
         self._poses_checked = True
-        done = self._registrations[np.isfinite(self._registrations[:, 0])]
+        registrations = self._registrations[: self._frames]
+        done = registrations[np.isfinite(registrations[:, 0])]
         message = poses_disagree([STATUSES[int(code)] for code in done[:, 0]], done[:, 1], done[:, 2], done[:, 3])
         if message is not None:
             warnings.warn(message, PosesDisagreeWarning, stacklevel=3)
@@ -436,7 +465,7 @@ class MabdiLoop:
     def trajectory(self) -> np.ndarray:
         """(N, 4, 4) world_from_camera each frame was meshed with (registered, else as given), in the world
         frame; NaN for frames not run."""
-        return np.einsum("ij,njk->nik", self.world_from_map(), self._poses)
+        return np.einsum("ij,njk->nik", self.world_from_map(), self._poses[: self._frames])
 
     def expected_image(self) -> vtkImageData | None:
         """E of the last frame, or None when the classifier is off (E is not rendered then)."""

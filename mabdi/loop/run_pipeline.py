@@ -27,6 +27,7 @@ checkpoint's frame. More: docs/architecture.md (``mabdi.loop.run_pipeline``).
 
 from __future__ import annotations
 
+import itertools
 import sys
 import time
 import warnings
@@ -125,13 +126,16 @@ class DepthImages(RunObserver):
 
 
 class Checkpoints(RunObserver):
-    """``output.checkpoint_every = N``: the run's state after every N frames (not after the last), atomically."""
+    """``output.checkpoint_every = N``: the run's state after every N frames (not after the last), atomically.
+    None for a stream of frames (:class:`~mabdi.sources.frames.StreamedFrames`): it cannot be read again to resume."""
 
     def __init__(self, every: int) -> None:
         self.every = int(every)
 
     def on_frame(self, pipeline: RunPipeline, record) -> None:
         done = record.frame + 1
+        if pipeline.frames is None:
+            return
         if done % self.every == 0 and done < pipeline.frames:
             pipeline.write_checkpoint(done)
 
@@ -219,7 +223,8 @@ class RunPipeline:
     # -- the steps ---------------------------------------------------------------------------------
 
     def _source(self) -> None:
-        """The frames to run: the simulation's source (simulated or recorded), read by the loop frame by frame."""
+        """The frames to run: the simulation's source (simulated, recorded or streamed), read by the loop frame by
+        frame; ``frames`` is None while a stream's length is not known (it is set when the stream ends)."""
         self.frames = self.simulation.frames
 
     def _outputs(self) -> None:
@@ -258,13 +263,19 @@ class RunPipeline:
             self.records = FrameRecords(self.resume_from.records)
             self.loop_seconds = float(self.resume_from.seconds)
         watching = self._hooks("on_frame")
-        for i in range(first, self.frames):
+        source = self.simulation.source
+        for i in range(first, self.frames) if self.frames is not None else itertools.count(first):
             start = time.perf_counter()
+            if self.frames is None and not source.has_frame(i):  # a stream: read until it ends
+                self.loop_seconds += time.perf_counter() - start
+                self.frames = i
+                break
             record = loop.step(i)
             self.loop_seconds += time.perf_counter() - start
             self.records.append(record)
             for on_frame in watching:
                 on_frame(self, record)
+        loop.finish()
 
     def _results(self) -> None:
         """The RunResult, and the run's files when there is a folder; ``on_loop_end``."""

@@ -84,13 +84,18 @@ class Simulation:
         self.source = source
         self.scene = scene
         self.loop = MabdiLoop.from_config(config, source)
-        self.poses = source.poses
+        self._poses = source.poses if source.frames_known is not None else None
         self.true_poses = source.true_poses
 
     @property
-    def frames(self) -> int:
-        """Number of frames a run steps through (the source's)."""
-        return len(self.source)
+    def poses(self) -> np.ndarray:
+        """(N, 4, 4) world_from_camera as the frames give them (a stream's: those of the frames read so far)."""
+        return self.source.poses if self._poses is None else self._poses
+
+    @property
+    def frames(self) -> int | None:
+        """Number of frames a run steps through (the source's); None for a stream, whose end is not known yet."""
+        return self.source.frames_known
 
     def step(self, i: int) -> FrameRecord:
         """Run frame ``i`` (see :meth:`MabdiLoop.step`)."""
@@ -98,9 +103,12 @@ class Simulation:
 
     def meshed_poses(self) -> np.ndarray:
         """(N, 4, 4) the poses the frames were meshed with: registered to the map, else as given (frames not run too)."""
-        trajectory = self.loop.trajectory()
+        trajectory, given = self.loop.trajectory(), self.poses
+        if len(given) != len(trajectory):  # a stream's: the frames read so far, the frames run so far
+            count = min(len(given), len(trajectory))
+            trajectory, given = trajectory[:count], given[:count]
         run = np.isfinite(trajectory).all(axis=(1, 2))
-        return np.where(run[:, None, None], trajectory, self.poses)
+        return np.where(run[:, None, None], trajectory, given)
 
     def render_backend(self) -> dict:
         """The backend that rendered (the sensor's for simulated frames, else E's)."""

@@ -3,7 +3,7 @@
 layouts)."""
 
 from mabdi.sources.assets import bunny_path, read_mesh
-from mabdi.sources.frames import FrameList, FrameSource, SourceDepthFrames
+from mabdi.sources.frames import FrameList, FrameSource, SourceDepthFrames, StreamedFrames, StreamOrderError
 from mabdi.sources.redwood import RedwoodSequence, write_redwood
 from mabdi.sources.replica import ReplicaSequence, write_replica
 from mabdi.sources.rosbag2 import Rosbag2Sequence, write_rosbag2
@@ -15,6 +15,8 @@ from mabdi.sources.tum import TumSequence, write_tum
 
 __all__ = [
     "FrameList",
+    "StreamedFrames",
+    "StreamOrderError",
     "FrameSource",
     "RedwoodSequence",
     "ReplicaSequence",

@@ -67,6 +67,16 @@ class FrameSource:
     def __len__(self) -> int:
         raise NotImplementedError
 
+    @property
+    def frames_known(self) -> int | None:
+        """The number of frames when it is known (``len(self)``); None for a stream whose end is not reached yet
+        (:class:`StreamedFrames`, whose ``len()`` raises TypeError)."""
+        return len(self)
+
+    def has_frame(self, index: int) -> bool:
+        """Whether frame ``index`` exists: ``index < len(self)`` (a stream reads ahead to find out)."""
+        return 0 <= index < len(self)
+
     def read(self, index: int) -> DepthFrame:
         """Frame ``index``: depth (float32 metres, NaN = no return), intrinsics, pose, ``frame == index``, timestamp.
 
@@ -202,6 +212,153 @@ class FrameList(FrameSource):
     def read_frame(self, index: int) -> DepthFrame:
         frame = self._frames[index]
         return DepthFrame(frame.depth, frame.intrinsics, frame.world_from_camera, index, frame.timestamp, frame.colour)
+
+
+class StreamOrderError(IndexError):
+    """A frame of a :class:`StreamedFrames` asked for out of order: one already passed, or one ahead of the next."""
+
+
+class StreamedFrames(FrameSource):
+    """A source over any iterable of :class:`~mabdi.depth.DepthFrame` (a generator, a camera's feed), read in order.
+
+    Reading frame ``i`` pulls the iterable's next frame; the current frame is kept, so it may be read again,
+    but a frame already passed, or one beyond the next, raises :class:`StreamOrderError`. The length is not
+    known: ``len()`` raises TypeError and :attr:`frames_known` is None until the iterable ends. ``intrinsics``
+    are the first frame's (read ahead when asked before frame 0; an iterable with no frame is a ValueError).
+    ``poses`` and ``timestamps`` are the frames' read so far. ``noise``, ``pose_accuracy`` and
+    ``loses_returns`` are what the maker of the frames states (as :class:`FrameList`); frames are renumbered
+    0, 1, ... in the order they come.
+    """
+
+    def __init__(
+        self,
+        frames,
+        description: str = "streamed frames",
+        noise: SensorNoise | None = None,
+        pose_accuracy: PoseNoise | None = None,
+        loses_returns: bool = False,
+    ) -> None:
+        if noise is not None and not isinstance(noise, SensorNoise):
+            raise TypeError(f"StreamedFrames: noise must be a SensorNoise or None, got {noise!r}")
+        if pose_accuracy is not None and not isinstance(pose_accuracy, PoseNoise):
+            raise TypeError(f"StreamedFrames: pose_accuracy must be a PoseNoise or None, got {pose_accuracy!r}")
+        self._iterator = iter(frames)
+        self.description = description
+        self._noise = noise
+        self._pose_accuracy = pose_accuracy
+        self.loses_returns = bool(loses_returns)
+        self._pulled: list[DepthFrame] = []  # at most two: the current frame and one read ahead
+        self._first = 0  # the index of self._pulled[0]
+        self._ended = False
+        self._poses: list[np.ndarray] = []
+        self._timestamps: list[float] = []
+        self._first_frame: DepthFrame | None = None
+
+    def _pull(self) -> bool:
+        """Take the iterable's next frame (False when it has ended)."""
+        if self._ended:
+            return False
+        try:
+            frame = next(self._iterator)
+        except StopIteration:
+            self._ended = True
+            return False
+        index = self._first + len(self._pulled)
+        if not isinstance(frame, DepthFrame):
+            raise TypeError(f"{self.description}: frame {index} is a {type(frame).__name__}, not a DepthFrame")
+        if self._first_frame is None:
+            self._first_frame = frame
+        if frame.intrinsics != self._first_frame.intrinsics:
+            raise ValueError(
+                f"{self.description}: frame {index} has other intrinsics than frame 0 "
+                f"({frame.intrinsics} != {self._first_frame.intrinsics})"
+            )
+        self._pulled.append(frame)
+        self._poses.append(np.array(frame.world_from_camera, dtype=np.float64))
+        self._timestamps.append(float(frame.timestamp))
+        return True
+
+    @property
+    def intrinsics(self):
+        if self._first_frame is None and not self._pull():
+            raise ValueError(f"{self.description}: the frames are empty (the iterable yielded no frame)")
+        return self._first_frame.intrinsics
+
+    def __len__(self) -> int:
+        raise TypeError(f"{self.description}: a stream of frames has no length (frames_known is None until it ends)")
+
+    @property
+    def frames_known(self) -> int | None:
+        return self._first + len(self._pulled) if self._ended else None
+
+    @property
+    def frames_read(self) -> int:
+        """How many frames the iterable has given so far."""
+        return len(self._poses)
+
+    def has_frame(self, index: int) -> bool:
+        while index >= self._first + len(self._pulled) and self._pull():
+            pass
+        return 0 <= index < self._first + len(self._pulled)
+
+    def check_index(self, index: int) -> int:
+        if isinstance(index, bool) or not isinstance(index, (int, np.integer)) or index < 0:
+            raise IndexError(f"{self.description}: frame {index!r} out of range (frames are 0, 1, ...)")
+        index = int(index)
+        if index < self._first:
+            raise StreamOrderError(
+                f"{self.description}: frame {index} was passed already (the stream is at frame {self._first}): "
+                "streamed frames are read once, in order"
+            )
+        if index > self._first + len(self._pulled):
+            raise StreamOrderError(
+                f"{self.description}: frame {index} is ahead of the stream (its next frame is "
+                f"{self._first + len(self._pulled)}): streamed frames are read in order"
+            )
+        if index == self._first + len(self._pulled) and not self._pull():
+            ended = self._first + len(self._pulled)
+            raise IndexError(f"{self.description}: frame {index} out of range (the stream ended after {ended} frames)")
+        return index
+
+    def read_frame(self, index: int) -> DepthFrame:
+        drop = index - self._first  # frames before this one are passed
+        del self._pulled[:drop]
+        self._first = index
+        frame = self._pulled[0]
+        return DepthFrame(frame.depth, frame.intrinsics, frame.world_from_camera, index, frame.timestamp, frame.colour)
+
+    @property
+    def poses(self) -> np.ndarray:
+        """(n, 4, 4) the given poses of the frames read so far."""
+        return np.array(self._poses, dtype=np.float64).reshape(-1, 4, 4)
+
+    @property
+    def timestamps(self) -> np.ndarray:
+        """(n,) the timestamps of the frames read so far."""
+        return np.array(self._timestamps, dtype=np.float64)
+
+    @property
+    def has_colour(self) -> bool:
+        try:
+            self.intrinsics  # the first frame, read ahead
+        except ValueError:
+            return False
+        return self._first_frame.colour is not None
+
+    @property
+    def noise(self) -> SensorNoise | None:
+        return self._noise
+
+    @property
+    def pose_accuracy(self) -> PoseNoise | None:
+        return self._pose_accuracy
+
+    def __iter__(self) -> Iterator[DepthFrame]:
+        """The frames from the current one (the first, before any is read) to the end of the stream."""
+        index = self._first
+        while self.has_frame(index):
+            yield self.read(index)
+            index += 1
 
 
 class FrameSubset(FrameSource):
