@@ -16,6 +16,7 @@ from mabdi.config import RunConfig
 from mabdi.depth import DepthFrame
 from mabdi.loop.loop import FrameRecord, MabdiLoop
 from mabdi.loop.run_outputs import RunResult
+from mabdi.loop.runner import Simulation
 from mabdi.polydata import transformed_polydata
 from mabdi.pose_noise import PoseNoise
 from mabdi.sources.frames import StreamedFrames
@@ -176,8 +177,6 @@ def map_frames(
     ``progress(record)`` is called after each frame; not evaluated, and no checkpoints: a stream cannot be
     read again). Returns its :class:`RunResult` (``mesh``, ``records``). ``pose_accuracy`` and
     ``loses_returns`` as :class:`Mapper`'s. Frames that are empty: a ValueError."""
-    from mabdi.loop.runner import Simulation  # the runner imports this module's neighbours
-
     config = config if config is not None else RunConfig()
     source = StreamedFrames(frames, description, pose_accuracy=pose_accuracy, loses_returns=loses_returns)
     simulation = Simulation(config, source=source)
