@@ -74,7 +74,6 @@ from vtkmodules.vtkCommonDataModel import vtkImageData, vtkPolyData
 from mabdi.algorithm import MabdiAlgorithm
 from mabdi.camera import pixel_rays
 from mabdi.depth import (
-    colour_point_array,
     depth_array,
     image_colour,
     image_intrinsics,
@@ -86,6 +85,7 @@ from mabdi.depth import (
 )
 from mabdi.errors import ConfigError, check_switch
 from mabdi.filters.depth_smoothing import measured_around, smooth_depth_by_noise
+from mabdi.maps.mesh_map import colour_point_array
 from mabdi.polydata import triangles_polydata
 from mabdi.spherical import SphericalGeometry, on_for_range_images
 

@@ -95,7 +95,7 @@ except
   runs in front of the corner): no vote either way. An object thinner than
   5 cm lying on a surface is therefore not removed.
 
-**The rule** (:func:`update_log_odds`): each face keeps the log-odds L that it
+**The rule** (:func:`mabdi.world_map.update_log_odds`): each face keeps the log-odds L that it
 is gone, starting at 0 when the face is made. In a frame where a face gets
 votes, a majority of contradictions adds ``hit`` (1.1: a probability of 0.75
 that one such frame means the face is gone) and counts the frame; otherwise
@@ -468,15 +468,3 @@ def votes_between_pixels(
         beyond = (d * length - t) > needed * length
     hit[faces] = near_face & beyond
     return hit
-
-
-def update_log_odds(
-    evidence: np.ndarray, frames: np.ndarray, contradicted: np.ndarray, confirmed: np.ndarray, parameters: RemovalParameters
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """One frame of the rule in the module docs: (new log-odds, new contradicting-frame counts, removed mask)."""
-    against = contradicted > confirmed
-    evidence = evidence + np.where(against, parameters.hit, np.where(confirmed > 0, -parameters.miss, 0.0))
-    evidence = np.clip(evidence, parameters.floor, parameters.ceiling).astype(np.float32)
-    frames = (frames + against).astype(np.uint16)
-    gone = (evidence >= parameters.threshold) & (frames >= parameters.min_frames)
-    return evidence, frames, gone
