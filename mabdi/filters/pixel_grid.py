@@ -240,7 +240,3 @@ def pixel_grid_surface(
     renumber = np.cumsum(used) - 1
     camera_points = rays.reshape(-1, 3)[pixel_ids] * depth.ravel()[pixel_ids, None]
     return camera_points @ pose[:3, :3].T + pose[:3, 3], renumber[triangles], pixel_ids
-
-
-#: The former name of :class:`FilterPixelGrid`.
-FilterDepthImageToSurface = FilterPixelGrid

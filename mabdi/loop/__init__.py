@@ -10,6 +10,7 @@
 
 from mabdi.loop.loop import FrameRecord, MabdiLoop
 from mabdi.loop.run_pipeline import RunObserver, RunPipeline
-from mabdi.loop.runner import RunResult, Simulation
+from mabdi.loop.run_outputs import RunResult
+from mabdi.loop.runner import Simulation
 
 __all__ = ["FrameRecord", "MabdiLoop", "RunObserver", "RunPipeline", "RunResult", "Simulation"]
