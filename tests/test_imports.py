@@ -212,20 +212,20 @@ def test_no_import_cycles():
 # run that module too. A module no entry names fails test_every_module_has_a_layer: a new module is
 # placed here on purpose.
 LAYERS = {
-    # 0 core: depth frames, cameras, meshes as VTK data, noise models; numpy and VTK only
+    # 0 core: cameras, depth images, meshes as VTK data, noise models; nothing of mabdi above this layer
     "mabdi.errors": 0,  # the exceptions every layer raises
-    "mabdi.interrupts": 0,  # Ctrl-C bookkeeping, imported first by mabdi/__init__
-    "mabdi.algorithm": 0,  # MabdiAlgorithm, the base of every VTK filter of mabdi
+    "mabdi.interrupts": 0,  # notes of Ctrl-C, watched from the first import of mabdi/__init__
+    "mabdi.algorithm": 0,  # MabdiAlgorithm, the base class of every filter and source
     "mabdi.camera": 0,  # intrinsics, poses, projection
     "mabdi.spherical": 0,  # a LiDAR's spherical image geometry
-    "mabdi.noise_calibration": 0,  # online estimate of the sensor's noise
+    "mabdi.noise_calibration": 0,  # the sensor's sigma(z) learnt online
     "mabdi.sensor_noise": 0,  # the noise model every depth image carries
-    "mabdi.pose_noise": 0,  # noise on the poses a sensor reports
+    "mabdi.pose_noise": 0,  # the poses a robot gives against those it had
     "mabdi.depth": 0,  # depth images as vtkImageData and their arrays
-    "mabdi.depth_holes": 0,  # where a real sensor loses returns
-    "mabdi.face_identity": 0,  # face ids of a map's patches in rendered images
+    "mabdi.depth_holes": 0,  # one-pixel holes in a depth image, filled
+    "mabdi.face_identity": 0,  # which map face each pixel of the expected image shows
     "mabdi.polydata": 0,  # triangle meshes as vtkPolyData and numpy
-    "mabdi.polydata_kernels": 0,  # polydata's numba kernels
+    "mabdi.polydata_kernels": 0,  # numba per-face work on a polydata's arrays
     # 1 the map as data: MeshMap and what is computed on it (colours, layers, labels, planning); core only
     "mabdi.maps": 1,
     # 2 files: atomic writes, checkpoints, run folders, mesh and map files (which store MeshMaps)
@@ -233,8 +233,8 @@ LAYERS = {
     # 3 sensor data: recorded sequences, frame sources, mesh assets (read through io)
     "mabdi.sources": 3,
     "mabdi.io.fingerprint": 3,  # hashes a run's inputs, its scene's meshes found by sources.assets
-    "mabdi.simulate.routes": 3,  # named routes, some read from recorded sequences; config checks [path] by them
-    "mabdi.simulate.lidar_sweep": 3,  # a spinning LiDAR's sweep; config checks [sweep] by it
+    "mabdi.simulate.routes": 3,  # waypoint and trajectory paths (trajectories read as sources do); config checks [path] by them
+    "mabdi.simulate.lidar_sweep": 3,  # a spinning LiDAR's sweep and its settings; config checks them
     # 4 the voxel planes' storage
     "mabdi.voxels": 4,
     # 5 the loop's world map: patches of faces and their removal evidence
@@ -245,12 +245,12 @@ LAYERS = {
     "mabdi.config": 7,
     # 8 what a config makes: the simulated scene, the rig and its recordings
     "mabdi.simulate": 8,
-    "mabdi.sources.scene": 8,  # the scene of a run config
+    "mabdi.sources.scene": 8,  # the simulated world, made from a config's [scene]
     # 9 the loop and the runs that drive it
     "mabdi.loop": 9,
     # 10 scores of runs and maps
     "mabdi.evaluate": 10,
-    # 11 what runs on top of runs: sweeps over configs, viewers, dashboards, movies
+    # 11 on top of runs and their scores: sweeps of runs, viewers, dashboards, movies
     "mabdi.sweep": 11,
     "mabdi.viz": 11,
     # 12 the command line
