@@ -24,7 +24,7 @@ from vtkmodules.util.numpy_support import vtk_to_numpy  # noqa: E402
 import mabdi  # noqa: E402
 from mabdi.evaluate import distances_to_mesh  # noqa: E402
 from mabdi.evaluate.bench import machine_info  # noqa: E402
-from mabdi.filters.depth_to_surface import FilterDepthImageToSurface  # noqa: E402
+from mabdi.filters.pixel_grid import FilterPixelGrid  # noqa: E402
 from mabdi.filters.quadtree import FilterQuadTree, QuadTreeParameters  # noqa: E402
 from mabdi.io.plots import write_line_plot  # noqa: E402
 
@@ -67,7 +67,7 @@ def main():
         faces, ms, median, worst = measure(FilterQuadTree(QuadTreeParameters(n_t=n_t, triangles=True)), sensor, poses, truth)
         rows.append((n_t, faces))
         print(f"| quadtree | {n_t} | {faces:,.0f} | {ms:.1f} | {median:.2f} / {worst:.1f} |", flush=True)
-    faces, ms, median, worst = measure(FilterDepthImageToSurface(), sensor, poses, truth)
+    faces, ms, median, worst = measure(FilterPixelGrid(), sensor, poses, truth)
     print(f"| pixel grid | - | {faces:,.0f} | {ms:.1f} | {median:.2f} / {worst:.1f} |")
     n_t, counts = zip(*rows, strict=True)
     path = write_line_plot(

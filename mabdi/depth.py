@@ -446,16 +446,6 @@ def colours_at(colour: np.ndarray, intrinsics: Intrinsics, camera_points: np.nda
     return colour[v, u]
 
 
-def colour_point_array(rgb: np.ndarray):
-    """A vtkUnsignedCharArray of (N, 3) uint8 RGB (a copy) named as a map's vertex colours
-    (:data:`mabdi.maps.mesh_map.COLOUR_LAYER`, Mesh Tools' ``rgb_colors``)."""
-    from mabdi.maps.mesh_map import COLOUR_LAYER
-
-    array = numpy_to_vtk(np.ascontiguousarray(rgb, dtype=np.uint8).reshape(-1, 3), deep=True)
-    array.SetName(COLOUR_LAYER)
-    return array
-
-
 def depth_array(image, raw: bool = False) -> np.ndarray:
     """(H, W) float32 depth of a depth image (row 0 is the top), non-returns as NaN (:func:`returns`).
 

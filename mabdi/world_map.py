@@ -52,7 +52,6 @@ from vtkmodules.vtkFiltersCore import vtkAppendPolyData
 
 from mabdi.face_identity import FaceIdTable, block_address, rows_by_block
 from mabdi.polydata_kernels import triangle_centres
-from mabdi.filters.removal import update_log_odds
 from mabdi.polydata import extract_polys, polydata_from_state, split_polys, polydata_to_state, triangle_normals
 
 FRAME_CELL_ARRAY = "frame"
@@ -144,6 +143,19 @@ class Chunk:
         """(xmin, xmax, ymin, ymax, zmin, zmax) of its patches (metres)."""
         boxes = np.array([p.polydata.GetBounds() for p in self.patches.values()])
         return (boxes[:, 0].min(), boxes[:, 1].max(), boxes[:, 2].min(), boxes[:, 3].max(), boxes[:, 4].min(), boxes[:, 5].max())
+
+
+def update_log_odds(
+    evidence: np.ndarray, frames: np.ndarray, contradicted: np.ndarray, confirmed: np.ndarray, parameters
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One frame of removal's evidence rule (:mod:`mabdi.filters.removal`, "The rule"; ``parameters``: its
+    :class:`~mabdi.filters.removal.RemovalParameters`): (new log-odds, new contradicting-frame counts, removed mask)."""
+    against = contradicted > confirmed
+    evidence = evidence + np.where(against, parameters.hit, np.where(confirmed > 0, -parameters.miss, 0.0))
+    evidence = np.clip(evidence, parameters.floor, parameters.ceiling).astype(np.float32)
+    frames = (frames + against).astype(np.uint16)
+    gone = (evidence >= parameters.threshold) & (frames >= parameters.min_frames)
+    return evidence, frames, gone
 
 
 def patch_triangles(patch: vtkPolyData) -> np.ndarray | None:
@@ -557,7 +569,7 @@ class WorldMap:
 
         ``codes``: faces voted on this frame (of the expected image whose ``table`` is given);
         ``contradicted`` / ``confirmed``: their pixel votes. The rule is
-        :func:`mabdi.filters.removal.update_log_odds` (``parameters``: :class:`~mabdi.filters.removal.RemovalParameters`);
+        :func:`update_log_odds` (``parameters``: :class:`~mabdi.filters.removal.RemovalParameters`);
         besides, a face that shared an edge with a face removed before (:attr:`Patch.beside_removed`) goes
         as soon as its evidence is above 0. That is the rule by which contradicted faces follow a removed
         neighbour (:meth:`_removed_with`), kept when the neighbour went first: a departed object's small

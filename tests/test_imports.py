@@ -203,3 +203,107 @@ def test_no_import_cycles():
     graph = import_graph()
     cycles = [" -> ".join(shortest_cycle(graph, members)) for members in strongly_connected(graph)]
     assert not cycles, "import cycles in mabdi:\n" + "\n".join(cycles)
+
+
+# The layers of mabdi, bottom up: a module may import modules of its own layer or of a layer below, never
+# of a layer above. A module's layer is that of the longest entry naming it or a package above it
+# ("mabdi" names only the package's __init__). A package's __init__ re-exports its modules, so it stands
+# at the highest layer among them (mabdi.sources at 8, with sources.scene): importing it from below would
+# run that module too. A module no entry names fails test_every_module_has_a_layer: a new module is
+# placed here on purpose.
+LAYERS = {
+    # 0 core: cameras, depth images, meshes as VTK data, noise models; nothing of mabdi above this layer
+    "mabdi.errors": 0,  # the exceptions every layer raises
+    "mabdi.interrupts": 0,  # notes of Ctrl-C, watched from the first import of mabdi/__init__
+    "mabdi.algorithm": 0,  # MabdiAlgorithm, the base class of every filter and source
+    "mabdi.camera": 0,  # intrinsics, poses, projection
+    "mabdi.spherical": 0,  # a LiDAR's spherical image geometry
+    "mabdi.noise_calibration": 0,  # the sensor's sigma(z) learnt online
+    "mabdi.sensor_noise": 0,  # the noise model every depth image carries
+    "mabdi.pose_noise": 0,  # the poses a robot gives against those it had
+    "mabdi.depth": 0,  # depth images as vtkImageData and their arrays
+    "mabdi.depth_holes": 0,  # one-pixel holes in a depth image, filled
+    "mabdi.face_identity": 0,  # which map face each pixel of the expected image shows
+    "mabdi.polydata": 0,  # triangle meshes as vtkPolyData and numpy
+    "mabdi.polydata_kernels": 0,  # numba per-face work on a polydata's arrays
+    # 1 the map as data: MeshMap and what is computed on it (colours, layers, labels, planning); core only
+    "mabdi.maps": 1,
+    # 2 files: atomic writes, checkpoints, run folders, mesh and map files (which store MeshMaps)
+    "mabdi.io": 2,
+    # 3 sensor data: recorded sequences, frame sources, mesh assets (read through io)
+    "mabdi.sources": 3,
+    "mabdi.io.fingerprint": 3,  # hashes a run's inputs, its scene's meshes found by sources.assets
+    "mabdi.simulate.routes": 3,  # waypoint and trajectory paths (trajectories read as sources do); config checks [path] by them
+    "mabdi.simulate.lidar_sweep": 3,  # a spinning LiDAR's sweep and its settings; config checks them
+    # 4 the voxel planes' storage
+    "mabdi.voxels": 4,
+    # 5 the loop's world map: patches of faces and their removal evidence
+    "mabdi.world_map": 5,
+    # 6 the pipeline's VTK filters and their rules (surfaces, registration, classifier, removal, refinement)
+    "mabdi.filters": 6,
+    # 7 a run's config, built of the filters' and models' parameters
+    "mabdi.config": 7,
+    # 8 what a config makes: the simulated scene, the rig and its recordings
+    "mabdi.simulate": 8,
+    "mabdi.sources.scene": 8,  # the simulated world, made from a config's [scene]
+    # 9 the loop and the runs that drive it
+    "mabdi.loop": 9,
+    # 10 scores of runs and maps
+    "mabdi.evaluate": 10,
+    # 11 on top of runs and their scores: sweeps of runs, viewers, dashboards, movies
+    "mabdi.sweep": 11,
+    "mabdi.viz": 11,
+    # 12 the command line
+    "mabdi.cli": 12,
+    # 13 the package's public face, which imports from every layer
+    "mabdi": 13,
+}
+
+
+def layer_of(module: str, layers: dict[str, int] = LAYERS) -> int | None:
+    """The layer an entry gives a module: the longest entry naming it or a package above it; None when none does."""
+    names = [key for key in layers if module == key or (key != "mabdi" and module.startswith(key + "."))]
+    return layers[max(names, key=len)] if names else None
+
+
+def module_layers(layers: dict[str, int] = LAYERS) -> dict[str, int | None]:
+    """Every module's layer; a package's ``__init__`` the highest of its own and its modules' (it re-exports them)."""
+    files = module_files()
+    own = {name: layer_of(name, layers) for name in files}
+    result = dict(own)
+    for name, path in files.items():
+        if path.name == "__init__.py" and own[name] is not None:
+            inside = [own[other] for other in files if other.startswith(name + ".") and own[other] is not None]
+            result[name] = max([own[name], *inside])
+    return result
+
+
+def test_layer_of_takes_the_longest_entry():
+    layers = {"mabdi": 9, "mabdi.a": 1, "mabdi.a.b": 2}
+    assert layer_of("mabdi.a.b", layers) == 2 and layer_of("mabdi.a.b.c", layers) == 2
+    assert layer_of("mabdi.a.c", layers) == 1 and layer_of("mabdi.ab", layers) is None
+    assert layer_of("mabdi", layers) == 9
+    assert module_layers()["mabdi.sources"] == LAYERS["mabdi.sources.scene"] > layer_of("mabdi.sources")
+
+
+def test_every_module_has_a_layer():
+    missing = sorted(name for name in module_files() if layer_of(name) is None)
+    assert not missing, "modules of mabdi in no layer (add them to LAYERS in tests/test_imports.py):\n" + "\n".join(missing)
+
+
+def test_every_layer_entry_names_a_module():
+    modules = module_files()
+    stale = sorted(key for key in LAYERS if not any(name == key or name.startswith(key + ".") for name in modules))
+    assert not stale, f"LAYERS names modules mabdi does not have: {stale}"
+
+
+def test_no_import_from_a_layer_above():
+    graph = import_graph()
+    layer = module_layers()
+    upward = [
+        f"{name} ({layer[name]}) -> {target} ({layer[target]})"
+        for name, targets in sorted(graph.items())
+        for target in sorted(targets)
+        if None not in (layer[name], layer[target]) and layer[target] > layer[name]
+    ]
+    assert not upward, "imports from a layer above (see LAYERS in tests/test_imports.py):\n" + "\n".join(upward)

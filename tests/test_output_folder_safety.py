@@ -12,7 +12,8 @@ from mabdi.config import load_run_config, set_value
 from mabdi.io.fingerprint import recording_files
 from mabdi.io.run_folder import LOCK, MANIFEST, STAGING, OutputError, RunFolder, run_writes
 from mabdi.loop import Simulation
-from mabdi.loop.runner import CHECKPOINT, recorded_simulation
+from mabdi.loop.run_outputs import CHECKPOINT
+from mabdi.loop.runner import recorded_simulation
 
 TABLE = str(REPO / "scenes" / "table.toml")
 

@@ -7,7 +7,7 @@ from vtkmodules.util.numpy_support import vtk_to_numpy
 
 from mabdi.camera import Intrinsics, backproject, look_at
 from mabdi.depth import depth_image
-from mabdi.filters.pixel_grid import FilterDepthImageToSurface, FilterPixelGrid, PixelGridParameters, pixel_grid_triangles
+from mabdi.filters.pixel_grid import FilterPixelGrid, PixelGridParameters, pixel_grid_triangles
 
 SMALL = Intrinsics(fx=52.5, fy=52.5, cx=32.0, cy=24.0, width=64, height=48)
 
@@ -75,12 +75,11 @@ def test_triangle_ids_follow_the_square_layout():
     assert [1, 4, 5] in triangles.tolist()
 
 
-def test_the_former_name_is_an_alias_and_parameters_are_checked():
+def test_parameters_are_checked():
     import pytest
 
     from mabdi.errors import ConfigError
 
-    assert FilterDepthImageToSurface is FilterPixelGrid
     assert FilterPixelGrid(0.1).max_jump == 0.1 and FilterPixelGrid().parameters == PixelGridParameters()
     with pytest.raises(ConfigError, match="max_jump must be > 0"):
         FilterPixelGrid(PixelGridParameters(max_jump=0.0))

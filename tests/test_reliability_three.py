@@ -24,7 +24,7 @@ from mabdi.errors import ConfigError
 from mabdi.io.checkpoint import CheckpointError, decode, encode, read_tree, write_tree
 from mabdi.io.run_folder import LOCK, STAGING, OutputError, RunFolder
 from mabdi.loop import Simulation
-from mabdi.loop.runner import CHECKPOINT, OLD_CHECKPOINT
+from mabdi.loop.run_outputs import CHECKPOINT, OLD_CHECKPOINT
 from mabdi.sources.frames import FrameList
 from mabdi.sources.rosbag2 import _TYPESTORE, Rosbag2Sequence, write_rosbag2
 from mabdi.sources.sequences import SequenceError, interpolate_poses

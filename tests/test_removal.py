@@ -13,9 +13,10 @@ from mabdi.camera import Intrinsics, project
 from mabdi.depth import DepthFrame, depth_image, image_pose
 from mabdi.filters.depth_image import DepthRenderer
 from mabdi.filters.registration import RegistrationParameters
-from mabdi.filters.removal import RemovalParameters, depth_edges, update_log_odds
+from mabdi.filters.removal import RemovalParameters, depth_edges
 from mabdi.face_identity import FaceCodes, FaceIdTable
 from mabdi.polydata import polydata_arrays
+from mabdi.world_map import update_log_odds
 from mabdi.sources.frames import FrameList
 
 SMALL = Intrinsics(fx=160, fy=160, cx=80, cy=60, width=160, height=120)

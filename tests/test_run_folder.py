@@ -11,7 +11,7 @@ from conftest import REPO
 from mabdi.config import load_run_config, set_value
 from mabdi.io.run_folder import MANIFEST, STAGING, OutputError, RunFolder
 from mabdi.loop import Simulation
-from mabdi.loop.runner import CHECKPOINT
+from mabdi.loop.run_outputs import CHECKPOINT
 
 
 def table(frames: int, surface: str = "pixel_grid", **values):

@@ -19,7 +19,7 @@ from mabdi.evaluate import distances_to_mesh
 from mabdi.filters.depth_image import FilterDepthImage
 from mabdi.loop import Simulation
 from mabdi.io.run_folder import OutputError
-from mabdi.loop.runner import METRICS_COLUMNS
+from mabdi.loop.run_outputs import METRICS_COLUMNS
 from mabdi.polydata import triangles_polydata
 
 

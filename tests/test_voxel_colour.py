@@ -182,7 +182,7 @@ def test_a_coloured_voxel_planes_run_resumes_with_its_colours(tmp_path):
     from mabdi.config import load_run_config
     from mabdi.io.run_folder import STAGING
     from mabdi.loop import Simulation
-    from mabdi.loop.runner import CHECKPOINT
+    from mabdi.loop.run_outputs import CHECKPOINT
 
     def config():
         config = load_run_config(coloured_table(tmp_path, frames=6))

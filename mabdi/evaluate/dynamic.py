@@ -283,7 +283,7 @@ class GhostRun:
     ghost share) after each measured frame; ``by_object``: departure name ->
     (frame, share of the map's area that is that object's ghost);
     ``departures`` with their ``seen_at``; ``result``: the
-    :class:`~mabdi.loop.runner.RunResult` (None for a map not made by the loop).
+    :class:`~mabdi.loop.run_outputs.RunResult` (None for a map not made by the loop).
     ``loop_seconds``: time in the loop's steps alone (not the measuring).
     ``removal``: static and dynamic accuracy of the final map
     (:mod:`mabdi.evaluate.removal_accuracy`), None when no map was measured.

@@ -6,7 +6,7 @@ numba kernels, the surface registry, the rules of removal and refinement (the lo
 
 from mabdi.filters.classifier import ClassifierParameters, FilterClassifier
 from mabdi.filters.depth_image import DepthRenderer, FilterDepthImage
-from mabdi.filters.pixel_grid import FilterDepthImageToSurface, FilterPixelGrid, PixelGridParameters
+from mabdi.filters.pixel_grid import FilterPixelGrid, PixelGridParameters
 from mabdi.filters.map_anchor import MapAnchor
 from mabdi.filters.quadtree import FilterQuadTree, QuadTreeParameters
 from mabdi.filters.registration import FilterRegistration, RegistrationParameters
@@ -20,7 +20,6 @@ __all__ = [
     "DepthRenderer",
     "FilterClassifier",
     "FilterDepthImage",
-    "FilterDepthImageToSurface",
     "FilterPixelGrid",
     "PixelGridParameters",
     "make_surface_filter",

@@ -34,7 +34,6 @@ from vtkmodules.vtkCommonDataModel import vtkImageData, vtkPolyData
 from mabdi.algorithm import MabdiAlgorithm
 from mabdi.camera import pixel_rays
 from mabdi.depth import (
-    colour_point_array,
     depth_array,
     image_colour,
     image_intrinsics,
@@ -46,6 +45,7 @@ from mabdi.depth import (
 )
 from mabdi.errors import ConfigError, check_switch
 from mabdi.filters.depth_smoothing import measured_around, smooth_depth_by_noise
+from mabdi.maps.mesh_map import colour_point_array
 from mabdi.polydata import triangles_polydata
 from mabdi.spherical import SphericalGeometry, on_for_range_images
 
@@ -200,7 +200,3 @@ def pixel_grid_surface(
     renumber = np.cumsum(used) - 1
     camera_points = rays.reshape(-1, 3)[pixel_ids] * depth.ravel()[pixel_ids, None]
     return camera_points @ pose[:3, :3].T + pose[:3, 3], renumber[triangles], pixel_ids
-
-
-#: The former name of :class:`FilterPixelGrid`.
-FilterDepthImageToSurface = FilterPixelGrid

@@ -45,7 +45,6 @@ from vtkmodules.vtkCommonDataModel import vtkCellArray, vtkImageData, vtkPolyDat
 from mabdi.algorithm import MabdiAlgorithm
 from mabdi.camera import Intrinsics, unit_rays
 from mabdi.depth import (
-    colour_point_array,
     colours_at,
     depth_array,
     image_colour,
@@ -60,6 +59,7 @@ from mabdi.depth import (
 from mabdi.errors import ConfigError, check_switch
 from mabdi.sensor_noise import SensorNoise
 from mabdi.filters.depth_smoothing import measured_around, smooth_depth_by_noise, smoothed_noise_share
+from mabdi.maps.mesh_map import colour_point_array
 from mabdi.spherical import SphericalGeometry, on_for_range_images
 
 from mabdi.filters import quadtree_kernels as kernels

@@ -16,7 +16,7 @@ times the noise of D - E and ``min_gap`` (:func:`contradiction_gap`).
 Pixels with no return see through to the far limit (``no_return_is_free``)
 unless the noise model loses returns.
 
-The rule (:func:`update_log_odds`): each face keeps the log-odds L that it
+The rule (:func:`mabdi.world_map.update_log_odds`): each face keeps the log-odds L that it
 is gone, from 0; a frame with a majority of contradictions adds ``hit``,
 otherwise confirmations subtract ``miss``; L stays in [``floor``,
 ``ceiling``]; a face goes when L >= ``threshold`` and at least
@@ -350,15 +350,3 @@ def votes_between_pixels(
         beyond = (d * length - t) > needed * length
     hit[faces] = near_face & beyond
     return hit
-
-
-def update_log_odds(
-    evidence: np.ndarray, frames: np.ndarray, contradicted: np.ndarray, confirmed: np.ndarray, parameters: RemovalParameters
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """One frame of the rule in the module docs: (new log-odds, new contradicting-frame counts, removed mask)."""
-    against = contradicted > confirmed
-    evidence = evidence + np.where(against, parameters.hit, np.where(confirmed > 0, -parameters.miss, 0.0))
-    evidence = np.clip(evidence, parameters.floor, parameters.ceiling).astype(np.float32)
-    frames = (frames + against).astype(np.uint16)
-    gone = (evidence >= parameters.threshold) & (frames >= parameters.min_frames)
-    return evidence, frames, gone

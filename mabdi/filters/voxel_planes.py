@@ -39,12 +39,12 @@ from vtkmodules.vtkCommonDataModel import vtkDataObject, vtkImageData, vtkPointS
 
 from mabdi.algorithm import MabdiAlgorithm
 from mabdi.camera import pixel_rays
-from mabdi.depth import COLOUR_ARRAY, FRAME_ARRAY, colour_point_array, depth_array, image_colour, image_intrinsics, image_pose
+from mabdi.depth import COLOUR_ARRAY, FRAME_ARRAY, depth_array, image_colour, image_intrinsics, image_pose
 from mabdi.errors import ConfigError, check_switch
 from mabdi.voxels.voxel_map import VoxelMap, moments_to_gaussian, pack_keys, unpack_keys
 from mabdi.filters.world_mesh import PATCH_KEY_ARRAY, REMOVED_KEYS_ARRAY
 from mabdi.maps.colours import colours_by_normal
-from mabdi.maps.mesh_map import COLOUR_LAYER
+from mabdi.maps.mesh_map import COLOUR_LAYER, colour_point_array
 from mabdi.polydata import triangles_polydata
 from mabdi.filters.pixel_grid import PixelGridParameters, pixel_grid_surface
 from mabdi.spherical import BEAM_ELEVATIONS_ARRAY, SPHERICAL_ARRAY, on_for_range_images

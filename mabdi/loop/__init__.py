@@ -11,7 +11,8 @@
 from mabdi.loop.loop import FrameRecord, MabdiLoop
 from mabdi.loop.mapper import FrameStep, Mapper, map_frames
 from mabdi.loop.run_pipeline import RunObserver, RunPipeline
-from mabdi.loop.runner import RunResult, Simulation
+from mabdi.loop.run_outputs import RunResult
+from mabdi.loop.runner import Simulation
 
 __all__ = [
     "FrameRecord", "FrameStep", "MabdiLoop", "Mapper", "RunObserver", "RunPipeline", "RunResult", "Simulation",

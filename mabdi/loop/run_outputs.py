@@ -66,7 +66,8 @@ from mabdi.sources.tum import write_tum_trajectory
 #: The loop's state every ``output.checkpoint_every`` frames (data only: :mod:`mabdi.io.checkpoint`).
 CHECKPOINT = "checkpoint.npz"
 CHECKPOINT_VERSION = CHECKPOINT_FORMAT_VERSION
-#: The pickled checkpoint of mabdi before format version 2: refused, never loaded.
+#: The pickled checkpoint of mabdi before format version 2: refused, never loaded. Kept because run folders
+#: written then may still hold one: resuming such a run says why it cannot (:func:`mabdi.loop.runner.read_checkpoint`).
 OLD_CHECKPOINT = "checkpoint.pkl"
 
 #: The first columns of metrics.csv, in this order (counts are triangles; times in ms).

@@ -41,22 +41,7 @@ from mabdi.loop.frame_records import FrameRecords
 from mabdi.loop.loop import FrameRecord, MabdiLoop
 from mabdi.simulate.recording import TRUE_POSES
 from mabdi.simulate.rig import SimulatedRig
-from mabdi.loop.run_outputs import (  # noqa: F401 - re-exported: the runner's names before run_outputs
-    CHECKPOINT,
-    CHECKPOINT_VERSION,
-    METRICS_COLUMNS,
-    OLD_CHECKPOINT,
-    EmptyMapWarning,
-    RunResult,
-    annotated_map,
-    depth_range_counts,
-    depth_returns_summary,
-    empty_map_reason,
-    finish_run,
-    metrics_csv,
-    registration_summary,
-    write_run_outputs,
-)
+from mabdi.loop.run_outputs import CHECKPOINT, OLD_CHECKPOINT, RunResult, depth_range_counts, depth_returns_summary
 from mabdi.loop.run_pipeline import FrameCallback, ResumePoint, RunPipeline
 from mabdi.sources.frames import FrameSource, FrameSubset
 from mabdi.sources.scene import SourceScene

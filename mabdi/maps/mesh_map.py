@@ -34,6 +34,14 @@ LABEL_ARRAY_PREFIX = "label:"
 WELD = 0.005
 
 
+def colour_point_array(rgb: np.ndarray):
+    """A vtkUnsignedCharArray of (N, 3) uint8 RGB (a copy) named as a map's vertex colours
+    (:data:`COLOUR_LAYER`, Mesh Tools' ``rgb_colors``)."""
+    array = numpy_to_vtk(np.ascontiguousarray(rgb, dtype=np.uint8).reshape(-1, 3), deep=True)
+    array.SetName(COLOUR_LAYER)
+    return array
+
+
 class MeshMapError(MabdiError, ValueError):
     """A mesh map whose parts do not fit together (a layer of the wrong length, a face id out of range)."""
 
