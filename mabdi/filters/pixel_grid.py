@@ -1,4 +1,4 @@
-"""FilterPixelGrid: the seed's pixel-grid surface (``pixel_grid`` in configs; formerly FilterDepthImageToSurface).
+"""FilterPixelGrid: the seed's pixel-grid surface (``pixel_grid`` in configs).
 
 Depth image in (metres), triangle mesh in the world frame out (the image's
 pose). Every 2x2 square of pixels gives two triangles, (a, c, b) and
