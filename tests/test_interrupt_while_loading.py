@@ -64,7 +64,7 @@ def test_a_wrapped_interrupt_in_a_frame_exits_130_with_the_note(tmp_path, monkey
     def interrupted(*args, **kwargs):
         raise _wrapped_interrupt()
 
-    monkeypatch.setattr(ObjectRemoval, "run", interrupted)
+    monkeypatch.setattr(ObjectRemoval, "find", interrupted)
     assert main(_run(tmp_path / "run")) == 130
     stderr = capsys.readouterr().err
     assert "mabdi: interrupted" in stderr and "Traceback" not in stderr and "SystemError" not in stderr
@@ -94,7 +94,7 @@ def test_any_error_after_a_noted_sigint_exits_130(tmp_path, monkeypatch, capsys)
         interrupts.note()
         raise ValueError("a library's error, raised as it unwound from the interrupt")
 
-    monkeypatch.setattr(ObjectRemoval, "run", interrupted)
+    monkeypatch.setattr(ObjectRemoval, "find", interrupted)
     assert main(_run(tmp_path / "run")) == 130
     stderr = capsys.readouterr().err
     assert "mabdi: interrupted" in stderr and "Traceback" not in stderr

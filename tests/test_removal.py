@@ -184,6 +184,7 @@ def _votes_after_re_meshing(replacement) -> tuple[np.ndarray, np.ndarray]:
     from mabdi.filters.classifier import ClassifierParameters, FilterClassifier
     from mabdi.sensor_noise import SensorNoise
     from mabdi.filters.expected_image import MAP_PORT, MEASURED_PORT, FilterExpectedImage
+    from mabdi.loop.loop import apply_removal
     from mabdi.loop.object_removal import ObjectRemoval
     from mabdi.filters.registry import SurfaceCapabilities
     from mabdi.filters.world_mesh import FilterWorldMesh
@@ -206,7 +207,8 @@ def _votes_after_re_meshing(replacement) -> tuple[np.ndarray, np.ndarray]:
     new = replacement(plane)
     world.add_patch("patch_7", new, frame=1)  # re-meshed after E was drawn, as voxel planes do at the append
     stage = ObjectRemoval(RemovalParameters(edge_margin=0), classifier.threshold)
-    stage.run(measured, expected.GetOutput(), classifier.GetOutput(), world, None, SurfaceCapabilities(), votes=True)
+    votes = stage.find(measured, expected.GetOutput(), classifier.GetOutput(), world, None, SurfaceCapabilities())
+    apply_removal(world, None, SurfaceCapabilities(), stage, votes, np.zeros(0, np.int64), expected.GetOutput(), measured)
     count = world.block("patch_7").GetNumberOfCells()
     evidence = world.face_evidence_of(np.arange(1, count + 1), FaceIdTable(["patch_7"], [1], [count]))
     return evidence[: plane.GetNumberOfCells()], evidence

@@ -56,11 +56,12 @@ from mabdi.filters.quadtree import QuadTreeParameters, resolved as resolved_quad
 from mabdi.filters.registration import STATUSES, FilterRegistration, RegistrationParameters, registration_values
 from mabdi.filters.registration_check import PosesDisagreeWarning, poses_disagree
 from mabdi.filters.registry import make_surface_filter, seam_pixels, surface_filter
-from mabdi.loop.object_removal import ObjectRemoval
+from mabdi.loop.object_removal import ObjectRemoval, RemovalResult, RemovalVotes
 from mabdi.filters.removal import RemovalParameters, depth_edges
+from mabdi.face_identity import FaceIdTable
 from mabdi.filters.world_mesh import FilterWorldMesh
 from mabdi.world_map import CHUNK_SIZE, LIDAR_CHUNK_SIZE
-from mabdi.polydata import polydata_area, transformed_polydata
+from mabdi.polydata import polydata_area, polydata_arrays, transformed_polydata
 from mabdi.sources.frames import FrameSource, SourceDepthFrames
 
 
@@ -116,6 +117,39 @@ def lidar_rules(geometry, refining: bool, registration: RegistrationParameters) 
     if isinstance(geometry, SphericalGeometry):
         return False, replace(registration, enabled=False)
     return refining, registration
+
+
+def apply_removal(
+    world: FilterWorldMesh,
+    surface,
+    capabilities,
+    stage: ObjectRemoval,
+    votes: RemovalVotes | None,
+    replaced: np.ndarray,
+    expected_image: vtkImageData,
+    measured_image: vtkImageData,
+) -> RemovalResult:
+    """Change the map as one frame's removal found: its ``votes`` (:meth:`ObjectRemoval.find`; None: no vote)
+    added to the faces' evidence, then the faces the evidence condemns and those refinement ``replaced`` (codes
+    of E) removed; a surface that keeps statistics (voxel planes) forgets the removed faces' and empties the
+    voxels the voting rays saw through. The loop's one place where removal changes the map."""
+    gone = np.asarray(replaced, dtype=np.int64)
+    table = FaceIdTable.read(expected_image) if votes is None else votes.table
+    if votes is not None and len(votes.faces):
+        condemned = world.update_evidence(votes.faces, votes.contradicted, votes.confirmed, stage.parameters, table)
+        gone = np.union1d(gone, condemned)
+    if not len(gone):
+        return RemovalResult()
+    result = RemovalResult(world.remove_faces(gone, table))
+    if capabilities.clears_space and result.cells_removed:
+        # voxel planes: the statistics that made the removed faces go with them (else re-meshing brings them back)
+        points, triangles = polydata_arrays(result.removed)
+        surface.clear_faces_at(points[triangles].mean(axis=1))
+    if votes is not None and capabilities.clears_space:
+        rays = stage.free_space_rays(votes, gone, measured_image)
+        if rays is not None:
+            surface.clear_free_space(*rays)
+    return result
 
 
 def chunk_size_for(geometry) -> float:
@@ -396,9 +430,15 @@ class MabdiLoop:
         t_refine = time.perf_counter()
         self._removed = vtkPolyData()
         if (self.removal and votes) or len(replaced):
-            removal = self.object_removal.run(
-                self.measured_image(), self.expected.GetOutput(), self.classifier.GetOutput(), self.world, self.surface,
-                self.surface_capabilities, votes=self.removal and votes, replaced=replaced,
+            found = None
+            if self.removal and votes:
+                found = self.object_removal.find(
+                    self.measured_image(), self.expected.GetOutput(), self.classifier.GetOutput(), self.world, self.surface,
+                    self.surface_capabilities,
+                )  # fmt: skip
+            removal = apply_removal(
+                self.world, self.surface, self.surface_capabilities, self.object_removal, found, replaced,
+                self.expected.GetOutput(), self.measured_image(),
             )  # fmt: skip
             self._removed = removal.removed
             cells_removed = removal.cells_removed

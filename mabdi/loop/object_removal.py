@@ -1,21 +1,20 @@
 """ObjectRemoval: the loop's removal stage, one frame at a time (the rules are :mod:`mabdi.filters.removal`).
 
-Inputs, all explicit (:meth:`ObjectRemoval.run`):
+Inputs, all explicit (:meth:`ObjectRemoval.find`):
 
 * D, the measured depth image (registered to the map), and E, the expected
   image rendered with face identity (its codes and their
   :class:`~mabdi.face_identity.FaceIdTable`), and the classifier's output
   (labels, the pose uncertainty per pixel);
-* the map (:class:`~mabdi.filters.world_mesh.FilterWorldMesh`), whose faces
-  gather the evidence;
+* the map (:class:`~mabdi.filters.world_mesh.FilterWorldMesh`), read only:
+  its faces' normals and evidence;
 * the sensor's noise model and the classifier's threshold tau(z);
-* the surface filter and what it can do (its registry capabilities: a
-  filter that keeps voxel statistics has them cleared with the faces);
-* whether this frame votes (only frames registered to the map, or with
-  registration off), and the faces refinement replaced this frame.
+* the surface filter and what it can do (its registry capabilities: the
+  faces of a large surface overhang its silhouettes).
 
-Output: a :class:`RemovalResult` (the removed faces, as a polydata for the
-dashboard, and their number). The map is changed in place.
+Output: the frame's :class:`RemovalVotes`; the loop, the map's one owner,
+adds them to the faces' evidence and removes the faces it condemns
+(:func:`mabdi.loop.loop.apply_removal`, a :class:`RemovalResult`).
 
 A frame where no pixel sees through the map is skipped whole: confirmations
 only matter against contradictions, and it is the common case once the
@@ -52,7 +51,7 @@ from mabdi.loop.ray_triangle_kernels import nearest_hits_in_boxes_kernel
 from mabdi.filters.registry import SurfaceCapabilities
 from mabdi.filters.removal_kernels import points_in_boxes
 from mabdi.filters.removal import RemovalParameters, for_geometry, free_space_filled, removal_votes, votes_between_pixels
-from mabdi.polydata import polydata_arrays, triangle_frames
+from mabdi.polydata import triangle_frames
 from mabdi.spherical import SphericalGeometry
 from mabdi.world_map import face_centres
 
@@ -73,47 +72,56 @@ class RemovalResult:
         return int(self.removed.GetNumberOfCells())
 
 
+@dataclass
+class RemovalVotes:
+    """What one frame's pixels say about the map's faces (:meth:`ObjectRemoval.find`); the map's owner adds
+    them to the faces' evidence (:meth:`~mabdi.world_map.WorldMap.update_evidence`) and removes what it condemns.
+
+    ``faces``: codes of E (under ``table``) voted on; ``contradicted`` / ``confirmed``: their pixel votes;
+    ``voting``: (H, W) bool, the contradicted pixels that voted; ``codes``: (H, W) the face each pixel's vote
+    went to (E's codes, re-traced where a block was re-meshed after E was drawn)."""
+
+    table: FaceIdTable
+    faces: np.ndarray
+    contradicted: np.ndarray
+    confirmed: np.ndarray
+    voting: np.ndarray
+    codes: np.ndarray
+
+
 class ObjectRemoval:
     """The removal stage (see the module docs): ``parameters`` are the rules, ``threshold(depth, noise, near,
     far, pose_sigma)`` the classifier's tau. The sensor's noise model (its sigma(z) weighs the votes) is the
-    one D carries."""
+    one D carries. It reads the map and returns what it found; :func:`mabdi.loop.loop.apply_removal` changes
+    the map."""
 
     def __init__(self, parameters: RemovalParameters, threshold: Callable) -> None:
         self.parameters = parameters
         self.threshold = threshold
 
-    def run(
-        self,
-        measured_image,
-        expected_image,
-        classified_image,
-        world,
-        surface,
-        capabilities: SurfaceCapabilities,
-        votes: bool,
-        replaced=(),
-    ) -> RemovalResult:
-        """Vote with this frame's contradicted and known pixels (when ``votes``), remove the faces the evidence
-        condemns and the faces ``replaced`` (codes of E: refinement's, made from a much noisier look)."""
-        gone = np.asarray(replaced, dtype=np.int64)
+    def find(self, measured_image, expected_image, classified_image, world, surface, capabilities: SurfaceCapabilities) -> RemovalVotes | None:
+        """This frame's votes on the faces E shows (and on faces too small for a pixel beside them); None when no
+        pixel sees through the map (confirmations only matter against contradictions). ``world`` is read only."""
         labels = label_array(classified_image)
-        voting = None
-        if votes and self._anything_seen_through(labels, expected_image):
-            voting, condemned, table, codes = self._votes(labels, measured_image, expected_image, classified_image, world, surface, capabilities)
-            gone = np.union1d(gone, condemned)
-        else:
-            table, codes = FaceIdTable.read(expected_image), None
-        if not len(gone):
-            return RemovalResult()
-        result = RemovalResult(world.remove_faces(gone, table))
-        if capabilities.clears_space and result.cells_removed:
-            # voxel planes: the statistics that made the removed faces go with them (else re-meshing brings
-            # them back), and the voxels the voting rays crossed in free space
-            points, triangles = polydata_arrays(result.removed)
-            surface.clear_faces_at(points[triangles].mean(axis=1))
-        if voting is not None and capabilities.clears_space:
-            self._clear_free_space(voting, gone, measured_image, codes, surface)
-        return result
+        if not self._anything_seen_through(labels, expected_image):
+            return None
+        return self._votes(labels, measured_image, expected_image, classified_image, world, surface, capabilities)
+
+    def free_space_rays(self, votes: RemovalVotes, gone: np.ndarray, measured_image) -> tuple | None:
+        """Voxel planes: (origin, ends, margins) of the rays that saw through removed faces (``gone``: codes of
+        E), world metres, ending tau short of D: the voxels they crossed are free; None when there are none."""
+        through = votes.voting & codes_in(votes.codes, gone)
+        if not through.any():
+            return None
+        geometry = image_intrinsics(measured_image)
+        measured = depth_array(measured_image)
+        pose = image_pose(measured_image)
+        rays, length = unit_rays(geometry, np.float32)
+        depth = np.where(np.isnan(measured[through]), geometry.far, measured[through]).astype(np.float64)
+        tau = self.threshold(depth.astype(np.float32), image_noise(measured_image), geometry.near, geometry.far).astype(np.float64)
+        directions = rays[through].astype(np.float64) @ pose[:3, :3].T
+        ends = pose[:3, 3] + directions * (depth * length[through])[:, None]
+        return pose[:3, 3], ends, tau * length[through]
 
     def _anything_seen_through(self, labels: np.ndarray, expected_image) -> bool:
         """Whether any pixel may see through the map: contradicted, or (``no_return_is_free``) no return where E has a face."""
@@ -124,8 +132,8 @@ class ObjectRemoval:
         no_return = labels == NO_RETURN
         return bool(no_return.any() and np.isfinite(depth_array(expected_image)[no_return]).any())
 
-    def _votes(self, labels, measured_image, expected_image, classified_image, world, surface, capabilities):
-        """(the voting contradicted pixels, the codes of the faces the evidence now condemns)."""
+    def _votes(self, labels, measured_image, expected_image, classified_image, world, surface, capabilities) -> RemovalVotes:
+        """The frame's votes (:class:`RemovalVotes`)."""
         geometry = image_intrinsics(measured_image)
         noise = image_noise(measured_image)
         measured = depth_array(measured_image)
@@ -155,14 +163,15 @@ class ObjectRemoval:
             far=geometry.far,
             pose_sigma=pose_sigma,
         )
-        if not len(faces):
-            return voting, np.zeros(0, dtype=np.int64), table, codes
-        between = self._between_pixels(faces, contradicted, confirmed, voting, measured, geometry, pose, table, world, parameters, sigma, pose_sigma)
-        if len(between):
-            faces = np.concatenate([faces, between])
-            contradicted = np.concatenate([contradicted, np.ones(len(between), dtype=contradicted.dtype)])
-            confirmed = np.concatenate([confirmed, np.zeros(len(between), dtype=confirmed.dtype)])
-        return voting, world.update_evidence(faces, contradicted, confirmed, self.parameters, table), table, codes
+        if len(faces):
+            between = self._between_pixels(
+                faces, contradicted, confirmed, voting, measured, geometry, pose, table, world, parameters, sigma, pose_sigma
+            )  # fmt: skip
+            if len(between):
+                faces = np.concatenate([faces, between])
+                contradicted = np.concatenate([contradicted, np.ones(len(between), dtype=contradicted.dtype)])
+                confirmed = np.concatenate([confirmed, np.zeros(len(between), dtype=confirmed.dtype)])
+        return RemovalVotes(table, faces, contradicted, confirmed, voting, codes)
 
     def _between_pixels(self, faces, contradicted, confirmed, voting, measured, geometry, pose, table, world, parameters, sigma, pose_sigma):
         """Codes of the faces no pixel showed that this frame's contradictions see through
@@ -320,22 +329,6 @@ class ObjectRemoval:
         margin = int(np.ceil(overhang * pixels_per_radian(geometry) / float(np.median(shown))))
         margin = min(max(margin, parameters.edge_margin), parameters.max_edge_margin)
         return replace(parameters, edge_margin=margin)
-
-    def _clear_free_space(self, voting: np.ndarray, gone: np.ndarray, measured_image, codes: np.ndarray, surface) -> None:
-        """Voxel planes: rays that saw through removed faces (``codes``: the faces the votes went to) empty the
-        voxels they crossed (up to tau before D)."""
-        through = voting & codes_in(codes, gone)
-        if not through.any():
-            return
-        geometry = image_intrinsics(measured_image)
-        measured = depth_array(measured_image)
-        pose = image_pose(measured_image)
-        rays, length = unit_rays(geometry, np.float32)
-        depth = np.where(np.isnan(measured[through]), geometry.far, measured[through]).astype(np.float64)
-        tau = self.threshold(depth.astype(np.float32), image_noise(measured_image), geometry.near, geometry.far).astype(np.float64)
-        directions = rays[through].astype(np.float64) @ pose[:3, :3].T
-        ends = pose[:3, 3] + directions * (depth * length[through])[:, None]
-        surface.clear_free_space(pose[:3, 3], ends, tau * length[through])
 
 
 def pixel_boxes(corner: np.ndarray, edge1: np.ndarray, edge2: np.ndarray, geometry, world_from_sensor: np.ndarray) -> np.ndarray:
