@@ -224,8 +224,8 @@ def test_noise_free_table_moves_no_vertex(scenes_dir):
         for i in range(30):
             simulation.step(i)
             before = {key: vtk_to_numpy(loop.world.block(key).GetPoints().GetData()).copy() for key in loop.world.patch_keys}
-            result = refinement.step(loop)
-            assert result.moved_vertices == 0 and len(result.replaced) == 0
+            result = refinement.step(loop.measured_image(), loop.expected_image(), loop.labels(), loop.world, loop.intrinsics, loop.source)
+            assert result.moved_vertices == 0 and len(result.replaced) == 0 and not result.moves
             for key, points in before.items():
                 after = vtk_to_numpy(loop.world.block(key).GetPoints().GetData())
                 assert np.abs(after - points).max(initial=0.0) <= 1e-4, key

@@ -109,12 +109,14 @@ class RefinementParameters:
 
 @dataclass
 class RefinementResult:
-    """What one frame's refinement did: vertices moved, faces to replace (E's face codes, with E's
-    :class:`~mabdi.face_identity.FaceIdTable`: remove them with ``world.remove_faces``), pixels that observed,
-    and the time it took (ms)."""
+    """What one frame's refinement found, for the map's owner to apply: the vertices to move (``moves``:
+    (block key, vertex ids, their new points in the map frame, metres), for ``world.move_points``), faces to
+    replace (E's face codes, with E's :class:`~mabdi.face_identity.FaceIdTable`: for ``world.remove_faces``),
+    pixels that observed, and the time it took (ms)."""
 
     moved_vertices: int = 0
     replaced: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    moves: list = field(default_factory=list)
     observed_pixels: int = 0
     t_ms: float = 0.0
 
@@ -153,6 +155,15 @@ def _match_rows(old: np.ndarray, new: np.ndarray) -> np.ndarray:
     where = np.full(inverse.max() + 1 if len(inverse) else 0, -1, dtype=np.int64)
     where[inverse[: len(old)]] = np.arange(len(old))
     return where[inverse[len(old):]]
+
+
+@dataclass(frozen=True)
+class _FrameView:
+    """The frame a refinement step works on: D, the sensor's intrinsics, the source (for older frames' poses)."""
+
+    measured_image: object
+    intrinsics: object
+    source: object
 
 
 class MapRefinement:
@@ -218,24 +229,24 @@ class MapRefinement:
         rays, length = unit_rays(intrinsics)
         return rays[::stride, ::stride].reshape(-1, 3), length[::stride, ::stride].ravel()
 
-    def _pose_of(self, frame: int, loop, current: np.ndarray) -> np.ndarray:
+    def _pose_of(self, frame: int, source, current: np.ndarray) -> np.ndarray:
         pose = self._poses.get(frame)
         if pose is not None:
             return pose
-        streamed = getattr(loop.source, "frames_known", 0) is None  # its poses: the frames' read so far
+        streamed = getattr(source, "frames_known", 0) is None  # its poses: the frames' read so far
         if self._source_poses is None or (streamed and frame >= len(self._source_poses)):
             try:
-                self._source_poses = np.asarray(loop.source.poses, dtype=np.float64)
+                self._source_poses = np.asarray(source.poses, dtype=np.float64)
             except Exception:  # a source that cannot list its poses: the current one stands in
                 self._source_poses = np.zeros((0, 4, 4))
         if 0 <= frame < len(self._source_poses):
             return self._source_poses[frame]
         return current
 
-    def _sigma(self, loop, depth: np.ndarray) -> np.ndarray:
+    def _sigma(self, view: _FrameView, depth: np.ndarray) -> np.ndarray:
         """The sensor's sigma(z) (the noise model D carries), floored at ``min_sigma``."""
-        intrinsics = loop.intrinsics
-        sigma = image_noise(loop.measured_image()).sigma(depth, intrinsics.near, intrinsics.far)
+        intrinsics = view.intrinsics
+        sigma = image_noise(view.measured_image).sigma(depth, intrinsics.near, intrinsics.far)
         return np.maximum(sigma, sigma.dtype.type(self.parameters.min_sigma))
 
     def _match_points(self, old: np.ndarray, new: np.ndarray) -> np.ndarray:
@@ -246,11 +257,11 @@ class MapRefinement:
             return where
         return _match_rows(old, new)
 
-    def _merge_states(self, key: str, patch: vtkPolyData, parts: list[tuple[str, int]], loop, pose: np.ndarray) -> None:
+    def _merge_states(self, key: str, patch: vtkPolyData, parts: list[tuple[str, int]], view: _FrameView, pose: np.ndarray) -> None:
         """The state of a block merged from ``parts`` ((key, points) in the order of its points): each part's
         vertices keep the state they had, the others start fresh. A part rebuilt (faces removed, points
         compacted) after its state was last taken hands on the state of the points it kept."""
-        merged = self._register(key, patch, loop, pose)
+        merged = self._register(key, patch, view, pose)
         merged_points = _points(patch)
         start = 0
         for part, points in parts:
@@ -266,7 +277,7 @@ class MapRefinement:
                         getattr(merged, name)[start + found] = getattr(state, name)[source[found]]
             start += points
 
-    def _register(self, key: str, patch: vtkPolyData, loop, pose: np.ndarray) -> _BlockState:
+    def _register(self, key: str, patch: vtkPolyData, view: _FrameView, pose: np.ndarray) -> _BlockState:
         """The state of block ``key``: new, carried over from a rebuilt block, or as it was."""
         state = self._blocks.get(key)
         if state is not None and state.patch is patch:
@@ -295,10 +306,10 @@ class MapRefinement:
         z = np.full(n, np.nan)
         for frame in np.unique(vertex_frame):
             chosen = vertex_frame == frame
-            creator = self._pose_of(int(frame), loop, pose)
+            creator = self._pose_of(int(frame), view.source, pose)
             z[chosen] = (points[chosen] - creator[:3, 3]) @ creator[:3, 2]
         z = np.where(np.isfinite(z) & (z > 0), z, np.linalg.norm(points - pose[:3, 3], axis=1))
-        prior = 1.0 / self._sigma(loop, z) ** 2
+        prior = 1.0 / self._sigma(view, z) ** 2
         fresh = _BlockState(patch, triangles, points, normal, prior, np.zeros(n), np.zeros(n), np.zeros(n))
         kept = source >= 0
         if kept.any():
@@ -308,33 +319,33 @@ class MapRefinement:
         return fresh
 
     # -- one frame -----------------------------------------------------------
-    def step(self, loop) -> RefinementResult:
-        """One frame's refinement of ``loop``'s map (a :class:`mabdi.loop.loop.MabdiLoop` after its world
-        mesh appended the frame); returns what it did. Moves vertices itself; the replaced faces are for the
-        loop to remove."""
+    def step(self, measured_image, expected_image, labels, world, intrinsics, source) -> RefinementResult:
+        """One frame's refinement: D (registered to the map), E with face identity, the classifier's
+        ``labels`` (None: classifier off, nothing refined), the map (``world``, a
+        :class:`~mabdi.filters.world_mesh.FilterWorldMesh` after it appended the frame; read only), the
+        sensor's ``intrinsics`` and the frame ``source`` (the poses of the frames that made older faces).
+        Returns what it found: the moves and the faces to replace, for the map's owner to apply."""
         start = time.perf_counter()
         p = self.parameters
         result = RefinementResult()
-        noise = image_noise(loop.measured_image())
-        if not loop.classifier_enabled or not noise.noisy:
+        noise = image_noise(measured_image)
+        if labels is None or not noise.noisy:
             return result
-        expected_image = loop.expected_image()
         if expected_image is None or expected_image.GetPointData().GetArray(FACE_ID_ARRAY) is None:
             return result  # E drawn without face identity: nothing to attribute pixels to
-        measured_image = loop.measured_image()
+        view = _FrameView(measured_image, intrinsics, source)
         pose = image_pose(measured_image)
         self._poses[image_frame(measured_image)] = pose
-        world = loop.world
         for key in world.patch_keys:  # blocks merged since the last frame carry their parts' states
             parts = world.store.merged_parts(key)
             if parts and key not in self._blocks and any(part in self._blocks for part, _ in parts):
-                self._merge_states(key, world.block(key), parts, loop, pose)
+                self._merge_states(key, world.block(key), parts, view, pose)
         for key in [k for k in self._blocks if k not in set(world.patch_keys)]:
             del self._blocks[key]
 
         s = p.stride
         face_ids = face_id_array(expected_image)[::s, ::s].ravel()
-        labels = loop.labels()[::s, ::s].ravel()
+        labels = labels[::s, ::s].ravel()
         candidates = np.flatnonzero((face_ids > 0) & (labels != NO_RETURN))
         if not len(candidates):
             result.t_ms = 1000.0 * (time.perf_counter() - start)
@@ -343,12 +354,12 @@ class MapRefinement:
         block, local, keys = world.face_lookup(ids, FaceIdTable.read(expected_image))
         measured = depth_array(measured_image)[::s, ::s].ravel()[candidates]
         expected = depth_array(expected_image)[::s, ::s].ravel()[candidates]
-        rays, length = self._unit_rays(loop.intrinsics)
+        rays, length = self._unit_rays(intrinsics)
         rays = rays[candidates] @ pose[:3, :3].T  # world
         length = length[candidates]
-        sigma_d = self._sigma(loop, measured).astype(np.float64)
+        sigma_d = self._sigma(view, measured).astype(np.float64)
         centre = pose[:3, 3]
-        focal = 0.5 * (loop.intrinsics.fx + loop.intrinsics.fy)
+        focal = 0.5 * (intrinsics.fx + intrinsics.fy)
         cos_grazing = np.cos(np.radians(p.grazing_deg))
         radius = p.radius_for(noise)
 
@@ -361,7 +372,7 @@ class MapRefinement:
             key = keys[b]
             if not key.startswith(REFINED_PREFIX):
                 continue
-            state = self._register(key, world.block(key), loop, pose)
+            state = self._register(key, world.block(key), view, pose)
             if state.triangles is None:
                 continue
             chosen = order[bounds[b] : bounds[b + 1]]
@@ -392,7 +403,7 @@ class MapRefinement:
                 continue
             moving = vertices[move]
             state.offset[moving] = estimate[move]
-            world.move_points(key, moving, state.original[moving] + estimate[move][:, None] * state.normal[moving])
+            result.moves.append((key, moving, state.original[moving] + estimate[move][:, None] * state.normal[moving]))
             moved += int(move.sum())
         result.moved_vertices = moved
         result.observed_pixels = observed

@@ -425,7 +425,11 @@ class MabdiLoop:
         moved = 0
         self._refined = None
         if self.refining:
-            self._refined = self.refinement.step(self)
+            self._refined = self.refinement.step(
+                self.measured_image(), self.expected_image(), self.labels(), self.world, self.intrinsics, self.source
+            )
+            for key, vertices, points in self._refined.moves:  # the map changes here, by its owner
+                self.world.move_points(key, vertices, points)
             replaced, moved = self._refined.replaced, self._refined.moved_vertices
         t_refine = time.perf_counter()
         self._removed = vtkPolyData()
