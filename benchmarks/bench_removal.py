@@ -69,7 +69,7 @@ def f_at_1cm(mesh, ground_truth, observed) -> float:
 def run_mabdi(config, surface, rig, frames, every, static_every, removal):
     method_config = copy.deepcopy(config)
     set_value(method_config, "surface.method", surface)
-    set_value(method_config, "classifier.removal", removal)
+    set_value(method_config, "removal.enabled", removal)
     simulation = Simulation(method_config, source=frames, scene=rig.scene)
     run = run_with_ghosts(simulation, every=every, static_every=static_every)
     return run, run.result.mesh, len(frames) / run.loop_seconds

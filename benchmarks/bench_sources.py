@@ -70,8 +70,8 @@ def loop_on_recordings(frames: int) -> list[dict]:
 
 def expected_image_cost(repeats: int = 3) -> dict:
     config = load_run_config(REPO / "scenes" / "bunnies.toml")
-    set_value(config, "classifier.removal", False)
-    set_value(config, "classifier.refinement", False)
+    set_value(config, "removal.enabled", False)
+    set_value(config, "refinement.enabled", False)
     simulation = mabdi.Simulation(config)
     simulation.run()
     world = simulation.loop.world

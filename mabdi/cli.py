@@ -64,7 +64,7 @@ def _parser() -> argparse.ArgumentParser:
     )
     run.add_argument(
         "--no-removal", action="store_true",
-        help="keep every face: no object removal by free-space contradiction (classifier.removal = false)",
+        help="keep every face: no object removal by free-space contradiction (removal.enabled = false)",
     )
     run.add_argument(
         "--no-registration", action="store_true",
@@ -72,7 +72,7 @@ def _parser() -> argparse.ArgumentParser:
     )
     run.add_argument(
         "--refinement", action="store_true",
-        help="later, better looks refine or replace known faces with any noise model (classifier.refinement = true; "
+        help="later, better looks refine or replace known faces with any noise model (refinement.enabled = true; "
         "the default \"auto\" refines where the noise model's errors are correlated between pixels)",
     )
     run.add_argument(
@@ -227,8 +227,8 @@ def _apply_overrides(config, args):
         "sensor.backend": getattr(args, "backend", None),
         "surface.method": getattr(args, "surface", None),
         "classifier.enabled": False if getattr(args, "no_classifier", False) else None,
-        "classifier.removal": False if getattr(args, "no_removal", False) else None,
-        "classifier.refinement": True if getattr(args, "refinement", False) else None,
+        "removal.enabled": False if getattr(args, "no_removal", False) else None,
+        "refinement.enabled": True if getattr(args, "refinement", False) else None,
         "registration.enabled": False if getattr(args, "no_registration", False) else None,
         "output.dir": str(args.out) if args.command == "run" and args.out is not None else None,
         "output.depth_images": True if getattr(args, "depth_images", False) else None,

@@ -394,6 +394,7 @@ def run_config_from_dict(data: dict, where: str = "<config>", base_dir=None, val
     """
     from mabdi.simulate.routes import check_path_keys
 
+    data = moved_keys(data, where)
     config = _build(RunConfig, data, where, "")
     path_table = data.get("path", {})
     check_path_keys(config.path, list(path_table) if isinstance(path_table, dict) else [], where)
@@ -405,6 +406,38 @@ def run_config_from_dict(data: dict, where: str = "<config>", base_dir=None, val
     if validate:
         validate_run_config(config, where)
     return config
+
+
+#: Keys that moved to their own stage's section: old name -> new name. Old configs (and the resolved
+#: config.toml of older run folders) keep loading: their keys are read as the new ones.
+MOVED_KEYS = {
+    "classifier.removal": "removal.enabled",
+    "classifier.refinement": "refinement.enabled",
+}
+
+
+def moved_keys(data: dict, where: str) -> dict:
+    """Parsed TOML ``data`` with the keys of :data:`MOVED_KEYS` under their new names (a copy where one moved);
+    an old key and its new one both given, with different values, is an error naming both."""
+    moved = None
+    for old, new in MOVED_KEYS.items():
+        old_section, old_key = old.split(".")
+        new_section, new_key = new.split(".")
+        table = data.get(old_section)
+        if not isinstance(table, dict) or old_key not in table:
+            continue
+        if moved is None:
+            moved = {name: dict(value) if isinstance(value, dict) else value for name, value in data.items()}
+        value = moved[old_section].pop(old_key)
+        target = moved.setdefault(new_section, {})
+        if not isinstance(target, dict):
+            raise ConfigError(f"{where}: '{new_section}' must be a table")
+        if new_key in target and target[new_key] != value:
+            raise ConfigError(
+                f"{where}: {old} = {value!r} and {new} = {target[new_key]!r} disagree; {old} is the old name of {new}: keep that one"
+            )
+        target[new_key] = value
+    return data if moved is None else moved
 
 
 def stated_keys(data: dict, prefix: str = "") -> frozenset:
@@ -550,11 +583,11 @@ def _overridden(config: RunConfig, overrides: dict, where: str, whole: bool) -> 
     if config.frames_from_path:  # the frames follow a waypoint or trajectory path unless an override sets them
         data.get("run", {}).pop("frames", None)
     for key, value in overrides.items():
-        _set_dotted(data, key, value, where)
+        _set_dotted(data, MOVED_KEYS.get(key, key), value, where)  # an old name sets the new key
     base_dir = config.source.parent if config.source is not None else None
     resolved = run_config_from_dict(data, where=where, base_dir=base_dir, validate=whole)
     resolved.source = config.source
-    resolved.stated = config.stated | frozenset(overrides)  # the file's keys and the overrides, not every key dumped
+    resolved.stated = config.stated | frozenset(MOVED_KEYS.get(key, key) for key in overrides)  # the file's keys and the overrides, not every key dumped
     return resolved
 
 

@@ -115,7 +115,7 @@ def static_runs():
     def get(scene: str, surface: str, removal: bool = True):
         key = (scene, surface, removal)
         if key not in cache:
-            sim = simulation(scene, surface, classifier__removal=removal)
+            sim = simulation(scene, surface, removal__enabled=removal)
             removed = []
 
             def keep_removed(record):

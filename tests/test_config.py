@@ -240,3 +240,25 @@ def test_removal_and_refinement_sections_reach_the_loop(tmp_path):
     path.write_text("[removal]\nedge_margin = -1\n")
     with pytest.raises(ConfigError, match=r"run.toml.*\[removal\].*0 <= edge_margin"):
         load_run_config(path)
+
+
+def test_the_stages_switches_moved_to_their_sections_and_old_configs_keep_loading(tmp_path):
+    """``[removal] enabled`` and ``[refinement] enabled`` are the stages' switches; the old names
+    (``[classifier] removal`` / ``refinement``, in older configs and run folders) load as the new keys, set
+    one by one too; both given and disagreeing is an error naming both."""
+    from mabdi.config import load_run_config, set_value
+
+    path = tmp_path / "old.toml"
+    path.write_text('[classifier]\nremoval = false\nrefinement = true\n')
+    config = load_run_config(path)
+    assert config.removal.enabled is False and config.refinement.enabled is True
+    assert "removal.enabled" in config.stated and "classifier.removal" not in config.stated
+    assert "[removal]\nenabled = false" in dump_toml(config)
+    assert "removal = " not in dump_toml(config).split("[classifier]")[1].split("[")[0]
+    set_value(config, "classifier.removal", True)
+    assert config.removal.enabled is True
+    path.write_text("[classifier]\nremoval = false\n[removal]\nenabled = true\n")
+    with pytest.raises(ConfigError, match=r"classifier.removal = False and removal.enabled = True disagree"):
+        load_run_config(path)
+    path.write_text("[classifier]\nremoval = false\n[removal]\nenabled = false\n")
+    assert load_run_config(path).removal.enabled is False

@@ -78,12 +78,11 @@ def refining_loop(frames: FrameList, surface: str):
     so what changes the map here is the refinement alone."""
     loop = mabdi.MabdiLoop(
         frames,
-        mabdi.ClassifierParameters(refinement=True),
         surface=surface,
         surface_parameters=RAW[surface],
         noise="kinect",
         registration=EXACT_POSES,
-        refinement=RefinementParameters(replace=True),
+        refinement=RefinementParameters(enabled=True, replace=True),
     )
     assert loop.refining
     loop.removal_parameters = RemovalParameters(min_frames=60000)
@@ -190,9 +189,9 @@ def test_correlated_noise_is_averaged_over_its_correlation_length():
     medians = {}
     for radius in ("auto", RADIUS_PX_INDEPENDENT):
         loop = mabdi.MabdiLoop(
-            correlated_plate_frames(), mabdi.ClassifierParameters(refinement=True, fill_holes=False), surface="quadtree",
+            correlated_plate_frames(), mabdi.ClassifierParameters(fill_holes=False), surface="quadtree",
             surface_parameters=RAW["quadtree"], noise=CORRELATED, registration=EXACT_POSES,
-            refinement=RefinementParameters(radius_px=radius),
+            refinement=RefinementParameters(enabled=True, radius_px=radius),
         )  # fmt: skip
         loop.removal_parameters = RemovalParameters(min_frames=60000)
         for i in range(10):
@@ -272,8 +271,8 @@ def test_moved_vertices_of_the_kinect_table_do_not_drift():
     from conftest import SCENES
 
     config = load_run_config(SCENES / "table.toml")
-    for key, value in [("surface.method", "quadtree"), ("sensor.noise", "kinect"), ("classifier.refinement", True),
-                       ("classifier.removal", False), ("refinement.replace", False),
+    for key, value in [("surface.method", "quadtree"), ("sensor.noise", "kinect"), ("refinement.enabled", True),
+                       ("removal.enabled", False), ("refinement.replace", False),
                        ("surface.quadtree.smooth_depth", False), ("registration.enabled", False)]:
         set_value(config, key, value)
     simulation = mabdi.Simulation(config)

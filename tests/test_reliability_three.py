@@ -438,7 +438,7 @@ def test_checkpoint_trees_round_trip_and_refuse_objects(tmp_path):
 
 def test_voxel_planes_and_refinement_state_is_plain_data_and_resumes_exactly(tmp_path):
     """Every part of the loop's state goes into a checkpoint (no object), and back: voxel planes with refinement."""
-    config = table(10, "voxel_planes", sensor__noise="kinect", classifier__refinement=True)
+    config = table(10, "voxel_planes", sensor__noise="kinect", refinement__enabled=True)
     if hasattr(config, "registration"):
         set_value(config, "registration.enabled", False)  # registration's own state is its author's to add
     whole = Simulation(config)

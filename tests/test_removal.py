@@ -156,8 +156,8 @@ def test_a_plane_that_goes_is_gone_within_three_frames_and_the_wall_is_mapped(su
 
 
 def test_removal_off_keeps_the_plane():
-    config = mabdi.ClassifierParameters(removal=False)
-    loop = mabdi.MabdiLoop(plane_then_wall(), classifier=config, surface="quadtree", noise="kinect", registration=EXACT_POSES)
+    removal = RemovalParameters(enabled=False)
+    loop = mabdi.MabdiLoop(plane_then_wall(), removal=removal, surface="quadtree", noise="kinect", registration=EXACT_POSES)
     records = [loop.step(i) for i in range(12)]
     assert sum(r.cells_removed for r in records) == 0
     assert (np.abs(map_depths(loop) - 2.0) < 0.05).any()

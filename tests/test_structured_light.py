@@ -232,11 +232,12 @@ def test_a_camera_that_loses_returns_casts_no_free_space_votes_from_them():
 
 
 def test_refinement_auto_follows_whether_the_noise_is_correlated(tmp_path):
-    """``classifier.refinement = "auto"`` (the default) refines where one look's errors are correlated
+    """``refinement.enabled = "auto"`` (the default) refines where one look's errors are correlated
     (structured light, a real camera under "auto"), not where each pixel errs on its own; true and false
     decide outright; anything else names the key."""
     import mabdi
     from mabdi.filters.classifier import ClassifierParameters
+    from mabdi.filters.refinement import RefinementParameters
     from mabdi.sources.frames import FrameList
 
     assert SensorNoise("structured_light").correlated and SensorNoise("auto").correlated
@@ -252,23 +253,25 @@ def test_refinement_auto_follows_whether_the_noise_is_correlated(tmp_path):
         ("kinect", True, True),
         ("none", True, False),  # nothing to average without noise
     ):
-        loop = mabdi.MabdiLoop(frames, classifier=ClassifierParameters(refinement=setting), noise=noise)
+        loop = mabdi.MabdiLoop(frames, refinement=RefinementParameters(enabled=setting), noise=noise)
         assert bool(loop.refining) is refining, (noise, setting)
         # the rim's known pixels carry the map's depth where the map is refined ("auto"), unless set outright
         assert loop.classifier.parameters.rim_on_map is refining, (noise, setting)
         for outright in (True, False):
-            chosen = mabdi.MabdiLoop(frames, classifier=ClassifierParameters(refinement=setting, rim_on_map=outright), noise=noise)
+            chosen = mabdi.MabdiLoop(
+                frames, classifier=ClassifierParameters(rim_on_map=outright), refinement=RefinementParameters(enabled=setting), noise=noise
+            )
             assert chosen.classifier.parameters.rim_on_map is outright
-    assert ClassifierParameters().refinement == "auto"
+    assert RefinementParameters().enabled == "auto"
     path = tmp_path / "rim.toml"
     path.write_text("[classifier]\nrim_on_map = false\n")
     assert load_run_config(path).classifier.rim_on_map is False
-    with pytest.raises(ConfigError, match="refinement"):
-        ClassifierParameters(refinement="sometimes")
+    with pytest.raises(ConfigError, match="refinement: enabled"):
+        RefinementParameters(enabled="sometimes")
     path = tmp_path / "run.toml"
-    path.write_text('[classifier]\nrefinement = "auto"\n')
-    assert load_run_config(path).classifier.refinement == "auto"
-    path.write_text("[classifier]\nrefinement = 1\n")
+    path.write_text("[refinement]\nenabled = false\n")
+    assert load_run_config(path).refinement.enabled is False
+    path.write_text("[refinement]\nenabled = 1\n")
     with pytest.raises(ConfigError, match="refinement"):
         load_run_config(path)
 

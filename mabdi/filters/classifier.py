@@ -65,26 +65,11 @@ class ClassifierParameters:
 
     The ``[classifier]`` section of a run config. ``enabled = false`` is the
     loop's "black box": the surface filter meshes every valid pixel of D,
-    every frame. ``removal = true``: contradicted pixels remove the map faces
-    they see through (:mod:`mabdi.filters.removal`). ``refinement``: pixels
-    on the surface of a map face refine it, and faces made from a much
-    noisier look are replaced (:mod:`mabdi.filters.refinement`; nothing
-    happens with a noise-free sensor). ``"auto"`` (the default) turns it on
-    where the noise model says neighbouring pixels err together
-    (:attr:`~mabdi.sensor_noise.SensorNoise.correlated`: a
-    structured-light or stereo camera, a real camera under ``noise =
-    "auto"``): smoothing cannot take such errors out of one look, so later
-    looks must be averaged in; with independent noise the smoothed first
-    look is nearly as good as refinement makes it, for refinement's cost a frame
-    (docs/benchmarks.md, "Depth smoothing before meshing" and "Real poses
-    and real cameras"). ``true`` or ``false`` decide
-    outright. The classifier filter itself reads none of these switches: the
-    loop does.
+    every frame, and neither object removal nor refinement runs (their own
+    switches: ``[removal] enabled``, ``[refinement] enabled``).
     """
 
     enabled: bool = True
-    removal: bool = True
-    refinement: bool | str = "auto"
     tau_min: float = 0.01
     k_sigma: float = 3.0
     min_width: int = 3
@@ -97,7 +82,6 @@ class ClassifierParameters:
     fill_holes: bool = True
 
     def __post_init__(self) -> None:
-        check_switch("refinement", self.refinement)
         check_switch("rim_on_map", self.rim_on_map)
         if not self.tau_min > 0:
             raise ConfigError(f"tau_min must be > 0 metres, got {self.tau_min}")

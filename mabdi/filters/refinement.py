@@ -39,7 +39,7 @@ from vtkmodules.vtkCommonDataModel import vtkPolyData
 
 from mabdi.camera import unit_rays
 from mabdi.depth import depth_array, image_frame, image_noise, image_pose
-from mabdi.errors import ConfigError
+from mabdi.errors import ConfigError, check_switch
 from mabdi.filters.classifier import NO_RETURN
 from mabdi.face_identity import FaceIdTable
 from mabdi.filters.expected_image import FACE_ID_ARRAY, face_id_array
@@ -72,8 +72,16 @@ class RefinementParameters:
     sigma(z); ``replace_ratio``: a face is replaced when its sigma is at least this times the pixel's;
     ``gate_k``: same surface when |D - E| <= gate_k sqrt(sigma_D^2 + sigma_f^2); ``replace_share``: share
     of a face's pixels that must prefer the better look; ``replace``: False refines only.
+
+    ``enabled``: the ``[refinement]`` section's switch (refinement runs only with the classifier on and a noisy
+    sensor); "auto" (the default) turns it on where the noise model says neighbouring pixels err together
+    (:attr:`~mabdi.sensor_noise.SensorNoise.correlated`: a structured-light or stereo camera, a real camera
+    under ``noise = "auto"``): smoothing cannot take such errors out of one look, so later looks are averaged
+    in; with independent noise the smoothed first look is nearly as good (docs/benchmarks.md, "Depth
+    smoothing before meshing"). True or False decide outright.
     """
 
+    enabled: bool | str = "auto"
     stride: int = 2
     grazing_deg: float = 75.0
     radius_px: float | str = "auto"
@@ -86,6 +94,7 @@ class RefinementParameters:
     replace_share: float = 0.5
 
     def __post_init__(self) -> None:
+        check_switch("refinement: enabled", self.enabled)
         if not (isinstance(self.stride, int) and self.stride >= 1):
             raise ConfigError(f"refinement: stride must be an integer >= 1 (pixels), got {self.stride!r}")
         if not 0 < self.grazing_deg < 90:

@@ -46,8 +46,10 @@ from mabdi.filters.classifier import CONTRADICTED, KNOWN, NO_RETURN, dilate
 
 @dataclass(frozen=True)
 class RemovalParameters:
-    """The evidence rule and the vote filters (see the module docs); angles in degrees."""
+    """The evidence rule and the vote filters (see the module docs); angles in degrees. The ``[removal]``
+    section of a run config; ``enabled = false`` keeps every face (removal runs only with the classifier on)."""
 
+    enabled: bool = True
     hit: float = 1.1
     miss: float = 0.4
     floor: float = -0.7
@@ -71,6 +73,8 @@ class RemovalParameters:
     ray_sigma: float | str = "auto"
 
     def __post_init__(self) -> None:
+        if not isinstance(self.enabled, bool):
+            raise ConfigError(f"removal: enabled must be true or false, got {self.enabled!r}")
         if not (self.hit > 0 and self.miss >= 0 and self.floor <= 0 < self.threshold <= self.ceiling):
             raise ConfigError("removal: need hit > 0, miss >= 0 and floor <= 0 < threshold <= ceiling")
         if self.far_margin < 0:

@@ -200,13 +200,14 @@ class MabdiLoop:
         #: Object removal runs when the classifier does and it is on (the default); refinement when it is
         #: on ("auto": with noise correlated between pixels), only with a noisy sensor (a noise-free
         #: measurement is exact the first time).
-        self.removal = self.classifier_parameters.enabled and self.classifier_parameters.removal
         removal_parameters = removal if removal is not None else RemovalParameters()
+        self.removal = self.classifier_parameters.enabled and removal_parameters.enabled
         if removal_parameters.no_return_is_free and (self.noise.loses_returns or source.loses_returns):
             # a sensor that loses returns on real surfaces (a camera's noise model says so, a recording's source
             # does): a pixel without one is not free space
             removal_parameters = replace(removal_parameters, no_return_is_free=False)
-        refinement_on = self.classifier_parameters.refinement
+        refinement_parameters = refinement if refinement is not None else RefinementParameters()
+        refinement_on = refinement_parameters.enabled
         if refinement_on == "auto":
             refinement_on = self.noise.correlated  # errors one look's smoothing cannot remove: average later looks in
         self.refining = self.classifier_parameters.enabled and refinement_on and self.noise.noisy
@@ -214,7 +215,7 @@ class MabdiLoop:
         self.refining, self.registration_parameters = lidar_rules(source.intrinsics, self.refining, self.registration_parameters)
         if self.classifier_parameters.rim_on_map == "auto":  # the seam on the map's surface where the map is refined
             self.classifier_parameters = replace(self.classifier_parameters, rim_on_map=bool(self.refining))
-        self.refinement = MapRefinement(refinement if refinement is not None else RefinementParameters())
+        self.refinement = MapRefinement(refinement_parameters)
         self.measured = SourceDepthFrames(source, noise=self.noise, pixel_holes=pixel_holes)
         # compacted at the end of each frame (step)
         self.world = FilterWorldMesh(chunk_size=chunk_size_for(source.intrinsics), compact_on_append=False)

@@ -133,7 +133,7 @@ class RunResult:
             "source": self.source,
             "frames": len(records),
             "classifier": self.config.classifier.enabled,
-            "removal": self.config.classifier.enabled and self.config.classifier.removal,
+            "removal": self.config.classifier.enabled and self.config.removal.enabled,
             "cells_removed": int(sum(r.cells_removed for r in records)),
             "surface": self.config.surface.method,
             "surface_parameters": asdict(self.config.surface.parameters_of()),
