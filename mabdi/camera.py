@@ -20,6 +20,7 @@ from __future__ import annotations
 import functools
 import math
 from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -44,6 +45,11 @@ class Intrinsics:
     metres. The defaults are Kinect-v1-like: 640x480, f = 525 px, principal
     point at the image centre, range 0.5-4.0 m.
     """
+
+    #: A camera's image holds z-depth along the optical axis, not range along each ray (a LiDAR's does).
+    range_image: ClassVar[bool] = False
+    #: The image's last column does not meet its first (a LiDAR's 360 degrees do).
+    wraps_around: ClassVar[bool] = False
 
     fx: float = 525.0
     fy: float = 525.0
@@ -110,6 +116,29 @@ class Intrinsics:
         rays[..., 1] = v[:, None]
         rays[..., 2] = 1.0
         return rays
+
+    # -- the questions every sensor geometry answers (the LiDAR's: mabdi.spherical.SphericalGeometry) --
+    def pixels_per_radian(self) -> float:
+        """How many pixels one radian of view spans at the image centre: ``fx``."""
+        return self.fx
+
+    def pixel_angle(self) -> float:
+        """The largest angle (radians) between neighbouring pixels' rays at the image centre: 1 / min(fx, fy)."""
+        return 1.0 / min(self.fx, self.fy)
+
+    def jump_scale(self) -> float:
+        """What a relative depth jump between neighbouring pixels scales by: 1 (the surfaces' thresholds were
+        chosen for a camera)."""
+        return 1.0
+
+    def sensor_values(self, sensor_points) -> np.ndarray:
+        """(...) the image's value for camera-frame points (..., 3): their z-depth (metres)."""
+        return np.asarray(sensor_points)[..., 2]
+
+    def project_points(self, points, world_from_sensor) -> tuple[np.ndarray, np.ndarray]:
+        """World points (N, 3) to continuous pixel coordinates (N, 2: u column, v row; the pixel is ``floor``)
+        and (N,) their z-depth (metres; <= 0 behind the camera) (:func:`project`)."""
+        return project(points, self, world_from_sensor)
 
     @property
     def vertical_view_angle(self) -> float:

@@ -41,7 +41,7 @@ from vtkmodules.util.numpy_support import numpy_to_vtk, vtk_to_numpy
 from vtkmodules.vtkCommonCore import vtkStringArray
 from vtkmodules.vtkCommonDataModel import vtkImageData
 
-from mabdi.camera import Intrinsics, check_pose, project
+from mabdi.camera import Intrinsics, check_pose
 from mabdi.sensor_noise import SensorNoise
 from mabdi.spherical import BEAM_ELEVATIONS_ARRAY, SPHERICAL_ARRAY, SphericalGeometry
 
@@ -187,7 +187,7 @@ def fill_depth_image(
     field = image.GetFieldData()
     field.Initialize()
     geometry = [(INTRINSICS_ARRAY, intrinsics.to_array())]
-    if isinstance(intrinsics, SphericalGeometry):
+    if intrinsics.range_image:
         geometry = [(SPHERICAL_ARRAY, intrinsics.to_array())]
         if intrinsics.beam_elevations:
             geometry.append((BEAM_ELEVATIONS_ARRAY, np.asarray(intrinsics.beam_elevations, dtype=np.float64)))
@@ -249,34 +249,6 @@ def image_intrinsics(image) -> SensorGeometry:
         table = image.GetFieldData().GetArray(BEAM_ELEVATIONS_ARRAY)
         return SphericalGeometry.from_array(_field_array(image, SPHERICAL_ARRAY), None if table is None else vtk_to_numpy(table))
     return Intrinsics.from_array(_field_array(image, INTRINSICS_ARRAY))
-
-
-def pixels_per_radian(geometry: SensorGeometry) -> float:
-    """How many pixels one radian of view spans: a camera's ``fx`` (at the image centre), a LiDAR's columns per
-    radian of azimuth (what turns a length seen at a distance into pixels, for either geometry)."""
-    if isinstance(geometry, SphericalGeometry):
-        return geometry.columns / (2.0 * np.pi)
-    return geometry.fx
-
-
-def pixel_angle(geometry: SensorGeometry) -> float:
-    """The largest angle (radians) between neighbouring pixels' rays: a camera's 1 / min(fx, fy) (at the image
-    centre), a LiDAR's larger of the azimuth step and the widest beam spacing."""
-    if isinstance(geometry, SphericalGeometry):
-        elevations = geometry.elevations()
-        spacing = float(np.abs(np.diff(elevations)).max()) if len(elevations) > 1 else 0.0
-        return max(2.0 * np.pi / geometry.columns, spacing)
-    return 1.0 / min(geometry.fx, geometry.fy)
-
-
-def jump_scale(geometry: SensorGeometry) -> float:
-    """What a relative depth jump between neighbouring pixels scales by for this geometry: 1 for a camera (the
-    surfaces' thresholds were chosen for one), and for a LiDAR its :func:`pixel_angle` over the default
-    camera's (1 / 525 rad): the same surface seen at the same incidence spreads that much more between
-    neighbouring beams."""
-    if isinstance(geometry, SphericalGeometry):
-        return pixel_angle(geometry) * Intrinsics().fx
-    return 1.0
 
 
 #: Neighbouring samples continue one flat surface when the next lies within this many standard deviations
@@ -364,30 +336,9 @@ def _shifted(edges: np.ndarray, dv: int, du: int) -> np.ndarray:
     return out
 
 
-def sensor_values(sensor_points, geometry: SensorGeometry) -> np.ndarray:
-    """(...) what an image of ``geometry`` holds for sensor-frame points (..., 3): a camera's z-depth, a LiDAR's
-    range (metres)."""
-    points = np.asarray(sensor_points)
-    if isinstance(geometry, SphericalGeometry):
-        return np.linalg.norm(points, axis=-1)
-    return points[..., 2]
-
-
-def project_to_image(points, geometry: SensorGeometry, world_from_sensor) -> tuple[np.ndarray, np.ndarray]:
-    """World points (N, 3) to continuous pixel coordinates (N, 2: u column, v row; the pixel is ``floor``)
-    and (N,) the value an image of ``geometry`` holds for them (z-depth or range, metres), from
-    ``world_from_sensor``: the one projection for either geometry (:func:`mabdi.camera.project`,
-    :meth:`mabdi.spherical.SphericalGeometry.pixels`). Points behind a camera get z <= 0."""
-    if isinstance(geometry, SphericalGeometry):
-        pose = check_pose(world_from_sensor, "world_from_sensor")
-        local = (np.asarray(points, dtype=np.float64).reshape(-1, 3) - pose[:3, 3]) @ pose[:3, :3]
-        return geometry.pixels(local)
-    return project(points, geometry, world_from_sensor)
-
-
 def is_range_image(image) -> bool:
     """True when a depth image is a LiDAR's range image (spherical geometry), False for a camera's."""
-    return isinstance(image_intrinsics(image), SphericalGeometry)
+    return image_intrinsics(image).range_image
 
 
 def image_pose(image) -> np.ndarray:

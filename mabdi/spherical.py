@@ -32,9 +32,11 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 import numpy as np
 
+from mabdi.camera import Intrinsics, check_pose
 from mabdi.errors import ConfigError
 
 
@@ -52,6 +54,11 @@ class SphericalGeometry:
     and ``range_max`` (metres) bound a return. ``beam_elevations`` (degrees, one per beam, strictly decreasing)
     replaces the uniform spacing for sensors whose beams are not evenly spread; empty means uniform.
     """
+
+    #: The image holds range along each beam's ray.
+    range_image: ClassVar[bool] = True
+    #: 360 degrees of azimuth: the last column meets the first.
+    wraps_around: ClassVar[bool] = True
 
     beams: int = 64
     columns: int = 1024
@@ -167,6 +174,35 @@ class SphericalGeometry:
             v = (self.fov_up - elevation) / (self.fov_up - self.fov_down) * self.beams
         return np.stack([u, v], axis=1), distance
 
+    # -- the questions every sensor geometry answers (the camera's: mabdi.camera.Intrinsics) -----------
+    def pixels_per_radian(self) -> float:
+        """How many pixels one radian of azimuth spans: columns / 2 pi."""
+        return self.columns / (2.0 * math.pi)
+
+    def pixel_angle(self) -> float:
+        """The largest angle (radians) between neighbouring pixels' rays: the azimuth step or the widest beam
+        spacing."""
+        elevations = self.elevations()
+        spacing = float(np.abs(np.diff(elevations)).max()) if len(elevations) > 1 else 0.0
+        return max(2.0 * math.pi / self.columns, spacing)
+
+    def jump_scale(self) -> float:
+        """What a relative depth jump between neighbouring pixels scales by: :meth:`pixel_angle` over the default
+        camera's (1 / ``Intrinsics.fx``): the same surface at the same incidence spreads that much more between
+        neighbouring beams."""
+        return self.pixel_angle() * Intrinsics.fx
+
+    def sensor_values(self, sensor_points) -> np.ndarray:
+        """(...) the image's value for sensor-frame points (..., 3): their range (metres)."""
+        return np.linalg.norm(np.asarray(sensor_points), axis=-1)
+
+    def project_points(self, points, world_from_sensor) -> tuple[np.ndarray, np.ndarray]:
+        """World points (N, 3) to continuous pixel coordinates (N, 2: u column, v row; the pixel is ``floor``)
+        and (N,) their range (metres) (:meth:`pixels`)."""
+        pose = check_pose(world_from_sensor, "world_from_sensor")
+        local = (np.asarray(points, dtype=np.float64).reshape(-1, 3) - pose[:3, 3]) @ pose[:3, :3]
+        return self.pixels(local)
+
     # -- field data ---------------------------------------------------------------
     def to_array(self) -> np.ndarray:
         """float64[6]: beams, columns, fov_up, fov_down, range_min, range_max (the field-data layout)."""
@@ -185,4 +221,4 @@ class SphericalGeometry:
 def on_for_range_images(switch: bool | str, geometry) -> bool:
     """A true / false / "auto" switch (:func:`mabdi.errors.check_switch`) for an image of ``geometry``: "auto" is
     on for a LiDAR's range image (a :class:`SphericalGeometry`) and off for a camera's."""
-    return switch is True or (switch == "auto" and isinstance(geometry, SphericalGeometry))
+    return switch is True or (switch == "auto" and geometry.range_image)

@@ -489,7 +489,6 @@ def test_lidar_loop_removes_a_box_that_leaves(tmp_path):
 
 def test_one_projection_for_either_geometry_round_trips_pixel_centres():
     from mabdi.camera import Intrinsics, pixel_rays
-    from mabdi.depth import project_to_image, sensor_values
 
     pose = np.eye(4)
     pose[:3, 3] = (1.0, -2.0, 0.5)
@@ -499,12 +498,12 @@ def test_one_projection_for_either_geometry_round_trips_pixel_centres():
         values = np.random.default_rng(1).uniform(1.0, 9.0, geometry.shape)
         sensor = pixel_rays(geometry) * values[..., None]
         world = sensor.reshape(-1, 3) @ pose[:3, :3].T + pose[:3, 3]
-        uv, value = project_to_image(world, geometry, pose)
+        uv, value = geometry.project_points(world, pose)
         rows, cols = np.indices(geometry.shape)
         np.testing.assert_allclose(uv[:, 0], cols.ravel() + 0.5, atol=1e-6)
         np.testing.assert_allclose(uv[:, 1], rows.ravel() + 0.5, atol=1e-6)
         np.testing.assert_allclose(value, values.ravel(), rtol=1e-9)
-        np.testing.assert_allclose(sensor_values(sensor, geometry), values, rtol=1e-9)
+        np.testing.assert_allclose(geometry.sensor_values(sensor), values, rtol=1e-9)
         if isinstance(geometry, SphericalGeometry):  # rays at continuous coordinates meet the pixel-centre rays
             np.testing.assert_allclose(geometry.rays_at(cols + 0.5, rows + 0.5), geometry.rays(), atol=1e-12)
 

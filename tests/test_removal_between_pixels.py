@@ -9,7 +9,7 @@ from conftest import plane_mesh
 
 import mabdi
 from mabdi.camera import Intrinsics, look_at, project, unit_rays
-from mabdi.depth import DepthFrame, image_pose, pixel_angle
+from mabdi.depth import DepthFrame, image_pose
 from mabdi.face_identity import FaceIdTable
 from mabdi.filters.world_mesh import FilterWorldMesh
 from mabdi.loop.object_removal import ObjectRemoval
@@ -50,7 +50,7 @@ def _between(centres, normals, radii, measured, voting, pose):
     uv, z = project(centres, CAMERA, pose)
     uv[z <= 0] = np.nan
     return votes_between_pixels(
-        centres, normals, radii, measured, voting, rays, length, uv, pose[:3, 3], pose[:3, :3], pixel_angle(CAMERA), RULES
+        centres, normals, radii, measured, voting, rays, length, uv, pose[:3, 3], pose[:3, :3], CAMERA.pixel_angle(), RULES
     )
 
 

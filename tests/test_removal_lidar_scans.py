@@ -16,7 +16,6 @@ import numpy as np
 import pytest
 
 from mabdi.camera import Intrinsics, unit_rays
-from mabdi.depth import pixel_angle
 from mabdi.filters.classifier import CONTRADICTED, KNOWN, NO_RETURN
 from mabdi.filters.removal import RemovalParameters, contradiction_gap, for_geometry, free_space_filled, removal_votes
 from mabdi.depth import DepthFrame
@@ -65,7 +64,7 @@ def wall_ranges(distance: float) -> np.ndarray:
 
 
 def test_a_lidar_s_rules_take_its_beam_spacing():
-    assert LIDAR_RULES.ray_sigma == pytest.approx(pixel_angle(GEOMETRY) / math.sqrt(12.0))
+    assert LIDAR_RULES.ray_sigma == pytest.approx(GEOMETRY.pixel_angle() / math.sqrt(12.0))
     assert LIDAR_RULES.misplaced_reach == 1 and LIDAR_RULES.misplaced_edges
     camera = for_geometry(RemovalParameters(), Intrinsics())
     assert camera.ray_sigma == 0.0 and camera.misplaced_reach == "auto"

@@ -34,7 +34,6 @@ from vtkmodules.util.numpy_support import vtk_to_numpy
 from vtkmodules.vtkCommonDataModel import vtkPolyData
 
 from mabdi.camera import Intrinsics
-from mabdi.depth import sensor_values
 from mabdi.errors import MabdiError
 from mabdi.evaluate.distance import distances_to_mesh, distances_within
 from mabdi.evaluate.redundancy import DELTA_MIN, redundancy
@@ -105,7 +104,7 @@ def redundancy_delta(samples: SurfaceSamples, mesh: vtkPolyData, poses, noise: S
     frame_of = np.clip(frame_of, 0, len(poses) - 1)
     rotation = poses[frame_of, :3, :3]
     offset = samples.points - poses[frame_of, :3, 3]
-    z = sensor_values(np.einsum("nij,ni->nj", rotation, offset), intrinsics)  # depth or range from that pose
+    z = intrinsics.sensor_values(np.einsum("nij,ni->nj", rotation, offset))  # depth or range from that pose
     sigma = noise.sigma(np.maximum(z, intrinsics.near), intrinsics.near, intrinsics.far)
     return np.maximum(DELTA_MIN, 3.0 * sigma)
 

@@ -194,7 +194,7 @@ class TsdfMapper:
             block_count=settings.block_count,
             device=self.device,
         )
-        self.beams = isinstance(intrinsics, SphericalGeometry)
+        self.beams = intrinsics.range_image
         if not self.beams:
             self._intrinsic = o3c.Tensor(settings.open3d_intrinsic(intrinsics), dtype=o3c.float64)
 

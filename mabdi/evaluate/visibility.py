@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from mabdi.depth import SensorGeometry, project_to_image
+from mabdi.depth import SensorGeometry
 from mabdi.filters.depth_image import SensorRenderer
 
 #: Depth slack of the visibility test: metres, and a fraction of the depth.
@@ -33,7 +33,7 @@ def visible_in_depth(samples: np.ndarray, depth: np.ndarray, intrinsics: SensorG
     """Boolean mask of ``samples`` (N, 3) seen in a noise-free ``depth`` image (H, W) taken from ``pose``
     (a camera's z-depth or a LiDAR's range: z is then the range): on the surface the image shows, neither
     behind it nor in front of it (see the module docs)."""
-    uv, z = project_to_image(samples, intrinsics, pose)
+    uv, z = intrinsics.project_points(samples, pose)
     w, h = intrinsics.width, intrinsics.height
     inside = (z >= intrinsics.near) & (z <= intrinsics.far) & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
     seen = np.zeros(len(samples), dtype=bool)

@@ -394,7 +394,7 @@ class FilterDepthImage(MabdiAlgorithm):
             raise ValueError("FilterDepthImage: pose is not set (assign a 4x4 world_from_camera to .pose)")
         intr = self._intrinsics
         rng = None if not self._noise.noisy else noise_rng(self._seed, self._frame)
-        if isinstance(intr, SphericalGeometry):
+        if intr.range_image:
             if self.range_renderer is None:
                 self.range_renderer = RangeRenderer(DepthRenderer(self.renderer.backend, identity_array=TRIANGLE_RGB_ARRAY))
             depth = self._noise.ranges_with_noise(self.range_renderer.render(data, intr, self._pose), rng)
@@ -417,7 +417,7 @@ class SensorRenderer:
         self.lidar: RangeRenderer | None = None
 
     def render(self, data, geometry: Intrinsics | SphericalGeometry, world_from_sensor) -> np.ndarray:
-        if isinstance(geometry, SphericalGeometry):
+        if geometry.range_image:
             if self.lidar is None:
                 self.lidar = RangeRenderer(DepthRenderer(self.backend, identity_array=TRIANGLE_RGB_ARRAY))
             return self.lidar.render(data, geometry, world_from_sensor)

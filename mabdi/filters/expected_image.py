@@ -84,7 +84,7 @@ class FilterExpectedImage(MapAndImageAlgorithm):
         intrinsics = image_intrinsics(measured)
         pose = image_pose(measured)
         covered = None
-        if isinstance(intrinsics, SphericalGeometry):  # a LiDAR's range image
+        if intrinsics.range_image:  # a LiDAR's range image
             depth, ids, table = self._range_image(world, intrinsics, pose)
             covered = self.range_renderer.footprint_covered()
         else:

@@ -10,7 +10,7 @@ its three corners are valid and do not straddle a depth discontinuity:
 which is what a surface seen at about 79 degrees from its normal makes
 between neighbouring pixels at a 525 px focal length. A LiDAR's range image
 (:mod:`mabdi.spherical`) is meshed the same way along its rays, with
-``max_jump`` scaled to its pixel angle (:func:`mabdi.depth.jump_scale`) and
+``max_jump`` scaled to its pixel angle (the geometry's ``jump_scale()``) and
 the azimuth seam joined. ``grazing`` (on for range images) also keeps an
 edge whose two samples continue one straight line with the samples beyond
 (:func:`mabdi.depth.straight_continuations`): flat ground at grazing incidence.
@@ -39,7 +39,6 @@ from mabdi.depth import (
     image_intrinsics,
     image_noise,
     image_pose,
-    jump_scale,
     measured_depth,
     straight_continuations,
 )
@@ -47,7 +46,7 @@ from mabdi.errors import ConfigError, check_switch
 from mabdi.filters.depth_smoothing import measured_around, smooth_depth_by_noise
 from mabdi.maps.mesh_map import colour_point_array
 from mabdi.polydata import triangles_polydata
-from mabdi.spherical import SphericalGeometry, on_for_range_images
+from mabdi.spherical import on_for_range_images
 
 
 @dataclass(frozen=True)
@@ -172,7 +171,7 @@ def pixel_grid_surface(
     if parameters.smooth_depth:
         depth = smooth_depth_by_noise(depth, noise, intrinsics)
     rays = pixel_rays(intrinsics)
-    wrap = isinstance(intrinsics, SphericalGeometry)  # 360 degrees of azimuth: the last column meets the first
+    wrap = intrinsics.wraps_around  # 360 degrees of azimuth: the last column meets the first
     straight = None
     if straight_only or on_for_range_images(parameters.grazing, intrinsics):
         # the samples beyond an edge come from the whole measured image (the novel pixels' neighbours too)
@@ -185,7 +184,7 @@ def pixel_grid_surface(
         if wrap:
             width = depth.shape[1]
             straight = (straight[0][:, 2 : width + 3], straight[1][:, 2 : width + 2], straight[2][:, 2 : width + 2])
-    jump = -1.0 if straight_only else parameters.max_jump * jump_scale(intrinsics)  # -1: no edge within the jump
+    jump = -1.0 if straight_only else parameters.max_jump * intrinsics.jump_scale()  # -1: no edge within the jump
     if wrap:
         height, width = depth.shape
         triangles = pixel_grid_triangles(np.concatenate([depth, depth[:, :1]], axis=1), jump, straight)

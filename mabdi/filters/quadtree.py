@@ -52,8 +52,6 @@ from mabdi.depth import (
     image_noise,
     image_pose,
     measured_depth,
-    pixel_angle,
-    sensor_values,
     straight_continuations,
 )
 from mabdi.errors import ConfigError, check_switch
@@ -139,7 +137,7 @@ def resolved(p: QuadTreeParameters, geometry) -> QuadTreeParameters:
     stood in front of the walls, and removal took a fifth of the map)."""
     if p.reduction != "auto":
         return p
-    return replace(p, reduction=1 if isinstance(geometry, SphericalGeometry) else CAMERA_REDUCTION)
+    return replace(p, reduction=1 if geometry.range_image else CAMERA_REDUCTION)
 
 
 # ---------------------------------------------------------------------------
@@ -187,7 +185,7 @@ class ReducedSpherical:
     @property
     def footprint(self) -> float:
         """Radians per reduced pixel (the larger of the azimuth step and the beam spacing, times r)."""
-        return pixel_angle(self.geometry) * self.reduction
+        return self.geometry.pixel_angle() * self.reduction
 
     def rays_at(self, u, v) -> np.ndarray:
         """Unit rays at continuous reduced-grid coordinates (block corners at integers)."""
@@ -285,7 +283,7 @@ def merge_allowances(points: np.ndarray, k: Grid, noise: SensorNoise, smoothed: 
 
 def _depth(points: np.ndarray, k: Grid) -> np.ndarray:
     """What the image holds for sensor-frame points (..., 3): a camera's z, a LiDAR's range."""
-    return sensor_values(points, k.geometry if isinstance(k, ReducedSpherical) else k)
+    return (k.geometry if isinstance(k, ReducedSpherical) else k).sensor_values(points)
 
 
 def _on_plane(rays: np.ndarray, normal: np.ndarray, point: np.ndarray, k: Grid) -> np.ndarray:
@@ -581,7 +579,7 @@ def leaves_of_image(
         depth = smooth_depth_by_noise(depth, noise, intrinsics)
     if measured is not None:
         measured = measured_around(depth, measured, noise, intrinsics, p.smooth_depth)
-    if isinstance(intrinsics, SphericalGeometry):
+    if intrinsics.range_image:
         return (*_range_leaves(depth, intrinsics, p, noise, measured), depth)
     k = intrinsics
     r = p.reduction

@@ -38,7 +38,7 @@ from vtkmodules.vtkCommonCore import vtkPoints
 from vtkmodules.vtkCommonDataModel import vtkPolyData
 
 from mabdi.camera import unit_rays
-from mabdi.depth import depth_array, image_frame, image_noise, image_pose
+from mabdi.depth import depth_array, image_noise, image_pose
 from mabdi.errors import ConfigError, check_switch
 from mabdi.filters.classifier import NO_RETURN
 from mabdi.face_identity import FaceIdTable
@@ -168,11 +168,12 @@ def _match_rows(old: np.ndarray, new: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True)
 class _FrameView:
-    """The frame a refinement step works on: D, the sensor's intrinsics, the source (for older frames' poses)."""
+    """The frame a refinement step works on: D, the sensor's intrinsics, and ``pose_of(frame)``: the pose an
+    older frame was meshed with (None: unknown)."""
 
     measured_image: object
     intrinsics: object
-    source: object
+    pose_of: object
 
 
 class MapRefinement:
@@ -185,17 +186,13 @@ class MapRefinement:
     def __init__(self, parameters: RefinementParameters | None = None) -> None:
         self.parameters = parameters if parameters is not None else RefinementParameters()
         self._blocks: dict[str, _BlockState] = {}
-        self._poses: dict[int, np.ndarray] = {}
-        self._source_poses: np.ndarray | None = None
 
     def reset(self) -> None:
         """Forget every block (after the map was emptied or replaced)."""
         self._blocks.clear()
-        self._poses.clear()
-        self._source_poses = None
 
     def state(self, world) -> dict:
-        """The per-block and per-frame memory as plain data, for checkpoints (``world``: the loop's world mesh).
+        """The per-block memory as plain data, for checkpoints (``world``: the loop's world mesh).
 
         Per block: its state arrays, its triangles (-1 rows stand for None), the points of the block object
         the state belongs to, and whether that object is the world's current block (then :meth:`set_state`
@@ -211,9 +208,7 @@ class MapRefinement:
                 "has_triangles": block.triangles is not None,
                 **{name: getattr(block, name).copy() for name in _STATE},
             }
-        frames = np.array(sorted(self._poses), dtype=np.int64)
-        poses = np.array([self._poses[int(f)] for f in frames]).reshape(-1, 4, 4)
-        return {"blocks": blocks, "pose_frames": frames, "poses": poses}
+        return {"blocks": blocks}
 
     def set_state(self, state: dict, world) -> None:
         """Go on from :meth:`state` (after ``world`` was restored from the same checkpoint)."""
@@ -228,7 +223,6 @@ class MapRefinement:
                 patch.SetPoints(points)
             triangles = np.asarray(block["triangles"], dtype=np.int64) if block["has_triangles"] else None
             self._blocks[key] = _BlockState(patch, triangles, *(np.array(block[name]) for name in _STATE))
-        self._poses = {int(f): np.array(p) for f, p in zip(state["pose_frames"], state["poses"], strict=True)}
 
     # -- helpers -------------------------------------------------------------
     def _unit_rays(self, intrinsics) -> tuple[np.ndarray, np.ndarray]:
@@ -237,20 +231,6 @@ class MapRefinement:
         stride = self.parameters.stride
         rays, length = unit_rays(intrinsics)
         return rays[::stride, ::stride].reshape(-1, 3), length[::stride, ::stride].ravel()
-
-    def _pose_of(self, frame: int, source, current: np.ndarray) -> np.ndarray:
-        pose = self._poses.get(frame)
-        if pose is not None:
-            return pose
-        streamed = getattr(source, "frames_known", 0) is None  # its poses: the frames' read so far
-        if self._source_poses is None or (streamed and frame >= len(self._source_poses)):
-            try:
-                self._source_poses = np.asarray(source.poses, dtype=np.float64)
-            except Exception:  # a source that cannot list its poses: the current one stands in
-                self._source_poses = np.zeros((0, 4, 4))
-        if 0 <= frame < len(self._source_poses):
-            return self._source_poses[frame]
-        return current
 
     def _sigma(self, view: _FrameView, depth: np.ndarray) -> np.ndarray:
         """The sensor's sigma(z) (the noise model D carries), floored at ``min_sigma``."""
@@ -315,7 +295,8 @@ class MapRefinement:
         z = np.full(n, np.nan)
         for frame in np.unique(vertex_frame):
             chosen = vertex_frame == frame
-            creator = self._pose_of(int(frame), view.source, pose)
+            creator = view.pose_of(int(frame))
+            creator = pose if creator is None else creator
             z[chosen] = (points[chosen] - creator[:3, 3]) @ creator[:3, 2]
         z = np.where(np.isfinite(z) & (z > 0), z, np.linalg.norm(points - pose[:3, 3], axis=1))
         prior = 1.0 / self._sigma(view, z) ** 2
@@ -328,11 +309,12 @@ class MapRefinement:
         return fresh
 
     # -- one frame -----------------------------------------------------------
-    def step(self, measured_image, expected_image, labels, world, intrinsics, source) -> RefinementResult:
+    def step(self, measured_image, expected_image, labels, world, intrinsics, pose_of) -> RefinementResult:
         """One frame's refinement: D (registered to the map), E with face identity, the classifier's
         ``labels`` (None: classifier off, nothing refined), the map (``world``, a
         :class:`~mabdi.filters.world_mesh.FilterWorldMesh` after it appended the frame; read only), the
-        sensor's ``intrinsics`` and the frame ``source`` (the poses of the frames that made older faces).
+        sensor's ``intrinsics`` and ``pose_of(frame)``: the pose each frame that made a face was meshed with
+        (the loop's record; None where unknown: this frame's pose stands in).
         Returns what it found: the moves and the faces to replace, for the map's owner to apply."""
         start = time.perf_counter()
         p = self.parameters
@@ -342,9 +324,8 @@ class MapRefinement:
             return result
         if expected_image is None or expected_image.GetPointData().GetArray(FACE_ID_ARRAY) is None:
             return result  # E drawn without face identity: nothing to attribute pixels to
-        view = _FrameView(measured_image, intrinsics, source)
+        view = _FrameView(measured_image, intrinsics, pose_of)
         pose = image_pose(measured_image)
-        self._poses[image_frame(measured_image)] = pose
         for key in world.patch_keys:  # blocks merged since the last frame carry their parts' states
             parts = world.store.merged_parts(key)
             if parts and key not in self._blocks and any(part in self._blocks for part, _ in parts):

@@ -37,7 +37,6 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy import ndimage
 
-from mabdi.depth import jump_scale, pixel_angle
 from mabdi.errors import ConfigError
 from mabdi.face_identity import unique_codes
 from mabdi.filters.image_kernels import depth_edges_kernel
@@ -93,16 +92,16 @@ class RemovalParameters:
 
 def for_geometry(parameters: RemovalParameters, geometry) -> RemovalParameters:
     """The rules as they apply to images of ``geometry``: a camera's as given; for a LiDAR's range images,
-    whose beams lie further apart (:func:`mabdi.depth.jump_scale` times a camera's pixel angle), ``edge_jump``
+    whose beams lie further apart (the geometry's ``jump_scale()`` times a camera's pixel angle), ``edge_jump``
     scaled up by that factor (the same surface at the same incidence jumps that much more between beams) and
     the margins in pixels scaled down by it, to the same angle (at least one beam), and no contradiction held
     back as a misplaced edge's: a LiDAR times each return along its own beam, with none of a depth camera's
     edge shadows, and a small object's few beams all lie near its silhouette. ``ray_sigma`` "auto": a
-    LiDAR's widest beam spacing (:func:`mabdi.depth.pixel_angle`) over sqrt(12) (a return anywhere within
+    LiDAR's widest beam spacing (the geometry's ``pixel_angle()``) over sqrt(12) (a return anywhere within
     its pixel), none for a camera."""
-    scale = jump_scale(geometry)
+    scale = geometry.jump_scale()
     if parameters.ray_sigma == "auto":
-        parameters = replace(parameters, ray_sigma=pixel_angle(geometry) / math.sqrt(12.0) if scale != 1.0 else 0.0)
+        parameters = replace(parameters, ray_sigma=geometry.pixel_angle() / math.sqrt(12.0) if scale != 1.0 else 0.0)
     if scale == 1.0:
         return parameters
     margin = max(1, math.ceil(parameters.edge_margin / scale)) if parameters.edge_margin else 0

@@ -40,7 +40,6 @@ from mabdi.algorithm import raise_pipeline_errors
 from mabdi.camera import Intrinsics
 from mabdi.interrupts import interrupts_unwrapped
 from mabdi.depth import depth_array, image_pose
-from mabdi.spherical import SphericalGeometry
 from mabdi.filters.classifier import (
     ClassifierParameters,
     FilterClassifier,
@@ -114,7 +113,7 @@ def lidar_rules(geometry, refining: bool, registration: RegistrationParameters) 
     """(refining, registration) for a sensor of ``geometry``: unchanged for a camera; for a LiDAR's range
     images (:class:`~mabdi.spherical.SphericalGeometry`) refinement off and registration off (their kernels
     are the pinhole camera's): the loop takes a LiDAR's poses as given."""
-    if isinstance(geometry, SphericalGeometry):
+    if geometry.range_image:
         return False, replace(registration, enabled=False)
     return refining, registration
 
@@ -157,7 +156,7 @@ def chunk_size_for(geometry) -> float:
     a camera, :data:`~mabdi.world_map.LIDAR_CHUNK_SIZE` for a LiDAR's range images, which show tens of metres
     all around at once (2 m chunks would put hundreds of blocks in every view, each drawn, culled and voted
     on apart)."""
-    return LIDAR_CHUNK_SIZE if isinstance(geometry, SphericalGeometry) else CHUNK_SIZE
+    return LIDAR_CHUNK_SIZE if geometry.range_image else CHUNK_SIZE
 
 
 class MabdiLoop:
@@ -378,6 +377,17 @@ class MabdiLoop:
             self._poses, self._registrations = poses, registrations
         self._frames = max(self._frames, int(index) + 1)
 
+    def meshed_pose(self, frame: int) -> np.ndarray | None:
+        """(4, 4) the pose frame ``frame`` was meshed with (map frame); a frame not run here (a run resumed from
+        an older checkpoint): the source's given pose; None when neither is known."""
+        if 0 <= frame < len(self._poses) and np.isfinite(self._poses[frame]).all():
+            return self._poses[frame]
+        try:
+            given = self.source.poses  # a stream's: the frames read so far
+        except Exception:  # a source that cannot list its poses
+            return None
+        return np.asarray(given[frame], dtype=np.float64) if 0 <= frame < len(given) else None
+
     def _check_poses(self) -> None:
         """Warn (once a run) when the frames' registrations say the poses disagree with the depth. Not for a
         source that states how far its poses are off (the simulator): no pose file, no depth scale to blame."""
@@ -427,7 +437,7 @@ class MabdiLoop:
         self._refined = None
         if self.refining:
             self._refined = self.refinement.step(
-                self.measured_image(), self.expected_image(), self.labels(), self.world, self.intrinsics, self.source
+                self.measured_image(), self.expected_image(), self.labels(), self.world, self.intrinsics, self.meshed_pose
             )
             for key, vertices, points in self._refined.moves:  # the map changes here, by its owner
                 self.world.move_points(key, vertices, points)

@@ -43,7 +43,7 @@ from vtkmodules.util.numpy_support import vtk_to_numpy
 from vtkmodules.vtkCommonDataModel import vtkPolyData
 
 from mabdi.camera import project, unit_rays
-from mabdi.depth import depth_array, image_intrinsics, image_noise, image_pose, pixel_angle, pixels_per_radian, project_to_image
+from mabdi.depth import depth_array, image_intrinsics, image_noise, image_pose
 from mabdi.face_identity import FaceIdTable, block_address, codes_in, rows_by_block
 from mabdi.filters.classifier import CONTRADICTED, NO_RETURN, classify, dilate, label_array, neighbourhood_3x3, pose_sigma_array
 from mabdi.filters.expected_image import face_id_array
@@ -52,7 +52,6 @@ from mabdi.filters.registry import SurfaceCapabilities
 from mabdi.filters.removal_kernels import points_in_boxes
 from mabdi.filters.removal import RemovalParameters, for_geometry, free_space_filled, removal_votes, votes_between_pixels
 from mabdi.polydata import triangle_frames
-from mabdi.spherical import SphericalGeometry
 from mabdi.world_map import face_centres
 
 
@@ -194,7 +193,7 @@ class ObjectRemoval:
         measured = free_space_filled(measured, parameters, geometry.far)
         rays, length = unit_rays(geometry, np.float32)
         rotation, origin = pose[:3, :3], pose[:3, 3]
-        angle = pixel_angle(geometry)
+        angle = geometry.pixel_angle()
         # where the map was seen through: around each block's contradicted faces, a pixel's footprint on a plane
         # seen at up to MAX_INCIDENCE_DEG, and their radius
         lows, highs = [], []
@@ -229,7 +228,7 @@ class ObjectRemoval:
         if not touching_blocks:
             return np.zeros(0, dtype=np.int64)
         around = np.concatenate(around)
-        uv, value = project_to_image(np.concatenate(around_points), geometry, pose)
+        uv, value = geometry.project_points(np.concatenate(around_points), pose)
         with np.errstate(invalid="ignore"):
             u, v = np.floor(uv[:, 0]), np.floor(uv[:, 1])
             inside = (u >= 0) & (u < width) & (v >= 0) & (v < height) & (value > 0)
@@ -248,7 +247,7 @@ class ObjectRemoval:
         centres, radii = np.zeros((len(codes), 3)), np.zeros(len(codes))
         for b, rows in rows_by_block(drawn):
             centres[rows], radii[rows] = face_centres(world.block(keys[b]), codes[rows] - table.bases[b])
-        uv, value = project_to_image(centres, geometry, pose)
+        uv, value = geometry.project_points(centres, pose)
         uv[value <= 0] = np.nan  # behind a camera
         hit = votes_between_pixels(
             centres, world.face_normals_of(codes, table), radii, measured, voting, rays, length, uv, origin, rotation,
@@ -326,7 +325,7 @@ class ObjectRemoval:
         shown = shown[np.isfinite(shown)]
         if not len(shown):
             return parameters
-        margin = int(np.ceil(overhang * pixels_per_radian(geometry) / float(np.median(shown))))
+        margin = int(np.ceil(overhang * geometry.pixels_per_radian() / float(np.median(shown))))
         margin = min(max(margin, parameters.edge_margin), parameters.max_edge_margin)
         return replace(parameters, edge_margin=margin)
 
@@ -339,7 +338,7 @@ def pixel_boxes(corner: np.ndarray, edge1: np.ndarray, edge2: np.ndarray, geomet
     height, width = geometry.shape
     vertices = np.stack([corner, corner + edge1, corner + edge2], axis=1).reshape(-1, 3)
     rotation, centre = world_from_sensor[:3, :3], world_from_sensor[:3, 3]
-    if isinstance(geometry, SphericalGeometry):
+    if geometry.range_image:
         uv, _ = geometry.pixels((vertices - centre) @ rotation)
         in_front = np.ones(len(vertices), dtype=bool)
     else:
@@ -352,7 +351,7 @@ def pixel_boxes(corner: np.ndarray, edge1: np.ndarray, edge2: np.ndarray, geomet
         high = np.floor(np.nan_to_num(uv.max(axis=1), nan=width + height, posinf=width + height, neginf=-1.0)) + 1
     boxes = np.stack([low[:, 0], high[:, 0], low[:, 1], high[:, 1]], axis=1)
     every_column = ~in_front.all(axis=1)
-    if isinstance(geometry, SphericalGeometry):
+    if geometry.wraps_around:
         every_column |= (high[:, 0] - low[:, 0]) > width / 2  # across the seam
     boxes[every_column] = [0, width - 1, 0, height - 1]
     boxes[~in_front.any(axis=1)] = [1, 0, 1, 0]  # wholly behind a camera

@@ -76,9 +76,8 @@ def record(config: RunConfig, out, format: str, storage: str = "sqlite3", encodi
             write_kitti(rig, out, extra=extra)
         else:
             from mabdi.sources.rosbag2 import write_lidar_rosbag2, write_rosbag2
-            from mabdi.spherical import SphericalGeometry
 
-            if isinstance(rig.intrinsics, SphericalGeometry):  # a LiDAR's scans: PointCloud2 (encoding is for images)
+            if rig.intrinsics.range_image:  # a LiDAR's scans: PointCloud2 (encoding is for images)
                 write_lidar_rosbag2(rig, out, storage=storage, extra=extra)
             else:
                 write_rosbag2(rig, out, storage=storage, encoding=encoding, extra=extra)

@@ -100,7 +100,7 @@ class SimulatedRig(FrameSource):
         self.sensor.SetInputConnection(scene.GetOutputPort())
         self.description = description
         #: Whether frames carry a colour image (None: when the scene has coloured objects; never for a LiDAR).
-        lidar = isinstance(self.sensor.intrinsics, SphericalGeometry)
+        lidar = self.sensor.intrinsics.range_image
         if lidar and colour:
             raise ValueError("SimulatedRig: a LiDAR's range images carry no colour image")
         self.colour = False if lidar else scene.coloured if colour is None else bool(colour)
@@ -118,7 +118,7 @@ class SimulatedRig(FrameSource):
         sensor = config.sensor
         geometry = sensor.geometry()
         # a LiDAR's poses in its own axes (x forward, z up): the path says where the sensor looks
-        axes = "lidar" if isinstance(geometry, SphericalGeometry) else "camera"
+        axes = "lidar" if geometry.range_image else "camera"
         return cls(
             scene,
             path_from_config(frames, config.path, base_dir, axes=axes),
@@ -129,7 +129,7 @@ class SimulatedRig(FrameSource):
             backend=sensor.backend,
             description=f"simulated {config.run.name or 'scene'}",
             pose_noise=sensor.pose_noise,
-            sweep=sensor.sweep_settings() if isinstance(geometry, SphericalGeometry) else None,
+            sweep=sensor.sweep_settings() if geometry.range_image else None,
         )
 
     @property

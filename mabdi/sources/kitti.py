@@ -258,7 +258,7 @@ def write_kitti(source: FrameSource, folder, *, overwrite: bool = False, extra: 
     (so :class:`KittiSequence` reads the source's poses back), ``times.txt`` the timestamps (index / 10 where
     unknown), and ``mabdi.toml`` the ``[lidar]`` geometry and the tables of ``extra``. Atomic file by file.
     """
-    if not isinstance(source.intrinsics, SphericalGeometry):
+    if not source.intrinsics.range_image:
         raise SequenceError(
             f"{source.description}: a KITTI folder holds a LiDAR's scans, but these frames are a camera's depth images "
             "(use [sensor] kind = \"lidar\", or another format)"

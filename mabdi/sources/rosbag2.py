@@ -895,7 +895,7 @@ def write_rosbag2(
     path = Path(path)
     if encoding not in DEPTH_ENCODINGS:
         raise SequenceError(f"cannot write ROS 2 bag {path}: unknown depth encoding {encoding!r} (known: {', '.join(DEPTH_ENCODINGS)})")
-    if isinstance(source.intrinsics, SphericalGeometry):
+    if source.intrinsics.range_image:
         raise SequenceError(f"cannot write ROS 2 bag {path}: the frames are a LiDAR's range images: write them with write_lidar_rosbag2")
     typestore = _rosbags().typestore
     intrinsics = source.intrinsics
@@ -1021,7 +1021,7 @@ def write_lidar_rosbag2(
     """
     path = Path(path)
     geometry = source.intrinsics
-    if not isinstance(geometry, SphericalGeometry):
+    if not geometry.range_image:
         raise SequenceError(f"cannot write ROS 2 bag {path}: point clouds come from a LiDAR's range images, these frames are a camera's")
     if layout not in CLOUD_LAYOUTS:
         raise SequenceError(f"cannot write ROS 2 bag {path}: unknown point layout {layout!r} (known: {', '.join(CLOUD_LAYOUTS)})")
