@@ -122,7 +122,7 @@ def bench_reading(frames: int, passes: int) -> None:
 
 def bench_loop(frames: int, repeats: int = 2, surfaces=("pixel_grid", "quadtree", "voxel_planes")) -> None:
     from mabdi.config import load_run_config, set_value
-    from mabdi.loop import Simulation
+    from mabdi.loop import MappingRun
 
     text = (REPO / "scenes" / "table.toml").read_text()
     coloured = text
@@ -145,7 +145,7 @@ def bench_loop(frames: int, repeats: int = 2, surfaces=("pixel_grid", "quadtree"
                 set_value(config, "run.frames", frames)
                 set_value(config, "sensor.noise", "kinect")
                 set_value(config, "surface.method", surface)
-                simulation = Simulation(config)
+                simulation = MappingRun(config)
                 result = simulation.run()
                 means = np.array([np.mean([getattr(r, s) for r in result.records[1:]]) for s in stages])
                 best[name] = np.minimum(best[name], means) if name in best else means

@@ -48,7 +48,7 @@ def main() -> None:
     set_value(config, "surface.method", args.surface)
     set_value(config, "output.checkpoint_every", args.checkpoint_every)
     set_value(config, "output.ply", False)
-    simulation = mabdi.Simulation(config)
+    simulation = mabdi.MappingRun(config)
     samples = []
     start = time.perf_counter()
     last = [start, time.process_time()]

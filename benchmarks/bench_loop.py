@@ -36,7 +36,7 @@ import numpy as np  # noqa: E402
 import mabdi  # noqa: E402
 from mabdi.config import set_value  # noqa: E402
 from mabdi.evaluate.bench import machine_info  # noqa: E402
-from mabdi.loop.runner import Simulation  # noqa: E402
+from mabdi.loop.runner import MappingRun  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -44,7 +44,7 @@ REPO = Path(__file__).resolve().parents[1]
 VARIANTS = ("mabdi", "black box", "no speck filter", "E from merged map")
 
 
-class MergedMapSimulation(Simulation):
+class MergedMapSimulation(MappingRun):
     """E rendered from the whole map merged into one polydata, rebuilt every frame."""
 
     def step(self, i):
@@ -66,7 +66,7 @@ def one(name: str, variant: str, frames: int | None):
     elif variant == "no speck filter":
         set_value(config, "classifier.min_width", 1)
         set_value(config, "classifier.min_region", 0)
-    simulation_class = MergedMapSimulation if variant == "E from merged map" else Simulation
+    simulation_class = MergedMapSimulation if variant == "E from merged map" else MappingRun
     result = simulation_class(config).run()
     summary = result.summary()
     added = np.array([r.cells_added for r in result.records])

@@ -3,7 +3,7 @@
 Resident memory (VmRSS, split into anonymous memory and mapped files such as
 shared libraries, and the peak VmHWM) of one process at each step of
 a run of ``scenes/table.toml``: the interpreter alone, after ``import
-mabdi``, after building the run (``load_run_config`` + ``Simulation``),
+mabdi``, after building the run (``load_run_config`` + ``MappingRun``),
 after frame 1 and after 30 frames. Then what each heavy import costs on
 its own: a fresh interpreter per module, RSS before and after importing
 it, and its import time (so the numbers are not hidden by what another
@@ -113,9 +113,9 @@ def run_steps(frames: int, surface: str | None) -> tuple[list[dict], list[str]]:
     if surface:
         mabdi.config.set_value(config, "surface.method", surface)
     mabdi.config.set_value(config, "run.frames", max(frames, 1))
-    from mabdi.loop.runner import Simulation
+    from mabdi.loop.runner import MappingRun
 
-    simulation = Simulation(config)
+    simulation = MappingRun(config)
     mark("after building the run", time.perf_counter() - start)
     start = time.perf_counter()
     simulation.step(0)

@@ -64,7 +64,7 @@ from mabdi.evaluate.bench import machine_info
 from mabdi.evaluate.held_out import THRESHOLDS, corrected_poses, held_out_split, pose_differences, score_map
 from mabdi.evaluate.tsdf import TsdfSettings, open3d_status, run_tsdf
 from mabdi.io.atomic import write_text
-from mabdi.loop.runner import RECORDING_NOISE, Simulation
+from mabdi.loop.runner import RECORDING_NOISE, MappingRun
 from mabdi.sources.frames import FrameSubset
 from mabdi.sources.sequences import open_sequence
 
@@ -107,7 +107,7 @@ def run_mabdi(source, subset, integrated, held, surface: str, registration: bool
     if isinstance(source.intrinsics, Intrinsics):  # a depth camera's recording with no noise model stated
         overrides["sensor.noise"] = RECORDING_NOISE
     config = with_overrides(config, overrides, where="bench_real")
-    simulation = Simulation(config, source=subset)
+    simulation = MappingRun(config, source=subset)
     name = f"mabdi ({surface})" if registration else f"mabdi ({surface}, no registration)"
     log(f"{name}: running {len(subset)} frames")
     result = simulation.run()

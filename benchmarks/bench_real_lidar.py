@@ -90,7 +90,7 @@ from mabdi.evaluate.held_out_scans import (
 )
 from mabdi.evaluate.tsdf import open3d_status
 from mabdi.io.atomic import write_text
-from mabdi.loop.runner import RECORDING_LIDAR_NOISE, Simulation
+from mabdi.loop.runner import RECORDING_LIDAR_NOISE, MappingRun
 from mabdi.polydata import triangles_polydata
 from mabdi.sources.frames import FrameSubset
 from mabdi.sources.kitti import SCAN_FOLDER, is_kitti, read_scan
@@ -149,7 +149,7 @@ def run_mabdi(subset, held: HeldOutScans, surface: str, overrides: dict | None =
     # the settings mabdi run --sequence gives a LiDAR recording that states no noise model, then --set's
     stated = {"surface.method": surface, "sensor.kind": "lidar", "sensor.noise": RECORDING_LIDAR_NOISE, **(overrides or {})}
     config = with_overrides(RunConfig(), stated, where="bench_real_lidar")
-    simulation = Simulation(config, source=subset)
+    simulation = MappingRun(config, source=subset)
     name = f"mabdi ({surface})"
     log(f"{name}: running {len(subset)} scans")
     result = simulation.run()

@@ -31,7 +31,7 @@ from mabdi.evaluate import evaluate_run
 from mabdi.filters.depth_image import DepthRenderer
 from mabdi.sensor_noise import SensorNoise
 from mabdi.filters.registration import IcpWorkspace, RegistrationParameters, register_depth, transform_size
-from mabdi.loop import Simulation
+from mabdi.loop import MappingRun
 from mabdi.simulate.rig import SimulatedRig
 
 REPO = Path(__file__).resolve().parents[1]
@@ -89,7 +89,7 @@ def loop_row(scene: str, overrides: dict, registration: bool) -> dict:
     for key, value in overrides.items():
         set_value(config, key, value)
     set_value(config, "registration.enabled", registration)
-    simulation = Simulation(config)
+    simulation = MappingRun(config)
     start = time.perf_counter()
     result = simulation.run()
     seconds = time.perf_counter() - start

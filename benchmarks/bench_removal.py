@@ -43,7 +43,7 @@ from mabdi.evaluate.dynamic import GhostTracker, run_with_ghosts
 from mabdi.evaluate.metrics import fscore, observed_ground_truth, scenes_per_pose
 from mabdi.evaluate.sampling import sample_surface
 from mabdi.evaluate.tsdf import TsdfMapper, TsdfSettings, open3d_status
-from mabdi.loop import Simulation
+from mabdi.loop import MappingRun
 
 REPO = Path(__file__).resolve().parents[1]
 SCENES = {
@@ -70,7 +70,7 @@ def run_mabdi(config, surface, rig, frames, every, static_every, removal):
     method_config = copy.deepcopy(config)
     set_value(method_config, "surface.method", surface)
     set_value(method_config, "removal.enabled", removal)
-    simulation = Simulation(method_config, source=frames, scene=rig.scene)
+    simulation = MappingRun(method_config, source=frames, scene=rig.scene)
     run = run_with_ghosts(simulation, every=every, static_every=static_every)
     return run, run.result.mesh, len(frames) / run.loop_seconds
 

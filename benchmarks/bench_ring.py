@@ -45,7 +45,7 @@ def main() -> None:
     set_value(config, "run.frames", args.frames)
     set_value(config, "surface.method", args.surface)
     set_value(config, "output.ply", False)
-    simulation = mabdi.Simulation(config)
+    simulation = mabdi.MappingRun(config)
     records, cpu = [], []
     last = [time.process_time()]
 

@@ -58,7 +58,7 @@ def loop_row(name: str, simulation) -> dict:
 def loop_on_recordings(frames: int) -> list[dict]:
     rows = []
     config = table_config(frames)
-    rows.append(loop_row("simulated", mabdi.Simulation(config)))
+    rows.append(loop_row("simulated", mabdi.MappingRun(config)))
     with tempfile.TemporaryDirectory() as folder:
         for name, fmt, storage in (("TUM folder", "tum", "sqlite3"), ("ROS 2 bag (sqlite3)", "rosbag2", "sqlite3"), ("ROS 2 bag (MCAP)", "rosbag2", "mcap")):
             path = Path(folder) / name.replace(" ", "_").replace("(", "").replace(")", "")
@@ -72,7 +72,7 @@ def expected_image_cost(repeats: int = 3) -> dict:
     config = load_run_config(REPO / "scenes" / "bunnies.toml")
     set_value(config, "removal.enabled", False)
     set_value(config, "refinement.enabled", False)
-    simulation = mabdi.Simulation(config)
+    simulation = mabdi.MappingRun(config)
     simulation.run()
     world = simulation.loop.world
     measured = SourceDepthFrames(simulation.source)

@@ -36,7 +36,7 @@ from mabdi.evaluate.bench import bench_frames, machine_info, observed_samples
 from mabdi.evaluate.dynamic import GhostTracker, run_with_ghosts
 from mabdi.evaluate.metrics import SAMPLES, evaluate_map, evaluate_run
 from mabdi.evaluate.tsdf import TsdfMapper, TsdfSettings, open3d_status
-from mabdi.loop import Simulation
+from mabdi.loop import MappingRun
 
 #: Samples of the observed scene the TSDF is tuned against (the final score uses the full set).
 TUNING_SAMPLES = 50_000
@@ -49,7 +49,7 @@ ROOT = Path(__file__).resolve().parents[1]
 def bench_surface(surface: str, frames: int | None, every: int) -> dict:
     config = _street_config(frames)
     set_value(config, "surface.method", surface)
-    simulation = Simulation(config)
+    simulation = MappingRun(config)
     start = time.perf_counter()
     ghosts = run_with_ghosts(simulation, every=every)
     seconds = time.perf_counter() - start

@@ -26,7 +26,7 @@ from mabdi.evaluate import evaluate_run
 from mabdi.evaluate.metrics import evaluate_map, observed_ground_truth, scenes_per_pose
 from mabdi.evaluate.tsdf import TsdfSettings, open3d_status, run_tsdf
 from mabdi.io.atomic import write_text
-from mabdi.loop import Simulation
+from mabdi.loop import MappingRun
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -37,7 +37,7 @@ def one_seed(scene: str, seed: int) -> dict:
     config.surface.method = "quadtree"
     set_value(config, "sensor.noise", "structured_light")
     set_value(config, "run.seed", seed)
-    simulation = Simulation(config)
+    simulation = MappingRun(config)
     result = simulation.run()
     metrics = evaluate_run(simulation, result)
     rows = {"mabdi": {"fscore_1cm": metrics.fscore_1cm, "precision_1cm": metrics.precision_1cm,

@@ -34,7 +34,7 @@ from mabdi.maps import MeshMap  # noqa: E402
 from mabdi.sensor_noise import SensorNoise  # noqa: E402
 from mabdi.filters.expected_image import FilterExpectedImage  # noqa: E402
 from mabdi.filters.registry import register_surface_filter  # noqa: E402
-from mabdi.loop import FrameStep, MabdiLoop, Mapper, RunObserver, RunPipeline, Simulation, map_frames  # noqa: E402
+from mabdi.loop import FrameStep, MabdiLoop, Mapper, RunObserver, RunPipeline, MappingRun, map_frames  # noqa: E402
 from mabdi.simulate import SimulatedRig, helical_path  # noqa: E402
 from mabdi.sources import FrameSource, SourceDepthFrames, SourceScene, StreamedFrames  # noqa: E402
 
@@ -72,7 +72,7 @@ __all__ = [
     "RunPipeline",
     "RunConfig",
     "SensorNoise",
-    "Simulation",
+    "MappingRun",
     "SourceScene",
     "StreamedFrames",
     "backproject",

@@ -244,7 +244,7 @@ def cmd_run(args) -> int:
     """``mabdi run``: one :class:`~mabdi.loop.run_pipeline.RunPipeline`, its observers chosen by the options."""
     from mabdi.config import RunConfig, load_run_config
     from mabdi.errors import ConfigError
-    from mabdi.loop import Simulation
+    from mabdi.loop import MappingRun
     from mabdi.loop.run_pipeline import InterruptCheck, ProgressBar, RunPipeline
 
     if args.resume is not None:
@@ -314,7 +314,7 @@ def cmd_run(args) -> int:
                 f"{args.config}: nothing to map: the scene has no objects (add [[scene.objects]] tables; see scenes/table.toml)"
             )
         name = config.run.name or args.config.stem
-        simulation = Simulation(config)
+        simulation = MappingRun(config)
     out_dir = Path(config.output.dir) if config.output.dir else Path("runs") / name
     observers = [ProgressBar(simulation.frames, not args.quiet), InterruptCheck()]
     if args.rerun is not None:

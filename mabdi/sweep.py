@@ -272,11 +272,11 @@ def run_cell(config, out_dir, samples: int | None = None) -> dict:
         from functools import partial
 
         from mabdi.evaluate.metrics import SAMPLES, evaluate_run
-        from mabdi.loop import Simulation
+        from mabdi.loop import MappingRun
         from mabdi.loop.run_pipeline import RunPipeline
 
         evaluate = partial(evaluate_run, samples=samples or SAMPLES)
-        result = RunPipeline(Simulation(config), Path(out_dir), evaluate=evaluate, evaluate_empty=True).run()
+        result = RunPipeline(MappingRun(config), Path(out_dir), evaluate=evaluate, evaluate_empty=True).run()
         metrics = result.scores
         if metrics is None:
             raise ValueError(f"the run was not evaluated: {result.evaluation}")

@@ -75,11 +75,11 @@ def check_table_loop(surface: str, median_limit: float):
 
     from mabdi.config import load_run_config
     from mabdi.evaluate import distances_to_mesh
-    from mabdi.loop import Simulation
+    from mabdi.loop import MappingRun
 
     config = load_run_config(REPO / "scenes" / "table.toml")
     config.surface.method = surface
-    simulation = Simulation(config)
+    simulation = MappingRun(config)
     result = simulation.run()
     assert result.mesh.GetNumberOfCells() * 10 <= PIXEL_GRID_TABLE_CELLS
     vertices = vtk_to_numpy(result.mesh.GetPoints().GetData())
@@ -90,15 +90,15 @@ def check_table_loop(surface: str, median_limit: float):
 
 
 def simulation(scene: str, surface: str, **values):
-    """The Simulation of ``scenes/<scene>.toml`` with ``surface``; ``values`` set config keys (``a__b`` = ``a.b``)."""
+    """The MappingRun of ``scenes/<scene>.toml`` with ``surface``; ``values`` set config keys (``a__b`` = ``a.b``)."""
     from mabdi.config import load_run_config, set_value
-    from mabdi.loop import Simulation
+    from mabdi.loop import MappingRun
 
     config = load_run_config(REPO / "scenes" / f"{scene}.toml")
     set_value(config, "surface.method", surface)
     for key, value in values.items():
         set_value(config, key.replace("__", "."), value)
-    return Simulation(config)
+    return MappingRun(config)
 
 
 @pytest.fixture(scope="session")

@@ -16,7 +16,7 @@ from mabdi.io.map_files import load_map, save_map
 from mabdi.io.vtk_files import read_mesh_file, write_mesh_file
 from mabdi.maps.mesh_map import COLOUR_LAYER, MeshMap
 from mabdi.polydata import triangles_polydata
-from mabdi.loop import Simulation
+from mabdi.loop import MappingRun
 from mabdi.sources.scene import SourceScene
 
 #: Each object of Run 1's table its own colour (no two alike), so a vertex's colour names its object.
@@ -62,7 +62,7 @@ def coloured_runs(tmp_path_factory):
     for surface in ("pixel_grid", "quadtree", "voxel_planes"):
         config = load_run_config(path)
         config.surface.method = surface
-        simulation = Simulation(config)
+        simulation = MappingRun(config)
         runs[surface] = (simulation, simulation.run(folder / surface))
     return runs
 
@@ -207,7 +207,7 @@ def test_the_dashboard_and_rerun_show_the_colours(tmp_path):
     from mabdi.viz.dashboard import Dashboard
 
     config = load_run_config(coloured_table(tmp_path, frames=3))
-    simulation = Simulation(config)
+    simulation = MappingRun(config)
     dashboard = Dashboard(simulation)
     try:
         for i in range(3):
@@ -222,7 +222,7 @@ def test_the_dashboard_and_rerun_show_the_colours(tmp_path):
     rr = pytest.importorskip("rerun")
     from mabdi.viz.rerun_log import RerunLogger
 
-    simulation = Simulation(config)
+    simulation = MappingRun(config)
     logger = RerunLogger(tmp_path / "run.rrd", frames=1)
     record = simulation.step(0)
     logger.log_frame(simulation.loop, record)

@@ -207,7 +207,7 @@ def test_a_surface_filter_registered_from_outside_runs_by_name(tmp_path):
         )
         config = load_run_config(path)
         assert config.surface.parameters_of().size == 0.2
-        simulation = mabdi.Simulation(config)
+        simulation = mabdi.MappingRun(config)
         result = simulation.run()
         assert result.mesh.GetNumberOfCells() == 3  # one triangle a frame
         simulation.loop.reset()

@@ -131,7 +131,7 @@ def test_departures_static_mesh_and_first_seen():
 
 
 def test_run_with_ghosts_steps_and_measures_a_run():
-    from mabdi.loop import Simulation
+    from mabdi.loop import MappingRun
 
     config = run_config_from_dict(
         {
@@ -147,7 +147,7 @@ def test_run_with_ghosts_steps_and_measures_a_run():
             },
         }
     )
-    simulation = Simulation(config)
+    simulation = MappingRun(config)
     run = run_with_ghosts(simulation, every=2)
     records, shares = run
     assert len(records) == 8 and [f for f, _ in shares] == [0, 2, 4, 6, 7]

@@ -451,12 +451,12 @@ disappear_at = {leave}
 
 
 def lidar_run(tmp_path, surface="pixel_grid", noise="none", frames=16, leave=1.0):
-    from mabdi.loop import Simulation
+    from mabdi.loop import MappingRun
 
     path = tmp_path / f"lidar_{surface}_{noise}.toml"
     path.write_text(LIDAR_SCENE.format(frames=frames, noise=noise, surface=surface, leave=leave if leave < 1.0 else frames + 1))
     config = load_run_config(path)
-    simulation = Simulation(config)
+    simulation = MappingRun(config)
     return simulation, simulation.run()
 
 

@@ -82,7 +82,7 @@ def test_auto_recovers_the_kinect_noise_of_a_recording(tmp_path):
     write_tum(SimulatedRig.from_config(config), tmp_path / "seq")
     set_value(config, "sensor.noise", "auto")
     set_value(config, "surface.method", "quadtree")
-    simulation = mabdi.Simulation(config, source=TumSequence(tmp_path / "seq"))
+    simulation = mabdi.MappingRun(config, source=TumSequence(tmp_path / "seq"))
     result = simulation.run()
     calibration = simulation.loop.noise.calibration
     assert calibration.fitted

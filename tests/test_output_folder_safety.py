@@ -11,7 +11,7 @@ from conftest import REPO
 from mabdi.config import load_run_config, set_value
 from mabdi.io.fingerprint import recording_files
 from mabdi.io.run_folder import LOCK, MANIFEST, STAGING, OutputError, RunFolder, run_writes
-from mabdi.loop import Simulation
+from mabdi.loop import MappingRun
 from mabdi.loop.run_outputs import CHECKPOINT
 from mabdi.loop.runner import recorded_simulation
 
@@ -89,7 +89,7 @@ def test_a_run_refuses_to_write_under_the_name_of_a_user_file(tmp_path):
 def test_the_names_a_run_writes_are_all_known_up_front(tmp_path):
     """Every file of a run with every optional output is one that the up-front check knows (RUN_FILES)."""
     out = tmp_path / "run"
-    Simulation(table(2, output__depth_images=True, output__h5=True)).run(out)
+    MappingRun(table(2, output__depth_images=True, output__h5=True)).run(out)
     files = json.loads((out / MANIFEST).read_text())["files"]
     assert "world_mesh.h5" in files and any(name.startswith("depth/") for name in files)
     assert [name for name in files if not run_writes(name)] == []
@@ -98,10 +98,10 @@ def test_the_names_a_run_writes_are_all_known_up_front(tmp_path):
 def test_a_resume_refuses_a_user_file_under_a_name_the_run_writes(tmp_path):
     out = tmp_path / "cut"
     with pytest.raises(KeyboardInterrupt):
-        Simulation(table(4, output__checkpoint_every=2)).run(out, progress=interrupt_at(2))
+        MappingRun(table(4, output__checkpoint_every=2)).run(out, progress=interrupt_at(2))
     (out / "summary.json").write_bytes(b"mine\n")
     with pytest.raises(OutputError, match=r"summary\.json"):
-        Simulation.resume(out)
+        MappingRun.resume(out)
     assert (out / "summary.json").read_bytes() == b"mine\n"
 
 
@@ -151,9 +151,9 @@ def test_a_run_whose_out_lies_inside_the_recording_resumes(tmp_path):
     original = changed.read_bytes()
     changed.write_bytes(original + b"# edited\n")
     with pytest.raises(OutputError, match=r"groundtruth\.txt changed") as refused:
-        Simulation.resume(out)
+        MappingRun.resume(out)
     assert LOCK not in str(refused.value) and CHECKPOINT not in str(refused.value)
     changed.write_bytes(original)
-    _, result = Simulation.resume(out)
+    _, result = MappingRun.resume(out)
     assert [r.frame for r in result.records] == [0, 1, 2, 3]
     assert json.loads((out / MANIFEST).read_text())["complete"] and (out / "world_mesh.vtp").is_file()

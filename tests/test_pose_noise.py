@@ -206,10 +206,10 @@ def small_table(frames: int = 2):
 
 def test_a_run_writes_the_true_poses_beside_the_given_ones(tmp_path):
     from mabdi.evaluate.metrics import sensor_poses
-    from mabdi.loop import Simulation
+    from mabdi.loop import MappingRun
 
     config = small_table()
-    simulation = Simulation(config)
+    simulation = MappingRun(config)
     simulation.run(tmp_path / "run")
     given, true_poses = np.load(tmp_path / "run" / "poses_given.npy"), np.load(tmp_path / "run" / "poses_true.npy")
     np.testing.assert_array_equal(true_poses, path_from_config(2, config.path))

@@ -215,7 +215,7 @@ def test_an_object_in_front_is_not_taken_for_a_better_look():
 def test_noise_free_table_moves_no_vertex(scenes_dir):
     config = mabdi.load_run_config(scenes_dir / "table.toml")
     assert config.sensor.noise == "none"
-    simulation = mabdi.Simulation(config)
+    simulation = mabdi.MappingRun(config)
     loop = simulation.loop
     assert not loop.refining  # a noise-free sensor's first look is exact: the loop does not refine
     refinement = MapRefinement()  # and the refinement itself, asked anyway, moves nothing
@@ -275,7 +275,7 @@ def test_moved_vertices_of_the_kinect_table_do_not_drift():
                        ("removal.enabled", False), ("refinement.replace", False),
                        ("surface.quadtree.smooth_depth", False), ("registration.enabled", False)]:
         set_value(config, key, value)
-    simulation = mabdi.Simulation(config)
+    simulation = mabdi.MappingRun(config)
     loop = simulation.loop
     loop.reset()
     world = loop.world

@@ -644,13 +644,13 @@ def test_the_gate_does_not_cut_loose_the_few_pixels_that_hold_a_direction():
     With the drift of 1 cm / 0.5 degrees per metre, the loop's second and third frames start 2-4 cm and
     0.6-1.3 degrees off the map: they register to within a few millimetres, their pairs holding every
     direction."""
-    from mabdi.loop import Simulation
+    from mabdi.loop import MappingRun
 
     config = load_run_config(REPO / "scenes" / "table.toml")
     config.surface.method = "quadtree"
     set_value(config, "sensor.pose_noise.drift_translation", 0.01)
     set_value(config, "sensor.pose_noise.drift_rotation", 0.5)
-    simulation = Simulation(config)
+    simulation = MappingRun(config)
     records = [simulation.step(i) for i in range(3)]
     true, meshed = simulation.true_poses[:3], simulation.meshed_poses()[:3]
     for i in (1, 2):

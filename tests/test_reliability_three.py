@@ -23,7 +23,7 @@ from mabdi.config import load_run_config, set_value
 from mabdi.errors import ConfigError
 from mabdi.io.checkpoint import CheckpointError, decode, encode, read_tree, write_tree
 from mabdi.io.run_folder import LOCK, STAGING, OutputError, RunFolder
-from mabdi.loop import Simulation
+from mabdi.loop import MappingRun
 from mabdi.loop.run_outputs import CHECKPOINT, OLD_CHECKPOINT
 from mabdi.sources.frames import FrameList
 from mabdi.sources.rosbag2 import _TYPESTORE, Rosbag2Sequence, write_rosbag2
@@ -70,13 +70,13 @@ def test_a_second_run_into_a_busy_folder_is_refused_and_changes_nothing(tmp_path
     first = RunFolder.prepare(out)
     (first.path("metrics.csv")).write_text("first\n")
     with pytest.raises(OutputError, match=rf"output folder {out} is in use by another mabdi run \(process {os.getpid()}\)"):
-        Simulation(table(2)).run(out)
+        MappingRun(table(2)).run(out)
     with pytest.raises(OutputError, match="in use by another mabdi run"):
         RunFolder.resume(out)
     assert (out / STAGING / "metrics.csv").read_text() == "first\n"  # the first run's staging is untouched
     first.complete()
     assert not (out / LOCK).exists() and (out / "metrics.csv").read_text() == "first\n"
-    Simulation(table(2)).run(out)  # free again
+    MappingRun(table(2)).run(out)  # free again
     assert json.loads((out / "summary.json").read_text())["frames"] == 2
 
 
@@ -95,7 +95,7 @@ def test_a_run_killed_with_sigkill_leaves_no_stuck_lock(tmp_path):
         holder.send_signal(signal.SIGKILL)
         holder.wait()
     assert (out / LOCK).exists()  # left behind by the killed run, but not held
-    Simulation(table(2)).run(out)
+    MappingRun(table(2)).run(out)
     assert json.loads((out / "summary.json").read_text())["frames"] == 2 and not (out / LOCK).exists()
 
 
@@ -304,7 +304,7 @@ def test_tum_errors_print_plain_numbers(tmp_path):
 
 def _interrupted(out, config, at: int, **run):
     with pytest.raises(KeyboardInterrupt):
-        Simulation(config).run(out, progress=interrupt_at(at), **run)
+        MappingRun(config).run(out, progress=interrupt_at(at), **run)
     assert (out / STAGING / CHECKPOINT).is_file()
 
 
@@ -349,11 +349,11 @@ def test_resume_refuses_a_changed_scene_mesh(tmp_path):
     cube.Update()
     write_mesh_file(cube.GetOutput(), mesh_file)  # same path, other content
     with pytest.raises(OutputError, match=rf"an input changed since the run started \(scene mesh {mesh_file.resolve()} changed\)"):
-        Simulation.resume(out)
+        MappingRun.resume(out)
     assert (out / STAGING / CHECKPOINT).is_file()
     config_file.write_text(text + "\n# edited\n")
     with pytest.raises(OutputError, match=rf"config file {config_file.resolve()} changed"):
-        Simulation.resume(out)
+        MappingRun.resume(out)
 
 
 def test_resume_refuses_options_and_keeps_no_eval(tmp_path, capsys):
@@ -374,7 +374,7 @@ def test_resume_refuses_options_and_keeps_no_eval(tmp_path, capsys):
 def test_a_resumed_runs_seconds_count_the_whole_run(tmp_path):
     out = tmp_path / "run"
     _interrupted(out, table(12, "quadtree", output__checkpoint_every=4), 9)
-    _, result = Simulation.resume(out)
+    _, result = MappingRun.resume(out)
     frames_ms = sum(r.t_total_ms for r in result.records)
     assert result.seconds >= 0.9 * frames_ms / 1000.0  # not only the 4 frames run after the resume
     summary = json.loads((out / "summary.json").read_text())
@@ -441,12 +441,12 @@ def test_voxel_planes_and_refinement_state_is_plain_data_and_resumes_exactly(tmp
     config = table(10, "voxel_planes", sensor__noise="kinect", refinement__enabled=True)
     if hasattr(config, "registration"):
         set_value(config, "registration.enabled", False)  # registration's own state is its author's to add
-    whole = Simulation(config)
+    whole = MappingRun(config)
     whole.loop.reset()
     for i in range(6):
         whole.step(i)
     write_tree(tmp_path / "state.npz", whole.loop.state())
-    restored = Simulation(config)
+    restored = MappingRun(config)
     restored.loop.set_state(read_tree(tmp_path / "state.npz"))
     for i in range(6, 10):
         a, b = whole.step(i), restored.step(i)

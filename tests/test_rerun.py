@@ -38,12 +38,12 @@ def read_recording(path) -> tuple[dict[str, set[str]], set[int]]:
 @pytest.fixture(scope="module")
 def recorded_run(tmp_path_factory):
     from mabdi.config import load_run_config
-    from mabdi.loop import Simulation
+    from mabdi.loop import MappingRun
     from mabdi.viz.rerun_log import rerun_progress
 
     config = load_run_config(SCENES / "table.toml")
     config.run.frames = FRAMES
-    simulation = Simulation(config)
+    simulation = MappingRun(config)
     path = tmp_path_factory.mktemp("rerun") / "table.rrd"
     progress = rerun_progress(simulation, path)
     result = simulation.run(progress=progress)

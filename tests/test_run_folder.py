@@ -10,7 +10,7 @@ import pytest
 from conftest import REPO
 from mabdi.config import load_run_config, set_value
 from mabdi.io.run_folder import MANIFEST, STAGING, OutputError, RunFolder
-from mabdi.loop import Simulation
+from mabdi.loop import MappingRun
 from mabdi.loop.run_outputs import CHECKPOINT
 
 
@@ -25,9 +25,9 @@ def table(frames: int, surface: str = "pixel_grid", **values):
 
 def test_a_rerun_leaves_no_file_of_the_previous_run(tmp_path):
     out = tmp_path / "run"
-    Simulation(table(4, output__depth_images=True, output__h5=True)).run(out)
+    MappingRun(table(4, output__depth_images=True, output__h5=True)).run(out)
     assert (out / "depth" / "D_000003.vti").is_file() and (out / "world_mesh.h5").is_file()
-    Simulation(table(2)).run(out)
+    MappingRun(table(2)).run(out)
     names = sorted(p.relative_to(out).as_posix() for p in out.rglob("*") if p.is_file())
     assert "world_mesh.h5" not in names and not any(n.startswith("depth/") for n in names)
     assert not (out / "depth").exists()
@@ -40,9 +40,9 @@ def test_a_folder_with_foreign_files_is_refused_unless_overwrite(tmp_path):
     out.mkdir()
     (out / "notes.txt").write_text("my notes")
     with pytest.raises(OutputError, match=r"holds files mabdi did not write \(notes.txt\).*--overwrite"):
-        Simulation(table(2)).run(out)
+        MappingRun(table(2)).run(out)
     assert sorted(p.name for p in out.iterdir()) == ["notes.txt"]
-    Simulation(table(2)).run(out, overwrite=True)
+    MappingRun(table(2)).run(out, overwrite=True)
     assert (out / "notes.txt").read_text() == "my notes" and (out / "world_mesh.vtp").is_file()
 
 
@@ -55,7 +55,7 @@ def test_the_input_config_is_never_overwritten(tmp_path):
     config = load_run_config(config_path)
     for overwrite in (False, True):
         with pytest.raises(OutputError, match="own config file"):
-            Simulation(config).run(folder, overwrite=overwrite)
+            MappingRun(config).run(folder, overwrite=overwrite)
     assert config_path.read_text() == text
 
 
@@ -71,31 +71,31 @@ def interrupt_at(frame: int):
 def test_resume_after_an_interrupt_gives_the_same_map(tmp_path, surface):
     """--resume after an interrupt at frame 17 of 30: the map is byte-identical to the uninterrupted run's."""
     whole = tmp_path / "whole"
-    Simulation(table(30, surface, output__checkpoint_every=5)).run(whole)
+    MappingRun(table(30, surface, output__checkpoint_every=5)).run(whole)
     cut = tmp_path / "cut"
     with pytest.raises(KeyboardInterrupt):
-        Simulation(table(30, surface, output__checkpoint_every=5)).run(cut, progress=interrupt_at(17))
+        MappingRun(table(30, surface, output__checkpoint_every=5)).run(cut, progress=interrupt_at(17))
     assert (cut / STAGING / CHECKPOINT).is_file() and not (cut / "summary.json").exists()
     assert not json.loads((cut / STAGING / MANIFEST).read_text())["complete"] and not (cut / MANIFEST).exists()
-    simulation, result = Simulation.resume(cut)
+    simulation, result = MappingRun.resume(cut)
     assert [r.frame for r in result.records] == list(range(30))
     for name in ("world_mesh.vtp", "world_mesh.ply", "poses.npy"):
         assert (cut / name).read_bytes() == (whole / name).read_bytes(), name
     assert not (cut / STAGING).exists() and json.loads((cut / MANIFEST).read_text())["complete"]
     with pytest.raises(OutputError, match="complete already"):
-        Simulation.resume(cut)
+        MappingRun.resume(cut)
 
 
 def test_a_failed_run_leaves_the_previous_run_whole(tmp_path):
     out = tmp_path / "run"
-    Simulation(table(2, output__h5=True)).run(out)
+    MappingRun(table(2, output__h5=True)).run(out)
     before = {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()}
     with pytest.raises(KeyboardInterrupt):
-        Simulation(table(4)).run(out, progress=interrupt_at(1))
+        MappingRun(table(4)).run(out, progress=interrupt_at(1))
     after = {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()}
     assert after == before  # the interrupted run is staged beside it, in .mabdi-partial
     assert (out / STAGING).is_dir()
-    Simulation(table(2)).run(out)  # a new run replaces the staged one and the previous one
+    MappingRun(table(2)).run(out)  # a new run replaces the staged one and the previous one
     assert not (out / STAGING).exists() and not (out / "world_mesh.h5").exists()
 
 
@@ -109,7 +109,7 @@ def test_mabdi_run_resume_finishes_an_interrupted_run_from_the_command_line(tmp_
 
     out = tmp_path / "cut"
     with pytest.raises(KeyboardInterrupt):
-        Simulation(table(12, "quadtree", output__checkpoint_every=4)).run(out, progress=interrupt_at(9))
+        MappingRun(table(12, "quadtree", output__checkpoint_every=4)).run(out, progress=interrupt_at(9))
     assert main(["run", "--resume", str(out), "--quiet"]) == 0
     summary = json.loads((out / "summary.json").read_text())
     assert summary["frames"] == 12 and summary["metrics"]["fscore_1cm"] > 0.9

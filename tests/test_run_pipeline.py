@@ -9,13 +9,13 @@ import pytest
 
 from mabdi.config import load_run_config, set_value, with_overrides
 from mabdi.errors import ConfigError
-from mabdi.loop import Simulation
+from mabdi.loop import MappingRun
 from mabdi.loop.run_pipeline import STEPS, RunObserver, RunPipeline
 from mabdi.sweep import apply_overrides
 
 SCENES = Path(__file__).resolve().parents[1] / "scenes"
 
-#: Measured before the run was one pipeline (Simulation.run, then cli's evaluation and finish_run):
+#: Measured before the run was one pipeline (MappingRun.run, then cli's evaluation and finish_run):
 #: scenes/table.toml, 3 frames, pixel grid; since the simulator states its poses exact, the map of
 #: `--no-registration` (370,176 when the registration still moved the exact poses by a fraction of a mm).
 TABLE_3_TRIANGLES = 370_182
@@ -65,7 +65,7 @@ def test_observers_see_every_frame_in_order_and_the_outputs_are_as_before(tmp_pa
         scored.append(result.mesh.GetNumberOfCells())
         return None  # not scored here: the metrics have their own tests
 
-    pipeline = RunPipeline(Simulation(table(3)), tmp_path / "run", [Log("a", events), Log("b", events)], evaluate=evaluate)
+    pipeline = RunPipeline(MappingRun(table(3)), tmp_path / "run", [Log("a", events), Log("b", events)], evaluate=evaluate)
     result = pipeline.run()
     frames = [(e[0], e[2]) for e in events if e[1] == "frame"]
     assert frames == [("a", 0), ("b", 0), ("a", 1), ("b", 1), ("a", 2), ("b", 2)]
@@ -94,7 +94,7 @@ def test_simulation_run_is_the_pipeline_and_an_observer_needs_only_its_hooks(tmp
         def on_frame(self, pipeline, record):
             frames.append(record.frame)
 
-    simulation = Simulation(table(2))
+    simulation = MappingRun(table(2))
     via_pipeline = RunPipeline(simulation, observers=[OnlyFrames()]).run()
     via_run = simulation.run(progress=lambda record: frames.append(("progress", record.frame)))
     assert frames == [0, 1, ("progress", 0), ("progress", 1)]
@@ -113,7 +113,7 @@ def test_an_interrupted_run_tells_its_observers_and_resumes_to_the_same_map(tmp_
                 raise KeyboardInterrupt
 
     with pytest.raises(KeyboardInterrupt):
-        RunPipeline(Simulation(table(4)), tmp_path / "cut", [Log("a", events), Stop()]).run()
+        RunPipeline(MappingRun(table(4)), tmp_path / "cut", [Log("a", events), Stop()]).run()
     assert events[-1] == ("a", "abort", "KeyboardInterrupt")
     assert [e[2] for e in events if e[1] == "frame"] == [0, 1, 2]
     resumed: list = []
@@ -121,7 +121,7 @@ def test_an_interrupted_run_tells_its_observers_and_resumes_to_the_same_map(tmp_
     result = pipeline.run()
     assert [e[2] for e in resumed if e[1] == "frame"] == [2, 3]  # from the checkpoint after frame 2
     assert [r.frame for r in result.records] == [0, 1, 2, 3]
-    whole = Simulation(table(4)).run()
+    whole = MappingRun(table(4)).run()
     assert result.mesh.GetNumberOfCells() == whole.mesh.GetNumberOfCells()
     assert json.loads((tmp_path / "cut" / "summary.json").read_text())["frames"] == 4
 

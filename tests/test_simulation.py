@@ -17,7 +17,7 @@ from mabdi.depth import depth_array
 from mabdi.errors import ConfigError
 from mabdi.evaluate import distances_to_mesh
 from mabdi.filters.depth_image import FilterDepthImage
-from mabdi.loop import Simulation
+from mabdi.loop import MappingRun
 from mabdi.io.run_folder import OutputError
 from mabdi.loop.run_outputs import METRICS_COLUMNS
 from mabdi.polydata import triangles_polydata
@@ -27,7 +27,7 @@ def run(name, **changes):
     config = load_run_config(REPO / "scenes" / f"{name}.toml")
     for dotted, value in changes.items():
         set_value(config, dotted.replace("__", "."), value)
-    simulation = Simulation(config)
+    simulation = MappingRun(config)
     return simulation, simulation.run()
 
 
@@ -172,7 +172,7 @@ STAGES = {
 def test_an_exception_in_any_filter_reaches_the_caller(stage):
     config = load_run_config(REPO / "scenes" / "table.toml")
     config.run.frames = 3
-    simulation = Simulation(config)
+    simulation = MappingRun(config)
 
     def broken(*args):
         raise RuntimeError(f"{stage} broke")
@@ -185,7 +185,7 @@ def test_an_exception_in_any_filter_reaches_the_caller(stage):
 def test_frames_with_no_return_add_nothing(tmp_path):
     path = tmp_path / "empty.toml"
     path.write_text("[run]\nframes = 3\n")  # no objects: every D is all NaN
-    simulation = Simulation(load_run_config(path))
+    simulation = MappingRun(load_run_config(path))
     result = simulation.run()
     assert [r.cells_total for r in result.records] == [0, 0, 0]
     assert result.mesh.GetNumberOfCells() == 0
@@ -204,7 +204,7 @@ def test_output_under_a_regular_file_is_a_clear_error(tmp_path):
     config = load_run_config(REPO / "scenes" / "table.toml")
     config.run.frames = 2
     with pytest.raises(OutputError, match="is a file, not a folder"):
-        Simulation(config).run(blocker / "run")
+        MappingRun(config).run(blocker / "run")
     assert blocker.read_text() == "x"
 
 
@@ -212,9 +212,9 @@ def test_failed_run_leaves_earlier_outputs_whole(tmp_path):
     config = load_run_config(REPO / "scenes" / "table.toml")
     config.run.frames = 2
     out = tmp_path / "run"
-    Simulation(config).run(out)
+    MappingRun(config).run(out)
     before = (out / "world_mesh.vtp").read_bytes()
-    simulation = Simulation(config)
+    simulation = MappingRun(config)
 
     def broken(*args):
         raise RuntimeError("surface broke")
@@ -255,7 +255,7 @@ def test_ply_is_readable_by_trimesh_and_meshio(tmp_path):
 
     config = load_run_config(REPO / "scenes" / "table.toml")
     config.run.frames = 2
-    result = Simulation(config).run(tmp_path / "r")
+    result = MappingRun(config).run(tmp_path / "r")
     ply = tmp_path / "r" / "world_mesh.ply"
     loaded = trimesh.load(ply, process=False)
     assert loaded.faces.shape == (result.mesh.GetNumberOfCells(), 3)
@@ -266,7 +266,7 @@ def test_ply_is_readable_by_trimesh_and_meshio(tmp_path):
 def test_export_round_trip(tmp_path, capsys):
     config = load_run_config(REPO / "scenes" / "table.toml")
     config.run.frames = 2
-    result = Simulation(config).run(tmp_path / "r")
+    result = MappingRun(config).run(tmp_path / "r")
     cells = result.mesh.GetNumberOfCells()
     source = tmp_path / "r" / "world_mesh.vtp"
     for target in ("map.ply", "map.obj", "map.stl", "back.vtp"):

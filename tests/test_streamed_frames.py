@@ -16,7 +16,7 @@ from mabdi.config import load_run_config, with_overrides
 from mabdi.depth import DepthFrame
 from mabdi.loop.loop import MabdiLoop
 from mabdi.loop.mapper import Mapper, map_frames
-from mabdi.loop.runner import Simulation
+from mabdi.loop.runner import MappingRun
 from mabdi.simulate.rig import SimulatedRig
 from mabdi.sources.frames import FrameList, StreamedFrames, StreamOrderError
 
@@ -43,7 +43,7 @@ def rendered():
 def indexed(rendered):
     """The run over the frames given by index (a FrameList: a source with a length)."""
     config, frames, stated = rendered
-    simulation = Simulation(config, source=FrameList(frames, **stated))
+    simulation = MappingRun(config, source=FrameList(frames, **stated))
     result = simulation.run()
     simulation.loop.close()
     return result

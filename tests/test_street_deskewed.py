@@ -29,11 +29,11 @@ def test_the_deskewed_street_is_mapped_and_removal_keeps_the_static_map():
     from mabdi.config import load_run_config
     from mabdi.evaluate import distances_to_mesh, evaluate_run
     from mabdi.evaluate.dynamic import GhostObserver
-    from mabdi.loop import Simulation
+    from mabdi.loop import MappingRun
     from mabdi.loop.run_pipeline import FrameCallback, RunPipeline
     from mabdi.polydata import polydata_arrays, polydata_area, transformed_polydata, triangle_normals, triangles_polydata
 
-    sim = Simulation(load_run_config(SCENES / "street_deskewed.toml"))
+    sim = MappingRun(load_run_config(SCENES / "street_deskewed.toml"))
     removed = []
 
     def keep_removed(record):

@@ -87,7 +87,7 @@ def test_an_error_inside_a_run_is_returned_not_raised(tmp_path):
 def test_a_sweep_on_ray_equals_the_runs_made_one_by_one(first_sweep, sweep_dir):
     from mabdi.config import load_run_config
     from mabdi.evaluate import evaluate_run
-    from mabdi.loop import Simulation
+    from mabdi.loop import MappingRun
 
     assert first_sweep.ok and first_sweep.ran == 4 and first_sweep.reused == 0
     with open(sweep_dir / "results.csv", newline="") as stream:
@@ -101,7 +101,7 @@ def test_a_sweep_on_ray_equals_the_runs_made_one_by_one(first_sweep, sweep_dir):
         assert (sweep_dir / "cells" / row["cell"] / "world_mesh.vtp").is_file()
         overrides = {"run.frames": 5, "surface.method": row["surface.method"], "run.seed": row["run.seed"]}
         config = apply_overrides(load_run_config(SCENES / "table.toml"), overrides)
-        simulation = Simulation(config)
+        simulation = MappingRun(config)
         result = simulation.run()
         metrics = evaluate_run(simulation, result, samples=SAMPLES)
         assert row["triangles"] == metrics.triangles == int(csv_row["triangles"])

@@ -181,7 +181,7 @@ def test_a_coloured_voxel_planes_run_resumes_with_its_colours(tmp_path):
 
     from mabdi.config import load_run_config
     from mabdi.io.run_folder import STAGING
-    from mabdi.loop import Simulation
+    from mabdi.loop import MappingRun
     from mabdi.loop.run_outputs import CHECKPOINT
 
     def config():
@@ -190,12 +190,12 @@ def test_a_coloured_voxel_planes_run_resumes_with_its_colours(tmp_path):
         config.output.checkpoint_every = 2
         return config
 
-    Simulation(config()).run(tmp_path / "whole")
+    MappingRun(config()).run(tmp_path / "whole")
     with pytest.raises(KeyboardInterrupt):
-        Simulation(config()).run(tmp_path / "cut", progress=interrupt_at(3))
+        MappingRun(config()).run(tmp_path / "cut", progress=interrupt_at(3))
     checkpoint = read_tree(tmp_path / "cut" / STAGING / CHECKPOINT)
     assert checkpoint["loop"]["surface"]["map"]["colour"][..., 0].sum() > 0  # the voxels' colour sums are in it
-    _, result = Simulation.resume(tmp_path / "cut")
+    _, result = MappingRun.resume(tmp_path / "cut")
     assert result.mesh.GetPointData().GetArray(COLOUR_LAYER) is not None
     for name in ("world_mesh.vtp", "world_mesh.ply"):
         assert (tmp_path / "cut" / name).read_bytes() == (tmp_path / "whole" / name).read_bytes(), name

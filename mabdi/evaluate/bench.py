@@ -53,7 +53,7 @@ from mabdi.io.plots import write_elements_plot
 from mabdi.simulate.rig import SimulatedRig
 from mabdi.io.run_folder import prepare_output_dir
 from mabdi.loop.run_pipeline import RunPipeline
-from mabdi.loop.runner import Simulation
+from mabdi.loop.runner import MappingRun
 from mabdi.sources.frames import FrameList
 
 METHODS = ("mabdi", "black_box", "tsdf_1cm", "tsdf_2cm")
@@ -98,7 +98,7 @@ def machine_info(rig: SimulatedRig | None = None) -> dict:
     return info
 
 
-def _evaluate(simulation: Simulation, result, progress, method: str, observed):
+def _evaluate(simulation: MappingRun, result, progress, method: str, observed):
     """The bench's evaluation step of a run: the map against the samples every method is scored on."""
     progress(f"{method}: evaluating {result.mesh.GetNumberOfCells():,} triangles")
     return evaluate_run(simulation, result, observed=observed)
@@ -187,7 +187,7 @@ def run_bench(
         if method in ("mabdi", "black_box"):
             method_config = with_overrides(config, {"classifier.enabled": method == "mabdi"}, where=f"bench method {method}")
             progress(f"{method}: running {len(frames)} frames")
-            simulation = Simulation(method_config, source=frames, scene=rig.scene)
+            simulation = MappingRun(method_config, source=frames, scene=rig.scene)
             # in a scene an object leaves, the map after every few frames against the scene as it is then
             ghosts = GhostObserver(every=max(1, len(frames) // 25)) if dynamic else None
             evaluate = partial(_evaluate, progress=progress, method=method, observed=observed)

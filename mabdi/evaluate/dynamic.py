@@ -21,7 +21,7 @@ it stands at each frame (:meth:`mabdi.sources.scene.SourceScene.mesh_at`):
 
 :class:`GhostObserver` measures all of this as a run goes (an observer of
 :class:`mabdi.loop.run_pipeline.RunPipeline`; :func:`run_with_ghosts` runs a
-Simulation with one); :class:`GhostTracker` measures any map handed to it.
+MappingRun with one); :class:`GhostTracker` measures any map handed to it.
 Details and caveats: docs/architecture.md (``mabdi.evaluate.dynamic``).
 """
 

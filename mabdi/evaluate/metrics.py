@@ -194,7 +194,7 @@ def sensor_poses(simulation) -> np.ndarray:
 
 
 def evaluate_run(simulation, result, samples: int = SAMPLES, observed: SurfaceSamples | None = None) -> MapMetrics:
-    """Metrics of a finished :class:`mabdi.loop.Simulation` run against its own scene (``simulation.scene``)."""
+    """Metrics of a finished :class:`mabdi.loop.MappingRun` run against its own scene (``simulation.scene``)."""
     config = simulation.config
     if simulation.scene is None:
         raise MabdiError(f"{simulation.source.description}: no ground-truth scene is known, so the map cannot be evaluated")

@@ -28,7 +28,7 @@ the folder follows :mod:`mabdi.io.run_folder`):
 * while running, with ``output.checkpoint_every``: ``checkpoint.npz``
   (:class:`mabdi.loop.run_pipeline.Checkpoints`).
 
-``simulation`` below is the run's :class:`~mabdi.loop.runner.Simulation`
+``simulation`` below is the run's :class:`~mabdi.loop.runner.MappingRun`
 (its ``config``, ``source``, ``scene``, ``rig``, ``poses``, ``true_poses``,
 ``meshed_poses()``).
 """

@@ -2,10 +2,10 @@
 
 Every way of running the loop goes through one object (``mabdi run`` and
 ``--resume``, the movie, the dynamic-scene metrics, the bench, a sweep's
-cells, :meth:`Simulation.run <mabdi.loop.runner.Simulation.run>`). Its steps,
+cells, :meth:`MappingRun.run <mabdi.loop.runner.MappingRun.run>`). Its steps,
 in order (:data:`STEPS`; :meth:`RunPipeline.run` calls a method per step)::
 
-    source      the frames: the Simulation's source and its MabdiLoop
+    source      the frames: the MappingRun's source and its MabdiLoop
     outputs     the run folder opened (refused if another run holds it), config.toml,
                 the input files' fingerprint (for --resume)
     loop        frame by frame: MabdiLoop.step(i), then each observer's on_frame

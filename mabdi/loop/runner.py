@@ -1,9 +1,9 @@
 """The runner: a run config in, a map and its per-frame records out.
 
-``Simulation(config)`` is the simulated rig (:class:`~mabdi.simulate.rig.SimulatedRig`:
+``MappingRun(config)`` is the simulated rig (:class:`~mabdi.simulate.rig.SimulatedRig`:
 scene, sensor, helical path) feeding the MABDI loop
 (:class:`~mabdi.loop.loop.MabdiLoop`: expected image, classifier,
-surface, world mesh). ``Simulation(config, source=...)`` runs the same loop
+surface, world mesh). ``MappingRun(config, source=...)`` runs the same loop
 on any other :class:`~mabdi.sources.frames.FrameSource` (a recorded
 sequence), with ``scene=`` the ground truth when it is known;
 :func:`recorded_simulation` builds one over a recording on disk, its
@@ -15,7 +15,7 @@ A run of it is a :class:`~mabdi.loop.run_pipeline.RunPipeline` (the
 steps and the observers are listed there; the files a run writes in
 :mod:`mabdi.loop.run_outputs`). ``simulation.run(out_dir)`` is that
 pipeline without an evaluation; :func:`resume_run` is the pipeline of an
-interrupted run, from its last checkpoint (:meth:`Simulation.resume` runs
+interrupted run, from its last checkpoint (:meth:`MappingRun.resume` runs
 it). A resume refuses (an :class:`~mabdi.io.run_folder.OutputError` naming
 it) a checkpoint of another format version, an old ``checkpoint.pkl``
 (never unpickled), any input file that changed, went or appeared since the
@@ -48,7 +48,7 @@ from mabdi.sources.scene import SourceScene
 from mabdi.sources.sequences import FORMATS, READER_OPTIONS, metadata_path, open_sequence, read_sequence_metadata, sequence_format
 
 
-class Simulation:
+class MappingRun:
     """A source of depth frames + the MABDI loop + the outputs (see the module docs).
 
     Attributes: ``config``; ``source`` (the frames); ``rig`` (the
@@ -122,7 +122,7 @@ class Simulation:
         return pipeline.run()
 
     @classmethod
-    def resume(cls, out_dir, progress=None, finish: bool = True) -> tuple[Simulation, RunResult]:
+    def resume(cls, out_dir, progress=None, finish: bool = True) -> tuple[MappingRun, RunResult]:
         """Finish the interrupted run in ``out_dir`` from its last checkpoint (:func:`resume_run`, not
         evaluated); returns (simulation, result)."""
         pipeline = resume_run(out_dir, [FrameCallback(progress)] if progress is not None else [], finish=finish)
@@ -153,7 +153,7 @@ def resume_run(out_dir, observers=(), **options) -> RunPipeline:
             )
         note = None
         if recording is None:
-            simulation = Simulation(config)
+            simulation = MappingRun(config)
         else:
             simulation, note = recorded_simulation(
                 config, recording["path"], frames=recording.get("frames"), **recording["options"]
@@ -194,7 +194,7 @@ def resume_run(out_dir, observers=(), **options) -> RunPipeline:
 
 
 def read_checkpoint(folder: Path) -> dict:
-    """The checkpoint of an interrupted run (:meth:`Simulation.run` with ``output.checkpoint_every``).
+    """The checkpoint of an interrupted run (:meth:`MappingRun.run` with ``output.checkpoint_every``).
 
     Data only: nothing in it is executed (an old pickled ``checkpoint.pkl`` is refused unread).
     """
@@ -311,8 +311,8 @@ class RecordedFrames(FrameSubset):
 
 def recorded_simulation(
     config: RunConfig, path, noise_stated: bool = True, frames: int | None = None, **options
-) -> tuple[Simulation, str | None]:
-    """A Simulation over the recording at ``path`` (``options`` go to the reader; ``camera`` may also be
+) -> tuple[MappingRun, str | None]:
+    """A MappingRun over the recording at ``path`` (``options`` go to the reader; ``camera`` may also be
     ``"fx,fy,cx,cy,width,height[,near,far]"``, :func:`camera_option`), and a note when the ground truth is
     unknown (the evaluation is then skipped). ``frames``: run the recording's first ``frames`` frames (None, or
     more than it has: all of them; :class:`RecordedFrames`). ``noise_stated`` False (no config file, or one that
@@ -350,7 +350,7 @@ def recorded_simulation(
     else:
         base_dir = config.source.parent if config.source is not None else None
         scene = SourceScene(config.scene, frames=int(recorded["frames"]), base_dir=base_dir)
-    simulation = Simulation(config, source=source, scene=scene)
+    simulation = MappingRun(config, source=source, scene=scene)
     true_file = metadata_path(path).with_name(TRUE_POSES)  # beside the recording's mabdi.toml
     if scene is not None and true_file.is_file():
         true_poses = np.load(true_file, allow_pickle=False)

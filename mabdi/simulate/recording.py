@@ -12,12 +12,12 @@ them, in ``poses_true.npy`` (:data:`TRUE_POSES`) in the recording's folder,
 so the pose error can be scored.
 
 ``recorded_simulation(config, path)`` (:func:`mabdi.loop.runner.recorded_simulation`)
-opens a recording and builds a :class:`~mabdi.loop.runner.Simulation`
+opens a recording and builds a :class:`~mabdi.loop.runner.MappingRun`
 over it with the config's classifier, surface and output settings. The
 ground truth for the evaluation is the config's scene when the recording
 says it came from that very scene (same digest); otherwise the evaluation is
 skipped, with a note saying why. When the recording has ``poses_true.npy``,
-the evaluation judges what the sensor saw from those (``Simulation.true_poses``).
+the evaluation judges what the sensor saw from those (``MappingRun.true_poses``).
 """
 
 from __future__ import annotations

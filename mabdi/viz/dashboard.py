@@ -21,7 +21,7 @@ or, when the source has colour images, in its vertex colours (the camera's).
 Depth images share one colour range, fixed from the first frame's D
 (2nd to 98th percentile), so frames compare.
 
-Use :class:`Dashboard` with a :class:`mabdi.loop.Simulation`: after each
+Use :class:`Dashboard` with a :class:`mabdi.loop.MappingRun`: after each
 ``simulation.step(i)``, ``dashboard.render(i)`` returns the frame as a
 (720, 1296, 3) uint8 array.
 """
@@ -108,7 +108,7 @@ def fit_camera(camera, bounds_min: np.ndarray, bounds_max: np.ndarray, from_poin
 
 
 class Dashboard:
-    """Renders the six-panel picture of a running :class:`~mabdi.loop.Simulation` (see the module docs)."""
+    """Renders the six-panel picture of a running :class:`~mabdi.loop.MappingRun` (see the module docs)."""
 
     def __init__(self, simulation, size: tuple[int, int] = SIZE) -> None:
         import pyvista as pv

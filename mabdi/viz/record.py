@@ -7,7 +7,7 @@ into the run's folder, and ``dashboard_<frame>.png`` for each frame in
 ``snapshots`` (default: the first, the middle and the last). Frames go to
 the encoder as they are rendered; nothing is kept per frame. The movie is
 closed before ``summary.json`` is written, so it takes its place with the
-run's other files. :func:`run_with_movie` runs a Simulation with one.
+run's other files. :func:`run_with_movie` runs a MappingRun with one.
 """
 
 from __future__ import annotations

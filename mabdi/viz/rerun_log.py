@@ -28,7 +28,7 @@
 path it spawns a viewer, or connects to one already running.
 :func:`rerun_progress` makes the observer (:class:`RerunProgress`) that
 ``mabdi run --rerun`` gives the run's pipeline; it also serves as the
-``progress`` callback of ``Simulation.run(progress=...)``. Needs the optional
+``progress`` callback of ``MappingRun.run(progress=...)``. Needs the optional
 ``rerun`` extra (``pip install "mabdi[rerun]"``); rerun is imported only here.
 """
 
@@ -250,7 +250,7 @@ class RerunLogger:
 
 
 class RerunProgress(RunObserver):
-    """Logs each frame of a Simulation's run: an observer of :class:`~mabdi.loop.run_pipeline.RunPipeline`,
+    """Logs each frame of a MappingRun's run: an observer of :class:`~mabdi.loop.run_pipeline.RunPipeline`,
     or a ``progress(record)`` callback; the recording is finished after the last frame (or when the run stops)."""
 
     def __init__(self, simulation, path=None, images: bool = True) -> None:
