@@ -151,6 +151,60 @@ def apply_removal(
     return result
 
 
+@dataclass(frozen=True)
+class LoopSettings:
+    """What a loop runs with, every "auto" resolved for its sensor and noise model (:func:`resolve_settings`)."""
+
+    #: The classifier's thresholds, its ``rim`` (the surface's seam) and ``rim_on_map`` resolved.
+    classifier: ClassifierParameters
+    #: Removal's rules; ``no_return_is_free`` off where the sensor or the source loses returns.
+    removal: RemovalParameters
+    refinement: RefinementParameters
+    #: Registration's settings (a LiDAR's rules applied: :func:`lidar_rules`).
+    registration: RegistrationParameters
+    #: Whether object removal runs (classifier and removal on).
+    removing: bool
+    #: Whether refinement runs (classifier on, refinement on or "auto" with correlated noise, a noisy sensor).
+    refining: bool
+
+
+def resolve_settings(
+    geometry,
+    noise: SensorNoise,
+    loses_returns: bool,
+    classifier: ClassifierParameters,
+    surface: str,
+    surface_parameters,
+    removal: RemovalParameters | None,
+    refinement: RefinementParameters | None,
+    registration: RegistrationParameters | None,
+) -> LoopSettings:
+    """The one place where a loop's "auto" settings are decided, from the sensor ``geometry``, its ``noise``
+    model and whether its source ``loses_returns`` (None parameters: the defaults)."""
+    if classifier.rim == "auto":  # the rim the surface needs to close its seams with the map
+        chosen = surface_parameters if surface_parameters is not None else surface_filter(surface).parameters()
+        if isinstance(chosen, QuadTreeParameters):
+            chosen = resolved_quadtree(chosen, geometry)  # its reduction, "auto", by the sensor
+        classifier = replace(classifier, rim=seam_pixels(surface, chosen, noise.noisy))
+    removal = removal if removal is not None else RemovalParameters()
+    removing = classifier.enabled and removal.enabled
+    if removal.no_return_is_free and (noise.loses_returns or loses_returns):
+        # a sensor that loses returns on real surfaces (a camera's noise model says so, a recording's source
+        # does): a pixel without one is not free space
+        removal = replace(removal, no_return_is_free=False)
+    refinement = refinement if refinement is not None else RefinementParameters()
+    refinement_on = refinement.enabled
+    if refinement_on == "auto":
+        refinement_on = noise.correlated  # errors one look's smoothing cannot remove: average later looks in
+    # only with a noisy sensor: a noise-free measurement is exact the first time
+    refining = classifier.enabled and refinement_on and noise.noisy
+    registration = registration if registration is not None else RegistrationParameters()
+    refining, registration = lidar_rules(geometry, refining, registration)
+    if classifier.rim_on_map == "auto":  # the seam on the map's surface where the map is refined
+        classifier = replace(classifier, rim_on_map=bool(refining))
+    return LoopSettings(classifier, removal, refinement, registration, removing, refining)
+
+
 def chunk_size_for(geometry) -> float:
     """The world map's chunk edge (metres) for a sensor of ``geometry``: :data:`~mabdi.world_map.CHUNK_SIZE` for
     a camera, :data:`~mabdi.world_map.LIDAR_CHUNK_SIZE` for a LiDAR's range images, which show tens of metres
@@ -190,30 +244,15 @@ class MabdiLoop:
         #: learns from each frame); the loop's own rules below are chosen by it.
         self.noise = SensorNoise.of(noise if noise is not None else (source.noise or "none"))
         self.surface_name = surface
-        if self.classifier_parameters.rim == "auto":  # the rim the surface needs to close its seams with the map
-            chosen = surface_parameters if surface_parameters is not None else surface_filter(surface).parameters()
-            if isinstance(chosen, QuadTreeParameters):
-                chosen = resolved_quadtree(chosen, source.intrinsics)  # its reduction, "auto", by the sensor
-            self.classifier_parameters = replace(self.classifier_parameters, rim=seam_pixels(surface, chosen, self.noise.noisy))
-
-        #: Object removal runs when the classifier does and it is on (the default); refinement when it is
-        #: on ("auto": with noise correlated between pixels), only with a noisy sensor (a noise-free
-        #: measurement is exact the first time).
-        removal_parameters = removal if removal is not None else RemovalParameters()
-        self.removal = self.classifier_parameters.enabled and removal_parameters.enabled
-        if removal_parameters.no_return_is_free and (self.noise.loses_returns or source.loses_returns):
-            # a sensor that loses returns on real surfaces (a camera's noise model says so, a recording's source
-            # does): a pixel without one is not free space
-            removal_parameters = replace(removal_parameters, no_return_is_free=False)
-        refinement_parameters = refinement if refinement is not None else RefinementParameters()
-        refinement_on = refinement_parameters.enabled
-        if refinement_on == "auto":
-            refinement_on = self.noise.correlated  # errors one look's smoothing cannot remove: average later looks in
-        self.refining = self.classifier_parameters.enabled and refinement_on and self.noise.noisy
-        self.registration_parameters = registration if registration is not None else RegistrationParameters()
-        self.refining, self.registration_parameters = lidar_rules(source.intrinsics, self.refining, self.registration_parameters)
-        if self.classifier_parameters.rim_on_map == "auto":  # the seam on the map's surface where the map is refined
-            self.classifier_parameters = replace(self.classifier_parameters, rim_on_map=bool(self.refining))
+        #: Every "auto" of the stages' settings resolved for this sensor and noise model (:func:`resolve_settings`).
+        self.settings = resolve_settings(
+            source.intrinsics, self.noise, source.loses_returns, self.classifier_parameters, surface, surface_parameters,
+            removal, refinement, registration,
+        )  # fmt: skip
+        self.classifier_parameters = self.settings.classifier
+        removal_parameters, refinement_parameters = self.settings.removal, self.settings.refinement
+        self.registration_parameters = self.settings.registration
+        self.removal, self.refining = self.settings.removing, self.settings.refining
         self.refinement = MapRefinement(refinement_parameters)
         self.measured = SourceDepthFrames(source, noise=self.noise, pixel_holes=pixel_holes)
         # compacted at the end of each frame (step)

@@ -1,0 +1,42 @@
+"""A loop's "auto" settings are decided in one function, from the sensor, its noise model and its source."""
+
+from __future__ import annotations
+
+from mabdi.camera import Intrinsics
+from mabdi.filters.classifier import ClassifierParameters
+from mabdi.filters.refinement import RefinementParameters
+from mabdi.filters.removal import RemovalParameters
+from mabdi.loop.loop import resolve_settings
+from mabdi.sensor_noise import SensorNoise
+from mabdi.spherical import SphericalGeometry
+
+
+def _settings(geometry, noise, loses_returns=False, surface="quadtree", **given):
+    return resolve_settings(
+        geometry, SensorNoise.of(noise), loses_returns, given.pop("classifier", ClassifierParameters()), surface, None,
+        given.pop("removal", None), given.pop("refinement", None), given.pop("registration", None),
+    )  # fmt: skip
+
+
+def test_a_structured_light_camera_refines_and_meshes_its_rim_on_the_map():
+    settings = _settings(Intrinsics(), "structured_light")
+    assert settings.refining and settings.removing
+    assert settings.classifier.rim_on_map is True and settings.classifier.rim == 3  # the quad-tree's 3 x 3 block
+    assert settings.removal.no_return_is_free is False  # structured light loses returns on real surfaces
+    assert settings.registration.enabled
+
+
+def test_independent_noise_does_not_refine_and_the_switches_decide_outright():
+    settings = _settings(Intrinsics(), "zbuffer", surface="pixel_grid")
+    assert not settings.refining and settings.classifier.rim_on_map is False and settings.classifier.rim == 1
+    assert settings.removal.no_return_is_free is True
+    assert _settings(Intrinsics(), "zbuffer", refinement=RefinementParameters(enabled=True)).refining
+    assert not _settings(Intrinsics(), "zbuffer", removal=RemovalParameters(enabled=False)).removing
+    black_box = _settings(Intrinsics(), "structured_light", classifier=ClassifierParameters(enabled=False))
+    assert not black_box.removing and not black_box.refining
+
+
+def test_a_lidar_recording_takes_its_poses_as_given_and_its_misses_are_no_free_space():
+    settings = _settings(SphericalGeometry(), "range", loses_returns=True, refinement=RefinementParameters(enabled=True))
+    assert not settings.refining and not settings.registration.enabled  # camera-only stages: off for a LiDAR
+    assert settings.removing and settings.removal.no_return_is_free is False
