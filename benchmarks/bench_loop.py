@@ -36,7 +36,7 @@ import numpy as np  # noqa: E402
 import mabdi  # noqa: E402
 from mabdi.config import set_value  # noqa: E402
 from mabdi.evaluate.bench import machine_info  # noqa: E402
-from mabdi.loop.runner import MappingRun  # noqa: E402
+from mabdi.loop.mapping_run import MappingRun  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -113,7 +113,7 @@ def run_steps(frames: int, surface: str | None) -> tuple[list[dict], list[str]]:
     if surface:
         mabdi.config.set_value(config, "surface.method", surface)
     mabdi.config.set_value(config, "run.frames", max(frames, 1))
-    from mabdi.loop.runner import MappingRun
+    from mabdi.loop.mapping_run import MappingRun
 
     simulation = MappingRun(config)
     mark("after building the run", time.perf_counter() - start)

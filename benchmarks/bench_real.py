@@ -12,7 +12,7 @@ Maps, all from the same integrated frames and the same given poses:
 * ``mabdi`` (one per ``--surface``): the MABDI loop run as ``mabdi run
   --sequence PATH`` runs a recording with no config (default settings,
   ``sensor.noise = "auto"`` for a depth camera:
-  :func:`mabdi.loop.runner.recorded_simulation`), on the integrated frames
+  :func:`mabdi.loop.mapping_run.recorded_simulation`), on the integrated frames
   only (:class:`~mabdi.sources.frames.FrameSubset`). It registers each
   frame to its map, so it meshes each frame with a corrected pose; the map is
   scored at the held-out frames' given poses (``held_out``) and also at those
@@ -64,7 +64,7 @@ from mabdi.evaluate.bench import machine_info
 from mabdi.evaluate.held_out import THRESHOLDS, corrected_poses, held_out_split, pose_differences, score_map
 from mabdi.evaluate.tsdf import TsdfSettings, open3d_status, run_tsdf
 from mabdi.io.atomic import write_text
-from mabdi.loop.runner import RECORDING_NOISE, MappingRun
+from mabdi.loop.mapping_run import RECORDING_NOISE, MappingRun
 from mabdi.sources.frames import FrameSubset
 from mabdi.sources.sequences import open_sequence
 

@@ -90,7 +90,7 @@ from mabdi.evaluate.held_out_scans import (
 )
 from mabdi.evaluate.tsdf import open3d_status
 from mabdi.io.atomic import write_text
-from mabdi.loop.runner import RECORDING_LIDAR_NOISE, MappingRun
+from mabdi.loop.mapping_run import RECORDING_LIDAR_NOISE, MappingRun
 from mabdi.polydata import triangles_polydata
 from mabdi.sources.frames import FrameSubset
 from mabdi.sources.kitti import SCAN_FOLDER, is_kitti, read_scan

@@ -248,7 +248,7 @@ def cmd_run(args) -> int:
     from mabdi.loop.run_pipeline import InterruptCheck, ProgressBar, RunPipeline
 
     if args.resume is not None:
-        from mabdi.loop.runner import resume_run
+        from mabdi.loop.mapping_run import resume_run
 
         if args.config is not None or args.sequence is not None:
             raise ConfigError("run: --resume OUT takes the config and source of the run in OUT; give neither CONFIG nor --sequence")
@@ -273,7 +273,7 @@ def cmd_run(args) -> int:
     note = None
     recording = None
     if args.sequence is not None:
-        from mabdi.loop.runner import recorded_simulation
+        from mabdi.loop.mapping_run import recorded_simulation
 
         name = config.run.name or args.sequence.resolve().name
         options = {

@@ -179,7 +179,7 @@ def test_the_graph_sees_every_module_and_real_edges():
     assert "mabdi" in graph and "mabdi.cli" in graph and "mabdi.sources.tum" in graph
     # edges the package plainly has, at module level and inside functions (cli's lazy imports)
     assert "mabdi.camera" in graph["mabdi.depth"]
-    assert graph["mabdi.cli"] & {"mabdi.config", "mabdi.simulate", "mabdi.loop.runner"}
+    assert graph["mabdi.cli"] & {"mabdi.config", "mabdi.simulate", "mabdi.loop.mapping_run"}
 
 
 def test_the_walk_finds_a_cycle_and_names_it():

@@ -13,7 +13,7 @@ from mabdi.io.fingerprint import recording_files
 from mabdi.io.run_folder import LOCK, MANIFEST, STAGING, OutputError, RunFolder, run_writes
 from mabdi.loop import MappingRun
 from mabdi.loop.run_outputs import CHECKPOINT
-from mabdi.loop.runner import recorded_simulation
+from mabdi.loop.mapping_run import recorded_simulation
 
 TABLE = str(REPO / "scenes" / "table.toml")
 

@@ -219,7 +219,7 @@ def test_a_run_writes_the_true_poses_beside_the_given_ones(tmp_path):
 
 
 def test_a_recording_carries_the_given_poses_and_keeps_the_true_ones(tmp_path):
-    from mabdi.loop.runner import recorded_simulation
+    from mabdi.loop.mapping_run import recorded_simulation
     from mabdi.simulate.recording import TRUE_POSES, record
     from mabdi.sources.tum import TumSequence
 

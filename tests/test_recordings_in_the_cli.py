@@ -251,7 +251,7 @@ def test_a_recorded_simulation_of_the_first_frames_resumes_to_them_without_being
     """The API: a run of recorded_simulation(..., frames=2) whose recording dict does not repeat the frames
     still resumes to 2 frames (the pipeline keeps the source's own count in the checkpoint)."""
     from mabdi.config import load_run_config, with_overrides
-    from mabdi.loop.runner import recorded_simulation, resume_run
+    from mabdi.loop.mapping_run import recorded_simulation, resume_run
 
     config = with_overrides(
         load_run_config(recording.parent / "small.toml"),

@@ -310,7 +310,7 @@ def _interrupted(out, config, at: int, **run):
 
 def test_resume_refuses_a_changed_recording(tmp_path, capsys):
     from mabdi.cli import main
-    from mabdi.loop.runner import recorded_simulation
+    from mabdi.loop.mapping_run import recorded_simulation
     from mabdi.simulate.recording import record
 
     recording = record(table(12, output__checkpoint_every=4), tmp_path / "tum", "tum")

@@ -20,7 +20,7 @@ from mabdi.filters.classifier import CONTRADICTED, KNOWN, NO_RETURN
 from mabdi.filters.removal import RemovalParameters, contradiction_gap, for_geometry, free_space_filled, removal_votes
 from mabdi.depth import DepthFrame
 from mabdi.loop.loop import MabdiLoop
-from mabdi.loop.runner import recorded_simulation
+from mabdi.loop.mapping_run import recorded_simulation
 from mabdi.config import RunConfig
 from mabdi.sources.frames import FrameList
 from mabdi.sources.kitti import write_kitti

@@ -103,7 +103,7 @@ def test_simulation_run_is_the_pipeline_and_an_observer_needs_only_its_hooks(tmp
 
 
 def test_an_interrupted_run_tells_its_observers_and_resumes_to_the_same_map(tmp_path):
-    from mabdi.loop.runner import resume_run
+    from mabdi.loop.mapping_run import resume_run
 
     events: list = []
 

@@ -16,7 +16,7 @@ from mabdi.config import load_run_config, with_overrides
 from mabdi.depth import DepthFrame
 from mabdi.loop.loop import MabdiLoop
 from mabdi.loop.mapper import Mapper, map_frames
-from mabdi.loop.runner import MappingRun
+from mabdi.loop.mapping_run import MappingRun
 from mabdi.simulate.rig import SimulatedRig
 from mabdi.sources.frames import FrameList, StreamedFrames, StreamOrderError
 

@@ -53,7 +53,7 @@ from mabdi.io.plots import write_elements_plot
 from mabdi.simulate.rig import SimulatedRig
 from mabdi.io.run_folder import prepare_output_dir
 from mabdi.loop.run_pipeline import RunPipeline
-from mabdi.loop.runner import MappingRun
+from mabdi.loop.mapping_run import MappingRun
 from mabdi.sources.frames import FrameList
 
 METHODS = ("mabdi", "black_box", "tsdf_1cm", "tsdf_2cm")

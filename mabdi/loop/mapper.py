@@ -16,7 +16,7 @@ from mabdi.config import RunConfig
 from mabdi.depth import DepthFrame
 from mabdi.loop.loop import FrameRecord, MabdiLoop
 from mabdi.loop.run_outputs import RunResult
-from mabdi.loop.runner import MappingRun
+from mabdi.loop.mapping_run import MappingRun
 from mabdi.polydata import transformed_polydata
 from mabdi.pose_noise import PoseNoise
 from mabdi.sources.frames import StreamedFrames
@@ -173,7 +173,7 @@ def map_frames(
 ) -> RunResult:
     """A run over ``frames``, any iterable of :class:`~mabdi.depth.DepthFrame` (a generator: no length needed):
     the loop of ``config`` (None: the defaults), frame by frame until the iterable ends, through the runner
-    (:meth:`MappingRun.run <mabdi.loop.runner.MappingRun.run>`: ``out_dir`` gets the run's files,
+    (:meth:`MappingRun.run <mabdi.loop.mapping_run.MappingRun.run>`: ``out_dir`` gets the run's files,
     ``progress(record)`` is called after each frame; not evaluated, and no checkpoints: a stream cannot be
     read again). Returns its :class:`RunResult` (``mesh``, ``records``). ``pose_accuracy`` and
     ``loses_returns`` as :class:`Mapper`'s. Frames that are empty: a ValueError."""

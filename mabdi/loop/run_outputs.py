@@ -28,7 +28,7 @@ the folder follows :mod:`mabdi.io.run_folder`):
 * while running, with ``output.checkpoint_every``: ``checkpoint.npz``
   (:class:`mabdi.loop.run_pipeline.Checkpoints`).
 
-``simulation`` below is the run's :class:`~mabdi.loop.runner.MappingRun`
+``simulation`` below is the run's :class:`~mabdi.loop.mapping_run.MappingRun`
 (its ``config``, ``source``, ``scene``, ``rig``, ``poses``, ``true_poses``,
 ``meshed_poses()``).
 """
@@ -67,7 +67,7 @@ from mabdi.sources.tum import write_tum_trajectory
 CHECKPOINT = "checkpoint.npz"
 CHECKPOINT_VERSION = CHECKPOINT_FORMAT_VERSION
 #: The pickled checkpoint of mabdi before format version 2: refused, never loaded. Kept because run folders
-#: written then may still hold one: resuming such a run says why it cannot (:func:`mabdi.loop.runner.read_checkpoint`).
+#: written then may still hold one: resuming such a run says why it cannot (:func:`mabdi.loop.mapping_run.read_checkpoint`).
 OLD_CHECKPOINT = "checkpoint.pkl"
 
 #: The first columns of metrics.csv, in this order (counts are triangles; times in ms).

@@ -2,7 +2,7 @@
 
 Every way of running the loop goes through one object (``mabdi run`` and
 ``--resume``, the movie, the dynamic-scene metrics, the bench, a sweep's
-cells, :meth:`MappingRun.run <mabdi.loop.runner.MappingRun.run>`). Its steps,
+cells, :meth:`MappingRun.run <mabdi.loop.mapping_run.MappingRun.run>`). Its steps,
 in order (:data:`STEPS`; :meth:`RunPipeline.run` calls a method per step)::
 
     source      the frames: the MappingRun's source and its MabdiLoop
@@ -21,7 +21,7 @@ Observers watch without changing the map: objects with some of the hooks
 
 Checkpoints (``.mabdi-partial/checkpoint.npz``, :mod:`mabdi.io.checkpoint`)
 hold arrays and a JSON header, loaded without pickle; a resumed run
-(:func:`mabdi.loop.runner.resume_run`) is the same pipeline started at the
+(:func:`mabdi.loop.mapping_run.resume_run`) is the same pipeline started at the
 checkpoint's frame. More: docs/architecture.md (``mabdi.loop.run_pipeline``).
 """
 
@@ -170,7 +170,7 @@ class RunPipeline:
     evaluation is then skipped, saying so). ``finish``: write
     ``summary.json`` and complete the folder (False: the caller does, with
     :func:`mabdi.loop.run_outputs.finish_run`). ``resume_from``: go on
-    from a checkpoint (:func:`mabdi.loop.runner.resume_run`).
+    from a checkpoint (:func:`mabdi.loop.mapping_run.resume_run`).
     """
 
     simulation: object
@@ -236,7 +236,7 @@ class RunPipeline:
         if isinstance(out, RunFolder):
             self.folder = out
         elif self.resume_from is not None:
-            raise ValueError("a resumed run goes on in its own RunFolder (mabdi.loop.runner.resume_run)")
+            raise ValueError("a resumed run goes on in its own RunFolder (mabdi.loop.mapping_run.resume_run)")
         else:
             self.folder = RunFolder.prepare(out, self.overwrite, self.config.source)
         output = self.config.output

@@ -1,4 +1,4 @@
-"""Record a simulated run as the recordings robots make (the loop runs them with :mod:`mabdi.loop.runner`).
+"""Record a simulated run as the recordings robots make (the loop runs them with :mod:`mabdi.loop.mapping_run`).
 
 ``record(config, out, format)`` writes the simulated rig's frames as a TUM
 RGB-D folder (:mod:`mabdi.sources.tum`), a ROS 2 bag
@@ -11,8 +11,8 @@ recording's poses are the rig's given poses (with the config's
 them, in ``poses_true.npy`` (:data:`TRUE_POSES`) in the recording's folder,
 so the pose error can be scored.
 
-``recorded_simulation(config, path)`` (:func:`mabdi.loop.runner.recorded_simulation`)
-opens a recording and builds a :class:`~mabdi.loop.runner.MappingRun`
+``recorded_simulation(config, path)`` (:func:`mabdi.loop.mapping_run.recorded_simulation`)
+opens a recording and builds a :class:`~mabdi.loop.mapping_run.MappingRun`
 over it with the config's classifier, surface and output settings. The
 ground truth for the evaluation is the config's scene when the recording
 says it came from that very scene (same digest); otherwise the evaluation is
@@ -33,7 +33,7 @@ from mabdi.io.run_folder import OutputError
 from mabdi.simulate.rig import SimulatedRig
 
 #: The true poses (N, 4, 4, world) beside a recording made by :func:`record` (read back by
-#: :func:`mabdi.loop.runner.recorded_simulation`) and in a run's folder, for scoring the pose error.
+#: :func:`mabdi.loop.mapping_run.recorded_simulation`) and in a run's folder, for scoring the pose error.
 TRUE_POSES = "poses_true.npy"
 
 #: The formats :func:`record` writes.
