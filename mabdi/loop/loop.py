@@ -419,13 +419,15 @@ class MabdiLoop:
     def meshed_pose(self, frame: int) -> np.ndarray | None:
         """(4, 4) the pose frame ``frame`` was meshed with (map frame); a frame not run here (a run resumed from
         an older checkpoint): the source's given pose; None when neither is known."""
-        if 0 <= frame < len(self._poses) and np.isfinite(self._poses[frame]).all():
+        if frame < 0:
+            return None
+        if frame < len(self._poses) and np.isfinite(self._poses[frame]).all():
             return self._poses[frame]
         try:
             given = self.source.poses  # a stream's: the frames read so far
         except Exception:  # a source that cannot list its poses
             return None
-        return np.asarray(given[frame], dtype=np.float64) if 0 <= frame < len(given) else None
+        return np.asarray(given[frame], dtype=np.float64) if frame < len(given) else None
 
     def _check_poses(self) -> None:
         """Warn (once a run) when the frames' registrations say the poses disagree with the depth. Not for a
