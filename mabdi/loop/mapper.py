@@ -119,7 +119,7 @@ class Mapper:
         labels = loop.labels()
         return FrameStep(
             record=record,
-            pose=loop.trajectory()[record.frame].copy(),
+            pose=world_from_map @ loop.meshed_pose(record.frame),  # this frame's alone (trajectory() is every frame's)
             labels=None if labels is None else labels.copy(),
             added=_world_copy(loop.novel_surface(), world_from_map),
             removed=_world_copy(loop.removed_surface(), world_from_map),

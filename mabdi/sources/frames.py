@@ -148,6 +148,15 @@ class FrameSource:
         self.close()
 
 
+def check_statements(owner: str, noise, pose_accuracy) -> None:
+    """A TypeError naming ``owner`` unless what a source states about its frames has the right types: its
+    ``noise`` a :class:`SensorNoise` and its ``pose_accuracy`` a :class:`PoseNoise` (or None: not stated)."""
+    if noise is not None and not isinstance(noise, SensorNoise):
+        raise TypeError(f"{owner}: noise must be a SensorNoise or None, got {noise!r}")
+    if pose_accuracy is not None and not isinstance(pose_accuracy, PoseNoise):
+        raise TypeError(f"{owner}: pose_accuracy must be a PoseNoise or None, got {pose_accuracy!r}")
+
+
 class FrameList(FrameSource):
     """A source over frames already in memory (tests, or frames a user built with numpy).
 
@@ -166,10 +175,7 @@ class FrameList(FrameSource):
     ) -> None:
         if not frames:
             raise ValueError("FrameList needs at least one frame")
-        if noise is not None and not isinstance(noise, SensorNoise):
-            raise TypeError(f"FrameList: noise must be a SensorNoise or None, got {noise!r}")
-        if pose_accuracy is not None and not isinstance(pose_accuracy, PoseNoise):
-            raise TypeError(f"FrameList: pose_accuracy must be a PoseNoise or None, got {pose_accuracy!r}")
+        check_statements("FrameList", noise, pose_accuracy)
         self._frames = list(frames)
         self.description = description
         self._noise = noise
@@ -238,10 +244,7 @@ class StreamedFrames(FrameSource):
         pose_accuracy: PoseNoise | None = None,
         loses_returns: bool = False,
     ) -> None:
-        if noise is not None and not isinstance(noise, SensorNoise):
-            raise TypeError(f"StreamedFrames: noise must be a SensorNoise or None, got {noise!r}")
-        if pose_accuracy is not None and not isinstance(pose_accuracy, PoseNoise):
-            raise TypeError(f"StreamedFrames: pose_accuracy must be a PoseNoise or None, got {pose_accuracy!r}")
+        check_statements("StreamedFrames", noise, pose_accuracy)
         self._iterator = iter(frames)
         self.description = description
         self._noise = noise
