@@ -76,7 +76,7 @@ def run_mabdi(config, surface, rig, frames, every, static_every, removal):
 
 
 def run_tsdf_tracked(config, rig, frames, every, static_every):
-    settings = TsdfSettings(voxel_size=0.01, depth_max=max(5.0, config.sensor.far))
+    settings = TsdfSettings(voxel_size=0.01, depth_max=max(5.0, config.sensor.camera.far))
     mapper = TsdfMapper(settings, frames.intrinsics)
     count = len(frames)
     tracker = GhostTracker(

@@ -1,8 +1,9 @@
 """Typed run configs, loaded from TOML.
 
 A file in ``scenes/`` is a whole run config: ``[run]`` (frames, seed),
-``[scene]`` (the objects), ``[sensor]`` (intrinsics, noise, backend),
-``[path]`` (a helix, waypoints or a trajectory), ``[classifier]`` (on/off and thresholds),
+``[scene]`` (the objects), ``[sensor]`` (kind, noise model, backend; a
+sub-table per thing it describes: ``[sensor.camera]``, ``[sensor.lidar]``,
+``[sensor.noise_parameters]``, ``[sensor.pose_noise]``), ``[path]`` (a helix, waypoints or a trajectory), ``[classifier]`` (on/off and thresholds),
 ``[removal]`` and ``[refinement]`` (their rules, when the classifier turns
 them on), ``[registration]`` (frame-to-map registration of each frame's
 pose, :mod:`mabdi.filters.registration`), ``[surface]`` (which surface filter, and ``[surface.<name>]`` its
@@ -22,12 +23,18 @@ dataclasses are frozen: change values with :func:`with_overrides` (dotted keys s
 place, :func:`set_value`.
 
 ``load_run_config(path)`` reads a file; ``dump_toml(config)`` writes the
-resolved config back (saved next to a run's outputs). Relative mesh paths in
-a config are resolved against the config file's folder.
+resolved config back. A run saves it as its ``config.toml``
+(:func:`run_config_toml`), followed by a ``[resolved]`` table, what the
+loop's "auto" settings became for its sensor and source: a record, skipped
+when the file is loaded (every "auto" is resolved again). Keys that moved
+(:data:`MOVED_KEYS`: older configs' flat ``[sensor] fx``, ``beams``, ...)
+load as their new names. Relative mesh paths in a config are resolved
+against the config file's folder.
 """
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import hashlib
 import math
@@ -116,64 +123,15 @@ class SceneConfig:
 
 
 @dataclass
-class SensorConfig:
-    """The simulated depth sensor: intrinsics (pixels, metres), noise model and render backend.
+class CameraConfig:
+    """``[sensor.camera]``: a depth camera's pinhole intrinsics (pixels) and depth range (metres).
 
-    The defaults and checks of the intrinsics are :class:`mabdi.camera.Intrinsics`'
-    and those of the noise models :class:`mabdi.sensor_noise.SensorNoise`'
-    (``noise`` here is its ``model``): this section only gathers them under
-    the keys of a run config. Noise models: ``none``; ``zbuffer`` (seed 001:
-    d + d N(0, zbuffer_sigma) on the normalised z-buffer value d); ``kinect``
-    (axial sigma(z) = kinect_coefficient z^2 metres, Khoshelham & Elberink 2012);
-    ``structured_light`` (a Kinect-v1-like camera by default: correlated
-    noise of ``disparity_sigma`` pixels on the disparity f b / z with
-    f = ``fx`` and b = ``baseline``, quantised to ``disparity_step`` pixels,
-    so sigma grows with z^2; no returns within ``edge_dropout`` pixels of a
-    depth jump larger than ``edge_jump`` or beyond ``max_incidence`` degrees
-    of incidence; :mod:`mabdi.sensor_noise` says where each default
-    comes from).
-
-    ``kind`` is ``pinhole`` (the default: a depth camera with the intrinsics
-    above) or ``lidar``: a spinning LiDAR whose images are range images
-    (:class:`mabdi.spherical.SphericalGeometry`: ``beams`` rows by ``columns``
-    azimuth steps over 360 degrees, beams from ``fov_up`` to ``fov_down``
-    degrees of elevation, or at the ``beam_elevations`` given, returns between
-    ``range_min`` and ``range_max`` metres; the defaults are a 64-beam
-    Velodyne HDL-64E's). A LiDAR's ``noise`` is ``none`` or ``range``
-    (Gaussian of ``range_sigma`` metres along the beam; the default 0.02 m is
-    the HDL-64E S2 datasheet's accuracy, see
-    :mod:`mabdi.sensor_noise`). The path gives a LiDAR's poses in its
-    own axes (:func:`mabdi.simulate.path.path_from_config`, ``axes="lidar"``).
-
-    A LiDAR's sweep and mount (:mod:`mabdi.simulate.lidar_sweep`; written to a
-    run's resolved config only when set): ``sweep`` is ``"instant"`` (the
-    default: each range image rendered from the frame's pose, every return at
-    its pixel's centre) or ``"deskewed"`` (the sensor moves during its sweep:
-    each column fired at its own time from the path's pose then, the sweep
-    ending at the frame's pose and timestamp, the returns deskewed with the
-    path's true poses into the sensor frame of that pose and binned into the
-    range image as a recorded scan is, :func:`mabdi.sources.range_images.range_image`;
-    needs Open3D). ``sweep_time`` is the seconds one sweep takes (0, the
-    default: the time between frames, the path's 1 / ``rate``).
-    ``mount_tilt`` and ``mount_roll`` (degrees, 0) turn the sensor on the
-    path's pose, ``base_from_sensor = R_y(mount_tilt) R_x(mount_roll)``
-    (positive tilt tips its forward x axis down, positive roll lifts its left
-    side); the frames' poses are the path's times the mount, so the range
-    image is in the tilted sensor's frame.
-
-    ``[sensor.pose_noise]`` (:class:`mabdi.pose_noise.PoseNoise`): jitter and
-    drift of the poses the frames carry, while the sensor renders from the
-    true ones (``jitter_translation`` m, ``jitter_rotation`` degrees per frame;
-    ``drift_translation``, ``drift_rotation``: the random walk's spread after
-    one metre travelled, growing with sqrt(distance)); zero: exact poses.
-
-    ``fill_pixel_holes`` (true, false or ``"auto"``, the default): a camera's
-    one-pixel holes filled where the pixels on either side agree
-    (:mod:`mabdi.depth_holes`); "auto" on fragmented frames only, as depth
-    registered to a colour camera gives.
+    The keys, defaults and checks are :class:`mabdi.camera.Intrinsics`' (a
+    Kinect-v1-like 640 x 480, f = 525 px); :meth:`intrinsics` builds it. They
+    are checked when the whole config is (a principal point inside the image
+    width, say), so ``--set`` may change them one at a time.
     """
 
-    kind: str = "pinhole"
     width: int = Intrinsics.width
     height: int = Intrinsics.height
     fx: float = Intrinsics.fx
@@ -182,7 +140,83 @@ class SensorConfig:
     cy: float = Intrinsics.cy
     near: float = Intrinsics.near
     far: float = Intrinsics.far
-    noise: str = SensorNoise.model
+
+    def intrinsics(self) -> Intrinsics:
+        return Intrinsics(self.fx, self.fy, self.cx, self.cy, self.width, self.height, self.near, self.far)
+
+
+@dataclass
+class LidarConfig:
+    """``[sensor.lidar]``: a spinning LiDAR's range image, and its sweep and mount.
+
+    The range image (:class:`mabdi.spherical.SphericalGeometry`, whose defaults
+    are a 64-beam Velodyne HDL-64E's): ``beams`` rows by ``columns`` azimuth
+    steps over 360 degrees, beams from ``fov_up`` to ``fov_down`` degrees of
+    elevation, or at the ``beam_elevations`` given, returns between
+    ``range_min`` and ``range_max`` metres. The path gives a LiDAR's poses in
+    its own axes (:func:`mabdi.simulate.path.path_from_config`, ``axes="lidar"``).
+
+    The sweep and mount (:mod:`mabdi.simulate.lidar_sweep`): ``sweep`` is
+    ``"instant"`` (the default: each range image rendered from the frame's
+    pose, every return at its pixel's centre) or ``"deskewed"`` (the sensor
+    moves during its sweep: each column fired at its own time from the path's
+    pose then, the sweep ending at the frame's pose and timestamp, the returns
+    deskewed with the path's true poses into the sensor frame of that pose and
+    binned into the range image as a recorded scan is,
+    :func:`mabdi.sources.range_images.range_image`; needs Open3D).
+    ``sweep_time`` is the seconds one sweep takes (0, the default: the time
+    between frames, the path's 1 / ``rate``). ``mount_tilt`` and
+    ``mount_roll`` (degrees, 0) turn the sensor on the path's pose,
+    ``base_from_sensor = R_y(mount_tilt) R_x(mount_roll)`` (positive tilt tips
+    its forward x axis down, positive roll lifts its left side); the frames'
+    poses are the path's times the mount, so the range image is in the tilted
+    sensor's frame. A camera (``kind = "pinhole"``) with a sweep or mount set
+    is an error.
+    """
+
+    beams: int = SphericalGeometry.beams
+    columns: int = SphericalGeometry.columns
+    fov_up: float = SphericalGeometry.fov_up
+    fov_down: float = SphericalGeometry.fov_down
+    range_min: float = SphericalGeometry.range_min
+    range_max: float = SphericalGeometry.range_max
+    beam_elevations: list[float] = field(default_factory=list)
+    sweep: str = "instant"
+    sweep_time: float = 0.0
+    mount_tilt: float = 0.0
+    mount_roll: float = 0.0
+
+    def geometry(self) -> SphericalGeometry:
+        """The LiDAR's range-image geometry."""
+        return SphericalGeometry(
+            self.beams, self.columns, self.fov_up, self.fov_down, self.range_min, self.range_max, tuple(self.beam_elevations)
+        )
+
+    def sweep_settings(self):
+        """The sweep and mount (:class:`mabdi.simulate.lidar_sweep.SweepSettings`)."""
+        from mabdi.simulate.lidar_sweep import SweepSettings
+
+        return SweepSettings(self.sweep, self.sweep_time, self.mount_tilt, self.mount_roll)
+
+
+@dataclass
+class NoiseParameters:
+    """``[sensor.noise_parameters]``: the parameters of the depth noise models (``[sensor] noise`` names the model).
+
+    Defaults and checks are :class:`mabdi.sensor_noise.SensorNoise`'s (its
+    module says where each default comes from). ``zbuffer`` (seed 001:
+    d + d N(0, zbuffer_sigma) on the normalised z-buffer value d); ``kinect``
+    (axial sigma(z) = kinect_coefficient z^2 metres, Khoshelham & Elberink
+    2012); ``structured_light`` (a Kinect-v1-like camera by default:
+    correlated noise of ``disparity_sigma`` pixels, over
+    ``correlation_length`` pixels, on the disparity f b / z with f the
+    camera's ``fx`` and b = ``baseline``, quantised to ``disparity_step``
+    pixels, so sigma grows with z^2; no returns within ``edge_dropout`` pixels
+    of a depth jump larger than ``edge_jump`` or beyond ``max_incidence``
+    degrees of incidence); ``range``, a LiDAR's (Gaussian of ``range_sigma``
+    metres along the beam, the HDL-64E S2 datasheet's accuracy by default).
+    """
+
     zbuffer_sigma: float = SensorNoise.zbuffer_sigma
     kinect_coefficient: float = SensorNoise.kinect_coefficient
     baseline: float = SensorNoise.baseline
@@ -192,44 +226,66 @@ class SensorConfig:
     edge_dropout: int = SensorNoise.edge_dropout
     edge_jump: float = SensorNoise.edge_jump
     max_incidence: float = SensorNoise.max_incidence
-    beams: int = SphericalGeometry.beams
-    columns: int = SphericalGeometry.columns
-    fov_up: float = SphericalGeometry.fov_up
-    fov_down: float = SphericalGeometry.fov_down
-    range_min: float = SphericalGeometry.range_min
-    range_max: float = SphericalGeometry.range_max
-    beam_elevations: list[float] = field(default_factory=list)
     range_sigma: float = SensorNoise.range_sigma
+
+
+@dataclass
+class SensorConfig:
+    """``[sensor]``: what the sensor is (``kind``), its noise model, render backend and hole filling; a
+    sub-table for each thing it describes.
+
+    ``kind`` is ``pinhole`` (the default: a depth camera, ``[sensor.camera]``,
+    :class:`CameraConfig`) or ``lidar`` (a spinning LiDAR whose images are
+    range images, ``[sensor.lidar]``, :class:`LidarConfig`). ``noise`` names
+    the depth noise model: ``none``, ``zbuffer``, ``kinect``,
+    ``structured_light`` or ``auto`` (the camera's sigma(z) learnt from the
+    run, :mod:`mabdi.noise_calibration`) for a camera; ``none`` or ``range``
+    for a LiDAR; the models' parameters are ``[sensor.noise_parameters]``
+    (:class:`NoiseParameters`). ``backend``: the render backend.
+    ``fill_pixel_holes`` (true, false or ``"auto"``, the default): a camera's
+    one-pixel holes filled where the pixels on either side agree
+    (:mod:`mabdi.depth_holes`); "auto" on fragmented frames only, as depth
+    registered to a colour camera gives.
+
+    ``[sensor.pose_noise]`` (:class:`mabdi.pose_noise.PoseNoise`): jitter and
+    drift of the poses the frames carry, while the sensor renders from the
+    true ones (``jitter_translation`` m, ``jitter_rotation`` degrees per frame;
+    ``drift_translation``, ``drift_rotation``: the random walk's spread after
+    one metre travelled, growing with sqrt(distance)); zero: exact poses.
+
+    Older configs wrote every key flat under ``[sensor]`` (``fx``, ``beams``,
+    ``range_sigma``, ``mount_tilt``, ...): they load as the sub-tables' keys
+    (:data:`MOVED_KEYS`). A run's resolved config writes the table of the
+    sensor's own kind whole, and the other kind's only where it is set.
+    """
+
+    kind: str = "pinhole"
+    noise: str = SensorNoise.model
     backend: str = BACKENDS[0]
     fill_pixel_holes: bool | str = "auto"
+    camera: CameraConfig = field(default_factory=CameraConfig)
+    lidar: LidarConfig = field(default_factory=LidarConfig)
+    noise_parameters: NoiseParameters = field(default_factory=NoiseParameters)
     pose_noise: PoseNoise = field(default_factory=PoseNoise)
-    sweep: str = "instant"
-    sweep_time: float = 0.0
-    mount_tilt: float = 0.0
-    mount_roll: float = 0.0
 
     def intrinsics(self) -> Intrinsics:
-        return Intrinsics(self.fx, self.fy, self.cx, self.cy, self.width, self.height, self.near, self.far)
-
-    def spherical(self) -> SphericalGeometry:
-        """The LiDAR's range-image geometry (the ``lidar`` keys)."""
-        return SphericalGeometry(
-            self.beams, self.columns, self.fov_up, self.fov_down, self.range_min, self.range_max, tuple(self.beam_elevations)
-        )
+        """The camera's intrinsics (``[sensor.camera]``)."""
+        return self.camera.intrinsics()
 
     def geometry(self) -> Intrinsics | SphericalGeometry:
         """The sensor's geometry: the camera's intrinsics (``kind = "pinhole"``) or the LiDAR's range image (``"lidar"``)."""
-        return self.spherical() if self.kind == "lidar" else self.intrinsics()
+        return self.lidar.geometry() if self.kind == "lidar" else self.camera.intrinsics()
 
     def sensor_noise(self) -> SensorNoise:
         return SensorNoise.from_config(self)
 
     def sweep_settings(self):
-        """The LiDAR's sweep and mount (:class:`mabdi.simulate.lidar_sweep.SweepSettings`: ``sweep``,
-        ``sweep_time``, ``mount_tilt``, ``mount_roll``)."""
-        from mabdi.simulate.lidar_sweep import SweepSettings
+        """The LiDAR's sweep and mount (:meth:`LidarConfig.sweep_settings`)."""
+        return self.lidar.sweep_settings()
 
-        return SweepSettings(self.sweep, self.sweep_time, self.mount_tilt, self.mount_roll)
+
+#: The sub-tables ``[sensor]`` is split into, by what each describes: name -> its dataclass.
+SENSOR_TABLES = {"camera": CameraConfig, "lidar": LidarConfig, "noise_parameters": NoiseParameters}
 
 
 @dataclass
@@ -362,7 +418,7 @@ class RunConfig:
     frames_from_path: bool = field(default=False, compare=False, repr=False, metadata={"toml": False})
     #: The dotted keys the config file or an override set (``"sensor.noise"``, ``"run.frames"``, ...), to tell a
     #: key left unset from one set to its default value (not a TOML key). A config read back from a run's
-    #: resolved ``config.toml`` states every key.
+    #: resolved ``config.toml`` states every key it writes.
     stated: frozenset = field(default=frozenset(), compare=False, repr=False, metadata={"toml": False})
 
 
@@ -394,7 +450,7 @@ def run_config_from_dict(data: dict, where: str = "<config>", base_dir=None, val
     """
     from mabdi.simulate.routes import check_path_keys
 
-    data = moved_keys(data, where)
+    data = moved_keys({k: v for k, v in data.items() if k != RESOLVED_TABLE}, where)  # [resolved]: a run's record
     config = _build(RunConfig, data, where, "")
     path_table = data.get("path", {})
     check_path_keys(config.path, list(path_table) if isinstance(path_table, dict) else [], where)
@@ -408,36 +464,53 @@ def run_config_from_dict(data: dict, where: str = "<config>", base_dir=None, val
     return config
 
 
-#: Keys that moved to their own stage's section: old name -> new name. Old configs (and the resolved
-#: config.toml of older run folders) keep loading: their keys are read as the new ones.
+#: Keys that moved: old dotted name -> new one. Old configs (and the resolved config.toml of older run folders)
+#: keep loading, from files and ``--set``: their keys are read as the new ones. The stages' switches moved to
+#: their own sections; the flat ``[sensor]`` keys to the sub-table of what they describe (:data:`SENSOR_TABLES`).
 MOVED_KEYS = {
     "classifier.removal": "removal.enabled",
     "classifier.refinement": "refinement.enabled",
+    **{
+        f"sensor.{f.name}": f"sensor.{table}.{f.name}"
+        for table, cls in SENSOR_TABLES.items()
+        for f in dataclasses.fields(cls)
+    },
 }
 
 
 def moved_keys(data: dict, where: str) -> dict:
-    """Parsed TOML ``data`` with the keys of :data:`MOVED_KEYS` under their new names (a copy where one moved);
-    an old key and its new one both given, with different values, is an error naming both."""
+    """Parsed TOML ``data`` with the keys of :data:`MOVED_KEYS` under their new names (a copy where one moved;
+    a new key may lie in a sub-table, ``sensor.camera.fx``); an old key and its new one both given, with
+    different values, is an error naming both."""
     moved = None
     for old, new in MOVED_KEYS.items():
-        old_section, old_key = old.split(".")
-        new_section, new_key = new.split(".")
-        table = data.get(old_section)
-        if not isinstance(table, dict) or old_key not in table:
+        *old_tables, old_key = old.split(".")
+        table = _table_at(data if moved is None else moved, old_tables)
+        if table is None or old_key not in table:
             continue
         if moved is None:
-            moved = {name: dict(value) if isinstance(value, dict) else value for name, value in data.items()}
-        value = moved[old_section].pop(old_key)
-        target = moved.setdefault(new_section, {})
-        if not isinstance(target, dict):
-            raise ConfigError(f"{where}: '{new_section}' must be a table")
+            moved = copy.deepcopy(data)
+            table = _table_at(moved, old_tables)
+        value = table.pop(old_key)
+        *new_tables, new_key = new.split(".")
+        target = moved
+        for depth, name in enumerate(new_tables):
+            target = target.setdefault(name, {})
+            if not isinstance(target, dict):
+                raise ConfigError(f"{where}: '{'.'.join(new_tables[: depth + 1])}' must be a table")
         if new_key in target and target[new_key] != value:
             raise ConfigError(
                 f"{where}: {old} = {value!r} and {new} = {target[new_key]!r} disagree; {old} is the old name of {new}: keep that one"
             )
         target[new_key] = value
     return data if moved is None else moved
+
+
+def _table_at(data: dict, names) -> dict | None:
+    """The table of parsed TOML ``data`` at the path ``names`` (None where there is none)."""
+    for name in names:
+        data = data.get(name) if isinstance(data, dict) else None
+    return data if isinstance(data, dict) else None
 
 
 def stated_keys(data: dict, prefix: str = "") -> frozenset:
@@ -521,7 +594,7 @@ def _build(cls, data: dict, where: str, prefix: str):
     unknown = [k for k in data if k not in fields]
     if unknown:
         raise ConfigError(
-            f"{where}: unknown key '{unknown[0]}' in {section} (known keys: {', '.join(fields)})"
+            f"{where}: unknown key '{unknown[0]}' in {section} (known keys: {', '.join(fields)}){_sensor_hint(cls, unknown[0])}"
         )
     values = {}
     for name, value in data.items():
@@ -531,6 +604,15 @@ def _build(cls, data: dict, where: str, prefix: str):
         return cls(**values)
     except ConfigError as exc:  # the dataclass's own checks (one home): add the file and section
         raise ConfigError(f"{where}: {section} {exc}") from None
+
+
+def _sensor_hint(cls, key: str) -> str:
+    """Where an unknown key of a ``[sensor]`` sub-table belongs, when another sub-table has it ("" otherwise)."""
+    tables = {**SENSOR_TABLES, "pose_noise": PoseNoise}
+    if cls not in tables.values():
+        return ""
+    owners = [name for name, table in tables.items() if table is not cls and key in {f.name for f in dataclasses.fields(table)}]
+    return f"; {key} is a key of [sensor.{owners[0]}]" if owners else ""
 
 
 def _build_surface(data: dict, where: str, prefix: str) -> SurfaceConfig:
@@ -583,6 +665,11 @@ def _overridden(config: RunConfig, overrides: dict, where: str, whole: bool) -> 
     if config.frames_from_path:  # the frames follow a waypoint or trajectory path unless an override sets them
         data.get("run", {}).pop("frames", None)
     for key, value in overrides.items():
+        if key.split(".")[0] == RESOLVED_TABLE:
+            raise ConfigError(
+                f"{where}: key '{key}': [{RESOLVED_TABLE}] is what a run's \"auto\" settings became, written by the run "
+                "and not read; set the section's own key"
+            )
         _set_dotted(data, MOVED_KEYS.get(key, key), value, where)  # an old name sets the new key
     base_dir = config.source.parent if config.source is not None else None
     resolved = run_config_from_dict(data, where=where, base_dir=base_dir, validate=whole)
@@ -772,22 +859,27 @@ def validate_run_config(config: RunConfig, where: str = "<config>") -> None:
         check_switch("sensor.fill_pixel_holes", sensor.fill_pixel_holes)
     except ConfigError as exc:
         raise ConfigError(f"{where}: key {exc}") from None
-    try:
-        sensor.geometry()
-        sensor.sensor_noise()
-    except ConfigError as exc:
-        raise ConfigError(f"{where}: [sensor] {exc}") from None
+    for table, check in (  # both geometries, whichever the kind: a value set out of range is an error
+        ("camera", sensor.camera.intrinsics),
+        ("lidar", sensor.lidar.geometry),
+        ("noise_parameters", sensor.sensor_noise),
+    ):
+        try:
+            check()
+        except ConfigError as exc:
+            raise ConfigError(f"{where}: [sensor.{table}] {exc}") from None
     from mabdi.simulate.lidar_sweep import SWEEP_KEYS, SWEEP_MODES
 
-    _check_choice(sensor.sweep, SWEEP_MODES, where, "sensor.sweep")
+    lidar = sensor.lidar
+    _check_choice(lidar.sweep, SWEEP_MODES, where, "sensor.lidar.sweep")
     try:
-        sweep = sensor.sweep_settings()
+        sweep = lidar.sweep_settings()
     except ConfigError as exc:
-        raise ConfigError(f"{where}: [sensor] {exc}") from None
+        raise ConfigError(f"{where}: [sensor.lidar] {exc}") from None
     if sensor.kind != "lidar" and (sweep.deskewed or sweep.mounted or sweep.duration):
-        given = [k for k in SWEEP_KEYS if getattr(sensor, k) != getattr(SensorConfig, k)]
+        given = [k for k in SWEEP_KEYS if getattr(lidar, k) != getattr(LidarConfig, k)]
         raise ConfigError(
-            f"{where}: key 'sensor.{given[0]}' is a LiDAR's (its sweep and mount); this sensor is kind = {sensor.kind!r}"
+            f"{where}: key 'sensor.lidar.{given[0]}' is a LiDAR's (its sweep and mount); this sensor is kind = {sensor.kind!r}"
         )
     path = config.path
     from mabdi.simulate.routes import PATH_KINDS, waypoint_distances
@@ -820,7 +912,8 @@ def validate_run_config(config: RunConfig, where: str = "<config>") -> None:
 def _toml_table(obj) -> dict:
     """A config dataclass as the dict :func:`mabdi.io.toml_writer.toml_lines` writes: fields in order, ``None``
     (the default of an absent key) and fields marked ``toml=False`` left out; a surface section holds its method and
-    the parameters of every surface filter it names."""
+    the parameters of every surface filter it names; ``[sensor]`` the other kind's table (a camera's
+    ``[sensor.lidar]``) only with the keys set away from their defaults."""
     if isinstance(obj, SurfaceConfig):
         table = {"method": obj.method}
         for name in sorted(set(obj.parameters) | {obj.method}):
@@ -834,12 +927,15 @@ def _toml_table(obj) -> dict:
         if isinstance(obj, PathConfig) and not _path_key_written(obj, f.name):
             continue
         value = getattr(obj, f.name)
-        if isinstance(obj, SensorConfig) and f.name in _SENSOR_KEYS_WHEN_SET and value == f.default:
-            continue  # a LiDAR's sweep and mount keys only when set: the configs of runs without them are unchanged
         if value is None:
             continue  # absent key = default None
         if dataclasses.is_dataclass(value):
             table[f.name] = _toml_table(value)
+            if isinstance(obj, SensorConfig) and f.name == _OTHER_KIND_TABLE.get(obj.kind):
+                default = _toml_table(type(value)())  # the other kind's table: only the keys set
+                table[f.name] = {k: v for k, v in table[f.name].items() if v != default[k]}
+                if not table[f.name]:
+                    del table[f.name]
         elif isinstance(value, list) and value and dataclasses.is_dataclass(value[0]):
             table[f.name] = [_toml_table(item) for item in value]
         else:
@@ -847,8 +943,8 @@ def _toml_table(obj) -> dict:
     return table
 
 
-#: ``[sensor]`` keys written only when they differ from their default (:data:`mabdi.simulate.lidar_sweep.SWEEP_KEYS`).
-_SENSOR_KEYS_WHEN_SET = ("sweep", "sweep_time", "mount_tilt", "mount_roll")
+#: ``[sensor]``'s sub-table of the other kind of sensor, written only where set (a camera's runs write no LiDAR).
+_OTHER_KIND_TABLE = {"pinhole": "lidar", "lidar": "camera"}
 
 
 def _path_key_written(path: PathConfig, name: str) -> bool:
@@ -870,3 +966,34 @@ def scene_digest(scene: SceneConfig, frames: int) -> str:
 def dump_toml(config) -> str:
     """A config dataclass as TOML text that :func:`run_config_from_dict` reads back to an equal config."""
     return "\n".join(toml_lines(_toml_table(config))).lstrip("\n") + "\n"
+
+
+#: The table a run's ``config.toml`` ends with: what the loop's "auto" settings became (:func:`run_config_toml`).
+RESOLVED_TABLE = "resolved"
+
+_RESOLVED_NOTE = """\
+# [resolved] is written by the run and not read: loading this file skips it and resolves every "auto" again
+# (to the same values for the same sensor and source). It says what the loop ran with
+# (mabdi.loop.loop.resolve_settings): whether object removal and refinement ran, and each setting whose
+# value differs from the sections above ("auto" made a value, a rule the sensor or the source turned off)."""
+
+
+def run_config_toml(config: RunConfig, settings=None) -> str:
+    """A run's ``config.toml``: :func:`dump_toml` of ``config`` (loads back to an equal config), then, given the
+    loop's resolved ``settings`` (:class:`mabdi.loop.loop.LoopSettings`), a commented ``[resolved]`` table of
+    them: its plain fields as they are, and of each stage's parameters the keys that differ from ``config``'s
+    section of the same name. The loader skips ``[resolved]``; ``--set resolved.*`` is an error."""
+    text = dump_toml(config)
+    if settings is None:
+        return text
+    table = {}
+    for f in dataclasses.fields(settings):
+        value = getattr(settings, f.name)
+        if not dataclasses.is_dataclass(value):
+            table[f.name] = value
+            continue
+        given = _toml_table(getattr(config, f.name)) if hasattr(config, f.name) else {}
+        changed = {k: v for k, v in _toml_table(value).items() if k not in given or given[k] != v}
+        if changed:
+            table[f.name] = changed
+    return text + "\n" + _RESOLVED_NOTE + "\n" + "\n".join(toml_lines({RESOLVED_TABLE: table})).lstrip("\n") + "\n"

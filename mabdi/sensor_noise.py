@@ -107,21 +107,10 @@ class SensorNoise:
 
     @classmethod
     def from_config(cls, sensor) -> SensorNoise:
-        """The noise of a ``[sensor]`` config section (:class:`mabdi.config.SensorConfig`); ``focal`` is its ``fx``."""
-        return cls(
-            sensor.noise,
-            sensor.zbuffer_sigma,
-            sensor.kinect_coefficient,
-            baseline=sensor.baseline,
-            focal=sensor.fx,
-            disparity_sigma=sensor.disparity_sigma,
-            disparity_step=sensor.disparity_step,
-            correlation_length=sensor.correlation_length,
-            edge_dropout=sensor.edge_dropout,
-            edge_jump=sensor.edge_jump,
-            max_incidence=sensor.max_incidence,
-            range_sigma=sensor.range_sigma,
-        )
+        """The noise of a ``[sensor]`` config section (:class:`mabdi.config.SensorConfig`): its ``noise`` model,
+        the parameters of ``[sensor.noise_parameters]``; ``focal`` is the camera's ``fx``."""
+        parameters = {f.name: getattr(sensor.noise_parameters, f.name) for f in fields(sensor.noise_parameters)}
+        return cls(sensor.noise, focal=sensor.camera.fx, **parameters)
 
     @classmethod
     def parameter_names(cls) -> tuple[str, ...]:

@@ -33,6 +33,8 @@ seed = 1
 
 [sensor]
 noise = "none"
+
+[sensor.camera]
 width = 160
 height = 120
 fx = 131.25

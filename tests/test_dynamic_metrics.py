@@ -136,7 +136,7 @@ def test_run_with_ghosts_steps_and_measures_a_run():
     config = run_config_from_dict(
         {
             "run": {"name": "crate_leaving", "frames": 8},
-            "sensor": {"width": 160, "height": 120, "fx": 130.0, "fy": 130.0, "cx": 80.0, "cy": 60.0},
+            "sensor": {"camera": {"width": 160, "height": 120, "fx": 130.0, "fy": 130.0, "cx": 80.0, "cy": 60.0}},
             "path": {"radius_x": 2.5, "radius_y": 2.5, "look_from": [0.0, 0.0, 0.2], "look_to": [0.0, 0.0, 0.2]},
             "surface": {"method": "quadtree"},
             "scene": {

@@ -172,7 +172,10 @@ def test_expected_image_of_a_mapped_plane_matches_the_measured_one_within_a_mill
 
 def test_lidar_sensor_config(tmp_path):
     path = tmp_path / "lidar.toml"
-    path.write_text('[sensor]\nkind = "lidar"\nbeams = 32\ncolumns = 512\nfov_up = 10.0\nfov_down = -30.0\nnoise = "range"\nrange_sigma = 0.01\n')
+    path.write_text(
+        '[sensor]\nkind = "lidar"\nnoise = "range"\n[sensor.lidar]\nbeams = 32\ncolumns = 512\nfov_up = 10.0\nfov_down = -30.0\n'
+        '[sensor.noise_parameters]\nrange_sigma = 0.01\n'
+    )
     config = load_run_config(path)
     assert config.sensor.geometry() == SphericalGeometry(32, 512, 10.0, -30.0, 0.5, 80.0)
     assert config.sensor.sensor_noise().sigma(np.array([5.0]), 0.5, 80.0)[0] == pytest.approx(0.01)
@@ -183,8 +186,8 @@ def test_lidar_sensor_config(tmp_path):
     path.write_text('[sensor]\nkind = "sonar"\n')
     with pytest.raises(ConfigError, match="sensor.kind"):
         load_run_config(path)
-    path.write_text('[sensor]\nkind = "lidar"\nfov_up = -30.0\nfov_down = 10.0\n')
-    with pytest.raises(ConfigError, match="fov_down"):
+    path.write_text('[sensor]\nkind = "lidar"\n[sensor.lidar]\nfov_up = -30.0\nfov_down = 10.0\n')
+    with pytest.raises(ConfigError, match=r"\[sensor.lidar\] .*fov_down"):
         load_run_config(path)
 
 
@@ -193,7 +196,7 @@ def test_simulated_lidar_poses_look_where_the_path_looks(tmp_path):
     from mabdi.simulate.rig import SimulatedRig
 
     path = tmp_path / "lidar.toml"
-    path.write_text('[run]\nframes = 4\n[sensor]\nkind = "lidar"\nbeams = 8\ncolumns = 64\n')
+    path.write_text('[run]\nframes = 4\n[sensor]\nkind = "lidar"\n[sensor.lidar]\nbeams = 8\ncolumns = 64\n')
     config = load_run_config(path)
     rig = SimulatedRig.from_config(config)
     camera = path_from_config(4, config.path)
@@ -408,13 +411,15 @@ seed = 2
 
 [sensor]
 kind = "lidar"
+noise = "{noise}"
+
+[sensor.lidar]
 beams = 32
 columns = 512
 fov_up = 15.0
 fov_down = -45.0
 range_min = 0.3
 range_max = 20.0
-noise = "{noise}"
 
 [path]
 radius_x = 2.5

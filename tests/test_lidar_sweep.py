@@ -204,25 +204,25 @@ def test_poses_between_frames_and_beyond_them():
 
 def test_the_sweep_keys_of_a_run_config():
     base = load_run_config(SCENES / "street.toml")
-    assert base.sensor.sweep == "instant" and base.sensor.sweep_time == 0.0
+    assert base.sensor.lidar.sweep == "instant" and base.sensor.lidar.sweep_time == 0.0
     text = dump_toml(base)
-    for key in ("sweep", "sweep_time", "mount_tilt", "mount_roll"):
-        assert f"\n{key} =" not in text  # a run without them writes its config as before
-    changed = with_overrides(base, {"sensor.sweep": "deskewed", "sensor.mount_tilt": 10.0, "sensor.sweep_time": 0.1})
+    assert '[sensor.lidar]\nbeams = 64' in text and '\nsweep = "instant"\n' in text  # a LiDAR's table is written whole
+    assert "[sensor.camera]" not in text  # the camera's only where set
+    changed = with_overrides(base, {"sensor.lidar.sweep": "deskewed", "sensor.lidar.mount_tilt": 10.0, "sensor.lidar.sweep_time": 0.1})
     assert changed.sensor.sweep_settings() == SweepSettings("deskewed", 0.1, 10.0, 0.0)
     again = run_config_from_dict(__import__("tomllib").loads(dump_toml(changed)))
     assert again.sensor == changed.sensor
-    with pytest.raises(ConfigError, match="sensor.sweep"):
-        with_overrides(base, {"sensor.sweep": "rolling"})
+    with pytest.raises(ConfigError, match="sensor.lidar.sweep"):
+        with_overrides(base, {"sensor.lidar.sweep": "rolling"})
     with pytest.raises(ConfigError, match="mount_tilt"):
-        with_overrides(base, {"sensor.mount_tilt": 120.0})
+        with_overrides(base, {"sensor.lidar.mount_tilt": 120.0})
     with pytest.raises(ConfigError, match="sweep_time"):
-        with_overrides(base, {"sensor.sweep_time": -1.0})
+        with_overrides(base, {"sensor.lidar.sweep_time": -1.0})
     camera = load_run_config(SCENES / "table.toml")
-    with pytest.raises(ConfigError, match="LiDAR"):
-        with_overrides(camera, {"sensor.sweep": "deskewed"})
-    with pytest.raises(ConfigError, match="LiDAR"):
-        with_overrides(camera, {"sensor.mount_roll": 3.0})
+    with pytest.raises(ConfigError, match="'sensor.lidar.sweep' is a LiDAR's"):
+        with_overrides(camera, {"sensor.lidar.sweep": "deskewed"})
+    with pytest.raises(ConfigError, match="'sensor.lidar.mount_roll' is a LiDAR's"):
+        with_overrides(camera, {"sensor.mount_roll": 3.0})  # the old flat name sets the new key
 
 
 def test_the_deskewed_street_scene_reads_a_frame():
@@ -232,8 +232,9 @@ def test_the_deskewed_street_scene_reads_a_frame():
     config = load_run_config(SCENES / "street_deskewed.toml")
     street = load_run_config(SCENES / "street.toml")
     assert config.scene == street.scene and config.path == street.path and config.run.frames == street.run.frames
-    assert (config.sensor.beams, config.sensor.fov_up, config.sensor.fov_down) == (128, 45.0, -45.0)
-    assert config.sensor.sweep == "deskewed" and config.sensor.mount_tilt == 12.0
+    lidar = config.sensor.lidar
+    assert (lidar.beams, lidar.fov_up, lidar.fov_down) == (128, 45.0, -45.0)
+    assert lidar.sweep == "deskewed" and lidar.mount_tilt == 12.0
     street_rig = SimulatedRig.from_config(config)
     try:
         assert street_rig.sweep_time() == pytest.approx(1.0 / config.path.rate)

@@ -40,3 +40,34 @@ def test_a_lidar_recording_takes_its_poses_as_given_and_its_misses_are_no_free_s
     settings = _settings(SphericalGeometry(), "range", loses_returns=True, refinement=RefinementParameters(enabled=True))
     assert not settings.refining and not settings.registration.enabled  # camera-only stages: off for a LiDAR
     assert settings.removing and settings.removal.no_return_is_free is False
+
+
+def test_the_run_folder_s_config_states_what_every_auto_became(tmp_path):
+    """A run's config.toml ends with ``[resolved]``, the loop's settings (:func:`resolve_settings`) where they
+    differ from the config; loading the file skips it and gives back the config the run was given."""
+    import tomllib
+
+    from conftest import SCENES
+    from mabdi.cli import main
+    from mabdi.config import load_run_config, settings_overrides, with_overrides
+
+    out = tmp_path / "run"
+    small = ["sensor.camera.width=80", "sensor.camera.height=60", "sensor.camera.fx=65.625", "sensor.camera.fy=65.625",
+             "sensor.camera.cx=40.0", "sensor.camera.cy=30.0"]  # fmt: skip
+    options = ["--frames", "2", "--noise", "structured_light", "--surface", "quadtree", "--no-eval", "--quiet"]
+    assert main(["run", str(SCENES / "table.toml"), *options, "--out", str(out), *[a for s in small for a in ("--set", s)]]) == 0
+    text = (out / "config.toml").read_text()
+    assert '# [resolved] is written by the run and not read' in text
+    resolved = tomllib.loads(text)["resolved"]
+    assert resolved["removing"] is True and resolved["refining"] is True  # correlated noise: refined
+    assert resolved["classifier"] == {"rim": 3, "rim_on_map": True}  # "auto": the quad-tree's block, the map's depth
+    assert resolved["removal"] == {"no_return_is_free": False}  # structured light loses returns on real surfaces
+    assert "refinement" not in resolved and "registration" not in resolved  # as the config says
+    config = load_run_config(out / "config.toml")
+    given = with_overrides(
+        load_run_config(SCENES / "table.toml"),
+        {"run.frames": 2, "sensor.noise": "structured_light", "surface.method": "quadtree", "output.dir": str(out),
+         **settings_overrides(small)},
+    )  # fmt: skip
+    assert config == given and config.classifier.rim == "auto"  # the file's "auto" stays: resolved again when run
+    assert config.sensor.camera.width == 80 and "[sensor.camera]\nwidth = 80" in text

@@ -70,7 +70,7 @@ def test_objects_out_of_view_give_an_empty_map_with_a_reason(tmp_path, capsys):
     [
         ("[[scene.objects]]\ntype = 'box'\nsize = [1, 1, 1]\nappear_at = 40\n", "after the run's last frame 29"),
         ("[[scene.objects]]\ntype = 'box'\nsize = [1, 1, 1]\nappear_at = 10\ndisappear_at = 5\n", "disappears"),
-        ("[sensor]\ncx = 10000.0\n[[scene.objects]]\ntype = 'box'\nsize = [1, 1, 1]\n", "principal point cx = 10000.0"),
+        ("[sensor.camera]\ncx = 10000.0\n[[scene.objects]]\ntype = 'box'\nsize = [1, 1, 1]\n", "principal point cx = 10000.0"),
         ("[run]\nname = '../../escape'\n[[scene.objects]]\ntype = 'box'\nsize = [1, 1, 1]\n", "plain folder name"),
     ],
 )

@@ -251,7 +251,7 @@ def test_the_simulated_camera_drives_the_waypoints(tmp_path):
     from mabdi.simulate.rig import SimulatedRig
 
     (tmp_path / "run.toml").write_text(
-        '[sensor]\nwidth = 40\nheight = 30\nfx = 30.0\nfy = 30.0\ncx = 20.0\ncy = 15.0\nfar = 10.0\n'
+        '[sensor.camera]\nwidth = 40\nheight = 30\nfx = 30.0\nfy = 30.0\ncx = 20.0\ncy = 15.0\nfar = 10.0\n'
         '[path]\nkind = "waypoints"\npoints = [[0, 0, 1], [2, 0, 1]]\nspeed = 1.0\nrate = 2.0\n'
         '[[scene.objects]]\nname = "wall"\ntype = "box"\nsize = [0.2, 10.0, 4.0]\nposition = [5.1, 0.0, -1.0]\n'
     )

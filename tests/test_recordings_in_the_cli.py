@@ -22,6 +22,8 @@ seed = 1
 
 [sensor]
 noise = "none"
+
+[sensor.camera]
 width = 80
 height = 60
 fx = 65.625

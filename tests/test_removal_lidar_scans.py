@@ -124,4 +124,4 @@ def test_a_recorded_scan_loses_returns_and_has_a_lidar_s_noise(tmp_path):
     assert not loop.removal_parameters.no_return_is_free
     assert MabdiLoop(FrameList(frames, "simulated")).removal_parameters.no_return_is_free  # the simulator returns every surface
     simulation, _ = recorded_simulation(RunConfig(), tmp_path / "seq", noise_stated=False)
-    assert simulation.config.sensor.noise == "range" and simulation.config.sensor.range_sigma == pytest.approx(0.02)
+    assert simulation.config.sensor.noise == "range" and simulation.config.sensor.noise_parameters.range_sigma == pytest.approx(0.02)

@@ -195,7 +195,10 @@ def test_the_model_needs_the_intrinsics():
 
 def test_config_key_loads_and_bad_values_name_the_key(tmp_path):
     path = tmp_path / "sensor.toml"
-    path.write_text('[sensor]\nnoise = "structured_light"\nfx = 580.0\nfy = 580.0\nbaseline = 0.05\ndisparity_sigma = 0.08\n')
+    path.write_text(
+        '[sensor]\nnoise = "structured_light"\n[sensor.camera]\nfx = 580.0\nfy = 580.0\n'
+        '[sensor.noise_parameters]\nbaseline = 0.05\ndisparity_sigma = 0.08\n'
+    )
     noise = load_run_config(path).sensor.sensor_noise()
     assert (noise.model, noise.focal, noise.baseline, noise.disparity_sigma) == ("structured_light", 580.0, 0.05, 0.08)
     for text, key in (
@@ -205,8 +208,8 @@ def test_config_key_loads_and_bad_values_name_the_key(tmp_path):
         ("edge_dropout = -1", "edge_dropout"),
         ("correlation_length = -2.0", "correlation_length"),
     ):
-        path.write_text(f'[sensor]\nnoise = "structured_light"\n{text}\n')
-        with pytest.raises(ConfigError, match=rf"sensor.toml: \[sensor\] .*{key}"):
+        path.write_text(f'[sensor]\nnoise = "structured_light"\n[sensor.noise_parameters]\n{text}\n')
+        with pytest.raises(ConfigError, match=rf"sensor.toml: \[sensor.noise_parameters\] .*{key}"):
             load_run_config(path)
     path.write_text('[sensor]\nnoise = "structured_lite"\n')
     with pytest.raises(ConfigError, match="structured_light"):

@@ -3,7 +3,8 @@
 The files of a finished run (each written to a temporary name, then renamed;
 the folder follows :mod:`mabdi.io.run_folder`):
 
-* ``config.toml``: the resolved config (every default filled in);
+* ``config.toml``: the resolved config (every default filled in), then ``[resolved]``, what the loop's
+  "auto" settings became (:func:`mabdi.config.run_config_toml`; not read back);
 * ``world_mesh.vtp`` (cell data ``frame``) and ``world_mesh.ply`` (binary);
   with ``output.h5``, ``world_mesh.h5`` (:func:`annotated_map`);
 * ``metrics.csv``: one row per frame, columns :data:`METRICS_COLUMNS` first;

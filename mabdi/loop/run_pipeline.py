@@ -6,8 +6,8 @@ cells, :meth:`MappingRun.run <mabdi.loop.mapping_run.MappingRun.run>`). Its step
 in order (:data:`STEPS`; :meth:`RunPipeline.run` calls a method per step)::
 
     source      the frames: the MappingRun's source and its MabdiLoop
-    outputs     the run folder opened (refused if another run holds it), config.toml,
-                the input files' fingerprint (for --resume)
+    outputs     the run folder opened (refused if another run holds it), config.toml (with
+                [resolved], what the loop's "auto" settings became), the input files' fingerprint (for --resume)
     loop        frame by frame: MabdiLoop.step(i), then each observer's on_frame
     results     the RunResult and the run's files (mabdi.loop.run_outputs)
     evaluation  the map scored against the ground truth by the ``evaluate`` callable, or why not
@@ -33,7 +33,7 @@ import time
 import warnings
 from dataclasses import asdict, dataclass, field
 
-from mabdi.config import dump_toml
+from mabdi.config import dump_toml, run_config_toml
 from mabdi.interrupts import raise_if_interrupted
 from mabdi.io.atomic import write_text
 from mabdi.io.checkpoint import write_tree
@@ -241,7 +241,8 @@ class RunPipeline:
             self.folder = RunFolder.prepare(out, self.overwrite, self.config.source)
         output = self.config.output
         if self.resume_from is None:
-            write_text(self.folder.path("config.toml"), dump_toml(self.config))
+            settings = getattr(self.simulation.loop, "settings", None)  # what every "auto" became: [resolved]
+            write_text(self.folder.path("config.toml"), run_config_toml(self.config, settings))
             if output.checkpoint_every:
                 self.inputs = fingerprint(self._input_files())
         else:

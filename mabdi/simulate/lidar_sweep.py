@@ -1,6 +1,6 @@
 """A spinning LiDAR that moves during its sweep, deskewed as a driver deskews it, and its mount.
 
-The ideal simulated LiDAR (``[sensor] sweep = "instant"``, the default)
+The ideal simulated LiDAR (``[sensor.lidar] sweep = "instant"``, the default)
 renders each frame's range image from one pose. A real one fires one column
 of beams after another while it turns and the vehicle moves, and its driver
 *deskews* the sweep into the frame of one pose. ``sweep = "deskewed"``
@@ -17,7 +17,7 @@ of beams after another while it turns and the vehicle moves, and its driver
 4. the range image is :func:`mabdi.sources.range_images.range_image` of those
    points with the sensor's own geometry.
 
-The mount (``[sensor] mount_tilt``, ``mount_roll``, degrees; either sweep):
+The mount (``[sensor.lidar] mount_tilt``, ``mount_roll``, degrees; either sweep):
 ``base_from_sensor = R_y(mount_tilt) R_x(mount_roll)``; the sensor's pose
 (``world_from_sensor``) is the path's pose times the mount.
 More: docs/architecture.md (``mabdi.simulate.lidar_sweep``).
@@ -36,10 +36,9 @@ from mabdi.errors import ConfigError
 from mabdi.sensor_noise import SensorNoise, noise_rng
 from mabdi.spherical import SphericalGeometry
 
-#: ``[sensor] sweep``: the ideal range image from one pose, or a moving sweep deskewed as a driver does.
+#: ``[sensor.lidar] sweep``: the ideal range image from one pose, or a moving sweep deskewed as a driver does.
 SWEEP_MODES = ("instant", "deskewed")
-#: The ``[sensor]`` keys of the sweep and the mount (a run config writes them only when they differ from the
-#: default, so the configs of runs without them stay as they were).
+#: The ``[sensor.lidar]`` keys of the sweep and the mount (a camera with any of them set is an error).
 SWEEP_KEYS = ("sweep", "sweep_time", "mount_tilt", "mount_roll")
 #: The largest mount angle (degrees) either way.
 MAX_MOUNT_ANGLE = 90.0
@@ -123,7 +122,7 @@ def open3d_or_error():
         import open3d
     except (ImportError, OSError) as exc:
         raise ConfigError(
-            f'[sensor] sweep = "deskewed" casts its rays with Open3D, which cannot be imported here ({exc}): '
+            f'[sensor.lidar] sweep = "deskewed" casts its rays with Open3D, which cannot be imported here ({exc}): '
             'pip install "mabdi[compare]" (on Debian, import open3d also needs libusb-1.0-0)'
         ) from None
     return open3d

@@ -16,7 +16,7 @@ the frame carries the *given* pose i, the true one with the run config's
 run seed), as a robot's odometry or SLAM would give it. ``poses`` are the
 given poses, ``true_poses`` the true ones; without pose noise they are equal.
 
-A LiDAR's sweep (``[sensor] sweep``, :class:`~mabdi.simulate.lidar_sweep.SweepSettings`): ``"instant"``
+A LiDAR's sweep (``[sensor.lidar] sweep``, :class:`~mabdi.simulate.lidar_sweep.SweepSettings`): ``"instant"``
 (the default) renders each range image from the frame's pose, every return at its pixel's centre;
 ``"deskewed"`` fires each column from its own pose along the path during the sweep that ends at frame i,
 deskews the returns into frame i's pose and bins them into the range image
@@ -198,7 +198,7 @@ class SimulatedRig(FrameSource):
         the scene as it stands at that frame, each column from its true pose along the path, the frame's noise,
         the points in the sensor frame of true pose ``index``."""
         if self.sweep is None or not self.sweep.deskewed:
-            raise ValueError('SimulatedRig.read_sweep: the sensor is not a deskewed sweep ([sensor] sweep = "deskewed")')
+            raise ValueError('SimulatedRig.read_sweep: the sensor is not a deskewed sweep ([sensor.lidar] sweep = "deskewed")')
         if not 0 <= index < len(self):
             raise IndexError(f"frame {index} is outside 0 .. {len(self) - 1}")
         noise = self.sensor.noise
