@@ -16,8 +16,12 @@ loop renders anyway:
 5. checks (``min_points``, ``min_inliers``, ``min_support``, the last step,
    ``max_translation``, ``max_rotation``): a frame that fails them is
    meshed at its start and casts no removal votes;
-6. the ICP's pose is weighed against the given one by their covariances
-   (:func:`fuse_with_given`).
+6. where the source states its poses' accuracy, the ICP's pose is weighed
+   against the given one by their covariances (:func:`fuse_with_given`);
+   where not (a recording), a frame keeps the given pose or the last
+   frame's slow correction unless the ICP fits D to the map clearly better
+   (:func:`follow_gain`), and its jitter about that is learnt from the run
+   (:class:`PoseJitter`).
 
 Units: metres and degrees in parameters; poses are 4x4 ``world_from_camera``
 in the map's frame. Output: D with the registered pose, and in field data
@@ -76,6 +80,20 @@ GIVEN_SIGMA_WORDS = ("source", "learnt")
 #: Status codes: 0 registered; the rest leave the frame unregistered (see the module docs).
 STATUSES = ("registered", "off", "no_map", "few_points", "few_inliers", "not_converged", "beyond_bound")
 REGISTERED = 0
+
+#: A frame of a recording takes none of the ICP's step from the carried pose that fits D to the map up to this many
+#: times better (median |residual|; :func:`follow_gain`), all of one that fits it this many times better.
+FOLLOW_FROM = 2.0
+FOLLOW_FULLY = 4.0
+#: :class:`PoseJitter`'s trend is a mean over about this many frames; its jitter is learnt from this many pairs of
+#: frames two apart on.
+JITTER_TREND_FRAMES = 20
+MIN_JITTER_PAIRS = 5
+#: A frame's deviation from the slow pose is taken as jitter up to this many of the jitter's standard deviations
+#: (the Mahalanobis norm over the six components; 4.7: chi-square with 6 degrees of freedom at 0.999).
+JITTER_BOUND = 4.7
+#: A floor on a variance (rad^2 or m^2) divided by.
+VARIANCE_FLOOR = 1e-14
 
 #: The support check (:func:`constraint_support`) asks the pairs to hold the directions with at least this share
 #: of the strongest direction's information.
@@ -190,6 +208,11 @@ class RegistrationResult:
     support: float = 0.0
     iterations: int = 0
     covariance: np.ndarray | None = None
+    #: How much better the result fits D to E than the best fitting of the reference poses does: the median
+    #: |residual| of D's finest samples there over that at the result (1: no better; NaN when not registered),
+    #: and which reference that was (an index into :func:`register_depth`'s ``references``).
+    improvement: float = float("nan")
+    reference: int = 0
 
     @property
     def registered(self) -> bool:
@@ -346,6 +369,7 @@ def register_depth(
     parameters: RegistrationParameters,
     starts: tuple[np.ndarray, ...] = (),
     workspace: IcpWorkspace | None = None,
+    references: tuple[np.ndarray, ...] = (),
 ) -> RegistrationResult:
     """Align D (``measured``) to E (``expected``, the map rendered at D's pose) by projective point-to-plane ICP.
 
@@ -354,9 +378,11 @@ def register_depth(
     rendering pose times it. The search starts from the identity or from the
     transform in ``starts`` under which more of D's samples lie on E within
     their noise. ``workspace``: memory kept from one call to the next (:class:`IcpWorkspace`; a
-    fresh one when None). See the module docs for the steps and checks.
+    fresh one when None). ``references``: the transforms the result is judged against, the best fitting of them
+    (:attr:`RegistrationResult.improvement`; none: the identity). See the module docs for the steps and checks.
     """
     p = parameters
+    references = references or (np.eye(4),)
     if np.count_nonzero(np.isfinite(expected[::4, ::4])) * 16 < p.min_points:
         # nothing to fit: the last correction carried on is the best guess (drift grows; jitter stays small)
         return RegistrationResult(starts[-1].copy() if starts else np.eye(4), "no_map")
@@ -452,6 +478,16 @@ def register_depth(
     elif translation > p.max_translation or angle > p.max_rotation:
         status = "beyond_bound"
     median_scale = _median(scale) if len(scale) else 0.0
+    improvement, reference_index = float("nan"), 0
+    if status == "registered":
+        # D's finest samples against E at each reference and at the result, every candidate (the gate is moot)
+        wide = np.full(len(points), p.max_distance)
+        medians = [
+            _median(r) if len(r) else np.inf
+            for r in (map_image.system(points, tiles, n_tiles, scale, wide, pose, p.huber, False)[5] for pose in (*references, transform))
+        ]
+        reference_index = int(np.argmin(medians[:-1]))
+        improvement = medians[reference_index] / max(medians[-1], 1e-9)
     return RegistrationResult(
         transform if status == "registered" else start,
         status,
@@ -460,6 +496,8 @@ def register_depth(
         support=held,
         iterations=iterations,
         covariance=covariance if status == "registered" else None,
+        improvement=improvement,
+        reference=reference_index,
     )
 
 
@@ -622,6 +660,90 @@ def fuse_with_given(
     return pose, frame.T @ (0.5 * (posterior + posterior.T)) @ frame
 
 
+def correction_vector(correction: np.ndarray) -> np.ndarray:
+    """(6,) a :func:`correction_between` as its rotation vector (rad) and its translation (m)."""
+    return np.concatenate([Rotation.from_matrix(correction[:3, :3]).as_rotvec(), correction[:3, 3]])
+
+
+def correction_matrix(vector: np.ndarray) -> np.ndarray:
+    """The 4x4 correction of a :func:`correction_vector`."""
+    return _rigid(vector[:3], vector[3:])
+
+
+class PoseJitter:
+    """What a recording's given poses scatter about their own course, learnt from the ICP's corrections.
+
+    Each registered frame adds the ICP's correction from its given pose (:func:`correction_vector`), ``r``, that
+    correction less what the slow rule (:func:`follow_evidence`) took of it, and the ICP's covariance. Corrections
+    one frame apart differ in mean square by D1 = 2 (J + S) + q, two frames apart by D2 = 2 (J + S) + 2 q, for white
+    jitter J, the ICP's own variance S and a walk of q a frame (drift, or a map that moves with the poses that
+    follow it), so J = D1 - D2 / 2 - S: a walk is not read as jitter. :meth:`variance` is J (rad^2, m^2 per
+    component), and :attr:`trend` the mean of ``r`` (over the first :data:`JITTER_TREND_FRAMES` frames, then
+    exponential over about as many): the part of a frame's ``r`` that is jitter is ``r`` less the trend, where the
+    trend stands out of the jitter's noise (:meth:`slow_part`)."""
+
+    def __init__(self) -> None:
+        self.trend = np.zeros(6)
+        self._count = 0
+        self._last = np.full((2, 6), np.nan)  # the corrections of the last two frames, the latest first
+        self._sums = np.zeros((2, 3))  # per lag (1, 2): summed mean squares of the rotation's and translation's differences, less the ICP's, and the count
+
+    def add(self, correction: np.ndarray, r: np.ndarray, covariance: np.ndarray) -> None:
+        """One registered frame: the ICP's ``correction`` from the given pose (6,), ``r`` (6,), the ICP's 6x6
+        ``covariance``."""
+        own = np.array([np.trace(covariance[:3, :3]), np.trace(covariance[3:, 3:])]) / 3.0
+        for lag in range(2):
+            if not np.isnan(self._last[lag]).any():
+                step = (correction - self._last[lag]) ** 2
+                self._sums[lag] += [step[:3].mean() - 2 * own[0], step[3:].mean() - 2 * own[1], 1.0]
+        self._last = np.stack([correction, self._last[0]])
+        self._count += 1
+        self.trend += (r - self.trend) / min(self._count, JITTER_TREND_FRAMES)  # the mean of the first frames, then exponential
+
+    def variance(self) -> tuple[float, float] | None:
+        """(rad^2, m^2) per component, None before :data:`MIN_JITTER_PAIRS` pairs of frames two apart were
+        registered (a few frames' scatter is no evidence of jitter: they keep to the slow rule)."""
+        if self._sums[1, 2] < MIN_JITTER_PAIRS:
+            return None
+        one, two = self._sums[0, :2] / self._sums[0, 2], self._sums[1, :2] / self._sums[1, 2]
+        return tuple(max(float(d1 - d2 / 2), 0.0) for d1, d2 in zip(one, two, strict=True))
+
+    def slow_part(self, jitter: tuple[float, float]) -> np.ndarray:
+        """(6,) the trend, each component shrunk by how much of it the jitter's own scatter in the mean
+        explains (``jitter``: :meth:`variance`): a trend no larger than the noise of a mean of the frames is
+        taken as none."""
+        noise = np.repeat(np.asarray(jitter, dtype=np.float64), 3) / min(self._count, 2 * JITTER_TREND_FRAMES - 1)
+        square = np.maximum(self.trend**2, 1e-300)
+        return self.trend * np.maximum(1.0 - noise / square, 0.0)
+
+    def state(self) -> dict:
+        return {"trend": self.trend.copy(), "count": self._count, "last": self._last.copy(), "sums": self._sums.copy()}
+
+    def set_state(self, state: dict) -> None:
+        self.trend = np.asarray(state["trend"], dtype=np.float64).copy()
+        self._count = int(state["count"])
+        self._last = np.asarray(state["last"], dtype=np.float64).reshape(2, 6).copy()
+        self._sums = np.asarray(state["sums"], dtype=np.float64).reshape(2, 3).copy()
+
+
+def follow_gain(improvement: float) -> float:
+    """The share (0-1) of the ICP's step from the carried pose that a frame of a recording takes, from how much
+    better the step fits D to the map (:attr:`RegistrationResult.improvement`): none up to
+    :data:`FOLLOW_FROM`, all from :data:`FOLLOW_FULLY`, linear between."""
+    if not np.isfinite(improvement):
+        return 1.0 if improvement > 0 else 0.0
+    return float(np.clip((improvement - FOLLOW_FROM) / (FOLLOW_FULLY - FOLLOW_FROM), 0.0, 1.0))
+
+
+def follow_evidence(given: np.ndarray, registered: np.ndarray, carried: np.ndarray, gain: float) -> np.ndarray:
+    """The pose a frame whose given pose's accuracy is not stated is meshed at: the correction ``carried``
+    (:func:`correction_between`: none, or the last frame's, whichever fits D to the map better) moved by
+    ``gain`` (:func:`follow_gain`) of the way to the ICP's (``registered``), rotation and translation together.
+    ``given``: the given pose in the map frame. See the module docs for the rule and its reasons."""
+    start, end = correction_vector(carried), correction_vector(correction_between(given, registered))
+    return apply_correction(correction_matrix(start + gain * (end - start)), given)
+
+
 def map_placement_variance(depth: float, noise: SensorNoise, intrinsics: Intrinsics) -> tuple[float, float]:
     """How far a frame registered to the map can be off the world for the map's own error, whatever its pose
     covariance says (rad^2, m^2 per component). The map was meshed from earlier frames of the same sensor,
@@ -693,6 +815,8 @@ class FilterRegistration(MapAndImageAlgorithm):
         self._last_position: np.ndarray | None = None
         self._last_frame = -1
         self.anchor = MapAnchor(stated=self._parameters.given_variance(self._pose_accuracy))
+        self._jitter = PoseJitter()
+        self._slow = np.eye(4)  # the slow part of the last learnt correction (see _learnt_pose)
         self.Modified()
 
     def state(self) -> dict:
@@ -703,6 +827,7 @@ class FilterRegistration(MapAndImageAlgorithm):
             "last_position": np.full(3, np.nan) if self._last_position is None else self._last_position.copy(),
             "last_frame": self._last_frame,
             "anchor": self.anchor.state(),
+            "jitter": self._jitter.state(),
         }
 
     def set_state(self, state: dict) -> None:
@@ -712,7 +837,37 @@ class FilterRegistration(MapAndImageAlgorithm):
         self._last_position = None if np.isnan(position).any() else position.copy()
         self._last_frame = int(state["last_frame"])
         self.anchor.set_state(state["anchor"])
+        self._jitter = PoseJitter()
+        if "jitter" in state:  # older checkpoints have none: learnt again from the next frames
+            self._jitter.set_state(state["jitter"])
         self.Modified()
+
+    def _learnt_pose(
+        self, given: np.ndarray, registered: np.ndarray, result: RegistrationResult, new_frame: bool
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The pose (map frame) and its covariance of a registered frame whose given pose's accuracy is learnt:
+        the slow part by the evidence rule (:func:`follow_evidence`), then the ICP's correction less its trend
+        weighed as jitter about it (:class:`PoseJitter`, :func:`fuse_with_given`)."""
+        default = (np.eye(4), self._correction)[result.reference]  # the given pose or the carried correction
+        gain = follow_gain(result.improvement)
+        slow = follow_evidence(given, registered, default, gain)
+        pose, covariance = slow, gain * result.covariance
+        slow_vector = correction_vector(correction_between(given, slow))
+        found = correction_vector(correction_between(given, registered))
+        jitter = self._jitter.variance()
+        if jitter is not None:  # the ICP's correction less its trend, weighed as jitter about the slow pose
+            deviation = found - self._jitter.slow_part(jitter) - slow_vector
+            spread = np.sqrt(np.maximum(np.repeat(np.asarray(jitter, dtype=np.float64), 3), VARIANCE_FLOOR))
+            size = float(np.linalg.norm(deviation / spread))
+            if size > JITTER_BOUND:  # beyond what jitter of that spread does: a change of the map's bias, not jitter
+                deviation *= JITTER_BOUND / size
+            target = apply_correction(correction_matrix(slow_vector + deviation), given)
+            pose, fused = fuse_with_given(slow, target, result.covariance, jitter)
+            covariance = covariance + fused
+        if new_frame:
+            self._jitter.add(found, found - slow_vector, result.covariance)
+            self._slow = correction_matrix(slow_vector)  # jitter is a frame's own: only the slow part carries on
+        return pose, covariance
 
     def RequestData(self, request, inInfo, outInfo):  # noqa: N802 (VTK API)
         world = map_input(inInfo, "FilterRegistration")
@@ -733,16 +888,22 @@ class FilterRegistration(MapAndImageAlgorithm):
             given_in_map = self.anchor.map_from_world @ given
             expected = render_expected(self.renderer, world, intrinsics, given_in_map)
             carried = np.linalg.inv(given_in_map) @ apply_correction(self._correction, given_in_map)
-            result = register_depth(measured, expected, intrinsics, noise, p, starts=(carried,), workspace=self._workspace)
+            result = register_depth(
+                measured, expected, intrinsics, noise, p, starts=(carried,), workspace=self._workspace,
+                references=(np.eye(4), carried),
+            )  # fmt: skip
         pose = given_in_map @ result.transform
         covariance = result.covariance
+        learnt = self.anchor.stated is None
         if result.registered:
-            variance = self.anchor.given_variance(self._travelled)  # as stated (given_sigma), or learnt
-            if variance is not None:
+            if learnt:  # how good the given poses are is not stated: learnt from the run (see the module docs)
+                pose, covariance = self._learnt_pose(given_in_map, pose, result, new_frame)
+            else:
+                variance = self.anchor.given_variance(self._travelled)
                 pose, covariance = fuse_with_given(given_in_map, pose, result.covariance, variance)
         if p.enabled and new_frame:
             if result.registered:
-                self._correction = correction_between(given_in_map, pose)
+                self._correction = self._slow if learnt else correction_between(given_in_map, pose)
                 depth = _median_depth(measured)
                 map_error = map_placement_variance(depth, noise, intrinsics)
                 self.anchor.add(given, given_in_map @ result.transform, self._travelled, result.covariance, depth, map_error)
