@@ -34,9 +34,11 @@ frame, ``t_total_ms - t_depth_ms`` of the records; TSDF: the integration,
 its depth smoothing included; reading a frame is not counted for either).
 
     .venv/bin/python benchmarks/bench_real.py PATH [--every 10] [--frames N] [--surface quadtree ...]
-        [--no-registration] [--voxels 0.01 0.02] [--camera ...] [--depth-scale ...] [--out results.json]
+        [--no-registration] [--jitter M DEG] [--voxels 0.01 0.02] [--camera ...] [--depth-scale ...] [--out results.json]
 
-``--no-registration`` runs mabdi as ``mabdi run --no-registration`` does
+``--jitter M DEG`` gives every map the integrated frames' poses jittered (N(0, M) metres and N(0, DEG)
+degrees per axis, seeded; :class:`JitteredFrames`), as a poorer tracker would; the held-out frames are still
+scored at the recording's poses. ``--no-registration`` runs mabdi as ``mabdi run --no-registration`` does
 (every frame meshed at its given pose, as the TSDF is); ``--voxels`` with no
 value runs no TSDF.
 
@@ -57,6 +59,8 @@ import warnings
 from pathlib import Path
 
 import numpy as np
+
+from scipy.spatial.transform import Rotation
 
 from mabdi.camera import Intrinsics
 from mabdi.config import RunConfig, with_overrides
@@ -90,6 +94,32 @@ class PosedFrames:
             frame = self.source.read(int(index))
             frame.world_from_camera = pose
             yield frame
+
+
+class JitteredFrames(FrameSubset):
+    """The integrated frames with their given poses jittered: per frame, a translation of N(0, ``metres``) per
+    axis and a turn about the camera centre of N(0, ``degrees``) per axis (seeded), as a poorer tracker would
+    give them. The held-out frames keep the recording's poses (they are scored there)."""
+
+    def __init__(self, source, indices, metres: float, degrees: float, seed: int = 0) -> None:
+        super().__init__(source, indices)
+        rng = np.random.default_rng(seed)
+        poses = source.poses[self.indices].copy()
+        for pose in poses:
+            turn = Rotation.from_rotvec(np.radians(rng.normal(0.0, degrees, 3))).as_matrix()
+            pose[:3, :3] = turn @ pose[:3, :3]
+            pose[:3, 3] += rng.normal(0.0, metres, 3)
+        self.jittered = poses
+        self.description = f"{self.description}, poses jittered by {metres * 1000:g} mm / {degrees:g} deg per axis"
+
+    def read_frame(self, index: int):
+        frame = super().read_frame(index)
+        frame.world_from_camera = self.jittered[index].copy()
+        return frame
+
+    @property
+    def poses(self) -> np.ndarray:
+        return self.jittered.copy()
 
 
 def scored(mesh, frames) -> dict:
@@ -137,6 +167,7 @@ def run_mabdi(source, subset, integrated, held, surface: str, registration: bool
         "faces_removed": removed,
         "faces_removed_share": removed / (triangles + removed) if triangles + removed else 0.0,
         "meshed_poses_vs_given": pose_differences(subset.poses, meshed),
+        "meshed_poses_vs_recording": pose_differences(source.poses[integrated], meshed),
         "registration": statuses,
         "noise": config.sensor.noise,
         "noise_calibration": result.noise_calibration,
@@ -201,6 +232,12 @@ def markdown(bench: dict) -> str:
                 f"faces removed {row['faces_removed']:,} ({percent(row['faces_removed_share'])} of the faces made); "
                 f"registration {row['registration']}",
             ]
+            r = row.get("meshed_poses_vs_recording")
+            if r is not None and r != d:  # the given poses were jittered: the meshed ones against the recording's
+                lines[-1] += (
+                    f"; against the recording's poses: translation median {r['translation_mm_median']:.1f} mm "
+                    f"(max {r['translation_mm_max']:.0f}), rotation median {r['rotation_deg_median']:.2f} deg"
+                )
     for note in bench["notes"]:
         lines.append(f"- {note}")
     return "\n".join(lines) + "\n"
@@ -218,6 +255,10 @@ def main(argv=None) -> int:
     parser.add_argument("--voxels", type=float, nargs="*", default=[0.01, 0.02], help="TSDF voxel sizes in metres (none: no TSDF)")
     parser.add_argument("--camera", help="the camera, when the recording has none (as mabdi run --camera)")
     parser.add_argument("--depth-scale", type=float, help="depth units per metre (as mabdi run --depth-scale)")
+    parser.add_argument(
+        "--jitter", type=float, nargs=2, metavar=("M", "DEG"),
+        help="jitter the integrated frames' poses by N(0, M) metres and N(0, DEG) degrees per axis (seeded) for every map",
+    )  # fmt: skip
     parser.add_argument("--out", type=Path, help="write every number here as JSON")
     args = parser.parse_args(argv)
 
@@ -232,7 +273,7 @@ def main(argv=None) -> int:
         log(f"note: {note}")
     frames = len(source) if args.frames is None else min(args.frames, len(source))
     integrated, held = held_out_split(frames, args.every)
-    subset = FrameSubset(source, integrated)
+    subset = FrameSubset(source, integrated) if args.jitter is None else JitteredFrames(source, integrated, *args.jitter)
     log(f"{source.description}: {frames} frames, {len(integrated)} integrated, {len(held)} held out")
 
     rows = []
