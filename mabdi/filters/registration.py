@@ -19,9 +19,9 @@ loop renders anyway:
 6. where the source states its poses' accuracy, the ICP's pose is weighed
    against the given one by their covariances (:func:`fuse_with_given`);
    where not (a recording), a frame keeps the given pose or the last
-   frame's slow correction unless the ICP fits D to the map clearly better
-   (:func:`follow_gain`), and its jitter about that is learnt from the run
-   (:class:`PoseJitter`).
+   frame's slow correction unless the ICP's pose fits D to the map several
+   times better than the given pose (:func:`follow_gain`), and its jitter
+   about that is learnt from the run (:class:`PoseJitter`).
 
 Units: metres and degrees in parameters; poses are 4x4 ``world_from_camera``
 in the map's frame. Output: D with the registered pose, and in field data
@@ -81,9 +81,9 @@ GIVEN_SIGMA_WORDS = ("source", "learnt")
 STATUSES = ("registered", "off", "no_map", "few_points", "few_inliers", "not_converged", "beyond_bound")
 REGISTERED = 0
 
-#: A frame of a recording takes none of the ICP's step from the carried pose that fits D to the map up to this many
-#: times better (median |residual|; :func:`follow_gain`), all of one that fits it this many times better.
-FOLLOW_FROM = 2.0
+#: A frame of a recording takes none of the ICP's step where the ICP's pose fits D to the map up to this many times
+#: better than the given pose (median |residual|; :func:`follow_gain`), all of it from this many times better.
+FOLLOW_FROM = 3.0
 FOLLOW_FULLY = 4.0
 #: :class:`PoseJitter`'s trend is a mean over about this many frames; its jitter is learnt from this many pairs of
 #: frames two apart on.
@@ -208,9 +208,9 @@ class RegistrationResult:
     support: float = 0.0
     iterations: int = 0
     covariance: np.ndarray | None = None
-    #: How much better the result fits D to E than the best fitting of the reference poses does: the median
-    #: |residual| of D's finest samples there over that at the result (1: no better; NaN when not registered),
-    #: and which reference that was (an index into :func:`register_depth`'s ``references``).
+    #: How much better the result fits D to E than the first of the reference poses does: the median |residual|
+    #: of D's finest samples there over that at the result (1: no better; NaN when not registered), and which
+    #: reference fits D best (an index into :func:`register_depth`'s ``references``).
     improvement: float = float("nan")
     reference: int = 0
 
@@ -378,8 +378,8 @@ def register_depth(
     rendering pose times it. The search starts from the identity or from the
     transform in ``starts`` under which more of D's samples lie on E within
     their noise. ``workspace``: memory kept from one call to the next (:class:`IcpWorkspace`; a
-    fresh one when None). ``references``: the transforms the result is judged against, the best fitting of them
-    (:attr:`RegistrationResult.improvement`; none: the identity). See the module docs for the steps and checks.
+    fresh one when None). ``references``: the transforms the result is judged against (the first; none: the
+    identity) and which fits best (:attr:`RegistrationResult.improvement`). See the module docs for the steps and checks.
     """
     p = parameters
     references = references or (np.eye(4),)
@@ -487,7 +487,7 @@ def register_depth(
             for r in (map_image.system(points, tiles, n_tiles, scale, wide, pose, p.huber, False)[5] for pose in (*references, transform))
         ]
         reference_index = int(np.argmin(medians[:-1]))
-        improvement = medians[reference_index] / max(medians[-1], 1e-9)
+        improvement = medians[0] / max(medians[-1], 1e-9)
     return RegistrationResult(
         transform if status == "registered" else start,
         status,
@@ -727,9 +727,9 @@ class PoseJitter:
 
 
 def follow_gain(improvement: float) -> float:
-    """The share (0-1) of the ICP's step from the carried pose that a frame of a recording takes, from how much
-    better the step fits D to the map (:attr:`RegistrationResult.improvement`): none up to
-    :data:`FOLLOW_FROM`, all from :data:`FOLLOW_FULLY`, linear between."""
+    """The share (0-1) of the ICP's step from the default pose that a frame of a recording takes, from how much
+    better the ICP's pose fits D to the map than the given pose does (:attr:`RegistrationResult.improvement`):
+    none up to :data:`FOLLOW_FROM`, all from :data:`FOLLOW_FULLY`, linear between."""
     if not np.isfinite(improvement):
         return 1.0 if improvement > 0 else 0.0
     return float(np.clip((improvement - FOLLOW_FROM) / (FOLLOW_FULLY - FOLLOW_FROM), 0.0, 1.0))
