@@ -734,3 +734,22 @@ def test_the_registration_is_the_same_on_one_core_on_two_and_in_a_forked_child(b
     assert registration._helper is None
     np.testing.assert_array_equal(alone.transform, threaded.transform)
     np.testing.assert_array_equal(alone.covariance, threaded.covariance)
+
+
+def test_pose_jitter_tells_white_jitter_from_a_walk():
+    """PoseJitter learns white jitter's variance from corrections one and two frames apart, and reads a walk
+    (drift, or a map that moves with the poses that follow it) as no jitter."""
+    from mabdi.filters.registration import PoseJitter
+
+    rng = np.random.default_rng(3)
+    icp = np.diag([1e-8] * 3 + [1e-8] * 3)  # the ICP's own variance: 0.1 mm, 0.006 degrees
+    white, walk = PoseJitter(), PoseJitter()
+    steps = np.cumsum(rng.normal(0.0, 0.004, (400, 6)), axis=0)  # a walk of 4 mm (4 mrad) a frame
+    for i in range(400):
+        jitter = rng.normal(0.0, 0.005, 6)  # 5 mm (5 mrad) per component
+        white.add(jitter, jitter, icp)
+        walk.add(steps[i], steps[i], icp)
+    rotation, translation = white.variance()
+    assert 0.8 * 0.005**2 < rotation < 1.2 * 0.005**2 and 0.8 * 0.005**2 < translation < 1.2 * 0.005**2, (rotation, translation)
+    assert max(walk.variance()) < 0.1 * 0.004**2, walk.variance()
+    assert PoseJitter().variance() is None
