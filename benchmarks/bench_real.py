@@ -63,7 +63,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from mabdi.camera import Intrinsics
-from mabdi.config import RunConfig, with_overrides
+from mabdi.config import RunConfig, settings_overrides, with_overrides
 from mabdi.evaluate.bench import machine_info
 from mabdi.evaluate.held_out import THRESHOLDS, corrected_poses, held_out_split, pose_differences, score_map
 from mabdi.evaluate.tsdf import TsdfSettings, open3d_status, run_tsdf
@@ -129,16 +129,19 @@ def scored(mesh, frames) -> dict:
     return out
 
 
-def run_mabdi(source, subset, integrated, held, surface: str, registration: bool = True) -> tuple[dict, object]:
+def run_mabdi(source, subset, integrated, held, surface: str, registration: bool = True, settings=()) -> tuple[dict, object]:
     config = RunConfig()
     overrides = {"surface.method": surface}
     if not registration:
         overrides["registration.enabled"] = False  # as mabdi run --no-registration: frames meshed at their given poses
     if isinstance(source.intrinsics, Intrinsics):  # a depth camera's recording with no noise model stated
         overrides["sensor.noise"] = RECORDING_NOISE
+    overrides.update(settings_overrides(settings, where="--set"))  # last: the user's word
     config = with_overrides(config, overrides, where="bench_real")
     simulation = MappingRun(config, source=subset)
     name = f"mabdi ({surface})" if registration else f"mabdi ({surface}, no registration)"
+    if settings:
+        name += " " + " ".join(f"--set {s}" for s in settings)
     log(f"{name}: running {len(subset)} frames")
     result = simulation.run()
     records = result.records
@@ -259,6 +262,10 @@ def main(argv=None) -> int:
         "--jitter", type=float, nargs=2, metavar=("M", "DEG"),
         help="jitter the integrated frames' poses by N(0, M) metres and N(0, DEG) degrees per axis (seeded) for every map",
     )  # fmt: skip
+    parser.add_argument(
+        "--set", dest="settings", action="append", default=[], metavar="KEY=VALUE",
+        help="set a config value of mabdi's runs by its dotted key, as mabdi run --set (repeatable)",
+    )  # fmt: skip
     parser.add_argument("--out", type=Path, help="write every number here as JSON")
     args = parser.parse_args(argv)
 
@@ -279,7 +286,7 @@ def main(argv=None) -> int:
     rows = []
     noise = None
     for surface in args.surface:
-        row, simulation = run_mabdi(source, subset, integrated, held, surface, registration=not args.no_registration)
+        row, simulation = run_mabdi(source, subset, integrated, held, surface, registration=not args.no_registration, settings=args.settings)
         rows.append(row)
         if noise is None:
             noise = simulation.loop.noise  # the curve this run learnt, for the TSDF's smoothing

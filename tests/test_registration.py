@@ -247,9 +247,10 @@ def test_a_pose_source_that_states_its_accuracy_is_weighed_by_it_from_the_first_
         records, trajectory = run(true, sigma, source)
         assert all(r.registered for r in records[1:])
         np.testing.assert_allclose(trajectory, true, atol=1e-9)  # the fit moved nothing
-    for sigma, source in (("source", FrameList), ("learnt", ExactSource)):  # not stated: the first frames follow the fit
-        _, learnt = run(true, sigma, source)
-        assert max(transform_size(np.linalg.inv(t) @ p)[0] for t, p in zip(true, learnt, strict=True)) > 1e-5
+    for sigma, source in (("source", FrameList), ("learnt", ExactSource)):  # not stated: learnt, and kept where the fit is no better
+        records, learnt = run(true, sigma, source)
+        assert all(r.registered for r in records[1:])
+        assert max(transform_size(np.linalg.inv(t) @ p)[0] for t, p in zip(true, learnt, strict=True)) < 5e-4
 
     _, stated = run(jittered, [0.005, 0.3])
     relative = np.array(

@@ -39,6 +39,7 @@ reasoning behind each step: docs/architecture.md (``mabdi.filters.registration``
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
@@ -208,9 +209,10 @@ class RegistrationResult:
     support: float = 0.0
     iterations: int = 0
     covariance: np.ndarray | None = None
-    #: How much better the result fits D to E than the first of the reference poses does: the median |residual|
-    #: of D's finest samples there over that at the result (1: no better; NaN when not registered), and which
-    #: reference fits D best (an index into :func:`register_depth`'s ``references``).
+    #: How much better the result fits D to E than the pose it is judged against (the first of the reference poses,
+    #: or :func:`register_depth`'s ``judged_against``) does: the median |residual| of D's finest samples there over
+    #: that at the result (1: no better; NaN when not registered), and which reference fits D best (an index into
+    #: ``references``).
     improvement: float = float("nan")
     reference: int = 0
 
@@ -370,6 +372,7 @@ def register_depth(
     starts: tuple[np.ndarray, ...] = (),
     workspace: IcpWorkspace | None = None,
     references: tuple[np.ndarray, ...] = (),
+    judged_against: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
 ) -> RegistrationResult:
     """Align D (``measured``) to E (``expected``, the map rendered at D's pose) by projective point-to-plane ICP.
 
@@ -379,7 +382,10 @@ def register_depth(
     transform in ``starts`` under which more of D's samples lie on E within
     their noise. ``workspace``: memory kept from one call to the next (:class:`IcpWorkspace`; a
     fresh one when None). ``references``: the transforms the result is judged against (the first; none: the
-    identity) and which fits best (:attr:`RegistrationResult.improvement`). See the module docs for the steps and checks.
+    identity) and which fits best (:attr:`RegistrationResult.improvement`); ``judged_against``: where given, the
+    transform the result is judged against instead, made from the result's transform and covariance (a recording's
+    given pose with the jitter the result shows taken off, :meth:`FilterRegistration._jitter_free`). See the module
+    docs for the steps and checks.
     """
     p = parameters
     references = references or (np.eye(4),)
@@ -482,12 +488,13 @@ def register_depth(
     if status == "registered":
         # D's finest samples against E at each reference and at the result, every candidate (the gate is moot)
         wide = np.full(len(points), p.max_distance)
+        judged = () if judged_against is None else (judged_against(transform, covariance),)
         medians = [
             _median(r) if len(r) else np.inf
-            for r in (map_image.system(points, tiles, n_tiles, scale, wide, pose, p.huber, False)[5] for pose in (*references, transform))
+            for r in (map_image.system(points, tiles, n_tiles, scale, wide, pose, p.huber, False)[5] for pose in (*references, *judged, transform))
         ]
-        reference_index = int(np.argmin(medians[:-1]))
-        improvement = medians[0] / max(medians[-1], 1e-9)
+        reference_index = int(np.argmin(medians[: len(references)]))
+        improvement = medians[len(references) if judged else 0] / max(medians[-1], 1e-9)
     return RegistrationResult(
         transform if status == "registered" else start,
         status,
@@ -687,6 +694,7 @@ class PoseJitter:
         self._count = 0
         self._last = np.full((2, 6), np.nan)  # the corrections of the last two frames, the latest first
         self._sums = np.zeros((2, 3))  # per lag (1, 2): summed mean squares of the rotation's and translation's differences, less the ICP's, and the count
+        self._about_trend = np.zeros(3)  # summed mean squares of r about the trend before it (rotation, translation), less the ICP's, and the count
 
     def add(self, correction: np.ndarray, r: np.ndarray, covariance: np.ndarray) -> None:
         """One registered frame: the ICP's ``correction`` from the given pose (6,), ``r`` (6,), the ICP's 6x6
@@ -697,6 +705,9 @@ class PoseJitter:
                 step = (correction - self._last[lag]) ** 2
                 self._sums[lag] += [step[:3].mean() - 2 * own[0], step[3:].mean() - 2 * own[1], 1.0]
         self._last = np.stack([correction, self._last[0]])
+        if self._count >= MIN_JITTER_PAIRS:  # a trend of a few frames predicts nothing yet
+            miss = (r - self.trend) ** 2
+            self._about_trend += [miss[:3].mean() - own[0], miss[3:].mean() - own[1], 1.0]
         self._count += 1
         self.trend += (r - self.trend) / min(self._count, JITTER_TREND_FRAMES)  # the mean of the first frames, then exponential
 
@@ -708,6 +719,16 @@ class PoseJitter:
         one, two = self._sums[0, :2] / self._sums[0, 2], self._sums[1, :2] / self._sums[1, 2]
         return tuple(max(float(d1 - d2 / 2), 0.0) for d1, d2 in zip(one, two, strict=True))
 
+    def bias_variance(self, jitter: tuple[float, float]) -> np.ndarray:
+        """(6,) the variance (rad^2, m^2 per component) of what the trend leaves of the map's bias in a frame's ``r``:
+        ``r``'s mean square about the trend before it, less the ICP's own variance and the ``jitter``
+        (:meth:`variance`). The map's error varies with what a frame sees, faster than a mean over frames follows;
+        it weighs the ICP's correction down as its covariance does (:meth:`FilterRegistration._about_slow`)."""
+        if self._about_trend[2] < 1:
+            return np.zeros(6)
+        spread = self._about_trend[:2] / self._about_trend[2]
+        return np.repeat(np.maximum(spread - np.asarray(jitter, dtype=np.float64), 0.0), 3)
+
     def slow_part(self, jitter: tuple[float, float]) -> np.ndarray:
         """(6,) the trend, each component shrunk by how much of it the jitter's own scatter in the mean
         explains (``jitter``: :meth:`variance`): a trend no larger than the noise of a mean of the frames is
@@ -717,13 +738,17 @@ class PoseJitter:
         return self.trend * np.maximum(1.0 - noise / square, 0.0)
 
     def state(self) -> dict:
-        return {"trend": self.trend.copy(), "count": self._count, "last": self._last.copy(), "sums": self._sums.copy()}
+        return {
+            "trend": self.trend.copy(), "count": self._count, "last": self._last.copy(), "sums": self._sums.copy(),
+            "about_trend": self._about_trend.copy(),
+        }  # fmt: skip
 
     def set_state(self, state: dict) -> None:
         self.trend = np.asarray(state["trend"], dtype=np.float64).copy()
         self._count = int(state["count"])
         self._last = np.asarray(state["last"], dtype=np.float64).reshape(2, 6).copy()
         self._sums = np.asarray(state["sums"], dtype=np.float64).reshape(2, 3).copy()
+        self._about_trend = np.asarray(state.get("about_trend", np.zeros(3)), dtype=np.float64).reshape(3).copy()
 
 
 def follow_gain(improvement: float) -> float:
@@ -847,27 +872,49 @@ class FilterRegistration(MapAndImageAlgorithm):
     ) -> tuple[np.ndarray, np.ndarray]:
         """The pose (map frame) and its covariance of a registered frame whose given pose's accuracy is learnt:
         the slow part by the evidence rule (:func:`follow_evidence`), then the ICP's correction less its trend
-        weighed as jitter about it (:class:`PoseJitter`, :func:`fuse_with_given`)."""
+        weighed as jitter about it (:class:`PoseJitter`, :meth:`_about_slow`)."""
         default = (np.eye(4), self._correction)[result.reference]  # the given pose or the carried correction
+        jitter = self._jitter.variance()
         gain = follow_gain(result.improvement)
         slow = follow_evidence(given, registered, default, gain)
         pose, covariance = slow, gain * result.covariance
         slow_vector = correction_vector(correction_between(given, slow))
         found = correction_vector(correction_between(given, registered))
-        jitter = self._jitter.variance()
-        if jitter is not None:  # the ICP's correction less its trend, weighed as jitter about the slow pose
-            deviation = found - self._jitter.slow_part(jitter) - slow_vector
-            spread = np.sqrt(np.maximum(np.repeat(np.asarray(jitter, dtype=np.float64), 3), VARIANCE_FLOOR))
-            size = float(np.linalg.norm(deviation / spread))
-            if size > JITTER_BOUND:  # beyond what jitter of that spread does: a change of the map's bias, not jitter
-                deviation *= JITTER_BOUND / size
-            target = apply_correction(correction_matrix(slow_vector + deviation), given)
-            pose, fused = fuse_with_given(slow, target, result.covariance, jitter)
+        if jitter is not None:
+            pose, fused = self._about_slow(given, slow_vector, found, result.covariance, jitter)
             covariance = covariance + fused
         if new_frame:
+            if jitter is None:  # before the jitter is known, a fit better than the given pose's may be jitter alone
+                slow_vector = np.zeros(6)
             self._jitter.add(found, found - slow_vector, result.covariance)
             self._slow = correction_matrix(slow_vector)  # jitter is a frame's own: only the slow part carries on
         return pose, covariance
+
+    def _about_slow(
+        self, given: np.ndarray, slow_vector: np.ndarray, found: np.ndarray, covariance: np.ndarray, jitter: tuple[float, float]
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """(pose, its covariance): the ICP's correction ``found`` (:func:`correction_vector`) less its trend,
+        weighed as ``jitter`` (:meth:`PoseJitter.variance`) about the slow correction ``slow_vector`` of the
+        ``given`` pose (map frame), and bounded at :data:`JITTER_BOUND` standard deviations of the jitter (beyond:
+        a change of the map's bias, not jitter). ``covariance``: the ICP's; the map's bias that the trend leaves
+        (:meth:`PoseJitter.bias_variance`) is added to it."""
+        deviation = found - self._jitter.slow_part(jitter) - slow_vector
+        spread = np.sqrt(np.maximum(np.repeat(np.asarray(jitter, dtype=np.float64), 3), VARIANCE_FLOOR))
+        size = float(np.linalg.norm(deviation / spread))
+        if size > JITTER_BOUND:
+            deviation *= JITTER_BOUND / size
+        slow = apply_correction(correction_matrix(slow_vector), given)
+        target = apply_correction(correction_matrix(slow_vector + deviation), given)
+        return fuse_with_given(slow, target, covariance + np.diag(self._jitter.bias_variance(jitter)), jitter)
+
+    def _jitter_free(self, given: np.ndarray, transform: np.ndarray, covariance: np.ndarray) -> np.ndarray:
+        """The pose a frame is judged against before it follows any of the ICP's slow correction (as a transform
+        from the ``given`` pose, map frame): the given pose with the jitter the ICP's ``transform`` (with its
+        ``covariance``) shows taken off (:meth:`_about_slow`). A jittered given pose fits the map worse than the
+        ICP's by its jitter alone; this one only by the slow part."""
+        found = correction_vector(correction_between(given, given @ transform))
+        pose, _ = self._about_slow(given, np.zeros(6), found, covariance, self._jitter.variance())
+        return np.linalg.inv(given) @ pose
 
     def RequestData(self, request, inInfo, outInfo):  # noqa: N802 (VTK API)
         world = map_input(inInfo, "FilterRegistration")
@@ -888,9 +935,13 @@ class FilterRegistration(MapAndImageAlgorithm):
             given_in_map = self.anchor.map_from_world @ given
             expected = render_expected(self.renderer, world, intrinsics, given_in_map)
             carried = np.linalg.inv(given_in_map) @ apply_correction(self._correction, given_in_map)
+            judged_against = None
+            if self.anchor.stated is None and self._jitter.variance() is not None:  # learnt: see _learnt_pose
+                def judged_against(transform, covariance):
+                    return self._jitter_free(given_in_map, transform, covariance)
             result = register_depth(
                 measured, expected, intrinsics, noise, p, starts=(carried,), workspace=self._workspace,
-                references=(np.eye(4), carried),
+                references=(np.eye(4), carried), judged_against=judged_against,
             )  # fmt: skip
         pose = given_in_map @ result.transform
         covariance = result.covariance
@@ -906,7 +957,11 @@ class FilterRegistration(MapAndImageAlgorithm):
                 self._correction = self._slow if learnt else correction_between(given_in_map, pose)
                 depth = _median_depth(measured)
                 map_error = map_placement_variance(depth, noise, intrinsics)
-                self.anchor.add(given, given_in_map @ result.transform, self._travelled, result.covariance, depth, map_error)
+                if learnt:
+                    # the map lies where the frames were meshed: where the rule kept the given poses, so does it
+                    self.anchor.add(given, pose, self._travelled, covariance, depth, map_error)
+                else:
+                    self.anchor.add(given, given_in_map @ result.transform, self._travelled, result.covariance, depth, map_error)
             elif result.status == "no_map" and len(self.anchor) == 0:
                 self.anchor.add(given, pose, self._travelled)  # the first frame starts the map where it is given
         if new_frame:
