@@ -20,8 +20,9 @@ loop renders anyway:
    against the given one by their covariances (:func:`fuse_with_given`);
    where not (a recording), a frame keeps the given pose or the last
    frame's slow correction unless the ICP's pose fits D to the map several
-   times better than the given pose (:func:`follow_gain`), and its jitter
-   about that is learnt from the run (:class:`PoseJitter`).
+   times better than the given pose with its jitter taken off
+   (:func:`follow_gain`, :meth:`FilterRegistration._jitter_free`), and its
+   jitter about that is learnt from the run (:class:`PoseJitter`).
 
 Units: metres and degrees in parameters; poses are 4x4 ``world_from_camera``
 in the map's frame. Output: D with the registered pose, and in field data
@@ -694,7 +695,8 @@ class PoseJitter:
         self._count = 0
         self._last = np.full((2, 6), np.nan)  # the corrections of the last two frames, the latest first
         self._sums = np.zeros((2, 3))  # per lag (1, 2): summed mean squares of the rotation's and translation's differences, less the ICP's, and the count
-        self._about_trend = np.zeros(3)  # summed mean squares of r about the trend before it (rotation, translation), less the ICP's, and the count
+        self._course = np.zeros(6)  # the corrections' own mean, as the trend (what the slow rule took or not)
+        self._about_course = np.zeros(3)  # summed mean squares of the corrections about that mean before them (rotation, translation), less the ICP's, and the count
 
     def add(self, correction: np.ndarray, r: np.ndarray, covariance: np.ndarray) -> None:
         """One registered frame: the ICP's ``correction`` from the given pose (6,), ``r`` (6,), the ICP's 6x6
@@ -706,10 +708,11 @@ class PoseJitter:
                 self._sums[lag] += [step[:3].mean() - 2 * own[0], step[3:].mean() - 2 * own[1], 1.0]
         self._last = np.stack([correction, self._last[0]])
         if self._count >= MIN_JITTER_PAIRS:  # a trend of a few frames predicts nothing yet
-            miss = (r - self.trend) ** 2
-            self._about_trend += [miss[:3].mean() - own[0], miss[3:].mean() - own[1], 1.0]
+            miss = (correction - self._course) ** 2
+            self._about_course += [miss[:3].mean() - own[0], miss[3:].mean() - own[1], 1.0]
         self._count += 1
         self.trend += (r - self.trend) / min(self._count, JITTER_TREND_FRAMES)  # the mean of the first frames, then exponential
+        self._course += (correction - self._course) / min(self._count, JITTER_TREND_FRAMES)
 
     def variance(self) -> tuple[float, float] | None:
         """(rad^2, m^2) per component, None before :data:`MIN_JITTER_PAIRS` pairs of frames two apart were
@@ -720,13 +723,13 @@ class PoseJitter:
         return tuple(max(float(d1 - d2 / 2), 0.0) for d1, d2 in zip(one, two, strict=True))
 
     def bias_variance(self, jitter: tuple[float, float]) -> np.ndarray:
-        """(6,) the variance (rad^2, m^2 per component) of what the trend leaves of the map's bias in a frame's ``r``:
-        ``r``'s mean square about the trend before it, less the ICP's own variance and the ``jitter``
-        (:meth:`variance`). The map's error varies with what a frame sees, faster than a mean over frames follows;
+        """(6,) the variance (rad^2, m^2 per component) of what a mean over frames leaves of the map's bias in a frame's
+        correction: the corrections' mean square about their mean over the frames before, less the ICP's own variance
+        and the ``jitter`` (:meth:`variance`). The map's error varies with what a frame sees, faster than a mean over frames follows;
         it weighs the ICP's correction down as its covariance does (:meth:`FilterRegistration._about_slow`)."""
-        if self._about_trend[2] < 1:
+        if self._about_course[2] < 1:
             return np.zeros(6)
-        spread = self._about_trend[:2] / self._about_trend[2]
+        spread = self._about_course[:2] / self._about_course[2]
         return np.repeat(np.maximum(spread - np.asarray(jitter, dtype=np.float64), 0.0), 3)
 
     def slow_part(self, jitter: tuple[float, float]) -> np.ndarray:
@@ -740,7 +743,7 @@ class PoseJitter:
     def state(self) -> dict:
         return {
             "trend": self.trend.copy(), "count": self._count, "last": self._last.copy(), "sums": self._sums.copy(),
-            "about_trend": self._about_trend.copy(),
+            "course": self._course.copy(), "about_course": self._about_course.copy(),
         }  # fmt: skip
 
     def set_state(self, state: dict) -> None:
@@ -748,7 +751,8 @@ class PoseJitter:
         self._count = int(state["count"])
         self._last = np.asarray(state["last"], dtype=np.float64).reshape(2, 6).copy()
         self._sums = np.asarray(state["sums"], dtype=np.float64).reshape(2, 3).copy()
-        self._about_trend = np.asarray(state.get("about_trend", np.zeros(3)), dtype=np.float64).reshape(3).copy()
+        self._course = np.asarray(state.get("course", self.trend), dtype=np.float64).reshape(6).copy()
+        self._about_course = np.asarray(state.get("about_course", np.zeros(3)), dtype=np.float64).reshape(3).copy()
 
 
 def follow_gain(improvement: float) -> float:
@@ -884,8 +888,6 @@ class FilterRegistration(MapAndImageAlgorithm):
             pose, fused = self._about_slow(given, slow_vector, found, result.covariance, jitter)
             covariance = covariance + fused
         if new_frame:
-            if jitter is None:  # before the jitter is known, a fit better than the given pose's may be jitter alone
-                slow_vector = np.zeros(6)
             self._jitter.add(found, found - slow_vector, result.covariance)
             self._slow = correction_matrix(slow_vector)  # jitter is a frame's own: only the slow part carries on
         return pose, covariance
