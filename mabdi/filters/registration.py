@@ -584,8 +584,11 @@ def pose_depth_sigma(expected: np.ndarray, intrinsics: Intrinsics, covariance: n
     normal n E shows there; along the pixel's ray that is J xi / cos(theta)
     (theta the angle of incidence, capped at ``max_incidence`` degrees): a
     lateral error d becomes d tan(theta) in depth. Pixels of E without a
-    normal (silhouettes) take the head-on value. NaN where E has no surface.
+    normal (silhouettes) take the head-on value. NaN where E has no surface. A zero covariance (a pose stated
+    exact) moves nothing: 0 wherever E has a surface, without the per-pixel work.
     """
+    if not np.any(covariance):
+        return np.where(np.isfinite(expected), np.float32(0.0), np.float32(np.nan)).astype(np.float32)
     return pose_sigma_image(
         np.ascontiguousarray(expected, dtype=np.float32), intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy,
         NORMAL_STEP, NORMAL_MAX_JUMP, np.ascontiguousarray(covariance, dtype=np.float64), float(np.cos(np.radians(max_incidence))),

@@ -15,7 +15,7 @@ the samples land on the same pixels again.
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 
 @njit(cache=True, inline="always")
@@ -242,11 +242,12 @@ def point_to_plane_system(
     return a, b, chi2, pairs, candidates, residuals[:candidates], support, tile_gradients
 
 
-@njit(cache=True)
+@njit(cache=True, parallel=True)
 def pose_sigma_image(e_depth, fx, fy, cx, cy, step, max_jump, covariance, min_cosine):
     """(H, W) float32 depth standard deviation (m) that the pose covariance causes at each pixel of E.
 
-    See :func:`mabdi.filters.registration.pose_depth_sigma`. NaN where E has no surface.
+    See :func:`mabdi.filters.registration.pose_depth_sigma`. NaN where E has no surface. Rows run in parallel
+    threads (each pixel is its own: the image is the same on any number of cores).
     """
     height, width = e_depth.shape
     sigma = np.full((height, width), np.nan, dtype=np.float32)
@@ -258,7 +259,7 @@ def pose_sigma_image(e_depth, fx, fy, cx, cy, step, max_jump, covariance, min_co
     c23, c24, c25 = 2 * c[2, 3], 2 * c[2, 4], 2 * c[2, 5]
     c34, c35 = 2 * c[3, 4], 2 * c[3, 5]
     c45 = 2 * c[4, 5]
-    for row in range(height):
+    for row in prange(height):
         for col in range(width):
             depth = np.float64(e_depth[row, col])
             if not np.isfinite(depth):
