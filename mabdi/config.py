@@ -343,7 +343,7 @@ class SurfaceConfig:
     are checked and kept, so one config can switch surfaces with ``--surface``.
     """
 
-    method: str = "pixel_grid"
+    method: str = "quadtree"
     #: Parameters by surface name, as given in the config (the rest take the defaults).
     parameters: dict = field(default_factory=dict, metadata={"toml": False})
 

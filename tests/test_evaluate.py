@@ -209,7 +209,7 @@ def test_bench_without_open3d_reports_mabdi_and_black_box(tmp_path, monkeypatch,
     mabdi_metrics, box = rows["mabdi"]["metrics"], rows["black_box"]["metrics"]
     assert mabdi_metrics["fscore_1cm"] > 0.95 and box["fscore_1cm"] > 0.95
     assert mabdi_metrics["redundancy"] < 0.1 < 0.9 < box["redundancy"]
-    assert box["triangles"] > 5 * mabdi_metrics["triangles"]
+    assert box["triangles"] > 3 * mabdi_metrics["triangles"]  # quad-tree: 91k against 24k over 20 frames
     assert bench["machine"]["cpu"] and bench["machine"]["render"]["backend"] == "egl"
     assert (out / "bench.md").read_text().count("|") > 20 and (out / "elements.png").is_file()
 

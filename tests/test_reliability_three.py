@@ -116,7 +116,7 @@ def test_two_concurrent_mabdi_runs_into_one_folder_never_mix(tmp_path):
     out, go = tmp_path / "c", tmp_path / "go"
     second = subprocess.Popen(
         [sys.executable, "-c", _WAITING_MABDI, str(go), "run", str(SCENES / "table.toml"), "--frames", "8", "--quiet",
-         "--no-eval", "--surface", "quadtree", "--out", str(out)],
+         "--no-eval", "--surface", "pixel_grid", "--out", str(out)],
         cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )  # fmt: skip
     first = _cli("run", SCENES / "table.toml", "--frames", 40, "--quiet", "--no-eval", "--out", out)
@@ -130,7 +130,7 @@ def test_two_concurrent_mabdi_runs_into_one_folder_never_mix(tmp_path):
     assert second.returncode == 2, (second_out, second_err)
     assert f"mabdi: error: output folder {out} is in use by another mabdi run" in second_err
     summary = json.loads((out / "summary.json").read_text())
-    assert summary["frames"] == 40 and summary["surface"] == "pixel_grid"
+    assert summary["frames"] == 40 and summary["surface"] == "quadtree"
     assert len((out / "metrics.csv").read_text().splitlines()) == 41 and len(np.load(out / "poses.npy")) == 40
     assert not (out / STAGING).exists() and not (out / LOCK).exists()
 

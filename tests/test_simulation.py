@@ -127,8 +127,8 @@ def test_final_map_covers_the_new_bunny(dynamic_run):
 
 def test_hand_built_pipeline_from_the_readme_equals_simulation(monkeypatch):
     """The README's pipeline of filters is the loop without object removal (a stage of MabdiLoop, not a filter)
-    and without registration (the example takes the poses as given)."""
-    table_run = run("table", removal__enabled=False, registration__enabled=False)
+    and without registration (the example takes the poses as given), with the seed's pixel grid."""
+    table_run = run("table", surface__method="pixel_grid", removal__enabled=False, registration__enabled=False)
     text = (REPO / "README.md").read_text()
     code = text.split("<!-- example: hand-built loop -->")[1].split("```python")[1].split("```")[0]
     monkeypatch.chdir(REPO)

@@ -28,7 +28,9 @@ noise, and has no pose file or depth scale to get wrong): with at least
 :data:`MIN_REGISTERED_SHARE` of them registered while more than a few of their pixels
 saw through the map at the given poses (:data:`MIN_SEEN_THROUGH_SHARE`;
 frames that fit the map but give the registration too few samples, a
-small image, see through almost none of it), or when at least
+small image, see through almost none of it), or fewer than
+:data:`MIN_REGISTERED_SHARE_SEEN_THROUGH` while a tenth of them did
+(:data:`MANY_SEEN_THROUGH_SHARE`), or when at least
 :data:`MIN_REGISTERED` registered and their median correction is beyond
 :data:`MAX_CORRECTION_M` or :data:`MAX_CORRECTION_DEG`. The loop checks it
 once a run's last frame is done and warns once.
@@ -48,6 +50,11 @@ MIN_REGISTERED_SHARE = 1.0 / 3.0
 #: the map (contradicted): in a static scene, poses that fit leave almost none however few samples the
 #: registration gets (a small image); camera_from_world poses and a wrong depth scale leave a tenth or more
 MIN_SEEN_THROUGH_SHARE = 0.05
+#: Fewer than this share registered is enough ... when more than this share of their pixels (median) saw through the
+#: map: a tenth of a static scene's pixels behind its map is what wrong poses or a wrong scale leave, and a map made
+#: of faces merged over many pixels still lets some of such frames register near their given poses
+MIN_REGISTERED_SHARE_SEEN_THROUGH = 0.5
+MANY_SEEN_THROUGH_SHARE = 0.10
 #: The registered frames' median correction beyond these (metres, degrees), taken over at least
 #: :data:`MIN_REGISTERED` frames: more than any ordinary pose source is off by.
 MAX_CORRECTION_M = 0.05
@@ -83,7 +90,8 @@ def poses_disagree(
     registered = [i for i in judged if statuses[i] == "registered"]
     shares = [] if seen_through_shares is None else [seen_through_shares[i] for i in judged]
     seen_through = float(np.nanmedian(shares)) if np.isfinite(shares).any() else 1.0
-    if len(registered) < MIN_REGISTERED_SHARE * len(judged) and seen_through > MIN_SEEN_THROUGH_SHARE:
+    few = len(registered) < MIN_REGISTERED_SHARE * len(judged) and seen_through > MIN_SEEN_THROUGH_SHARE
+    if few or (len(registered) < MIN_REGISTERED_SHARE_SEEN_THROUGH * len(judged) and seen_through > MANY_SEEN_THROUGH_SHARE):
         return (
             f"the poses disagree with the depth: only {len(registered)} of {len(judged)} frames registered to the map "
             f"near their given poses; {CAUSES}"

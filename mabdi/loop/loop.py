@@ -229,7 +229,7 @@ class MabdiLoop:
         self,
         source: FrameSource,
         classifier: ClassifierParameters | None = None,
-        surface: str = "pixel_grid",
+        surface: str = "quadtree",
         surface_parameters=None,
         noise: SensorNoise | str | None = None,
         backend: str = BACKENDS[0],
