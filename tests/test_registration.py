@@ -167,6 +167,30 @@ def test_pose_uncertainty_becomes_depth_uncertainty_by_the_angle_of_incidence():
     assert np.isnan(pose_depth_sigma(np.full_like(head_on, np.nan), intrinsics, axial)).all()
 
 
+def test_pose_depth_sigma_is_the_same_image_on_any_number_of_cores_and_for_a_zero_covariance():
+    """The kernel's rows run in parallel threads: the image equals the one-thread kernel's, bit for bit; a zero
+    covariance (a pose stated exact) gives 0 wherever E has a surface without the kernel, as the kernel would."""
+    from numba import njit
+
+    from mabdi.filters.registration import NORMAL_MAX_JUMP, NORMAL_STEP
+    from mabdi.filters.registration_kernels import pose_sigma_image
+
+    one_thread = njit(pose_sigma_image.py_func)
+    rng = np.random.default_rng(3)
+    rows, cols = np.mgrid[0:120, 0:160]
+    expected = (1.5 + 0.002 * cols + 0.001 * rows + 0.002 * rng.standard_normal((120, 160))).astype(np.float32)
+    expected[30:60, 40:80] = np.nan
+    expected[80:, :30] += 0.5  # a depth jump: silhouettes take the head-on value
+    k = Intrinsics(fx=130.0, fy=130.0, cx=80.0, cy=60.0, width=160, height=120)
+    root = rng.standard_normal((6, 6))
+    cosine = float(np.cos(np.radians(80.0)))
+    for covariance in (root @ root.T * 1e-6, np.zeros((6, 6))):
+        args = (expected, k.fx, k.fy, k.cx, k.cy, NORMAL_STEP, NORMAL_MAX_JUMP, covariance, cosine)
+        np.testing.assert_array_equal(pose_sigma_image(*args), one_thread(*args))
+        np.testing.assert_array_equal(pose_depth_sigma(expected, k, covariance), one_thread(*args))
+    assert np.nanmax(pose_depth_sigma(expected, k, root @ root.T * 1e-6)) > 0
+
+
 def room_frames(poses: np.ndarray, *, extra=None, intrinsics: Intrinsics = ROOM_CAMERA, noise="none") -> list[np.ndarray]:
     """Depth images of a small room (floor, two walls, a box) from ``poses``; ``extra``: a mesh added from frame 4."""
     box_points, box_triangles = box([0.6, 0.6, 0.8])
