@@ -383,11 +383,15 @@ def registration_line(registration: dict) -> str:
     statuses = registration["statuses"]
     if set(statuses) == {"off"}:
         return "poses: used as given (registration off)"
+    if set(statuses) == {"exact"}:
+        return "poses: stated exact by the source, used as given (no registration needed)"
     frames = sum(statuses.values())
     line = f"poses: {registration['registered']} of {frames} frames registered to the map"
+    if statuses.get("exact"):
+        line = f"poses: {statuses['exact']} of {frames} stated exact by the source and used as given, {registration['registered']} registered to the map"
     if registration["median_correction_mm"] is not None:
         line += f" (median correction {registration['median_correction_mm']:.1f} mm, {registration['median_correction_deg']:.3f} deg)"
-    others = {k: v for k, v in statuses.items() if k not in ("registered", "off", "no_map")}
+    others = {k: v for k, v in statuses.items() if k not in ("registered", "off", "no_map", "exact")}
     if others:
         listed = ", ".join(f"{v} {k.replace('_', ' ')}" for k, v in sorted(others.items()))
         line += f"; {registration['not_registered'] - statuses.get('no_map', 0)} not ({listed}): meshed unregistered, no removal votes"

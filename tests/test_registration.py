@@ -247,8 +247,8 @@ def test_the_loop_meshes_with_the_registered_pose_and_reports_it():
 
 
 def test_a_pose_source_that_states_its_accuracy_is_weighed_by_it_from_the_first_frame():
-    """``given_sigma``: exact poses stated as exact are kept as given (the map's frame too), though every
-    frame is still registered (and so may vote); jittery poses stated as such still follow the fit: the
+    """``given_sigma``: exact poses stated as exact are kept as given (the map's frame too) and no ICP is run
+    (status "exact"; such frames vote for removal as registered ones do); jittery poses stated as such still follow the fit: the
     frames fit each other within 1.5 mm and 0.05 degrees (median) where the given ones are 7 mm and 0.5
     degrees apart."""
     true = room_poses(8)
@@ -269,8 +269,9 @@ def test_a_pose_source_that_states_its_accuracy_is_weighed_by_it_from_the_first_
 
     for sigma, source in (([0.0, 0.0], FrameList), ("source", ExactSource)):
         records, trajectory = run(true, sigma, source)
-        assert all(r.registered for r in records[1:])
-        np.testing.assert_allclose(trajectory, true, atol=1e-9)  # the fit moved nothing
+        assert [r.registration for r in records] == ["exact"] * len(records) and not any(r.registered for r in records)
+        assert all(np.isnan(r.residual_mm) and r.correction_mm < 1e-6 for r in records)  # no ICP, no correction
+        np.testing.assert_allclose(trajectory, true, atol=1e-9)  # the given poses, as they are
     for sigma, source in (("source", FrameList), ("learnt", ExactSource)):  # not stated: learnt, and kept where the fit is no better
         records, learnt = run(true, sigma, source)
         assert all(r.registered for r in records[1:])

@@ -80,7 +80,9 @@ REGISTRATION_FIELDS = ("status", "correction_m", "correction_deg", "residual_m",
 #: The words ``given_sigma`` takes besides [m, deg]: the source's statement (learnt without one), or always learnt.
 GIVEN_SIGMA_WORDS = ("source", "learnt")
 #: Status codes: 0 registered; the rest leave the frame unregistered (see the module docs).
-STATUSES = ("registered", "off", "no_map", "few_points", "few_inliers", "not_converged", "beyond_bound")
+#: ``exact``: the source states the frame's pose exact; it is meshed as given and the ICP is not run (it could only
+#: confirm the pose).
+STATUSES = ("registered", "off", "no_map", "few_points", "few_inliers", "not_converged", "beyond_bound", "exact")
 REGISTERED = 0
 
 #: A frame of a recording takes none of the ICP's step where the ICP's pose fits D to the map up to this many times
@@ -933,9 +935,15 @@ class FilterRegistration(MapAndImageAlgorithm):
         if new_frame and self._last_position is not None:
             self._travelled += float(np.linalg.norm(given[:3, 3] - self._last_position))
         p = self._parameters
+        # stated exact (no white part, no drift; not learnt so): the frame is meshed at its given pose, and an ICP
+        # could only confirm it
+        given_exact = p.enabled and self.anchor.stated is not None and not np.any(self.anchor.stated)
         if not p.enabled:
             result = RegistrationResult(np.eye(4), "off")
             given_in_map = given
+        elif given_exact:
+            given_in_map = self.anchor.map_from_world @ given
+            result = RegistrationResult(np.eye(4), "exact", covariance=np.zeros((6, 6)))
         else:
             given_in_map = self.anchor.map_from_world @ given
             expected = render_expected(self.renderer, world, intrinsics, given_in_map)
@@ -951,7 +959,7 @@ class FilterRegistration(MapAndImageAlgorithm):
         pose = given_in_map @ result.transform
         covariance = result.covariance
         learnt = self.anchor.stated is None
-        if result.registered:
+        if result.registered or result.status == "exact":
             if learnt:  # how good the given poses are is not stated: learnt from the run (see the module docs)
                 pose, covariance = self._learnt_pose(given_in_map, pose, result, new_frame)
             else:
@@ -980,8 +988,6 @@ class FilterRegistration(MapAndImageAlgorithm):
         _add_field(output, WORLD_FROM_MAP_ARRAY, world_from_map)
         # the correction in the world: the camera centre moved, and turned
         translation, angle = transform_size(np.linalg.inv(given) @ world_from_map @ pose)
-        # stated exact (no white part, no drift; not learnt so): the frame is meshed at its given pose, whatever the ICP found
-        given_exact = p.enabled and self.anchor.stated is not None and not np.any(self.anchor.stated)
         values = (
             STATUSES.index(result.status), translation, angle, result.residual, result.inlier_share, result.support, result.iterations,
             float(given_exact),

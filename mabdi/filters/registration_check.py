@@ -61,7 +61,7 @@ MAX_CORRECTION_M = 0.05
 MAX_CORRECTION_DEG = 2.0
 MIN_REGISTERED = 3
 #: The statuses of frames not judged (:data:`mabdi.filters.registration.STATUSES`).
-NOT_JUDGED = ("off", "no_map")
+NOT_JUDGED = ("off", "no_map", "exact")
 #: The likely causes, named in the warning.
 CAUSES = (
     "likely causes: poses given as camera_from_world (mabdi reads world_from_camera: invert them), "

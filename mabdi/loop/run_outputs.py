@@ -168,7 +168,7 @@ def registration_summary(records: list[FrameRecord]) -> dict:
     registered = [r for r in records if r.registered]
     return {
         "registered": len(registered),
-        "not_registered": len(records) - len(registered) - statuses.get("off", 0),
+        "not_registered": len(records) - len(registered) - statuses.get("off", 0) - statuses.get("exact", 0),
         "statuses": statuses,
         "median_correction_mm": float(np.median([r.correction_mm for r in registered])) if registered else None,
         "median_correction_deg": float(np.median([r.correction_deg for r in registered])) if registered else None,
