@@ -320,3 +320,30 @@ def test_compiled_edges_dilation_and_boxes_equal_their_array_slice_formulations(
         inside |= np.all((points >= low) & (points <= high), axis=1)
     assert 0 < inside.sum() < len(points)
     assert np.array_equal(points_in_boxes(points, lows, lows + 0.2), inside)
+
+
+def test_a_misplaced_edge_is_judged_at_the_contradicted_pixels_as_over_the_whole_image():
+    """The windows read at the contradicted pixels only give what the full-image filters give there: E's farthest
+    and D's nearest depth within the reach (edge padding), and a silhouette of E within it (outside: none)."""
+    from mabdi.filters.classifier import dilate
+    from mabdi.filters.removal import depth_edges, farthest_nearby, misplaced_edge_explains, nearest_nearby
+
+    rng = np.random.default_rng(1)
+    for _ in range(10):
+        expected = (1 + rng.random((60, 80))).astype(np.float32)
+        measured = (expected + rng.normal(0, 0.05, expected.shape)).astype(np.float32)
+        expected[rng.random(expected.shape) < 0.2] = np.nan
+        measured[rng.random(expected.shape) < 0.2] = np.nan
+        contradicting = rng.random(expected.shape) < 0.3
+        silhouettes = depth_edges(expected, 0.05)
+        gap = np.full(expected.shape, np.float32(0.03))
+        for reach in (1, 2, 4):
+            for near_silhouette in (True, False):
+                with np.errstate(invalid="ignore"):
+                    whole = contradicting & (dilate(silhouettes, reach) if near_silhouette else True)
+                    whole &= ~(measured - farthest_nearby(expected, reach) > gap)
+                    whole &= ~(nearest_nearby(measured, reach) - expected > gap)
+                at_pixels = misplaced_edge_explains(contradicting, measured, expected, silhouettes, gap, reach, near_silhouette)
+                assert whole.any() and np.array_equal(at_pixels, whole)
+    none = np.zeros((60, 80), dtype=bool)
+    assert not misplaced_edge_explains(none, measured, expected, silhouettes, gap, 2, True).any()

@@ -2,6 +2,9 @@
 
 :func:`points_in_boxes`: which of a block's points lie in any of the boxes
 around the faces a frame contradicted (where the map was seen through).
+:func:`window_extremes_at`: E's farthest and D's nearest depth, and whether a
+silhouette of E lies, within a window around each of a few pixels (the
+contradicted ones) instead of over the whole image.
 """
 
 from __future__ import annotations
@@ -25,3 +28,35 @@ def points_in_boxes(points, lows, highs):
                 out[i] = True
                 break
     return out
+
+
+@njit(cache=True)
+def window_extremes_at(expected, measured, silhouettes, rows, cols, margin, silhouette_margin):
+    """At the pixels (``rows[k]``, ``cols[k]``): the farthest finite depth of ``expected`` and the nearest finite
+    depth of ``measured`` within ``margin`` pixels (a (2 margin + 1)^2 window clipped to the image; -inf / inf
+    where it holds none), and whether ``silhouettes`` holds a True within ``silhouette_margin`` pixels (the same
+    square, outside the image False). The values of a full-image maximum / minimum filter with edge padding and
+    of a square dilation, at those pixels only."""
+    height, width = expected.shape
+    count = rows.shape[0]
+    farthest = np.full(count, -np.inf, dtype=np.float32)
+    nearest = np.full(count, np.inf, dtype=np.float32)
+    near_silhouette = np.zeros(count, dtype=np.bool_)
+    for k in range(count):
+        row, col = rows[k], cols[k]
+        for r in range(max(row - margin, 0), min(row + margin + 1, height)):
+            for c in range(max(col - margin, 0), min(col + margin + 1, width)):
+                e = expected[r, c]
+                if np.isfinite(e) and e > farthest[k]:
+                    farthest[k] = e
+                d = measured[r, c]
+                if np.isfinite(d) and d < nearest[k]:
+                    nearest[k] = d
+        for r in range(max(row - silhouette_margin, 0), min(row + silhouette_margin + 1, height)):
+            for c in range(max(col - silhouette_margin, 0), min(col + silhouette_margin + 1, width)):
+                if silhouettes[r, c]:
+                    near_silhouette[k] = True
+                    break
+            if near_silhouette[k]:
+                break
+    return farthest, nearest, near_silhouette
