@@ -23,15 +23,17 @@ Maps, all from the same integrated frames and the same given poses:
   (:mod:`mabdi.evaluate.tsdf`) with :meth:`TsdfSettings.tuned` (truncation 4
   voxels, weight above 0.5, mabdi's cx, cy handed over as they are: Open3D's
   VoxelBlockGrid reads pixel ``int(u)`` for a continuous u, mabdi's
-  convention; the depth smoothed by the noise model the first mabdi run
-  learnt, as mabdi's surfaces smooth it), integrated at the given poses.
+  convention), integrated at the given poses on the raw depth: on real frames
+  the depth smoothed by the noise model the first mabdi run learnt (as mabdi's
+  surfaces smooth it; ``--tsdf-smooth``) scored no better and took four times
+  as long (docs/benchmarks.md), so the peer at its best runs without it.
   Skipped with a note when Open3D cannot be imported.
 
 Also per map: triangles; for mabdi the faces removal deleted (the run's
 records), and the meshed poses against the given ones; time per frame of
 every method, measured in this one run (mabdi: everything after reading the
 frame, ``t_total_ms - t_depth_ms`` of the records; TSDF: the integration,
-its depth smoothing included; reading a frame is not counted for either).
+its depth smoothing included where asked; reading a frame is not counted for either).
 
     .venv/bin/python benchmarks/bench_real.py PATH [--every 10] [--frames N] [--surface quadtree ...]
         [--no-registration] [--jitter M DEG] [--voxels 0.01 0.02] [--camera ...] [--depth-scale ...] [--out results.json]
@@ -183,8 +185,8 @@ def run_mabdi(source, subset, integrated, held, surface: str, registration: bool
     return row, simulation
 
 
-def run_tsdf_row(source, subset, held, voxel: float, noise) -> dict:
-    settings = TsdfSettings.tuned(voxel, noisy=noise is not None and noise.noisy)
+def run_tsdf_row(source, subset, held, voxel: float, noise, smooth: bool = False) -> dict:
+    settings = TsdfSettings.tuned(voxel, noisy=smooth and noise is not None and noise.noisy)
     log(f"tsdf {voxel * 100:g} cm: integrating {len(subset)} frames ({settings.as_dict()})")
     run = run_tsdf(subset, settings, mesh_every=None, noise=noise)
     triangles = int(run.mesh.GetNumberOfCells())
@@ -256,6 +258,10 @@ def main(argv=None) -> int:
         "--no-registration", action="store_true", help="mabdi meshes every frame at its given pose (as mabdi run --no-registration)"
     )
     parser.add_argument("--voxels", type=float, nargs="*", default=[0.01, 0.02], help="TSDF voxel sizes in metres (none: no TSDF)")
+    parser.add_argument(
+        "--tsdf-smooth", action="store_true",
+        help="smooth the TSDF's depth by the noise model mabdi's run learnt (default: the raw depth, the TSDF's best on real frames)",
+    )  # fmt: skip
     parser.add_argument("--camera", help="the camera, when the recording has none (as mabdi run --camera)")
     parser.add_argument("--depth-scale", type=float, help="depth units per metre (as mabdi run --depth-scale)")
     parser.add_argument(
@@ -297,7 +303,7 @@ def main(argv=None) -> int:
             notes.append(f"TSDF skipped: {reason}")
         else:
             for voxel in args.voxels:
-                rows.append(run_tsdf_row(source, subset, held, voxel, noise))
+                rows.append(run_tsdf_row(source, subset, held, voxel, noise, smooth=args.tsdf_smooth))
     bench = {
         "source": source.description.replace(where, args.sequence.name),
         "sequence": args.sequence.name,
