@@ -938,14 +938,12 @@ class FilterRegistration(MapAndImageAlgorithm):
         # stated exact (no white part, no drift; not learnt so): the frame is meshed at its given pose, and an ICP
         # could only confirm it
         given_exact = p.enabled and self.anchor.stated is not None and not np.any(self.anchor.stated)
+        given_in_map = self.anchor.map_from_world @ given if p.enabled else given
         if not p.enabled:
             result = RegistrationResult(np.eye(4), "off")
-            given_in_map = given
         elif given_exact:
-            given_in_map = self.anchor.map_from_world @ given
             result = RegistrationResult(np.eye(4), "exact", covariance=np.zeros((6, 6)))
         else:
-            given_in_map = self.anchor.map_from_world @ given
             expected = render_expected(self.renderer, world, intrinsics, given_in_map)
             carried = np.linalg.inv(given_in_map) @ apply_correction(self._correction, given_in_map)
             judged_against = None

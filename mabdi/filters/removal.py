@@ -10,7 +10,7 @@ map vote (registered frames, :mod:`mabdi.filters.registration`).
 Which pixels vote (:func:`removal_votes`): not at depth discontinuities
 (``edge_jump``, ``edge_margin`` pixels, widened by a surface's
 ``face_overhang``), not at grazing incidence (``grazing_deg``), not where a
-misplaced edge explains D (:func:`farthest_nearby`, :func:`nearest_nearby`),
+misplaced edge explains D (:func:`misplaced_edge_explains`),
 and a contradiction only when D lies beyond E by more than ``k_sigma``
 times the noise of D - E and ``min_gap`` (:func:`contradiction_gap`).
 Pixels with no return see through to the far limit (``no_return_is_free``)
@@ -35,7 +35,6 @@ import math
 from dataclasses import dataclass, replace
 
 import numpy as np
-from scipy import ndimage
 
 from mabdi.errors import ConfigError
 from mabdi.face_identity import unique_codes
@@ -242,8 +241,8 @@ def misplaced_edge_explains(
     reach: int, near_silhouette: bool,
 ) -> np.ndarray:
     """(H, W) bool: the ``contradicting`` pixels a misplaced edge explains: E shows D's depth (or beyond) within
-    ``reach`` pixels and D shows E's (or nearer) within it (:func:`farthest_nearby`, :func:`nearest_nearby`:
-    neither differs by the ``gap``), and with ``near_silhouette`` a silhouette of E (``silhouettes``) lies within
+    ``reach`` pixels and D shows E's (or nearer) within it (E's farthest and D's nearest depth in the
+    (2 reach + 1)^2 window, edge-padded, differ by less than the ``gap``), and with ``near_silhouette`` a silhouette of E (``silhouettes``) lies within
     ``reach`` too. Windows are read at the contradicting pixels only (a known world has few: the cost follows
     what is new), with the same values as the full-image filters."""
     rows, cols = np.nonzero(contradicting)
@@ -262,20 +261,6 @@ def misplaced_edge_explains(
         fits &= near
     explained[rows[fits], cols[fits]] = True
     return explained
-
-
-def farthest_nearby(expected: np.ndarray, margin: int) -> np.ndarray:
-    """(H, W) float32 the farthest depth of E within ``margin`` pixels (a (2 margin + 1)^2 window; -inf where
-    E shows no surface there): what D must lie beyond to see through the map nearby, not beside an edge."""
-    shown = np.where(np.isfinite(expected), expected, -np.inf).astype(np.float32)
-    return ndimage.maximum_filter(shown, size=2 * margin + 1, mode="nearest")
-
-
-def nearest_nearby(measured: np.ndarray, margin: int) -> np.ndarray:
-    """(H, W) float32 the nearest depth of D within ``margin`` pixels (a (2 margin + 1)^2 window; inf where D
-    has no return there): whether the surface E shows is still in D beside a pixel that sees past it."""
-    shown = np.where(np.isfinite(measured), measured, np.inf).astype(np.float32)
-    return ndimage.minimum_filter(shown, size=2 * margin + 1, mode="nearest")
 
 
 def contradiction_gap(measured, expected, parameters: RemovalParameters, sigma=None, pose_sigma=None, cosine=None) -> np.ndarray:
