@@ -668,6 +668,23 @@ class WorldMap:
         The patch's points are changed in place and marked modified, so the expected-image renderer
         re-uploads that patch only; the normals of the faces around the moved vertices are recomputed.
         """
+        self.move_points_of([(key, vertex_ids, positions)])
+
+    def move_points_of(self, moves) -> None:
+        """:meth:`move_points` for each ``(key, vertex_ids, positions)`` of ``moves`` in turn (a frame's
+        refinement), with each touched chunk's bounds set once, after its last move."""
+        touched = {}
+        for key, vertex_ids, positions in moves:
+            chunk = self._move(key, vertex_ids, positions)
+            touched[chunk.index] = chunk
+        for chunk in touched.values():
+            self._set_bounds(chunk)
+        if touched:
+            self._changed()
+
+    def _move(self, key: str, vertex_ids: np.ndarray, positions: np.ndarray) -> Chunk:
+        """Move one patch's vertices and recompute the normals of the faces around them; returns its chunk
+        (whose bounds the caller sets)."""
         patch = self._patches[key]
         current = vtk_to_numpy(patch.polydata.GetPoints().GetData())
         vertex_ids = np.asarray(vertex_ids, dtype=np.int64)
@@ -687,8 +704,7 @@ class WorldMap:
             moved[vertex_ids] = True
             faces = np.flatnonzero(moved[triangles].any(axis=1))
             patch.normals[faces] = triangle_normals(current.astype(np.float32, copy=False), triangles[faces])[0]
-        self._set_bounds(self.chunks[patch.chunk])
-        self._changed()
+        return self.chunks[patch.chunk]
 
     # -- checkpoints --------------------------------------------------------
     def state(self) -> dict:

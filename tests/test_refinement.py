@@ -280,16 +280,17 @@ def test_moved_vertices_of_the_kinect_table_do_not_drift():
     loop.reset()
     world = loop.world
     first, last = {}, {}
-    move_points = world.move_points
+    move_points_of = world.move_points_of
 
-    def recording_move_points(key, vertex_ids, positions):
-        before = vtk_to_numpy(world.block(key).GetPoints().GetData())[vertex_ids].astype(np.float64)
-        for vertex, old, new in zip(vertex_ids, before, np.asarray(positions, dtype=np.float64), strict=True):
-            first.setdefault((key, int(vertex)), old)
-            last[(key, int(vertex))] = new
-        move_points(key, vertex_ids, positions)
+    def recording_move_points_of(moves):
+        for key, vertex_ids, positions in moves:
+            before = vtk_to_numpy(world.block(key).GetPoints().GetData())[vertex_ids].astype(np.float64)
+            for vertex, old, new in zip(vertex_ids, before, np.asarray(positions, dtype=np.float64), strict=True):
+                first.setdefault((key, int(vertex)), old)
+                last[(key, int(vertex))] = new
+        move_points_of(moves)
 
-    world.move_points = recording_move_points
+    world.move_points_of = recording_move_points_of
     for i in range(16):
         loop.step(i)
     assert len(first) > 10_000, len(first)

@@ -718,6 +718,26 @@ def test_a_large_step_is_summed_in_two_halves_that_add_up_to_the_whole(bunnies):
     np.testing.assert_allclose(split[7], whole[7], rtol=1e-9, atol=1e-9 * np.abs(whole[7]).max())  # tile sums
 
 
+def test_the_residuals_alone_are_the_systems_residuals(bunnies):
+    """How well a pose fits (the ICP's improvement over the given pose) reads the residuals without the normal
+    equations: the same numbers in the same order as a step's, at several poses, split in halves or not."""
+    from mabdi.filters import registration
+
+    measured, expected, intrinsics, noise = _bunny_pair(bunnies)
+    for stride in (2, 8):  # a fine sampling is split in halves; a coarse one is not
+        points, z, tiles, n_tiles, _ = registration.sample_points(measured, intrinsics, stride)
+        scale = np.maximum(noise.sigma(z, intrinsics.near, intrinsics.far), 1e-4)
+        wide = np.full(len(points), 1.0)
+        image = registration._MapImage(expected, intrinsics, registration.IcpWorkspace())
+        fresh = registration._MapImage(expected, intrinsics, registration.IcpWorkspace())  # normals not yet cached
+        for offset in ([0.0, 0.0, 0.0], [0.004, -0.002, 0.003], [-0.03, 0.01, 0.02]):
+            transform = np.eye(4)
+            transform[:3, 3] = offset
+            want = image.system(points, tiles, n_tiles, scale, wide, transform, 1.345, False)[5]
+            assert len(want) > 1000
+            np.testing.assert_array_equal(fresh.residuals(points, transform), want)
+
+
 #: Run in a fresh interpreter: register, then fork a child that registers again (the test process may hold other
 #: libraries' threads, e.g. Ray's or Rerun's from other tests, and a fork beside them can hang on their locks).
 _FORKED_CHILD = """

@@ -204,6 +204,40 @@ def test_moving_points_changes_the_block_and_its_face_normals_only():
         world.move_points("frame_0", [len(points)], np.zeros((1, 3)))
 
 
+def test_a_frames_moves_at_once_move_each_patch_and_set_each_chunks_bounds():
+    """A frame's refinement moves many patches at once (``move_points_of``): the points and normals are what
+    moving them one by one gives, and each chunk's bounding box (what the renderer culls by) covers the moved
+    points."""
+    from vtkmodules.vtkCommonDataModel import vtkDataObject
+
+    worlds = []
+    for _ in range(2):
+        world = FilterWorldMesh(chunk_size=1.0)
+        append(world, with_frame(plane_mesh([0.0, 0.0, 0], [0, 0, 1], subdivisions=2, size=0.5), 0))
+        append(world, with_frame(plane_mesh([3.0, 0.0, 0], [0, 0, 1], subdivisions=2, size=0.5), 1))
+        worlds.append(world)
+    keys = worlds[0].store.patch_keys
+    first, last = keys[0], keys[-1]
+    assert worlds[0].store.patch(first).chunk != worlds[0].store.patch(last).chunk
+    lifted = vtk_to_numpy(worlds[0].block(first).GetPoints().GetData())[:2] + [0.0, 0.0, 2.0]
+    lowered = vtk_to_numpy(worlds[0].block(last).GetPoints().GetData())[:1] - [0.0, 0.0, 1.5]
+    moves = [(first, [0, 1], lifted), (last, [0], lowered)]
+    worlds[0].move_points_of(moves)
+    for key, ids, positions in moves:
+        worlds[1].move_points(key, ids, positions)
+    for key in keys:
+        np.testing.assert_array_equal(
+            vtk_to_numpy(worlds[0].block(key).GetPoints().GetData()), vtk_to_numpy(worlds[1].block(key).GetPoints().GetData())
+        )
+        cells = worlds[0].block(key).GetNumberOfCells()
+        table = FaceIdTable([key], [1], [cells])
+        np.testing.assert_array_equal(worlds[0].face_normals_of(np.arange(1, cells + 1), table), worlds[1].face_normals_of(np.arange(1, cells + 1), table))
+    multiblock = worlds[0].store.multiblock
+    boxes = [multiblock.GetMetaData(i).Get(vtkDataObject.BOUNDING_BOX()) for i in range(multiblock.GetNumberOfBlocks())]
+    assert max(box[5] for box in boxes) == pytest.approx(2.0)  # the lifted corners
+    assert min(box[4] for box in boxes) == pytest.approx(-1.5)  # the lowered one, in another chunk
+
+
 def test_a_surface_split_by_patch_key_in_one_pass_is_what_extracting_each_patch_gives():
     from mabdi.polydata import extract_polys, split_polys, triangles_polydata
 

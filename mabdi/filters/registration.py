@@ -61,6 +61,7 @@ from mabdi.filters.registration_kernels import (
     NORMAL_UNKNOWN,
     gauss_newton_update,
     median_every,
+    point_to_plane_residuals,
     point_to_plane_system,
     pose_sigma_image,
     rigid_from_vector,
@@ -366,6 +367,31 @@ class _MapImage:
         )  # fmt: skip
 
 
+    def residuals(self, points, transform) -> np.ndarray:
+        """The absolute point-to-plane residuals (m) of every candidate at ``transform``, in the order of
+        :meth:`system`'s (:func:`~mabdi.filters.registration_kernels.point_to_plane_residuals`): how well a
+        pose fits D to the map, without the normal equations."""
+        k = self.intrinsics
+        rotation, translation = transform[:3, :3], np.ascontiguousarray(transform[:3, 3])
+
+        def part(index: int, start: int, stop: int):
+            normals, known = self.caches[index]
+            return point_to_plane_residuals(
+                points[start:stop], rotation, translation, self.depth, normals, known, k.fx, k.fy, k.cx, k.cy, NORMAL_STEP,
+                NORMAL_MAX_JUMP,
+            )  # fmt: skip
+
+        bounds = _split_bounds(len(points))
+        if len(bounds) == 1:
+            return part(0, *bounds[0])
+        helper = _helper_thread()
+        if helper is None:
+            return np.concatenate((part(0, *bounds[0]), part(1, *bounds[1])))
+        pending = helper.submit(part, 1, *bounds[1])
+        first = part(0, *bounds[0])
+        return np.concatenate((first, pending.result()))
+
+
 def register_depth(
     measured: np.ndarray,
     expected: np.ndarray,
@@ -490,11 +516,9 @@ def register_depth(
     improvement, reference_index = float("nan"), 0
     if status == "registered":
         # D's finest samples against E at each reference and at the result, every candidate (the gate is moot)
-        wide = np.full(len(points), p.max_distance)
         judged = () if judged_against is None else (judged_against(transform, covariance),)
         medians = [
-            _median(r) if len(r) else np.inf
-            for r in (map_image.system(points, tiles, n_tiles, scale, wide, pose, p.huber, False)[5] for pose in (*references, *judged, transform))
+            _median(r) if len(r) else np.inf for r in (map_image.residuals(points, pose) for pose in (*references, *judged, transform))
         ]
         reference_index = int(np.argmin(medians[: len(references)]))
         improvement = medians[len(references) if judged else 0] / max(medians[-1], 1e-9)

@@ -242,6 +242,35 @@ def point_to_plane_system(
     return a, b, chi2, pairs, candidates, residuals[:candidates], support, tile_gradients
 
 
+@njit(cache=True, nogil=True)
+def point_to_plane_residuals(points, rotation, translation, e_depth, e_normals, e_known, fx, fy, cx, cy, step, max_jump):
+    """The absolute point-to-plane residuals (m) of :func:`point_to_plane_system` alone, in its order (every
+    candidate: a point that lands on a pixel of E with a normal), without the normal equations: how well a
+    pose fits D to the map (the same arguments; the normal cache is filled as that kernel fills it)."""
+    height, width = e_depth.shape
+    n = points.shape[0]
+    residuals = np.empty(n)
+    candidates = 0
+    for i in range(n):
+        x = rotation[0, 0] * points[i, 0] + rotation[0, 1] * points[i, 1] + rotation[0, 2] * points[i, 2] + translation[0]
+        y = rotation[1, 0] * points[i, 0] + rotation[1, 1] * points[i, 1] + rotation[1, 2] * points[i, 2] + translation[1]
+        z = rotation[2, 0] * points[i, 0] + rotation[2, 1] * points[i, 1] + rotation[2, 2] * points[i, 2] + translation[2]
+        if z <= 0.0:
+            continue
+        u = fx * x / z + cx
+        v = fy * y / z + cy
+        if not (u >= 0.0 and v >= 0.0 and u < width and v < height):
+            continue
+        ok, qx, qy, qz, nx, ny, nz = cached_point_and_normal(
+            e_depth, e_normals, e_known, int(v), int(u), fx, fy, cx, cy, step, max_jump
+        )
+        if not ok:
+            continue
+        residuals[candidates] = abs(nx * (x - qx) + ny * (y - qy) + nz * (z - qz))
+        candidates += 1
+    return residuals[:candidates]
+
+
 @njit(cache=True, parallel=True)
 def pose_sigma_image(e_depth, fx, fy, cx, cy, step, max_jump, covariance, min_cosine):
     """(H, W) float32 depth standard deviation (m) that the pose covariance causes at each pixel of E.

@@ -134,6 +134,10 @@ class FilterWorldMesh(MabdiAlgorithm):
         """Move vertices of patch ``key`` (see :meth:`mabdi.world_map.WorldMap.move_points`)."""
         self.store.move_points(key, vertex_ids, positions)
 
+    def move_points_of(self, moves) -> None:
+        """Apply a frame's vertex ``moves`` ``(key, vertex_ids, positions)`` (see :meth:`mabdi.world_map.WorldMap.move_points_of`)."""
+        self.store.move_points_of(moves)
+
     # -- faces, by the codes of an expected image -------------------------------
     def face_lookup(self, codes, table: FaceIdTable):
         """(index into keys, cell id in the patch, keys) of an expected image's face ``codes``; -1 where none."""

@@ -480,8 +480,7 @@ class MabdiLoop:
             self._refined = self.refinement.step(
                 self.measured_image(), self.expected_image(), self.labels(), self.world, self.intrinsics, self.meshed_pose
             )
-            for key, vertices, points in self._refined.moves:  # the map changes here, by its owner
-                self.world.move_points(key, vertices, points)
+            self.world.move_points_of(self._refined.moves)  # the map changes here, by its owner
             replaced, moved = self._refined.replaced, self._refined.moved_vertices
         t_refine = time.perf_counter()
         self._removed = vtkPolyData()
