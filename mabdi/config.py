@@ -375,6 +375,9 @@ class OutputConfig:
     ``snapshots`` (empty: the first, middle and last). ``checkpoint_every``:
     save the loop's state every N frames (0: never), so ``mabdi run --resume``
     can finish an interrupted run; the checkpoint goes when the run completes.
+    "auto": every 10 frames, spaced further apart once writing them would take
+    more than a twentieth of the loop's time (a large map's state takes seconds
+    to write; :class:`mabdi.loop.run_pipeline.Checkpoints`).
     """
 
     dir: str = ""
@@ -384,7 +387,7 @@ class OutputConfig:
     depth_images: bool = False
     movie: bool = False
     snapshots: list[int] = field(default_factory=list)
-    checkpoint_every: int = 10
+    checkpoint_every: int | str = "auto"
 
 
 @dataclass
@@ -901,8 +904,9 @@ def validate_run_config(config: RunConfig, where: str = "<config>") -> None:
         raise ConfigError(f"{where}: key 'path.turns' must be positive, got {path.turns}")
     names = surface_filter_names()
     _check_choice(config.surface.method, names, where, "surface.method")
-    if config.output.checkpoint_every < 0:
-        raise ConfigError(f"{where}: key 'output.checkpoint_every' must be >= 0 frames (0: no checkpoints)")
+    every = config.output.checkpoint_every
+    if (isinstance(every, str) and every != "auto") or (isinstance(every, int) and every < 0):
+        raise ConfigError(f"{where}: key 'output.checkpoint_every' must be \"auto\" or >= 0 frames (0: no checkpoints), got {every!r}")
 
 
 # ---------------------------------------------------------------------------

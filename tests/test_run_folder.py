@@ -9,6 +9,7 @@ import pytest
 
 from conftest import REPO
 from mabdi.config import load_run_config, set_value
+from mabdi.errors import ConfigError
 from mabdi.io.run_folder import MANIFEST, STAGING, OutputError, RunFolder
 from mabdi.loop import MappingRun
 from mabdi.loop.run_outputs import CHECKPOINT
@@ -84,6 +85,37 @@ def test_resume_after_an_interrupt_gives_the_same_map(tmp_path, surface):
     assert not (cut / STAGING).exists() and json.loads((cut / MANIFEST).read_text())["complete"]
     with pytest.raises(OutputError, match="complete already"):
         MappingRun.resume(cut)
+
+
+def test_auto_checkpoints_space_out_once_writing_them_takes_a_twentieth_of_the_loop():
+    """``checkpoint_every = "auto"`` (the default): every 10 frames while a checkpoint writes quickly; a
+    checkpoint that took 2 s puts the next 40 s of loop time later (a long run's large map would otherwise
+    spend a quarter of its time writing); a number of frames keeps its exact spacing."""
+    from mabdi.config import RunConfig
+    from mabdi.loop.run_pipeline import AUTO_CHECKPOINT_SPACING, Checkpoints
+
+    assert RunConfig().output.checkpoint_every == "auto"
+    auto = Checkpoints("auto")
+    assert not auto.due(5, 1.0) and auto.due(10, 2.0)  # the first: at 10 frames
+    auto._last_loop_seconds, auto._write_seconds = 2.0, 0.01
+    assert auto.due(20, 4.0)  # a small map: every 10 frames
+    auto._last_loop_seconds, auto._write_seconds = 100.0, 2.0
+    assert not auto.due(110, 100.0 + 0.5 * AUTO_CHECKPOINT_SPACING * 2.0)
+    assert not auto.due(115, 200.0)  # not a multiple of 10 frames
+    assert auto.due(120, 100.0 + AUTO_CHECKPOINT_SPACING * 2.0)
+    fixed = Checkpoints(4)
+    fixed._last_loop_seconds, fixed._write_seconds = 100.0, 2.0
+    assert fixed.due(8, 100.1) and not fixed.due(10, 500.0)
+
+
+def test_a_checkpoint_spacing_that_is_neither_auto_nor_frames_is_refused(tmp_path):
+    path = tmp_path / "run.toml"
+    for value, message in (('"often"', "must be \"auto\" or >= 0 frames"), ("-1", "must be \"auto\" or >= 0 frames"), ("2.5", "checkpoint_every")):
+        path.write_text(f"[output]\ncheckpoint_every = {value}\n")
+        with pytest.raises(ConfigError, match=message):
+            load_run_config(path)
+    path.write_text('[output]\ncheckpoint_every = "auto"\n')
+    assert load_run_config(path).output.checkpoint_every == "auto"
 
 
 def test_a_failed_run_leaves_the_previous_run_whole(tmp_path):

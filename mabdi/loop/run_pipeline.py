@@ -125,19 +125,45 @@ class DepthImages(RunObserver):
             write_image(loop.classified_image(), folder.path(f"depth/labels_{i:06d}.vti"))
 
 
+#: ``output.checkpoint_every = "auto"``: a checkpoint every this many frames at the most often ...
+AUTO_CHECKPOINT_FRAMES = 10
+#: ... and no sooner than the loop has run this many times as long as the last checkpoint took to write.
+AUTO_CHECKPOINT_SPACING = 20.0
+
+
 class Checkpoints(RunObserver):
     """``output.checkpoint_every = N``: the run's state after every N frames (not after the last), atomically.
+    ``"auto"``: after every :data:`AUTO_CHECKPOINT_FRAMES` frames while the map is small; once the last checkpoint
+    took more than 1 / :data:`AUTO_CHECKPOINT_SPACING` of the loop's time since the one before, the next waits
+    until the loop has run that much longer (writing a large map's state takes seconds: every 10 frames it
+    would cost a long run a quarter of its time). An interruption then loses at most about
+    :data:`AUTO_CHECKPOINT_SPACING` times a checkpoint's writing time of work.
     None for a stream of frames (:class:`~mabdi.sources.frames.StreamedFrames`): it cannot be read again to resume."""
 
-    def __init__(self, every: int) -> None:
-        self.every = int(every)
+    def __init__(self, every: int | str) -> None:
+        self.auto = every == "auto"
+        self.every = AUTO_CHECKPOINT_FRAMES if self.auto else int(every)
+        #: The loop's seconds when the last checkpoint was written, and how long writing it took.
+        self._last_loop_seconds: float | None = None
+        self._write_seconds = 0.0
+
+    def due(self, done: int, loop_seconds: float) -> bool:
+        """Whether a checkpoint is due after ``done`` frames, the loop having run ``loop_seconds`` in all."""
+        if done % self.every:
+            return False
+        if not self.auto or self._last_loop_seconds is None:
+            return True
+        return loop_seconds - self._last_loop_seconds >= AUTO_CHECKPOINT_SPACING * self._write_seconds
 
     def on_frame(self, pipeline: RunPipeline, record) -> None:
         done = record.frame + 1
         if pipeline.frames is None:
             return
-        if done % self.every == 0 and done < pipeline.frames:
+        if done < pipeline.frames and self.due(done, pipeline.loop_seconds):
+            start = time.perf_counter()
             pipeline.write_checkpoint(done)
+            self._write_seconds = time.perf_counter() - start
+            self._last_loop_seconds = pipeline.loop_seconds
 
 
 @dataclass
