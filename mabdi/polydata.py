@@ -100,17 +100,29 @@ def triangle_frames(mesh: vtkPolyData) -> tuple[np.ndarray, np.ndarray, np.ndarr
     return corner, edge1, edge2, cell
 
 
+def _all_triangles(offsets: np.ndarray) -> bool:
+    """Whether polygon ``offsets`` (M + 1,) describe triangles only (every polygon three corners)."""
+    return bool(len(offsets) < 2 or (offsets[0] == 0 and np.all(np.diff(offsets) == 3)))
+
+
 def extract_polys(surface: vtkPolyData, cell_ids: np.ndarray) -> vtkPolyData:
     """A new vtkPolyData with the polygons ``cell_ids`` of ``surface`` (polygons only), its
     points compacted and its point and cell arrays carried over."""
     polys = surface.GetPolys()
-    offsets = vtk_to_numpy(polys.GetOffsetsArray()).astype(np.int64)
-    connectivity = vtk_to_numpy(polys.GetConnectivityArray()).astype(np.int64)
+    offsets = vtk_to_numpy(polys.GetOffsetsArray())
+    connectivity = vtk_to_numpy(polys.GetConnectivityArray())
     cell_ids = np.asarray(cell_ids, dtype=np.int64)
-    sizes = offsets[cell_ids + 1] - offsets[cell_ids]
-    new_offsets = np.concatenate([[0], np.cumsum(sizes)])
-    gather = np.repeat(offsets[cell_ids] - new_offsets[:-1], sizes) + np.arange(new_offsets[-1])
-    old_points = connectivity[gather]
+    if len(connectivity) == 3 * (len(offsets) - 1) and _all_triangles(offsets):
+        # triangles only (the map's patches): the corners gathered as rows, no ragged gather
+        new_offsets = np.arange(0, 3 * len(cell_ids) + 1, 3, dtype=np.int64)
+        old_points = connectivity.reshape(-1, 3)[cell_ids].ravel().astype(np.int64)
+    else:
+        offsets = offsets.astype(np.int64)
+        connectivity = connectivity.astype(np.int64)
+        sizes = offsets[cell_ids + 1] - offsets[cell_ids]
+        new_offsets = np.concatenate([[0], np.cumsum(sizes)])
+        gather = np.repeat(offsets[cell_ids] - new_offsets[:-1], sizes) + np.arange(new_offsets[-1])
+        old_points = connectivity[gather]
     used = np.zeros(surface.GetNumberOfPoints(), dtype=bool)
     used[old_points] = True
     point_ids = np.flatnonzero(used)

@@ -32,3 +32,19 @@ def triangle_centres(points, connectivity, starts):
             reach = max(reach, np.sqrt(dx * dx + dy * dy + dz * dz))
         radii[m] = reach
     return centres, radii
+
+
+@njit(cache=True)
+def corners_marked(triangles, points, gone):
+    """(M,) int8: how many corners of each triangle of ``triangles`` (M, 3) into ``points`` vertices belong to a
+    triangle of the mask ``gone`` (M,), in one pass without temporaries."""
+    marked = np.zeros(points, dtype=np.bool_)
+    for m in range(triangles.shape[0]):
+        if gone[m]:
+            marked[triangles[m, 0]] = True
+            marked[triangles[m, 1]] = True
+            marked[triangles[m, 2]] = True
+    counts = np.empty(triangles.shape[0], dtype=np.int8)
+    for m in range(triangles.shape[0]):
+        counts[m] = np.int8(marked[triangles[m, 0]]) + np.int8(marked[triangles[m, 1]]) + np.int8(marked[triangles[m, 2]])
+    return counts

@@ -51,7 +51,7 @@ from vtkmodules.vtkCommonDataModel import vtkCompositeDataSet, vtkDataObject, vt
 from vtkmodules.vtkFiltersCore import vtkAppendPolyData
 
 from mabdi.face_identity import FaceIdTable, block_address, rows_by_block
-from mabdi.polydata_kernels import triangle_centres
+from mabdi.polydata_kernels import corners_marked, triangle_centres
 from mabdi.polydata import extract_polys, polydata_from_state, split_polys, polydata_to_state, triangle_normals
 
 FRAME_CELL_ARRAY = "frame"
@@ -185,17 +185,13 @@ def spread_removal(triangles: np.ndarray, points: int, gone: np.ndarray, followe
 
 def beside(triangles: np.ndarray, points: int, gone: np.ndarray) -> np.ndarray:
     """Triangles not in ``gone`` that share an edge (two vertices) with one in it."""
-    marked = np.zeros(points, dtype=bool)
-    marked[triangles[gone].ravel()] = True
-    return ~gone & (marked[triangles].sum(axis=1) >= 2)
+    return ~gone & (corners_marked(triangles, points, gone) >= 2)
 
 
 def enclosed(triangles: np.ndarray, points: int, gone: np.ndarray) -> np.ndarray:
     """Triangles not in ``gone`` whose three vertices all belong to removed triangles too (remnants left
     inside a removed region)."""
-    touches = np.zeros(points, dtype=bool)
-    touches[triangles[gone].ravel()] = True
-    return ~gone & touches[triangles].all(axis=1)
+    return ~gone & (corners_marked(triangles, points, gone) == 3)
 
 
 def face_normals(patch: vtkPolyData) -> np.ndarray:

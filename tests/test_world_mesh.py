@@ -271,3 +271,23 @@ def test_a_surface_split_by_patch_key_in_one_pass_is_what_extracting_each_patch_
                 assert a.dtype == b.dtype and np.array_equal(a, b)
     with pytest.raises(ValueError, match=r"\(799,\) labels for 800 cells"):
         split_polys(mesh, labels[:-1])
+
+
+def test_the_faces_beside_and_enclosed_by_removed_ones_are_counted_by_shared_corners():
+    """beside: a kept triangle with two corners on removed triangles (an edge shared); enclosed: all three. Checked
+    against the array formulation on a random mesh, and on a strip whose answer is known."""
+    from mabdi.world_map import beside, enclosed
+
+    rng = np.random.default_rng(3)
+    points = 200
+    triangles = rng.integers(0, points, size=(1000, 3))
+    gone = rng.random(1000) < 0.1
+    marked = np.zeros(points, dtype=bool)
+    marked[triangles[gone].ravel()] = True
+    counts = marked[triangles].sum(axis=1)
+    np.testing.assert_array_equal(beside(triangles, points, gone), ~gone & (counts >= 2))
+    np.testing.assert_array_equal(enclosed(triangles, points, gone), ~gone & (counts == 3))
+    strip = np.array([[0, 1, 2], [1, 3, 2], [2, 3, 4], [3, 5, 4], [0, 2, 4]])  # a strip, and a face closing it
+    first = np.array([True, False, False, False, False])
+    assert beside(strip, 6, first).tolist() == [False, True, False, False, True]
+    assert enclosed(strip, 6, np.array([True, True, True, False, False])).tolist() == [False, False, False, False, True]
