@@ -118,3 +118,72 @@ def test_a_wrong_depth_scale_is_named_and_a_simulation_stating_its_pose_noise_is
     assert main(["run", str(config), "--out", str(tmp_path / "simulated"), "--no-eval", "--quiet", *drift]) == 0
     assert WARNING not in capsys.readouterr().err
 
+
+
+def test_a_pose_jump_is_found_beside_steady_steps_and_fast_smooth_motion_is_not():
+    """A step over 4 times the larger of the steps beside it (and over 2 cm or 1 degree) is a jump; motion that
+    speeds up smoothly is not; the warning names a jump only where the frames after it removed much."""
+    from mabdi.filters.registration_check import JUMP_FRAMES, jumps_that_removed, pose_jumps
+
+    poses = np.tile(np.eye(4), (30, 1, 1))
+    poses[:, 0, 3] = 0.007 * np.arange(30)  # 7 mm a frame
+    poses[12:, 1, 3] += 0.036  # the source jumps 36 mm between frames 11 and 12
+    turned = poses.copy()
+    turned[20:, :3, :3] = Rotation.from_euler("z", 3.0, degrees=True).as_matrix()  # and turns 3 degrees at 20
+    found = pose_jumps(turned)
+    assert [f[0] for f in found] == [12, 20]
+    frame, metres, degrees, beside_m, _ = found[0]
+    assert metres == pytest.approx(np.hypot(0.007, 0.036)) and beside_m == pytest.approx(0.007) and degrees == 0.0
+    assert found[1][2] == pytest.approx(3.0)
+    faster = np.tile(np.eye(4), (30, 1, 1))
+    faster[:, 0, 3] = np.cumsum(0.005 * 1.3 ** np.arange(30) / 1.3**15)  # speeding up by 30% a frame
+    assert pose_jumps(faster) == []
+    unknown = poses.copy()
+    unknown[11] = np.nan  # a frame not run: the steps beside it are not known
+    assert 12 not in [f[0] for f in pose_jumps(unknown)]
+
+    removed = np.zeros(30)
+    removed[12 : 12 + JUMP_FRAMES] = 400
+    removed[25] = 100
+    message = jumps_that_removed(poses, removed)
+    assert message and "at frame 12 (37 mm" in message and "1,200 faces" in message and "92% of the 1,300" in message
+    assert "\n" not in message and "--no-removal" in message
+    removed[25] = 10_000  # most of the run's removal elsewhere: the jump is not what took the map
+    assert jumps_that_removed(poses, removed) is None
+    assert jumps_that_removed(poses, np.zeros(30)) is None
+
+
+def _jumped(recording: Path, out: Path, frame: int, drop: float) -> Path:
+    """The recording with every pose from ``frame`` on moved ``drop`` metres down (a pose source that jumps)."""
+    shutil.copytree(recording, out)
+    lines, index = [], 0
+    for line in (recording / "groundtruth.txt").read_text().splitlines():
+        if line.startswith("#") or not line.strip():
+            lines.append(line)
+            continue
+        stamp, *values = line.split()
+        if index >= frame:
+            values[2] = repr(float(values[2]) - drop)
+        lines.append(" ".join([stamp, *values]))
+        index += 1
+    (out / "groundtruth.txt").write_text("\n".join(lines) + "\n")
+    return out
+
+
+def test_a_pose_jump_that_removal_follows_is_named(tmp_path, capsys):
+    """A recording of a camera that barely moves, whose poses drop 30 cm at frame 5 (its steps 5 cm): the frames after see through
+    the map and removal takes it; the run says where the poses jumped. The same recording without the jump
+    is quiet."""
+    from mabdi.cli import main
+
+    text = _small_table(tmp_path).read_text().replace("turns = 0.25", "turns = 0.02")
+    config = tmp_path / "still_table.toml"
+    config.write_text(text)
+    assert main(["record", str(config), "--format", "tum", "--out", str(tmp_path / "tum")]) == 0
+    capsys.readouterr()
+    jump = "the given poses jump at frame 5"
+    assert jump not in _run(tmp_path / "tum", tmp_path / "steady", capsys, "--no-registration")
+    err = _run(_jumped(tmp_path / "tum", tmp_path / "jumped", 5, 0.3), tmp_path / "jumped_run", capsys, "--no-registration")
+    assert err.count(jump) == 1, err
+    line = next(line for line in err.splitlines() if jump in line)
+    assert line.startswith("mabdi: warning: ") and "faces were removed in 3 frames" in line

@@ -34,6 +34,10 @@ small image, see through almost none of it), or fewer than
 :data:`MIN_REGISTERED` registered and their median correction is beyond
 :data:`MAX_CORRECTION_M` or :data:`MAX_CORRECTION_DEG`. The loop checks it
 once a run's last frame is done and warns once.
+
+Given poses that jump (:func:`pose_jumps`; a tracking reset, a loop closure)
+make the frames after the jump see the map displaced; the run warns
+(:class:`PoseJumpWarning`) where removal then took much (:func:`jumps_that_removed`).
 """
 
 from __future__ import annotations
@@ -67,6 +71,86 @@ CAUSES = (
     "likely causes: poses given as camera_from_world (mabdi reads world_from_camera: invert them), "
     "or a wrong depth scale (--depth-scale, depth units per metre)"
 )
+
+
+#: A given pose jumps when its step from the frame before is over this many times the larger of the steps
+#: beside it (the frame before's, the frame after's) ...
+JUMP_RATIO = 4.0
+#: ... and over this far (metres) or this much (degrees).
+JUMP_MIN_M = 0.02
+JUMP_MIN_DEG = 1.0
+#: A jump is named when the frames from it to this many after removed ...
+JUMP_FRAMES = 3
+#: ... at least this share of the faces the run removed, and at least :data:`JUMP_MIN_REMOVED` faces.
+JUMP_REMOVED_SHARE = 0.2
+JUMP_MIN_REMOVED = 100
+
+
+class PoseJumpWarning(UserWarning):
+    """A run's given poses jump and the frames after the jump removed much of what the run removed
+    (:func:`jumps_that_removed`)."""
+
+
+def _steps(poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(N,) metres and (N,) degrees each pose moved from the one before (NaN for the first and beside poses
+    not known): ``poses`` (N, 4, 4) world_from_camera."""
+    metres = np.full(len(poses), np.nan)
+    degrees = np.full(len(poses), np.nan)
+    if len(poses) < 2:
+        return metres, degrees
+    relative = np.linalg.inv(poses[:-1]) @ poses[1:]
+    metres[1:] = np.linalg.norm(relative[:, :3, 3], axis=1)
+    cosine = np.clip((np.trace(relative[:, :3, :3], axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)
+    degrees[1:] = np.degrees(np.arccos(cosine))
+    return metres, degrees
+
+
+def pose_jumps(poses) -> list[tuple[int, float, float, float, float]]:
+    """The frames whose given pose jumped from the frame before (the rule: the module docs), as (frame, metres,
+    degrees, the larger of the steps beside it in metres, in degrees). ``poses`` (N, 4, 4) world_from_camera,
+    NaN for frames not known; the first and last frames are not judged (a step beside them is missing)."""
+    poses = np.asarray(poses, dtype=np.float64)
+    if poses.ndim != 3 or len(poses) < 3:
+        return []
+    with np.errstate(invalid="ignore"):
+        metres, degrees = _steps(np.where(np.isfinite(poses), poses, np.nan))
+    found = []
+    for i in range(2, len(poses) - 1):
+        beside_m = max(metres[i - 1], metres[i + 1])
+        beside_deg = max(degrees[i - 1], degrees[i + 1])
+        if not (np.isfinite(metres[i]) and np.isfinite(beside_m) and np.isfinite(beside_deg)):
+            continue
+        moved = metres[i] > JUMP_RATIO * beside_m and metres[i] > JUMP_MIN_M
+        turned = degrees[i] > JUMP_RATIO * beside_deg and degrees[i] > JUMP_MIN_DEG
+        if moved or turned:
+            found.append((i, float(metres[i]), float(degrees[i]), float(beside_m), float(beside_deg)))
+    return found
+
+
+def jumps_that_removed(poses, removed) -> str | None:
+    """Where the given ``poses`` (N, 4, 4; :func:`pose_jumps`) jump and the frames from a jump to
+    :data:`JUMP_FRAMES` after it removed at least :data:`JUMP_REMOVED_SHARE` of the faces the run removed
+    (``removed`` (N,): faces each frame removed, NaN where not known), why the run is doubtful there, in one
+    line; None otherwise."""
+    removed = np.nan_to_num(np.asarray(removed, dtype=np.float64), nan=0.0)
+    total = float(removed.sum())
+    named = []
+    for frame, metres, degrees, beside_m, beside_deg in pose_jumps(poses):
+        after = float(removed[frame : frame + JUMP_FRAMES].sum())
+        if after >= JUMP_MIN_REMOVED and after >= JUMP_REMOVED_SHARE * total:
+            named.append(
+                f"at frame {frame} ({1000 * metres:.0f} mm and {degrees:.1f} deg from frame {frame - 1}, against at most "
+                f"{1000 * beside_m:.0f} mm and {beside_deg:.1f} deg for the steps beside it), after which {after:,.0f} faces "
+                f"were removed in {JUMP_FRAMES} frames ({after / total:.0%} of the {total:,.0f} the run removed)"
+            )
+    if not named:
+        return None
+    return (
+        "the given poses jump " + "; ".join(named) + ": a pose source that jumps (a tracking reset, a loop closure) or "
+        "frames missing there; the frames after a jump see the map displaced and removal takes what they see "
+        "through. If nothing moved there, correct the poses or map the frames before and after the jump apart "
+        "(--no-removal keeps every face)"
+    )
 
 
 class PosesDisagreeWarning(UserWarning):

@@ -53,7 +53,7 @@ from mabdi.filters.expected_image import MAP_PORT, MEASURED_PORT, FilterExpected
 from mabdi.filters.refinement import MapRefinement, RefinementParameters
 from mabdi.filters.quadtree import QuadTreeParameters, resolved as resolved_quadtree
 from mabdi.filters.registration import STATUSES, FilterRegistration, RegistrationParameters, registration_values
-from mabdi.filters.registration_check import PosesDisagreeWarning, poses_disagree
+from mabdi.filters.registration_check import PosesDisagreeWarning, PoseJumpWarning, jumps_that_removed, poses_disagree
 from mabdi.filters.registry import make_surface_filter, seam_pixels, surface_filter
 from mabdi.loop.object_removal import ObjectRemoval, RemovalResult, RemovalVotes
 from mabdi.filters.removal import RemovalParameters, depth_edges
@@ -149,6 +149,10 @@ def apply_removal(
         if rays is not None:
             surface.clear_free_space(*rays)
     return result
+
+
+#: Columns of the loop's per-frame registration record (see ``MabdiLoop._registrations``).
+REGISTRATION_COLUMNS = 5
 
 
 @dataclass(frozen=True)
@@ -290,12 +294,13 @@ class MabdiLoop:
         self._frames = self._known
         #: (N, 4, 4) the pose each frame was meshed with (registered, or as given); NaN for frames not run
         self._poses = np.full((self._frames, 4, 4), np.nan)
-        #: (N, 3) each frame's registration status (its index in STATUSES; "off" where the source states its poses
-        #: exact) and correction (m, degrees), for the check of the run's poses; NaN for frames not run
-        #: per frame: registration status code, correction (m, degrees), the share of its valid pixels that saw
-        #: through the map (contradicted)
-        self._registrations = np.full((self._frames, 4), np.nan)
+        #: (N, REGISTRATION_COLUMNS) per frame, for the checks of the run's poses: its registration status (its
+        #: index in STATUSES; "off" where the source states its poses exact), correction (m, degrees), the share
+        #: of its valid pixels that saw through the map (contradicted), and the faces it removed; NaN for frames
+        #: not run
+        self._registrations = np.full((self._frames, REGISTRATION_COLUMNS), np.nan)
         self._poses_checked = False
+        self._jumps_checked = False
         self._given_exact = False  # the last frame's pose stated exact by the source
         self._removed = vtkPolyData()
         self._refined = None
@@ -346,6 +351,7 @@ class MabdiLoop:
         self._poses[:] = np.nan
         self._registrations[:] = np.nan
         self._poses_checked = False
+        self._jumps_checked = False
         if self.surface_capabilities.keeps_state:
             self.surface.reset()
 
@@ -374,7 +380,7 @@ class MabdiLoop:
         self._frames = max(self._known, len(poses))
         self._poses = np.full((self._frames, 4, 4), np.nan)
         self._poses[: len(poses)] = poses
-        self._registrations = np.full((self._frames, 4), np.nan)
+        self._registrations = np.full((self._frames, REGISTRATION_COLUMNS), np.nan)
         if "registrations" in state:  # (checkpoints before it: the check sees the frames run since)
             registrations = np.array(state["registrations"], dtype=np.float64)
             self._registrations[: len(registrations), : registrations.shape[1]] = registrations
@@ -393,7 +399,9 @@ class MabdiLoop:
             record = self._step(index)
         judged = "off" if self._given_exact else record.registration
         seen_through = record.contradicted_pixels / record.valid_pixels if record.valid_pixels else np.nan
-        self._registrations[index] = (STATUSES.index(judged), record.correction_mm / 1000.0, record.correction_deg, seen_through)
+        self._registrations[index] = (
+            STATUSES.index(judged), record.correction_mm / 1000.0, record.correction_deg, seen_through, record.cells_removed
+        )  # fmt: skip
         return record
 
     def finish(self) -> None:
@@ -401,6 +409,22 @@ class MabdiLoop:
         (:mod:`mabdi.filters.registration_check`), once a run. The runner calls it after the last frame; a
         script stepping the loop itself calls it when its frames end."""
         self._check_poses()
+        self._check_pose_jumps()
+
+    def _check_pose_jumps(self) -> None:
+        """Warn (once a run) where the given poses jump and the frames after the jump removed much of what the
+        run removed (:func:`~mabdi.filters.registration_check.jumps_that_removed`). Not for a source that
+        states how far its poses are off (the simulator), nor without removal."""
+        if self._jumps_checked or self.source.pose_accuracy is not None or not self.removal:
+            return
+        self._jumps_checked = True
+        try:
+            given = np.asarray(self.source.poses, dtype=np.float64)[: self._frames]
+        except Exception:  # a source that cannot list its poses
+            return
+        message = jumps_that_removed(given, self._registrations[: len(given), 4])
+        if message is not None:
+            warnings.warn(message, PoseJumpWarning, stacklevel=3)
 
     def _cover(self, index: int) -> None:
         """Make the per-frame arrays reach frame ``index`` (a stream's grow as its frames come; doubling)."""
@@ -410,7 +434,7 @@ class MabdiLoop:
             return  # past the end of a source of known length: its check_index says so
         if index >= len(self._poses):
             capacity = max(index + 1, 2 * len(self._poses), 16)
-            poses, registrations = np.full((capacity, 4, 4), np.nan), np.full((capacity, 4), np.nan)
+            poses, registrations = np.full((capacity, 4, 4), np.nan), np.full((capacity, REGISTRATION_COLUMNS), np.nan)
             poses[: len(self._poses)] = self._poses
             registrations[: len(self._registrations)] = self._registrations
             self._poses, self._registrations = poses, registrations
