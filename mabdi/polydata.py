@@ -127,11 +127,14 @@ def extract_polys(surface: vtkPolyData, cell_ids: np.ndarray) -> vtkPolyData:
     used[old_points] = True
     point_ids = np.flatnonzero(used)
     renumber = np.cumsum(used) - 1
+    # every array below is made here (a gather), so VTK takes it without a second copy (deep=False keeps it alive)
     patch = vtkPolyData()
     points = vtkPoints()
-    points.SetData(numpy_to_vtk(vtk_to_numpy(surface.GetPoints().GetData())[point_ids], deep=True))
+    points.SetData(numpy_to_vtk(vtk_to_numpy(surface.GetPoints().GetData())[point_ids], deep=False))
     patch.SetPoints(points)
-    patch.SetPolys(_cell_array(new_offsets, renumber[old_points]))
+    cells = vtkCellArray()
+    cells.SetData(numpy_to_vtkIdTypeArray(new_offsets, deep=False), numpy_to_vtkIdTypeArray(renumber[old_points], deep=False))
+    patch.SetPolys(cells)
     for source, target, ids in (
         (surface.GetPointData(), patch.GetPointData(), point_ids),
         (surface.GetCellData(), patch.GetCellData(), cell_ids),
@@ -140,7 +143,7 @@ def extract_polys(surface: vtkPolyData, cell_ids: np.ndarray) -> vtkPolyData:
             array = source.GetArray(i)
             if array is None:
                 continue
-            values = numpy_to_vtk(np.ascontiguousarray(vtk_to_numpy(array)[ids]), deep=True)
+            values = numpy_to_vtk(np.ascontiguousarray(vtk_to_numpy(array)[ids]), deep=False)
             values.SetName(array.GetName())
             target.AddArray(values)
     return patch
