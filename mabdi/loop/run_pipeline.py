@@ -135,8 +135,8 @@ class Checkpoints(RunObserver):
     """``output.checkpoint_every = N``: the run's state after every N frames (not after the last), atomically.
     ``"auto"``: after every :data:`AUTO_CHECKPOINT_FRAMES` frames while the map is small; once the last checkpoint
     took more than 1 / :data:`AUTO_CHECKPOINT_SPACING` of the loop's time since the one before, the next waits
-    until the loop has run that much longer (writing a large map's state takes seconds: every 10 frames it
-    would cost a long run a quarter of its time). An interruption then loses at most about
+    until the loop has run that much longer (writing a large map's state takes seconds, and a long run's
+    map only grows). An interruption then loses at most about
     :data:`AUTO_CHECKPOINT_SPACING` times a checkpoint's writing time of work.
     None for a stream of frames (:class:`~mabdi.sources.frames.StreamedFrames`): it cannot be read again to resume."""
 
