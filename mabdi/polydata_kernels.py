@@ -48,3 +48,19 @@ def corners_marked(triangles, points, gone):
     for m in range(triangles.shape[0]):
         counts[m] = np.int8(marked[triangles[m, 0]]) + np.int8(marked[triangles[m, 1]]) + np.int8(marked[triangles[m, 2]])
     return counts
+
+
+@njit(cache=True)
+def triangles_touching(triangles, points, vertex_ids):
+    """(K,) int64 ascending: the triangles of ``triangles`` (M, 3) into ``points`` vertices with a corner among
+    ``vertex_ids``, in one pass without temporaries."""
+    marked = np.zeros(points, dtype=np.bool_)
+    for v in vertex_ids:
+        marked[v] = True
+    out = np.empty(triangles.shape[0], dtype=np.int64)
+    count = 0
+    for m in range(triangles.shape[0]):
+        if marked[triangles[m, 0]] or marked[triangles[m, 1]] or marked[triangles[m, 2]]:
+            out[count] = m
+            count += 1
+    return out[:count]

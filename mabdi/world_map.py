@@ -51,7 +51,7 @@ from vtkmodules.vtkCommonDataModel import vtkCompositeDataSet, vtkDataObject, vt
 from vtkmodules.vtkFiltersCore import vtkAppendPolyData
 
 from mabdi.face_identity import FaceIdTable, block_address, rows_by_block
-from mabdi.polydata_kernels import corners_marked, triangle_centres
+from mabdi.polydata_kernels import corners_marked, triangle_centres, triangles_touching
 from mabdi.polydata import extract_polys, polydata_from_state, split_polys, polydata_to_state, triangle_normals
 
 FRAME_CELL_ARRAY = "frame"
@@ -161,8 +161,7 @@ def update_log_odds(
 def patch_triangles(patch: vtkPolyData) -> np.ndarray | None:
     """(M, 3) vertex ids of a patch's triangles, or None when it has other polygons."""
     polys = patch.GetPolys()
-    offsets = vtk_to_numpy(polys.GetOffsetsArray())
-    if len(offsets) < 2 or np.any(np.diff(offsets) != 3):
+    if polys.GetNumberOfCells() == 0 or polys.IsHomogeneous() != 3:  # (IsHomogeneous: every cell's size, or -1)
         return None
     return vtk_to_numpy(polys.GetConnectivityArray()).reshape(-1, 3)
 
@@ -696,9 +695,7 @@ class WorldMap:
         if triangles is None:  # not all triangles: the patch's normals anew
             patch.normals = face_normals(patch.polydata)
         else:
-            moved = np.zeros(len(current), dtype=bool)
-            moved[vertex_ids] = True
-            faces = np.flatnonzero(moved[triangles].any(axis=1))
+            faces = triangles_touching(triangles, len(current), vertex_ids)
             patch.normals[faces] = triangle_normals(current.astype(np.float32, copy=False), triangles[faces])[0]
         return self.chunks[patch.chunk]
 

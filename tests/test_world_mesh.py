@@ -291,3 +291,29 @@ def test_the_faces_beside_and_enclosed_by_removed_ones_are_counted_by_shared_cor
     first = np.array([True, False, False, False, False])
     assert beside(strip, 6, first).tolist() == [False, True, False, False, True]
     assert enclosed(strip, 6, np.array([True, True, True, False, False])).tolist() == [False, False, False, False, True]
+
+
+def test_the_faces_a_move_touches_and_a_patchs_triangles_are_found_as_the_array_formulation_finds_them():
+    from vtkmodules.vtkCommonDataModel import vtkCellArray, vtkPolyData
+
+    from mabdi.polydata import triangles_polydata
+    from mabdi.polydata_kernels import triangles_touching
+    from mabdi.world_map import patch_triangles
+
+    rng = np.random.default_rng(5)
+    triangles = rng.integers(0, 300, size=(2000, 3))
+    moved = rng.choice(300, size=20, replace=False)
+    mask = np.zeros(300, dtype=bool)
+    mask[moved] = True
+    np.testing.assert_array_equal(triangles_touching(triangles, 300, moved), np.flatnonzero(mask[triangles].any(axis=1)))
+    assert len(triangles_touching(triangles, 300, np.zeros(0, dtype=np.int64))) == 0
+    patch = triangles_polydata(rng.random((300, 3)), triangles)
+    np.testing.assert_array_equal(patch_triangles(patch), triangles)
+    assert patch_triangles(vtkPolyData()) is None
+    quads = vtkPolyData()
+    quads.SetPoints(patch.GetPoints())
+    cells = vtkCellArray()
+    for corners in ([0, 1, 2], [3, 4, 5, 6]):
+        cells.InsertNextCell(len(corners), corners)
+    quads.SetPolys(cells)
+    assert patch_triangles(quads) is None  # a polygon of four corners: not all triangles
