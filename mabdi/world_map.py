@@ -669,13 +669,15 @@ class WorldMap:
         """:meth:`move_points` for each ``(key, vertex_ids, positions)`` of ``moves`` in turn (a frame's
         refinement), with each touched chunk's bounds set once, after its last move."""
         touched = {}
-        for key, vertex_ids, positions in moves:
-            chunk = self._move(key, vertex_ids, positions)
-            touched[chunk.index] = chunk
-        for chunk in touched.values():
-            self._set_bounds(chunk)
-        if touched:
-            self._changed()
+        try:
+            for key, vertex_ids, positions in moves:
+                chunk = self._move(key, vertex_ids, positions)
+                touched[chunk.index] = chunk
+        finally:  # a move refused (ValueError) leaves the moves before it applied, with their bounds
+            for chunk in touched.values():
+                self._set_bounds(chunk)
+            if touched:
+                self._changed()
 
     def _move(self, key: str, vertex_ids: np.ndarray, positions: np.ndarray) -> Chunk:
         """Move one patch's vertices and recompute the normals of the faces around them; returns its chunk

@@ -366,7 +366,6 @@ class _MapImage:
             np.concatenate((residuals, residuals2)), support + support2, tile_gradients + tile_gradients2,
         )  # fmt: skip
 
-
     def residuals(self, points, transform) -> np.ndarray:
         """The absolute point-to-plane residuals (m) of every candidate at ``transform``, in the order of
         :meth:`system`'s (:func:`~mabdi.filters.registration_kernels.point_to_plane_residuals`): how well a
