@@ -295,6 +295,19 @@ def _split_bounds(count: int) -> list[tuple[int, int]]:
     return [(0, middle), (middle, count)]
 
 
+def _in_halves(count: int, part: Callable) -> list:
+    """``part(index, start, stop)`` over the [start, stop) ranges of :func:`_split_bounds` of ``count`` samples,
+    the second on the helper thread where there is a second core (the kernels release the GIL); the results in
+    the ranges' order, so what is made of them does not depend on the cores."""
+    bounds = _split_bounds(count)
+    helper = _helper_thread() if len(bounds) > 1 else None
+    if helper is None:
+        return [part(index, *bound) for index, bound in enumerate(bounds)]
+    pending = helper.submit(part, 1, *bounds[1])
+    first = part(0, *bounds[0])
+    return [first, pending.result()]
+
+
 _helper: ThreadPoolExecutor | None = None
 
 
@@ -348,17 +361,10 @@ class _MapImage:
                 self.depth, normals, known, k.fx, k.fy, k.cx, k.cy, NORMAL_STEP, NORMAL_MAX_JUMP, huber, summaries,
             )  # fmt: skip
 
-        bounds = _split_bounds(len(points))
-        if len(bounds) == 1:
-            return part(0, *bounds[0])
-        helper = _helper_thread()
-        if helper is None:
-            second = part(1, *bounds[1])
-            first = part(0, *bounds[0])
-        else:
-            pending = helper.submit(part, 1, *bounds[1])
-            first = part(0, *bounds[0])
-            second = pending.result()
+        halves = _in_halves(len(points), part)
+        if len(halves) == 1:
+            return halves[0]
+        first, second = halves
         a, b, chi2, pairs, candidates, residuals, support, tile_gradients = first
         a2, b2, chi22, pairs2, candidates2, residuals2, support2, tile_gradients2 = second
         return (
@@ -380,15 +386,8 @@ class _MapImage:
                 NORMAL_MAX_JUMP,
             )  # fmt: skip
 
-        bounds = _split_bounds(len(points))
-        if len(bounds) == 1:
-            return part(0, *bounds[0])
-        helper = _helper_thread()
-        if helper is None:
-            return np.concatenate((part(0, *bounds[0]), part(1, *bounds[1])))
-        pending = helper.submit(part, 1, *bounds[1])
-        first = part(0, *bounds[0])
-        return np.concatenate((first, pending.result()))
+        halves = _in_halves(len(points), part)
+        return halves[0] if len(halves) == 1 else np.concatenate(halves)
 
 
 def register_depth(

@@ -107,6 +107,28 @@ def cached_point_and_normal(depth, normals, known, row, col, fx, fy, cx, cy, ste
 
 
 @njit(cache=True, inline="always")
+def paired_residual(points, i, rotation, translation, e_depth, e_normals, e_known, fx, fy, cx, cy, step, max_jump):
+    """(ok, x, y, z, nx, ny, nz, qz, r): sample ``i`` of ``points`` moved by (``rotation``, ``translation``) into
+    E's camera (x, y, z, m), the normal and depth qz of the pixel of E it projects into (the normal cache of
+    :func:`cached_point_and_normal`), and its signed point-to-plane residual r (m). ok False where the point
+    lies behind the camera, outside the image, or on a pixel of E without a normal."""
+    height, width = e_depth.shape
+    x = rotation[0, 0] * points[i, 0] + rotation[0, 1] * points[i, 1] + rotation[0, 2] * points[i, 2] + translation[0]
+    y = rotation[1, 0] * points[i, 0] + rotation[1, 1] * points[i, 1] + rotation[1, 2] * points[i, 2] + translation[1]
+    z = rotation[2, 0] * points[i, 0] + rotation[2, 1] * points[i, 1] + rotation[2, 2] * points[i, 2] + translation[2]
+    if z <= 0.0:
+        return False, x, y, z, 0.0, 0.0, 0.0, 0.0, 0.0
+    u = fx * x / z + cx  # pixel (u, v) covers [u, u + 1) x [v, v + 1)
+    v = fy * y / z + cy
+    if not (u >= 0.0 and v >= 0.0 and u < width and v < height):
+        return False, x, y, z, 0.0, 0.0, 0.0, 0.0, 0.0
+    ok, qx, qy, qz, nx, ny, nz = cached_point_and_normal(e_depth, e_normals, e_known, int(v), int(u), fx, fy, cx, cy, step, max_jump)
+    if not ok:
+        return False, x, y, z, 0.0, 0.0, 0.0, 0.0, 0.0
+    return True, x, y, z, nx, ny, nz, qz, nx * (x - qx) + ny * (y - qy) + nz * (z - qz)
+
+
+@njit(cache=True, inline="always")
 def point_plane_jacobian(jac, x, y, z, nx, ny, nz):
     """``jac`` = d(n . p) / d(omega, t) = (p x n, n): how a point p's distance along the normal n moves under a
     small pose change (rotation vector omega, translation t)."""
@@ -148,7 +170,6 @@ def point_to_plane_system(
     ``summaries`` False leaves support and tile_gradients at zero (the steps
     before the last need only A and b).
     """
-    height, width = e_depth.shape
     n = points.shape[0]
     a00 = a01 = a02 = a03 = a04 = a05 = a11 = a12 = a13 = a14 = a15 = 0.0
     a22 = a23 = a24 = a25 = a33 = a34 = a35 = a44 = a45 = a55 = 0.0
@@ -161,21 +182,11 @@ def point_to_plane_system(
     tile_gradients = np.zeros((n_tiles, 6))
     jac = np.zeros(6)
     for i in range(n):
-        x = rotation[0, 0] * points[i, 0] + rotation[0, 1] * points[i, 1] + rotation[0, 2] * points[i, 2] + translation[0]
-        y = rotation[1, 0] * points[i, 0] + rotation[1, 1] * points[i, 1] + rotation[1, 2] * points[i, 2] + translation[1]
-        z = rotation[2, 0] * points[i, 0] + rotation[2, 1] * points[i, 1] + rotation[2, 2] * points[i, 2] + translation[2]
-        if z <= 0.0:
-            continue
-        u = fx * x / z + cx  # pixel (u, v) covers [u, u + 1) x [v, v + 1)
-        v = fy * y / z + cy
-        if not (u >= 0.0 and v >= 0.0 and u < width and v < height):
-            continue
-        ok, qx, qy, qz, nx, ny, nz = cached_point_and_normal(
-            e_depth, e_normals, e_known, int(v), int(u), fx, fy, cx, cy, step, max_jump
+        ok, x, y, z, nx, ny, nz, qz, r = paired_residual(
+            points, i, rotation, translation, e_depth, e_normals, e_known, fx, fy, cx, cy, step, max_jump
         )
         if not ok:
             continue
-        r = nx * (x - qx) + ny * (y - qy) + nz * (z - qz)
         residuals[candidates] = abs(r)
         candidates += 1
         point_plane_jacobian(jac, x, y, z, nx, ny, nz)
@@ -247,27 +258,16 @@ def point_to_plane_residuals(points, rotation, translation, e_depth, e_normals, 
     """The absolute point-to-plane residuals (m) of :func:`point_to_plane_system` alone, in its order (every
     candidate: a point that lands on a pixel of E with a normal), without the normal equations: how well a
     pose fits D to the map (the same arguments; the normal cache is filled as that kernel fills it)."""
-    height, width = e_depth.shape
     n = points.shape[0]
     residuals = np.empty(n)
     candidates = 0
     for i in range(n):
-        x = rotation[0, 0] * points[i, 0] + rotation[0, 1] * points[i, 1] + rotation[0, 2] * points[i, 2] + translation[0]
-        y = rotation[1, 0] * points[i, 0] + rotation[1, 1] * points[i, 1] + rotation[1, 2] * points[i, 2] + translation[1]
-        z = rotation[2, 0] * points[i, 0] + rotation[2, 1] * points[i, 1] + rotation[2, 2] * points[i, 2] + translation[2]
-        if z <= 0.0:
-            continue
-        u = fx * x / z + cx
-        v = fy * y / z + cy
-        if not (u >= 0.0 and v >= 0.0 and u < width and v < height):
-            continue
-        ok, qx, qy, qz, nx, ny, nz = cached_point_and_normal(
-            e_depth, e_normals, e_known, int(v), int(u), fx, fy, cx, cy, step, max_jump
+        ok, _, _, _, _, _, _, _, r = paired_residual(
+            points, i, rotation, translation, e_depth, e_normals, e_known, fx, fy, cx, cy, step, max_jump
         )
-        if not ok:
-            continue
-        residuals[candidates] = abs(nx * (x - qx) + ny * (y - qy) + nz * (z - qz))
-        candidates += 1
+        if ok:
+            residuals[candidates] = abs(r)
+            candidates += 1
     return residuals[:candidates]
 
 
