@@ -131,6 +131,10 @@ class SensorNoise:
         """``auto``: the curve as it stands now."""
         return self.calibration.curve if isinstance(self.calibration, NoiseCalibration) else self.calibration
 
+    def snapshot(self) -> SensorNoise:
+        """This model as it stands now (``auto``: its curve frozen), as a depth image carries it."""
+        return SensorNoise.from_array(self.model, self.to_array())
+
     @classmethod
     def from_array(cls, model: str, values) -> SensorNoise:
         """The model :meth:`to_array` wrote (``auto`` with its curve frozen; images written before the curve

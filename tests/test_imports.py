@@ -223,7 +223,8 @@ LAYERS = {
     "mabdi.pose_noise": 0,  # the poses a robot gives against those it had
     "mabdi.depth": 0,  # depth images as vtkImageData and their arrays
     "mabdi.depth_holes": 0,  # one-pixel holes in a depth image, filled
-    "mabdi.face_identity": 0,  # which map face each pixel of the expected image shows
+    "mabdi.face_identity": 0,
+    "mabdi.frame_values": 0,  # the values a frame's stages hand each other (D, placement, E, labels)  # which map face each pixel of the expected image shows
     "mabdi.polydata": 0,  # triangle meshes as vtkPolyData and numpy
     "mabdi.polydata_kernels": 0,  # numba per-face work on a polydata's arrays
     # 1 the map as data: MeshMap and what is computed on it (colours, layers, labels, planning); core only

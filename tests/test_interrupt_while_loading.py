@@ -72,14 +72,14 @@ def test_a_wrapped_interrupt_in_a_frame_exits_130_with_the_note(tmp_path, monkey
 
 
 def test_a_wrapped_interrupt_in_a_pipeline_request_exits_130(tmp_path, monkeypatch, capsys):
-    """The same raised inside a VTK request (the classifier's): stored by the algorithm, raised as an interrupt."""
+    """The same raised inside a VTK request (the simulated sensor's): stored by the algorithm, raised as an interrupt."""
     from mabdi.cli import main
-    from mabdi.filters.classifier import FilterClassifier
+    from mabdi.filters.depth_image import FilterDepthImage
 
     def interrupted(self, request, inInfo, outInfo):  # noqa: N803 (VTK API)
         raise _wrapped_interrupt()
 
-    monkeypatch.setattr(FilterClassifier, "RequestData", interrupted)
+    monkeypatch.setattr(FilterDepthImage, "RequestData", interrupted)
     assert main(_run(tmp_path / "run")) == 130
     stderr = capsys.readouterr().err
     assert "mabdi: interrupted" in stderr and "Traceback" not in stderr

@@ -91,7 +91,8 @@ def test_the_loop_stamps_d_with_the_sources_noise_or_the_one_it_is_given():
     loop = mabdi.MabdiLoop(FrameList(frames), surface="quadtree", noise="kinect")
     loop.step(0)
     loop.step(1)
-    for image in (loop.measured_image(), loop.registration.GetOutput(), loop.classifier.GetOutput()):
+    assert loop.last_frame.measured.noise == SensorNoise("kinect")  # the value the stages read
+    for image in (loop.measured_image(), loop.classified_image()):  # and the images the pipeline API shows
         assert image_noise(image) == SensorNoise("kinect")
     assert mabdi.MabdiLoop(FrameList(frames)).noise == SensorNoise("none")  # a list of frames states nothing
 

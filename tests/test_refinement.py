@@ -223,7 +223,7 @@ def test_noise_free_table_moves_no_vertex(scenes_dir):
         for i in range(30):
             simulation.step(i)
             before = {key: vtk_to_numpy(loop.world.block(key).GetPoints().GetData()).copy() for key in loop.world.patch_keys}
-            result = refinement.step(loop.measured_image(), loop.expected_image(), loop.labels(), loop.world, loop.intrinsics, loop.meshed_pose)
+            result = refinement.step(loop.last_frame.measured, loop.last_frame.expected, loop.labels(), loop.world, loop.meshed_pose)
             assert result.moved_vertices == 0 and len(result.replaced) == 0 and not result.moves
             for key, points in before.items():
                 after = vtk_to_numpy(loop.world.block(key).GetPoints().GetData())

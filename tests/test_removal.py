@@ -183,7 +183,8 @@ def _votes_after_re_meshing(replacement) -> tuple[np.ndarray, np.ndarray]:
     the replacement's, as the map holds them after the votes."""
     from mabdi.filters.classifier import ClassifierParameters, FilterClassifier
     from mabdi.sensor_noise import SensorNoise
-    from mabdi.filters.expected_image import MAP_PORT, MEASURED_PORT, FilterExpectedImage
+    from mabdi.filters.expected_image import FilterExpectedImage
+    from mabdi.frame_values import Measured
     from mabdi.loop.loop import apply_removal
     from mabdi.loop.object_removal import ObjectRemoval
     from mabdi.filters.registry import SurfaceCapabilities
@@ -195,20 +196,15 @@ def _votes_after_re_meshing(replacement) -> tuple[np.ndarray, np.ndarray]:
     pose = np.eye(4)
     pose[:3, 3] = [0.013, -0.021, 0.0]
     noise = SensorNoise.of("zbuffer")
-    measured = depth_image(np.full(SMALL.shape, 3.0, np.float32), SMALL, pose, 1, noise=noise)
-    expected = FilterExpectedImage(identity=True)
-    expected.SetInputDataObject(MAP_PORT, world.map)
-    expected.SetInputDataObject(MEASURED_PORT, measured)
-    expected.Update()
+    measured = Measured.from_image(depth_image(np.full(SMALL.shape, 3.0, np.float32), SMALL, pose, 1, noise=noise))
+    expected = FilterExpectedImage(identity=True).render(world.map, measured)
     classifier = FilterClassifier(ClassifierParameters())
-    classifier.SetInputDataObject(0, measured)
-    classifier.SetInputConnection(1, expected.GetOutputPort())
-    classifier.Update()
+    classified = classifier.classify(measured, expected)
     new = replacement(plane)
     world.add_patch("patch_7", new, frame=1)  # re-meshed after E was drawn, as voxel planes do at the append
     stage = ObjectRemoval(RemovalParameters(edge_margin=0), classifier.threshold)
-    votes = stage.find(measured, expected.GetOutput(), classifier.GetOutput(), world, None, SurfaceCapabilities())
-    apply_removal(world, None, SurfaceCapabilities(), stage, votes, np.zeros(0, np.int64), expected.GetOutput(), measured)
+    votes = stage.find(measured, expected, classified, world, None, SurfaceCapabilities())
+    apply_removal(world, None, SurfaceCapabilities(), stage, votes, np.zeros(0, np.int64), expected, measured)
     count = world.block("patch_7").GetNumberOfCells()
     evidence = world.face_evidence_of(np.arange(1, count + 1), FaceIdTable(["patch_7"], [1], [count]))
     return evidence[: plane.GetNumberOfCells()], evidence

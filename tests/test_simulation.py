@@ -157,19 +157,21 @@ def test_the_mabdi_loop_example_from_the_readme_equals_simulation(monkeypatch):
     np.testing.assert_array_equal(vtk_to_numpy(mesh.GetPoints().GetData()), vtk_to_numpy(result.mesh.GetPoints().GetData()))
 
 
+#: Each stage of a simulated run, and the method of it that runs a frame: the simulator's are VTK filters
+#: (RequestData); the loop calls its stages' own methods with the frame's values.
 STAGES = {
-    "scene": lambda s: s.rig.scene,
-    "sensor": lambda s: s.rig.sensor,
-    "measured": lambda s: s.loop.measured,
-    "expected": lambda s: s.loop.expected,
-    "classifier": lambda s: s.loop.classifier,
-    "surface": lambda s: s.loop.surface,
-    "world": lambda s: s.loop.world,
+    "scene": (lambda s: s.rig.scene, "RequestData"),
+    "sensor": (lambda s: s.rig.sensor, "RequestData"),
+    "measured": (lambda s: s.loop.depth_frames, "measured"),
+    "expected": (lambda s: s.loop.expected, "render"),
+    "classifier": (lambda s: s.loop.classifier, "classify"),
+    "surface": (lambda s: s.loop.surface, "mesh_frame"),
+    "world": (lambda s: s.loop.world, "append"),
 }
 
 
 @pytest.mark.parametrize("stage", list(STAGES))
-def test_an_exception_in_any_filter_reaches_the_caller(stage):
+def test_an_exception_in_any_stage_reaches_the_caller(stage):
     config = load_run_config(REPO / "scenes" / "table.toml")
     config.run.frames = 3
     simulation = MappingRun(config)
@@ -177,7 +179,8 @@ def test_an_exception_in_any_filter_reaches_the_caller(stage):
     def broken(*args):
         raise RuntimeError(f"{stage} broke")
 
-    STAGES[stage](simulation).RequestData = broken
+    owner, method = STAGES[stage]
+    setattr(owner(simulation), method, broken)
     with pytest.raises(RuntimeError, match=f"{stage} broke"):
         simulation.run()
 
@@ -219,7 +222,7 @@ def test_failed_run_leaves_earlier_outputs_whole(tmp_path):
     def broken(*args):
         raise RuntimeError("surface broke")
 
-    simulation.loop.surface.RequestData = broken
+    simulation.loop.surface.mesh_frame = broken
     with pytest.raises(RuntimeError):
         simulation.run(out)
     assert (out / "world_mesh.vtp").read_bytes() == before

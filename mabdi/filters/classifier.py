@@ -41,10 +41,11 @@ from vtkmodules.vtkCommonDataModel import vtkImageData
 from vtkmodules.vtkCommonExecutionModel import vtkStreamingDemandDrivenPipeline
 
 from mabdi.algorithm import MabdiAlgorithm
-from mabdi.depth import MEASURED_ARRAY, copy_colour, depth_array, fill_depth_image, image_frame, image_intrinsics, image_noise, image_pose, image_timestamp
+from mabdi.depth import MEASURED_ARRAY, image_intrinsics
 from mabdi.errors import ConfigError, check_switch
 from mabdi.sensor_noise import SensorNoise
-from mabdi.filters.expected_image import map_in_footprint
+from mabdi.filters.expected_image import expected_of_image
+from mabdi.frame_values import Classified, Expected, Measured
 from mabdi.filters.image_kernels import dilate_kernel
 from mabdi.filters.registration import image_pose_covariance, pose_depth_sigma
 
@@ -321,72 +322,73 @@ class FilterClassifier(MabdiAlgorithm):
                 info.Set(vtkStreamingDemandDrivenPipeline.UPDATE_EXTENT(), whole, 6)
         return 1
 
-    def RequestData(self, request, inInfo, outInfo):  # noqa: N802 (VTK API)
-        measured_image = vtkImageData.GetData(inInfo[0])
-        expected_image = vtkImageData.GetData(inInfo[1])
-        intrinsics = image_intrinsics(measured_image)
-        expected_intrinsics = image_intrinsics(expected_image)
-        if intrinsics != expected_intrinsics:
+    def classify(self, measured: Measured, expected: Expected, pose_covariance: np.ndarray | None = None) -> Classified:
+        """Label D (``measured``) against E (``expected``, drawn from the same pose with the same geometry) and
+        choose the pixels the surface meshes (see the module docs). ``pose_covariance``: 6x6 of D's pose
+        (registration's), which widens tau by E's depth uncertainty; None: the pose is taken as exact."""
+        intrinsics = measured.geometry
+        if intrinsics != expected.geometry:
             raise ValueError(
                 "FilterClassifier: D (port 0) and E (port 1) must share size and intrinsics; "
-                f"D has {intrinsics}, E has {expected_intrinsics}"
+                f"D has {intrinsics}, E has {expected.geometry}"
             )
-        pose = image_pose(measured_image)
-        expected_pose = image_pose(expected_image)
-        if np.abs(pose - expected_pose).max() > 1e-9:
+        difference = np.abs(measured.pose - expected.pose).max()
+        if difference > 1e-9:
             raise ValueError(
-                "FilterClassifier: D (port 0) and E (port 1) must be taken from the same pose "
-                f"(largest difference {np.abs(pose - expected_pose).max():.3g})"
+                f"FilterClassifier: D (port 0) and E (port 1) must be taken from the same pose (largest difference {difference:.3g})"
             )
-        measured = depth_array(measured_image)
-        expected = depth_array(expected_image)
-        covariance = image_pose_covariance(measured_image)
-        pose_sigma = None if covariance is None else pose_depth_sigma(expected, intrinsics, covariance)
-        noise = image_noise(measured_image)
-        tau = self.threshold(measured, noise, intrinsics.near, intrinsics.far, pose_sigma)
-        labels = classify(measured, expected, tau)
+        depth, expected_depth, noise = measured.depth, expected.depth, measured.noise
+        pose_sigma = None if pose_covariance is None else pose_depth_sigma(expected_depth, intrinsics, pose_covariance)
+        tau = self.threshold(depth, noise, intrinsics.near, intrinsics.far, pose_sigma)
+        labels = classify(depth, expected_depth, tau)
         p = self._parameters
         raw_novel = labels == NOVEL
-        covered = map_in_footprint(expected_image)
+        covered = expected.covered
         novel = remove_specks(raw_novel, p.min_width, p.min_region, covered)
         if p.fill_holes and noise.noisy:
-            novel |= hole_fills(raw_novel & ~novel, measured, expected, labels, tau, covered)
+            novel |= hole_fills(raw_novel & ~novel, depth, expected_depth, labels, tau, covered)
         specks = raw_novel & ~novel
         on_map = labels == KNOWN  # D and E agree (a speck does not: it lies in front of the map)
         labels[specks] = KNOWN
         meshed = novel
         if p.rim_pixels > 0 and novel.any():
-            meshed = dilate(novel, p.rim_pixels) & np.isfinite(measured)
-        depth = np.where(meshed, measured, np.float32(np.nan)).astype(np.float32)
+            meshed = dilate(novel, p.rim_pixels) & np.isfinite(depth)
+        meshed_depth = np.where(meshed, depth, np.float32(np.nan)).astype(np.float32)
         if p.rim_on_map is True:
             rim_on_map = meshed & ~novel & on_map
-            depth[rim_on_map] = expected[rim_on_map]
-        output = vtkImageData.GetData(outInfo)
-        fill_depth_image(output, depth, intrinsics, pose, image_frame(measured_image), image_timestamp(measured_image), noise=noise)
-        copy_colour(measured_image, output)  # D's colour image, for the surface filters
-        whole = numpy_to_vtk(depth_array(measured_image, raw=True).ravel(), deep=True)  # D's values as they are now
-        whole.SetName(MEASURED_ARRAY)
-        output.GetPointData().AddArray(whole)
-        label_array = numpy_to_vtk(labels.ravel(), deep=False)
-        label_array.SetName(LABEL_ARRAY)
-        output.GetPointData().AddArray(label_array)
-        if pose_sigma is not None:
-            sigma_array = numpy_to_vtk(pose_sigma.ravel(), deep=True)
-            sigma_array.SetName(POSE_SIGMA_ARRAY)
-            output.GetPointData().AddArray(sigma_array)
-        counts = np.array(
-            [
-                np.count_nonzero(labels != NO_RETURN),
-                np.count_nonzero(novel),
-                np.count_nonzero(specks),
-                np.count_nonzero(labels == CONTRADICTED),
-            ],
-            dtype=np.int64,
-        )
-        count_array = numpy_to_vtk(counts, deep=True)
-        count_array.SetName(PIXEL_COUNTS_ARRAY)
-        output.GetFieldData().AddArray(count_array)
+            meshed_depth[rim_on_map] = expected_depth[rim_on_map]
+        counts = (
+            np.count_nonzero(labels != NO_RETURN), np.count_nonzero(novel), np.count_nonzero(specks),
+            np.count_nonzero(labels == CONTRADICTED),
+        )  # fmt: skip
+        return Classified(labels, meshed_depth, dict(zip(PIXEL_COUNT_NAMES, (int(c) for c in counts), strict=True)), pose_sigma)
+
+    def RequestData(self, request, inInfo, outInfo):  # noqa: N802 (VTK API)
+        measured_image = vtkImageData.GetData(inInfo[0])
+        measured = Measured.from_image(measured_image)
+        classified = self.classify(measured, expected_of_image(vtkImageData.GetData(inInfo[1])), image_pose_covariance(measured_image))
+        write_classified(vtkImageData.GetData(outInfo), measured, classified)
         return 1
+
+
+def write_classified(image, measured: Measured, classified: Classified) -> None:
+    """The classifier's output image (the filter's edge): the depth the surface meshes with D's geometry,
+    pose, frame, noise and colour; point data ``measured_depth`` (all of D), ``label`` and, with a pose
+    covariance, ``pose_sigma``; field data ``pixel_counts``."""
+    measured.showing(classified.depth).fill(image)
+    whole = numpy_to_vtk(measured.depth.ravel(), deep=True)  # D's values as they are now
+    whole.SetName(MEASURED_ARRAY)
+    image.GetPointData().AddArray(whole)
+    labels = numpy_to_vtk(classified.labels.ravel(), deep=True)
+    labels.SetName(LABEL_ARRAY)
+    image.GetPointData().AddArray(labels)
+    if classified.pose_sigma is not None:
+        sigma = numpy_to_vtk(classified.pose_sigma.ravel(), deep=True)
+        sigma.SetName(POSE_SIGMA_ARRAY)
+        image.GetPointData().AddArray(sigma)
+    counts = numpy_to_vtk(np.array([classified.counts[name] for name in PIXEL_COUNT_NAMES], dtype=np.int64), deep=True)
+    counts.SetName(PIXEL_COUNTS_ARRAY)
+    image.GetFieldData().AddArray(counts)
 
 
 def pixel_counts(image) -> dict[str, int]:

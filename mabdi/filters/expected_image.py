@@ -2,11 +2,11 @@
 
 Port 0 is the map (a vtkPolyData, or the world mesh's composite dataset of
 blocks, drawn block by block); port 1 is the measured depth image D. E is
-rendered without noise with D's intrinsics and ``world_from_camera`` and
-carries D's ``frame`` and ``timestamp``: the pose and frame index are set
-once, at the source of D (:class:`mabdi.sources.frames.SourceDepthFrames`),
-and travel with the images. Pixels where the map has no surface within
-(near, far) are NaN.
+rendered without noise with D's intrinsics and pose and carries D's frame
+index and timestamp (:meth:`FilterExpectedImage.render`: a
+:class:`~mabdi.frame_values.Measured` D in, an
+:class:`~mabdi.frame_values.Expected` E out; the loop calls it so). Pixels
+where the map has no surface within (near, far) are NaN.
 
 The rendering is :class:`~mabdi.filters.depth_image.DepthRenderer`'s: one
 off-screen window reused across frames, multisampling off, one mapper per
@@ -38,7 +38,9 @@ from vtkmodules.vtkCommonDataModel import vtkCompositeDataSet, vtkDataObject, vt
 from vtkmodules.vtkCommonExecutionModel import vtkAlgorithm, vtkStreamingDemandDrivenPipeline
 
 from mabdi.algorithm import MabdiAlgorithm
-from mabdi.depth import fill_depth_image, image_frame, image_intrinsics, image_pose, image_timestamp
+from mabdi.depth import depth_array, fill_depth_image, only_returns, image_frame, image_intrinsics, image_pose, image_timestamp
+from mabdi.face_identity import FaceIdTable
+from mabdi.frame_values import Expected, Measured
 from mabdi.filters.depth_image import DepthRenderer
 from mabdi.sensor_noise import SensorNoise
 from mabdi.filters.range_rendering import TRIANGLE_RGB_ARRAY, RangeRenderer
@@ -78,31 +80,28 @@ class FilterExpectedImage(MapAndImageAlgorithm):
         #: E of a LiDAR's range images (made at the first one).
         self.range_renderer: RangeRenderer | None = None
 
-    def RequestData(self, request, inInfo, outInfo):  # noqa: N802 (VTK API)
-        world = map_input(inInfo, "FilterExpectedImage")
-        measured = vtkImageData.GetData(inInfo[MEASURED_PORT], 0)
-        intrinsics = image_intrinsics(measured)
-        pose = image_pose(measured)
-        covered = None
+    def render(self, world, measured: Measured) -> Expected:
+        """E: the map ``world`` (a vtkPolyData or the world mesh's blocks) drawn with ``measured``'s geometry
+        from its pose (see the module docs)."""
+        intrinsics, pose = measured.geometry, measured.pose
+        covered = ids = table = None
         if intrinsics.range_image:  # a LiDAR's range image
             depth, ids, table = self._range_image(world, intrinsics, pose)
             covered = self.range_renderer.footprint_covered()
         else:
             depth = render_expected(self.renderer, world, intrinsics, pose)
-            ids = self.renderer.render_identity().astype(np.int32) if self.identity else None
-            table = self.renderer.identities if self.identity else None
-        output = vtkImageData.GetData(outInfo)
-        fill_depth_image(output, depth, intrinsics, pose, image_frame(measured), image_timestamp(measured))
-        if covered is not None:
-            array = numpy_to_vtk(covered.astype(np.uint8).ravel(), deep=True)
-            array.SetName(MAP_IN_FOOTPRINT_ARRAY)
-            output.GetPointData().AddArray(array)
-        if self.identity:
+            if self.identity:
+                ids, table = self.renderer.render_identity().astype(np.int32), self.renderer.identities
+        if ids is not None:
             ids[np.isnan(depth)] = 0  # beyond the range: no face
-            array = numpy_to_vtk(ids.ravel(), deep=True)
-            array.SetName(FACE_ID_ARRAY)
-            output.GetPointData().AddArray(array)
-            table.write(output.GetFieldData())
+        depth = only_returns(depth, intrinsics.near, intrinsics.far)
+        covered = None if covered is None else np.asarray(covered, dtype=bool)
+        return Expected(depth, intrinsics, pose, measured.index, measured.timestamp, ids, table, covered)
+
+    def RequestData(self, request, inInfo, outInfo):  # noqa: N802 (VTK API)
+        world = map_input(inInfo, "FilterExpectedImage")
+        expected = self.render(world, Measured.from_image(vtkImageData.GetData(inInfo[MEASURED_PORT], 0)))
+        write_expected(vtkImageData.GetData(outInfo), expected)
         return 1
 
     def _range_image(self, world, geometry: SphericalGeometry, pose):
@@ -115,6 +114,34 @@ class FilterExpectedImage(MapAndImageAlgorithm):
             return depth, None, None
         codes, table = self.range_renderer.face_ids()
         return depth, codes.astype(np.int32), table
+
+
+def write_expected(image, expected: Expected) -> None:
+    """E as a depth image (the filter's edge): its depth, D's geometry, pose, frame and timestamp; the point
+    arrays ``face_id`` (with the table in the field data) and ``map_in_footprint`` when it has them."""
+    fill_depth_image(image, expected.depth.copy(), expected.geometry, expected.pose, expected.index, expected.timestamp)
+    if expected.covered is not None:
+        array = numpy_to_vtk(expected.covered.astype(np.uint8).ravel(), deep=True)
+        array.SetName(MAP_IN_FOOTPRINT_ARRAY)
+        image.GetPointData().AddArray(array)
+    if expected.face_ids is not None:
+        array = numpy_to_vtk(expected.face_ids.ravel(), deep=True)
+        array.SetName(FACE_ID_ARRAY)
+        image.GetPointData().AddArray(array)
+        expected.table.write(image.GetFieldData())
+
+
+def expected_of_image(image) -> Expected:
+    """E of an expected depth image (the filter's output or a file's)."""
+    geometry = image_intrinsics(image)
+    ids = image.GetPointData().GetArray(FACE_ID_ARRAY)
+    covered = image.GetPointData().GetArray(MAP_IN_FOOTPRINT_ARRAY)
+    return Expected(
+        depth_array(image), geometry, image_pose(image), image_frame(image), image_timestamp(image),
+        None if ids is None else vtk_to_numpy(ids).reshape(geometry.shape),
+        None if ids is None else FaceIdTable.read(image),
+        None if covered is None else vtk_to_numpy(covered).reshape(geometry.shape).astype(bool),
+    )  # fmt: skip
 
 
 def map_input(inInfo, name: str):

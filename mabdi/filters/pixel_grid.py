@@ -34,15 +34,11 @@ from vtkmodules.vtkCommonDataModel import vtkImageData, vtkPolyData
 from mabdi.algorithm import MabdiAlgorithm
 from mabdi.camera import pixel_rays
 from mabdi.depth import (
-    depth_array,
-    image_colour,
-    image_intrinsics,
-    image_noise,
-    image_pose,
     measured_depth,
     straight_continuations,
 )
 from mabdi.errors import ConfigError, check_switch
+from mabdi.frame_values import Measured
 from mabdi.filters.depth_smoothing import measured_around, smooth_depth_by_noise
 from mabdi.maps.mesh_map import colour_point_array
 from mabdi.polydata import triangles_polydata
@@ -144,30 +140,32 @@ class FilterPixelGrid(MabdiAlgorithm):
     def max_jump(self, value: float) -> None:
         self.parameters = replace(self._parameters, max_jump=value)
 
+    def mesh_frame(self, frame: Measured, whole: np.ndarray | None = None) -> vtkPolyData:
+        """The pixel grid of ``frame``'s depth (the pixels to mesh; NaN elsewhere), in the world of its pose;
+        ``whole``: (H, W) all of D where ``frame`` holds only some of it (the samples beyond an edge), None: the
+        frame is all of D."""
+        world_points, triangles, pixel_ids = pixel_grid_surface(frame, whole, self._parameters)
+        mesh = triangles_polydata(world_points, triangles, dtype=np.float32)
+        if frame.colour is not None:  # each vertex is a pixel: its colour
+            mesh.GetPointData().AddArray(colour_point_array(frame.colour.reshape(-1, 3)[pixel_ids]))
+        return mesh
+
     def RequestData(self, request, inInfo, outInfo):  # noqa: N802 (VTK API)
         image = vtkImageData.GetData(inInfo[0])
-        world_points, triangles, pixel_ids = pixel_grid_surface(image, self._parameters)
         output = vtkPolyData.GetData(outInfo)
-        mesh = triangles_polydata(world_points, triangles, dtype=np.float32)
-        colour = image_colour(image)
-        if colour is not None:  # each vertex is a pixel: its colour
-            mesh.GetPointData().AddArray(colour_point_array(colour.reshape(-1, 3)[pixel_ids]))
-        output.ShallowCopy(mesh)
+        output.ShallowCopy(self.mesh_frame(Measured.from_image(image), measured_depth(image)))
         output.GetFieldData().ShallowCopy(image.GetFieldData())
         return 1
 
 
 def pixel_grid_surface(
-    image: vtkImageData, parameters: PixelGridParameters, straight_only: bool = False
+    frame: Measured, whole: np.ndarray | None, parameters: PixelGridParameters, straight_only: bool = False
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The pixel grid of a depth image (the module docs): its vertices in the world (N, 3, metres), its
+    """The pixel grid of a frame's depth (the module docs; ``whole``: all of D behind it, or None): its vertices in the world (N, 3, metres), its
     triangles (M, 3, indices into them) and each vertex's pixel id (N,: v * W + u). ``straight_only``: only
     triangles whose three edges lie on straight lines with the samples beyond them (the straight-line rule,
     whatever ``grazing`` says, without the jump rule, which also admits the chord across a crease)."""
-    intrinsics = image_intrinsics(image)
-    pose = image_pose(image)
-    depth = depth_array(image)
-    noise = image_noise(image)
+    intrinsics, pose, depth, noise = frame.geometry, frame.pose, frame.depth, frame.noise
     if parameters.smooth_depth:
         depth = smooth_depth_by_noise(depth, noise, intrinsics)
     rays = pixel_rays(intrinsics)
@@ -175,8 +173,7 @@ def pixel_grid_surface(
     straight = None
     if straight_only or on_for_range_images(parameters.grazing, intrinsics):
         # the samples beyond an edge come from the whole measured image (the novel pixels' neighbours too)
-        measured = measured_depth(image)
-        context = depth if measured is None else measured_around(depth, measured, noise, intrinsics, parameters.smooth_depth)
+        context = depth if whole is None else measured_around(depth, whole, noise, intrinsics, parameters.smooth_depth)
         # two columns beyond each side of the seam, so that edges across it have samples beyond them too
         wide = (lambda a: np.concatenate([a[:, -2:], a, a[:, :3]], axis=1)) if wrap else (lambda a: a)
         sigma = noise.sigma(context, intrinsics.near, intrinsics.far)

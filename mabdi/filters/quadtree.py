@@ -46,15 +46,11 @@ from mabdi.algorithm import MabdiAlgorithm
 from mabdi.camera import Intrinsics, unit_rays
 from mabdi.depth import (
     colours_at,
-    depth_array,
-    image_colour,
-    image_intrinsics,
-    image_noise,
-    image_pose,
     measured_depth,
     straight_continuations,
 )
 from mabdi.errors import ConfigError, check_switch
+from mabdi.frame_values import Measured
 from mabdi.sensor_noise import SensorNoise
 from mabdi.filters.depth_smoothing import measured_around, smooth_depth_by_noise, smoothed_noise_share
 from mabdi.maps.mesh_map import colour_point_array
@@ -731,20 +727,19 @@ class FilterQuadTree(MabdiAlgorithm):
     def parameters(self, value: QuadTreeParameters) -> None:
         self._set("_parameters", value)
 
-    def RequestData(self, request, inInfo, outInfo):  # noqa: N802 (VTK API)
-        image = vtkImageData.GetData(inInfo[0])
-        intrinsics = image_intrinsics(image)
-        pose = image_pose(image)
+    def mesh_frame(self, frame: Measured, whole: np.ndarray | None = None) -> vtkPolyData:
+        """The quad-tree faces of ``frame``'s depth (the pixels to mesh; NaN elsewhere), in the world of its pose
+        (cell data ``level``, ``Normals``); ``whole``: (H, W) all of D where ``frame`` holds only some of it,
+        None: the frame is all of D. Sets :attr:`regions`."""
+        intrinsics, pose, noise = frame.geometry, frame.pose, frame.noise
         p = resolved(self._parameters, intrinsics)
-        noise = image_noise(image)
-        points, reduced, leaves, smoothed = leaves_of_image(depth_array(image), intrinsics, p, noise, measured_depth(image))
+        points, reduced, leaves, smoothed = leaves_of_image(frame.depth, intrinsics, p, noise, whole)
         fine = SilhouetteEvidence(smoothed, noise)
         self.regions = leaves.regions
         if isinstance(reduced, ReducedSpherical) and len(leaves.level):
             # a LiDAR's beams lie far apart: a leaf whose plane puts a corner far from its range is a surface
             # seen edge-on between two beams, and its corners at its own range would float off it: no face
             leaves = select(leaves, ~leaf_corners(leaves, reduced, p, points, fine)[3].any(axis=1))
-        output = vtkPolyData.GetData(outInfo)
         mesh = vtkPolyData()
         if len(leaves.level):
             vertices, starts, members, _, sizes = quad_mesh(leaves, reduced, p, points, fine)
@@ -762,9 +757,13 @@ class FilterQuadTree(MabdiAlgorithm):
             normals_world = numpy_to_vtk(np.ascontiguousarray(leaves.normal[face_leaf] @ pose[:3, :3].T, dtype=np.float32), deep=True)
             normals_world.SetName("Normals")
             mesh.GetCellData().SetNormals(normals_world)
-            colour = image_colour(image)
-            if colour is not None:  # each vertex: the colour of the pixel it projects into
-                mesh.GetPointData().AddArray(colour_point_array(colours_at(colour, intrinsics, vertices)))
-        output.ShallowCopy(mesh)
+            if frame.colour is not None:  # each vertex: the colour of the pixel it projects into
+                mesh.GetPointData().AddArray(colour_point_array(colours_at(frame.colour, intrinsics, vertices)))
+        return mesh
+
+    def RequestData(self, request, inInfo, outInfo):  # noqa: N802 (VTK API)
+        image = vtkImageData.GetData(inInfo[0])
+        output = vtkPolyData.GetData(outInfo)
+        output.ShallowCopy(self.mesh_frame(Measured.from_image(image), measured_depth(image)))
         output.GetFieldData().ShallowCopy(image.GetFieldData())
         return 1

@@ -38,11 +38,9 @@ from vtkmodules.vtkCommonCore import vtkPoints
 from vtkmodules.vtkCommonDataModel import vtkPolyData
 
 from mabdi.camera import unit_rays
-from mabdi.depth import depth_array, image_noise, image_pose
 from mabdi.errors import ConfigError, check_switch
 from mabdi.filters.classifier import NO_RETURN
-from mabdi.face_identity import FaceIdTable
-from mabdi.filters.expected_image import FACE_ID_ARRAY, face_id_array
+from mabdi.frame_values import Expected, Measured
 from mabdi.polydata import vertex_normals
 from mabdi.world_map import FRAME_CELL_ARRAY, patch_triangles
 
@@ -171,7 +169,7 @@ class _FrameView:
     """The frame a refinement step works on: D, the sensor's intrinsics, and ``pose_of(frame)``: the pose an
     older frame was meshed with (None: unknown)."""
 
-    measured_image: object
+    measured: Measured
     intrinsics: object
     pose_of: object
 
@@ -235,7 +233,7 @@ class MapRefinement:
     def _sigma(self, view: _FrameView, depth: np.ndarray) -> np.ndarray:
         """The sensor's sigma(z) (the noise model D carries), floored at ``min_sigma``."""
         intrinsics = view.intrinsics
-        sigma = image_noise(view.measured_image).sigma(depth, intrinsics.near, intrinsics.far)
+        sigma = view.measured.noise.sigma(depth, intrinsics.near, intrinsics.far)
         return np.maximum(sigma, sigma.dtype.type(self.parameters.min_sigma))
 
     def _match_points(self, old: np.ndarray, new: np.ndarray) -> np.ndarray:
@@ -309,23 +307,23 @@ class MapRefinement:
         return fresh
 
     # -- one frame -----------------------------------------------------------
-    def step(self, measured_image, expected_image, labels, world, intrinsics, pose_of) -> RefinementResult:
-        """One frame's refinement: D (registered to the map), E with face identity, the classifier's
-        ``labels`` (None: classifier off, nothing refined), the map (``world``, a
-        :class:`~mabdi.filters.world_mesh.FilterWorldMesh` after it appended the frame; read only), the
-        sensor's ``intrinsics`` and ``pose_of(frame)``: the pose each frame that made a face was meshed with
+    def step(self, measured: Measured, expected: Expected | None, labels, world, pose_of) -> RefinementResult:
+        """One frame's refinement: D (``measured``, registered to the map), E with face identity (None or
+        without it: nothing refined), the classifier's ``labels`` (None: classifier off, nothing refined), the
+        map (``world``, a :class:`~mabdi.filters.world_mesh.FilterWorldMesh` after it appended the frame; read
+        only) and ``pose_of(frame)``: the pose each frame that made a face was meshed with
         (the loop's record; None where unknown: this frame's pose stands in).
         Returns what it found: the moves and the faces to replace, for the map's owner to apply."""
         start = time.perf_counter()
         p = self.parameters
         result = RefinementResult()
-        noise = image_noise(measured_image)
+        noise, intrinsics = measured.noise, measured.geometry
         if labels is None or not noise.noisy:
             return result
-        if expected_image is None or expected_image.GetPointData().GetArray(FACE_ID_ARRAY) is None:
+        if expected is None or expected.face_ids is None:
             return result  # E drawn without face identity: nothing to attribute pixels to
-        view = _FrameView(measured_image, intrinsics, pose_of)
-        pose = image_pose(measured_image)
+        view = _FrameView(measured, intrinsics, pose_of)
+        pose = measured.pose
         for key in world.patch_keys:  # blocks merged since the last frame carry their parts' states
             parts = world.store.merged_parts(key)
             if parts and key not in self._blocks and any(part in self._blocks for part, _ in parts):
@@ -334,16 +332,17 @@ class MapRefinement:
             del self._blocks[key]
 
         s = p.stride
-        face_ids = face_id_array(expected_image)[::s, ::s].ravel()
+        face_ids = expected.face_ids[::s, ::s].ravel()
         labels = labels[::s, ::s].ravel()
         candidates = np.flatnonzero((face_ids > 0) & (labels != NO_RETURN))
         if not len(candidates):
             result.t_ms = 1000.0 * (time.perf_counter() - start)
             return result
         ids = face_ids[candidates].astype(np.int64)
-        block, local, keys = world.face_lookup(ids, FaceIdTable.read(expected_image))
-        measured = depth_array(measured_image)[::s, ::s].ravel()[candidates]
-        expected = depth_array(expected_image)[::s, ::s].ravel()[candidates]
+        block, local, keys = world.face_lookup(ids, expected.table)
+        expected_depth = expected.depth[::s, ::s].ravel()[candidates]
+        measured = measured.depth[::s, ::s].ravel()[candidates]
+        expected = expected_depth
         rays, length = self._unit_rays(intrinsics)
         rays = rays[candidates] @ pose[:3, :3].T  # world
         length = length[candidates]

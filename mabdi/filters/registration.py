@@ -50,12 +50,13 @@ from vtkmodules.util.numpy_support import numpy_to_vtk, vtk_to_numpy
 from vtkmodules.vtkCommonDataModel import vtkImageData
 
 from mabdi.camera import Intrinsics
-from mabdi.depth import copy_colour, depth_array, fill_depth_image, image_frame, image_intrinsics, image_noise, image_pose, image_timestamp
+from mabdi.depth import image_pose
 from mabdi.errors import ConfigError
 from mabdi.filters.depth_image import BACKENDS, DepthRenderer
 from mabdi.sensor_noise import SensorNoise
 from mabdi.filters.expected_image import MEASURED_PORT, MapAndImageAlgorithm, map_input, render_expected
 from mabdi.filters.map_anchor import MapAnchor
+from mabdi.frame_values import Measured, Placement
 from mabdi.noise_calibration import MAD_TO_SIGMA
 from mabdi.filters.registration_kernels import (
     NORMAL_UNKNOWN,
@@ -632,6 +633,19 @@ def registration_values(image) -> dict | None:
     return result
 
 
+def write_placement(image, placement: Placement) -> None:
+    """Put a frame's :class:`~mabdi.frame_values.Placement` into a registered D's field data (the filter's edge)."""
+    _add_field(image, GIVEN_POSE_ARRAY, placement.given_pose)
+    _add_field(image, WORLD_FROM_MAP_ARRAY, placement.world_from_map)
+    values = (
+        STATUSES.index(placement.status), placement.correction_m, placement.correction_deg, placement.residual_m,
+        placement.inlier_share, placement.support, placement.iterations, float(placement.given_exact),
+    )  # fmt: skip
+    _add_field(image, REGISTRATION_ARRAY, values)
+    if placement.covariance is not None:
+        _add_field(image, POSE_COVARIANCE_ARRAY, placement.covariance)
+
+
 def image_pose_covariance(image) -> np.ndarray | None:
     """The 6x6 ``pose_covariance`` of a registered D, or None when the frame was not registered."""
     array = image.GetFieldData().GetArray(POSE_COVARIANCE_ARRAY)
@@ -945,14 +959,12 @@ class FilterRegistration(MapAndImageAlgorithm):
         pose, _ = self._about_slow(given, np.zeros(6), found, covariance, self._jitter.variance())
         return np.linalg.inv(given) @ pose
 
-    def RequestData(self, request, inInfo, outInfo):  # noqa: N802 (VTK API)
-        world = map_input(inInfo, "FilterRegistration")
-        measured_image = vtkImageData.GetData(inInfo[MEASURED_PORT], 0)
-        intrinsics = image_intrinsics(measured_image)
-        given = image_pose(measured_image)
-        frame = image_frame(measured_image)
-        noise = image_noise(measured_image)
-        measured = depth_array(measured_image)
+    def place(self, measured: Measured, world) -> tuple[Measured, Placement]:
+        """Register D (``measured``, at its given world_from_camera) to the map ``world`` (a vtkPolyData or the
+        world mesh's blocks, in the map's frame): D at the pose it is meshed with (map frame), and the
+        :class:`~mabdi.frame_values.Placement` that says how it was found. A frame placed again (the same
+        index) does not count twice in what the filter carries between frames."""
+        intrinsics, given, frame, noise, depth = measured.geometry, measured.pose, measured.index, measured.noise, measured.depth
         new_frame = frame != self._last_frame or frame < 0  # a re-executed frame is not counted twice
         if new_frame and self._last_position is not None:
             self._travelled += float(np.linalg.norm(given[:3, 3] - self._last_position))
@@ -973,7 +985,7 @@ class FilterRegistration(MapAndImageAlgorithm):
                 def judged_against(transform, covariance):
                     return self._jitter_free(given_in_map, transform, covariance)
             result = register_depth(
-                measured, expected, intrinsics, noise, p, starts=(carried,), workspace=self._workspace,
+                depth, expected, intrinsics, noise, p, starts=(carried,), workspace=self._workspace,
                 references=(np.eye(4), carried), judged_against=judged_against,
             )  # fmt: skip
         pose = given_in_map @ result.transform
@@ -988,31 +1000,31 @@ class FilterRegistration(MapAndImageAlgorithm):
         if p.enabled and new_frame:
             if result.registered:
                 self._correction = self._slow if learnt else correction_between(given_in_map, pose)
-                depth = _median_depth(measured)
-                map_error = map_placement_variance(depth, noise, intrinsics)
+                median_depth = _median_depth(depth)
+                map_error = map_placement_variance(median_depth, noise, intrinsics)
                 if learnt:
                     # the map lies where the frames were meshed: where the rule kept the given poses, so does it
-                    self.anchor.add(given, pose, self._travelled, covariance, depth, map_error)
+                    self.anchor.add(given, pose, self._travelled, covariance, median_depth, map_error)
                 else:
-                    self.anchor.add(given, given_in_map @ result.transform, self._travelled, result.covariance, depth, map_error)
+                    self.anchor.add(given, given_in_map @ result.transform, self._travelled, result.covariance, median_depth, map_error)
             elif result.status == "no_map" and len(self.anchor) == 0:
                 self.anchor.add(given, pose, self._travelled)  # the first frame starts the map where it is given
         if new_frame:
             self._last_position = given[:3, 3].copy()
             self._last_frame = frame
         world_from_map = self.anchor.world_from_map
-        output = vtkImageData.GetData(outInfo)
-        fill_depth_image(output, measured.copy(), intrinsics, pose, frame, image_timestamp(measured_image), noise=noise)
-        copy_colour(measured_image, output)  # D's colour image goes on with it
-        _add_field(output, GIVEN_POSE_ARRAY, given)
-        _add_field(output, WORLD_FROM_MAP_ARRAY, world_from_map)
         # the correction in the world: the camera centre moved, and turned
         translation, angle = transform_size(np.linalg.inv(given) @ world_from_map @ pose)
-        values = (
-            STATUSES.index(result.status), translation, angle, result.residual, result.inlier_share, result.support, result.iterations,
-            float(given_exact),
+        placement = Placement(
+            result.status, given.copy(), world_from_map.copy(), translation, angle, result.residual, result.inlier_share,
+            result.support, result.iterations, bool(given_exact), None if covariance is None else np.asarray(covariance, dtype=np.float64),
         )  # fmt: skip
-        _add_field(output, REGISTRATION_ARRAY, values)
-        if covariance is not None:
-            _add_field(output, POSE_COVARIANCE_ARRAY, covariance)
+        return measured.placed(pose), placement
+
+    def RequestData(self, request, inInfo, outInfo):  # noqa: N802 (VTK API)
+        world = map_input(inInfo, "FilterRegistration")
+        measured, placement = self.place(Measured.from_image(vtkImageData.GetData(inInfo[MEASURED_PORT], 0)), world)
+        output = vtkImageData.GetData(outInfo)
+        measured.fill(output)
+        write_placement(output, placement)
         return 1

@@ -10,9 +10,11 @@ appended to the map. Each is registered under the name a run config uses
   config's ``[surface.<name>]`` table, field for field; fields with
   ``metadata={"toml": False}`` are not config keys;
 * ``make(parameters)``: builds the filter (a VTK algorithm with one
-  depth-image input and a vtkPolyData output in world coordinates); a filter
-  whose thresholds follow the sensor's noise reads the model from its input
-  image (:func:`mabdi.depth.image_noise`);
+  depth-image input and a vtkPolyData output in world coordinates). The
+  loop calls its ``mesh_frame(frame, whole)`` (a
+  :class:`~mabdi.frame_values.Measured` holding the pixels to mesh, and all
+  of D) where it has one, as the package's surfaces do; a filter with the
+  VTK API only is fed the frame as a depth image (:func:`mesh_frame`);
 * ``help``: one line for ``mabdi run --help``;
 * ``capabilities``: what the filter can do beyond meshing a frame, which
   the loop uses (:class:`SurfaceCapabilities`; none by default). Declared
@@ -34,7 +36,14 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 
+import numpy as np
+from vtkmodules.util.numpy_support import numpy_to_vtk
+from vtkmodules.vtkCommonDataModel import vtkPolyData
+
+from mabdi.algorithm import raise_pipeline_errors
+from mabdi.depth import MEASURED_ARRAY
 from mabdi.errors import ConfigError
+from mabdi.frame_values import Measured
 from mabdi.filters.pixel_grid import FilterPixelGrid, PixelGridParameters
 from mabdi.filters.quadtree import FilterQuadTree, QuadTreeParameters
 from mabdi.filters.voxel_planes import FilterVoxelPlanes, VoxelPlanesParameters
@@ -119,6 +128,26 @@ def make_surface_filter(name: str, parameters=None):
     if not isinstance(parameters, entry.parameters):
         raise TypeError(f"surface filter {name!r} takes {entry.parameters.__name__}, got {type(parameters).__name__}")
     return entry.make(parameters)
+
+
+def mesh_frame(surface, frame: Measured, whole: np.ndarray | None = None) -> vtkPolyData:
+    """The triangles ``surface`` (a filter :func:`make_surface_filter` made) meshes of ``frame`` (the pixels to
+    mesh; ``whole``: all of D, or None when the frame is all of D), in the world of the frame's pose: its own
+    ``mesh_frame``, else (a filter with the VTK API only) its output for the frame as a depth image, ``whole``
+    as the image's ``measured_depth`` point array."""
+    if hasattr(surface, "mesh_frame"):
+        return surface.mesh_frame(frame, whole)
+    image = frame.to_image()
+    if whole is not None:
+        array = numpy_to_vtk(np.ascontiguousarray(whole, dtype=np.float32).ravel(), deep=True)
+        array.SetName(MEASURED_ARRAY)
+        image.GetPointData().AddArray(array)
+    surface.SetInputDataObject(0, image)
+    surface.Update()
+    raise_pipeline_errors(surface)
+    output = vtkPolyData()
+    output.ShallowCopy(surface.GetOutput())
+    return output
 
 
 register_surface_filter(

@@ -39,7 +39,8 @@ from vtkmodules.vtkCommonDataModel import vtkDataObject, vtkImageData, vtkPointS
 
 from mabdi.algorithm import MabdiAlgorithm
 from mabdi.camera import pixel_rays
-from mabdi.depth import COLOUR_ARRAY, FRAME_ARRAY, depth_array, image_colour, image_intrinsics, image_pose
+from mabdi.depth import COLOUR_ARRAY, FRAME_ARRAY, measured_depth
+from mabdi.frame_values import Measured
 from mabdi.errors import ConfigError, check_switch
 from mabdi.voxels.voxel_map import VoxelMap, moments_to_gaussian, pack_keys, unpack_keys
 from mabdi.filters.world_mesh import PATCH_KEY_ARRAY, REMOVED_KEYS_ARRAY
@@ -730,6 +731,13 @@ class FilterVoxelPlanes(MabdiAlgorithm):
         mesh.GetFieldData().AddArray(array)
         return mesh
 
+    def mesh_frame(self, frame: Measured, whole: np.ndarray | None = None) -> vtkPolyData:
+        """Add ``frame``'s points (its depth's returns, in the world of its pose) and give the mesh the filter
+        outputs (all patches, or those that changed: ``output``). ``whole``: (H, W) all of D where ``frame`` holds only some
+        of it (between beams, the samples beyond an edge), None: the frame is all of D."""
+        self.add_points(*self._frame_points(frame, whole))
+        return self.mesh() if self._output == "full" else self.changed_mesh()
+
     # -- pipeline ----------------------------------------------------------
     def RequestData(self, request, inInfo, outInfo):  # noqa: N802 (VTK API)
         data = vtkDataObject.GetData(inInfo[0])
@@ -748,26 +756,28 @@ class FilterVoxelPlanes(MabdiAlgorithm):
                     output.GetFieldData().AddArray(array)
         return 1
 
+    def _frame_points(self, frame: Measured, whole: np.ndarray | None) -> tuple[np.ndarray, np.ndarray | None]:
+        """World points (M, 3) of a frame's valid pixels and their uint8 RGB colours (M, 3), None without colour
+        (and, between beams, the points on its pixel grid, module docs)."""
+        depth, k, pose, colour = frame.depth, frame.geometry, frame.pose, frame.colour
+        v, u = np.nonzero(np.isfinite(depth))  # only the valid (novel) pixels: often a few percent
+        z = depth[v, u].astype(np.float64)
+        camera = pixel_rays(k)[v, u] * z[:, None]  # a camera's z = 1 rays times depth, or a LiDAR's unit rays times range
+        points, colours = camera @ pose[:3, :3].T + pose[:3, 3], None if colour is None else colour[v, u]
+        if on_for_range_images(self._parameters.between_beams, k):
+            vertices, triangles, pixel_ids = pixel_grid_surface(frame, whole, PixelGridParameters(), straight_only=True)
+            extra, corner = triangle_samples(vertices, triangles, 0.5 * self._parameters.voxel_size)
+            points = np.concatenate([points, extra])
+            if colours is not None:
+                colours = np.concatenate([colours, colour.reshape(-1, 3)[pixel_ids[corner]]])
+        return points, colours
+
     def _input_points(self, data) -> tuple[np.ndarray, np.ndarray | None]:
         """World points (M, 3) of the input and their uint8 RGB colours (M, 3), None when it has no colour:
         a depth image's point array ``colour`` at the valid pixels (and, between beams, the points on its pixel
         grid, module docs); a point set's ``colour`` (or ``rgb_colors``) point array, uint8 with 3 components."""
         if isinstance(data, vtkImageData):
-            depth = depth_array(data)
-            k = image_intrinsics(data)
-            pose = image_pose(data)
-            v, u = np.nonzero(np.isfinite(depth))  # only the valid (novel) pixels: often a few percent
-            z = depth[v, u].astype(np.float64)
-            camera = pixel_rays(k)[v, u] * z[:, None]  # a camera's z = 1 rays times depth, or a LiDAR's unit rays times range
-            colour = image_colour(data)
-            points, colours = camera @ pose[:3, :3].T + pose[:3, 3], None if colour is None else colour[v, u]
-            if on_for_range_images(self._parameters.between_beams, k):
-                vertices, triangles, pixel_ids = pixel_grid_surface(data, PixelGridParameters(), straight_only=True)
-                extra, corner = triangle_samples(vertices, triangles, 0.5 * self._parameters.voxel_size)
-                points = np.concatenate([points, extra])
-                if colours is not None:
-                    colours = np.concatenate([colours, colour.reshape(-1, 3)[pixel_ids[corner]]])
-            return points, colours
+            return self._frame_points(Measured.from_image(data), measured_depth(data))
         if isinstance(data, vtkPointSet):
             if data.GetNumberOfPoints() == 0:
                 return np.zeros((0, 3)), None

@@ -169,6 +169,16 @@ class FilterWorldMesh(MabdiAlgorithm):
         """Remove faces (and those that go with them); returns the removed faces (:meth:`WorldMap.remove_faces`)."""
         return self.store.remove_faces(codes, table)
 
+    def append(self, surface: vtkPolyData, frame: int) -> int:
+        """Append frame ``frame``'s surface (world coordinates; cell data ``patch_key`` for keyed patches, field
+        data ``removed_keys`` for patches it replaces) to the map; returns the net change in cells (also
+        :attr:`cells_added`)."""
+        self._next_frame = frame + 1
+        if self.compact_on_append:
+            self.store.compact()
+        self.cells_added = self._append(surface, frame)
+        return self.cells_added
+
     # -- pipeline ----------------------------------------------------------
     def RequestData(self, request, inInfo, outInfo):  # noqa: N802 (VTK API)
         surface = vtkPolyData.GetData(inInfo[0])
@@ -176,12 +186,7 @@ class FilterWorldMesh(MabdiAlgorithm):
         if stamp != self._last_input:  # a re-execution with the same input appends nothing
             self._last_input = stamp
             frame = _input_frame(surface)
-            if frame is None:
-                frame = self._next_frame
-            self._next_frame = frame + 1
-            if self.compact_on_append:
-                self.store.compact()
-            self.cells_added = self._append(surface, frame)
+            self.append(surface, self._next_frame if frame is None else frame)
         output = vtkMultiBlockDataSet.GetData(outInfo)
         output.ShallowCopy(self.store.multiblock)
         return 1

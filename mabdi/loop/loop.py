@@ -1,63 +1,48 @@
 """MabdiLoop: the MABDI loop of seed 001 Fig. 3-4, fed by any source of depth frames.
 
-    FrameSource --> SourceDepthFrames (frame i) --> FilterRegistration (D's pose fitted to the map) --> D --+
-    FilterWorldMesh.map --+--> FilterExpectedImage (pose and frame from D) -------------------------> E --+--> FilterClassifier
-         ^                                                                                                      |
-         +---------- FilterWorldMesh <-- surface filter (by name, registry) <-----------------------------------+
+Frame i, each stage called with the frame's values (:mod:`mabdi.frame_values`)::
 
-Frame i: registration corrects D's pose against the map (built in a frame of
-its own, :mod:`mabdi.filters.map_anchor`); E is rendered from the map as it
-stood after frame i - 1; the classifier labels D's pixels; the surface
-meshes the novel ones and the world mesh appends them; then refinement
-(:mod:`mabdi.filters.refinement`) and object removal
-(:mod:`mabdi.loop.object_removal`, rules in :mod:`mabdi.filters.removal`;
-votes from registered frames only) change the map. With ``noise = "auto"``
-the frame's D - E feeds the noise calibration (:mod:`mabdi.noise_calibration`).
+    SourceDepthFrames.measured(i) -> D --> FilterRegistration.place(D, map) -> D at its map pose, Placement
+    FilterExpectedImage.render(map, D) -> E --> FilterClassifier.classify(D, E) -> labels, novel depth
+    surface.mesh_frame(novel depth, D) -> triangles --> FilterWorldMesh.append (the map)
+    then MapRefinement.step and ObjectRemoval.find: what they find, the loop applies to the map
 
-The frame index is set in one place, :class:`SourceDepthFrames`; D carries
-it with its pose, timestamp and noise model in its field data, and every
-filter takes them from there. With the classifier off (the "black box") the
-surface meshes every valid pixel of D. A LiDAR's range images run through
-the same loop; registration and refinement are camera-only for now
-(:func:`lidar_rules`).
+E is the map as it stood after frame i - 1; refinement and removal change
+the map after this frame's E was used. The loop alone changes the map. With
+``noise = "auto"`` D - E feeds the noise calibration. With the classifier
+off (the "black box") the surface meshes every valid pixel of D. A LiDAR's
+range images run through the same loop; registration and refinement are
+camera-only for now (:func:`lidar_rules`).
 
-``loop.step(i)`` runs frame i and returns its :class:`FrameRecord`; what a
-frame produced is read through :meth:`measured_image`,
-:meth:`expected_image`, :meth:`labels`, :meth:`novel_surface`, :meth:`mesh`
-and ``world``. The frame path as a whole: docs/architecture.md.
+``loop.step(i)`` runs frame i and returns its :class:`FrameRecord`;
+:attr:`MabdiLoop.last_frame` holds its values, :meth:`measured_image`,
+:meth:`expected_image`, :meth:`classified_image` show them as depth images.
+The frame path as a whole: docs/architecture.md.
 """
 
 from __future__ import annotations
 
 import time
 import warnings
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from vtkmodules.vtkCommonDataModel import vtkImageData, vtkPolyData
 
-from mabdi.algorithm import raise_pipeline_errors
 from mabdi.camera import Intrinsics
 from mabdi.interrupts import interrupts_unwrapped
-from mabdi.depth import depth_array, image_pose
-from mabdi.filters.classifier import (
-    ClassifierParameters,
-    FilterClassifier,
-    label_array,
-    pixel_counts,
-    dilate,
-)
+from mabdi.filters.classifier import ClassifierParameters, FilterClassifier, dilate, write_classified
 from mabdi.filters.depth_image import BACKENDS
 from mabdi.sensor_noise import SensorNoise
-from mabdi.filters.expected_image import MAP_PORT, MEASURED_PORT, FilterExpectedImage
-from mabdi.filters.refinement import MapRefinement, RefinementParameters
+from mabdi.filters.expected_image import FilterExpectedImage, write_expected
+from mabdi.filters.refinement import MapRefinement, RefinementParameters, RefinementResult
 from mabdi.filters.quadtree import QuadTreeParameters, resolved as resolved_quadtree
-from mabdi.filters.registration import STATUSES, FilterRegistration, RegistrationParameters, registration_values
+from mabdi.filters.registration import STATUSES, FilterRegistration, RegistrationParameters, write_placement
 from mabdi.filters.registration_check import PosesDisagreeWarning, PoseJumpWarning, jumps_that_removed, poses_disagree
-from mabdi.filters.registry import make_surface_filter, seam_pixels, surface_filter
+from mabdi.filters.registry import make_surface_filter, mesh_frame, seam_pixels, surface_filter
 from mabdi.loop.object_removal import ObjectRemoval, RemovalResult, RemovalVotes
 from mabdi.filters.removal import RemovalParameters, depth_edges
-from mabdi.face_identity import FaceIdTable
+from mabdi.frame_values import Classified, Expected, Measured, Placement
 from mabdi.filters.world_mesh import FilterWorldMesh
 from mabdi.world_map import CHUNK_SIZE, LIDAR_CHUNK_SIZE
 from mabdi.polydata import polydata_area, polydata_arrays, transformed_polydata
@@ -125,15 +110,15 @@ def apply_removal(
     stage: ObjectRemoval,
     votes: RemovalVotes | None,
     replaced: np.ndarray,
-    expected_image: vtkImageData,
-    measured_image: vtkImageData,
+    expected: Expected,
+    measured: Measured,
 ) -> RemovalResult:
     """Change the map as one frame's removal found: its ``votes`` (:meth:`ObjectRemoval.find`; None: no vote)
     added to the faces' evidence, then the faces the evidence condemns and those refinement ``replaced`` (codes
     of E) removed; a surface that keeps statistics (voxel planes) forgets the removed faces' and empties the
     voxels the voting rays saw through. The loop's one place where removal changes the map."""
     gone = np.asarray(replaced, dtype=np.int64)
-    table = FaceIdTable.read(expected_image) if votes is None else votes.table
+    table = expected.table if votes is None else votes.table
     if votes is not None and len(votes.faces):
         condemned = world.update_evidence(votes.faces, votes.contradicted, votes.confirmed, stage.parameters, table)
         gone = np.union1d(gone, condemned)
@@ -145,7 +130,7 @@ def apply_removal(
         points, triangles = polydata_arrays(result.removed)
         surface.clear_faces_at(points[triangles].mean(axis=1))
     if votes is not None and capabilities.clears_space:
-        rays = stage.free_space_rays(votes, gone, measured_image)
+        rays = stage.free_space_rays(votes, gone, measured)
         if rays is not None:
             surface.clear_free_space(*rays)
     return result
@@ -217,13 +202,49 @@ def chunk_size_for(geometry) -> float:
     return LIDAR_CHUNK_SIZE if geometry.range_image else CHUNK_SIZE
 
 
+@dataclass(eq=False)
+class FrameValues:
+    """One frame's values as the loop passed them from stage to stage (:mod:`mabdi.frame_values`; None: the
+    stage did not run), and the depth images the pipeline API shows of them, made when first asked."""
+
+    measured: Measured | None = None
+    placement: Placement | None = None
+    expected: Expected | None = None
+    classified: Classified | None = None
+    #: What the surface meshed (map frame), what refinement did and what removal took.
+    added: vtkPolyData = field(default_factory=vtkPolyData)
+    refined: RefinementResult | None = None
+    removed: vtkPolyData = field(default_factory=vtkPolyData)
+    _images: dict = field(default_factory=dict)
+
+    def measured_image(self, registered: bool) -> vtkImageData:
+        if "measured" not in self._images:
+            image = vtkImageData() if self.measured is None else self.measured.to_image()
+            if registered and self.placement is not None:
+                write_placement(image, self.placement)
+            self._images["measured"] = image
+        return self._images["measured"]
+
+    def expected_image(self) -> vtkImageData | None:
+        if self.expected is not None and "expected" not in self._images:
+            self._images["expected"] = vtkImageData()
+            write_expected(self._images["expected"], self.expected)
+        return self._images.get("expected")
+
+    def classified_image(self) -> vtkImageData | None:
+        if self.classified is not None and "classified" not in self._images:
+            self._images["classified"] = vtkImageData()
+            write_classified(self._images["classified"], self.measured, self.classified)
+        return self._images.get("classified")
+
+
 class MabdiLoop:
     """Expected image, classifier, surface and world mesh over a :class:`FrameSource` (see the module docs).
 
     ``classifier``: :class:`ClassifierParameters` (its ``enabled`` chooses the
     black box); ``surface``: a registered surface name and its parameters
     (None: the filter's defaults); ``noise``: the sensor's noise model (None: the source's own
-    statement, :attr:`FrameSource.noise`, else noise-free), which D carries in its field data to the
+    statement, :attr:`FrameSource.noise`, else noise-free), which D carries to the
     classifier's threshold tau(z), registration, removal and the noise-aware surfaces; ``removal`` and
     ``refinement``: their rules (None: defaults), used when ``classifier`` turns them on;
     ``registration``: frame-to-map registration (None: defaults, on), used when the classifier is on.
@@ -258,36 +279,25 @@ class MabdiLoop:
         self.registration_parameters = self.settings.registration
         self.removal, self.refining = self.settings.removing, self.settings.refining
         self.refinement = MapRefinement(refinement_parameters)
-        self.measured = SourceDepthFrames(source, noise=self.noise, pixel_holes=pixel_holes)
+        #: D of each frame, from the source (hole filling, the noise model as it stands)
+        self.depth_frames = SourceDepthFrames(source, noise=self.noise, pixel_holes=pixel_holes)
         # compacted at the end of each frame (step)
         self.world = FilterWorldMesh(chunk_size=chunk_size_for(source.intrinsics), compact_on_append=False)
         self.expected = FilterExpectedImage(backend=backend, identity=self.removal or self.refining)
-        #: D as the classifier sees it: registered to the map (the renderer of E is shared: one upload of the map)
+        #: D registered to the map (the renderer of E is shared: one upload of the map); None: poses as given
         self.registration: FilterRegistration | None = None
-        measured_port = self.measured.GetOutputPort()
         if self.classifier_parameters.enabled and self.registration_parameters.enabled:
             self.registration = FilterRegistration(
                 self.registration_parameters, renderer=self.expected.renderer, pose_accuracy=source.pose_accuracy
             )
-            self.registration.SetInputDataObject(MAP_PORT, self.world.map)
-            self.registration.SetInputConnection(MEASURED_PORT, measured_port)
-            measured_port = self.registration.GetOutputPort()
-        self.expected.SetInputDataObject(MAP_PORT, self.world.map)
-        self.expected.SetInputConnection(MEASURED_PORT, measured_port)
         self.classifier = FilterClassifier(self.classifier_parameters)
         #: The removal stage (its rules: :attr:`removal_parameters`).
         self.object_removal = ObjectRemoval(removal_parameters, self.classifier.threshold)
-        self.classifier.SetInputConnection(0, measured_port)
-        self.classifier.SetInputConnection(1, self.expected.GetOutputPort())
         self.surface = make_surface_filter(surface, surface_parameters)
         #: What the surface filter can do beyond meshing a frame (declared in its registry entry).
         self.surface_capabilities = surface_filter(surface).capabilities
-        upstream = self.classifier if self.classifier_parameters.enabled else self.measured
-        self.surface.SetInputConnection(upstream.GetOutputPort())
-        self.world.SetInputConnection(self.surface.GetOutputPort())
-        self._algorithms = tuple(
-            a for a in (self.measured, self.registration, self.expected, self.classifier, self.surface, self.world) if a is not None
-        )
+        #: The last frame's values (:mod:`mabdi.frame_values`) and what its surface meshed
+        self._frame = FrameValues()
         #: The frames the per-frame arrays cover: the source's length when known, else the frames run so far
         #: (a stream's: the arrays grow as frames come)
         self._known = source.frames_known or 0
@@ -302,8 +312,6 @@ class MabdiLoop:
         self._poses_checked = False
         self._jumps_checked = False
         self._given_exact = False  # the last frame's pose stated exact by the source
-        self._removed = vtkPolyData()
-        self._refined = None
 
     @property
     def removal_parameters(self) -> RemovalParameters:
@@ -467,68 +475,61 @@ class MabdiLoop:
 
     def _step(self, index: int) -> FrameRecord:
         start = time.perf_counter()
-        self.measured.frame = index
-        self.measured.Update()
+        measured = self.depth_frames.measured(index)
         t_depth = time.perf_counter()
         t_register = t_expected = t_classify = t_depth
         cells_removed = 0
-        registration = {"status": "off", "correction_m": 0.0, "correction_deg": 0.0, "residual_m": np.nan, "inlier_share": np.nan, "support": np.nan, "given_exact": False}
+        placement = Placement.unregistered(measured.pose)
         if self.registration is not None:
-            self.registration.Update()
-            registration = registration_values(self.registration.GetOutput())
+            measured, placement = self.registration.place(measured, self.world.map)
             t_register = t_expected = t_classify = time.perf_counter()
+        expected = classified = None
+        surface_input, whole = measured, None  # the black box meshes all of D
         if self.classifier_enabled:
-            self.expected.Update()
+            expected = self.expected.render(self.world.map, measured)
             t_expected = time.perf_counter()
-            self.classifier.Update()
+            classified = self.classifier.classify(measured, expected, placement.covariance)
             t_classify = time.perf_counter()
-        self.surface.Update()
+            surface_input, whole = measured.showing(classified.depth), measured.depth
+        added = mesh_frame(self.surface, surface_input, whole)
         t_surface = time.perf_counter()
-        self.world.Update()
+        self.world.append(added, index)
         t_append = time.perf_counter()
-        raise_pipeline_errors(*self._algorithms)
-        self._poses[index] = image_pose(self.measured_image())
+        frame = self._frame = FrameValues(measured, placement, expected, classified, added)
+        self._poses[index] = measured.pose
         # Removal votes only from frames whose pose is known to fit the map: registered, or given without
         # registration, or stated exact by the source (the ICP's checks fail where what held the pose has
         # left the scene: that is when the votes matter).
-        votes = registration["status"] in ("registered", "off") or registration["given_exact"]
-        self._given_exact = registration["given_exact"]
+        votes = placement.status in ("registered", "off") or placement.given_exact
+        self._given_exact = placement.given_exact
         if self.noise.calibration is not None and self.classifier_enabled and votes:
-            self._calibrate_noise()
+            self._calibrate_noise(measured, expected)
         # Refinement and removal last: the map changes after this frame's E was used, so E is not drawn
         # twice; the surface behind a removed or replaced face is novel (and meshed) in the next frame.
         replaced = np.zeros(0, dtype=np.int64)
         moved = 0
-        self._refined = None
         if self.refining:
-            self._refined = self.refinement.step(
-                self.measured_image(), self.expected_image(), self.labels(), self.world, self.intrinsics, self.meshed_pose
-            )
-            self.world.move_points_of(self._refined.moves)  # the map changes here, by its owner
-            replaced, moved = self._refined.replaced, self._refined.moved_vertices
+            frame.refined = self.refinement.step(measured, expected, classified.labels, self.world, self.meshed_pose)
+            self.world.move_points_of(frame.refined.moves)  # the map changes here, by its owner
+            replaced, moved = frame.refined.replaced, frame.refined.moved_vertices
         t_refine = time.perf_counter()
-        self._removed = vtkPolyData()
         if (self.removal and votes) or len(replaced):
             found = None
             if self.removal and votes:
-                found = self.object_removal.find(
-                    self.measured_image(), self.expected.GetOutput(), self.classifier.GetOutput(), self.world, self.surface,
-                    self.surface_capabilities,
-                )  # fmt: skip
+                found = self.object_removal.find(measured, expected, classified, self.world, self.surface, self.surface_capabilities)
             removal = apply_removal(
-                self.world, self.surface, self.surface_capabilities, self.object_removal, found, replaced,
-                self.expected.GetOutput(), self.measured_image(),
+                self.world, self.surface, self.surface_capabilities, self.object_removal, found, replaced, expected, measured
             )  # fmt: skip
-            self._removed = removal.removed
+            frame.removed = removal.removed
             cells_removed = removal.cells_removed
         t_remove = time.perf_counter()
         self.world.compact()  # now that this frame's E and its face codes have been used
         compact_s = time.perf_counter() - t_remove  # counted with the append: both keep the map's blocks
 
-        if self.classifier_enabled:
-            counts = pixel_counts(self.classifier.GetOutput())
+        if classified is not None:
+            counts = classified.counts
         else:
-            valid = int(np.count_nonzero(np.isfinite(depth_array(self.measured_image()))))
+            valid = int(np.count_nonzero(np.isfinite(measured.depth)))
             counts = {"valid": valid, "novel": valid, "specks": 0, "contradicted": 0}
         ms = 1000.0
         return FrameRecord(
@@ -550,30 +551,37 @@ class MabdiLoop:
             cells_removed=cells_removed,
             vertices_refined=moved,
             t_refine_ms=ms * (t_refine - t_append),
-            area_removed=polydata_area(self._removed) if cells_removed else 0.0,
+            area_removed=polydata_area(frame.removed) if cells_removed else 0.0,
             t_remove_ms=ms * (t_remove - t_refine),
-            registration=registration["status"],
-            correction_mm=1000.0 * registration["correction_m"],
-            correction_deg=registration["correction_deg"],
-            residual_mm=1000.0 * registration["residual_m"],
-            inlier_share=registration["inlier_share"],
-            constraint_support=registration["support"],
+            registration=placement.status,
+            correction_mm=1000.0 * placement.correction_m,
+            correction_deg=placement.correction_deg,
+            residual_mm=1000.0 * placement.residual_m,
+            inlier_share=placement.inlier_share,
+            constraint_support=placement.support,
             t_register_ms=ms * (t_register - t_depth),
-            filled_pixels=self.measured.filled_pixels,
+            filled_pixels=self.depth_frames.filled_pixels,
         )
 
-    def _calibrate_noise(self) -> None:
+    def _calibrate_noise(self, measured: Measured, expected: Expected) -> None:
         """``noise = "auto"``: this frame's D - E where the map explains D, away from E's silhouettes
         (:mod:`mabdi.noise_calibration`)."""
-        expected = depth_array(self.expected.GetOutput())
-        silhouettes = dilate(depth_edges(expected, self.removal_parameters.edge_jump), 2)
-        self.noise.calibration.observe(depth_array(self.measured_image()), expected, silhouettes)
+        silhouettes = dilate(depth_edges(expected.depth, self.removal_parameters.edge_jump), 2)
+        self.noise.calibration.observe(measured.depth, expected.depth, silhouettes)
 
     # -- what the last frame produced --------------------------------------
+    @property
+    def last_frame(self) -> FrameValues:
+        """The last frame's values as the stages passed them: D at the pose it was meshed with (map frame), its
+        placement, E, the classifier's findings, what was meshed, refined and removed (None before the first)."""
+        return self._frame
+
     def measured_image(self) -> vtkImageData:
-        """D of the last frame (depth image; field data: intrinsics, pose, frame, timestamp), with its pose
-        registered to the map when registration is on (the given pose is beside it, :mod:`mabdi.filters.registration`)."""
-        return (self.registration if self.registration is not None else self.measured).GetOutput()
+        """D of the last frame as a depth image (field data: intrinsics, pose, frame, timestamp, noise), with its
+        pose registered to the map when registration is on (the given pose and the registration's figures
+        beside it, :func:`mabdi.filters.registration.write_placement`). Made when asked (the loop itself
+        passes :meth:`measured`); empty before the first frame."""
+        return self._frame.measured_image(self.registration is not None)
 
     def world_from_map(self) -> np.ndarray:
         """Where the map's frame lies in the world (4x4): the loop builds the map in its own frame, started at
@@ -587,29 +595,30 @@ class MabdiLoop:
         return np.einsum("ij,njk->nik", self.world_from_map(), self._poses[: self._frames])
 
     def expected_image(self) -> vtkImageData | None:
-        """E of the last frame, or None when the classifier is off (E is not rendered then)."""
-        return self.expected.GetOutput() if self.classifier_enabled else None
+        """E of the last frame as a depth image (with ``face_id`` when drawn with identity), or None when the
+        classifier is off. Made when asked."""
+        return self._frame.expected_image()
 
     def classified_image(self) -> vtkImageData | None:
-        """The classifier's output of the last frame (novel depth + ``label``), or None when it is off."""
-        return self.classifier.GetOutput() if self.classifier_enabled else None
+        """The classifier's output of the last frame as a depth image (the meshed depth, ``label``), or None
+        when it is off. Made when asked."""
+        return self._frame.classified_image()
 
     def labels(self) -> np.ndarray | None:
         """(H, W) uint8 labels of the last frame (0 no return, 1 known, 2 novel, 3 contradicted), or None."""
-        image = self.classified_image()
-        return None if image is None else label_array(image)
+        return None if self._frame.classified is None else self._frame.classified.labels
 
     def refinement_result(self):
         """What refinement did in the last frame (:class:`~mabdi.filters.refinement.RefinementResult`), or None."""
-        return self._refined
+        return self._frame.refined
 
     def removed_surface(self) -> vtkPolyData:
         """The faces object removal took out of the map in the last frame (the map frame: :meth:`world_from_map` places them)."""
-        return self._removed
+        return self._frame.removed
 
     def novel_surface(self) -> vtkPolyData:
-        """The surface filter's output of the last frame (what was meshed), world coordinates."""
-        return self.surface.GetOutput()
+        """What the surface meshed in the last frame, in the map's frame."""
+        return self._frame.added
 
     def mesh(self) -> vtkPolyData:
         """The whole map as one vtkPolyData (cell data ``frame``), in the world frame (:meth:`world_from_map`)."""

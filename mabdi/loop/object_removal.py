@@ -43,10 +43,9 @@ from vtkmodules.util.numpy_support import vtk_to_numpy
 from vtkmodules.vtkCommonDataModel import vtkPolyData
 
 from mabdi.camera import project, unit_rays
-from mabdi.depth import depth_array, image_intrinsics, image_noise, image_pose
 from mabdi.face_identity import FaceIdTable, block_address, codes_in, rows_by_block
-from mabdi.filters.classifier import CONTRADICTED, NO_RETURN, classify, dilate, label_array, neighbourhood_3x3, pose_sigma_array
-from mabdi.filters.expected_image import face_id_array
+from mabdi.filters.classifier import CONTRADICTED, NO_RETURN, classify, dilate, neighbourhood_3x3
+from mabdi.frame_values import Classified, Expected, Measured
 from mabdi.loop.ray_triangle_kernels import nearest_hits_in_boxes_kernel
 from mabdi.filters.registry import SurfaceCapabilities
 from mabdi.filters.removal_kernels import points_in_boxes
@@ -98,52 +97,48 @@ class ObjectRemoval:
         self.parameters = parameters
         self.threshold = threshold
 
-    def find(self, measured_image, expected_image, classified_image, world, surface, capabilities: SurfaceCapabilities) -> RemovalVotes | None:
-        """This frame's votes on the faces E shows (and on faces too small for a pixel beside them); None when no
-        pixel sees through the map (confirmations only matter against contradictions). ``world`` is read only."""
-        labels = label_array(classified_image)
-        if not self._anything_seen_through(labels, expected_image):
+    def find(
+        self, measured: Measured, expected: Expected, classified: Classified, world, surface, capabilities: SurfaceCapabilities
+    ) -> RemovalVotes | None:
+        """This frame's votes on the faces E shows (and on faces too small for a pixel beside them), from D
+        (registered), E (with face identity) and the classifier's findings; None when no pixel sees through the
+        map (confirmations only matter against contradictions). ``world`` is read only."""
+        if not self._anything_seen_through(classified.labels, expected):
             return None
-        return self._votes(labels, measured_image, expected_image, classified_image, world, surface, capabilities)
+        return self._votes(classified.labels, measured, expected, classified, world, surface, capabilities)
 
-    def free_space_rays(self, votes: RemovalVotes, gone: np.ndarray, measured_image) -> tuple | None:
+    def free_space_rays(self, votes: RemovalVotes, gone: np.ndarray, frame: Measured) -> tuple | None:
         """Voxel planes: (origin, ends, margins) of the rays that saw through removed faces (``gone``: codes of
         E), world metres, ending tau short of D: the voxels they crossed are free; None when there are none."""
         through = votes.voting & codes_in(votes.codes, gone)
         if not through.any():
             return None
-        geometry = image_intrinsics(measured_image)
-        measured = depth_array(measured_image)
-        pose = image_pose(measured_image)
+        geometry, measured, pose = frame.geometry, frame.depth, frame.pose
         rays, length = unit_rays(geometry, np.float32)
         depth = np.where(np.isnan(measured[through]), geometry.far, measured[through]).astype(np.float64)
-        tau = self.threshold(depth.astype(np.float32), image_noise(measured_image), geometry.near, geometry.far).astype(np.float64)
+        tau = self.threshold(depth.astype(np.float32), frame.noise, geometry.near, geometry.far).astype(np.float64)
         directions = rays[through].astype(np.float64) @ pose[:3, :3].T
         ends = pose[:3, 3] + directions * (depth * length[through])[:, None]
         return pose[:3, 3], ends, tau * length[through]
 
-    def _anything_seen_through(self, labels: np.ndarray, expected_image) -> bool:
+    def _anything_seen_through(self, labels: np.ndarray, expected: Expected) -> bool:
         """Whether any pixel may see through the map: contradicted, or (``no_return_is_free``) no return where E has a face."""
         if np.any(labels == CONTRADICTED):
             return True
         if not self.parameters.no_return_is_free:
             return False
         no_return = labels == NO_RETURN
-        return bool(no_return.any() and np.isfinite(depth_array(expected_image)[no_return]).any())
+        return bool(no_return.any() and np.isfinite(expected.depth[no_return]).any())
 
-    def _votes(self, labels, measured_image, expected_image, classified_image, world, surface, capabilities) -> RemovalVotes:
+    def _votes(self, labels, frame: Measured, expected_image: Expected, classified: Classified, world, surface, capabilities) -> RemovalVotes:
         """The frame's votes (:class:`RemovalVotes`)."""
-        geometry = image_intrinsics(measured_image)
-        noise = image_noise(measured_image)
-        measured = depth_array(measured_image)
-        codes = face_id_array(expected_image)
-        table = FaceIdTable.read(expected_image)
-        expected = depth_array(expected_image)
-        pose_sigma = pose_sigma_array(classified_image)
-        labels, expected, codes, table = self._retraced(labels, measured, expected, codes, table, measured_image, pose_sigma, world)
+        geometry, noise, measured = frame.geometry, frame.noise, frame.depth
+        codes, table, expected = expected_image.face_ids, expected_image.table, expected_image.depth
+        pose_sigma = classified.pose_sigma
+        labels, expected, codes, table = self._retraced(labels, measured, expected, codes, table, frame, pose_sigma, world)
         rays, _ = unit_rays(geometry, np.float32)
         parameters = self._parameters_for(expected, geometry, surface, capabilities)
-        pose = image_pose(measured_image)
+        pose = frame.pose
 
         def sigma(depth):
             return noise.sigma(depth, geometry.near, geometry.far)
@@ -255,7 +250,7 @@ class ObjectRemoval:
         )
         return codes[hit]
 
-    def _retraced(self, labels, measured, expected, codes, table: FaceIdTable, measured_image, pose_sigma, world):
+    def _retraced(self, labels, measured, expected, codes, table: FaceIdTable, frame: Measured, pose_sigma, world):
         """(labels, E, codes, table) with the pixels that showed a block re-meshed since E was drawn (a keyed
         patch replaced at the append: its old faces are gone) cast against the block's new faces, and
         classified again against them: the votes of these pixels go to the faces now there, and only where D
@@ -263,8 +258,7 @@ class ObjectRemoval:
         stale = world.stale_blocks(table)
         if not stale:
             return labels, expected, codes, table
-        geometry = image_intrinsics(measured_image)
-        pose = image_pose(measured_image)
+        geometry, pose = frame.geometry, frame.pose
         block_of, _ = table.lookup(codes)
         block_of = block_of.ravel()
         rays, length = unit_rays(geometry, np.float64)
@@ -309,7 +303,7 @@ class ObjectRemoval:
         flat_labels = labels.reshape(-1)
         d = measured.reshape(-1)[pixels]
         sigma = None if pose_sigma is None else pose_sigma.reshape(-1)[pixels]
-        tau = self.threshold(d, image_noise(measured_image), geometry.near, geometry.far, sigma)
+        tau = self.threshold(d, frame.noise, geometry.near, geometry.far, sigma)
         flat_labels[pixels] = classify(d, flat_expected[pixels], tau)
         return labels, expected, codes, FaceIdTable(names, np.array(bases), np.array(counts), np.array(addresses))
 

@@ -16,11 +16,10 @@ A frame may carry a colour image registered to its depth (``DepthFrame.colour``)
 
 Frames are read by index (``read(i)``, 0 <= i < ``len(source)``), so a run can
 start in the middle (``--resume``) and a benchmark can feed the same frame to
-several methods. :class:`SourceDepthFrames` puts a source at the head of a
-VTK pipeline: set its ``frame`` and its output is D, with the frame index,
-pose and timestamp in the image's field data, where every filter downstream
-(the expected image E, the classifier, the surface filters) takes them from.
-This is the one place a loop sets the frame.
+several methods. :class:`SourceDepthFrames` makes D of a frame: as a value
+(``measured(i)``, what the loop calls) or at the head of a VTK pipeline (set
+its ``frame``; the output image carries the frame index, pose, timestamp and
+noise model in its field data).
 
 What counts as a return is decided once, in :func:`mabdi.depth.returns`
 (finite and near < z < far); :meth:`FrameSource.read` applies it to every
@@ -37,7 +36,8 @@ from vtkmodules.vtkCommonExecutionModel import vtkStreamingDemandDrivenPipeline
 
 from mabdi.algorithm import MabdiAlgorithm
 from mabdi.camera import Intrinsics
-from mabdi.depth import DepthFrame, fill_depth_image, only_returns
+from mabdi.depth import NO_NOISE, DepthFrame, only_returns
+from mabdi.frame_values import Measured
 from mabdi.depth_holes import fill_pixel_holes, is_fragmented
 from mabdi.errors import check_switch
 from mabdi.pose_noise import PoseNoise
@@ -425,7 +425,8 @@ class FrameSubset(FrameSource):
 
 
 class SourceDepthFrames(MabdiAlgorithm):
-    """A :class:`FrameSource` as a VTK source: no input, the depth image of frame ``frame`` out.
+    """D of a :class:`FrameSource`'s frames: :meth:`measured` (a value), or as a VTK source: no input, the
+    depth image of frame ``frame`` out.
 
     The output is D with field data ``intrinsics``, ``world_from_camera``,
     ``frame``, ``timestamp`` and the sensor's noise model (``noise``; None: the
@@ -482,18 +483,23 @@ class SourceDepthFrames(MabdiAlgorithm):
         info.Set(vtkImageData.ORIGIN(), (0.0, 0.0, 0.0), 3)
         return 1
 
-    def RequestData(self, request, inInfo, outInfo):  # noqa: N802 (VTK API)
-        frame = self._source.read(self._frame)
-        depth = frame.depth.copy()  # the output image owns its buffers
+    def measured(self, index: int) -> Measured:
+        """D of frame ``index`` (:class:`~mabdi.frame_values.Measured`: depth with one-pixel holes filled as
+        ``pixel_holes`` says, the given pose, the noise model as it stands now); sets :attr:`filled_pixels`."""
+        frame = self._source.read(self._source.check_index(index))
+        depth = frame.depth.copy()  # D owns its buffers
         self.filled_pixels = 0
         if self._fills_holes(depth, frame.intrinsics):
             geometry = frame.intrinsics
             noisy = self._noise is not None and self._noise.noisy
             sigma = (lambda z: self._noise.sigma(z, geometry.near, geometry.far)) if noisy else None
             depth, self.filled_pixels = fill_pixel_holes(depth, sigma)
+        geometry = frame.intrinsics
+        noise = NO_NOISE if self._noise is None else self._noise.snapshot()
         colour = None if frame.colour is None else frame.colour.copy()
-        fill_depth_image(
-            vtkImageData.GetData(outInfo), depth, frame.intrinsics, frame.world_from_camera, self._frame, frame.timestamp, colour,
-            noise=self._noise,
-        )
+        depth = only_returns(np.asarray(depth, dtype=np.float32), geometry.near, geometry.far)
+        return Measured(depth, geometry, np.asarray(frame.world_from_camera, dtype=np.float64), noise, int(index), frame.timestamp, colour)
+
+    def RequestData(self, request, inInfo, outInfo):  # noqa: N802 (VTK API)
+        self.measured(self._frame).fill(vtkImageData.GetData(outInfo))
         return 1

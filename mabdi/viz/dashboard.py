@@ -37,7 +37,6 @@ from vtkmodules.vtkCommonDataModel import vtkCellArray, vtkImageData, vtkPolyDat
 from vtkmodules.vtkRenderingCore import vtkActor, vtkCompositePolyDataMapper, vtkImageActor, vtkPolyDataMapper
 
 from mabdi.camera import Intrinsics
-from mabdi.depth import depth_array, image_pose
 from mabdi.maps.mesh_map import COLOUR_LAYER
 from mabdi.polydata import polyline
 
@@ -253,7 +252,8 @@ class Dashboard:
     def render(self, frame: int) -> np.ndarray:
         """The dashboard after ``simulation.step(frame)``: a (height, width, 3) uint8 picture."""
         loop = self.loop
-        pose = image_pose(loop.measured_image())
+        frame_values = loop.last_frame
+        pose = frame_values.measured.pose
         for actor in self._frustum_actors:
             actor.GetMapper().SetInputData(frustum(pose, self._intrinsics, 0.6))
         active = self._scene.active_objects(frame) if self._scene is not None else ()
@@ -268,14 +268,14 @@ class Dashboard:
         self._line.update(x, np.asarray(self._counts, dtype=float))
         self._chart.y_range = [0, max(max(self._counts), 1) * 1.05]
 
-        measured = depth_array(loop.measured_image())
+        measured = frame_values.measured.depth
         if self._depth_range is None:
             finite = measured[np.isfinite(measured)]
             self._depth_range = (float(np.percentile(finite, 2)), float(np.percentile(finite, 98))) if finite.size else (0.5, 5.0)
         low, high = self._depth_range
         self._set_rgb(self._images[0], depth_colours(measured, low, high))
         if loop.classifier_enabled:
-            expected = depth_array(loop.expected_image())
+            expected = frame_values.expected.depth
             labels = loop.labels()
         else:
             expected = np.full_like(measured, np.nan)

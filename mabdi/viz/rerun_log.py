@@ -42,7 +42,6 @@ import numpy as np
 from vtkmodules.util.numpy_support import vtk_to_numpy
 from vtkmodules.vtkCommonDataModel import vtkPolyData
 
-from mabdi.depth import depth_array, image_colour, image_pose
 from mabdi.errors import MabdiError
 from mabdi.polydata import named_leaves
 from mabdi.maps.mesh_map import COLOUR_LAYER
@@ -157,8 +156,8 @@ class RerunLogger:
         start = time.perf_counter()
         rr, log = self.rr, self.stream.log
         self.stream.set_time(TIMELINE, sequence=int(record.frame))
-        measured = loop.measured_image()
-        pose = image_pose(measured)
+        measured = loop.last_frame.measured
+        pose = measured.pose
         intrinsics = loop.intrinsics
 
         log("world/camera", rr.Transform3D(translation=pose[:3, 3], mat3x3=pose[:3, :3]))
@@ -175,13 +174,12 @@ class RerunLogger:
                 ),
             )
         if self.images:
-            log("world/camera/D", rr.DepthImage(np.fmax(depth_array(measured), np.float32(0.0)), meter=1.0))
-            colour = image_colour(measured)
-            if colour is not None:
-                log("world/camera/rgb", rr.Image(colour, color_model="RGB"))
-            expected = loop.expected_image()
+            log("world/camera/D", rr.DepthImage(np.fmax(measured.depth, np.float32(0.0)), meter=1.0))
+            if measured.colour is not None:
+                log("world/camera/rgb", rr.Image(measured.colour, color_model="RGB"))
+            expected = loop.last_frame.expected
             if expected is not None:
-                log("world/camera/E", rr.DepthImage(np.fmax(depth_array(expected), np.float32(0.0)), meter=1.0))
+                log("world/camera/E", rr.DepthImage(np.fmax(expected.depth, np.float32(0.0)), meter=1.0))
             labels = loop.labels()
             if labels is not None:
                 log("world/camera/labels", rr.SegmentationImage(labels))
