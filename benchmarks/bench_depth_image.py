@@ -33,7 +33,7 @@ from vtkmodules.vtkRenderingOpenGL2 import vtkEGLRenderWindow  # noqa: E402
 import mabdi  # noqa: E402
 from mabdi.camera import configure_vtk_camera, look_at  # noqa: E402
 from mabdi.evaluate.bench import machine_info  # noqa: E402
-from mabdi.filters.depth_image import FilterDepthImage  # noqa: E402
+from mabdi.render.depth_image import FilterDepthImage  # noqa: E402
 from mabdi.sensor_noise import SensorNoise, noise_rng
 from mabdi.simulate.path import path_from_config  # noqa: E402
 

@@ -27,10 +27,10 @@ import numpy as np  # noqa: E402
 from mabdi.evaluate.bench import machine_info  # noqa: E402
 from mabdi.io.hdf5 import read_map, write_map  # noqa: E402
 from mabdi.io.vtk_files import write_mesh_file  # noqa: E402
-from mabdi.maps.layers import cost_layers  # noqa: E402
-from mabdi.maps.mesh_map import MeshMap  # noqa: E402
-from mabdi.maps.picking import MapPicker  # noqa: E402
-from mabdi.maps.planning import plan  # noqa: E402
+from mabdi.mesh_maps.layers import cost_layers  # noqa: E402
+from mabdi.mesh_maps.mesh_map import MeshMap  # noqa: E402
+from mabdi.mesh_maps.picking import MapPicker  # noqa: E402
+from mabdi.mesh_maps.planning import plan  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from test_maps import grid  # noqa: E402

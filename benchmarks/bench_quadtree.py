@@ -24,8 +24,8 @@ from vtkmodules.util.numpy_support import vtk_to_numpy  # noqa: E402
 import mabdi  # noqa: E402
 from mabdi.evaluate import distances_to_mesh  # noqa: E402
 from mabdi.evaluate.bench import machine_info  # noqa: E402
-from mabdi.filters.pixel_grid import FilterPixelGrid  # noqa: E402
-from mabdi.filters.quadtree import FilterQuadTree, QuadTreeParameters  # noqa: E402
+from mabdi.surfaces.pixel_grid import FilterPixelGrid  # noqa: E402
+from mabdi.surfaces.quadtree import FilterQuadTree, QuadTreeParameters  # noqa: E402
 from mabdi.io.plots import write_line_plot  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]

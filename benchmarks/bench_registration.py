@@ -28,9 +28,9 @@ from scipy.spatial.transform import Rotation
 import mabdi  # noqa: F401  (selects the EGL window before VTK loads)
 from mabdi.config import load_run_config, set_value
 from mabdi.evaluate import evaluate_run
-from mabdi.filters.depth_image import DepthRenderer
+from mabdi.render.depth_image import DepthRenderer
 from mabdi.sensor_noise import SensorNoise
-from mabdi.filters.registration import IcpWorkspace, RegistrationParameters, register_depth, transform_size
+from mabdi.stages.registration import IcpWorkspace, RegistrationParameters, register_depth, transform_size
 from mabdi.loop import MappingRun
 from mabdi.simulate.rig import SimulatedRig
 

@@ -27,7 +27,7 @@ import numpy as np  # noqa: E402
 import mabdi  # noqa: E402
 from mabdi.config import load_run_config, set_value  # noqa: E402
 from mabdi.evaluate.bench import machine_info  # noqa: E402
-from mabdi.filters.expected_image import FilterExpectedImage  # noqa: E402
+from mabdi.stages.expected_image import FilterExpectedImage  # noqa: E402
 from mabdi.loop.mapping_run import recorded_simulation  # noqa: E402
 from mabdi.simulate.recording import record  # noqa: E402
 from mabdi.sources.frames import SourceDepthFrames  # noqa: E402

@@ -11,7 +11,7 @@ F@1cm/2cm, P/R@1cm, triangles, the settings found, and the tuning's time.
 Every point tried is listed too. JSON goes to ``benchmarks/results/tsdf_tuning.json``.
 With a noisy sensor the tuner also tries the depth smoothed by the noise
 model, as MABDI's pixel grid and quad-tree smooth theirs
-(:mod:`mabdi.filters.depth_smoothing`).
+(:mod:`mabdi.surfaces.depth_smoothing`).
 
     python benchmarks/bench_tsdf_tuning.py                  # both scenes, 1 and 2 cm, coordinate search
     python benchmarks/bench_tsdf_tuning.py --scene table --voxel 0.01 --search full

@@ -52,7 +52,7 @@ import mabdi  # noqa: E402
 from mabdi.camera import backproject  # noqa: E402
 from mabdi.evaluate import distances_to_mesh  # noqa: E402
 from mabdi.evaluate.bench import machine_info  # noqa: E402
-from mabdi.filters.voxel_planes import FilterVoxelPlanes, VoxelPlanesParameters  # noqa: E402
+from mabdi.surfaces.voxel_planes import FilterVoxelPlanes, VoxelPlanesParameters  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 FIGURES = REPO / "docs" / "figures"

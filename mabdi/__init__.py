@@ -19,21 +19,17 @@ from mabdi.camera import Intrinsics, backproject, check_pose, look_at, project  
 from mabdi.config import RunConfig, load_run_config  # noqa: E402
 from mabdi.depth import DepthFrame, depth_image  # noqa: E402
 from mabdi.errors import AssetNotFoundError, ConfigError, MabdiError, PoseError  # noqa: E402
-from mabdi.filters import (  # noqa: E402
-    ClassifierParameters,
-    FilterClassifier,
-    FilterDepthImage,
-    FilterPixelGrid,
-    FilterQuadTree,
-    FilterRegistration,
-    FilterVoxelPlanes,
-    FilterWorldMesh,
-    RegistrationParameters,
-)
-from mabdi.maps import MeshMap  # noqa: E402
+from mabdi.render.depth_image import FilterDepthImage  # noqa: E402
+from mabdi.stages.classifier import ClassifierParameters, FilterClassifier  # noqa: E402
+from mabdi.stages.registration import FilterRegistration, RegistrationParameters  # noqa: E402
+from mabdi.stages.world_mesh import FilterWorldMesh  # noqa: E402
+from mabdi.surfaces.pixel_grid import FilterPixelGrid  # noqa: E402
+from mabdi.surfaces.quadtree import FilterQuadTree  # noqa: E402
+from mabdi.surfaces.voxel_planes import FilterVoxelPlanes  # noqa: E402
+from mabdi.mesh_maps import MeshMap  # noqa: E402
 from mabdi.sensor_noise import SensorNoise  # noqa: E402
-from mabdi.filters.expected_image import FilterExpectedImage  # noqa: E402
-from mabdi.filters.registry import register_surface_filter  # noqa: E402
+from mabdi.stages.expected_image import FilterExpectedImage  # noqa: E402
+from mabdi.surfaces.registry import register_surface_filter  # noqa: E402
 from mabdi.loop import FrameStep, MabdiLoop, Mapper, RunObserver, RunPipeline, MappingRun, map_frames  # noqa: E402
 from mabdi.simulate import SimulatedRig, helical_path  # noqa: E402
 from mabdi.sources import FrameSource, SourceDepthFrames, SourceScene, StreamedFrames  # noqa: E402

@@ -193,7 +193,7 @@ def _parser() -> argparse.ArgumentParser:
 
 def _surface_help() -> str:
     """The registered surface filters with their help lines (the registry is the one list)."""
-    from mabdi.filters.registry import surface_filter, surface_filter_names
+    from mabdi.surfaces.registry import surface_filter, surface_filter_names
 
     return "; ".join(f"{name} ({surface_filter(name).help})" for name in surface_filter_names())
 
@@ -367,7 +367,7 @@ def _check_run_options(args, config) -> None:
     """Options a run would only fail on late, checked before any frame: the render backend's library,
     and where --rerun saves."""
     from mabdi.errors import ConfigError
-    from mabdi.filters.depth_image import _check_backend_library
+    from mabdi.render.depth_image import _check_backend_library
 
     _check_backend_library(config.sensor.backend)
     if args.rerun:
@@ -503,7 +503,7 @@ def cmd_sweep(args) -> int:
 
 def cmd_export(args) -> int:
     from mabdi.errors import ConfigError
-    from mabdi.io.map_files import MAP_FORMATS, is_hdf5, load_map, save_map
+    from mabdi.io.mesh_map_files import MAP_FORMATS, is_hdf5, load_map, save_map
     from mabdi.io.vtk_files import read_mesh_file, write_mesh_file
 
     for what, path in (("source", args.source), ("target", args.target)):
@@ -534,7 +534,7 @@ def _layer_line(name: str, values) -> str:
 
 def cmd_info(args) -> int:
     from mabdi.io.hdf5 import map_layout
-    from mabdi.io.map_files import is_hdf5, load_map
+    from mabdi.io.mesh_map_files import is_hdf5, load_map
 
     mesh_map = load_map(args.map)
     low, high = mesh_map.bounds()
@@ -576,10 +576,10 @@ def _point(text: str, what: str):
 
 
 def cmd_plan(args) -> int:
-    from mabdi.io.map_files import load_map
+    from mabdi.io.mesh_map_files import load_map
     from mabdi.io.vtk_files import write_polydata
-    from mabdi.maps.layers import add_cost_layers
-    from mabdi.maps.planning import plan
+    from mabdi.mesh_maps.layers import add_cost_layers
+    from mabdi.mesh_maps.planning import plan
     from mabdi.polydata import polyline
 
     start, goal = _point(args.start, "start"), _point(args.goal, "goal")
@@ -589,7 +589,7 @@ def cmd_plan(args) -> int:
         add_cost_layers(mesh_map, faces=False)
         print(
             f"mabdi: warning: {args.map} has no cost layers: computed the default ones (roughness, height "
-            "difference, lethal, cost; mabdi.maps.layers) and planned on them, not on costs of your own",
+            "difference, lethal, cost; mabdi.mesh_maps.layers) and planned on them, not on costs of your own",
             file=sys.stderr,
         )
     elif "cost" not in layers:

@@ -6,7 +6,7 @@ sub-table per thing it describes: ``[sensor.camera]``, ``[sensor.lidar]``,
 ``[sensor.noise_parameters]``, ``[sensor.pose_noise]``), ``[path]`` (a helix, waypoints or a trajectory), ``[classifier]`` (on/off and thresholds),
 ``[removal]`` and ``[refinement]`` (their rules, when the classifier turns
 them on), ``[registration]`` (frame-to-map registration of each frame's
-pose, :mod:`mabdi.filters.registration`), ``[surface]`` (which surface filter, and ``[surface.<name>]`` its
+pose, :mod:`mabdi.stages.registration`), ``[surface]`` (which surface filter, and ``[surface.<name>]`` its
 parameters) and ``[output]`` (what is written). Every section and key has a
 default, so a config states only what differs. An unknown or misspelt key, a
 value of the wrong type, or a value out of range is a :class:`ConfigError`
@@ -14,8 +14,8 @@ that names the file and the key.
 
 One home for every parameter: where a section configures a filter, the
 section *is* that filter's parameter dataclass (``[classifier]`` is
-:class:`~mabdi.filters.classifier.ClassifierParameters`, ``[surface.quadtree]``
-is :class:`~mabdi.filters.quadtree.QuadTreeParameters`, ...), whose defaults
+:class:`~mabdi.stages.classifier.ClassifierParameters`, ``[surface.quadtree]``
+is :class:`~mabdi.surfaces.quadtree.QuadTreeParameters`, ...), whose defaults
 and checks are written once, in the filter's module; this module only reads
 TOML into them and adds the file and key to their error messages. Those
 dataclasses are frozen: change values with :func:`with_overrides` (dotted keys such as
@@ -48,13 +48,13 @@ from pathlib import Path
 from mabdi.camera import Intrinsics
 from mabdi.errors import ConfigError, check_switch
 from mabdi.io.toml_writer import toml_lines
-from mabdi.filters.classifier import ClassifierParameters
-from mabdi.filters.refinement import RefinementParameters
-from mabdi.filters.registration import RegistrationParameters
-from mabdi.filters.removal import RemovalParameters
-from mabdi.filters.depth_image import BACKENDS
+from mabdi.stages.classifier import ClassifierParameters
+from mabdi.stages.refinement import RefinementParameters
+from mabdi.stages.registration import RegistrationParameters
+from mabdi.stages.removal import RemovalParameters
+from mabdi.render.depth_image import BACKENDS
 from mabdi.sensor_noise import NOISE_MODELS, RANGE_NOISE_MODELS, SensorNoise
-from mabdi.filters.registry import surface_filter, surface_filter_names
+from mabdi.surfaces.registry import surface_filter, surface_filter_names
 from mabdi.pose_noise import PoseNoise
 from mabdi.spherical import SphericalGeometry
 
@@ -334,7 +334,7 @@ class SurfaceConfig:
     """Which surface filter meshes the novel pixels, and the parameters of each.
 
     ``method`` names a filter of the surface registry
-    (:mod:`mabdi.filters.registry`: ``pixel_grid``, ``quadtree``,
+    (:mod:`mabdi.surfaces.registry`: ``pixel_grid``, ``quadtree``,
     ``voxel_planes`` and any filter registered at run time). Each filter's
     parameters are a sub-table named after it, e.g. ``[surface.quadtree]
     n_t = 0.05``; its keys, defaults and checks are the filter's own

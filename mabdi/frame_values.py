@@ -4,8 +4,8 @@ Plain numpy with units and frames, made once a frame and not changed after.
 The loop passes them from stage to stage as they are; the VTK filters of the
 pipeline API read and write them as depth images with field data, at their
 edge only (:meth:`Measured.to_image`, :meth:`Measured.from_image`; E's and the
-labels' arrays: :mod:`mabdi.filters.expected_image`,
-:mod:`mabdi.filters.classifier`). The frame path: docs/architecture.md.
+labels' arrays: :mod:`mabdi.stages.expected_image`,
+:mod:`mabdi.stages.classifier`). The frame path: docs/architecture.md.
 """
 
 from __future__ import annotations
@@ -81,9 +81,9 @@ class Measured:
 
 @dataclass(frozen=True, eq=False)
 class Placement:
-    """Where registration placed a frame (:mod:`mabdi.filters.registration`).
+    """Where registration placed a frame (:mod:`mabdi.stages.registration`).
 
-    ``status``: an entry of :data:`mabdi.filters.registration.STATUSES` ("off" without registration);
+    ``status``: an entry of :data:`mabdi.stages.registration.STATUSES` ("off" without registration);
     ``correction_m`` / ``correction_deg``: how far the meshed pose lies from the given one (the camera centre
     moved, metres; and turned, degrees); ``residual_m``: RMS residual of the ICP's pairs; ``inlier_share``;
     ``support``: the least share of a constrained direction's constraint its pairs carry; ``iterations``;
@@ -112,7 +112,7 @@ class Placement:
 
 @dataclass(frozen=True, eq=False)
 class Expected:
-    """E: the map seen from D's pose (:mod:`mabdi.filters.expected_image`).
+    """E: the map seen from D's pose (:mod:`mabdi.stages.expected_image`).
 
     ``depth``: (H, W) float32 as D's (NaN where the map has no surface within (near, far)); ``geometry`` and
     ``pose`` (4x4 camera-to-map): D's; ``face_ids``: (H, W) int32 the code of the map face each pixel shows
@@ -132,7 +132,7 @@ class Expected:
 
 @dataclass(frozen=True, eq=False)
 class Classified:
-    """The classifier's findings on D against E (:mod:`mabdi.filters.classifier`).
+    """The classifier's findings on D against E (:mod:`mabdi.stages.classifier`).
 
     ``labels``: (H, W) uint8 (0 no return, 1 known, 2 novel, 3 contradicted); ``depth``: (H, W) float32 what
     the surface meshes (the novel pixels and their rim, metres; NaN elsewhere); ``pose_sigma``: (H, W) float32

@@ -68,7 +68,7 @@ class PoseNoise:
     def variances(self) -> tuple[tuple[float, float], tuple[float, float]]:
         """What this noise says of a given pose's error, per component: ((sigma^2, q) of the rotation in rad^2
         and rad^2 per metre travelled, (sigma^2, q) of the translation in m^2 and m^2 per metre): the white
-        jitter's variance and the drift's growth (the form :class:`mabdi.filters.map_anchor.MapAnchor` takes)."""
+        jitter's variance and the drift's growth (the form :class:`mabdi.stages.map_anchor.MapAnchor` takes)."""
         rotation = (math.radians(self.jitter_rotation) ** 2, math.radians(self.drift_rotation) ** 2)
         return rotation, (self.jitter_translation**2, self.drift_translation**2)
 

@@ -17,7 +17,7 @@ Why chunks:
   keys), with the chunk's bounding box (the union of its patches' boxes) in
   the block metadata (``BOUNDING_BOX``). The expected-image renderer skips
   chunks outside the view frustum, so its cost follows the view, not the
-  map (:func:`mabdi.filters.depth_image.named_leaves`).
+  map (:func:`mabdi.render.depth_image.named_leaves`).
 * **Bounded draw calls.** Once a chunk holds more than ``patches_per_chunk``
   frame patches, they are merged into one (:meth:`WorldMap.compact`) (a concatenation: no vertex is
   shared between former patches, so removal's edge-connected spread and
@@ -35,7 +35,7 @@ which polydata was drawn) counts as not in the map; removal casts the pixels
 that showed it against the patch now there. There is no cap on the number of faces in the
 map.
 
-:class:`mabdi.filters.world_mesh.FilterWorldMesh` is the VTK adaptor that
+:class:`mabdi.stages.world_mesh.FilterWorldMesh` is the VTK adaptor that
 appends each frame's surface; checkpoints keep :meth:`state`.
 """
 
@@ -55,6 +55,10 @@ from mabdi.polydata_kernels import corners_marked, triangle_centres, triangles_t
 from mabdi.polydata import extract_polys, polydata_from_state, split_polys, polydata_to_state, triangle_normals
 
 FRAME_CELL_ARRAY = "frame"
+#: Cell data of a surface whose faces are keyed patches (voxel planes): the patch each face belongs to.
+PATCH_KEY_ARRAY = "patch_key"
+#: Field data of such a surface: the keys of patches it no longer holds (removed from the map on append).
+REMOVED_KEYS_ARRAY = "removed_patch_keys"
 #: Edge of a chunk (metres): small beside what a depth camera sees at once, so culling draws little beyond the view.
 CHUNK_SIZE = 2.0
 #: Edge of a chunk for a spinning LiDAR (metres, :func:`mabdi.loop.loop.chunk_size_for`): it sees tens of metres
@@ -148,8 +152,8 @@ class Chunk:
 def update_log_odds(
     evidence: np.ndarray, frames: np.ndarray, contradicted: np.ndarray, confirmed: np.ndarray, parameters
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """One frame of removal's evidence rule (:mod:`mabdi.filters.removal`, "The rule"; ``parameters``: its
-    :class:`~mabdi.filters.removal.RemovalParameters`): (new log-odds, new contradicting-frame counts, removed mask)."""
+    """One frame of removal's evidence rule (:mod:`mabdi.stages.removal`, "The rule"; ``parameters``: its
+    :class:`~mabdi.stages.removal.RemovalParameters`): (new log-odds, new contradicting-frame counts, removed mask)."""
     against = contradicted > confirmed
     evidence = evidence + np.where(against, parameters.hit, np.where(confirmed > 0, -parameters.miss, 0.0))
     evidence = np.clip(evidence, parameters.floor, parameters.ceiling).astype(np.float32)
@@ -533,7 +537,7 @@ class WorldMap:
     def stale_blocks(self, table: FaceIdTable) -> list[int]:
         """Indices of the blocks of ``table`` whose name is a patch of the map that is not the one drawn (a keyed
         patch re-meshed since): their codes find nothing, and the pixels that showed them can be cast against
-        the patch now there (:mod:`mabdi.loop.object_removal`)."""
+        the patch now there (:mod:`mabdi.stages.object_removal`)."""
         return [b for b, name in enumerate(table.names) if name in self._patches and not self._drawn_is_current(table, b)]
 
     def refitted_faces(self, key: str) -> np.ndarray:
@@ -564,7 +568,7 @@ class WorldMap:
 
         ``codes``: faces voted on this frame (of the expected image whose ``table`` is given);
         ``contradicted`` / ``confirmed``: their pixel votes. The rule is
-        :func:`update_log_odds` (``parameters``: :class:`~mabdi.filters.removal.RemovalParameters`);
+        :func:`update_log_odds` (``parameters``: :class:`~mabdi.stages.removal.RemovalParameters`);
         besides, a face that shared an edge with a face removed before (:attr:`Patch.beside_removed`) goes
         as soon as its evidence is above 0. That is the rule by which contradicted faces follow a removed
         neighbour (:meth:`_removed_with`), kept when the neighbour went first: a departed object's small

@@ -5,17 +5,17 @@ These are the whole-array numpy versions they were written from, kept here so
 that a test can hand both the same inputs and check that they agree:
 
 * quad-tree stages 1-5 and the small-leaf plane test
-  (:mod:`mabdi.filters.quadtree_kernels`): :func:`reduce_points`,
+  (:mod:`mabdi.surfaces.quadtree_kernels`): :func:`reduce_points`,
   :func:`point_normals`, :func:`build_leaves`, :func:`plane_residual`, and
-  :func:`quadtree_leaves_of_image` (:func:`mabdi.filters.quadtree.leaves_of_image`
+  :func:`quadtree_leaves_of_image` (:func:`mabdi.surfaces.quadtree.leaves_of_image`
   with these stages); tests/test_quadtree.py.
-* refinement's per-block work (:mod:`mabdi.filters.refinement_kernels`):
+* refinement's per-block work (:mod:`mabdi.stages.refinement_kernels`):
   :func:`observe_block`; tests/test_refinement.py.
 * voxel traversal (:mod:`mabdi.voxels.traversal`): :func:`reference_voxels`
   and :func:`reference_pairs`; tests/test_voxel_traversal.py.
-* fast marching on a mesh map (:mod:`mabdi.maps.fast_marching`):
+* fast marching on a mesh map (:mod:`mabdi.mesh_maps.fast_marching`):
   :func:`iterative_arrival_times`; tests/test_maps.py.
-* the cost layers' neighbourhood statistics (:func:`mabdi.maps.neighbourhood.radius_statistics`):
+* the cost layers' neighbourhood statistics (:func:`mabdi.mesh_maps.neighbourhood.radius_statistics`):
   :func:`neighbourhoods` (a KD-tree), :func:`roughness` and :func:`height_difference`; tests/test_maps.py.
 """
 
@@ -25,14 +25,14 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from mabdi.camera import Intrinsics
-from mabdi.filters.depth_smoothing import smooth_depth_by_noise
-from mabdi.filters.quadtree import Leaves, fitting_leaves
+from mabdi.surfaces.depth_smoothing import smooth_depth_by_noise
+from mabdi.surfaces.quadtree import Leaves, fitting_leaves
 from mabdi.voxels.traversal import prepare_rays
-from mabdi.maps.fast_marching import triangle_updates
-from mabdi.maps.planning import _vertex_faces
+from mabdi.mesh_maps.fast_marching import triangle_updates
+from mabdi.mesh_maps.planning import _vertex_faces
 
 # ---------------------------------------------------------------------------
-# quad-tree (mabdi.filters.quadtree_kernels)
+# quad-tree (mabdi.surfaces.quadtree_kernels)
 
 
 def reduce_points(depth: np.ndarray, intrinsics: Intrinsics, reduction: int) -> tuple[np.ndarray, Intrinsics]:
@@ -223,15 +223,15 @@ def plane_residual(points: np.ndarray, leaves: Leaves, max_jump: float, largest:
 
 
 def quadtree_leaves_of_image(depth: np.ndarray, intrinsics: Intrinsics, p, noise) -> tuple[np.ndarray, Intrinsics, Leaves]:
-    """:func:`mabdi.filters.quadtree.leaves_of_image` with the numpy stages above instead of the numba kernels."""
-    from mabdi.filters.quadtree import resolved
+    """:func:`mabdi.surfaces.quadtree.leaves_of_image` with the numpy stages above instead of the numba kernels."""
+    from mabdi.surfaces.quadtree import resolved
 
     p = resolved(p, intrinsics)
     if p.smooth_depth:
         depth = smooth_depth_by_noise(depth, noise, intrinsics)
     points, reduced = reduce_points(depth, intrinsics, p.reduction)
     normals = point_normals(points, p.max_jump)
-    from mabdi.filters.quadtree import MERGE_MIN_DISTANCE, merge_allowances, noise_merge_on
+    from mabdi.surfaces.quadtree import MERGE_MIN_DISTANCE, merge_allowances, noise_merge_on
 
     allowances = merge_allowances(points, reduced, noise, p.smooth_depth) if noise_merge_on(p, noise) else None
     leaves, regions = build_leaves(points, normals, p.n_t, p.d_t, allowances, MERGE_MIN_DISTANCE)
@@ -242,7 +242,7 @@ def quadtree_leaves_of_image(depth: np.ndarray, intrinsics: Intrinsics, p, noise
 
 
 # ---------------------------------------------------------------------------
-# refinement (mabdi.filters.refinement_kernels)
+# refinement (mabdi.stages.refinement_kernels)
 
 
 def observe_block(
@@ -254,8 +254,8 @@ def observe_block(
     ``expected`` z-depths D and E, ``length`` ray metres per metre of z-depth, ``sd`` sigma(D), ``centre`` the
     camera's position, ``focal`` in pixels): adds the observations to the block's ``weight`` and ``total`` in
     place (see the module docs); returns (per pixel: its face is replaced, pixels that observed, vertices whose
-    weight grew). The numpy reference of :func:`mabdi.filters.refinement_kernels.observe_block_kernel`
-    (formerly ``mabdi.filters.refinement.observe_block``)."""
+    weight grew). The numpy reference of :func:`mabdi.stages.refinement_kernels.observe_block_kernel`
+    (formerly ``mabdi.stages.refinement.observe_block``)."""
     tri = triangles[cells]
     corners = points[tri].astype(np.float64)  # (n, 3, 3) current positions
     a = corners[:, 0]
@@ -384,11 +384,11 @@ def reference_pairs(origins, ends, voxel_size: float, margins=0.0, *, include_en
 
 
 # ---------------------------------------------------------------------------
-# fast marching (mabdi.maps.fast_marching)
+# fast marching (mabdi.mesh_maps.fast_marching)
 
 
 def iterative_arrival_times(mesh_map, source: int, slowness: np.ndarray, blocked: np.ndarray) -> np.ndarray:
-    """:func:`mabdi.maps.planning.arrival_times` by the fast iterative method (formerly its ``method="iterative"``):
+    """:func:`mabdi.mesh_maps.planning.arrival_times` by the fast iterative method (formerly its ``method="iterative"``):
     a band of active vertices updated all at once with numpy until no time improves by more than 1e-9 of the
     domain size; the same triangle update and solution as the compiled heap, much slower on big maps."""
     vertices = mesh_map.vertices.astype(np.float64)

@@ -8,7 +8,7 @@ from vtkmodules.vtkCommonDataModel import vtkPolyData
 from vtkmodules.vtkFiltersCore import vtkTriangleFilter
 
 from mabdi.algorithm import MabdiAlgorithm, raise_pipeline_errors
-from mabdi.filters.depth_image import FilterDepthImage
+from mabdi.render.depth_image import FilterDepthImage
 
 
 class FailingSource(MabdiAlgorithm):

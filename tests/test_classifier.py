@@ -11,7 +11,7 @@ from vtkmodules.util.numpy_support import vtk_to_numpy
 from mabdi.camera import Intrinsics, look_at
 from mabdi.depth import DepthFrame, depth_image
 from mabdi.sensor_noise import SensorNoise
-from mabdi.filters.classifier import (
+from mabdi.stages.classifier import (
     CONTRADICTED,
     KNOWN,
     NO_RETURN,
@@ -134,7 +134,7 @@ def reference_hole_fills(specks, measured, expected, labels, tau, covered=None):
     """:func:`hole_fills` written region by region and pixel by pixel, as the module docs say it."""
     from scipy import ndimage
 
-    from mabdi.filters.classifier import HOLE_BAND_PX, HOLE_JUMP, HOLE_RING_MIN, HOLE_RING_SHARE
+    from mabdi.stages.classifier import HOLE_BAND_PX, HOLE_JUMP, HOLE_RING_MIN, HOLE_RING_SHARE
 
     valid = np.isfinite(measured)
 
@@ -275,7 +275,7 @@ def test_bad_parameters():
 def test_slice_morphology_matches_scipy(radius):
     from scipy import ndimage
 
-    from mabdi.filters.classifier import dilate, erode
+    from mabdi.stages.classifier import dilate, erode
 
     mask = np.random.default_rng(radius).random((50, 70)) > 0.3
     square = np.ones((2 * radius + 1, 2 * radius + 1), bool)
@@ -291,12 +291,12 @@ def test_the_rim_closes_the_seam_between_a_new_quad_tree_patch_and_the_map():
     (``reduction`` = 3, what the loop sets for ``rim = "auto"``) closes the seam wherever it falls among the
     blocks, but for notches where two blocks' corners meet it; noise-free depth needs one pixel."""
     from conftest import merged
-    from mabdi.filters.depth_image import DepthRenderer
-    from mabdi.filters.quadtree import FilterQuadTree, QuadTreeParameters
-    from mabdi.filters.registry import seam_pixels
+    from mabdi.render.depth_image import DepthRenderer
+    from mabdi.surfaces.quadtree import FilterQuadTree, QuadTreeParameters
+    from mabdi.surfaces.registry import seam_pixels
 
     parameters = QuadTreeParameters(triangles=True)
-    from mabdi.filters.pixel_grid import PixelGridParameters
+    from mabdi.surfaces.pixel_grid import PixelGridParameters
 
     assert seam_pixels("quadtree", parameters, True) == 3 and seam_pixels("quadtree", parameters, False) == 1
     assert seam_pixels("quadtree", QuadTreeParameters(reduction=1), True) == 1

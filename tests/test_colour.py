@@ -12,9 +12,9 @@ from mabdi.config import load_run_config
 from mabdi.errors import ConfigError
 from mabdi.evaluate.distance import distances_within
 from mabdi.io.hdf5 import read_map
-from mabdi.io.map_files import load_map, save_map
+from mabdi.io.mesh_map_files import load_map, save_map
 from mabdi.io.vtk_files import read_mesh_file, write_mesh_file
-from mabdi.maps.mesh_map import COLOUR_LAYER, MeshMap
+from mabdi.mesh_maps.mesh_map import COLOUR_LAYER, MeshMap
 from mabdi.polydata import triangles_polydata
 from mabdi.loop import MappingRun
 from mabdi.sources.scene import SourceScene

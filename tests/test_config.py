@@ -96,7 +96,9 @@ def test_missing_file(tmp_path):
 
 
 def test_sections_are_the_filters_parameter_classes(tmp_path):
-    from mabdi.filters import ClassifierParameters, PixelGridParameters, QuadTreeParameters
+    from mabdi.stages.classifier import ClassifierParameters
+    from mabdi.surfaces.pixel_grid import PixelGridParameters
+    from mabdi.surfaces.quadtree import QuadTreeParameters
 
     config = load_run_config(write(tmp_path, '[classifier]\ntau_min = 0.02\n[surface]\nmethod = "quadtree"\n[surface.quadtree]\nn_t = 0.05\n'))
     assert isinstance(config.classifier, ClassifierParameters) and config.classifier.tau_min == 0.02
@@ -168,7 +170,7 @@ def test_a_surface_filter_registered_from_outside_runs_by_name(tmp_path):
 
     import mabdi
     from mabdi.depth import depth_array, image_pose
-    from mabdi.filters.registry import surface_filter_names, unregister_surface_filter
+    from mabdi.surfaces.registry import surface_filter_names, unregister_surface_filter
     from mabdi.polydata import triangles_polydata
 
     @dataclasses.dataclass(frozen=True)

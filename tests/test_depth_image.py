@@ -13,7 +13,7 @@ from conftest import plane_mesh
 from mabdi.camera import Intrinsics, backproject, look_at
 from mabdi.depth import DepthFrame, depth_array
 from mabdi.errors import ConfigError, PoseError
-from mabdi.filters.depth_image import FilterDepthImage
+from mabdi.render.depth_image import FilterDepthImage
 from mabdi.sensor_noise import SensorNoise
 from mabdi.sources.scene import SourceScene
 
@@ -254,8 +254,8 @@ def test_osmesa_backend_matches_egl():
 def test_a_render_from_the_same_pose_of_the_same_unchanged_map_is_not_drawn_again():
     from vtkmodules.util.numpy_support import vtk_to_numpy
 
-    from mabdi.filters.depth_image import DepthRenderer
-    from mabdi.filters.expected_image import render_expected
+    from mabdi.render.depth_image import DepthRenderer
+    from mabdi.stages.expected_image import render_expected
 
     k = Intrinsics(width=64, height=48, fx=50.0, fy=50.0, cx=32.0, cy=24.0)
     mesh = plane_mesh([0, 0, 2.0], [0, 0, -1], size=4.0, subdivisions=4)

@@ -11,9 +11,9 @@ from mabdi.config import load_run_config, set_value
 from mabdi.depth import depth_image
 from mabdi.errors import ConfigError
 from mabdi.sensor_noise import SensorNoise
-from mabdi.filters.depth_smoothing import smooth_depth
-from mabdi.filters.pixel_grid import FilterPixelGrid, PixelGridParameters
-from mabdi.filters.quadtree import FilterQuadTree, QuadTreeParameters
+from mabdi.surfaces.depth_smoothing import smooth_depth
+from mabdi.surfaces.pixel_grid import FilterPixelGrid, PixelGridParameters
+from mabdi.surfaces.quadtree import FilterQuadTree, QuadTreeParameters
 
 K = Intrinsics(fx=525.0, fy=525.0, cx=160.0, cy=120.0, width=320, height=240)
 KINECT = SensorNoise("kinect")
@@ -116,8 +116,8 @@ def test_the_compiled_pass_equals_the_array_formulation_bit_for_bit():
 def test_the_window_follows_the_noise_correlation():
     """3 x 3 where pixels err on their own; 1.5 correlation lengths each way where they err together (capped);
     every opposite pair of the window once."""
-    from mabdi.filters.depth_smoothing import MAX_SMOOTHING_RADIUS, smoothing_radius
-    from mabdi.filters.depth_smoothing_kernels import PAIR_DIRECTIONS, pair_directions
+    from mabdi.surfaces.depth_smoothing import MAX_SMOOTHING_RADIUS, smoothing_radius
+    from mabdi.surfaces.depth_smoothing_kernels import PAIR_DIRECTIONS, pair_directions
 
     assert smoothing_radius(KINECT) == smoothing_radius(SensorNoise("zbuffer")) == 1
     assert smoothing_radius(SensorNoise("structured_light", correlation_length=2.5)) == 4

@@ -231,7 +231,7 @@ def test_bench_frames_state_what_the_simulator_states():
     ``mabdi run`` does, not as a recording of unknown accuracy)."""
     from mabdi.config import load_run_config, with_overrides
     from mabdi.evaluate.bench import bench_frames
-    from mabdi.filters.registration import RegistrationParameters
+    from mabdi.stages.registration import RegistrationParameters
     from mabdi.pose_noise import PoseNoise
 
     config = with_overrides(load_run_config(REPO / "scenes" / "table.toml"), {"run.frames": 2}, where="test")

@@ -14,13 +14,13 @@ from vtkmodules.vtkCommonDataModel import vtkImageData
 from conftest import plane_mesh
 from mabdi.camera import Intrinsics
 from mabdi.depth import depth_array, depth_image, image_noise, image_pose
-from mabdi.filters.classifier import ClassifierParameters, FilterClassifier, label_array, pixel_counts, pose_sigma_array
-from mabdi.filters.expected_image import MAP_PORT, MEASURED_PORT, FilterExpectedImage, expected_of_image, face_id_array, write_expected
-from mabdi.filters.quadtree import FilterQuadTree, QuadTreeParameters
-from mabdi.filters.registration import write_placement
-from mabdi.filters.registry import mesh_frame
+from mabdi.stages.classifier import ClassifierParameters, FilterClassifier, label_array, pixel_counts, pose_sigma_array
+from mabdi.stages.expected_image import MAP_PORT, MEASURED_PORT, FilterExpectedImage, expected_of_image, face_id_array, write_expected
+from mabdi.surfaces.quadtree import FilterQuadTree, QuadTreeParameters
+from mabdi.stages.registration import write_placement
+from mabdi.surfaces.registry import mesh_frame
 from mabdi.frame_values import Measured, Placement
-from mabdi.maps.mesh_map import COLOUR_LAYER
+from mabdi.mesh_maps.mesh_map import COLOUR_LAYER
 from mabdi.noise_calibration import NoiseCalibration
 from mabdi.polydata import polydata_arrays
 from mabdi.sensor_noise import SensorNoise

@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 
 from mabdi.io.hdf5 import MapFileError, map_layout, read_map, write_map
-from mabdi.io.map_files import load_map, save_map
-from mabdi.maps.mesh_map import MeshMap, MeshMapError
+from mabdi.io.mesh_map_files import load_map, save_map
+from mabdi.mesh_maps.mesh_map import MeshMap, MeshMapError
 
 
 def sample_map(n=500, seed=0) -> MeshMap:

@@ -228,7 +228,7 @@ LAYERS = {
     "mabdi.polydata": 0,  # triangle meshes as vtkPolyData and numpy
     "mabdi.polydata_kernels": 0,  # numba per-face work on a polydata's arrays
     # 1 the map as data: MeshMap and what is computed on it (colours, layers, labels, planning); core only
-    "mabdi.maps": 1,
+    "mabdi.mesh_maps": 1,
     # 2 files: atomic writes, checkpoints, run folders, mesh and map files (which store MeshMaps)
     "mabdi.io": 2,
     # 3 sensor data: recorded sequences, frame sources, mesh assets (read through io)
@@ -240,24 +240,28 @@ LAYERS = {
     "mabdi.voxels": 4,
     # 5 the loop's world map: patches of faces and their removal evidence
     "mabdi.world_map": 5,
-    # 6 the pipeline's VTK filters and their rules (surfaces, registration, classifier, removal, refinement)
-    "mabdi.filters": 6,
-    # 7 a run's config, built of the filters' and models' parameters
-    "mabdi.config": 7,
-    # 8 what a config makes: the simulated scene, the rig and its recordings
-    "mabdi.simulate": 8,
-    "mabdi.sources.scene": 8,  # the simulated world, made from a config's [scene]
-    # 9 the loop and the runs that drive it
-    "mabdi.loop": 9,
-    # 10 scores of runs and maps
-    "mabdi.evaluate": 10,
-    # 11 on top of runs and their scores: sweeps of runs, viewers, dashboards, movies
-    "mabdi.sweep": 11,
-    "mabdi.viz": 11,
-    # 12 the command line
-    "mabdi.cli": 12,
-    # 13 the package's public face, which imports from every layer
-    "mabdi": 13,
+    # 6 drawing depth images of meshes: the renderer, the simulated camera, a LiDAR's range images
+    "mabdi.render": 6,
+    # 7 surfaces: novel pixels made into triangles, and their registry
+    "mabdi.surfaces": 7,
+    # 8 the frame path's other stages: registration, E, classifier, refinement, removal, the world mesh
+    "mabdi.stages": 8,
+    # 9 a run's config, built of the stages' and models' parameters
+    "mabdi.config": 9,
+    # 10 what a config makes: the simulated scene, the rig and its recordings
+    "mabdi.simulate": 10,
+    "mabdi.sources.scene": 10,  # the simulated world, made from a config's [scene]
+    # 11 the loop and the runs that drive it
+    "mabdi.loop": 11,
+    # 12 scores of runs and maps
+    "mabdi.evaluate": 12,
+    # 13 on top of runs and their scores: sweeps of runs, viewers, dashboards, movies
+    "mabdi.sweep": 13,
+    "mabdi.viz": 13,
+    # 14 the command line
+    "mabdi.cli": 14,
+    # 15 the package's public face, which imports from every layer
+    "mabdi": 15,
 }
 
 

@@ -59,7 +59,7 @@ def test_a_wrapped_interrupt_in_a_frame_exits_130_with_the_note(tmp_path, monkey
     """A SystemError from a KeyboardInterrupt raised in a frame's own code (removal here, refinement's kernel
     on the user's run): ``mabdi run`` exits 130 with ``mabdi: interrupted``, no traceback, no map."""
     from mabdi.cli import main
-    from mabdi.loop.object_removal import ObjectRemoval
+    from mabdi.stages.object_removal import ObjectRemoval
 
     def interrupted(*args, **kwargs):
         raise _wrapped_interrupt()
@@ -74,7 +74,7 @@ def test_a_wrapped_interrupt_in_a_frame_exits_130_with_the_note(tmp_path, monkey
 def test_a_wrapped_interrupt_in_a_pipeline_request_exits_130(tmp_path, monkeypatch, capsys):
     """The same raised inside a VTK request (the simulated sensor's): stored by the algorithm, raised as an interrupt."""
     from mabdi.cli import main
-    from mabdi.filters.depth_image import FilterDepthImage
+    from mabdi.render.depth_image import FilterDepthImage
 
     def interrupted(self, request, inInfo, outInfo):  # noqa: N803 (VTK API)
         raise _wrapped_interrupt()
@@ -88,7 +88,7 @@ def test_a_wrapped_interrupt_in_a_pipeline_request_exits_130(tmp_path, monkeypat
 def test_any_error_after_a_noted_sigint_exits_130(tmp_path, monkeypatch, capsys):
     """An error of any kind raised in a frame after a SIGINT was noted (its KeyboardInterrupt lost on the way)."""
     from mabdi.cli import main
-    from mabdi.loop.object_removal import ObjectRemoval
+    from mabdi.stages.object_removal import ObjectRemoval
 
     def interrupted(*args, **kwargs):
         interrupts.note()

@@ -13,7 +13,7 @@ from vtkmodules.vtkIOXML import vtkXMLImageDataReader, vtkXMLPolyDataReader
 from mabdi.cli import main
 from mabdi.config import load_run_config, run_config_from_dict
 from mabdi.depth import DepthFrame
-from mabdi.filters.registration import given_pose, image_world_from_map
+from mabdi.stages.registration import given_pose, image_world_from_map
 from mabdi.sources.tum import read_groundtruth
 from mabdi.io.atomic import atomic_output, write_text
 

@@ -16,11 +16,11 @@ from mabdi.camera import Intrinsics
 from mabdi.config import RunConfig, load_run_config
 from mabdi.depth import DepthFrame, depth_array, image_intrinsics, is_range_image
 from mabdi.errors import ConfigError
-from mabdi.filters.depth_image import FilterDepthImage
+from mabdi.render.depth_image import FilterDepthImage
 from mabdi.sensor_noise import SensorNoise
-from mabdi.filters.expected_image import FilterExpectedImage, face_id_array
-from mabdi.filters.pixel_grid import FilterPixelGrid, PixelGridParameters
-from mabdi.filters.world_mesh import FilterWorldMesh
+from mabdi.stages.expected_image import FilterExpectedImage, face_id_array
+from mabdi.surfaces.pixel_grid import FilterPixelGrid, PixelGridParameters
+from mabdi.stages.world_mesh import FilterWorldMesh
 from mabdi.polydata import polydata_arrays
 from mabdi.spherical import SphericalGeometry
 
@@ -350,7 +350,7 @@ def test_the_quadtree_meshes_ground_seen_at_grazing_incidence_and_nothing_off_th
     fourfold; a single pixel's normal is no fitted plane, and no vertex lands off the scene that did not
     without the rule. No triangle is without area (single pixels on two silhouettes, their corners moved
     onto one line, made a third of the triangles here before they were left out)."""
-    from mabdi.filters.quadtree import FilterQuadTree, QuadTreeParameters
+    from mabdi.surfaces.quadtree import FilterQuadTree, QuadTreeParameters
     from mabdi.polydata import polydata_area
 
     image, off_scene = street_corner()
@@ -375,7 +375,7 @@ def test_quadtree_meshes_a_straight_wall_from_the_range_image_flat(reduction):
     # spherical transform makes it flat again, merges it into big faces, with the wall's normal
     from vtkmodules.util.numpy_support import vtk_to_numpy
 
-    from mabdi.filters.quadtree import FilterQuadTree, QuadTreeParameters
+    from mabdi.surfaces.quadtree import FilterQuadTree, QuadTreeParameters
 
     geometry = SphericalGeometry(32, 512, 10.0, -20.0, 0.5, 50.0)
     wall = plane((4.0, -8.0, -3.0), (4.0, 8.0, -3.0), (4.0, -8.0, 3.0))
@@ -574,7 +574,7 @@ def test_the_pixel_grid_joins_the_azimuth_seam():
 def test_expected_range_image_says_where_the_map_reaches_into_a_beams_footprint():
     """A floor patch 4 to 8 m ahead of a LiDAR 1.9 m up: E's ``map_in_footprint`` is set at the beams that hit
     it, and at a beam that misses it exactly where the patch's far edge lies within half a beam step of it."""
-    from mabdi.filters.expected_image import map_in_footprint
+    from mabdi.stages.expected_image import map_in_footprint
 
     lidar = SphericalGeometry(32, 256, 2.0, -30.0, 0.5, 50.0)  # beams 1 degree apart
     height = 1.9
@@ -607,7 +607,7 @@ def test_expected_range_image_says_where_the_map_reaches_into_a_beams_footprint(
 
 
 def test_thin_novel_strips_go_only_where_the_map_reaches_into_their_footprint():
-    from mabdi.filters.classifier import remove_specks
+    from mabdi.stages.classifier import remove_specks
 
     novel = np.zeros((16, 64), dtype=bool)
     novel[5, 2:62] = True  # a strip one pixel tall, 60 long
@@ -627,7 +627,7 @@ def test_the_quadtree_s_reduction_is_a_camera_s_3_and_a_range_image_s_1():
     from vtkmodules.util.numpy_support import vtk_to_numpy
 
     from mabdi.camera import Intrinsics
-    from mabdi.filters.quadtree import FilterQuadTree, QuadTreeParameters, resolved
+    from mabdi.surfaces.quadtree import FilterQuadTree, QuadTreeParameters, resolved
 
     geometry = SphericalGeometry(32, 512, 10.0, -20.0, 0.5, 50.0)
     assert resolved(QuadTreeParameters(), geometry).reduction == 1

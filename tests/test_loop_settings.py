@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 from mabdi.camera import Intrinsics
-from mabdi.filters.classifier import ClassifierParameters
-from mabdi.filters.refinement import RefinementParameters
-from mabdi.filters.removal import RemovalParameters
+from mabdi.stages.classifier import ClassifierParameters
+from mabdi.stages.refinement import RefinementParameters
+from mabdi.stages.removal import RemovalParameters
 from mabdi.loop.loop import resolve_settings
 from mabdi.sensor_noise import SensorNoise
 from mabdi.spherical import SphericalGeometry

@@ -3,11 +3,11 @@
 import numpy as np
 import pytest
 
-from mabdi.maps.labels import label_faces, label_floor, planar_clusters
-from mabdi.maps.layers import CostParameters, add_cost_layers, cost_layers, vertex_normals
-from mabdi.maps.mesh_map import MeshMap, MeshMapError, welded_map
-from mabdi.maps.picking import MapPicker, goal_pose, rotation_to_quaternion
-from mabdi.maps.planning import PlanningError, plan
+from mabdi.mesh_maps.labels import label_faces, label_floor, planar_clusters
+from mabdi.mesh_maps.layers import CostParameters, add_cost_layers, cost_layers, vertex_normals
+from mabdi.mesh_maps.mesh_map import MeshMap, MeshMapError, welded_map
+from mabdi.mesh_maps.picking import MapPicker, goal_pose, rotation_to_quaternion
+from mabdi.mesh_maps.planning import PlanningError, plan
 
 
 def grid(width, height, spacing, z=None, origin=(0.0, 0.0)):
@@ -61,7 +61,7 @@ def test_the_compiled_neighbourhood_statistics_give_the_kd_tree_references():
     within the radius: the same roughness and height difference on a bumpy, stepped patch."""
     from reference_kernels import height_difference, neighbourhoods, roughness
 
-    from mabdi.maps.neighbourhood import radius_statistics
+    from mabdi.mesh_maps.neighbourhood import radius_statistics
 
     bumpy = grid(1, 1, 0.02, z=lambda x, y: 0.03 * np.sin(x / 0.05) * np.cos(y / 0.05) + np.where(x > 0.2, 0.05, 0.0))
     normals = vertex_normals(bumpy.vertices, bumpy.faces)
@@ -180,7 +180,7 @@ def test_the_compiled_heap_gives_the_numpy_iterative_arrival_times(floor_with_bo
     slowness that varies: the same first-order update, so the same times."""
     from reference_kernels import iterative_arrival_times
 
-    from mabdi.maps.planning import arrival_times
+    from mabdi.mesh_maps.planning import arrival_times
 
     floor, box = floor_with_box
     x, y = floor.vertices[:, 0], floor.vertices[:, 1]

@@ -10,7 +10,7 @@ from conftest import REPO
 from mabdi.camera import Intrinsics, look_at
 from mabdi.config import set_value
 from mabdi.depth import DepthFrame, depth_image, image_noise, set_noise
-from mabdi.filters.classifier import CONTRADICTED, KNOWN, NOVEL, ClassifierParameters, FilterClassifier, label_array
+from mabdi.stages.classifier import CONTRADICTED, KNOWN, NOVEL, ClassifierParameters, FilterClassifier, label_array
 from mabdi.noise_calibration import PRIOR_CORRELATION, NoiseCalibration, NoiseCurve
 from mabdi.sensor_noise import SensorNoise
 from mabdi.sources.frames import FrameList, SourceDepthFrames

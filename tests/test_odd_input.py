@@ -11,7 +11,7 @@ import pytest
 from mabdi.camera import Intrinsics
 from mabdi.cli import main
 from mabdi.depth import depth_image, returns
-from mabdi.filters.registry import make_surface_filter
+from mabdi.surfaces.registry import make_surface_filter
 from mabdi.io.vtk_files import read_mesh_file
 
 SMALL = Intrinsics(fx=52.5, fy=52.5, cx=32.0, cy=24.0, width=64, height=48)

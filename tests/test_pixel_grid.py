@@ -7,7 +7,7 @@ from vtkmodules.util.numpy_support import vtk_to_numpy
 
 from mabdi.camera import Intrinsics, backproject, look_at
 from mabdi.depth import depth_image
-from mabdi.filters.pixel_grid import FilterPixelGrid, PixelGridParameters, pixel_grid_triangles
+from mabdi.surfaces.pixel_grid import FilterPixelGrid, PixelGridParameters, pixel_grid_triangles
 
 SMALL = Intrinsics(fx=52.5, fy=52.5, cx=32.0, cy=24.0, width=64, height=48)
 
@@ -87,7 +87,7 @@ def test_parameters_are_checked():
 
 def test_straight_edges_from_a_wider_image_never_reach_a_pixel_without_depth():
     """The flat-ground masks may come from the whole measured image; a triangle still needs three valid corners."""
-    from mabdi.filters.pixel_grid import pixel_grid_triangles
+    from mabdi.surfaces.pixel_grid import pixel_grid_triangles
 
     depth = np.full((6, 8), 2.0, dtype=np.float32)
     depth[2:4, 3:5] = np.nan

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from mabdi.filters.registration_check import MAX_CORRECTION_DEG, MAX_CORRECTION_M, poses_disagree
+from mabdi.stages.registration_check import MAX_CORRECTION_DEG, MAX_CORRECTION_M, poses_disagree
 
 REPO = Path(__file__).resolve().parents[1]
 WARNING = "the poses disagree with the depth"
@@ -123,7 +123,7 @@ def test_a_wrong_depth_scale_is_named_and_a_simulation_stating_its_pose_noise_is
 def test_a_pose_jump_is_found_beside_steady_steps_and_fast_smooth_motion_is_not():
     """A step over 4 times the larger of the steps beside it (and over 2 cm or 1 degree) is a jump; motion that
     speeds up smoothly is not; the warning names a jump only where the frames after it removed much."""
-    from mabdi.filters.registration_check import JUMP_FRAMES, jumps_that_removed, pose_jumps
+    from mabdi.stages.registration_check import JUMP_FRAMES, jumps_that_removed, pose_jumps
 
     poses = np.tile(np.eye(4), (30, 1, 1))
     poses[:, 0, 3] = 0.007 * np.arange(30)  # 7 mm a frame

@@ -10,7 +10,7 @@ from vtkmodules.vtkFiltersCore import vtkFeatureEdges
 from conftest import REPO, check_table_loop
 from mabdi.camera import Intrinsics, project
 from mabdi.depth import depth_image
-from mabdi.filters.quadtree import FilterQuadTree, QuadTreeParameters
+from mabdi.surfaces.quadtree import FilterQuadTree, QuadTreeParameters
 
 K = Intrinsics(fx=200.0, fy=200.0, cx=128.0, cy=128.0, width=256, height=256, near=0.3, far=6.0)
 
@@ -138,7 +138,7 @@ def test_faces_lie_on_the_noise_free_table():
     """Every face (its centre) within 1 cm of the scene, over ten poses of Run 1 (noise-free)."""
     from mabdi.config import load_run_config
     from mabdi.evaluate import distances_to_mesh
-    from mabdi.filters.depth_image import FilterDepthImage
+    from mabdi.render.depth_image import FilterDepthImage
     from mabdi.simulate.path import path_from_config
     from mabdi.sources.scene import SourceScene
 
@@ -169,9 +169,9 @@ def test_compiled_stages_give_the_numpy_leaves(noise):
 
     from mabdi.config import load_run_config
     from mabdi.depth import depth_array
-    from mabdi.filters.depth_image import FilterDepthImage
+    from mabdi.render.depth_image import FilterDepthImage
     from mabdi.sensor_noise import SensorNoise
-    from mabdi.filters.quadtree import leaves_of_image
+    from mabdi.surfaces.quadtree import leaves_of_image
     from mabdi.simulate.path import path_from_config
     from mabdi.sources.scene import SourceScene
 

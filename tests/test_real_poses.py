@@ -9,8 +9,8 @@ from scipy.spatial.transform import Rotation
 
 from conftest import simulation
 from mabdi.evaluate import evaluate_run
-from mabdi.filters.map_anchor import MapAnchor
-from mabdi.filters.registration import transform_size
+from mabdi.stages.map_anchor import MapAnchor
+from mabdi.stages.registration import transform_size
 from mabdi.polydata import polydata_area
 
 pytestmark = pytest.mark.slow

@@ -10,14 +10,14 @@ from vtkmodules.util.numpy_support import vtk_to_numpy
 import mabdi
 from mabdi.camera import Intrinsics
 from mabdi.depth import DepthFrame
-from mabdi.filters.pixel_grid import PixelGridParameters
-from mabdi.filters.quadtree import QuadTreeParameters
-from mabdi.filters.refinement import RADIUS_PX_INDEPENDENT, MapRefinement, RefinementParameters
+from mabdi.surfaces.pixel_grid import PixelGridParameters
+from mabdi.surfaces.quadtree import QuadTreeParameters
+from mabdi.stages.refinement import RADIUS_PX_INDEPENDENT, MapRefinement, RefinementParameters
 from mabdi.noise_calibration import NoiseCurve
 from mabdi.sensor_noise import SensorNoise, correlated_field
 from mabdi.polydata import vertex_normals
-from mabdi.filters.registration import RegistrationParameters
-from mabdi.filters.removal import RemovalParameters
+from mabdi.stages.registration import RegistrationParameters
+from mabdi.stages.removal import RemovalParameters
 from mabdi.polydata import polydata_arrays
 from mabdi.sources.frames import FrameList
 
@@ -309,7 +309,7 @@ def test_the_compiled_kernel_computes_what_the_numpy_reference_computes(surface,
     """Every block call of a far-then-near plate run (replacement and refinement both happen), handed to both."""
     from reference_kernels import observe_block
 
-    from mabdi.filters import refinement_kernels as kernels
+    from mabdi.stages import refinement_kernels as kernels
 
     calls = []
     compiled = kernels.observe_block_kernel
@@ -344,8 +344,8 @@ def test_the_compiled_kernel_computes_what_the_numpy_reference_computes(surface,
 def test_a_rebuilt_block_finds_its_kept_points():
     """A block rebuilt with faces removed keeps the rest of its points in order: each is found in the old block
     (compiled walk and numpy reference agree); points that were not there are -1 (reference) or refused."""
-    from mabdi.filters import refinement_kernels as kernels
-    from mabdi.filters.refinement import _match_rows
+    from mabdi.stages import refinement_kernels as kernels
+    from mabdi.stages.refinement import _match_rows
 
     rng = np.random.default_rng(0)
     old = rng.normal(size=(1000, 3)).astype(np.float32)
@@ -362,7 +362,7 @@ def test_refinement_goes_on_through_the_world_maps_merges_of_frame_patches():
     """With every frame's patch merged into its chunk's (the world map's bounded draw calls), the per-vertex
     refinement state follows the merged vertices (their first-look positions, weights and offsets), and the
     plate ends as good as without merging."""
-    from mabdi.filters.refinement import _match_rows
+    from mabdi.stages.refinement import _match_rows
 
     plain, _ = refining_loop(plate_frames(), "pixel_grid")
     plain_medians, _ = run_refined(plain, plain.refinement, 11)

@@ -13,11 +13,11 @@ from mabdi.camera import Intrinsics, look_at
 from mabdi.config import load_run_config, set_value
 from mabdi.depth import DepthFrame
 from mabdi.errors import ConfigError
-from mabdi.filters.depth_image import DepthRenderer
+from mabdi.render.depth_image import DepthRenderer
 from mabdi.sensor_noise import SensorNoise, noise_rng
-from mabdi.filters.map_anchor import MapAnchor
+from mabdi.stages.map_anchor import MapAnchor
 from mabdi.pose_noise import PoseNoise
-from mabdi.filters.registration import (
+from mabdi.stages.registration import (
     RegistrationParameters,
     fuse_with_given,
     pose_depth_sigma,
@@ -87,7 +87,7 @@ def test_a_wall_with_a_recess_holds_the_pose_across_it_and_leaves_the_height_as_
     The height stays as given (the normals that the sensor's noise tilts held it at a few hundred-thousandths
     of the wall's information, and moved the pose centimetres up or down), the rest is corrected, and the
     covariance says the height is known far less than the rest (at most what
-    :data:`~mabdi.filters.registration_kernels.UNCONSTRAINED` of the information would tell)."""
+    :data:`~mabdi.stages.registration_kernels.UNCONSTRAINED` of the information would tell)."""
     wall = merged(
         _moved(box((0.1, 9.5, 20.0)), [2.55, -5.25, 0.0]),
         _moved(box((0.1, 9.5, 20.0)), [2.55, 5.25, 0.0]),
@@ -172,8 +172,8 @@ def test_pose_depth_sigma_is_the_same_image_on_any_number_of_cores_and_for_a_zer
     covariance (a pose stated exact) gives 0 wherever E has a surface without the kernel, as the kernel would."""
     from numba import njit
 
-    from mabdi.filters.registration import NORMAL_MAX_JUMP, NORMAL_STEP
-    from mabdi.filters.registration_kernels import pose_sigma_image
+    from mabdi.stages.registration import NORMAL_MAX_JUMP, NORMAL_STEP
+    from mabdi.stages.registration_kernels import pose_sigma_image
 
     one_thread = njit(pose_sigma_image.py_func)
     rng = np.random.default_rng(3)
@@ -527,8 +527,8 @@ def test_the_compiled_steps_agree_with_their_array_formulations():
     expressions give them, Rodrigues' formula against scipy's rotation, a transform's size, the
     normal equations' step with no step along an unconstrained direction, and a cached normal equal
     to one computed afresh."""
-    from mabdi.filters import registration_kernels as kernels
-    from mabdi.filters.registration import COVARIANCE_TILE, SAMPLE_BLOCK, SAMPLE_MAX_JUMP, sample_points
+    from mabdi.stages import registration_kernels as kernels
+    from mabdi.stages.registration import COVARIANCE_TILE, SAMPLE_BLOCK, SAMPLE_MAX_JUMP, sample_points
 
     rng = np.random.default_rng(5)
     intrinsics = Intrinsics()
@@ -601,7 +601,7 @@ def test_the_compiled_steps_agree_with_their_array_formulations():
 def test_a_kept_workspace_registers_as_a_fresh_one(bunnies):
     """The normal cache a filter keeps from frame to frame starts each E afresh: registering frames one
     after the other with one workspace gives the poses each gets alone."""
-    from mabdi.filters.registration import IcpWorkspace
+    from mabdi.stages.registration import IcpWorkspace
 
     mesh, poses = bunnies
     intrinsics = Intrinsics()
@@ -635,7 +635,7 @@ def test_a_level_ends_where_the_next_step_is_predicted_below_the_tolerance(bunni
     """A level ends once the step that would follow, predicted from how steps shrank at a coarser level, is
     below the tolerance: the pose is where steps taken until they vanish lead (within that tolerance), and
     fewer steps get there."""
-    import mabdi.filters.registration as registration
+    import mabdi.stages.registration as registration
 
     for index in range(4):
         measured, expected, intrinsics, noise = _bunny_pair(bunnies, index)
@@ -655,7 +655,7 @@ def test_a_level_ends_where_the_next_step_is_predicted_below_the_tolerance(bunni
 def test_a_step_that_undoes_the_one_before_is_halved():
     """Pairs flipping in and out of the gate make two poses swap for ever; a step back along the one before
     (about as long) is halved, one in another direction is taken whole."""
-    from mabdi.filters.registration_kernels import gauss_newton_update
+    from mabdi.stages.registration_kernels import gauss_newton_update
 
     a = np.eye(6)
     b = -np.array([0.001, 0.0, 0.0, 0.004, -0.002, 0.0])  # the step is -b: a rotation and a translation
@@ -692,8 +692,8 @@ def test_the_gate_does_not_cut_loose_the_few_pixels_that_hold_a_direction():
 def test_a_large_step_is_summed_in_two_halves_that_add_up_to_the_whole(bunnies):
     """From SPLIT_MIN_POINTS samples on, a step's sums come from two halves (one on a helper thread); they
     are the sums over all the samples, up to rounding, with the residuals in the samples' order."""
-    from mabdi.filters import registration
-    from mabdi.filters.registration_kernels import point_to_plane_system
+    from mabdi.stages import registration
+    from mabdi.stages.registration_kernels import point_to_plane_system
 
     measured, expected, intrinsics, noise = _bunny_pair(bunnies)
     points, z, tiles, n_tiles, _ = registration.sample_points(measured, intrinsics, 2)
@@ -721,7 +721,7 @@ def test_a_large_step_is_summed_in_two_halves_that_add_up_to_the_whole(bunnies):
 def test_the_residuals_alone_are_the_systems_residuals(bunnies):
     """How well a pose fits (the ICP's improvement over the given pose) reads the residuals without the normal
     equations: the same numbers in the same order as a step's, at several poses, split in halves or not."""
-    from mabdi.filters import registration
+    from mabdi.stages import registration
 
     measured, expected, intrinsics, noise = _bunny_pair(bunnies)
     for stride in (2, 8):  # a fine sampling is split in halves; a coarse one is not
@@ -743,7 +743,7 @@ def test_the_residuals_alone_are_the_systems_residuals(bunnies):
 _FORKED_CHILD = """
 import multiprocessing, pickle, sys
 import numpy as np
-from mabdi.filters import registration
+from mabdi.stages import registration
 measured, expected, intrinsics, noise, parameters, transform = pickle.load(open(sys.argv[1], "rb"))
 threaded = registration.register_depth(measured, expected, intrinsics, noise, parameters)
 assert registration._cores() == 1 or registration._helper is not None  # the helper ran the second halves
@@ -762,7 +762,7 @@ def test_the_registration_is_the_same_on_one_core_on_two_and_in_a_forked_child(b
     import subprocess
     import sys
 
-    from mabdi.filters import registration
+    from mabdi.stages import registration
 
     measured, expected, intrinsics, noise = _bunny_pair(bunnies, 1)
     parameters = RegistrationParameters()
@@ -785,7 +785,7 @@ def test_the_registration_is_the_same_on_one_core_on_two_and_in_a_forked_child(b
 def test_pose_jitter_tells_white_jitter_from_a_walk():
     """PoseJitter learns white jitter's variance from corrections one and two frames apart, and reads a walk
     (drift, or a map that moves with the poses that follow it) as no jitter."""
-    from mabdi.filters.registration import PoseJitter
+    from mabdi.stages.registration import PoseJitter
 
     rng = np.random.default_rng(3)
     icp = np.diag([1e-8] * 3 + [1e-8] * 3)  # the ICP's own variance: 0.1 mm, 0.006 degrees

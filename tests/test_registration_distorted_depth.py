@@ -11,7 +11,7 @@ import pytest
 import mabdi
 from mabdi.camera import Intrinsics, look_at
 from mabdi.depth import DepthFrame
-from mabdi.filters.registration import transform_size
+from mabdi.stages.registration import transform_size
 from mabdi.sources.frames import FrameList
 from test_registration import perturbed, room_frames
 
@@ -86,7 +86,7 @@ def test_poses_poorer_than_the_map_are_still_corrected(sideways):
 def test_exact_poses_stay_on_a_long_pass_there_and_back_where_the_bias_is_large(there_and_back):
     """A stronger distortion (3% at the corners: the ICP's offsets from exact poses reach 6-7 cm, a fit up to twice
     as good as the given pose's) over 60 frames there and back: the meshed poses stay on the given ones (median
-    under 1 mm) and end on them. Before the slow part of a correction needed evidence (:func:`~mabdi.filters.registration.follow_gain`), a
+    under 1 mm) and end on them. Before the slow part of a correction needed evidence (:func:`~mabdi.stages.registration.follow_gain`), a
     variance learnt from those offsets had the poses follow the map's bias: 10.6 mm off at the end, 39 mm at most."""
     true, depths = there_and_back
     error = errors(true, run(depths, true))
@@ -98,7 +98,7 @@ def test_jittered_poses_do_not_walk_with_the_maps_bias(there_and_back):
     """The pass there and back with 3% distortion, the given poses jittered by 5.8 mm and 0.29 degrees per axis (8.5 mm
     and 0.41 degrees off, median): each frame's ICP pose fits D to the map several times better than its jittered
     given pose, yet only by the jitter; judged against the given pose with the jitter taken off
-    (:meth:`~mabdi.filters.registration.FilterRegistration._jitter_free`), the map's bias is not followed, and the
+    (:meth:`~mabdi.stages.registration.FilterRegistration._jitter_free`), the map's bias is not followed, and the
     jitter is weighed against it. Measured: 8.0 mm and 0.25 degrees off (median). Before, every frame followed the
     ICP and carried its correction on: 29 mm and 0.47 degrees off (median), 66 mm at most."""
     true, depths = there_and_back

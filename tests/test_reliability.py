@@ -372,7 +372,7 @@ from mabdi.io.atomic import write_text
 from mabdi.io.hdf5 import write_map
 from mabdi.io.plots import write_png
 from mabdi.io.vtk_files import write_image, write_mesh_file
-from mabdi.maps.mesh_map import MeshMap
+from mabdi.mesh_maps.mesh_map import MeshMap
 
 out = Path(sys.argv[1])
 sphere = vtkSphereSource(); sphere.SetThetaResolution(300); sphere.SetPhiResolution(300); sphere.Update()
@@ -429,7 +429,7 @@ def test_write_error_from_python_write_names_the_target(tmp_path, monkeypatch):
 
 
 def _grid_map(n=12):
-    from mabdi.maps.mesh_map import MeshMap
+    from mabdi.mesh_maps.mesh_map import MeshMap
 
     x, y = np.meshgrid(np.linspace(0, 1, n), np.linspace(0, 1, n), indexing="ij")
     vertices = np.stack([x.ravel(), y.ravel(), np.zeros(n * n)], axis=1)
@@ -443,7 +443,7 @@ def _grid_map(n=12):
 @pytest.mark.parametrize("bad", [np.nan, np.inf])
 def test_a_map_with_non_finite_vertices_is_damaged(tmp_path, capsys, suffix, bad):
     from mabdi.cli import main
-    from mabdi.io.map_files import save_map
+    from mabdi.io.mesh_map_files import save_map
 
     mesh_map = _grid_map()
     mesh_map.vertices[[3, 50, 51], 1] = bad
@@ -457,8 +457,8 @@ def test_a_map_with_non_finite_vertices_is_damaged(tmp_path, capsys, suffix, bad
 
 def test_plan_says_what_it_planned_on(tmp_path, capsys):
     from mabdi.cli import main
-    from mabdi.io.map_files import save_map
-    from mabdi.maps.layers import add_cost_layers
+    from mabdi.io.mesh_map_files import save_map
+    from mabdi.mesh_maps.layers import add_cost_layers
 
     bare = save_map(_grid_map(), tmp_path / "bare.h5")
     assert main(["plan", str(bare), "--start=0,0,0", "--goal=1,1,0"]) == 0
@@ -481,7 +481,7 @@ def test_plan_says_what_it_planned_on(tmp_path, capsys):
 
 
 def test_info_into_a_closed_pipe_exits_quietly(tmp_path):
-    from mabdi.io.map_files import save_map
+    from mabdi.io.mesh_map_files import save_map
 
     path = save_map(_grid_map(), tmp_path / "map.h5")
     # `mabdi info MAP | head -1`: the reader stops after one line
@@ -505,7 +505,7 @@ def test_version(capsys):
 
 def test_export_unknown_format_lists_every_format(tmp_path, capsys):
     from mabdi.cli import main
-    from mabdi.io.map_files import MAP_FORMATS, save_map
+    from mabdi.io.mesh_map_files import MAP_FORMATS, save_map
 
     path = save_map(_grid_map(), tmp_path / "map.vtp")
     assert main(["export", str(path), str(tmp_path / "map.xyz")]) == 2

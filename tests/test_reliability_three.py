@@ -241,7 +241,7 @@ def test_tum_poses_are_interpolated_and_the_map_sits_within_half_a_millimetre(tm
     """30 Hz depth, 100 Hz ground truth (offset, so no depth stamp has its own sample): the map's vertices
     lie within 0.5 mm of the table scene (the nearest sample alone puts them millimetres off)."""
     from mabdi.evaluate.distance import distances_to_mesh
-    from mabdi.filters.registration_check import PosesDisagreeWarning
+    from mabdi.stages.registration_check import PosesDisagreeWarning
     from mabdi.loop.loop import MabdiLoop
     from mabdi.simulate.rig import FRAME_RATE, SimulatedRig
     from mabdi.sources.scene import SourceScene
@@ -275,7 +275,7 @@ def test_tum_poses_are_interpolated_and_the_map_sits_within_half_a_millimetre(tm
     loop = MabdiLoop.from_config(config, sequence)
     with warnings.catch_warnings():
         # no frame of this small, fast camera gets the samples to register, but none sees through the map:
-        # the poses are right, and the run must not blame them (mabdi.filters.registration_check)
+        # the poses are right, and the run must not blame them (mabdi.stages.registration_check)
         warnings.simplefilter("error", PosesDisagreeWarning)
         for i in range(frames):
             loop.step(i)

@@ -11,9 +11,9 @@ import mabdi
 from conftest import plane_mesh
 from mabdi.camera import Intrinsics, project
 from mabdi.depth import DepthFrame, depth_image, image_pose
-from mabdi.filters.depth_image import DepthRenderer
-from mabdi.filters.registration import RegistrationParameters
-from mabdi.filters.removal import RemovalParameters, depth_edges
+from mabdi.render.depth_image import DepthRenderer
+from mabdi.stages.registration import RegistrationParameters
+from mabdi.stages.removal import RemovalParameters, depth_edges
 from mabdi.face_identity import FaceCodes, FaceIdTable
 from mabdi.polydata import polydata_arrays
 from mabdi.world_map import update_log_odds
@@ -181,14 +181,14 @@ def _votes_after_re_meshing(replacement) -> tuple[np.ndarray, np.ndarray]:
     """A keyed patch (a plane 1 m wide at 2 m, all in view) drawn into E; before the frame's votes it is re-meshed
     into ``replacement(plane)``; D sees through it (3 m). Returns the evidence of the old plane's faces and of
     the replacement's, as the map holds them after the votes."""
-    from mabdi.filters.classifier import ClassifierParameters, FilterClassifier
+    from mabdi.stages.classifier import ClassifierParameters, FilterClassifier
     from mabdi.sensor_noise import SensorNoise
-    from mabdi.filters.expected_image import FilterExpectedImage
+    from mabdi.stages.expected_image import FilterExpectedImage
     from mabdi.frame_values import Measured
     from mabdi.loop.loop import apply_removal
-    from mabdi.loop.object_removal import ObjectRemoval
-    from mabdi.filters.registry import SurfaceCapabilities
-    from mabdi.filters.world_mesh import FilterWorldMesh
+    from mabdi.stages.object_removal import ObjectRemoval
+    from mabdi.surfaces.registry import SurfaceCapabilities
+    from mabdi.stages.world_mesh import FilterWorldMesh
 
     world = FilterWorldMesh(chunk_size=1000.0)
     plane = plane_mesh([0, 0, 2], [0, 0, -1], size=1.0, subdivisions=20)
@@ -238,8 +238,8 @@ def test_casting_pixels_in_their_triangles_boxes_finds_what_casting_against_ever
     projected box: the same nearest hits as every pixel against every triangle, for a camera (triangles
     behind it and across its image plane) and for a LiDAR (triangles across the azimuth seam)."""
     from mabdi.camera import unit_rays
-    from mabdi.loop.object_removal import pixel_boxes
-    from mabdi.loop.ray_triangle_kernels import nearest_hits_in_boxes_kernel
+    from mabdi.stages.object_removal import pixel_boxes
+    from mabdi.stages.ray_triangle_kernels import nearest_hits_in_boxes_kernel
     from mabdi.spherical import SphericalGeometry
 
     rng = np.random.default_rng(4)
@@ -285,8 +285,8 @@ def test_casting_pixels_in_their_triangles_boxes_finds_what_casting_against_ever
 
 def test_compiled_edges_dilation_and_boxes_equal_their_array_slice_formulations():
     """depth_edges, dilate and points_in_boxes (one compiled pass each) against the array-slice definitions."""
-    from mabdi.filters.classifier import dilate, neighbourhood_3x3
-    from mabdi.filters.removal_kernels import points_in_boxes
+    from mabdi.stages.classifier import dilate, neighbourhood_3x3
+    from mabdi.stages.removal_kernels import points_in_boxes
 
     def edges_by_slices(depth, jump):
         missing = np.isnan(depth)
@@ -323,8 +323,8 @@ def test_a_misplaced_edge_is_judged_at_the_contradicted_pixels_as_over_the_whole
     and D's nearest depth within the reach (edge padding), and a silhouette of E within it (outside: none)."""
     from scipy import ndimage
 
-    from mabdi.filters.classifier import dilate
-    from mabdi.filters.removal import depth_edges, misplaced_edge_explains
+    from mabdi.stages.classifier import dilate
+    from mabdi.stages.removal import depth_edges, misplaced_edge_explains
 
     def farthest_nearby(depth, margin):  # the full-image filters the windows stand for
         shown = np.where(np.isfinite(depth), depth, -np.inf).astype(np.float32)

@@ -1,5 +1,5 @@
 """Removal of faces smaller than the pixels that see them, and contradictions at grazing incidence
-(mabdi.filters.removal: gap_along_ray, votes_between_pixels; the loop's removal stage)."""
+(mabdi.stages.removal: gap_along_ray, votes_between_pixels; the loop's removal stage)."""
 
 from __future__ import annotations
 
@@ -11,10 +11,10 @@ import mabdi
 from mabdi.camera import Intrinsics, look_at, project, unit_rays
 from mabdi.depth import DepthFrame, image_pose
 from mabdi.face_identity import FaceIdTable
-from mabdi.filters.world_mesh import FilterWorldMesh
-from mabdi.loop.object_removal import ObjectRemoval
-from mabdi.filters.registration import RegistrationParameters
-from mabdi.filters.removal import RemovalParameters, gap_along_ray, votes_between_pixels
+from mabdi.stages.world_mesh import FilterWorldMesh
+from mabdi.stages.object_removal import ObjectRemoval
+from mabdi.stages.registration import RegistrationParameters
+from mabdi.stages.removal import RemovalParameters, gap_along_ray, votes_between_pixels
 from mabdi.polydata import polydata_arrays
 from mabdi.sources.frames import FrameList
 
@@ -126,8 +126,8 @@ def test_a_contradiction_at_grazing_incidence_counts_when_d_is_beyond_the_stretc
     """A face 86 degrees from the rays (a roof seen across a street): seen through by metres it is a
     contradiction; by 10 cm (less than 5 cm stretched to 18.5 cm along the ray) it is not. A face facing the
     rays is contradicted by the 10 cm either way."""
-    from mabdi.filters.classifier import CONTRADICTED
-    from mabdi.filters.removal import removal_votes
+    from mabdi.stages.classifier import CONTRADICTED
+    from mabdi.stages.removal import removal_votes
 
     shape = (9, 9)
     rays, _ = unit_rays(Intrinsics(fx=90, fy=90, cx=4.5, cy=4.5, width=9, height=9, far=60.0), np.float32)  # 3 degrees wide

@@ -1,4 +1,4 @@
-"""Object removal on a LiDAR's scans (mabdi.filters.removal with for_geometry): what a real or deskewed scan gets
+"""Object removal on a LiDAR's scans (mabdi.stages.removal with for_geometry): what a real or deskewed scan gets
 wrong about a static place is no contradiction, while a surface that left still is.
 
 * A return's direction is uncertain by a fraction of the beam spacing: on a surface seen obliquely, D lies off
@@ -16,8 +16,8 @@ import numpy as np
 import pytest
 
 from mabdi.camera import Intrinsics, unit_rays
-from mabdi.filters.classifier import CONTRADICTED, KNOWN, NO_RETURN
-from mabdi.filters.removal import RemovalParameters, contradiction_gap, for_geometry, free_space_filled, removal_votes
+from mabdi.stages.classifier import CONTRADICTED, KNOWN, NO_RETURN
+from mabdi.stages.removal import RemovalParameters, contradiction_gap, for_geometry, free_space_filled, removal_votes
 from mabdi.depth import DepthFrame
 from mabdi.loop.loop import MabdiLoop
 from mabdi.loop.mapping_run import recorded_simulation

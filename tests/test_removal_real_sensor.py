@@ -1,4 +1,4 @@
-"""Object removal on a real sensor's static scene (mabdi.filters.removal.removal_votes): the errors a real
+"""Object removal on a real sensor's static scene (mabdi.stages.removal.removal_votes): the errors a real
 depth camera makes on surfaces that did not move are no contradiction, while a surface that left still is.
 
 * A surface seen obliquely, with an error within the noise across its plane (the map's own, made from as
@@ -13,8 +13,8 @@ from __future__ import annotations
 import numpy as np
 
 from mabdi.camera import Intrinsics, unit_rays
-from mabdi.filters.classifier import CONTRADICTED, KNOWN
-from mabdi.filters.removal import RemovalParameters, removal_votes
+from mabdi.stages.classifier import CONTRADICTED, KNOWN
+from mabdi.stages.removal import RemovalParameters, removal_votes
 
 RULES = RemovalParameters()
 

@@ -70,7 +70,7 @@ def test_a_run_writes_a_recording_that_rerun_reads(recorded_run):
 
 
 def test_only_new_blocks_are_sent_and_removed_ones_cleared(tmp_path):
-    from mabdi.filters.world_mesh import FilterWorldMesh
+    from mabdi.stages.world_mesh import FilterWorldMesh
     from mabdi.polydata import triangles_polydata
     from mabdi.viz.rerun_log import RerunLogger
 

@@ -16,7 +16,7 @@ from mabdi.config import load_run_config, set_value
 from mabdi.depth import depth_array
 from mabdi.errors import ConfigError
 from mabdi.evaluate import distances_to_mesh
-from mabdi.filters.depth_image import FilterDepthImage
+from mabdi.render.depth_image import FilterDepthImage
 from mabdi.loop import MappingRun
 from mabdi.io.run_folder import OutputError
 from mabdi.loop.run_outputs import METRICS_COLUMNS

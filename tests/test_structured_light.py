@@ -16,7 +16,7 @@ from mabdi.camera import Intrinsics, depth_to_zbuffer
 from mabdi.config import load_run_config
 from mabdi.depth import DepthFrame
 from mabdi.errors import ConfigError
-from mabdi.filters.depth_image import FilterDepthImage
+from mabdi.render.depth_image import FilterDepthImage
 from mabdi.sensor_noise import SensorNoise, correlated_field, noise_rng
 
 K = Intrinsics()
@@ -239,8 +239,8 @@ def test_refinement_auto_follows_whether_the_noise_is_correlated(tmp_path):
     (structured light, a real camera under "auto"), not where each pixel errs on its own; true and false
     decide outright; anything else names the key."""
     import mabdi
-    from mabdi.filters.classifier import ClassifierParameters
-    from mabdi.filters.refinement import RefinementParameters
+    from mabdi.stages.classifier import ClassifierParameters
+    from mabdi.stages.refinement import RefinementParameters
     from mabdi.sources.frames import FrameList
 
     assert SensorNoise("structured_light").correlated and SensorNoise("auto").correlated

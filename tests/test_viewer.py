@@ -101,8 +101,8 @@ def kitchen(world_from_z_up=np.eye(4)):
 
 def write_run(folder, vertices, faces, poses):
     """A run folder by hand: ``world_mesh.vtp`` (face layer ``frame``) and ``poses.npy``."""
-    from mabdi.io.map_files import save_map
-    from mabdi.maps.mesh_map import MeshMap
+    from mabdi.io.mesh_map_files import save_map
+    from mabdi.mesh_maps.mesh_map import MeshMap
 
     folder.mkdir(parents=True)
     frames = np.arange(len(faces), dtype=np.int32)
@@ -214,8 +214,8 @@ def test_up_falls_back_to_z_and_can_be_set(tmp_path, capsys, monkeypatch):
 
 
 def test_a_map_file_takes_up_from_its_own_poses(tmp_path):
-    from mabdi.io.map_files import save_map
-    from mabdi.maps.mesh_map import MeshMap
+    from mabdi.io.mesh_map_files import save_map
+    from mabdi.mesh_maps.mesh_map import MeshMap
     from mabdi.viz.viewer import view_up
 
     vertices, faces, poses = kitchen(Y_DOWN)

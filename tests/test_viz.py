@@ -5,7 +5,7 @@ import tracemalloc
 import numpy as np
 import pytest
 
-from mabdi.maps.colours import colours_by_frame
+from mabdi.mesh_maps.colours import colours_by_frame
 from mabdi.viz.movie import MovieError, MovieWriter, read_movie_frames
 
 

@@ -11,9 +11,9 @@ from vtkmodules.vtkCommonDataModel import vtkPolyData
 
 from mabdi.depth import COLOUR_ARRAY
 from mabdi.voxels.voxel_map import VoxelMap
-from mabdi.filters.voxel_planes import NO_COLOUR, FilterVoxelPlanes
+from mabdi.surfaces.voxel_planes import NO_COLOUR, FilterVoxelPlanes
 from mabdi.io.checkpoint import read_tree, write_tree
-from mabdi.maps.mesh_map import COLOUR_LAYER
+from mabdi.mesh_maps.mesh_map import COLOUR_LAYER
 
 S = 0.05
 RED, BLUE = (220, 30, 30), (40, 40, 200)
@@ -147,7 +147,7 @@ def test_polygon_vertices_take_the_mean_colour_of_their_voxel():
 
 def test_no_colour_array_without_colour_input():
     from conftest import plane_mesh
-    from mabdi.filters.depth_image import FilterDepthImage
+    from mabdi.render.depth_image import FilterDepthImage
 
     points, colours = floor_points()
     surface = FilterVoxelPlanes(output="full")

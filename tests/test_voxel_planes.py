@@ -9,14 +9,14 @@ from vtkmodules.util.numpy_support import vtk_to_numpy
 from conftest import check_table_loop
 from mabdi.errors import ConfigError
 from mabdi.voxels.voxel_map import VoxelMap, moments_to_gaussian
-from mabdi.filters.voxel_planes import (
+from mabdi.surfaces.voxel_planes import (
     FilterVoxelPlanes,
     VoxelPlanesParameters,
     cube_polygons,
     fan_triangles,
     plane_patches,
 )
-from mabdi.maps.colours import colours_by_normal, normal_colours_float
+from mabdi.mesh_maps.colours import colours_by_normal, normal_colours_float
 from mabdi.polydata import polydata_arrays
 
 S = 0.05
@@ -162,7 +162,7 @@ def points_polydata(points):
 
 
 def test_only_touched_blocks_are_remeshed_and_replaced_in_the_world_mesh():
-    from mabdi.filters.world_mesh import FilterWorldMesh
+    from mabdi.stages.world_mesh import FilterWorldMesh
 
     left, _ = plane_points([0, 0, 1], [0.5, 0.5, 0.2], 0.4, 50_000, 0.0, seed=1)
     right, _ = plane_points([0, 0, 1], [3.5, 0.5, 0.2], 0.4, 50_000, 0.0, seed=2)
@@ -181,7 +181,7 @@ def test_only_touched_blocks_are_remeshed_and_replaced_in_the_world_mesh():
 
 
 def test_small_blocks_are_grouped_into_patches_of_twenty_voxels_replaced_whole():
-    from mabdi.filters.world_mesh import PATCH_KEY_ARRAY, FilterWorldMesh
+    from mabdi.stages.world_mesh import PATCH_KEY_ARRAY, FilterWorldMesh
     from mabdi.voxels.voxel_map import pack_keys, unpack_keys
 
     assert FilterVoxelPlanes().patch_blocks == 1  # 1 m blocks of 5 cm voxels: a patch is a block
@@ -309,7 +309,7 @@ def test_bad_parameters_and_inputs():
 
 def test_filter_meshes_a_depth_image_and_does_not_add_it_twice():
     from conftest import plane_mesh
-    from mabdi.filters.depth_image import FilterDepthImage
+    from mabdi.render.depth_image import FilterDepthImage
 
     sensor = FilterDepthImage()
     sensor.SetInputDataObject(plane_mesh([0, 0, 2.0], [0, 0, 1]))
@@ -340,7 +340,7 @@ def test_voxel_planes_in_the_loop_on_the_table():
 def test_triangle_samples_cover_long_triangles_within_the_spacing_and_skip_small_ones():
     from scipy.spatial import cKDTree
 
-    from mabdi.filters.voxel_planes import triangle_samples
+    from mabdi.surfaces.voxel_planes import triangle_samples
 
     # a strip of road between two LiDAR rings 3 m apart, 0.18 m wide; and a triangle smaller than the spacing
     vertices = np.array([[20.0, 0.0, 0.0], [23.0, 0.0, 0.0], [20.0, 0.18, 0.0], [5.0, 5.0, 1.0], [5.05, 5.0, 1.0], [5.0, 5.05, 1.0]])

@@ -7,7 +7,7 @@ from reference_kernels import reference_pairs, reference_voxels
 import mabdi.voxels.voxel_map as voxel_map
 import mabdi.voxels.traversal as voxel_traversal
 from mabdi.voxels.voxel_map import VoxelMap
-from mabdi.filters.voxel_planes import FilterVoxelPlanes
+from mabdi.surfaces.voxel_planes import FilterVoxelPlanes
 from mabdi.voxels.traversal import ray_voxels, traverse_voxels
 
 

@@ -14,9 +14,9 @@ from scipy.spatial import cKDTree
 
 from mabdi.camera import Intrinsics, look_at
 from mabdi.face_identity import MAX_FACE_CODE, FaceIdTable, codes_in, rows_by_block, unique_codes
-from mabdi.filters.depth_image import DepthRenderer
+from mabdi.render.depth_image import DepthRenderer
 from mabdi.polydata import named_leaves, polydata_arrays
-from mabdi.filters.removal import RemovalParameters
+from mabdi.stages.removal import RemovalParameters
 from mabdi.world_map import WorldMap, _chunked_state
 
 SMALL = Intrinsics(fx=160, fy=160, cx=80, cy=60, width=160, height=120, near=0.3, far=4.0)

@@ -9,9 +9,9 @@ from vtkmodules.util.numpy_support import numpy_to_vtk, vtk_to_numpy
 from conftest import plane_mesh
 from mabdi.camera import Intrinsics, look_at
 from mabdi.depth import DepthFrame
-from mabdi.filters.depth_image import FilterDepthImage
+from mabdi.render.depth_image import FilterDepthImage
 from mabdi.face_identity import FaceIdTable
-from mabdi.filters.world_mesh import FilterWorldMesh
+from mabdi.stages.world_mesh import FilterWorldMesh
 
 
 def with_frame(mesh, frame):
@@ -121,7 +121,7 @@ def test_expected_image_from_blocks_equals_the_merged_mesh_and_keeps_block_actor
 
 
 def test_removed_blocks_are_hidden_then_lose_their_actors():
-    from mabdi.filters.depth_image import KEEP_HIDDEN_RENDERS
+    from mabdi.render.depth_image import KEEP_HIDDEN_RENDERS
 
     world = FilterWorldMesh(chunk_size=1000.0)  # one chunk: these tests are about patches
     world.add_patch("a", plane_mesh([0, 0, 0], [0, 0, 1]), 0)
@@ -158,7 +158,7 @@ def test_non_polydata_block_is_an_error():
 def test_a_re_meshed_patch_keeps_the_removal_evidence_of_the_faces_it_replaces():
     """Re-meshing a block (voxel planes do it whenever a point lands in it) must not reset removal:
     a face at the same place keeps its evidence, a face somewhere new starts at zero."""
-    from mabdi.filters.removal import RemovalParameters
+    from mabdi.stages.removal import RemovalParameters
 
     world = FilterWorldMesh(chunk_size=1000.0)  # one chunk: these tests are about patches
     world.add_patch("patch_7", plane_mesh((0, 0, 2), (0, 0, 1), size=1.0, subdivisions=4), frame=0)

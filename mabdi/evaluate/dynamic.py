@@ -37,7 +37,7 @@ from mabdi.camera import Intrinsics
 from mabdi.evaluate.distance import distances_within
 from mabdi.evaluate.removal_accuracy import MapHistory, RemovalAccuracy, removal_accuracy
 from mabdi.evaluate.sampling import SAMPLE_SEED, sample_surface
-from mabdi.filters.depth_image import SensorRenderer
+from mabdi.render.depth_image import SensorRenderer
 from mabdi.polydata import triangles_polydata
 from mabdi.loop.run_pipeline import RunObserver, RunPipeline
 

@@ -14,7 +14,7 @@ camera and compare the map's depth with the frame's measured depth D:
 
 The map's depth comes from exact ray casting of its triangles
 (:class:`MapRaycaster`: Moller-Trumbore on the triangles whose projection
-may cover a pixel: :func:`~mabdi.loop.ray_triangle_kernels.nearest_hits_in_boxes_kernel`,
+may cover a pixel: :func:`~mabdi.stages.ray_triangle_kernels.nearest_hits_in_boxes_kernel`,
 with a tolerance of :data:`EDGE_TOLERANCE` on the barycentric
 coordinates so that a ray through the edge two triangles share meets one of
 them: a closed surface has no cracks),
@@ -43,7 +43,7 @@ import numpy as np
 from vtkmodules.vtkCommonDataModel import vtkPolyData
 
 from mabdi.camera import Intrinsics, project, unit_rays
-from mabdi.loop.ray_triangle_kernels import nearest_hits_in_boxes_kernel
+from mabdi.stages.ray_triangle_kernels import nearest_hits_in_boxes_kernel
 from mabdi.polydata import triangle_frames
 
 #: The thresholds (metres) of the ``within`` shares.

@@ -37,7 +37,7 @@ from mabdi.camera import Intrinsics, unit_rays
 from mabdi.depth import DepthFrame
 from mabdi.errors import ConfigError
 from mabdi.sensor_noise import SensorNoise
-from mabdi.filters.depth_smoothing import smooth_depth_by_noise
+from mabdi.surfaces.depth_smoothing import smooth_depth_by_noise
 from mabdi.polydata import triangles_polydata
 from mabdi.simulate.path import circle_index
 from mabdi.spherical import SphericalGeometry

@@ -22,7 +22,7 @@ from __future__ import annotations
 import numpy as np
 
 from mabdi.depth import SensorGeometry
-from mabdi.filters.depth_image import SensorRenderer
+from mabdi.render.depth_image import SensorRenderer
 
 #: Depth slack of the visibility test: metres, and a fraction of the depth.
 VISIBILITY_SLACK_M = 0.005

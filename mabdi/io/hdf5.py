@@ -31,7 +31,7 @@ import numpy as np
 
 from mabdi.errors import MabdiError
 from mabdi.io.atomic import atomic_output
-from mabdi.maps.mesh_map import MeshMap, MeshMapError, split_label
+from mabdi.mesh_maps.mesh_map import MeshMap, MeshMapError, split_label
 
 LAYOUTS = ("mesh_tools", "lvr2")
 MESH_TOOLS_GROUPS = ("geometry", "attributes", "clustersets", "textures", "labels")

@@ -4,7 +4,7 @@ Meshes: VTP (binary, compressed, every array kept), PLY (binary; triangles),
 OBJ and STL. Images: VTI (field data kept). :func:`read_mesh_file` and
 :func:`write_mesh_file` pick the format from the suffix.
 
-Vertex colours (point array :data:`~mabdi.maps.mesh_map.COLOUR_LAYER`,
+Vertex colours (point array :data:`~mabdi.mesh_maps.mesh_map.COLOUR_LAYER`,
 uint8 RGB) go into PLY as the ``red``, ``green``, ``blue`` uchar vertex
 properties and into OBJ as ``v x y z r g b`` (colours 0-1, the extension
 MeshLab, Open3D, trimesh and VTK's own reader take); read back from either,
@@ -33,7 +33,7 @@ from vtkmodules.vtkFiltersCore import vtkTriangleFilter
 from mabdi.errors import AssetNotFoundError, ConfigError, DamagedFileError, WriteError
 from mabdi.io.atomic import atomic_output
 from mabdi.io.checks import check_mesh_file
-from mabdi.maps.mesh_map import COLOUR_LAYER
+from mabdi.mesh_maps.mesh_map import COLOUR_LAYER
 
 MESH_FORMATS = (".vtp", ".ply", ".obj", ".stl")
 

@@ -2,7 +2,7 @@
 
 * :mod:`mabdi.loop.loop`: :class:`MabdiLoop`, one frame at a time (D, registration, E, classifier,
   surface, world mesh, refinement, removal) over any source of depth frames;
-* :mod:`mabdi.loop.object_removal`: the removal stage (its rules are :mod:`mabdi.filters.removal`);
+* :mod:`mabdi.stages.object_removal`: the removal stage (its rules are :mod:`mabdi.stages.removal`);
 * :mod:`mabdi.loop.mapping_run`: :class:`MappingRun`, a run config's rig (or recording) and loop;
 * :mod:`mabdi.loop.run_pipeline`: :class:`RunPipeline`, a run from the first frame to its files, with
   observers; :mod:`mabdi.loop.run_outputs` writes those files;

@@ -31,19 +31,19 @@ from vtkmodules.vtkCommonDataModel import vtkImageData, vtkPolyData
 
 from mabdi.camera import Intrinsics
 from mabdi.interrupts import interrupts_unwrapped
-from mabdi.filters.classifier import ClassifierParameters, FilterClassifier, dilate, write_classified
-from mabdi.filters.depth_image import BACKENDS
+from mabdi.stages.classifier import ClassifierParameters, FilterClassifier, dilate, write_classified
+from mabdi.render.depth_image import BACKENDS
 from mabdi.sensor_noise import SensorNoise
-from mabdi.filters.expected_image import FilterExpectedImage, write_expected
-from mabdi.filters.refinement import MapRefinement, RefinementParameters, RefinementResult
-from mabdi.filters.quadtree import QuadTreeParameters, resolved as resolved_quadtree
-from mabdi.filters.registration import STATUSES, FilterRegistration, RegistrationParameters, write_placement
-from mabdi.filters.registration_check import PosesDisagreeWarning, PoseJumpWarning, jumps_that_removed, poses_disagree
-from mabdi.filters.registry import make_surface_filter, mesh_frame, seam_pixels, surface_filter
-from mabdi.loop.object_removal import ObjectRemoval, RemovalResult, RemovalVotes
-from mabdi.filters.removal import RemovalParameters, depth_edges
+from mabdi.stages.expected_image import FilterExpectedImage, write_expected
+from mabdi.stages.refinement import MapRefinement, RefinementParameters, RefinementResult
+from mabdi.surfaces.quadtree import QuadTreeParameters, resolved as resolved_quadtree
+from mabdi.stages.registration import STATUSES, FilterRegistration, RegistrationParameters, write_placement
+from mabdi.stages.registration_check import PosesDisagreeWarning, PoseJumpWarning, jumps_that_removed, poses_disagree
+from mabdi.surfaces.registry import make_surface_filter, mesh_frame, seam_pixels, surface_filter
+from mabdi.stages.object_removal import ObjectRemoval, RemovalResult, RemovalVotes
+from mabdi.stages.removal import RemovalParameters, depth_edges
 from mabdi.frame_values import Classified, Expected, Measured, Placement
-from mabdi.filters.world_mesh import FilterWorldMesh
+from mabdi.stages.world_mesh import FilterWorldMesh
 from mabdi.world_map import CHUNK_SIZE, LIDAR_CHUNK_SIZE
 from mabdi.polydata import polydata_area, polydata_arrays, transformed_polydata
 from mabdi.sources.frames import FrameSource, SourceDepthFrames
@@ -68,14 +68,14 @@ class FrameRecord:
     novel_pixels: int = 0
     speck_pixels: int = 0
     contradicted_pixels: int = 0
-    #: Faces removed this frame (object removal, :mod:`mabdi.filters.removal`), and the stage's time.
+    #: Faces removed this frame (object removal, :mod:`mabdi.stages.removal`), and the stage's time.
     cells_removed: int = 0
     area_removed: float = 0.0  # m^2
     t_remove_ms: float = 0.0
-    #: Vertices moved by refinement this frame (:mod:`mabdi.filters.refinement`), and the stage's time.
+    #: Vertices moved by refinement this frame (:mod:`mabdi.stages.refinement`), and the stage's time.
     vertices_refined: int = 0
     t_refine_ms: float = 0.0
-    #: Registration to the map (:mod:`mabdi.filters.registration`): its status ("off" when not run), the
+    #: Registration to the map (:mod:`mabdi.stages.registration`): its status ("off" when not run), the
     #: correction of the given pose (mm, degrees), the RMS residual of its pairs (mm), the inlier share, and
     #: the least share of a constrained direction's constraint that its pairs carry.
     registration: str = "off"
@@ -414,14 +414,14 @@ class MabdiLoop:
 
     def finish(self) -> None:
         """End the run: a :class:`PosesDisagreeWarning` when the run's poses disagree with its depth
-        (:mod:`mabdi.filters.registration_check`), once a run. The runner calls it after the last frame; a
+        (:mod:`mabdi.stages.registration_check`), once a run. The runner calls it after the last frame; a
         script stepping the loop itself calls it when its frames end."""
         self._check_poses()
         self._check_pose_jumps()
 
     def _check_pose_jumps(self) -> None:
         """Warn (once a run) where the given poses jump and the frames after the jump removed much of what the
-        run removed (:func:`~mabdi.filters.registration_check.jumps_that_removed`). Not for a source that
+        run removed (:func:`~mabdi.stages.registration_check.jumps_that_removed`). Not for a source that
         states how far its poses are off (the simulator), nor without removal."""
         if self._jumps_checked or self.source.pose_accuracy is not None or not self.removal:
             return
@@ -579,13 +579,13 @@ class MabdiLoop:
     def measured_image(self) -> vtkImageData:
         """D of the last frame as a depth image (field data: intrinsics, pose, frame, timestamp, noise), with its
         pose registered to the map when registration is on (the given pose and the registration's figures
-        beside it, :func:`mabdi.filters.registration.write_placement`). Made when asked (the loop itself
+        beside it, :func:`mabdi.stages.registration.write_placement`). Made when asked (the loop itself
         passes :meth:`measured`); empty before the first frame."""
         return self._frame.measured_image(self.registration is not None)
 
     def world_from_map(self) -> np.ndarray:
         """Where the map's frame lies in the world (4x4): the loop builds the map in its own frame, started at
-        the first frame's given pose and tied to the given poses as a whole (:mod:`mabdi.filters.map_anchor`);
+        the first frame's given pose and tied to the given poses as a whole (:mod:`mabdi.stages.map_anchor`);
         identity without registration."""
         return np.eye(4) if self.registration is None else self.registration.anchor.world_from_map
 
@@ -609,7 +609,7 @@ class MabdiLoop:
         return None if self._frame.classified is None else self._frame.classified.labels
 
     def refinement_result(self):
-        """What refinement did in the last frame (:class:`~mabdi.filters.refinement.RefinementResult`), or None."""
+        """What refinement did in the last frame (:class:`~mabdi.stages.refinement.RefinementResult`), or None."""
         return self._frame.refined
 
     def removed_surface(self) -> vtkPolyData:

@@ -140,7 +140,7 @@ class Mapper:
         return np.zeros((0, 4, 4)) if self.loop is None else self.loop.trajectory()
 
     def finish(self) -> vtkPolyData:
-        """End the run: a :class:`~mabdi.filters.registration_check.PosesDisagreeWarning` when its poses disagree
+        """End the run: a :class:`~mabdi.stages.registration_check.PosesDisagreeWarning` when its poses disagree
         with its depth; returns the map. A ValueError when no frame was mapped."""
         if self.loop is None:
             raise ValueError(f"{self.source.description}: no frame was mapped, so there is no map")

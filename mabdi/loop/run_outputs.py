@@ -16,7 +16,7 @@ the folder follows :mod:`mabdi.io.run_folder`):
   holds a finished run);
 * ``elements.png``: triangles in the map per frame (seed 001 Fig. 7);
 * ``poses.npy``: the poses the frames were meshed with (registered to the
-  map, :mod:`mabdi.filters.registration`; as given where registration is off
+  map, :mod:`mabdi.stages.registration`; as given where registration is off
   or failed), the same as a TUM trajectory (``trajectory.txt``: timestamp
   tx ty tz qx qy qz qw), ``poses_given.npy`` (the poses the frames carried),
   ``path.vtp`` (the meshed poses' path) and, when the scene is known,
@@ -55,10 +55,10 @@ from mabdi.io.hdf5 import write_map
 from mabdi.io.plots import write_elements_plot
 from mabdi.io.run_folder import RunFolder
 from mabdi.io.vtk_files import write_mesh_file, write_polydata
-from mabdi.maps.colours import colours_by_normal
-from mabdi.maps.labels import label_floor, planar_clusters
-from mabdi.maps.layers import add_cost_layers
-from mabdi.maps.mesh_map import MeshMap
+from mabdi.mesh_maps.colours import colours_by_normal
+from mabdi.mesh_maps.labels import label_floor, planar_clusters
+from mabdi.mesh_maps.layers import add_cost_layers
+from mabdi.mesh_maps.mesh_map import MeshMap
 from mabdi.polydata import polyline
 from mabdi.loop.loop import FrameRecord
 from mabdi.simulate.recording import TRUE_POSES  # in a run's folder too, when the source knows the true poses

@@ -2,9 +2,9 @@
 
 Scene (:class:`~mabdi.sources.scene.SourceScene`, objects switched on and
 off by their schedules) + off-screen depth sensor
-(:class:`~mabdi.filters.depth_image.FilterDepthImage`, with its noise model)
+(:class:`~mabdi.render.depth_image.FilterDepthImage`, with its noise model)
 + path (the helix of the run config's ``[path]``). A LiDAR (``[sensor] kind =
-"lidar"``) renders range images (:mod:`mabdi.filters.range_rendering`), its
+"lidar"``) renders range images (:mod:`mabdi.render.range_rendering`), its
 x axis along the path's view direction and z up
 (:func:`mabdi.simulate.path.path_from_config` with ``axes="lidar"``); its frames carry no colour. Frame i is the scene as it
 stands at frame i, seen from pose i, with noise drawn from the stream of
@@ -44,7 +44,7 @@ from vtkmodules.vtkCommonCore import vtkUnsignedCharArray
 from mabdi.camera import Intrinsics
 from mabdi.config import RunConfig
 from mabdi.depth import DepthFrame, depth_array
-from mabdi.filters.depth_image import FilterDepthImage
+from mabdi.render.depth_image import FilterDepthImage
 from mabdi.sensor_noise import SensorNoise
 from mabdi.pose_noise import PoseNoise
 from mabdi.simulate.lidar_sweep import SceneRayCaster, Sweep, SweepSettings, simulate_sweep, sweep_noise_rng

@@ -125,7 +125,7 @@ class FrameSource:
     def pose_accuracy(self) -> PoseNoise | None:
         """How far ``poses`` are off, when the source says (the simulator: its ``[sensor.pose_noise]``, all
         zero for exact poses), as jitter and drift rates; None when it does not (recordings: the
-        registration learns it from the run, :mod:`mabdi.filters.map_anchor`)."""
+        registration learns it from the run, :mod:`mabdi.stages.map_anchor`)."""
         return None
 
     def check_index(self, index: int) -> int:

@@ -16,7 +16,7 @@ for video encoders). The third-person camera frames the scene and the whole
 path, from their bounds, looking from the side of the path's first pose.
 The map is drawn straight from the world mesh's blocks (a composite mapper:
 a frame uploads only its new blocks), coloured on the viridis ramp from the
-first frame (dark) to the last (bright), :func:`mabdi.maps.colours.colours_by_frame`,
+first frame (dark) to the last (bright), :func:`mabdi.mesh_maps.colours.colours_by_frame`,
 or, when the source has colour images, in its vertex colours (the camera's).
 Depth images share one colour range, fixed from the first frame's D
 (2nd to 98th percentile), so frames compare.
@@ -37,7 +37,7 @@ from vtkmodules.vtkCommonDataModel import vtkCellArray, vtkImageData, vtkPolyDat
 from vtkmodules.vtkRenderingCore import vtkActor, vtkCompositePolyDataMapper, vtkImageActor, vtkPolyDataMapper
 
 from mabdi.camera import Intrinsics
-from mabdi.maps.mesh_map import COLOUR_LAYER
+from mabdi.mesh_maps.mesh_map import COLOUR_LAYER
 from mabdi.polydata import polyline
 
 SIZE = (1296, 720)

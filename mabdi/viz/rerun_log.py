@@ -44,7 +44,7 @@ from vtkmodules.vtkCommonDataModel import vtkPolyData
 
 from mabdi.errors import MabdiError
 from mabdi.polydata import named_leaves
-from mabdi.maps.mesh_map import COLOUR_LAYER
+from mabdi.mesh_maps.mesh_map import COLOUR_LAYER
 from mabdi.loop.run_pipeline import RunObserver
 
 TIMELINE = "frame"

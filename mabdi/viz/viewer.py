@@ -3,8 +3,8 @@
 ``view(path)`` opens an interactive pyvista window when a display exists;
 without one it renders a PNG off-screen and returns its path. Colour modes:
 ``frame`` (the frame that created each face,
-:func:`mabdi.maps.colours.colours_by_frame`), ``normal`` (seed 000 eqs. 5-7,
-:func:`mabdi.maps.colours.colours_by_normal`), ``rgb`` (the map's vertex
+:func:`mabdi.mesh_maps.colours.colours_by_frame`), ``normal`` (seed 000 eqs. 5-7,
+:func:`mabdi.mesh_maps.colours.colours_by_normal`), ``rgb`` (the map's vertex
 colours) or any vertex or face layer by name, on the viridis ramp. A run
 folder shows ``world_mesh.vtp`` (or ``.h5``) with the scene and the path.
 
@@ -28,10 +28,10 @@ from pathlib import Path
 import numpy as np
 
 from mabdi.errors import ConfigError
-from mabdi.io.map_files import load_map
-from mabdi.maps.colours import colours_by_frame, colours_by_normal
-from mabdi.maps.layers import face_normals
-from mabdi.maps.mesh_map import COLOUR_LAYER
+from mabdi.io.mesh_map_files import load_map
+from mabdi.mesh_maps.colours import colours_by_frame, colours_by_normal
+from mabdi.mesh_maps.layers import face_normals
+from mabdi.mesh_maps.mesh_map import COLOUR_LAYER
 
 
 def has_display() -> bool:

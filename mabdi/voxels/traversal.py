@@ -49,7 +49,7 @@ import numpy as np
 from numba import config, njit, prange
 
 if "NUMBA_THREADING_LAYER" not in os.environ:
-    # numba's own thread pool (as mabdi.maps.neighbourhood): no warning about another package's old TBB
+    # numba's own thread pool (as mabdi.mesh_maps.neighbourhood): no warning about another package's old TBB
     config.THREADING_LAYER = "workqueue"
 
 #: Largest bounding box (in voxels) de-duplicated by a byte mask; beyond it, a sort.

@@ -1,0 +1,413 @@
+"""FilterClassifier: which pixels of the measured image D are novel, given the expected image E.
+
+Port 0 is D (what the sensor measured), port 1 is E (the map rendered from
+the same pose); both are depth images (:mod:`mabdi.depth`, metres) of the
+same size, intrinsics and pose. Per pixel, with
+tau = max(tau_min, k_sigma * sqrt(sigma(z)^2 + sigma_pose^2)) at z = D
+(sigma from D's noise model, sigma_pose from D's ``pose_covariance`` when
+registration put one there):
+
+====  ============  ====================================================
+label  name          rule
+====  ============  ====================================================
+0     no return     D is NaN
+1     known         |D - E| <= tau
+2     novel         E is NaN (the map has no surface there), or D < E - tau
+3     contradicted  D > E + tau: the sensor sees through a surface of the map
+====  ============  ====================================================
+
+Specks: the novel mask is opened with a ``min_width`` square and regions of
+fewer than ``min_region`` pixels go (label 1); a speck that fills a hole of
+the map stays novel (``fill_holes``, :func:`hole_fills`).
+
+Output: ``depth`` is D on the novel pixels and a ``rim`` of pixels around
+them (NaN elsewhere; ``rim_on_map`` puts the rim's known pixels on E), plus
+the point arrays ``measured_depth``, ``label`` and ``pose_sigma`` and the
+field-data ``pixel_counts`` (:func:`pixel_counts`); field data is D's.
+Defaults: tau_min = 0.01 m, k_sigma = 3, min_width = 3 px, min_region = 32 px,
+rim = "auto", rim_on_map = "auto", fill_holes = true.
+
+Why the rules are what they are: docs/architecture.md (``mabdi.stages.classifier``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage
+from vtkmodules.util.numpy_support import numpy_to_vtk, vtk_to_numpy
+from vtkmodules.vtkCommonDataModel import vtkImageData
+from vtkmodules.vtkCommonExecutionModel import vtkStreamingDemandDrivenPipeline
+
+from mabdi.algorithm import MabdiAlgorithm
+from mabdi.depth import MEASURED_ARRAY, image_intrinsics
+from mabdi.errors import ConfigError, check_switch
+from mabdi.sensor_noise import SensorNoise
+from mabdi.stages.expected_image import expected_of_image
+from mabdi.frame_values import Classified, Expected, Measured
+from mabdi.stages.image_kernels import dilate_kernel
+from mabdi.stages.registration import image_pose_covariance, pose_depth_sigma
+
+NO_RETURN, KNOWN, NOVEL, CONTRADICTED = 0, 1, 2, 3
+LABEL_ARRAY = "label"
+#: Point data of the output when D carries a pose covariance: E's depth uncertainty from the pose (m).
+POSE_SIGMA_ARRAY = "pose_sigma"
+#: Field data of the output: int64 pixel counts (valid, novel, specks, contradicted) of this frame.
+PIXEL_COUNTS_ARRAY = "pixel_counts"
+PIXEL_COUNT_NAMES = ("valid", "novel", "specks", "contradicted")
+
+_EIGHT_NEIGHBOURS = np.ones((3, 3), dtype=bool)
+
+
+@dataclass(frozen=True)
+class ClassifierParameters:
+    """Thresholds of :class:`FilterClassifier` (metres and pixels; see the module docs).
+
+    The ``[classifier]`` section of a run config. ``enabled = false`` is the
+    loop's "black box": the surface filter meshes every valid pixel of D,
+    every frame, and neither object removal nor refinement runs (their own
+    switches: ``[removal] enabled``, ``[refinement] enabled``).
+    """
+
+    enabled: bool = True
+    tau_min: float = 0.01
+    k_sigma: float = 3.0
+    min_width: int = 3
+    min_region: int = 32
+    #: Pixels around the novel ones passed on with them (see the module docs); "auto": what the surface needs.
+    rim: int | str = "auto"
+    #: The rim's known pixels carry E's depth (see the module docs); "auto": where the loop refines the map.
+    rim_on_map: bool | str = "auto"
+    #: Keep the specks that fill a hole of the map (see the module docs).
+    fill_holes: bool = True
+
+    def __post_init__(self) -> None:
+        check_switch("rim_on_map", self.rim_on_map)
+        if not self.tau_min > 0:
+            raise ConfigError(f"tau_min must be > 0 metres, got {self.tau_min}")
+        if self.k_sigma < 0:
+            raise ConfigError(f"k_sigma must be >= 0, got {self.k_sigma}")
+        if self.min_width < 1:
+            raise ConfigError(f"min_width must be >= 1 pixel, got {self.min_width}")
+        if self.min_region < 0:
+            raise ConfigError(f"min_region must be >= 0 pixels, got {self.min_region}")
+        if self.rim != "auto" and (isinstance(self.rim, bool) or not isinstance(self.rim, int) or self.rim < 0):
+            raise ConfigError(f'rim must be an integer >= 0 (pixels) or "auto", got {self.rim!r}')
+
+    @property
+    def rim_pixels(self) -> int:
+        """The rim in pixels: ``rim``, or 1 where it is "auto" and no surface has set it (the loop does)."""
+        return 1 if self.rim == "auto" else self.rim
+
+
+def classify(measured: np.ndarray, expected: np.ndarray, tau: np.ndarray) -> np.ndarray:
+    """uint8 labels (0-3, see the module docs) from D, E and the per-pixel threshold tau (all (H, W), metres)."""
+    labels = np.full(measured.shape, KNOWN, dtype=np.uint8)
+    d_valid = np.isfinite(measured)
+    e_valid = np.isfinite(expected)
+    with np.errstate(invalid="ignore"):
+        difference = measured - expected
+        labels[difference < -tau] = NOVEL
+        labels[difference > tau] = CONTRADICTED
+    labels[d_valid & ~e_valid] = NOVEL
+    labels[~d_valid] = NO_RETURN
+    return labels
+
+
+def neighbourhood_3x3(values: np.ndarray, combine, outside=None) -> np.ndarray:
+    """``combine`` (np.logical_and / np.logical_or / np.minimum / np.maximum) over each pixel's 3x3
+    neighbourhood, as array slices; outside the image counts as ``outside`` (None: the border's own values)."""
+    padded = np.pad(values, 1, mode="edge") if outside is None else np.pad(values, 1, constant_values=outside)
+    rows = combine(combine(padded[:, :-2], padded[:, 1:-1]), padded[:, 2:])
+    return combine(combine(rows[:-2], rows[1:-1]), rows[2:])
+
+
+def erode(mask: np.ndarray, radius: int) -> np.ndarray:
+    """Binary erosion by a (2 radius + 1) square, as ``radius`` 3x3 steps of array slices."""
+    for _ in range(radius):
+        mask = neighbourhood_3x3(mask, np.logical_and, outside=False)
+    return mask
+
+
+def dilate(mask: np.ndarray, radius: int) -> np.ndarray:
+    """Binary dilation by a (2 radius + 1) square, outside the image False (``radius`` 3x3 steps of
+    :func:`neighbourhood_3x3` with ``np.logical_or``, in one compiled row and column pass)."""
+    if radius <= 0:
+        return np.asarray(mask, dtype=bool)
+    return dilate_kernel(np.ascontiguousarray(mask, dtype=bool), int(radius))
+
+
+def remove_specks(novel: np.ndarray, min_width: int, min_region: int, covered: np.ndarray | None = None) -> np.ndarray:
+    """The novel mask without regions thinner than ``min_width`` or smaller than ``min_region`` pixels.
+
+    Thin parts go by a binary opening with a ``min_width`` square (odd widths
+    by array slices; even widths through scipy.ndimage), small regions by
+    counting the pixels of each 8-connected region. With ``covered`` (True where
+    the map reaches into the pixel's footprint), thin pixels go only where it is True.
+    """
+    mask = novel
+    if min_width > 1 and mask.any():
+        if min_width % 2:
+            radius = min_width // 2
+            mask = dilate(erode(mask, radius), radius)
+        else:
+            mask = ndimage.binary_opening(mask, structure=np.ones((min_width, min_width), dtype=bool))
+        if covered is not None:
+            mask = mask | (novel & ~covered)
+    if min_region > 0 and mask.any():
+        regions, count = ndimage.label(mask, structure=_EIGHT_NEIGHBOURS)
+        sizes = np.bincount(regions.ravel(), minlength=count + 1)
+        keep = sizes >= min_region
+        keep[0] = False
+        mask = keep[regions]
+    return mask
+
+
+#: A speck that fills a hole sees through the map by more than this share of D's depth (or 2 tau where that
+#: is more), and its ring lies within the same jump of its depth (see the module docs).
+HOLE_JUMP = 0.05
+#: The share of a speck's ring that must be the map at its depth for it to fill a hole (see the module docs).
+HOLE_RING_SHARE = 0.8
+#: The fewest ring pixels of the map at its depth.
+HOLE_RING_MIN = 6
+#: Pixels without a return in a run of D (along a row or a column) narrower than this many pixels leave a
+#: speck's ring as if not there, where E has no surface either.
+HOLE_BAND_PX = 9
+
+
+def _lost_run_narrow(valid: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """For pixels (``rows``, ``cols``) without a return: whether the run of pixels without one through each,
+    along its row or along its column, is narrower than :data:`HOLE_BAND_PX` (the image's border ends a run)."""
+    height, width = valid.shape
+    steps = np.arange(1, HOLE_BAND_PX)
+    narrow = np.zeros(len(rows), dtype=bool)
+    for along_rows in (True, False):
+        size = width if along_rows else height
+        start = cols if along_rows else rows
+        run = np.ones(len(rows), dtype=np.int64)  # the pixel itself
+        for sign in (-1, 1):
+            at = start[:, None] + sign * steps[None, :]
+            inside = (at >= 0) & (at < size)
+            clipped = np.clip(at, 0, size - 1)
+            hit = ~inside | (valid[rows[:, None], clipped] if along_rows else valid[clipped, cols[:, None]])
+            first = np.where(hit.any(axis=1), hit.argmax(axis=1), HOLE_BAND_PX - 1)  # lost pixels before a return
+            run += first
+        narrow |= run < HOLE_BAND_PX
+    return narrow
+
+
+def hole_fills(
+    specks: np.ndarray,
+    measured: np.ndarray,
+    expected: np.ndarray,
+    labels: np.ndarray,
+    tau: np.ndarray,
+    covered: np.ndarray | None = None,
+) -> np.ndarray:
+    """The specks (bool (H, W)) that fill a hole of the map: 8-connected regions most of whose pixels see
+    through the map (E empty, or beyond D by more than the jump), ringed by the map at their depth
+    (see the module docs). ``labels``: :func:`classify`'s; ``tau``: the threshold per pixel (m).
+    Works on the speck pixels and the rings of the candidate regions alone, not on whole images."""
+    fills = np.zeros_like(specks)
+    if not specks.any():
+        return fills
+    height, width = specks.shape
+    regions, count = ndimage.label(specks, structure=_EIGHT_NEIGHBOURS)
+    pixels = np.flatnonzero(specks)
+    region = regions.ravel()[pixels]
+    d = measured.ravel()[pixels].astype(np.float64)
+    e = expected.ravel()[pixels].astype(np.float64)
+    sizes = np.bincount(region, minlength=count + 1)
+    # each region's median depth (every label 1..count has pixels)
+    ordered = d[np.lexsort((d, region))]
+    first = np.concatenate([[0], np.cumsum(sizes[1:-1])])
+    depth = np.zeros(count + 1)
+    depth[1:] = 0.5 * (ordered[first + (sizes[1:] - 1) // 2] + ordered[first + sizes[1:] // 2])
+    with np.errstate(invalid="ignore"):
+        through = ~np.isfinite(e) | (e - d > np.maximum(HOLE_JUMP * d, 2.0 * tau.ravel()[pixels]))
+    if covered is not None:
+        through &= ~covered.ravel()[pixels]  # the map reaches into the beam's footprint: the beam missed it, no hole
+    through_share = np.bincount(region[through], minlength=count + 1) / np.maximum(sizes, 1)
+    # a hole at least 2 x 2 pixels wide: not a one-pixel crack of E between the map's triangles
+    seeing = np.zeros(specks.size, dtype=bool)
+    seeing[pixels[through]] = True
+    row, col = np.divmod(pixels, width)
+    corner = through & (row < height - 1) & (col < width - 1)
+    top_left = pixels[corner]
+    block = seeing[top_left + 1] & seeing[top_left + width] & seeing[top_left + width + 1]
+    wide_count = np.bincount(region[corner][block], minlength=count + 1)
+    candidate = (through_share >= 0.5) & (wide_count > 0)
+    candidate[0] = False
+    if not candidate.any():
+        return fills
+    # the ring of each candidate: pixels beside it that are not specks, once per region they touch
+    chosen = candidate[region]
+    row, col, chosen_region = row[chosen], col[chosen], region[chosen]
+    ring_pixels, ring_regions = [], []
+    flat_specks = specks.ravel()
+    for dr in (-1, 0, 1):
+        for dc in (-1, 0, 1):
+            r, c = row + dr, col + dc
+            inside = (r >= 0) & (r < height) & (c >= 0) & (c < width)
+            q = r[inside] * width + c[inside]
+            beside = ~flat_specks[q]
+            ring_pixels.append(q[beside])
+            ring_regions.append(chosen_region[inside][beside])
+    key = np.sort(np.concatenate(ring_pixels) * (count + 1) + np.concatenate(ring_regions))
+    key = key[np.concatenate([[True], key[1:] != key[:-1]])]  # each (pixel, region) once
+    q, owner = np.divmod(key, count + 1)
+    d_ring = measured.ravel()[q].astype(np.float64)
+    e_ring = expected.ravel()[q].astype(np.float64)
+    has_d, has_e = np.isfinite(d_ring), np.isfinite(e_ring)
+    # the ring leaves out pixels lost in a narrow band between D's returns where the map has no surface
+    # either: such a band (a structured-light camera's beside a depth edge) says nothing of the map beyond
+    counted = np.ones(len(q), dtype=bool)
+    unknown = np.flatnonzero(~has_d & ~has_e)
+    if len(unknown):
+        r, c = np.divmod(q[unknown], width)
+        counted[unknown] = ~_lost_run_narrow(np.isfinite(measured), r, c)
+    # the map around it: known pixels, and pixels without a return where E has a surface (the map goes on
+    # where D lost a pixel), at its depth; a pixel where neither has one is the map's edge against nothing
+    surface = np.where(has_d, d_ring, e_ring)
+    mapped = (labels.ravel()[q] == KNOWN) | (~has_d & has_e)
+    with np.errstate(invalid="ignore"):
+        level = mapped & (np.abs(surface - depth[owner]) <= np.fmax(HOLE_JUMP * depth[owner], 2.0 * tau.ravel()[q]))
+    ring_count = np.bincount(owner[counted], minlength=count + 1)
+    ring_level = np.bincount(owner[counted & level], minlength=count + 1)
+    keep = candidate & (ring_level >= HOLE_RING_MIN) & (ring_level >= HOLE_RING_SHARE * ring_count)
+    fills.ravel()[pixels[keep[region]]] = True
+    return fills
+
+
+class FilterClassifier(MabdiAlgorithm):
+    """Label D's pixels against E and pass on the novel ones (2 depth images -> depth image)."""
+
+    def __init__(self, parameters: ClassifierParameters | None = None) -> None:
+        super().__init__(nInputPorts=2, inputType="vtkImageData", nOutputPorts=1, outputType="vtkImageData")
+        self._parameters = parameters if parameters is not None else ClassifierParameters()
+
+    @property
+    def parameters(self) -> ClassifierParameters:
+        return self._parameters
+
+    @parameters.setter
+    def parameters(self, value: ClassifierParameters) -> None:
+        self._set("_parameters", value)
+
+    def threshold(
+        self, depth: np.ndarray, noise: SensorNoise, near: float, far: float, pose_sigma: np.ndarray | None = None
+    ) -> np.ndarray:
+        """tau = max(tau_min, k_sigma sqrt(sigma(z)^2 + pose_sigma^2)) in metres, sigma(z) of the sensor's
+        ``noise`` model (the one D carries) (``pose_sigma`` NaN counts as 0)."""
+        sigma = noise.sigma(depth, near, far)
+        if pose_sigma is not None:
+            sigma = np.sqrt(sigma * sigma + np.nan_to_num(pose_sigma, nan=0.0).astype(sigma.dtype) ** 2)
+        return np.maximum(sigma.dtype.type(self._parameters.tau_min), sigma.dtype.type(self._parameters.k_sigma) * sigma)
+
+    def RequestInformation(self, request, inInfo, outInfo):  # noqa: N802 (VTK API)
+        source = inInfo[0].GetInformationObject(0)
+        extent = source.Get(vtkStreamingDemandDrivenPipeline.WHOLE_EXTENT())
+        if extent is not None:
+            outInfo.GetInformationObject(0).Set(vtkStreamingDemandDrivenPipeline.WHOLE_EXTENT(), extent, 6)
+        return 1
+
+    def RequestUpdateExtent(self, request, inInfo, outInfo):  # noqa: N802 (VTK API)
+        # Always ask both inputs for their whole image, whatever sizes they claim:
+        # a size mismatch is reported in RequestData, not by VTK's extent checks.
+        for port in (0, 1):
+            info = inInfo[port].GetInformationObject(0)
+            whole = info.Get(vtkStreamingDemandDrivenPipeline.WHOLE_EXTENT())
+            if whole is not None:
+                info.Set(vtkStreamingDemandDrivenPipeline.UPDATE_EXTENT(), whole, 6)
+        return 1
+
+    def classify(self, measured: Measured, expected: Expected, pose_covariance: np.ndarray | None = None) -> Classified:
+        """Label D (``measured``) against E (``expected``, drawn from the same pose with the same geometry) and
+        choose the pixels the surface meshes (see the module docs). ``pose_covariance``: 6x6 of D's pose
+        (registration's), which widens tau by E's depth uncertainty; None: the pose is taken as exact."""
+        intrinsics = measured.geometry
+        if intrinsics != expected.geometry:
+            raise ValueError(
+                "FilterClassifier: D (port 0) and E (port 1) must share size and intrinsics; "
+                f"D has {intrinsics}, E has {expected.geometry}"
+            )
+        difference = np.abs(measured.pose - expected.pose).max()
+        if difference > 1e-9:
+            raise ValueError(
+                f"FilterClassifier: D (port 0) and E (port 1) must be taken from the same pose (largest difference {difference:.3g})"
+            )
+        depth, expected_depth, noise = measured.depth, expected.depth, measured.noise
+        pose_sigma = None if pose_covariance is None else pose_depth_sigma(expected_depth, intrinsics, pose_covariance)
+        tau = self.threshold(depth, noise, intrinsics.near, intrinsics.far, pose_sigma)
+        labels = classify(depth, expected_depth, tau)
+        p = self._parameters
+        raw_novel = labels == NOVEL
+        covered = expected.covered
+        novel = remove_specks(raw_novel, p.min_width, p.min_region, covered)
+        if p.fill_holes and noise.noisy:
+            novel |= hole_fills(raw_novel & ~novel, depth, expected_depth, labels, tau, covered)
+        specks = raw_novel & ~novel
+        on_map = labels == KNOWN  # D and E agree (a speck does not: it lies in front of the map)
+        labels[specks] = KNOWN
+        meshed = novel
+        if p.rim_pixels > 0 and novel.any():
+            meshed = dilate(novel, p.rim_pixels) & np.isfinite(depth)
+        meshed_depth = np.where(meshed, depth, np.float32(np.nan)).astype(np.float32)
+        if p.rim_on_map is True:
+            rim_on_map = meshed & ~novel & on_map
+            meshed_depth[rim_on_map] = expected_depth[rim_on_map]
+        counts = (
+            np.count_nonzero(labels != NO_RETURN), np.count_nonzero(novel), np.count_nonzero(specks),
+            np.count_nonzero(labels == CONTRADICTED),
+        )  # fmt: skip
+        return Classified(labels, meshed_depth, dict(zip(PIXEL_COUNT_NAMES, (int(c) for c in counts), strict=True)), pose_sigma)
+
+    def RequestData(self, request, inInfo, outInfo):  # noqa: N802 (VTK API)
+        measured_image = vtkImageData.GetData(inInfo[0])
+        measured = Measured.from_image(measured_image)
+        classified = self.classify(measured, expected_of_image(vtkImageData.GetData(inInfo[1])), image_pose_covariance(measured_image))
+        write_classified(vtkImageData.GetData(outInfo), measured, classified)
+        return 1
+
+
+def write_classified(image, measured: Measured, classified: Classified) -> None:
+    """The classifier's output image (the filter's edge): the depth the surface meshes with D's geometry,
+    pose, frame, noise and colour; point data ``measured_depth`` (all of D), ``label`` and, with a pose
+    covariance, ``pose_sigma``; field data ``pixel_counts``."""
+    measured.showing(classified.depth).fill(image)
+    whole = numpy_to_vtk(measured.depth.ravel(), deep=True)  # D's values as they are now
+    whole.SetName(MEASURED_ARRAY)
+    image.GetPointData().AddArray(whole)
+    labels = numpy_to_vtk(classified.labels.ravel(), deep=True)
+    labels.SetName(LABEL_ARRAY)
+    image.GetPointData().AddArray(labels)
+    if classified.pose_sigma is not None:
+        sigma = numpy_to_vtk(classified.pose_sigma.ravel(), deep=True)
+        sigma.SetName(POSE_SIGMA_ARRAY)
+        image.GetPointData().AddArray(sigma)
+    counts = numpy_to_vtk(np.array([classified.counts[name] for name in PIXEL_COUNT_NAMES], dtype=np.int64), deep=True)
+    counts.SetName(PIXEL_COUNTS_ARRAY)
+    image.GetFieldData().AddArray(counts)
+
+
+def pixel_counts(image) -> dict[str, int]:
+    """The classifier output's pixel counts: ``valid``, ``novel``, ``specks``, ``contradicted``."""
+    array = image.GetFieldData().GetArray(PIXEL_COUNTS_ARRAY)
+    if array is None:
+        raise ValueError(f"image has no field-data array '{PIXEL_COUNTS_ARRAY}' (is it a FilterClassifier output?)")
+    return dict(zip(PIXEL_COUNT_NAMES, (int(v) for v in vtk_to_numpy(array)), strict=True))
+
+
+def label_array(image) -> np.ndarray:
+    """(H, W) uint8 labels of a classifier output (0 no return, 1 known, 2 novel, 3 contradicted)."""
+    labels = image.GetPointData().GetArray(LABEL_ARRAY)
+    if labels is None:
+        raise ValueError(f"image has no point array '{LABEL_ARRAY}' (is it a FilterClassifier output?)")
+    return vtk_to_numpy(labels).reshape(image_intrinsics(image).shape)
+
+
+def pose_sigma_array(image) -> np.ndarray | None:
+    """(H, W) float32 ``pose_sigma`` of a classifier output (m, NaN where E has no surface), or None when D had no pose covariance."""
+    array = image.GetPointData().GetArray(POSE_SIGMA_ARRAY)
+    return None if array is None else vtk_to_numpy(array).reshape(image_intrinsics(image).shape)

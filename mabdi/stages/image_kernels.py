@@ -1,0 +1,66 @@
+"""Compiled (numba) neighbourhood operations on images, one pass each with no image-sized temporaries.
+
+* :func:`depth_edges_kernel`: the silhouettes of a depth image (a relative
+  jump within a pixel's 3x3 neighbourhood, or a pixel without a return in
+  it), what :func:`mabdi.stages.removal.depth_edges` documents;
+* :func:`dilate_kernel`: binary dilation by a (2 radius + 1) square, outside
+  the image False (:func:`mabdi.stages.classifier.dilate`).
+
+The tests compare each with its array-slice formulation.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+
+@njit(cache=True)
+def depth_edges_kernel(depth, factor):
+    """(H, W) bool: a NaN in the pixel's 3x3 neighbourhood, or its largest depth over ``factor`` (float32,
+    1 + jump) times its smallest; the image's border counts as its own nearest pixels. A row pass (min, max,
+    any NaN of three), then a column pass; where a NaN is near, the min and max are not looked at."""
+    height, width = depth.shape
+    low = np.empty((height, width), dtype=np.float32)
+    high = np.empty((height, width), dtype=np.float32)
+    missing = np.empty((height, width), dtype=np.bool_)
+    for row in range(height):
+        for col in range(width):
+            a = depth[row, max(col - 1, 0)]
+            b = depth[row, col]
+            c = depth[row, min(col + 1, width - 1)]
+            missing[row, col] = (a != a) | (b != b) | (c != c)
+            low[row, col] = min(a, min(b, c))
+            high[row, col] = max(a, max(b, c))
+    out = np.empty((height, width), dtype=np.bool_)
+    for row in range(height):
+        up, down = max(row - 1, 0), min(row + 1, height - 1)
+        for col in range(width):
+            near_missing = missing[up, col] | missing[row, col] | missing[down, col]
+            smallest = min(low[up, col], min(low[row, col], low[down, col]))
+            largest = max(high[up, col], max(high[row, col], high[down, col]))
+            out[row, col] = near_missing | (largest > factor * smallest)
+    return out
+
+
+@njit(cache=True)
+def _dilate_rows(mask, radius):
+    """(H, W) bool: ``mask`` dilated along its rows by 2 radius + 1 pixels, outside False."""
+    height, width = mask.shape
+    out = np.zeros((height, width), dtype=np.bool_)
+    for row in range(height):
+        last = -(radius + 1)  # the column of the last True seen
+        for col in range(width + radius):
+            if col < width and mask[row, col]:
+                last = col
+            target = col - radius
+            if target >= 0:
+                # a True within 2 radius to the left of col (col included) covers target
+                out[row, target] = col - last <= 2 * radius
+    return out
+
+
+@njit(cache=True)
+def dilate_kernel(mask, radius):
+    """(H, W) bool: ``mask`` dilated by a (2 radius + 1) square: along the rows, then along the columns."""
+    return np.ascontiguousarray(_dilate_rows(_dilate_rows(mask, radius).T, radius).T)
