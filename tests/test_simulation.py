@@ -143,6 +143,25 @@ def test_hand_built_pipeline_from_the_readme_equals_simulation(monkeypatch):
     )
 
 
+def test_the_readmes_stages_called_with_values_make_the_hand_built_pipelines_map(monkeypatch):
+    """The README's loop of stage methods (values in and out, no VTK pipeline) and its pipeline of the same
+    filters make the same map: the filters' RequestData are adaptors over the methods."""
+    text = (REPO / "README.md").read_text()
+    monkeypatch.chdir(REPO)
+    meshes = []
+    for example in ("hand-built loop", "stages called with values"):
+        code = text.split(f"<!-- example: {example} -->")[1].split("```python")[1].split("```")[0]
+        namespace: dict = {"print": lambda *args: None}
+        exec(compile(code, f"README.md example ({example})", "exec"), namespace)
+        meshes.append(namespace["mesh"])
+    by_pipeline, by_values = meshes
+    assert by_values.GetNumberOfCells() == by_pipeline.GetNumberOfCells() > 100_000
+    np.testing.assert_array_equal(vtk_to_numpy(by_values.GetPoints().GetData()), vtk_to_numpy(by_pipeline.GetPoints().GetData()))
+    np.testing.assert_array_equal(
+        vtk_to_numpy(by_values.GetPolys().GetConnectivityArray()), vtk_to_numpy(by_pipeline.GetPolys().GetConnectivityArray())
+    )
+
+
 def test_the_mabdi_loop_example_from_the_readme_equals_simulation(monkeypatch):
     """The README's MabdiLoop example (the loop in one object, on the simulated rig) makes the map a run of the
     same config with the quad-tree makes."""
