@@ -360,6 +360,7 @@ class MabdiLoop:
         self._registrations[:] = np.nan
         self._poses_checked = False
         self._jumps_checked = False
+        self._frame = FrameValues()
         if self.surface_capabilities.keeps_state:
             self.surface.reset()
 
