@@ -326,13 +326,13 @@ def test_a_misplaced_edge_is_judged_at_the_contradicted_pixels_as_over_the_whole
     from mabdi.stages.classifier import dilate
     from mabdi.stages.removal import depth_edges, misplaced_edge_explains
 
-    def farthest_nearby(depth, margin):  # the full-image filters the windows stand for
+    def farthest_nearby(depth, margin, columns):  # the full-image filters the windows stand for
         shown = np.where(np.isfinite(depth), depth, -np.inf).astype(np.float32)
-        return ndimage.maximum_filter(shown, size=2 * margin + 1, mode="nearest")
+        return ndimage.maximum_filter(shown, size=(2 * margin + 1, 2 * columns + 1), mode="nearest")
 
-    def nearest_nearby(depth, margin):
+    def nearest_nearby(depth, margin, columns):
         shown = np.where(np.isfinite(depth), depth, np.inf).astype(np.float32)
-        return ndimage.minimum_filter(shown, size=2 * margin + 1, mode="nearest")
+        return ndimage.minimum_filter(shown, size=(2 * margin + 1, 2 * columns + 1), mode="nearest")
 
     rng = np.random.default_rng(1)
     for _ in range(10):
@@ -345,13 +345,16 @@ def test_a_misplaced_edge_is_judged_at_the_contradicted_pixels_as_over_the_whole
             contradicting[10 + _ : 40, 5 : 30 + 3 * _] = True
         silhouettes = depth_edges(expected, 0.05)
         gap = np.full(expected.shape, np.float32(0.03))
-        for reach in (1, 2, 4):
+        # square windows (a camera's), and a range image's: a beam's rows down, the same angle across in columns
+        for reach, columns in ((1, 1), (2, 2), (4, 4), (1, 5), (2, 9)):
             for near_silhouette in (True, False):
                 with np.errstate(invalid="ignore"):
                     whole = contradicting & (dilate(silhouettes, reach) if near_silhouette else True)
-                    whole &= ~(measured - farthest_nearby(expected, reach) > gap)
-                    whole &= ~(nearest_nearby(measured, reach) - expected > gap)
-                at_pixels = misplaced_edge_explains(contradicting, measured, expected, silhouettes, gap, reach, near_silhouette)
-                assert whole.any() and np.array_equal(at_pixels, whole)
+                    whole &= ~(measured - farthest_nearby(expected, reach, columns) > gap)
+                    whole &= ~(nearest_nearby(measured, reach, columns) - expected > gap)
+                at_pixels = misplaced_edge_explains(
+                    contradicting, measured, expected, silhouettes, gap, reach, near_silhouette, columns
+                )
+                assert whole.any() and np.array_equal(at_pixels, whole), (reach, columns, near_silhouette)
     none = np.zeros((60, 80), dtype=bool)
     assert not misplaced_edge_explains(none, measured, expected, silhouettes, gap, 2, True).any()

@@ -32,7 +32,7 @@ Why each rule is what it is: docs/architecture.md (``mabdi.stages.removal``).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -67,6 +67,10 @@ class RemovalParameters:
     #: ``misplaced_reach`` pixels: "auto" twice the edge margin for a camera, one beam for a LiDAR.
     misplaced_edges: bool = True
     misplaced_reach: int | str = "auto"
+    #: Columns the misplaced-edge window reaches per row of ``misplaced_reach``: 1 for a camera; a range
+    #: image's widest beam spacing over its azimuth step (the same angle across as down), set by
+    #: :func:`for_geometry`. Not a config key.
+    misplaced_columns: float = field(default=1.0, metadata={"toml": False})
     #: The uncertainty (radians, one sigma) of a return's direction against the map (module docs, "within the
     #: noise"); "auto": a LiDAR's beam spacing over sqrt(12), none for a camera (:func:`for_geometry`).
     ray_sigma: float | str = "auto"
@@ -94,11 +98,12 @@ def for_geometry(parameters: RemovalParameters, geometry) -> RemovalParameters:
     """The rules as they apply to images of ``geometry``: a camera's as given; for a LiDAR's range images,
     whose beams lie further apart (the geometry's ``jump_scale()`` times a camera's pixel angle), ``edge_jump``
     scaled up by that factor (the same surface at the same incidence jumps that much more between beams) and
-    the margins in pixels scaled down by it, to the same angle (at least one beam), and no contradiction held
-    back as a misplaced edge's: a LiDAR times each return along its own beam, with none of a depth camera's
-    edge shadows, and a small object's few beams all lie near its silhouette. ``ray_sigma`` "auto": a
-    LiDAR's widest beam spacing (the geometry's ``pixel_angle()``) over sqrt(12) (a return anywhere within
-    its pixel), none for a camera."""
+    the margins in pixels scaled down by it, to the same angle (at least one beam). A misplaced edge
+    (``misplaced_reach`` "auto") reaches one beam down and the same angle across (``misplaced_columns``
+    columns a row), with no silhouette of E asked for: a map edge made between beams is off by up to a beam
+    spacing in any direction, and a small object's few beams all lie near its silhouette. ``ray_sigma``
+    "auto": a LiDAR's widest beam spacing (the geometry's ``pixel_angle()``) over sqrt(12) (a return anywhere
+    within its pixel), none for a camera."""
     scale = geometry.jump_scale()
     if parameters.ray_sigma == "auto":
         parameters = replace(parameters, ray_sigma=geometry.pixel_angle() / math.sqrt(12.0) if scale != 1.0 else 0.0)
@@ -108,6 +113,7 @@ def for_geometry(parameters: RemovalParameters, geometry) -> RemovalParameters:
     return replace(
         parameters,
         misplaced_reach=1 if parameters.misplaced_reach == "auto" else parameters.misplaced_reach,
+        misplaced_columns=geometry.pixel_angle() * geometry.width / (2.0 * math.pi),
         edge_jump=parameters.edge_jump * scale,
         edge_margin=margin,
         max_edge_margin=max(margin, math.ceil(parameters.max_edge_margin / scale)),
@@ -185,7 +191,8 @@ def removal_votes(
             # shows E's (or nearer): the surface the map shows is still there, a few pixels off
             reach = 2 * margin if parameters.misplaced_reach == "auto" else parameters.misplaced_reach
             explained = misplaced_edge_explains(
-                contradicting_pixels, measured, expected, silhouettes, gap, reach, parameters.misplaced_reach == "auto"
+                contradicting_pixels, measured, expected, silhouettes, gap, reach, parameters.misplaced_reach == "auto",
+                math.ceil(reach * parameters.misplaced_columns - 1e-9),
             )
             contradicting_pixels &= ~explained
             candidates &= ~explained
@@ -238,12 +245,12 @@ def free_space_filled(measured, parameters: RemovalParameters, far: float) -> np
 
 def misplaced_edge_explains(
     contradicting: np.ndarray, measured: np.ndarray, expected: np.ndarray, silhouettes: np.ndarray, gap: np.ndarray,
-    reach: int, near_silhouette: bool,
+    reach: int, near_silhouette: bool, reach_columns: int | None = None,
 ) -> np.ndarray:
     """(H, W) bool: the ``contradicting`` pixels a misplaced edge explains: E shows D's depth (or beyond) within
-    ``reach`` pixels and D shows E's (or nearer) within it (E's farthest and D's nearest depth in the
-    (2 reach + 1)^2 window, edge-padded, differ by less than the ``gap``), and with ``near_silhouette`` a silhouette of E (``silhouettes``) lies within
-    ``reach`` too. Windows are read at the contradicting pixels only (a known world has few: the cost follows
+    ``reach`` rows and ``reach_columns`` columns (None: ``reach``) and D shows E's (or nearer) within them (E's
+    farthest and D's nearest depth in that window, edge-padded, differ by less than the ``gap``), and with
+    ``near_silhouette`` a silhouette of E (``silhouettes``) lies within ``reach`` too. Windows are read at the contradicting pixels only (a known world has few: the cost follows
     what is new), with the same values as the full-image filters."""
     rows, cols = np.nonzero(contradicting)
     explained = np.zeros(contradicting.shape, dtype=bool)
@@ -252,7 +259,7 @@ def misplaced_edge_explains(
     farthest, nearest, near = window_extremes_at(
         np.ascontiguousarray(expected, dtype=np.float32), np.ascontiguousarray(measured, dtype=np.float32),
         np.ascontiguousarray(silhouettes, dtype=bool), rows.astype(np.int64), cols.astype(np.int64), int(reach),
-        int(reach) if near_silhouette else 0,
+        int(reach) if near_silhouette else 0, int(reach if reach_columns is None else reach_columns),
     )  # fmt: skip
     d, e, g = measured[rows, cols], expected[rows, cols], gap[rows, cols]
     with np.errstate(invalid="ignore"):

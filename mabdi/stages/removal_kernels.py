@@ -35,13 +35,15 @@ DIRECT_READS_PER_PIXEL = 4
 
 
 @njit(cache=True)
-def _windows_read_whole(expected, measured, silhouettes, rows, cols, margin, silhouette_margin, farthest, nearest, near_silhouette):
+def _windows_read_whole(
+    expected, measured, silhouettes, rows, cols, margin, margin_columns, silhouette_margin, farthest, nearest, near_silhouette
+):
     """:func:`window_extremes_at` by reading each window whole, into ``farthest``, ``nearest``, ``near_silhouette``."""
     height, width = expected.shape
     for k in range(rows.shape[0]):
         row, col = rows[k], cols[k]
         for r in range(max(row - margin, 0), min(row + margin + 1, height)):
-            for c in range(max(col - margin, 0), min(col + margin + 1, width)):
+            for c in range(max(col - margin_columns, 0), min(col + margin_columns + 1, width)):
                 e = expected[r, c]
                 if np.isfinite(e) and e > farthest[k]:
                     farthest[k] = e
@@ -58,12 +60,13 @@ def _windows_read_whole(expected, measured, silhouettes, rows, cols, margin, sil
 
 
 @njit(cache=True)
-def window_extremes_at(expected, measured, silhouettes, rows, cols, margin, silhouette_margin):
+def window_extremes_at(expected, measured, silhouettes, rows, cols, margin, silhouette_margin, margin_columns=-1):
     """At the pixels (``rows[k]``, ``cols[k]``): the farthest finite depth of ``expected`` and the nearest finite
-    depth of ``measured`` within ``margin`` pixels (a (2 margin + 1)^2 window clipped to the image; -inf / inf
-    where it holds none), and whether ``silhouettes`` holds a True within ``silhouette_margin`` pixels (the same
-    square, outside the image False). The values of a full-image maximum / minimum filter with edge padding and
-    of a square dilation, at those pixels only.
+    depth of ``measured`` within ``margin`` rows and ``margin_columns`` columns (-1: ``margin``; a
+    (2 margin + 1) x (2 margin_columns + 1) window clipped to the image; -inf / inf where it holds none), and
+    whether ``silhouettes`` holds a True within ``silhouette_margin`` pixels (a square, outside the image
+    False). The values of a full-image maximum / minimum filter with edge padding and of a square dilation, at
+    those pixels only.
 
     Few pixels: each window read whole. Many (their windows would read the image over
     :data:`DIRECT_READS_PER_PIXEL` times): separably, each window's rows reduced across first (at the pixels
@@ -72,12 +75,17 @@ def window_extremes_at(expected, measured, silhouettes, rows, cols, margin, silh
     that is a few reads a pixel."""
     height, width = expected.shape
     count = rows.shape[0]
+    if margin_columns < 0:
+        margin_columns = margin
     farthest = np.full(count, -np.inf, dtype=np.float32)
     nearest = np.full(count, np.inf, dtype=np.float32)
     near_silhouette = np.zeros(count, dtype=np.bool_)
     reach = max(margin, silhouette_margin)
-    if count * (2 * reach + 1) * (2 * reach + 1) <= DIRECT_READS_PER_PIXEL * height * width:
-        _windows_read_whole(expected, measured, silhouettes, rows, cols, margin, silhouette_margin, farthest, nearest, near_silhouette)
+    across = max(margin_columns, silhouette_margin)
+    if count * (2 * reach + 1) * (2 * across + 1) <= DIRECT_READS_PER_PIXEL * height * width:
+        _windows_read_whole(
+            expected, measured, silhouettes, rows, cols, margin, margin_columns, silhouette_margin, farthest, nearest, near_silhouette
+        )
         return farthest, nearest, near_silhouette
     # the pixels whose row-wise extremes some window needs: each given pixel's column, reach rows up and down
     needed = np.zeros((height, width), dtype=np.bool_)
@@ -93,7 +101,7 @@ def window_extremes_at(expected, measured, silhouettes, rows, cols, margin, silh
                 continue
             far = np.float32(-np.inf)
             near = np.float32(np.inf)
-            for cc in range(max(c - margin, 0), min(c + margin + 1, width)):
+            for cc in range(max(c - margin_columns, 0), min(c + margin_columns + 1, width)):
                 e = expected[r, cc]
                 if np.isfinite(e) and e > far:
                     far = e
