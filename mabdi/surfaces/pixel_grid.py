@@ -29,16 +29,15 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 import numpy as np
-from vtkmodules.vtkCommonDataModel import vtkImageData, vtkPolyData
+from vtkmodules.vtkCommonDataModel import vtkPolyData
 
-from mabdi.algorithm import MabdiAlgorithm
 from mabdi.camera import pixel_rays
 from mabdi.depth import (
-    measured_depth,
     straight_continuations,
 )
 from mabdi.errors import ConfigError, check_switch
 from mabdi.frame_values import Measured
+from mabdi.surfaces.frame_surface import FrameSurface
 from mabdi.surfaces.depth_smoothing import measured_around, smooth_depth_by_noise
 from mabdi.mesh_maps.mesh_map import colour_point_array
 from mabdi.polydata import triangles_polydata
@@ -105,7 +104,7 @@ def pixel_grid_triangles(depth: np.ndarray, max_jump: float, straight: tuple[np.
     return triangles
 
 
-class FilterPixelGrid(MabdiAlgorithm):
+class FilterPixelGrid(FrameSurface):
     """Mesh a depth image's valid pixels as a pixel grid in world coordinates (depth image -> vtkPolyData).
 
     ``FilterPixelGrid(PixelGridParameters(max_jump=0.01))``; a bare number is taken as ``max_jump``.
@@ -114,7 +113,7 @@ class FilterPixelGrid(MabdiAlgorithm):
     """
 
     def __init__(self, parameters: PixelGridParameters | float | None = None) -> None:
-        super().__init__(nInputPorts=1, inputType="vtkImageData", nOutputPorts=1, outputType="vtkPolyData")
+        super().__init__()
         if parameters is None:
             parameters = PixelGridParameters()
         elif not isinstance(parameters, PixelGridParameters):
@@ -149,13 +148,6 @@ class FilterPixelGrid(MabdiAlgorithm):
         if frame.colour is not None:  # each vertex is a pixel: its colour
             mesh.GetPointData().AddArray(colour_point_array(frame.colour.reshape(-1, 3)[pixel_ids]))
         return mesh
-
-    def RequestData(self, request, inInfo, outInfo):  # noqa: N802 (VTK API)
-        image = vtkImageData.GetData(inInfo[0])
-        output = vtkPolyData.GetData(outInfo)
-        output.ShallowCopy(self.mesh_frame(Measured.from_image(image), measured_depth(image)))
-        output.GetFieldData().ShallowCopy(image.GetFieldData())
-        return 1
 
 
 def pixel_grid_surface(

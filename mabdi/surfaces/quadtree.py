@@ -40,17 +40,16 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from vtkmodules.util.numpy_support import numpy_to_vtk, numpy_to_vtkIdTypeArray
 from vtkmodules.vtkCommonCore import vtkPoints
-from vtkmodules.vtkCommonDataModel import vtkCellArray, vtkImageData, vtkPolyData
+from vtkmodules.vtkCommonDataModel import vtkCellArray, vtkPolyData
 
-from mabdi.algorithm import MabdiAlgorithm
 from mabdi.camera import Intrinsics, unit_rays
 from mabdi.depth import (
     colours_at,
-    measured_depth,
     straight_continuations,
 )
 from mabdi.errors import ConfigError, check_switch
 from mabdi.frame_values import Measured
+from mabdi.surfaces.frame_surface import FrameSurface
 from mabdi.sensor_noise import SensorNoise
 from mabdi.surfaces.depth_smoothing import measured_around, smooth_depth_by_noise, smoothed_noise_share
 from mabdi.mesh_maps.mesh_map import colour_point_array
@@ -706,7 +705,7 @@ def plane_allowance(depth: np.ndarray, reduced: Grid, noise: SensorNoise) -> np.
     return np.maximum(RESIDUAL_FOOTPRINTS * footprint, 3.0 * noise.sigma(depth, reduced.near, reduced.far))
 
 
-class FilterQuadTree(MabdiAlgorithm):
+class FilterQuadTree(FrameSurface):
     """Quad-tree mesh of a depth image's valid pixels (depth image -> vtkPolyData), see the module docs.
 
     The small-leaf plane test allows 3 sigma(z) of the sensor's noise model, the one the image carries
@@ -714,7 +713,7 @@ class FilterQuadTree(MabdiAlgorithm):
     """
 
     def __init__(self, parameters: QuadTreeParameters | None = None) -> None:
-        super().__init__(nInputPorts=1, inputType="vtkImageData", nOutputPorts=1, outputType="vtkPolyData")
+        super().__init__()
         self._parameters = parameters if parameters is not None else QuadTreeParameters()
         #: Region count of the last image (the pyramid root's, seed invariant 1).
         self.regions = 0
@@ -761,9 +760,3 @@ class FilterQuadTree(MabdiAlgorithm):
                 mesh.GetPointData().AddArray(colour_point_array(colours_at(frame.colour, intrinsics, vertices)))
         return mesh
 
-    def RequestData(self, request, inInfo, outInfo):  # noqa: N802 (VTK API)
-        image = vtkImageData.GetData(inInfo[0])
-        output = vtkPolyData.GetData(outInfo)
-        output.ShallowCopy(self.mesh_frame(Measured.from_image(image), measured_depth(image)))
-        output.GetFieldData().ShallowCopy(image.GetFieldData())
-        return 1
