@@ -23,15 +23,24 @@ tells such an exception (a KeyboardInterrupt in its chain, or any raised once
 a SIGINT was noted), and :func:`interrupts_unwrapped` raises it as the
 KeyboardInterrupt it stands for (the loop's frames and the pipeline's
 requests go through it).
+
+Where Python cannot raise at all (the KeyboardInterrupt came inside a C
+callback, such as llvmlite's object cache while numba compiles, or in a
+``__del__``), it reports the exception as "Exception ignored in ..." with a
+traceback. While watched, :func:`_unraisable` takes such a report: a
+KeyboardInterrupt is noted (the command stops at its next check) and not
+printed; any other exception goes to the hook that was there before.
 """
 
 from __future__ import annotations
 
 import contextlib
 import signal
+import sys
 import threading
 
 _interrupted = False
+_previous_unraisable_hook = None
 
 
 def note() -> None:
@@ -46,6 +55,14 @@ def _interrupt(signum, frame) -> None:
     raise KeyboardInterrupt
 
 
+def _unraisable(report) -> None:
+    """``sys.unraisablehook`` while watched: a KeyboardInterrupt Python could not raise is noted, not printed."""
+    if isinstance(report.exc_value, KeyboardInterrupt) or report.exc_type is KeyboardInterrupt:
+        note()
+        return
+    (_previous_unraisable_hook or sys.__unraisablehook__)(report)
+
+
 def raising_handlers() -> tuple:
     """The SIGINT handlers that raise KeyboardInterrupt as Python's does: its own and :func:`_interrupt`
     (code that holds Ctrl-C for a while takes over from either and gives the same one back)."""
@@ -58,17 +75,24 @@ def _in_main_thread() -> bool:
 
 def watch() -> bool:
     """Route SIGINT through :func:`_interrupt` where Python's default handler holds it (main thread only:
-    only it may set handlers). Returns whether it did."""
+    only it may set handlers), and unraisable reports through :func:`_unraisable`. Returns whether it did."""
     if not _in_main_thread() or signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
         return False
     signal.signal(signal.SIGINT, _interrupt)
+    global _previous_unraisable_hook
+    if sys.unraisablehook is not _unraisable:
+        _previous_unraisable_hook, sys.unraisablehook = sys.unraisablehook, _unraisable
     return True
 
 
 def unwatch() -> None:
     """Give SIGINT back to Python's default handler, where :func:`watch` took it."""
+    global _previous_unraisable_hook
     if _in_main_thread() and signal.getsignal(signal.SIGINT) is _interrupt:
         signal.signal(signal.SIGINT, signal.default_int_handler)
+    if sys.unraisablehook is _unraisable:
+        sys.unraisablehook = _previous_unraisable_hook or sys.__unraisablehook__
+        _previous_unraisable_hook = None
 
 
 def interrupted() -> bool:

@@ -150,3 +150,72 @@ def test_ctrl_c_while_numba_unpickles_a_kernels_result_exits_130(tmp_path):
     assert done.returncode == 130, f"exit {done.returncode}\nstderr: {done.stderr[-3000:]}"
     assert "mabdi: interrupted" in done.stderr and "Traceback" not in done.stderr
     assert not (out / "world_mesh.vtp").exists()
+
+
+def _sigint_inside_a_c_callback() -> None:
+    """A real SIGINT that lands while C code calls back into Python (libc's qsort with a Python comparator,
+    as llvmlite's object cache is called back while numba compiles): Python cannot raise the
+    KeyboardInterrupt through the C frames and reports it as "Exception ignored"."""
+    import ctypes
+    import ctypes.util
+
+    libc = ctypes.CDLL(ctypes.util.find_library("c"))
+    comparator_type = ctypes.CFUNCTYPE(ctypes.c_int, ctypes.POINTER(ctypes.c_int), ctypes.POINTER(ctypes.c_int))
+    sent = []
+
+    def compare(a, b):
+        if not sent:
+            sent.append(True)
+            os.kill(os.getpid(), signal.SIGINT)  # the handler runs here, inside the callback
+        return a[0] - b[0]
+
+    values = (ctypes.c_int * 4)(3, 1, 2, 0)
+    libc.qsort(values, len(values), ctypes.sizeof(ctypes.c_int), comparator_type(compare))
+
+
+def test_an_interrupt_python_cannot_raise_is_noted_not_printed(monkeypatch, capsys):
+    """While watched, a KeyboardInterrupt reported as unraisable (from a C callback) is noted, with no
+    traceback; any other unraisable exception is still reported."""
+    monkeypatch.setattr(interrupts, "_interrupted", False)
+    monkeypatch.setattr(signal, "getsignal", lambda signum: signal.default_int_handler)  # as outside pytest
+    monkeypatch.setattr(sys, "unraisablehook", sys.__unraisablehook__)  # Python's own (pytest takes it in tests)
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        assert interrupts.watch()
+        _sigint_inside_a_c_callback()
+        assert interrupts.interrupted()
+        assert "Traceback" not in capsys.readouterr().err
+
+        class Failing:
+            def __del__(self):
+                raise ValueError("a finaliser's own error")
+
+        reported = []
+        monkeypatch.setattr(interrupts, "_previous_unraisable_hook", reported.append)
+        Failing()
+        assert [type(report.exc_value) for report in reported] == [ValueError]
+    finally:
+        interrupts.unwatch()
+        monkeypatch.undo()
+        signal.signal(signal.SIGINT, previous)
+    assert sys.unraisablehook is not interrupts._unraisable
+
+
+def test_ctrl_c_inside_a_c_callback_in_a_frame_exits_130_without_a_traceback(tmp_path, monkeypatch, capsys):
+    """The same during ``mabdi run`` (the interrupt lands in a C callback inside a frame): exit 130 with one
+    line, no "Exception ignored" traceback, no map."""
+    from mabdi.cli import main
+    from mabdi.stages.object_removal import ObjectRemoval
+
+    find = ObjectRemoval.find
+
+    def interrupted(*args, **kwargs):
+        _sigint_inside_a_c_callback()
+        return find(*args, **kwargs)
+
+    monkeypatch.setattr(ObjectRemoval, "find", interrupted)
+    monkeypatch.setattr(sys, "unraisablehook", sys.__unraisablehook__)  # Python's own (pytest takes it in tests)
+    assert main(_run(tmp_path / "run")) == 130
+    stderr = capsys.readouterr().err
+    assert "mabdi: interrupted" in stderr and "Traceback" not in stderr and "Exception ignored" not in stderr
+    assert not (tmp_path / "run" / "world_mesh.vtp").exists()
