@@ -98,30 +98,37 @@ class PosedFrames:
             yield frame
 
 
-class JitteredFrames(FrameSubset):
+class PosedSubset(FrameSubset):
+    """The integrated frames with other poses (one 4x4 world_from_camera per frame of the subset)."""
+
+    def __init__(self, source, indices, poses: np.ndarray, description: str) -> None:
+        super().__init__(source, indices)
+        self.other_poses = np.asarray(poses, dtype=np.float64).copy()
+        self.description = f"{self.description}, {description}"
+
+    def read_frame(self, index: int):
+        frame = super().read_frame(index)
+        frame.world_from_camera = self.other_poses[index].copy()
+        return frame
+
+    @property
+    def poses(self) -> np.ndarray:
+        return self.other_poses.copy()
+
+
+class JitteredFrames(PosedSubset):
     """The integrated frames with their given poses jittered: per frame, a translation of N(0, ``metres``) per
     axis and a turn about the camera centre of N(0, ``degrees``) per axis (seeded), as a poorer tracker would
     give them. The held-out frames keep the recording's poses (they are scored there)."""
 
     def __init__(self, source, indices, metres: float, degrees: float, seed: int = 0) -> None:
-        super().__init__(source, indices)
         rng = np.random.default_rng(seed)
-        poses = source.poses[self.indices].copy()
+        poses = source.poses[np.asarray(indices)].copy()
         for pose in poses:
             turn = Rotation.from_rotvec(np.radians(rng.normal(0.0, degrees, 3))).as_matrix()
             pose[:3, :3] = turn @ pose[:3, :3]
             pose[:3, 3] += rng.normal(0.0, metres, 3)
-        self.jittered = poses
-        self.description = f"{self.description}, poses jittered by {metres * 1000:g} mm / {degrees:g} deg per axis"
-
-    def read_frame(self, index: int):
-        frame = super().read_frame(index)
-        frame.world_from_camera = self.jittered[index].copy()
-        return frame
-
-    @property
-    def poses(self) -> np.ndarray:
-        return self.jittered.copy()
+        super().__init__(source, indices, poses, f"poses jittered by {metres * 1000:g} mm / {degrees:g} deg per axis")
 
 
 def scored(mesh, frames) -> dict:
@@ -185,14 +192,16 @@ def run_mabdi(source, subset, integrated, held, surface: str, registration: bool
     return row, simulation
 
 
-def run_tsdf_row(source, subset, held, voxel: float, noise, smooth: bool = False) -> dict:
+def run_tsdf_row(source, subset, held, voxel: float, noise, smooth: bool = False, name: str = "", held_frames=None) -> dict:
+    """The TSDF at ``voxel`` (m) integrated on ``subset`` and scored on the held-out frames (``held_frames``: an
+    iterable of them at other poses; None: at the recording's)."""
     settings = TsdfSettings.tuned(voxel, noisy=smooth and noise is not None and noise.noisy)
-    log(f"tsdf {voxel * 100:g} cm: integrating {len(subset)} frames ({settings.as_dict()})")
+    log(f"tsdf {voxel * 100:g} cm{name}: integrating {len(subset)} frames ({settings.as_dict()})")
     run = run_tsdf(subset, settings, mesh_every=None, noise=noise)
     triangles = int(run.mesh.GetNumberOfCells())
     log(f"tsdf {voxel * 100:g} cm: {triangles:,} triangles, {np.mean(run.t_integrate_ms):.0f} ms a frame; scoring")
     return {
-        "method": f"tsdf_{voxel * 100:g}cm",
+        "method": f"tsdf_{voxel * 100:g}cm{name}",
         "settings": settings.as_dict(),
         "triangles": triangles,
         "ms_per_frame": float(np.mean(run.t_integrate_ms)),
@@ -200,7 +209,7 @@ def run_tsdf_row(source, subset, held, voxel: float, noise, smooth: bool = False
         "extract_ms": float(run.t_final_extract_ms.get(settings.weight_threshold, float("nan"))),
         "seconds": float(run.seconds),
         "volume_bytes": int(run.volume_bytes),
-        "held_out": scored(run.mesh, held_out_frames(source, held)),
+        "held_out": scored(run.mesh, held_out_frames(source, held) if held_frames is None else held_frames),
     }
 
 
@@ -272,6 +281,11 @@ def main(argv=None) -> int:
         "--set", dest="settings", action="append", default=[], metavar="KEY=VALUE",
         help="set a config value of mabdi's runs by its dotted key, as mabdi run --set (repeatable)",
     )  # fmt: skip
+    parser.add_argument(
+        "--tsdf-at-run-poses", action="store_true",
+        help="also integrate each TSDF at the first mabdi run's meshed poses and score it at the held-out poses corrected as "
+        "that run's: whether the run's poses or the recording's make the more consistent map, by the TSDF's own measure",
+    )  # fmt: skip
     parser.add_argument("--out", type=Path, help="write every number here as JSON")
     args = parser.parse_args(argv)
 
@@ -291,11 +305,14 @@ def main(argv=None) -> int:
 
     rows = []
     noise = None
+    run_poses = None  # the first run's meshed poses (world) and the held-out poses corrected as its
     for surface in args.surface:
         row, simulation = run_mabdi(source, subset, integrated, held, surface, registration=not args.no_registration, settings=args.settings)
         rows.append(row)
         if noise is None:
             noise = simulation.loop.noise  # the curve this run learnt, for the TSDF's smoothing
+            meshed = simulation.meshed_poses()
+            run_poses = (meshed, corrected_poses(source.poses, integrated, meshed, held))
         simulation.loop.close()
     if args.voxels:
         usable, reason = open3d_status()
@@ -304,6 +321,13 @@ def main(argv=None) -> int:
         else:
             for voxel in args.voxels:
                 rows.append(run_tsdf_row(source, subset, held, voxel, noise, smooth=args.tsdf_smooth))
+                if args.tsdf_at_run_poses and run_poses is not None:
+                    meshed, corrected = run_poses
+                    at_run = PosedSubset(source, integrated, meshed, "at the first mabdi run's meshed poses")
+                    rows.append(run_tsdf_row(
+                        source, at_run, held, voxel, noise, smooth=args.tsdf_smooth, name=" at the run's poses",
+                        held_frames=PosedFrames(source, held, corrected),
+                    ))  # fmt: skip
     bench = {
         "source": source.description.replace(where, args.sequence.name),
         "sequence": args.sequence.name,
