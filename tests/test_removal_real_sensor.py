@@ -110,3 +110,66 @@ def test_a_foreground_edge_the_map_misplaces_by_eight_pixels_is_not_seen_through
     margin = RULES.edge_margin
     inner = (40 - 2 * margin) * (38 - 2 * margin)  # the box's pixels more than the margin inside its rim in E
     assert inner <= by_face[1] <= 40 * 38 and voting[10 + margin : 50 - margin, 10 + margin : 48 - margin].all()
+
+
+def test_a_contradiction_the_icps_pose_explains_casts_no_vote_while_a_surface_that_left_still_does():
+    """A frame of a recording meshed at its given pose, which stands 7 cm in front of where the ICP fitted D
+    to the map (a tracker's jump or drift the rule did not follow): the wall 2 m away reads 7 cm beyond E,
+    past the 5 cm gap, on every pixel, and each voted against it. Placed at the ICP's pose the wall's returns
+    lie on E: no vote. A box that left (E still shows it 50 cm in front of the wall) is seen through at
+    either pose. (Returns that leave the image at the ICP's pose, along its rim, cannot be checked and count
+    as explained.)"""
+    rays, _ = unit_rays(WIDE)
+    shape = WIDE.shape
+    expected = np.full(shape, 2.0, np.float32)
+    expected[10:50, 40:70] = 1.5  # the box, gone from D
+    face_ids = np.full(shape, 1, dtype=np.int64)
+    face_ids[10:50, 40:70] = 2
+    measured = np.full(shape, 2.07, np.float32)
+    normals = {1: [0.0, 0.0, -1.0], 2: [0.0, 0.0, -1.0]}
+
+    def normals_of(ids):
+        return np.array([normals.get(int(i), [np.nan] * 3) for i in ids], dtype=np.float32)
+
+    found = np.eye(4)
+    found[2, 3] = -0.07  # the camera 7 cm further back, along its axis
+
+    def by_face(found_pose):
+        faces, contradicted, _, voting = removal_votes(
+            labelled(measured, expected), measured, expected, face_ids, rays, np.eye(4), normals_of, RULES,
+            sigma=kinect_sigma, found_pose=found_pose, geometry=WIDE,
+        )  # fmt: skip
+        return dict(zip(faces.tolist(), contradicted.tolist(), strict=True)), voting
+
+    at_given, _ = by_face(None)
+    assert at_given == {1: np.count_nonzero(face_ids == 1), 2: np.count_nonzero(face_ids == 2)}  # every pixel voted
+    explained, voting = by_face(found)
+    assert explained.get(1, 0) == 0
+    margin = RULES.edge_margin
+    assert explained[2] >= (40 - 2 * margin) * (30 - 2 * margin) and voting[10 + margin : 50 - margin, 40 + margin : 70 - margin].all()
+
+
+def test_the_icps_pose_explains_a_range_images_returns_turned_by_a_few_columns():
+    """The same test on a spinning LiDAR's range image (its rays, its projection, azimuth wrapping): a sweep
+    meshed at a heading 3 columns off the ICP's sees a wall with a doorway turned by 3 columns; placed at the
+    ICP's heading each return lies on E (:func:`mabdi.stages.removal.pose_explains`), but for the returns of
+    a surface that is gone."""
+    from mabdi.spherical import SphericalGeometry
+    from mabdi.stages.removal import pose_explains
+
+    geometry = SphericalGeometry(beams=16, columns=128, fov_up=15.0, fov_down=-15.0, range_min=0.5, range_max=60.0)
+    expected = np.full(geometry.shape, 10.0, np.float32)
+    expected[:, 20:40] = 14.0  # a doorway: E sees 4 m further through it
+    expected[:, 120:] = 6.0  # a pillar across the wrap of the azimuth
+    measured = np.roll(expected, 3, axis=1)  # the same scene turned by 3 columns in D
+    measured[4:8, 80:90] = 20.0  # and a surface the map shows 10 m away that left
+    gap = np.full(geometry.shape, 0.1, np.float32)
+    contradicting = measured - expected > gap
+    yaw = 2 * np.pi * 3 / geometry.columns  # D's column u is E's u - 3: 3 columns' azimuth further (u grows as it falls)
+    found = np.eye(4)
+    found[:2, :2] = [[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]]
+    explained = pose_explains(contradicting, measured, expected, gap, geometry, np.eye(4), found)
+    assert contradicting[:, 40:43].all() and contradicting[:, 120:123].all()  # the turned scene's contradictions
+    assert explained[contradicting & (measured < 20.0)].all()
+    assert not explained[4:8, 80:90].any()
+    assert not pose_explains(contradicting, measured, expected, gap, geometry, np.eye(4), np.eye(4)).any()

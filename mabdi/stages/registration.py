@@ -1018,6 +1018,7 @@ class FilterRegistration(MapAndImageAlgorithm):
         placement = Placement(
             result.status, given.copy(), world_from_map.copy(), translation, angle, result.residual, result.inlier_share,
             result.support, result.iterations, bool(given_exact), None if covariance is None else np.asarray(covariance, dtype=np.float64),
+            given_in_map @ result.transform if result.registered else None,
         )  # fmt: skip
         return measured.placed(pose), placement
 
