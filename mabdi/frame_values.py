@@ -90,8 +90,9 @@ class Placement:
     ``given_exact``: the source states its poses exact (the frame kept its given pose); ``given_pose``: 4x4
     world_from_camera as the source gave it; ``world_from_map``: where the map's frame lies in the world;
     ``covariance``: 6x6 of the meshed pose (rotation vector in rad, translation in m), None when not registered;
-    ``found_pose``: 4x4 camera-to-map where the ICP fitted D to the map (the frame may be meshed elsewhere, by
-    the rule that weighs it against the given pose), None when not registered.
+    ``found_pose``: 4x4 camera-to-map where the ICP fitted D to the map, where the frame is meshed elsewhere by
+    a deviation of its own (:func:`mabdi.stages.registration.own_deviation`: jitter, not shared by the frame
+    before); None otherwise (not registered, or a deviation the frames share: the map displaced).
     """
 
     status: str

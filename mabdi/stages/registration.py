@@ -98,6 +98,10 @@ MIN_JITTER_PAIRS = 5
 #: A frame's deviation from the slow pose is taken as jitter up to this many of the jitter's standard deviations
 #: (the Mahalanobis norm over the six components; 4.7: chi-square with 6 degrees of freedom at 0.999).
 JITTER_BOUND = 4.7
+#: A frame's deviation from its ICP's pose is its own (:func:`own_deviation`) where it differs from the frame
+#: before's by at least this share of its size: white jitter one frame to the next differs by about sqrt(2) of
+#: its size; a displaced map's offset, shared, by little of it.
+OWN_DEVIATION_SHARE = 0.5
 #: A floor on a variance (rad^2 or m^2) divided by.
 VARIANCE_FLOOR = 1e-14
 
@@ -814,6 +818,22 @@ def follow_evidence(given: np.ndarray, registered: np.ndarray, carried: np.ndarr
     return apply_correction(correction_matrix(start + gain * (end - start)), given)
 
 
+def own_deviation(deviation: np.ndarray, last: np.ndarray | None, depth: float) -> bool:
+    """Whether a registered frame's ``deviation`` (:func:`correction_vector` from its meshed pose to its ICP's
+    pose) is its own: not shared by the frame before (``last``, its deviation; None: none yet), so the frame
+    alone stands in doubt (jitter) rather than the map displaced against the poses (a jump or drift of the
+    given poses, which the frames after it share). Rotation is counted as the distance it moves a point at
+    the frame's median ``depth`` (m; at least 1 m). Own where the two differ by at least
+    :data:`OWN_DEVIATION_SHARE` of this frame's deviation."""
+    lever = np.array([max(depth, 1.0)] * 3 + [1.0] * 3)
+    size = float(np.linalg.norm(deviation * lever))
+    if size == 0.0:
+        return False
+    if last is None:
+        return True
+    return float(np.linalg.norm((deviation - last) * lever)) >= OWN_DEVIATION_SHARE * size
+
+
 def map_placement_variance(depth: float, noise: SensorNoise, intrinsics: Intrinsics) -> tuple[float, float]:
     """How far a frame registered to the map can be off the world for the map's own error, whatever its pose
     covariance says (rad^2, m^2 per component). The map was meshed from earlier frames of the same sensor,
@@ -884,6 +904,8 @@ class FilterRegistration(MapAndImageAlgorithm):
         self._travelled = 0.0
         self._last_position: np.ndarray | None = None
         self._last_frame = -1
+        #: the last registered frame's deviation of the ICP's pose from the meshed one (:func:`own_deviation`)
+        self._last_deviation: np.ndarray | None = None
         self.anchor = MapAnchor(stated=self._parameters.given_variance(self._pose_accuracy))
         self._jitter = PoseJitter()
         self._slow = np.eye(4)  # the slow part of the last learnt correction (see _learnt_pose)
@@ -896,6 +918,7 @@ class FilterRegistration(MapAndImageAlgorithm):
             "travelled": self._travelled,
             "last_position": np.full(3, np.nan) if self._last_position is None else self._last_position.copy(),
             "last_frame": self._last_frame,
+            "last_deviation": np.full(6, np.nan) if self._last_deviation is None else self._last_deviation.copy(),
             "anchor": self.anchor.state(),
             "jitter": self._jitter.state(),
         }
@@ -906,6 +929,8 @@ class FilterRegistration(MapAndImageAlgorithm):
         position = np.asarray(state["last_position"], dtype=np.float64)
         self._last_position = None if np.isnan(position).any() else position.copy()
         self._last_frame = int(state["last_frame"])
+        deviation = np.asarray(state.get("last_deviation", np.full(6, np.nan)), dtype=np.float64)
+        self._last_deviation = None if np.isnan(deviation).any() else deviation.copy()
         self.anchor.set_state(state["anchor"])
         self._jitter = PoseJitter()
         if "jitter" in state:  # older checkpoints have none: learnt again from the next frames
@@ -1012,13 +1037,21 @@ class FilterRegistration(MapAndImageAlgorithm):
         if new_frame:
             self._last_position = given[:3, 3].copy()
             self._last_frame = frame
+        found_pose = None
+        if result.registered:
+            found_pose = given_in_map @ result.transform
+            deviation = correction_vector(correction_between(pose, found_pose))
+            if not own_deviation(deviation, self._last_deviation, _median_depth(depth)):
+                found_pose = None  # the map stands displaced against the poses: not this frame's own doubt
+            if new_frame:
+                self._last_deviation = deviation
         world_from_map = self.anchor.world_from_map
         # the correction in the world: the camera centre moved, and turned
         translation, angle = transform_size(np.linalg.inv(given) @ world_from_map @ pose)
         placement = Placement(
             result.status, given.copy(), world_from_map.copy(), translation, angle, result.residual, result.inlier_share,
             result.support, result.iterations, bool(given_exact), None if covariance is None else np.asarray(covariance, dtype=np.float64),
-            given_in_map @ result.transform if result.registered else None,
+            found_pose,
         )  # fmt: skip
         return measured.placed(pose), placement
 

@@ -18,8 +18,9 @@ unless the noise model loses returns.
 
 A pose in doubt: a frame of a recording may be meshed at its given pose
 although its ICP fitted D to the map better elsewhere (the registration's
-rule follows the ICP only on strong evidence). A contradiction that D
-placed at the ICP's pose no longer shows casts no vote
+rule follows the ICP only on strong evidence). Where that deviation is the
+frame's own (jitter: not shared by the frame before), a contradiction that
+D placed at the ICP's pose no longer shows casts no vote
 (:func:`pose_explains`): a pose error can make it, a surface that left
 cannot be explained so.
 
