@@ -75,14 +75,26 @@ def _in_main_thread() -> bool:
 
 def watch() -> bool:
     """Route SIGINT through :func:`_interrupt` where Python's default handler holds it (main thread only:
-    only it may set handlers), and unraisable reports through :func:`_unraisable`. Returns whether it did."""
-    if not _in_main_thread() or signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
+    only it may set handlers), and unraisable reports through :func:`_unraisable` (also where SIGINT is
+    watched already). Returns whether it routed SIGINT (the caller then gives it back: :func:`unwatch`)."""
+    if not _in_main_thread():
+        return False
+    handler = signal.getsignal(signal.SIGINT)
+    if handler is _interrupt:  # watched already (the caller that did gives it back): the reports too
+        _take_unraisable_reports()
+        return False
+    if handler is not signal.default_int_handler:
         return False
     signal.signal(signal.SIGINT, _interrupt)
+    _take_unraisable_reports()
+    return True
+
+
+def _take_unraisable_reports() -> None:
+    """Route ``sys.unraisablehook`` through :func:`_unraisable` (once; the hook before is kept for the rest)."""
     global _previous_unraisable_hook
     if sys.unraisablehook is not _unraisable:
         _previous_unraisable_hook, sys.unraisablehook = sys.unraisablehook, _unraisable
-    return True
 
 
 def unwatch() -> None:

@@ -175,11 +175,10 @@ def _sigint_inside_a_c_callback() -> None:
 
 def test_an_interrupt_python_cannot_raise_is_noted_not_printed(monkeypatch, capsys):
     """While watched, a KeyboardInterrupt reported as unraisable (from a C callback) is noted, with no
-    traceback; any other unraisable exception is still reported."""
+    traceback; any other unraisable exception is still reported; unwatched, Python's hook is back."""
     monkeypatch.setattr(interrupts, "_interrupted", False)
-    monkeypatch.setattr(signal, "getsignal", lambda signum: signal.default_int_handler)  # as outside pytest
-    monkeypatch.setattr(sys, "unraisablehook", sys.__unraisablehook__)  # Python's own (pytest takes it in tests)
-    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    previous_handler = signal.signal(signal.SIGINT, signal.default_int_handler)  # as a command starts outside pytest
+    previous_hook, sys.unraisablehook = sys.unraisablehook, sys.__unraisablehook__  # Python's own (pytest's in tests)
     try:
         assert interrupts.watch()
         _sigint_inside_a_c_callback()
@@ -191,14 +190,19 @@ def test_an_interrupt_python_cannot_raise_is_noted_not_printed(monkeypatch, caps
                 raise ValueError("a finaliser's own error")
 
         reported = []
-        monkeypatch.setattr(interrupts, "_previous_unraisable_hook", reported.append)
-        Failing()
+        kept, interrupts._previous_unraisable_hook = interrupts._previous_unraisable_hook, reported.append
+        try:
+            Failing()
+        finally:
+            interrupts._previous_unraisable_hook = kept
         assert [type(report.exc_value) for report in reported] == [ValueError]
+        interrupts.unwatch()
+        assert sys.unraisablehook is sys.__unraisablehook__
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
     finally:
         interrupts.unwatch()
-        monkeypatch.undo()
-        signal.signal(signal.SIGINT, previous)
-    assert sys.unraisablehook is not interrupts._unraisable
+        sys.unraisablehook = previous_hook
+        signal.signal(signal.SIGINT, previous_handler)
 
 
 def test_ctrl_c_inside_a_c_callback_in_a_frame_exits_130_without_a_traceback(tmp_path, monkeypatch, capsys):
@@ -215,7 +219,29 @@ def test_ctrl_c_inside_a_c_callback_in_a_frame_exits_130_without_a_traceback(tmp
 
     monkeypatch.setattr(ObjectRemoval, "find", interrupted)
     monkeypatch.setattr(sys, "unraisablehook", sys.__unraisablehook__)  # Python's own (pytest takes it in tests)
-    assert main(_run(tmp_path / "run")) == 130
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)  # as a command starts outside pytest
+    try:
+        code = main(_run(tmp_path / "run"))
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    assert code == 130
     stderr = capsys.readouterr().err
     assert "mabdi: interrupted" in stderr and "Traceback" not in stderr and "Exception ignored" not in stderr
     assert not (tmp_path / "run" / "world_mesh.vtp").exists()
+
+
+def test_watching_again_while_watched_takes_the_unraisable_reports_and_leaves_sigint_to_the_first(monkeypatch):
+    """A command started while SIGINT is already routed through :mod:`mabdi.interrupts` (a program that runs
+    two in one process, a test after another) still has a KeyboardInterrupt Python cannot raise noted, not
+    printed: :func:`~mabdi.interrupts.watch` takes the unraisable reports and returns False (the first watcher
+    gives SIGINT back)."""
+    monkeypatch.setattr(sys, "unraisablehook", sys.__unraisablehook__)
+    previous = signal.signal(signal.SIGINT, interrupts._interrupt)
+    try:
+        assert not interrupts.watch()
+        assert sys.unraisablehook is interrupts._unraisable
+        assert signal.getsignal(signal.SIGINT) is interrupts._interrupt
+    finally:
+        interrupts.unwatch()
+        signal.signal(signal.SIGINT, previous)
+    assert sys.unraisablehook is sys.__unraisablehook__
