@@ -89,10 +89,7 @@ class Placement:
     ``support``: the least share of a constrained direction's constraint its pairs carry; ``iterations``;
     ``given_exact``: the source states its poses exact (the frame kept its given pose); ``given_pose``: 4x4
     world_from_camera as the source gave it; ``world_from_map``: where the map's frame lies in the world;
-    ``covariance``: 6x6 of the meshed pose (rotation vector in rad, translation in m), None when not registered;
-    ``found_pose``: 4x4 camera-to-map where the ICP fitted D to the map, where the frame is meshed elsewhere by
-    a deviation of its own (:func:`mabdi.stages.registration.own_deviation`: jitter, not shared by the frame
-    before); None otherwise (not registered, or a deviation the frames share: the map displaced).
+    ``covariance``: 6x6 of the meshed pose (rotation vector in rad, translation in m), None when not registered.
     """
 
     status: str
@@ -106,7 +103,6 @@ class Placement:
     iterations: int = 0
     given_exact: bool = False
     covariance: np.ndarray | None = None
-    found_pose: np.ndarray | None = None
 
     @classmethod
     def unregistered(cls, given_pose: np.ndarray) -> Placement:

@@ -799,20 +799,3 @@ def test_pose_jitter_tells_white_jitter_from_a_walk():
     assert 0.8 * 0.005**2 < rotation < 1.2 * 0.005**2 and 0.8 * 0.005**2 < translation < 1.2 * 0.005**2, (rotation, translation)
     assert max(walk.variance()) < 0.1 * 0.004**2, walk.variance()
     assert PoseJitter().variance() is None
-
-
-def test_a_deviation_from_the_icps_pose_is_a_frames_own_only_where_the_frame_before_did_not_share_it():
-    """:func:`mabdi.stages.registration.own_deviation`: jitter (independent from frame to frame) is a frame's
-    own doubt; an offset the frames share (the map displaced against the poses) is not; no deviation is none."""
-    from mabdi.stages.registration import own_deviation
-
-    jitter = np.array([0.0, 0.0, 0.004, 0.01, 0.0, 0.0])  # 0.004 rad and 1 cm
-    assert own_deviation(jitter, None, 2.0)  # the first frame: nothing shared yet
-    assert own_deviation(jitter, -jitter, 2.0) and own_deviation(jitter, np.zeros(6), 2.0)
-    assert not own_deviation(jitter, 0.8 * jitter, 2.0)  # shared: 20% apart
-    assert not own_deviation(np.zeros(6), jitter, 2.0)
-    turned = np.array([0.0, 0.0, 0.01, 0.0, 0.0, 0.0])
-    # a turn counts by how far it moves a point at the frame's depth: 1 cm more translation on a shared 0.01 rad
-    # turn is shared at 4 m (the turn moves a point 4 cm there), the frame's own at 1 m (1 cm)
-    assert not own_deviation(turned + [0, 0, 0, 0.01, 0, 0], turned, 4.0)
-    assert own_deviation(turned + [0, 0, 0, 0.01, 0, 0], turned, 1.0)

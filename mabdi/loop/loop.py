@@ -517,9 +517,7 @@ class MabdiLoop:
         if (self.removal and votes) or len(replaced):
             found = None
             if self.removal and votes:
-                found = self.object_removal.find(
-                    measured, expected, classified, self.world, self.surface, self.surface_capabilities, placement
-                )
+                found = self.object_removal.find(measured, expected, classified, self.world, self.surface, self.surface_capabilities)
             removal = apply_removal(
                 self.world, self.surface, self.surface_capabilities, self.object_removal, found, replaced, expected, measured
             )  # fmt: skip

@@ -45,7 +45,7 @@ from vtkmodules.vtkCommonDataModel import vtkPolyData
 from mabdi.camera import project, unit_rays
 from mabdi.face_identity import FaceIdTable, block_address, codes_in, rows_by_block
 from mabdi.stages.classifier import CONTRADICTED, NO_RETURN, classify, dilate, neighbourhood_3x3
-from mabdi.frame_values import Classified, Expected, Measured, Placement
+from mabdi.frame_values import Classified, Expected, Measured
 from mabdi.stages.ray_triangle_kernels import nearest_hits_in_boxes_kernel
 from mabdi.surfaces.registry import SurfaceCapabilities
 from mabdi.stages.removal_kernels import points_in_boxes
@@ -98,17 +98,14 @@ class ObjectRemoval:
         self.threshold = threshold
 
     def find(
-        self, measured: Measured, expected: Expected, classified: Classified, world, surface, capabilities: SurfaceCapabilities,
-        placement: Placement | None = None,
+        self, measured: Measured, expected: Expected, classified: Classified, world, surface, capabilities: SurfaceCapabilities
     ) -> RemovalVotes | None:
         """This frame's votes on the faces E shows (and on faces too small for a pixel beside them), from D
         (registered), E (with face identity) and the classifier's findings; None when no pixel sees through the
-        map (confirmations only matter against contradictions). ``placement``: how registration placed D (its
-        ICP's pose explains some contradictions where the frame is meshed elsewhere). ``world`` is read only."""
+        map (confirmations only matter against contradictions). ``world`` is read only."""
         if not self._anything_seen_through(classified.labels, expected):
             return None
-        found_pose = None if placement is None else placement.found_pose
-        return self._votes(classified.labels, measured, expected, classified, world, surface, capabilities, found_pose)
+        return self._votes(classified.labels, measured, expected, classified, world, surface, capabilities)
 
     def free_space_rays(self, votes: RemovalVotes, gone: np.ndarray, frame: Measured) -> tuple | None:
         """Voxel planes: (origin, ends, margins) of the rays that saw through removed faces (``gone``: codes of
@@ -133,9 +130,7 @@ class ObjectRemoval:
         no_return = labels == NO_RETURN
         return bool(no_return.any() and np.isfinite(expected.depth[no_return]).any())
 
-    def _votes(
-        self, labels, frame: Measured, expected_image: Expected, classified: Classified, world, surface, capabilities, found_pose=None
-    ) -> RemovalVotes:
+    def _votes(self, labels, frame: Measured, expected_image: Expected, classified: Classified, world, surface, capabilities) -> RemovalVotes:
         """The frame's votes (:class:`RemovalVotes`)."""
         geometry, noise, measured = frame.geometry, frame.noise, frame.depth
         codes, table, expected = expected_image.face_ids, expected_image.table, expected_image.depth
@@ -161,8 +156,6 @@ class ObjectRemoval:
             sigma=sigma,
             far=geometry.far,
             pose_sigma=pose_sigma,
-            found_pose=found_pose,
-            geometry=geometry,
         )
         if len(faces):
             between = self._between_pixels(

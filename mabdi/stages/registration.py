@@ -91,6 +91,10 @@ REGISTERED = 0
 #: better than the given pose (median |residual|; :func:`follow_gain`), all of it from this many times better.
 FOLLOW_FROM = 3.0
 FOLLOW_FULLY = 4.0
+#: A recording's frame keeps the last frame's slow correction only where it fits D to the map this many times
+#: better than the given pose (median |residual|): a real camera's map disagrees with good poses by up to about
+#: twice the ICP's residual (its own depth distortion), so less is no evidence against the given pose.
+CARRY_FROM = 2.0
 #: :class:`PoseJitter`'s trend is a mean over about this many frames; its jitter is learnt from this many pairs of
 #: frames two apart on.
 JITTER_TREND_FRAMES = 20
@@ -98,10 +102,6 @@ MIN_JITTER_PAIRS = 5
 #: A frame's deviation from the slow pose is taken as jitter up to this many of the jitter's standard deviations
 #: (the Mahalanobis norm over the six components; 4.7: chi-square with 6 degrees of freedom at 0.999).
 JITTER_BOUND = 4.7
-#: A frame's deviation from its ICP's pose is its own (:func:`own_deviation`) where it differs from the frame
-#: before's by at least this share of its size: white jitter one frame to the next differs by about sqrt(2) of
-#: its size; a displaced map's offset, shared, by little of it.
-OWN_DEVIATION_SHARE = 0.5
 #: A floor on a variance (rad^2 or m^2) divided by.
 VARIANCE_FLOOR = 1e-14
 
@@ -414,7 +414,8 @@ def register_depth(
     transform in ``starts`` under which more of D's samples lie on E within
     their noise. ``workspace``: memory kept from one call to the next (:class:`IcpWorkspace`; a
     fresh one when None). ``references``: the transforms the result is judged against (the first; none: the
-    identity) and which fits best (:attr:`RegistrationResult.improvement`); ``judged_against``: where given, the
+    identity) and which fits best (another than the first only where it fits :data:`CARRY_FROM` times better;
+    :attr:`RegistrationResult.improvement`); ``judged_against``: where given, the
     transform the result is judged against instead, made from the result's transform and covariance (a recording's
     given pose with the jitter the result shows taken off, :meth:`FilterRegistration._jitter_free`). See the module
     docs for the steps and checks.
@@ -524,6 +525,8 @@ def register_depth(
             _median(r) if len(r) else np.inf for r in (map_image.residuals(points, pose) for pose in (*references, *judged, transform))
         ]
         reference_index = int(np.argmin(medians[: len(references)]))
+        if reference_index > 0 and medians[0] < CARRY_FROM * medians[reference_index]:
+            reference_index = 0  # the first (the given pose) unless another fits clearly better
         improvement = medians[len(references) if judged else 0] / max(medians[-1], 1e-9)
     return RegistrationResult(
         transform if status == "registered" else start,
@@ -818,22 +821,6 @@ def follow_evidence(given: np.ndarray, registered: np.ndarray, carried: np.ndarr
     return apply_correction(correction_matrix(start + gain * (end - start)), given)
 
 
-def own_deviation(deviation: np.ndarray, last: np.ndarray | None, depth: float) -> bool:
-    """Whether a registered frame's ``deviation`` (:func:`correction_vector` from its meshed pose to its ICP's
-    pose) is its own: not shared by the frame before (``last``, its deviation; None: none yet), so the frame
-    alone stands in doubt (jitter) rather than the map displaced against the poses (a jump or drift of the
-    given poses, which the frames after it share). Rotation is counted as the distance it moves a point at
-    the frame's median ``depth`` (m; at least 1 m). Own where the two differ by at least
-    :data:`OWN_DEVIATION_SHARE` of this frame's deviation."""
-    lever = np.array([max(depth, 1.0)] * 3 + [1.0] * 3)
-    size = float(np.linalg.norm(deviation * lever))
-    if size == 0.0:
-        return False
-    if last is None:
-        return True
-    return float(np.linalg.norm((deviation - last) * lever)) >= OWN_DEVIATION_SHARE * size
-
-
 def map_placement_variance(depth: float, noise: SensorNoise, intrinsics: Intrinsics) -> tuple[float, float]:
     """How far a frame registered to the map can be off the world for the map's own error, whatever its pose
     covariance says (rad^2, m^2 per component). The map was meshed from earlier frames of the same sensor,
@@ -904,8 +891,6 @@ class FilterRegistration(MapAndImageAlgorithm):
         self._travelled = 0.0
         self._last_position: np.ndarray | None = None
         self._last_frame = -1
-        #: the last registered frame's deviation of the ICP's pose from the meshed one (:func:`own_deviation`)
-        self._last_deviation: np.ndarray | None = None
         self.anchor = MapAnchor(stated=self._parameters.given_variance(self._pose_accuracy))
         self._jitter = PoseJitter()
         self._slow = np.eye(4)  # the slow part of the last learnt correction (see _learnt_pose)
@@ -918,7 +903,6 @@ class FilterRegistration(MapAndImageAlgorithm):
             "travelled": self._travelled,
             "last_position": np.full(3, np.nan) if self._last_position is None else self._last_position.copy(),
             "last_frame": self._last_frame,
-            "last_deviation": np.full(6, np.nan) if self._last_deviation is None else self._last_deviation.copy(),
             "anchor": self.anchor.state(),
             "jitter": self._jitter.state(),
         }
@@ -929,8 +913,6 @@ class FilterRegistration(MapAndImageAlgorithm):
         position = np.asarray(state["last_position"], dtype=np.float64)
         self._last_position = None if np.isnan(position).any() else position.copy()
         self._last_frame = int(state["last_frame"])
-        deviation = np.asarray(state.get("last_deviation", np.full(6, np.nan)), dtype=np.float64)
-        self._last_deviation = None if np.isnan(deviation).any() else deviation.copy()
         self.anchor.set_state(state["anchor"])
         self._jitter = PoseJitter()
         if "jitter" in state:  # older checkpoints have none: learnt again from the next frames
@@ -1037,21 +1019,12 @@ class FilterRegistration(MapAndImageAlgorithm):
         if new_frame:
             self._last_position = given[:3, 3].copy()
             self._last_frame = frame
-        found_pose = None
-        if result.registered:
-            found_pose = given_in_map @ result.transform
-            deviation = correction_vector(correction_between(pose, found_pose))
-            if not own_deviation(deviation, self._last_deviation, _median_depth(depth)):
-                found_pose = None  # the map stands displaced against the poses: not this frame's own doubt
-            if new_frame:
-                self._last_deviation = deviation
         world_from_map = self.anchor.world_from_map
         # the correction in the world: the camera centre moved, and turned
         translation, angle = transform_size(np.linalg.inv(given) @ world_from_map @ pose)
         placement = Placement(
             result.status, given.copy(), world_from_map.copy(), translation, angle, result.residual, result.inlier_share,
             result.support, result.iterations, bool(given_exact), None if covariance is None else np.asarray(covariance, dtype=np.float64),
-            found_pose,
         )  # fmt: skip
         return measured.placed(pose), placement
 

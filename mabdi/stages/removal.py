@@ -16,14 +16,6 @@ times the noise of D - E and ``min_gap`` (:func:`contradiction_gap`).
 Pixels with no return see through to the far limit (``no_return_is_free``)
 unless the noise model loses returns.
 
-A pose in doubt: a frame of a recording may be meshed at its given pose
-although its ICP fitted D to the map better elsewhere (the registration's
-rule follows the ICP only on strong evidence). Where that deviation is the
-frame's own (jitter: not shared by the frame before), a contradiction that
-D placed at the ICP's pose no longer shows casts no vote
-(:func:`pose_explains`): a pose error can make it, a surface that left
-cannot be explained so.
-
 The rule (:func:`mabdi.world_map.update_log_odds`): each face keeps the log-odds L that it
 is gone, from 0; a frame with a majority of contradictions adds ``hit``,
 otherwise confirmations subtract ``miss``; L stays in [``floor``,
@@ -44,7 +36,6 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from mabdi.camera import unit_rays
 from mabdi.errors import ConfigError
 from mabdi.face_identity import unique_codes
 from mabdi.stages.image_kernels import depth_edges_kernel
@@ -149,8 +140,6 @@ def removal_votes(
     sigma=None,
     far: float = np.inf,
     pose_sigma: np.ndarray | None = None,
-    found_pose: np.ndarray | None = None,
-    geometry=None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """One frame's votes: (face ids, contradicting pixels, confirming pixels per face, the voting contradicted pixels' mask).
 
@@ -161,9 +150,7 @@ def removal_votes(
     ``sigma(depth)`` -> the sensor's noise (m) at depths (m), for the contradiction gate; ``far``: the
     sensor's range (m), the depth a pixel with no return stands for (``no_return_is_free``);
     ``pose_sigma`` (H, W): E's depth uncertainty from the registered pose's own uncertainty (m, NaN = 0),
-    added to the noise of the difference; ``found_pose``: where given (with the sensor's ``geometry``), the pose
-    the ICP fitted D to the map at (camera-to-map) when the frame is meshed at another: a contradiction that
-    pose explains casts no vote (:func:`pose_explains`).
+    added to the noise of the difference.
     """
     measured = free_space_filled(measured, parameters, far)
     if parameters.no_return_is_free:
@@ -184,8 +171,6 @@ def removal_votes(
         )
         with np.errstate(invalid="ignore"):
             contradicting_pixels &= measured - expected > gap
-        if found_pose is not None and contradicting_pixels.any():
-            contradicting_pixels &= ~pose_explains(contradicting_pixels, measured, expected, gap, geometry, world_from_camera, found_pose)
     candidates = (face_ids > 0) & ((labels == KNOWN) | contradicting_pixels)
     if not candidates.any():
         empty = np.zeros(0, dtype=np.int64)
@@ -282,39 +267,6 @@ def misplaced_edge_explains(
     if near_silhouette:
         fits &= near
     explained[rows[fits], cols[fits]] = True
-    return explained
-
-
-def pose_explains(
-    contradicting: np.ndarray, measured: np.ndarray, expected: np.ndarray, gap: np.ndarray, geometry,
-    meshed_pose: np.ndarray, found_pose: np.ndarray,
-) -> np.ndarray:
-    """(H, W) bool: the ``contradicting`` pixels that the ICP's pose explains (module docs, "a pose in doubt").
-
-    A frame of a recording may be meshed at its given pose although the ICP fitted D to the map better
-    elsewhere (``found_pose``; ``meshed_pose`` is the one meshed at, both camera-to-map). A return that sees
-    through the map at ``meshed_pose`` but, placed at ``found_pose``, lies no more than the pixel's ``gap``
-    (m) beyond E where it falls in E's image (or falls where E shows no face) is explained by where the
-    frame stands, not by a face that left. ``measured``/``expected``: D and E (H, W) as the sensor's values
-    (``geometry``: a camera's z-depth or a LiDAR's range). A return that falls outside E's image cannot be
-    checked: the frame's pose is in doubt, so it is taken as explained too."""
-    rows, cols = np.nonzero(contradicting)
-    explained = np.zeros(contradicting.shape, dtype=bool)
-    if not len(rows):
-        return explained
-    rays, length = unit_rays(geometry)
-    points = rays[rows, cols] * (measured[rows, cols].astype(np.float64) * length[rows, cols])[:, None]
-    moved = np.linalg.inv(meshed_pose) @ found_pose  # the found camera in the meshed camera's frame
-    uv, value = geometry.project_points(points @ moved[:3, :3].T + moved[:3, 3], np.eye(4))
-    height, width = contradicting.shape
-    with np.errstate(invalid="ignore"):
-        u, v = np.floor(uv[:, 0]), np.floor(uv[:, 1])
-        inside = (u >= 0) & (u < width) & (v >= 0) & (v < height) & (value > 0)
-    u, v = u[inside].astype(np.int64), v[inside].astype(np.int64)
-    beyond = np.zeros(len(rows), dtype=bool)
-    with np.errstate(invalid="ignore"):
-        beyond[inside] = value[inside] - expected[v, u] > gap[rows[inside], cols[inside]]
-    explained[rows[~beyond], cols[~beyond]] = True
     return explained
 
 
