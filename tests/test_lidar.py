@@ -403,6 +403,23 @@ def test_quadtree_meshes_a_straight_wall_from_the_range_image_flat(reduction):
     assert polydata_area(mesh) > 0.8 * polydata_area(grid.GetOutput()) > 30.0
 
 
+#: The circle both LiDAR scenes are scanned from, and their floor (TOML).
+CIRCLE_PATH = """
+[path]
+radius_x = 2.5
+radius_y = 2.2
+z0 = 1.4
+z1 = 1.6
+look_from = [0.0, 0.0, 0.5]
+look_to = [0.0, 0.0, 0.6]
+"""
+FLOOR = """
+[[scene.objects]]
+name = "floor"
+type = "plane"
+size = [8.0, 8.0]
+"""
+
 LIDAR_SCENE = """
 [run]
 name = "lidar_boxes"
@@ -421,25 +438,14 @@ fov_down = -45.0
 range_min = 0.3
 range_max = 20.0
 
-[path]
-radius_x = 2.5
-radius_y = 2.2
-z0 = 1.4
-z1 = 1.6
-look_from = [0.0, 0.0, 0.5]
-look_to = [0.0, 0.0, 0.6]
-
+{path}
 [surface]
 method = "{surface}"
 
 [surface.quadtree]
 reduction = 1  # a LiDAR's beams are already further apart than a camera's 3 x 3 pixel blocks
 
-[[scene.objects]]
-name = "floor"
-type = "plane"
-size = [8.0, 8.0]
-
+{floor}
 [[scene.objects]]
 name = "stays"
 type = "box"
@@ -455,14 +461,22 @@ disappear_at = {leave}
 """
 
 
-def lidar_run(tmp_path, surface="pixel_grid", noise="none", frames=16, leave=1.0):
+def run_scene(tmp_path, name: str, text: str, **values):
+    """Write a scene's TOML (``text`` with the circle, the floor and ``values`` filled in) and run it:
+    (the MappingRun, its result)."""
     from mabdi.loop import MappingRun
 
-    path = tmp_path / f"lidar_{surface}_{noise}.toml"
-    path.write_text(LIDAR_SCENE.format(frames=frames, noise=noise, surface=surface, leave=leave if leave < 1.0 else frames + 1))
-    config = load_run_config(path)
-    simulation = MappingRun(config)
+    path = tmp_path / f"{name}.toml"
+    path.write_text(text.format(path=CIRCLE_PATH, floor=FLOOR, **values))
+    simulation = MappingRun(load_run_config(path))
     return simulation, simulation.run()
+
+
+def lidar_run(tmp_path, surface="pixel_grid", noise="none", frames=16, leave=1.0):
+    return run_scene(
+        tmp_path, f"lidar_{surface}_{noise}", LIDAR_SCENE,
+        frames=frames, noise=noise, surface=surface, leave=leave if leave < 1.0 else frames + 1,
+    )  # fmt: skip
 
 
 @pytest.mark.parametrize("surface", ["pixel_grid", "quadtree"])
@@ -514,22 +528,11 @@ sweep = "deskewed"
 [sensor.noise_parameters]
 range_sigma = 0.01
 
-[path]
-radius_x = 2.5
-radius_y = 2.2
-z0 = 1.4
-z1 = 1.6
-look_from = [0.0, 0.0, 0.5]
-look_to = [0.0, 0.0, 0.6]
-
+{path}
 [surface]
 method = "{surface}"
 
-[[scene.objects]]
-name = "floor"
-type = "plane"
-size = [8.0, 8.0]
-
+{floor}
 [[scene.objects]]
 name = "a"
 type = "box"
@@ -556,12 +559,7 @@ def test_a_static_scene_scanned_by_a_wide_lidar_keeps_its_faces_at_the_silhouett
     deskewed returns are carried to pixel centres: the map's silhouettes are off by up to a beam spacing in any
     direction, and a later scan sees past them. A misplaced edge explains that within a beam's angle down and
     across (rows and columns); a removal rule that reaches one pixel each way took 3-4% of this static map."""
-    from mabdi.loop import MappingRun
-
-    path = tmp_path / "wide.toml"
-    path.write_text(WIDE_STATIC_SCENE.format(surface=surface))
-    simulation = MappingRun(load_run_config(path))
-    result = simulation.run()
+    _, result = run_scene(tmp_path, "wide", WIDE_STATIC_SCENE, surface=surface)
     removed = sum(r.cells_removed for r in result.records)
     total = result.records[-1].cells_total
     assert total > 30_000
@@ -600,7 +598,7 @@ def test_recorded_lidar_scans_give_the_simulators_map(tmp_path, layout):
     from mabdi.sources.sequences import open_sequence
 
     path = tmp_path / "lidar.toml"
-    path.write_text(LIDAR_SCENE.format(frames=8, noise="none", surface="pixel_grid", leave=9))
+    path.write_text(LIDAR_SCENE.format(path=CIRCLE_PATH, floor=FLOOR, frames=8, noise="none", surface="pixel_grid", leave=9))
     config = load_run_config(path)
     rig = SimulatedRig.from_config(config)
     folder = tmp_path / "recording"
