@@ -73,6 +73,7 @@ from mabdi.io.atomic import write_text
 from mabdi.loop.mapping_run import RECORDING_NOISE, MappingRun
 from mabdi.sources.frames import FrameSubset
 from mabdi.sources.sequences import open_sequence
+from mabdi.stages.time_offset import AUTO, learn_time_offset
 
 
 def log(message: str) -> None:
@@ -272,6 +273,10 @@ def main(argv=None) -> int:
         help="smooth the TSDF's depth by the noise model mabdi's run learnt (default: the raw depth, the TSDF's best on real frames)",
     )  # fmt: skip
     parser.add_argument("--camera", help="the camera, when the recording has none (as mabdi run --camera)")
+    parser.add_argument(
+        "--time-offset", default=AUTO,
+        help="TUM: seconds from a depth timestamp to its pose, or auto (learnt, as mabdi run does; the default)",
+    )
     parser.add_argument("--depth-scale", type=float, help="depth units per metre (as mabdi run --depth-scale)")
     parser.add_argument(
         "--jitter", type=float, nargs=2, metavar=("M", "DEG"),
@@ -299,6 +304,20 @@ def main(argv=None) -> int:
     for note in notes:
         log(f"note: {note}")
     frames = len(source) if args.frames is None else min(args.frames, len(source))
+    integrated, held = held_out_split(frames, args.every)
+    if args.time_offset == AUTO and getattr(source, "pose_samples", None) is not None:
+        # as mabdi run does, learnt from the integrated frames only; every map then has the same poses
+        found = learn_time_offset(
+            lambda i: source.read(int(integrated[i])).depth, source.timestamps[integrated], *source.pose_samples,
+            source.intrinsics,
+        )
+        if found is not None:
+            log(f"note: {found.note()}")
+            if found.applied:
+                source = source.with_time_offset(found.seconds)
+    elif args.time_offset not in (None, AUTO):
+        source = source.with_time_offset(float(args.time_offset))
+    frames = min(frames, len(source))  # poses taken at other times may leave a frame at either end without one
     integrated, held = held_out_split(frames, args.every)
     subset = FrameSubset(source, integrated) if args.jitter is None else JitteredFrames(source, integrated, *args.jitter)
     log(f"{source.description}: {frames} frames, {len(integrated)} integrated, {len(held)} held out")

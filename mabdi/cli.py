@@ -25,11 +25,25 @@ Heavy imports (VTK) happen inside the commands, so ``mabdi --help`` is quick.
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import sys
 from pathlib import Path
 
 os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
+
+
+def _time_offset(text: str) -> float | str:
+    """``--time-offset``: ``auto`` or a number of seconds (argparse names the option when it is neither)."""
+    if text.strip().lower() == "auto":
+        return "auto"
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected auto or a number of seconds, got {text!r}") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"expected auto or a finite number of seconds, got {text!r}")
+    return value
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -122,6 +136,11 @@ def _parser() -> argparse.ArgumentParser:
     sequence.add_argument("--colour-topic", help="ROS 2 bag: the rgb8 / bgr8 colour image topic registered to the depth (when there are several)")
     sequence.add_argument(
         "--tolerance", type=float, help="TUM, ROS 2 bag: largest time between a depth frame and its pose, seconds (default 0.02)"
+    )
+    sequence.add_argument(
+        "--time-offset", type=_time_offset,
+        help="TUM: seconds from a depth frame's timestamp to the time its pose is taken at, or auto (the default: "
+        "learnt from the depth where the pose clock and the depth clock disagree; 0 keeps the recording's pairing)",
     )
 
     record = commands.add_parser("record", help="write a simulated run's depth frames as a TUM folder or a ROS 2 bag")
@@ -285,10 +304,14 @@ def cmd_run(args) -> int:
             "colour_topic": args.colour_topic,
             "cloud_topic": args.cloud_topic,
             "tolerance": args.tolerance,
+            "time_offset": args.time_offset,
         }
         noise_stated = "sensor.noise" in config.stated  # by the config file, --noise or --set
         frames = config.run.frames if "run.frames" in config.stated else None  # --frames, [run] frames or --set
         simulation, note = recorded_simulation(config, args.sequence, noise_stated=noise_stated, frames=frames, **options)
+        if simulation.time_offset is not None:  # learnt: a resume reads the recording as this run did
+            options["time_offset"] = simulation.time_offset.seconds if simulation.time_offset.applied else 0.0
+            print(f"note: {simulation.time_offset.note()}")
         recording = {"path": str(args.sequence.resolve()), "options": options, "frames": frames}
         print(f"source: {simulation.source.description}")
         source = simulation.source
@@ -306,7 +329,7 @@ def cmd_run(args) -> int:
             unstated = "the config does not set [sensor] noise" if args.config is not None else "no config"
             print(f"noise: {simulation.config.sensor.noise} (learnt from the run: {unstated} and no --noise name the camera's model)")
     else:
-        for option in ("camera", "depth_scale", "depth_topic", "info_topic", "pose_topic", "colour_topic", "cloud_topic", "tolerance"):
+        for option in ("camera", "depth_scale", "depth_topic", "info_topic", "pose_topic", "colour_topic", "cloud_topic", "tolerance", "time_offset"):
             if getattr(args, option) is not None:
                 raise ConfigError(f"run: --{option.replace('_', '-')} is for recorded sequences; use it with --sequence")
         if not config.scene.objects:

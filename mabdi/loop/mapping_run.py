@@ -46,6 +46,7 @@ from mabdi.loop.run_pipeline import FrameCallback, ResumePoint, RunPipeline
 from mabdi.sources.frames import FrameSource, FrameSubset
 from mabdi.sources.scene import SourceScene
 from mabdi.sources.sequences import FORMATS, READER_OPTIONS, metadata_path, open_sequence, read_sequence_metadata, sequence_format
+from mabdi.stages.time_offset import AUTO, learn_recording_time_offset
 
 
 class MappingRun:
@@ -71,6 +72,8 @@ class MappingRun:
         self.loop = MabdiLoop.from_config(config, source)
         self._poses = source.poses if source.frames_known is not None else None
         self.true_poses = source.true_poses
+        #: the pose clock's offset a recording's run learnt (:mod:`mabdi.stages.time_offset`), None when not learnt
+        self.time_offset = None
 
     @property
     def poses(self) -> np.ndarray:
@@ -317,7 +320,9 @@ def recorded_simulation(
     unknown (the evaluation is then skipped). ``frames``: run the recording's first ``frames`` frames (None, or
     more than it has: all of them; :class:`RecordedFrames`). ``noise_stated`` False (no config file, or one that
     leaves ``[sensor] noise`` out, and no noise model given): a depth camera's recording runs with
-    :data:`RECORDING_NOISE`, a LiDAR's with :data:`RECORDING_LIDAR_NOISE`."""
+    :data:`RECORDING_NOISE`, a LiDAR's with :data:`RECORDING_LIDAR_NOISE`. A reader that pairs depth with a pose
+    stream of its own (TUM) takes ``time_offset`` (seconds, or ``"auto"``, the default: learnt over the frames
+    run, :mod:`mabdi.stages.time_offset`; what was found is the run's ``time_offset``)."""
     kind = sequence_format(path)
     wanted = READER_OPTIONS[kind]
     for name, value in options.items():
@@ -328,7 +333,13 @@ def recorded_simulation(
     camera = reader_options.get("camera")
     if isinstance(camera, str) and "," in camera:
         reader_options["camera"] = camera_option(camera)
+    learn_offset = "time_offset" in wanted and reader_options.get("time_offset", AUTO) == AUTO
+    if learn_offset:
+        reader_options.pop("time_offset", None)
     recording = open_sequence(path, **reader_options)
+    time_offset = learn_recording_time_offset(recording, frames) if learn_offset else None
+    if time_offset is not None and time_offset.applied:
+        recording = recording.with_time_offset(time_offset.seconds)
     source = RecordedFrames(recording, frames, path=path)
     source.options = wanted  # the remedies a message may name (--camera, --depth-scale)
     if not noise_stated:
@@ -351,6 +362,7 @@ def recorded_simulation(
         base_dir = config.source.parent if config.source is not None else None
         scene = SourceScene(config.scene, frames=int(recorded["frames"]), base_dir=base_dir)
     simulation = MappingRun(config, source=source, scene=scene)
+    simulation.time_offset = time_offset
     true_file = metadata_path(path).with_name(TRUE_POSES)  # beside the recording's mabdi.toml
     if scene is not None and true_file.is_file():
         true_poses = np.load(true_file, allow_pickle=False)

@@ -103,7 +103,7 @@ FORMATS = {
 
 #: The keyword options each format's reader takes (``open_sequence(path, **options)``; the CLI refuses the others).
 READER_OPTIONS = {
-    "tum": ("camera", "tolerance", "depth_scale"),
+    "tum": ("camera", "tolerance", "depth_scale", "time_offset"),
     "rosbag2": ("depth_topic", "info_topic", "pose_topic", "tolerance", "colour_topic", "cloud_topic"),
     "3dmatch": ("camera", "depth_scale"),
     "redwood": ("camera", "depth_scale"),
@@ -197,7 +197,7 @@ def open_sequence(path, **options):
     :func:`sequence_format` tells the formats apart (:data:`FORMATS`), with a
     warning when a folder holds the files of another format too;
     ``options`` go to that reader (``camera=``, ``depth_scale=``,
-    ``tolerance=`` for TUM; ``camera=``, ``depth_scale=`` for the dataset
+    ``tolerance=``, ``time_offset=`` (seconds) for TUM; ``camera=``, ``depth_scale=`` for the dataset
     layouts; ``depth_topic=``, ``pose_topic=``, ``cloud_topic=``, ... for bags).
     """
     path = Path(path)

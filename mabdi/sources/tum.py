@@ -12,7 +12,8 @@ The layout (https://cvg.cit.tum.de/data/datasets/rgbd-dataset/file_formats):
 Poses: a ground-truth line maps camera points (x right, y down, z forward)
 to world points, exactly mabdi's ``world_from_camera``, used as it is. Each
 depth frame's pose is interpolated between the ground-truth samples around
-its timestamp within ``tolerance`` seconds (default 0.02 s), else the
+its timestamp (plus ``time_offset``, 0 unless given: the pose clock's offset
+from the depth clock) within ``tolerance`` seconds (default 0.02 s), else the
 nearest within it; frames with neither are skipped and counted. Each frame
 carries the colour image nearest in time.
 
@@ -267,29 +268,43 @@ class TumSequence(FrameSource):
     ``"fx,fy,cx,cy,width,height"``; wins over the folder's ``mabdi.toml``),
     ``tolerance`` (seconds between a depth frame and its ground-truth pose,
     default 0.02), ``depth_scale`` (PNG units per metre, default
-    :data:`DEPTH_SCALE`). Frames are the depth images that
+    :data:`DEPTH_SCALE`), ``time_offset`` (seconds from a depth frame's
+    timestamp to the time its pose is taken at, default 0: where the depth
+    and the ground truth were stamped by clocks apart; learnt by
+    :mod:`mabdi.stages.time_offset`). Frames are the depth images that
     have a pose, in ``depth.txt``'s order; ``skipped`` counts the others.
-    ``read(i)`` decodes one PNG; timestamps and poses are known at open.
+    ``read(i)`` decodes one PNG; timestamps and poses are known at open;
+    ``pose_samples`` holds the ground truth as read (times (s), (N, 4, 4) poses).
     """
 
     def __init__(
-        self, folder, camera: Intrinsics | str | None = None, tolerance: float = 0.02, depth_scale: float | None = None
+        self,
+        folder,
+        camera: Intrinsics | str | None = None,
+        tolerance: float = 0.02,
+        depth_scale: float | None = None,
+        time_offset: float = 0.0,
     ) -> None:
         self.folder = Path(folder)
         if not self.folder.is_dir():
             raise SequenceError(f"TUM folder {self.folder} does not exist or is not a folder")
         if not (np.isfinite(tolerance) and tolerance >= 0):
             raise SequenceError(f"TUM folder {self.folder}: tolerance must be >= 0 seconds, got {tolerance!r}")
+        if not np.isfinite(time_offset):
+            raise SequenceError(f"TUM folder {self.folder}: time offset must be a number of seconds, got {time_offset!r}")
         self.metadata = read_sequence_metadata(self.folder)
+        self._camera = camera
         self._intrinsics = self._resolve_camera(camera)
         self.tolerance = float(tolerance)
+        self.time_offset = float(time_offset)
         self.depth_scale = DEPTH_SCALE if depth_scale is None else depth_scale
         if not (isinstance(self.depth_scale, (int, float)) and np.isfinite(self.depth_scale) and self.depth_scale > 0):
             raise SequenceError(f"TUM folder {self.folder}: depth scale must be a positive number of units per metre, got {depth_scale!r}")
 
         depth_times, depth_rows = read_depth_list(self.folder / "depth.txt")
         pose_times, poses = read_groundtruth(self.folder / "groundtruth.txt")
-        matched = interpolate_poses(depth_times, pose_times, poses, self.tolerance)
+        self.pose_samples = (pose_times, poses)
+        matched = interpolate_poses(depth_times + self.time_offset, pose_times, poses, self.tolerance)
         keep = np.isfinite(matched[:, 0, 0])
         self.skipped = int((~keep).sum())
         self._timestamps = depth_times[keep]
@@ -305,6 +320,8 @@ class TumSequence(FrameSource):
             far_colour = int((np.abs(rgb_times[nearest] - self._timestamps) > self.tolerance).sum())
             self._colour_files = [self.folder / rgb_rows[i][0] for i in nearest]
         self.description = f"TUM folder {self.folder} ({len(self._files)} frames"
+        if self.time_offset:
+            self.description += f", poses taken {1000 * self.time_offset:+.1f} ms from the depth timestamps"
         if self._colour_files is not None:
             self.description += ", with colour"
             if far_colour:
@@ -342,6 +359,11 @@ class TumSequence(FrameSource):
     @property
     def intrinsics(self) -> Intrinsics:
         return self._intrinsics
+
+    def with_time_offset(self, seconds: float) -> TumSequence:
+        """The same folder read with each depth frame's pose taken ``seconds`` after its timestamp (the pose
+        clock's offset from the depth clock: :mod:`mabdi.stages.time_offset`); the other options as they were."""
+        return TumSequence(self.folder, self._camera, self.tolerance, self.depth_scale, seconds)
 
     def __len__(self) -> int:
         return len(self._files)

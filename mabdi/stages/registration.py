@@ -405,6 +405,7 @@ def register_depth(
     workspace: IcpWorkspace | None = None,
     references: tuple[np.ndarray, ...] = (),
     judged_against: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
+    from_identity: bool = True,
 ) -> RegistrationResult:
     """Align D (``measured``) to E (``expected``, the map rendered at D's pose) by projective point-to-plane ICP.
 
@@ -412,7 +413,7 @@ def register_depth(
     Returns the transform E-camera from D-camera: the registered pose is the
     rendering pose times it. The search starts from the identity or from the
     transform in ``starts`` under which more of D's samples lie on E within
-    their noise. ``workspace``: memory kept from one call to the next (:class:`IcpWorkspace`; a
+    their noise (``from_identity`` False: from ``starts`` alone). ``workspace``: memory kept from one call to the next (:class:`IcpWorkspace`; a
     fresh one when None). ``references``: the transforms the result is judged against (the first; none: the
     identity) and which fits best (another than the first only where it fits :data:`CARRY_FROM` times better;
     :attr:`RegistrationResult.improvement`); ``judged_against``: where given, the
@@ -426,7 +427,7 @@ def register_depth(
         # nothing to fit: the last correction carried on is the best guess (drift grows; jitter stays small)
         return RegistrationResult(starts[-1].copy() if starts else np.eye(4), "no_map")
     map_image = _MapImage(expected, intrinsics, workspace if workspace is not None else IcpWorkspace())
-    transform = _best_start(measured, map_image, intrinsics, (np.eye(4), *starts), noise, p)
+    transform = _best_start(measured, map_image, intrinsics, (np.eye(4), *starts) if from_identity or not starts else starts, noise, p)
     a = b = None
     chi2 = 0.0
     pairs = candidates = 0
