@@ -147,3 +147,32 @@ def test_the_option_is_checked_and_named(recordings, tmp_path, capsys):
     assert "expected auto or a number of seconds, got 'soon'" in capsys.readouterr().err
     assert main(["run", "scenes/table.toml", "--time-offset", "0.01"]) == 2
     assert "--time-offset is for recorded sequences" in capsys.readouterr().err
+
+
+def test_a_resumed_run_reads_the_recording_with_the_offset_its_start_learnt(recordings, tmp_path, monkeypatch, capsys):
+    from mabdi.cli import main
+    from mabdi.loop import run_pipeline
+    from mabdi.stages import time_offset
+
+    _, apart = recordings
+    out = tmp_path / "resumed"
+    stop = run_pipeline.InterruptCheck.on_frame
+
+    def interrupt_after_frame_two(self, pipeline, record):
+        if record.frame == 2:  # the offset learnt over the 40 frames run
+            raise KeyboardInterrupt
+        stop(self, pipeline, record)
+
+    monkeypatch.setattr(run_pipeline.InterruptCheck, "on_frame", interrupt_after_frame_two)
+    args = ["run", "--sequence", str(apart), "--frames", "40", "--set", "output.checkpoint_every=1", "--no-eval", "--quiet"]
+    assert main([*args, "--out", str(out)]) == 130
+    monkeypatch.setattr(run_pipeline.InterruptCheck, "on_frame", stop)
+
+    def not_again(*args, **kwargs):
+        raise AssertionError("the resume learnt the offset again")
+
+    monkeypatch.setattr(time_offset, "learn_time_offset", not_again)
+    capsys.readouterr()
+    assert main(["run", "--resume", str(out), "--quiet"]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["frames"] == 40 and "poses taken +20" in summary["source"]
