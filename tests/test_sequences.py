@@ -109,6 +109,27 @@ def test_tum_camera_preset_in_toml(tmp_path, frames):
     assert intrinsics == dataclasses.replace(PRESETS["fr3"], far=5.5)
 
 
+def test_a_benchmark_folder_names_its_camera(tmp_path, frames):
+    """A folder as the TUM benchmark publishes it (no mabdi.toml): depth.txt's header, or the folder's name, names
+    the Kinect (rgbd_dataset_freiburg2_...) and its calibration is taken, and said; a name without one still asks."""
+    big = [DepthFrame(np.full((480, 640), 1.0, np.float32), PRESETS["fr2"], f.world_from_camera, i, f.timestamp) for i, f in enumerate(frames[:2])]
+    folder = write_tum(FrameList(big), tmp_path / "seq")
+    (folder / "mabdi.toml").unlink()
+    with pytest.raises(SequenceError, match="no intrinsics: give --camera"):
+        TumSequence(folder)
+    depth_list = folder / "depth.txt"
+    depth_list.write_text("# depth maps\n# file: 'rgbd_dataset_freiburg2_desk.bag'\n" + depth_list.read_text())
+    sequence = TumSequence(folder)
+    assert sequence.intrinsics == PRESETS["fr2"]
+    assert "camera: TUM's fr2 calibration (named by depth.txt's header)" in sequence.description
+    assert TumSequence(folder, camera="fr1").intrinsics == PRESETS["fr1"], "a camera given wins"
+    renamed = folder.rename(tmp_path / "rgbd_dataset_freiburg3_long_office_household")
+    depth_list = renamed / "depth.txt"
+    depth_list.write_text("\n".join(line for line in depth_list.read_text().splitlines() if not line.startswith("#")) + "\n")
+    sequence = TumSequence(renamed)
+    assert sequence.intrinsics == PRESETS["fr3"] and "(named by the folder)" in sequence.description
+
+
 def test_tum_pose_30_ms_away_is_skipped_and_counted(tmp_path, frames):
     folder = write_tum(FrameList(frames), tmp_path / "seq")
     lines = (folder / "groundtruth.txt").read_text().splitlines()

@@ -19,7 +19,8 @@ carries the colour image nearest in time.
 
 Intrinsics: the ``camera=`` argument (an :class:`Intrinsics`, a preset name
 or ``"fx,fy,cx,cy,width,height"``), else the ``[camera]`` table of a
-``mabdi.toml`` in the folder; values in mabdi's pixel convention (pixel
+``mabdi.toml`` in the folder, else the preset of the Kinect a benchmark
+folder's name gives (:func:`benchmark_camera`); values in mabdi's pixel convention (pixel
 (u, v) centred on (u + 0.5, v + 0.5)); lens distortion is ignored.
 
 Pillow is imported inside the functions that use it. Details:
@@ -29,6 +30,7 @@ docs/architecture.md (``mabdi.sources.tum``).
 from __future__ import annotations
 
 import dataclasses
+import re
 import struct
 from pathlib import Path
 
@@ -81,6 +83,22 @@ PRESETS: dict[str, Intrinsics] = {
     "fr3": _tum_camera(535.4, 539.2, 320.1, 247.6),
     "ros": _tum_camera(525.0, 525.0, 319.5, 239.5),
 }
+
+
+def benchmark_camera(folder: Path) -> tuple[str, str] | None:
+    """(preset, where it was read) of a folder the TUM benchmark published: its sequence name, as the header of
+    ``depth.txt`` gives it (``# file: 'rgbd_dataset_freiburg1_xyz.bag'``) or the folder's own name, names the
+    Kinect that recorded it (``freiburg1`` -> ``fr1``); None when neither does."""
+    try:
+        with open(folder / "depth.txt", encoding="utf-8", errors="replace") as lines:
+            header = [line for _, line in zip(range(5), lines) if line.startswith("#")]
+    except OSError:
+        header = []
+    for text, where in ((" ".join(header), "named by depth.txt's header"), (folder.name, "named by the folder")):
+        found = re.search(r"freiburg([123])", text)
+        if found:
+            return f"fr{found.group(1)}", where
+    return None
 
 
 def tum_preset(name: str, where: str = "camera") -> Intrinsics:
@@ -294,6 +312,7 @@ class TumSequence(FrameSource):
             raise SequenceError(f"TUM folder {self.folder}: time offset must be a number of seconds, got {time_offset!r}")
         self.metadata = read_sequence_metadata(self.folder)
         self._camera = camera
+        self.camera_note: str | None = None  # where the camera came from, when the folder's name gave it
         self._intrinsics = self._resolve_camera(camera)
         self.tolerance = float(tolerance)
         self.time_offset = float(time_offset)
@@ -320,6 +339,8 @@ class TumSequence(FrameSource):
             far_colour = int((np.abs(rgb_times[nearest] - self._timestamps) > self.tolerance).sum())
             self._colour_files = [self.folder / rgb_rows[i][0] for i in nearest]
         self.description = f"TUM folder {self.folder} ({len(self._files)} frames"
+        if self.camera_note:
+            self.description += f", {self.camera_note}"
         if self.time_offset:
             self.description += f", poses taken {1000 * self.time_offset:+.1f} ms from the depth timestamps"
         if self._colour_files is not None:
@@ -345,9 +366,14 @@ class TumSequence(FrameSource):
         file = metadata_path(self.folder)
         table = camera_table(self.metadata, file, allowed=("preset", *dataclasses.asdict(_DEFAULTS)))
         if not table:
+            named = benchmark_camera(self.folder)
+            if named is not None:
+                self.camera_note = f"camera: TUM's {named[0]} calibration ({named[1]})"
+                return PRESETS[named[0]]
             raise SequenceError(
-                f"TUM folder {self.folder}: no intrinsics: pass camera= (an Intrinsics or one of {', '.join(PRESETS)}) "
-                f"or put a [camera] table (fx, fy, cx, cy, width, height; optional near, far, preset) in {file}"
+                f"TUM folder {self.folder}: no intrinsics: give --camera (camera=: one of {', '.join(PRESETS)}, "
+                f"or fx,fy,cx,cy,width,height) or put a [camera] table (fx, fy, cx, cy, width, height; optional near, "
+                f"far, preset) in {file}"
             )
         base = tum_preset(table["preset"], f"{file}: camera.preset") if "preset" in table else None
         if base is None:
