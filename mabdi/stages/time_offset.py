@@ -31,7 +31,8 @@ PAIR_SECONDS = 0.1
 #: The pose stream's relative motion of a pair at most (degrees, metres): the two depth images overlap.
 MAX_PAIR_DEGREES = 15.0
 MAX_PAIR_METRES = 0.3
-#: Pairs registered, at most; and the least sensitivity a pair must have (degrees of relative pose per second of offset).
+#: Pairs registered, at most; and the least sensitivity a pair must have (degrees of relative pose per second of
+#: offset; a translation counted as the angle it subtends at a metre).
 MAX_PAIRS = 40
 MIN_PAIRS = 8
 MIN_SENSITIVITY = 2.0
@@ -117,7 +118,8 @@ def choose_pairs(timestamps: np.ndarray, pose_times: np.ndarray, poses: np.ndarr
     later = _relative(timestamps[first] + h, timestamps[second] + h, pose_times, poses)
     earlier = _relative(timestamps[first] - h, timestamps[second] - h, pose_times, poses)
     with np.errstate(invalid="ignore"):
-        sensitivity = _angle_degrees(np.linalg.inv(earlier) @ later) / (2 * h)
+        change = np.linalg.inv(earlier) @ later  # a translation counted as the angle it subtends at a metre
+        sensitivity = (_angle_degrees(change) + np.degrees(np.linalg.norm(change[:, :3, 3], axis=1))) / (2 * h)
     ok &= np.isfinite(sensitivity) & (sensitivity >= MIN_SENSITIVITY)
     candidates = np.flatnonzero(ok)
     order = candidates[np.argsort(-sensitivity[candidates], kind="stable")]
