@@ -291,6 +291,28 @@ def test_bag_pose_30_ms_away_is_skipped_and_counted(bags, tmp_path):
     assert len(Rosbag2Sequence(path, pose_topic="/tf")) == 5  # /tf is untouched
 
 
+def test_bag_pose_topic_is_interpolated_between_the_samples_around_an_image(bags, frames, tmp_path):
+    """A pose topic stamped half a frame after the images (16.5 ms): each image lies between two samples within
+    the tolerance and gets the pose between them (slerp, about halfway), not the nearer one; the first keeps its nearest."""
+    from scipy.spatial.transform import Rotation, Slerp
+
+    def half_a_frame_late(topic, index, message):
+        if topic == "/camera/pose":
+            message.header.stamp.nanosec += 16_500_000
+        return message
+
+    path = _rewrite(bags["sqlite3", "32FC1"], tmp_path / "bag", change=half_a_frame_late)
+    sequence = Rosbag2Sequence(path, pose_topic="/camera/pose")
+    assert len(sequence) == 5 and sequence.skipped == 0
+    np.testing.assert_allclose(sequence.poses[0], frames[0].world_from_camera, atol=1e-9)
+    for i in range(1, 5):
+        before, after = frames[i - 1].world_from_camera, frames[i].world_from_camera
+        share = (TIMES[i] - TIMES[i - 1] - 0.0165) / (TIMES[i] - TIMES[i - 1])  # about a half
+        between = Slerp([0.0, 1.0], Rotation.from_matrix([before[:3, :3], after[:3, :3]]))([share]).as_matrix()[0]
+        np.testing.assert_allclose(sequence.poses[i][:3, :3], between, atol=1e-6)
+        np.testing.assert_allclose(sequence.poses[i][:3, 3], (1 - share) * before[:3, 3] + share * after[:3, 3], atol=1e-6)
+
+
 def test_bag_tf_matching_skips_frames_without_a_transform(bags, tmp_path):
     def late(topic, index, message):
         if topic == "/tf" and index == 4:

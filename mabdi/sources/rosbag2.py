@@ -573,16 +573,9 @@ class Rosbag2Sequence(FrameSource):
             poses.append(_pose_matrix(message.pose.position, message.pose.orientation, where))
         if not poses:
             raise SequenceError(f"ROS 2 bag {self.path}: pose topic {self.pose_source} has no messages")
-        match = nearest_within(self._seconds(self._all_stamps), self._seconds(stamps), self.tolerance)
-        return self._all_stamps, self._gather(np.array(poses), match)
-
-    @staticmethod
-    def _gather(poses: np.ndarray, match: np.ndarray) -> np.ndarray:
-        """poses[match], NaN where match is -1."""
-        out = np.full((len(match), 4, 4), np.nan)
-        found = match >= 0
-        out[found] = poses[match[found]]
-        return out
+        # interpolated between the two samples around the image within the tolerance, else the nearest within it,
+        # as a TUM ground truth (a pose topic at the camera's rate is up to half a frame from the image)
+        return self._all_stamps, interpolate_poses(self._seconds(self._all_stamps), self._seconds(stamps), np.array(poses), self.tolerance)
 
     def _read_tf(self) -> tuple[dict, dict]:
         """Every link of /tf_static (child -> (parent, pose)) and /tf (child -> (parent, stamps ns, poses)), checked."""
