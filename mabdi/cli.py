@@ -139,7 +139,7 @@ def _parser() -> argparse.ArgumentParser:
     )
     sequence.add_argument(
         "--time-offset", type=_time_offset,
-        help="TUM: seconds from a depth frame's timestamp to the time its pose is taken at, or auto (the default: "
+        help="TUM, ROS 2 bag: seconds from a depth frame's timestamp to the time its pose is taken at, or auto (the default: "
         "learnt from the depth where the pose clock and the depth clock disagree; 0 keeps the recording's pairing)",
     )
 

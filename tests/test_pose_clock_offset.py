@@ -18,6 +18,7 @@ REPO = Path(__file__).resolve().parents[1]
 RATE = 30.0  # frames a second
 FRAMES = 60
 OFFSET = 0.02  # s: the depth stamped this much before the pose clock's time of the same instant
+START = 1000.0  # s: the clocks' time at the first frame
 
 
 def _swinging_camera(times: np.ndarray) -> np.ndarray:
@@ -48,7 +49,7 @@ def recordings(tmp_path_factory) -> tuple[Path, Path]:
     from mabdi.cli import main
 
     folder = tmp_path_factory.mktemp("clocks")
-    times = np.arange(FRAMES) / RATE
+    times = START + np.arange(FRAMES) / RATE
     write_tum_trajectory(folder / "path.txt", times, _swinging_camera(times))
     text = (REPO / "scenes" / "table.toml").read_text()
     text = text.replace("frames = 30", f"frames = {FRAMES}")
@@ -58,7 +59,7 @@ def recordings(tmp_path_factory) -> tuple[Path, Path]:
     (folder / "swing.toml").write_text(text)
     agreeing = folder / "agreeing"
     assert main(["record", str(folder / "swing.toml"), "--format", "tum", "--out", str(agreeing)]) == 0
-    stream = np.arange(-0.2, FRAMES / RATE + 0.2, 0.01)  # a motion-capture system's 100 Hz
+    stream = START + np.arange(-0.2, FRAMES / RATE + 0.2, 0.01)  # a motion-capture system's 100 Hz
     write_tum_trajectory(agreeing / "groundtruth.txt", stream, _swinging_camera(stream))
     apart = folder / "apart"
     apart.mkdir()
@@ -176,3 +177,26 @@ def test_a_resumed_run_reads_the_recording_with_the_offset_its_start_learnt(reco
     assert main(["run", "--resume", str(out), "--quiet"]) == 0
     summary = json.loads((out / "summary.json").read_text())
     assert summary["frames"] == 40 and "poses taken +20" in summary["source"]
+
+
+@pytest.mark.parametrize("pose_topic", ["/tf", "/camera/pose"])
+def test_a_bag_learns_the_offset_of_its_pose_stream(recordings, tmp_path, pose_topic):
+    """The same frames as a ROS 2 bag, each image stamped with the pose its stamp gives (the clocks 20 ms apart):
+    the offset is learnt from /tf chained (sampled every 10 ms) or from the PoseStamped topic, and the bag read
+    with it gives the images the poses they were taken at."""
+    from mabdi.sources.frames import FrameList
+    from mabdi.sources.rosbag2 import Rosbag2Sequence, write_rosbag2
+
+    agreeing, apart = recordings
+    recorded = TumSequence(apart)
+    frames = [recorded.read(i) for i in range(len(recorded))]
+    bag = write_rosbag2(FrameList(frames, "clocks apart"), tmp_path / "bag")
+    sequence = Rosbag2Sequence(bag, pose_topic=pose_topic, tolerance=0.025)
+    found = learn_recording_time_offset(sequence)
+    assert found is not None and found.applied and found.seconds == pytest.approx(OFFSET, abs=0.004), found
+    retimed = sequence.with_time_offset(found.seconds)
+    assert retimed.pose_source == pose_topic and "poses taken +" in retimed.description
+    truth = TumSequence(agreeing).poses
+    turned = Rotation.from_matrix(np.linalg.inv(truth[1:-1, :3, :3]) @ retimed.poses[1:-1, :3, :3]).magnitude()
+    before = Rotation.from_matrix(np.linalg.inv(truth[1:-1, :3, :3]) @ sequence.poses[1:-1, :3, :3]).magnitude()
+    assert np.degrees(turned).max() < 0.3 < np.degrees(before).max()

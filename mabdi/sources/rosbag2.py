@@ -227,13 +227,21 @@ class Rosbag2Sequence(FrameSource):
         tolerance: float = 0.02,
         colour_topic: str | None = None,
         cloud_topic: str | None = None,
+        time_offset: float = 0.0,
     ) -> None:
         self.path = Path(path)
         if not self.path.exists():
             raise SequenceError(f"ROS 2 bag {self.path} does not exist")
         if not (np.isfinite(tolerance) and tolerance >= 0):
             raise SequenceError(f"ROS 2 bag {self.path}: tolerance must be >= 0 seconds, got {tolerance!r}")
+        if not np.isfinite(time_offset):
+            raise SequenceError(f"ROS 2 bag {self.path}: time offset must be a number of seconds, got {time_offset!r}")
         self.tolerance = float(tolerance)
+        self.time_offset = float(time_offset)
+        self._options = {
+            "depth_topic": depth_topic, "info_topic": info_topic, "pose_topic": pose_topic, "frame_id": frame_id,
+            "tolerance": tolerance, "colour_topic": colour_topic, "cloud_topic": cloud_topic,
+        }  # fmt: skip
         self._reader = None  # a rosbags Reader once open
         reader = self._open()
         self.topics = {c.topic: c.msgtype for c in reader.connections}
@@ -266,6 +274,8 @@ class Rosbag2Sequence(FrameSource):
         self.colour_topic = self._choose_colour_topic(colour_topic) if self.cloud_topic is None else None
         far_colour = self._index_colour() if self.colour_topic is not None else 0
         self.description = f"ROS 2 bag {self.path} ({self.depth_topic}, poses from {self.pose_source}, {len(self._poses)} frames"
+        if self.time_offset:
+            self.description += f", poses taken {1000 * self.time_offset:+.1f} ms from the image stamps"
         if self.colour_topic is not None:
             self.description += f", colour from {self.colour_topic}"
             if far_colour:
@@ -573,9 +583,11 @@ class Rosbag2Sequence(FrameSource):
             poses.append(_pose_matrix(message.pose.position, message.pose.orientation, where))
         if not poses:
             raise SequenceError(f"ROS 2 bag {self.path}: pose topic {self.pose_source} has no messages")
+        self._pose_stream = (ns_to_seconds(np.array(stamps, dtype=np.int64)), np.array(poses))
         # interpolated between the two samples around the image within the tolerance, else the nearest within it,
         # as a TUM ground truth (a pose topic at the camera's rate is up to half a frame from the image)
-        return self._all_stamps, interpolate_poses(self._seconds(self._all_stamps), self._seconds(stamps), np.array(poses), self.tolerance)
+        times = self._seconds(self._all_stamps) + self.time_offset
+        return self._all_stamps, interpolate_poses(times, self._seconds(stamps), np.array(poses), self.tolerance)
 
     def _read_tf(self) -> tuple[dict, dict]:
         """Every link of /tf_static (child -> (parent, pose)) and /tf (child -> (parent, stamps ns, poses)), checked."""
@@ -636,17 +648,16 @@ class Rosbag2Sequence(FrameSource):
                     f"{_list(others)})"
                 )
         self.world_frame = chain[-1]
-        times = self._seconds(self._all_stamps)
-        poses = np.tile(np.eye(4), (len(times), 1, 1))
+        self._tf_chain = (chain, static, dynamic)
+        times = self._seconds(self._all_stamps) + self.time_offset
         self.missing_links: dict[str, int] = {}  # "parent -> child": images that link does not reach
         self._link_spans: dict[str, str] = {}
-        for child in reversed(chain[:-1]):  # world_from_camera = world_from_a @ a_from_b @ ... @ x_from_camera
+        poses = self._chained(times)
+        for child in chain[:-1]:
             if child in static:
-                poses = poses @ static[child][1]
                 continue
             parent, stamps, matrices = dynamic[child]
-            link = self._interpolated(times, self._seconds(stamps), np.array(matrices))
-            gone = ~np.isfinite(link[:, 0, 0])
+            gone = ~np.isfinite(self._interpolated(times, self._seconds(stamps), np.array(matrices))[:, 0, 0])
             if gone.any():
                 name = f"{parent} -> {child}"
                 self.missing_links[name] = int(gone.sum())
@@ -655,8 +666,40 @@ class Rosbag2Sequence(FrameSource):
                     f"{name} ({len(stamps)} transforms from {seconds.min():.3f} s to {seconds.max():.3f} s after the "
                     f"first image; it misses {int(gone.sum())} of {len(times)} images)"
                 )
-            poses = poses @ link
         return self._all_stamps, poses
+
+    def _chained(self, times: np.ndarray) -> np.ndarray:
+        """(N, 4, 4) world_from_camera of the /tf chain at ``times`` (seconds since the first depth stamp; NaN where
+        a link does not reach): world_from_a @ a_from_b @ ... @ x_from_camera."""
+        chain, static, dynamic = self._tf_chain
+        poses = np.tile(np.eye(4), (len(times), 1, 1))
+        for child in reversed(chain[:-1]):
+            if child in static:
+                poses = poses @ static[child][1]
+                continue
+            _, stamps, matrices = dynamic[child]
+            poses = poses @ self._interpolated(times, self._seconds(stamps), np.array(matrices))
+        return poses
+
+    @property
+    def pose_samples(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """The pose stream the images are matched against: (times (s, as :attr:`timestamps`), (N, 4, 4)
+        world_from_camera): the pose topic's messages, or the /tf chain every 10 ms over the images' span (and
+        0.2 s beyond); None for a LiDAR's clouds. What :mod:`mabdi.stages.time_offset` learns the clocks from."""
+        if self.cloud_topic is not None:
+            return None
+        if self.pose_source != "/tf":
+            return self._pose_stream
+        first, last = self._seconds(self._all_stamps).min(), self._seconds(self._all_stamps).max()
+        times = np.arange(first - 0.2, last + 0.2, 0.01)
+        poses = self._chained(times)
+        known = np.isfinite(poses[:, 0, 0])
+        return times[known] + self._time_origin / 1e9, poses[known]
+
+    def with_time_offset(self, seconds: float) -> Rosbag2Sequence:
+        """The same bag read with each image's pose taken ``seconds`` after its stamp (the pose clock's offset
+        from the image clock: :mod:`mabdi.stages.time_offset`); the other options as they were."""
+        return Rosbag2Sequence(self.path, **self._options, time_offset=seconds)
 
     @staticmethod
     def _root(frame: str, parents: dict) -> str:

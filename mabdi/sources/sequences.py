@@ -104,7 +104,7 @@ FORMATS = {
 #: The keyword options each format's reader takes (``open_sequence(path, **options)``; the CLI refuses the others).
 READER_OPTIONS = {
     "tum": ("camera", "tolerance", "depth_scale", "time_offset"),
-    "rosbag2": ("depth_topic", "info_topic", "pose_topic", "tolerance", "colour_topic", "cloud_topic"),
+    "rosbag2": ("depth_topic", "info_topic", "pose_topic", "tolerance", "colour_topic", "cloud_topic", "time_offset"),
     "3dmatch": ("camera", "depth_scale"),
     "redwood": ("camera", "depth_scale"),
     "scannet": ("camera", "depth_scale"),
