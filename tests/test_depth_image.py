@@ -282,3 +282,39 @@ def test_a_render_from_the_same_pose_of_the_same_unchanged_map_is_not_drawn_agai
     shifted[2, 3] = -0.5
     np.testing.assert_allclose(render_expected(renderer, mesh, k, shifted), 2.0, atol=1e-3)
     assert len(draws) == 2
+
+
+def test_a_render_from_a_pose_within_the_reuse_distance_is_the_last_drawing():
+    """``reuse_within_px``: a pose that moves no point of the image by more than that many pixels (a registered
+    pose a hair from the given one) is served the last drawing; one beyond it, or any other pose with 0, is drawn."""
+    from scipy.spatial.transform import Rotation
+
+    from mabdi.render.depth_image import DepthRenderer, pose_shift_px
+    from mabdi.stages.expected_image import render_expected
+
+    k = Intrinsics(width=64, height=48, fx=50.0, fy=50.0, cx=32.0, cy=24.0, near=0.5)
+    mesh = plane_mesh([0, 0, 2.0], rotation_x(30.0) @ np.array([0, 0, -1.0]), size=4.0, subdivisions=4)
+    renderer = DepthRenderer(face_identity=True)
+    pose = np.eye(4)
+    first = render_expected(renderer, mesh, k, pose).copy()
+    draws = []
+    window_render = renderer.window.Render
+    renderer.window.Render = lambda: (draws.append(1), window_render())
+
+    def turned(pixels: float) -> np.ndarray:
+        moved = np.eye(4)
+        moved[:3, :3] = Rotation.from_rotvec([0.0, pixels / k.fx, 0.0]).as_matrix()
+        return moved
+
+    assert pose_shift_px(pose, turned(0.05), k) == pytest.approx(0.05)
+    nudged = np.eye(4)
+    nudged[0, 3] = 0.001  # 1 mm seen at the near limit (0.5 m): 0.1 px
+    assert pose_shift_px(pose, nudged, k) == pytest.approx(0.1)
+    render_expected(renderer, mesh, k, turned(0.05))
+    assert len(draws) == 1, "reuse is off by default"
+    renderer.reuse_within_px = 0.1
+    np.testing.assert_array_equal(render_expected(renderer, mesh, k, turned(0.08)), render_expected(renderer, mesh, k, turned(0.05)))
+    assert len(draws) == 1
+    render_expected(renderer, mesh, k, turned(0.3))
+    assert len(draws) == 2
+    assert not np.array_equal(render_expected(renderer, mesh, k, turned(3.0)), first)

@@ -132,8 +132,11 @@ class DepthRenderer:
         self._renders = 0
         self._drawn: set[int] = set()
         self._zbuffer = vtkFloatArray()
-        #: what the window's buffers hold: (intrinsics, pose bytes, (id, MTime) of each leaf drawn), None: unknown
+        #: what the window's buffers hold: ((intrinsics, (id, MTime) of each leaf drawn), the pose), None: unknown
         self._last_scene = None
+        #: a render of the same leaves from a pose within this many pixels of the last one's is served from the
+        #: last one's buffers (:func:`pose_shift_px`); 0: only from the very same pose
+        self.reuse_within_px = 0.0
         self._rgba = vtkUnsignedCharArray()
 
     def _sync_actors(self, leaves: list[tuple[str, vtkPolyData]]) -> None:
@@ -253,11 +256,14 @@ class DepthRenderer:
         leaves = named_leaves(data, frustum_planes(intrinsics, world_from_camera))
         self._sync_actors(leaves)
         # the same leaves, unchanged, from the same pose as the last render (E at a registered pose that is the
-        # given one): its buffers are still in the window, nothing is drawn again
-        scene = (intrinsics, np.asarray(world_from_camera, dtype=np.float64).tobytes(), tuple((id(leaf), leaf.GetMTime()) for _, leaf in leaves))
+        # given one), or one within reuse_within_px of it: its buffers are still in the window, nothing is drawn again
+        scene = (intrinsics, tuple((id(leaf), leaf.GetMTime()) for _, leaf in leaves))
+        pose = np.asarray(world_from_camera, dtype=np.float64)
         width, height = size
-        if scene == self._last_scene:
-            return vtk_to_numpy(self._zbuffer).reshape(height, width)[::-1]
+        if self._last_scene is not None and scene == self._last_scene[0]:
+            last = self._last_scene[1]
+            if np.array_equal(last, pose) or (self.reuse_within_px > 0 and pose_shift_px(last, pose, intrinsics) <= self.reuse_within_px):
+                return vtk_to_numpy(self._zbuffer).reshape(height, width)[::-1]
         self._last_scene = None
         configure_vtk_camera(self._renderer.GetActiveCamera(), intrinsics, world_from_camera)
         # Polygon offsets would bias depth; the setting is global in VTK, so restore it after.
@@ -268,7 +274,7 @@ class DepthRenderer:
         finally:
             vtkMapper.SetResolveCoincidentTopology(coincident)
         self._window.GetZbufferData(0, 0, width - 1, height - 1, self._zbuffer)
-        self._last_scene = scene
+        self._last_scene = (scene, pose.copy())
         return vtk_to_numpy(self._zbuffer).reshape(height, width)[::-1]
 
     def render_identity(self) -> np.ndarray:
@@ -301,6 +307,15 @@ class DepthRenderer:
             self._window = None
             self._last_scene = None
             self._size = None
+
+
+def pose_shift_px(first: np.ndarray, second: np.ndarray, intrinsics: Intrinsics) -> float:
+    """At most how far (pixels) a point moves in the image between two camera poses (4x4 world_from_camera): the
+    rotation's angle plus the translation seen at the near limit, times the larger focal length."""
+    relative = np.linalg.inv(first) @ second
+    cosine = np.clip((np.trace(relative[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
+    angle = float(np.arccos(cosine))
+    return max(intrinsics.fx, intrinsics.fy) * (angle + float(np.linalg.norm(relative[:3, 3])) / max(intrinsics.near, 1e-3))
 
 
 class FilterDepthImage(MabdiAlgorithm):

@@ -10,7 +10,9 @@ where the map has no surface within (near, far) are NaN.
 
 The rendering is :class:`~mabdi.render.depth_image.DepthRenderer`'s: one
 off-screen window reused across frames, multisampling off, one mapper per
-map block so a frame uploads only the blocks that changed.
+map block so a frame uploads only the blocks that changed. Registration
+shares it and draws the map at the given pose first; E at a registered pose
+within :data:`REUSE_WITHIN_PX` of it is that drawing, not a second one.
 
 Only the map's chunks in the view frustum are drawn (the renderer skips a
 block whose bounding box lies outside it), so E's cost follows what is in
@@ -53,6 +55,10 @@ FACE_ID_ARRAY = "face_id"
 MAP_IN_FOOTPRINT_ARRAY = "map_in_footprint"
 
 
+#: E drawn at a pose within this many pixels of the last drawing's (the same map) is that drawing
+#: (:meth:`mabdi.render.depth_image.DepthRenderer.render_zbuffer`): a tenth of a pixel changes E by far less than D's noise.
+REUSE_WITHIN_PX = 0.1
+
 class MapAndImageAlgorithm(MabdiAlgorithm):
     """A filter of the map (port 0, any data object) and a depth image (port 1) whose output is an image
     of the depth image's extent (E, or D registered to the map)."""
@@ -77,6 +83,8 @@ class FilterExpectedImage(MapAndImageAlgorithm):
         super().__init__(nInputPorts=2, nOutputPorts=1, outputType="vtkImageData")
         self.identity = identity
         self.renderer = DepthRenderer(backend, face_identity=identity)
+        # registration draws E at the given pose first; a registered pose within a tenth of a pixel of it is that E
+        self.renderer.reuse_within_px = REUSE_WITHIN_PX
         #: E of a LiDAR's range images (made at the first one).
         self.range_renderer: RangeRenderer | None = None
 
