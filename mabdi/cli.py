@@ -423,6 +423,24 @@ def registration_line(registration: dict) -> str:
     return line
 
 
+#: A recording's run whose removal took at least this share of the faces it made says what that may mean.
+REMOVED_SHARE_NOTE = 0.05
+
+
+def removal_line(removed: int, kept: int, recording: bool) -> str:
+    """One line on what removal took: ``removed`` faces of the ``removed + kept`` made; on a ``recording`` (no
+    ground truth to tell) a share of :data:`REMOVED_SHARE_NOTE` or more names what takes a static scene's faces."""
+    made = removed + kept
+    share = removed / made if made else 0.0
+    line = f"removal: {removed:,} faces removed ({100.0 * share:.1f}% of the {made:,} made)"
+    if recording and share >= REMOVED_SHARE_NOTE:
+        line += (
+            "; if nothing in the scene moved, that much says the poses disagree with the depth (a pose source's "
+            "clock or jumps, drift) or the noise is not the camera's; --no-removal keeps every face"
+        )
+    return line
+
+
 class RunReport:
     """Prints a run's totals as its loop ends, before the evaluation: an observer of the run's
     :class:`~mabdi.loop.run_pipeline.RunPipeline` (its one hook; the others are optional)."""
@@ -440,6 +458,8 @@ class RunReport:
             f"{mode}, surface {summary['surface']}"
         )
         print(f"map: {summary['cells']:,} triangles, {summary['points']:,} points, {summary['map_bytes'] / 2**20:.1f} MB")
+        if summary["removal"]:
+            print(removal_line(summary["cells_removed"], summary["cells"], pipeline.simulation.scene is None))
         print(registration_line(summary["registration"]))
         if pipeline.note is not None and not pipeline.no_eval:
             print(f"note: {pipeline.note}")

@@ -132,11 +132,16 @@ def test_a_run_learns_the_offset_and_keeps_its_static_map(recordings, tmp_path):
     assert "pose clock" not in printed
     assert learnt["registration"]["median_correction_deg"] < 0.15
     assert paired["registration"]["median_correction_deg"] > 0.5
-    learnt, _ = _run(apart, tmp_path / "auto_given", "--no-registration")
-    paired, _ = _run(apart, tmp_path / "paired_given", "--no-registration", "--time-offset", "0")
+    learnt, learnt_printed = _run(apart, tmp_path / "auto_given", "--no-registration")
+    paired, paired_printed = _run(apart, tmp_path / "paired_given", "--no-registration", "--time-offset", "0")
     made = learnt["cells"] + learnt["cells_removed"]
     assert paired["cells_removed"] > 4 * max(learnt["cells_removed"], 25), (paired["cells_removed"], learnt["cells_removed"])
     assert learnt["cells_removed"] <= 0.01 * made
+    # the run says what removal took, and on a recording that took much, what may have taken it
+    made = paired["cells"] + paired["cells_removed"]
+    assert f"removal: {paired['cells_removed']:,} faces removed ({100 * paired['cells_removed'] / made:.1f}% of the {made:,} made)" in paired_printed
+    assert "if nothing in the scene moved" in paired_printed and "clock" in paired_printed
+    assert "removal: " in learnt_printed and "if nothing in the scene moved" not in learnt_printed
 
 
 def test_the_option_is_checked_and_named(recordings, tmp_path, capsys):
