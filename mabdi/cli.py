@@ -309,8 +309,8 @@ def cmd_run(args) -> int:
         noise_stated = "sensor.noise" in config.stated  # by the config file, --noise or --set
         frames = config.run.frames if "run.frames" in config.stated else None  # --frames, [run] frames or --set
         simulation, note = recorded_simulation(config, args.sequence, noise_stated=noise_stated, frames=frames, **options)
-        if simulation.time_offset is not None:
-            print(f"note: {simulation.time_offset.note()}")
+        if simulation.learnt_time_offset is not None:
+            print(f"note: {simulation.learnt_time_offset.note()}")
         used = getattr(simulation.source, "time_offset", None)  # a reader with a pose clock: the offset it reads with
         if used is not None:
             options["time_offset"] = used  # a resume reads the recording as this run did, without learning again

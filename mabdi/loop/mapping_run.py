@@ -73,7 +73,7 @@ class MappingRun:
         self._poses = source.poses if source.frames_known is not None else None
         self.true_poses = source.true_poses
         #: the pose clock's offset a recording's run learnt (:mod:`mabdi.stages.time_offset`), None when not learnt
-        self.time_offset = None
+        self.learnt_time_offset = None
 
     @property
     def poses(self) -> np.ndarray:
@@ -322,7 +322,7 @@ def recorded_simulation(
     leaves ``[sensor] noise`` out, and no noise model given): a depth camera's recording runs with
     :data:`RECORDING_NOISE`, a LiDAR's with :data:`RECORDING_LIDAR_NOISE`. A reader that pairs depth with a pose
     stream of its own (TUM) takes ``time_offset`` (seconds, or ``"auto"``, the default: learnt over the frames
-    run, :mod:`mabdi.stages.time_offset`; what was found is the run's ``time_offset``)."""
+    run, :mod:`mabdi.stages.time_offset`; what was found is the run's ``learnt_time_offset``)."""
     kind = sequence_format(path)
     wanted = READER_OPTIONS[kind]
     for name, value in options.items():
@@ -362,7 +362,7 @@ def recorded_simulation(
         base_dir = config.source.parent if config.source is not None else None
         scene = SourceScene(config.scene, frames=int(recorded["frames"]), base_dir=base_dir)
     simulation = MappingRun(config, source=source, scene=scene)
-    simulation.time_offset = time_offset
+    simulation.learnt_time_offset = time_offset
     true_file = metadata_path(path).with_name(TRUE_POSES)  # beside the recording's mabdi.toml
     if scene is not None and true_file.is_file():
         true_poses = np.load(true_file, allow_pickle=False)
