@@ -70,7 +70,10 @@ class TimeOffset:
             f"their median disagreement {self.error_before:.2f} -> {self.error_after:.2f} deg"
         )
         if self.applied:
-            return f"poses taken {1000 * self.seconds:+.1f} ms from the depth timestamps: the pose clock's offset learnt from the depth, {found}"
+            return (
+                f"poses taken {1000 * self.seconds:+.1f} ms from the depth timestamps: the pose clock's offset learnt "
+                f"from the depth, {found}"
+            )
         return f"poses taken at the depth timestamps ({self.reason}; the best offset {found})"
 
     def as_dict(self) -> dict:
@@ -101,7 +104,8 @@ def _angle_degrees(relative: np.ndarray) -> np.ndarray:
 
 
 def choose_pairs(timestamps: np.ndarray, pose_times: np.ndarray, poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(first, second) frame indices of the pairs to register (docs/architecture.md, "The pose clock", step 1), the most sensitive first."""
+    """(first, second) frame indices of the pairs to register (docs/architecture.md, "The pose clock", step 1), the
+    most sensitive first."""
     timestamps = np.asarray(timestamps, dtype=np.float64)
     if len(timestamps) < 2:
         return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
@@ -140,8 +144,8 @@ def learn_time_offset(
     read_depth, timestamps: np.ndarray, pose_times: np.ndarray, poses: np.ndarray, intrinsics: Intrinsics,
     noise: SensorNoise | None = None,
 ) -> TimeOffset | None:
-    """The pose clock's offset from the depth clock (docs/architecture.md, "The pose clock"), or None where no pair of frames can tell it
-    (the camera's motion never changes enough, or too few pairs registered). ``read_depth(i)`` -> frame i's (H, W)
+    """The pose clock's offset from the depth clock (docs/architecture.md, "The pose clock"), or None where no pair
+    of frames can tell it (the camera's motion never changes enough, or too few pairs registered). ``read_depth(i)`` -> frame i's (H, W)
     depth (m, NaN = none); ``timestamps`` (N,) s of the frames; ``pose_times`` (M,) s and ``poses`` (M, 4, 4) the
     pose stream (world_from_camera); ``noise``: the depth's noise model for the ICP's gates (a Kinect's when None)."""
     noise = noise if noise is not None else SensorNoise("kinect")
