@@ -652,13 +652,12 @@ class Rosbag2Sequence(FrameSource):
         times = self._seconds(self._all_stamps) + self.time_offset
         self.missing_links: dict[str, int] = {}  # "parent -> child": images that link does not reach
         self._link_spans: dict[str, str] = {}
-        poses = self._chained(times)
-        for child in chain[:-1]:
-            if child in static:
-                continue
-            parent, stamps, matrices = dynamic[child]
-            gone = ~np.isfinite(self._interpolated(times, self._seconds(stamps), np.array(matrices))[:, 0, 0])
-            if gone.any():
+        missing: dict[str, np.ndarray] = {}
+        poses = self._chained(times, missing)
+        for child in chain[:-1]:  # from the camera up, as the messages name them
+            gone = missing.get(child)
+            if gone is not None and gone.any():
+                parent, stamps, _ = dynamic[child]
                 name = f"{parent} -> {child}"
                 self.missing_links[name] = int(gone.sum())
                 seconds = self._seconds(stamps)
@@ -668,9 +667,10 @@ class Rosbag2Sequence(FrameSource):
                 )
         return self._all_stamps, poses
 
-    def _chained(self, times: np.ndarray) -> np.ndarray:
+    def _chained(self, times: np.ndarray, missing: dict | None = None) -> np.ndarray:
         """(N, 4, 4) world_from_camera of the /tf chain at ``times`` (seconds since the first depth stamp; NaN where
-        a link does not reach): world_from_a @ a_from_b @ ... @ x_from_camera."""
+        a link does not reach): world_from_a @ a_from_b @ ... @ x_from_camera. ``missing``, when given, gets each
+        /tf link's child frame -> (N,) bool, the times that link does not reach."""
         chain, static, dynamic = self._tf_chain
         poses = np.tile(np.eye(4), (len(times), 1, 1))
         for child in reversed(chain[:-1]):
@@ -678,7 +678,10 @@ class Rosbag2Sequence(FrameSource):
                 poses = poses @ static[child][1]
                 continue
             _, stamps, matrices = dynamic[child]
-            poses = poses @ self._interpolated(times, self._seconds(stamps), np.array(matrices))
+            link = self._interpolated(times, self._seconds(stamps), np.array(matrices))
+            if missing is not None:
+                missing[child] = ~np.isfinite(link[:, 0, 0])
+            poses = poses @ link
         return poses
 
     @property
