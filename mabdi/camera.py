@@ -117,6 +117,13 @@ class Intrinsics:
         rays[..., 2] = 1.0
         return rays
 
+    def rays_at(self, u, v) -> np.ndarray:
+        """(..., 3) camera-frame rays with z = 1 at continuous pixel coordinates (u column, v row; pixel corners at
+        integers, centres at + 0.5): depth times ray is the point."""
+        u = np.asarray(u, dtype=np.float64)
+        v = np.asarray(v, dtype=np.float64)
+        return np.stack([(u - self.cx) / self.fx, (v - self.cy) / self.fy, np.ones(np.broadcast(u, v).shape)], axis=-1)
+
     # -- the questions every sensor geometry answers (the LiDAR's: mabdi.spherical.SphericalGeometry) --
     def pixels_per_radian(self) -> float:
         """How many pixels one radian of view spans at the image centre: ``fx``."""

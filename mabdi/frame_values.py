@@ -89,7 +89,9 @@ class Placement:
     ``support``: the least share of a constrained direction's constraint its pairs carry; ``iterations``;
     ``given_exact``: the source states its poses exact (the frame kept its given pose); ``given_pose``: 4x4
     world_from_camera as the source gave it; ``world_from_map``: where the map's frame lies in the world;
-    ``covariance``: 6x6 of the meshed pose (rotation vector in rad, translation in m), None when not registered.
+    ``covariance``: 6x6 of the meshed pose (rotation vector in rad, translation in m), None when not registered;
+    ``fitted_pose``: 4x4 camera-to-map, the pose the ICP fitted D to the map at (the meshed pose may keep the given
+    one instead), None when not registered.
     """
 
     status: str
@@ -103,6 +105,7 @@ class Placement:
     iterations: int = 0
     given_exact: bool = False
     covariance: np.ndarray | None = None
+    fitted_pose: np.ndarray | None = None
 
     @classmethod
     def unregistered(cls, given_pose: np.ndarray) -> Placement:

@@ -489,7 +489,7 @@ class MabdiLoop:
         if self.classifier_enabled:
             expected = self.expected.render(self.world.map, measured)
             t_expected = time.perf_counter()
-            classified = self.classifier.classify(measured, expected, placement.covariance)
+            classified = self.classifier.classify(measured, expected, placement.covariance, placement.fitted_pose)
             t_classify = time.perf_counter()
             surface_input, whole = measured.showing(classified.depth), measured.depth
         added = mesh_frame(self.surface, surface_input, whole)

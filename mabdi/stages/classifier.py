@@ -16,16 +16,29 @@ label  name          rule
 3     contradicted  D > E + tau: the sensor sees through a surface of the map
 ====  ============  ====================================================
 
+Where registration fitted D to the map at another pose than the one D is
+meshed at (a recording's given pose kept), a novel pixel in front of the map
+or a contradicted one that agrees with E within tau once D is placed at the
+fitted pose is known (:func:`explained_by_fit`): the two poses' difference
+is no evidence of anything new or gone.
+
 Specks: the novel mask is opened with a ``min_width`` square and regions of
 fewer than ``min_region`` pixels go (label 1); a speck that fills a hole of
 the map stays novel (``fill_holes``, :func:`hole_fills`).
+
+Gradual departures (``gradual``): a region of novel pixels in front of the
+map, or of contradicted pixels, whose D - E changes by more than tau across
+fewer than :data:`GRADUAL_STEP_SHARE` of the pixel pairs on its border with
+known pixels is the map's own surface seen with a bias (a real camera's
+depth distortion, a pose slightly off), not a new or departed object, whose
+border is a step: it is known (:func:`gradual_regions`).
 
 Output: ``depth`` is D on the novel pixels and a ``rim`` of pixels around
 them (NaN elsewhere; ``rim_on_map`` puts the rim's known pixels on E), plus
 the point arrays ``measured_depth``, ``label`` and ``pose_sigma`` and the
 field-data ``pixel_counts`` (:func:`pixel_counts`); field data is D's.
 Defaults: tau_min = 0.01 m, k_sigma = 3, min_width = 3 px, min_region = 32 px,
-rim = "auto", rim_on_map = "auto", fill_holes = true.
+rim = "auto", rim_on_map = "auto", fill_holes = true, gradual = true.
 
 Why the rules are what they are: docs/architecture.md (``mabdi.stages.classifier``).
 """
@@ -47,7 +60,7 @@ from mabdi.sensor_noise import SensorNoise
 from mabdi.stages.expected_image import expected_of_image
 from mabdi.frame_values import Classified, Expected, Measured
 from mabdi.stages.image_kernels import dilate_kernel
-from mabdi.stages.registration import image_pose_covariance, pose_depth_sigma
+from mabdi.stages.registration import image_fitted_pose, image_pose_covariance, pose_depth_sigma
 
 NO_RETURN, KNOWN, NOVEL, CONTRADICTED = 0, 1, 2, 3
 LABEL_ARRAY = "label"
@@ -81,6 +94,8 @@ class ClassifierParameters:
     rim_on_map: bool | str = "auto"
     #: Keep the specks that fill a hole of the map (see the module docs).
     fill_holes: bool = True
+    #: Regions that depart from the map gradually are the map seen with a bias: known (see the module docs).
+    gradual: bool = True
 
     def __post_init__(self) -> None:
         check_switch("rim_on_map", self.rim_on_map)
@@ -280,6 +295,95 @@ def hole_fills(
     return fills
 
 
+def image_at(image: np.ndarray, uv: np.ndarray, wraps_around: bool = False) -> np.ndarray:
+    """(N,) ``image`` (H, W) read at continuous pixel coordinates ``uv`` (N, 2: u column, v row; pixel centres at
+    + 0.5): bilinear between the four pixel centres around each where all four hold a value, else the pixel the
+    point falls in; NaN outside the image (columns wrap around with ``wraps_around``: a LiDAR's 360 degrees)."""
+    height, width = image.shape
+    out = np.full(len(uv), np.nan)
+    with np.errstate(invalid="ignore"):
+        u, v = uv[:, 0], uv[:, 1]
+        if wraps_around:
+            u = np.mod(u, width)
+        inside = (u >= 0) & (u < width) & (v >= 0) & (v < height)
+    u, v = u[inside], v[inside]
+    nearest = image[v.astype(np.int64), u.astype(np.int64)].astype(np.float64)
+    x, y = u - 0.5, v - 0.5
+    c0, r0 = np.floor(x).astype(np.int64), np.floor(y).astype(np.int64)
+    tx, ty = x - c0, y - r0
+    if wraps_around:
+        c0, c1 = np.mod(c0, width), np.mod(c0 + 1, width)
+    else:
+        c0, c1 = np.clip(c0, 0, width - 1), np.clip(c0 + 1, 0, width - 1)
+    r0, r1 = np.clip(r0, 0, height - 1), np.clip(r0 + 1, 0, height - 1)
+    corners = [image[r, c].astype(np.float64) for r, c in ((r0, c0), (r0, c1), (r1, c0), (r1, c1))]
+    blended = (1 - ty) * ((1 - tx) * corners[0] + tx * corners[1]) + ty * ((1 - tx) * corners[2] + tx * corners[3])
+    out[inside] = np.where(np.isfinite(blended), blended, nearest)
+    return out
+
+
+def explained_by_fit(
+    labels: np.ndarray, measured: np.ndarray, expected: np.ndarray, tau: np.ndarray, geometry, meshed_from_fitted: np.ndarray
+) -> np.ndarray:
+    """Bool (H, W): the novel pixels in front of the map and the contradicted pixels whose return, placed at the
+    pose registration fitted D to the map at, lies within tau of E (see the module docs). ``meshed_from_fitted``:
+    4x4, the fitted sensor frame in the frame of the pose D is meshed at; ``geometry``: D's (a camera's or a
+    LiDAR's); E is read where the moved return falls (:func:`image_at`, in inverse depth)."""
+    explained = np.zeros(labels.shape, dtype=bool)
+    suspect = ((labels == NOVEL) & np.isfinite(expected)) | (labels == CONTRADICTED)
+    rows, cols = np.nonzero(suspect)
+    if not len(rows):
+        return explained
+    points = geometry.rays_at(cols + 0.5, rows + 0.5) * measured[rows, cols].astype(np.float64)[:, None]
+    uv, value = geometry.project_points(points @ meshed_from_fitted[:3, :3].T + meshed_from_fitted[:3, 3], np.eye(4))
+    # inverse depth: across a plane it is linear in a camera's pixel coordinates (near enough in a LiDAR's angles),
+    # so reading it between pixel centres follows a slanted surface where depth itself would not
+    with np.errstate(divide="ignore"):
+        there = 1.0 / image_at(1.0 / expected.astype(np.float64), uv, getattr(geometry, "wraps_around", False))
+    with np.errstate(invalid="ignore"):
+        agree = (value > 0) & (np.abs(value - there) <= tau[rows, cols])
+    explained[rows[agree], cols[agree]] = True
+    return explained
+
+
+#: A region departs from the map gradually when fewer than this share of the pixel pairs across its border with
+#: known pixels step by more than tau in D - E (see the module docs).
+GRADUAL_STEP_SHARE = 0.25
+#: The fewest such border pairs a region is judged by (fewer: it stays as it is).
+GRADUAL_MIN_PAIRS = 8
+_FOUR_NEIGHBOURS = ((0, 1), (0, -1), (1, 0), (-1, 0))
+
+
+def gradual_regions(mask: np.ndarray, labels: np.ndarray, measured: np.ndarray, expected: np.ndarray, tau: np.ndarray) -> np.ndarray:
+    """Bool (H, W): the 8-connected regions of ``mask`` (pixels where D departs from E by more than tau) whose
+    border with known pixels is gradual (see the module docs): D - E changes by more than tau across fewer than
+    :data:`GRADUAL_STEP_SHARE` of the 4-neighbour pairs of a region pixel and a known pixel, and there are at
+    least :data:`GRADUAL_MIN_PAIRS` of them. Works on the mask's pixels alone."""
+    gradual = np.zeros(mask.shape, dtype=bool)
+    if not mask.any():
+        return gradual
+    regions, count = ndimage.label(mask, structure=_EIGHT_NEIGHBOURS)
+    rows, cols = np.nonzero(mask)
+    region = regions[rows, cols]
+    departure = measured[rows, cols].astype(np.float64) - expected[rows, cols]
+    threshold = tau[rows, cols]
+    height, width = mask.shape
+    pairs = np.zeros(count + 1)
+    steps = np.zeros(count + 1)
+    for dr, dc in _FOUR_NEIGHBOURS:
+        r, c = rows + dr, cols + dc
+        inside = (r >= 0) & (r < height) & (c >= 0) & (c < width)
+        r, c = np.where(inside, r, 0), np.where(inside, c, 0)
+        border = inside & (labels[r, c] == KNOWN)
+        step = np.abs(departure - (measured[r, c].astype(np.float64) - expected[r, c])) > threshold
+        pairs += np.bincount(region[border], minlength=count + 1)
+        steps += np.bincount(region[border & step], minlength=count + 1)
+    keep = (pairs >= GRADUAL_MIN_PAIRS) & (steps < GRADUAL_STEP_SHARE * pairs)
+    keep[0] = False
+    gradual[rows, cols] = keep[region]
+    return gradual
+
+
 class FilterClassifier(MabdiAlgorithm):
     """Label D's pixels against E and pass on the novel ones (2 depth images -> depth image)."""
 
@@ -322,10 +426,13 @@ class FilterClassifier(MabdiAlgorithm):
                 info.Set(vtkStreamingDemandDrivenPipeline.UPDATE_EXTENT(), whole, 6)
         return 1
 
-    def classify(self, measured: Measured, expected: Expected, pose_covariance: np.ndarray | None = None) -> Classified:
+    def classify(
+        self, measured: Measured, expected: Expected, pose_covariance: np.ndarray | None = None, fitted_pose: np.ndarray | None = None
+    ) -> Classified:
         """Label D (``measured``) against E (``expected``, drawn from the same pose with the same geometry) and
         choose the pixels the surface meshes (see the module docs). ``pose_covariance``: 6x6 of D's pose
-        (registration's), which widens tau by E's depth uncertainty; None: the pose is taken as exact."""
+        (registration's), which widens tau by E's depth uncertainty; None: the pose is taken as exact.
+        ``fitted_pose``: 4x4 camera-to-map where registration fitted D to the map (None: not registered)."""
         intrinsics = measured.geometry
         if intrinsics != expected.geometry:
             raise ValueError(
@@ -341,12 +448,21 @@ class FilterClassifier(MabdiAlgorithm):
         pose_sigma = None if pose_covariance is None else pose_depth_sigma(expected_depth, intrinsics, pose_covariance)
         tau = self.threshold(depth, noise, intrinsics.near, intrinsics.far, pose_sigma)
         labels = classify(depth, expected_depth, tau)
+        if fitted_pose is not None:
+            meshed_from_fitted = np.linalg.inv(measured.pose) @ fitted_pose
+            if np.abs(meshed_from_fitted - np.eye(4)).max() > 1e-12:
+                labels[explained_by_fit(labels, depth, expected_depth, tau, intrinsics, meshed_from_fitted)] = KNOWN
         p = self._parameters
         raw_novel = labels == NOVEL
         covered = expected.covered
         novel = remove_specks(raw_novel, p.min_width, p.min_region, covered)
         if p.fill_holes and noise.noisy:
             novel |= hole_fills(raw_novel & ~novel, depth, expected_depth, labels, tau, covered)
+        if p.gradual:
+            bulges = gradual_regions(novel & np.isfinite(expected_depth), labels, depth, expected_depth, tau)
+            dents = gradual_regions(labels == CONTRADICTED, labels, depth, expected_depth, tau)
+            novel &= ~bulges
+            labels[bulges | dents] = KNOWN
         specks = raw_novel & ~novel
         on_map = labels == KNOWN  # D and E agree (a speck does not: it lies in front of the map)
         labels[specks] = KNOWN
@@ -366,7 +482,10 @@ class FilterClassifier(MabdiAlgorithm):
     def RequestData(self, request, inInfo, outInfo):  # noqa: N802 (VTK API)
         measured_image = vtkImageData.GetData(inInfo[0])
         measured = Measured.from_image(measured_image)
-        classified = self.classify(measured, expected_of_image(vtkImageData.GetData(inInfo[1])), image_pose_covariance(measured_image))
+        classified = self.classify(
+            measured, expected_of_image(vtkImageData.GetData(inInfo[1])), image_pose_covariance(measured_image),
+            image_fitted_pose(measured_image),
+        )
         write_classified(vtkImageData.GetData(outInfo), measured, classified)
         return 1
 

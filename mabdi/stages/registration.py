@@ -30,7 +30,9 @@ in the map's frame. Output: D with the registered pose, and in field data
 (:data:`REGISTRATION_FIELDS`) and, when registered, ``pose_covariance``
 (6x6, rotation vector in radians then translation in metres, camera frame),
 which the classifier turns into each pixel's depth uncertainty
-(:func:`pose_depth_sigma`).
+(:func:`pose_depth_sigma`), and ``fitted_world_from_camera``, the ICP's pose
+(map frame), where the classifier explains D's departures from E that the
+difference between the two poses makes.
 
 Parameters: :class:`RegistrationParameters` (``[registration]``; ``enabled =
 false`` or ``--no-registration`` passes D on with the given pose). The
@@ -77,6 +79,7 @@ GIVEN_POSE_ARRAY = "given_world_from_camera"
 WORLD_FROM_MAP_ARRAY = "world_from_map"
 REGISTRATION_ARRAY = "registration"
 POSE_COVARIANCE_ARRAY = "pose_covariance"
+FITTED_POSE_ARRAY = "fitted_world_from_camera"
 #: The values of the ``registration`` field-data array, in order.
 REGISTRATION_FIELDS = ("status", "correction_m", "correction_deg", "residual_m", "inlier_share", "support", "iterations", "given_exact")
 #: The words ``given_sigma`` takes besides [m, deg]: the source's statement (learnt without one), or always learnt.
@@ -652,12 +655,20 @@ def write_placement(image, placement: Placement) -> None:
     _add_field(image, REGISTRATION_ARRAY, values)
     if placement.covariance is not None:
         _add_field(image, POSE_COVARIANCE_ARRAY, placement.covariance)
+    if placement.fitted_pose is not None:
+        _add_field(image, FITTED_POSE_ARRAY, placement.fitted_pose)
 
 
 def image_pose_covariance(image) -> np.ndarray | None:
     """The 6x6 ``pose_covariance`` of a registered D, or None when the frame was not registered."""
     array = image.GetFieldData().GetArray(POSE_COVARIANCE_ARRAY)
     return None if array is None else vtk_to_numpy(array).reshape(6, 6).copy()
+
+
+def image_fitted_pose(image) -> np.ndarray | None:
+    """The 4x4 ``fitted_world_from_camera`` of a registered D (the ICP's pose, map frame), or None when not registered."""
+    array = image.GetFieldData().GetArray(FITTED_POSE_ARRAY)
+    return None if array is None else vtk_to_numpy(array).reshape(4, 4).copy()
 
 
 def image_world_from_map(image) -> np.ndarray:
@@ -997,6 +1008,7 @@ class FilterRegistration(MapAndImageAlgorithm):
                 references=(np.eye(4), carried), judged_against=judged_against,
             )  # fmt: skip
         pose = given_in_map @ result.transform
+        fitted = pose.copy() if result.registered else None  # where D fits the map, whatever pose it is meshed at
         covariance = result.covariance
         learnt = self.anchor.stated is None
         if result.registered or result.status == "exact":
@@ -1026,6 +1038,7 @@ class FilterRegistration(MapAndImageAlgorithm):
         placement = Placement(
             result.status, given.copy(), world_from_map.copy(), translation, angle, result.residual, result.inlier_share,
             result.support, result.iterations, bool(given_exact), None if covariance is None else np.asarray(covariance, dtype=np.float64),
+            fitted,
         )  # fmt: skip
         return measured.placed(pose), placement
 

@@ -203,9 +203,7 @@ class SilhouetteEvidence:
 def _ray(u: np.ndarray, v: np.ndarray, k: Grid) -> np.ndarray:
     """Rays through continuous pixel coordinates (pixel corners at integers): a camera's with z = 1, a LiDAR's
     unit rays (seed 002 §3.2's transform: either way, the depth image's value times the ray is the point)."""
-    if isinstance(k, ReducedSpherical):
-        return k.rays_at(u, v)
-    return np.stack([(u - k.cx) / k.fx, (v - k.cy) / k.fy, np.ones_like(u, dtype=np.float64)], axis=-1)
+    return k.rays_at(u, v)
 
 
 def _step_jump(p: QuadTreeParameters, k: Grid) -> float:
