@@ -16,22 +16,15 @@ label  name          rule
 3     contradicted  D > E + tau: the sensor sees through a surface of the map
 ====  ============  ====================================================
 
-Where registration fitted D to the map at another pose than the one D is
-meshed at (a recording's given pose kept), a novel pixel in front of the map
-or a contradicted one that agrees with E within tau once D is placed at the
-fitted pose is known (:func:`explained_by_fit`): the two poses' difference
-is no evidence of anything new or gone.
-
+Known besides: a novel pixel in front of the map or a contradicted one that
+agrees with E once D is placed at the pose registration fitted it at
+(:func:`explained_by_fit`), and a region of either whose D - E steps by more
+than tau across fewer than :data:`GRADUAL_STEP_SHARE` of its border with
+known pixels (``gradual``, :func:`gradual_regions`): the map seen with a
+real camera's bias, where a new or departed object's border is a step.
 Specks: the novel mask is opened with a ``min_width`` square and regions of
 fewer than ``min_region`` pixels go (label 1); a speck that fills a hole of
 the map stays novel (``fill_holes``, :func:`hole_fills`).
-
-Gradual departures (``gradual``): a region of novel pixels in front of the
-map, or of contradicted pixels, whose D - E changes by more than tau across
-fewer than :data:`GRADUAL_STEP_SHARE` of the pixel pairs on its border with
-known pixels is the map's own surface seen with a bias (a real camera's
-depth distortion, a pose slightly off), not a new or departed object, whose
-border is a step: it is known (:func:`gradual_regions`).
 
 Output: ``depth`` is D on the novel pixels and a ``rim`` of pixels around
 them (NaN elsewhere; ``rim_on_map`` puts the rim's known pixels on E), plus
@@ -59,7 +52,7 @@ from mabdi.errors import ConfigError, check_switch
 from mabdi.sensor_noise import SensorNoise
 from mabdi.stages.expected_image import expected_of_image
 from mabdi.frame_values import Classified, Expected, Measured
-from mabdi.stages.image_kernels import dilate_kernel
+from mabdi.stages.image_kernels import border_steps_kernel, dilate_kernel
 from mabdi.stages.registration import image_fitted_pose, image_pose_covariance, pose_depth_sigma
 
 NO_RETURN, KNOWN, NOVEL, CONTRADICTED = 0, 1, 2, 3
@@ -351,37 +344,20 @@ def explained_by_fit(
 GRADUAL_STEP_SHARE = 0.25
 #: The fewest such border pairs a region is judged by (fewer: it stays as it is).
 GRADUAL_MIN_PAIRS = 8
-_FOUR_NEIGHBOURS = ((0, 1), (0, -1), (1, 0), (-1, 0))
 
 
 def gradual_regions(mask: np.ndarray, labels: np.ndarray, measured: np.ndarray, expected: np.ndarray, tau: np.ndarray) -> np.ndarray:
     """Bool (H, W): the 8-connected regions of ``mask`` (pixels where D departs from E by more than tau) whose
     border with known pixels is gradual (see the module docs): D - E changes by more than tau across fewer than
     :data:`GRADUAL_STEP_SHARE` of the 4-neighbour pairs of a region pixel and a known pixel, and there are at
-    least :data:`GRADUAL_MIN_PAIRS` of them. Works on the mask's pixels alone."""
-    gradual = np.zeros(mask.shape, dtype=bool)
+    least :data:`GRADUAL_MIN_PAIRS` of them (:func:`~mabdi.stages.image_kernels.border_steps_kernel`)."""
     if not mask.any():
-        return gradual
+        return np.zeros(mask.shape, dtype=bool)
     regions, count = ndimage.label(mask, structure=_EIGHT_NEIGHBOURS)
-    rows, cols = np.nonzero(mask)
-    region = regions[rows, cols]
-    departure = measured[rows, cols].astype(np.float64) - expected[rows, cols]
-    threshold = tau[rows, cols]
-    height, width = mask.shape
-    pairs = np.zeros(count + 1)
-    steps = np.zeros(count + 1)
-    for dr, dc in _FOUR_NEIGHBOURS:
-        r, c = rows + dr, cols + dc
-        inside = (r >= 0) & (r < height) & (c >= 0) & (c < width)
-        r, c = np.where(inside, r, 0), np.where(inside, c, 0)
-        border = inside & (labels[r, c] == KNOWN)
-        step = np.abs(departure - (measured[r, c].astype(np.float64) - expected[r, c])) > threshold
-        pairs += np.bincount(region[border], minlength=count + 1)
-        steps += np.bincount(region[border & step], minlength=count + 1)
+    pairs, steps = border_steps_kernel(regions.astype(np.int32, copy=False), int(count), labels == KNOWN, measured, expected, tau)
     keep = (pairs >= GRADUAL_MIN_PAIRS) & (steps < GRADUAL_STEP_SHARE * pairs)
     keep[0] = False
-    gradual[rows, cols] = keep[region]
-    return gradual
+    return keep[regions]
 
 
 class FilterClassifier(MabdiAlgorithm):

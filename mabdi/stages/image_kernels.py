@@ -4,7 +4,10 @@
   jump within a pixel's 3x3 neighbourhood, or a pixel without a return in
   it), what :func:`mabdi.stages.removal.depth_edges` documents;
 * :func:`dilate_kernel`: binary dilation by a (2 radius + 1) square, outside
-  the image False (:func:`mabdi.stages.classifier.dilate`).
+  the image False (:func:`mabdi.stages.classifier.dilate`);
+* :func:`border_steps_kernel`: each region's pixel pairs with known pixels
+  across its border, and how many of them step
+  (:func:`mabdi.stages.classifier.gradual_regions`).
 
 The tests compare each with its array-slice formulation.
 """
@@ -64,3 +67,30 @@ def _dilate_rows(mask, radius):
 def dilate_kernel(mask, radius):
     """(H, W) bool: ``mask`` dilated by a (2 radius + 1) square: along the rows, then along the columns."""
     return np.ascontiguousarray(_dilate_rows(_dilate_rows(mask, radius).T, radius).T)
+
+
+@njit(cache=True)
+def border_steps_kernel(regions, count, known, measured, expected, tau):
+    """(pairs, steps), int64 (count + 1,) each: for every region of ``regions`` (int32 (H, W), 0 none, 1..count),
+    the 4-neighbour pairs of one of its pixels and a ``known`` pixel (bool (H, W)), and how many of them have
+    D - E (``measured`` - ``expected``, (H, W), in float64) differing by more than ``tau`` (the region pixel's,
+    (H, W)). One pass."""
+    height, width = regions.shape
+    pairs = np.zeros(count + 1, dtype=np.int64)
+    steps = np.zeros(count + 1, dtype=np.int64)
+    for row in range(height):
+        for col in range(width):
+            region = regions[row, col]
+            if region == 0:
+                continue
+            here = np.float64(measured[row, col]) - np.float64(expected[row, col])
+            limit = tau[row, col]
+            for k in range(4):
+                r = row + (1 if k == 0 else (-1 if k == 1 else 0))
+                c = col + (1 if k == 2 else (-1 if k == 3 else 0))
+                if r < 0 or r >= height or c < 0 or c >= width or not known[r, c]:
+                    continue
+                pairs[region] += 1
+                if abs(here - (np.float64(measured[r, c]) - np.float64(expected[r, c]))) > limit:
+                    steps[region] += 1
+    return pairs, steps
