@@ -344,18 +344,22 @@ def explained_by_fit(
 GRADUAL_STEP_SHARE = 0.25
 #: The fewest such border pairs a region is judged by (fewer: it stays as it is).
 GRADUAL_MIN_PAIRS = 8
+#: The least share of a region's border (its pixels' 4-neighbours in the image outside it) that must be known
+#: pixels for the region to be judged by them (less: it stays as it is).
+GRADUAL_KNOWN_SHARE = 0.5
 
 
 def gradual_regions(mask: np.ndarray, labels: np.ndarray, measured: np.ndarray, expected: np.ndarray, tau: np.ndarray) -> np.ndarray:
     """Bool (H, W): the 8-connected regions of ``mask`` (pixels where D departs from E by more than tau) whose
     border with known pixels is gradual (see the module docs): D - E changes by more than tau across fewer than
-    :data:`GRADUAL_STEP_SHARE` of the 4-neighbour pairs of a region pixel and a known pixel, and there are at
-    least :data:`GRADUAL_MIN_PAIRS` of them (:func:`~mabdi.stages.image_kernels.border_steps_kernel`)."""
+    :data:`GRADUAL_STEP_SHARE` of the 4-neighbour pairs of a region pixel and a known pixel, there are at
+    least :data:`GRADUAL_MIN_PAIRS` of them, and they are at least :data:`GRADUAL_KNOWN_SHARE` of the region's
+    border (:func:`~mabdi.stages.image_kernels.border_steps_kernel`)."""
     if not mask.any():
         return np.zeros(mask.shape, dtype=bool)
     regions, count = ndimage.label(mask, structure=_EIGHT_NEIGHBOURS)
-    pairs, steps = border_steps_kernel(regions.astype(np.int32, copy=False), int(count), labels == KNOWN, measured, expected, tau)
-    keep = (pairs >= GRADUAL_MIN_PAIRS) & (steps < GRADUAL_STEP_SHARE * pairs)
+    pairs, steps, outline = border_steps_kernel(regions.astype(np.int32, copy=False), int(count), labels == KNOWN, measured, expected, tau)
+    keep = (pairs >= GRADUAL_MIN_PAIRS) & (steps < GRADUAL_STEP_SHARE * pairs) & (pairs >= GRADUAL_KNOWN_SHARE * outline)
     keep[0] = False
     return keep[regions]
 

@@ -71,13 +71,14 @@ def dilate_kernel(mask, radius):
 
 @njit(cache=True)
 def border_steps_kernel(regions, count, known, measured, expected, tau):
-    """(pairs, steps), int64 (count + 1,) each: for every region of ``regions`` (int32 (H, W), 0 none, 1..count),
-    the 4-neighbour pairs of one of its pixels and a ``known`` pixel (bool (H, W)), and how many of them have
-    D - E (``measured`` - ``expected``, (H, W), in float64) differing by more than ``tau`` (the region pixel's,
-    (H, W)). One pass."""
+    """(pairs, steps, outline), int64 (count + 1,) each: for every region of ``regions`` (int32 (H, W), 0 none,
+    1..count), the 4-neighbour pairs of one of its pixels and a ``known`` pixel (bool (H, W)), how many of them
+    have D - E (``measured`` - ``expected``, (H, W), in float64) differing by more than ``tau`` (the region
+    pixel's, (H, W)), and the pairs of one of its pixels and any pixel of the image outside it. One pass."""
     height, width = regions.shape
     pairs = np.zeros(count + 1, dtype=np.int64)
     steps = np.zeros(count + 1, dtype=np.int64)
+    outline = np.zeros(count + 1, dtype=np.int64)
     for row in range(height):
         for col in range(width):
             region = regions[row, col]
@@ -88,9 +89,12 @@ def border_steps_kernel(regions, count, known, measured, expected, tau):
             for k in range(4):
                 r = row + (1 if k == 0 else (-1 if k == 1 else 0))
                 c = col + (1 if k == 2 else (-1 if k == 3 else 0))
-                if r < 0 or r >= height or c < 0 or c >= width or not known[r, c]:
+                if r < 0 or r >= height or c < 0 or c >= width or regions[r, c] == region:
+                    continue
+                outline[region] += 1
+                if not known[r, c]:
                     continue
                 pairs[region] += 1
                 if abs(here - (np.float64(measured[r, c]) - np.float64(expected[r, c]))) > limit:
                     steps[region] += 1
-    return pairs, steps
+    return pairs, steps, outline
