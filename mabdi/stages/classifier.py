@@ -438,13 +438,13 @@ class FilterClassifier(MabdiAlgorithm):
         novel = remove_specks(raw_novel, p.min_width, p.min_region, covered)
         if p.fill_holes and noise.noisy:
             novel |= hole_fills(raw_novel & ~novel, depth, expected_depth, labels, tau, covered)
+        specks = raw_novel & ~novel
         if p.gradual:
             bulges = gradual_regions(novel & np.isfinite(expected_depth), labels, depth, expected_depth, tau)
             dents = gradual_regions(labels == CONTRADICTED, labels, depth, expected_depth, tau)
             novel &= ~bulges
             labels[bulges | dents] = KNOWN
-        specks = raw_novel & ~novel
-        on_map = labels == KNOWN  # D and E agree (a speck does not: it lies in front of the map)
+        on_map = labels == KNOWN  # D is the map's surface (a speck is not: it lies in front of the map)
         labels[specks] = KNOWN
         meshed = novel
         if p.rim_pixels > 0 and novel.any():
