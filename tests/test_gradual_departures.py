@@ -19,13 +19,18 @@ from mabdi.stages.classifier import (
     KNOWN,
     NOVEL,
     ClassifierParameters,
+    FilterClassifier,
     classify,
     explained_by_fit,
     gradual_regions,
+    pose_trusted,
 )
+from mabdi.depth import depth_image
+from mabdi.frame_values import Measured
+from mabdi.stages.expected_image import expected_of_image
 from mabdi.stages.image_kernels import border_steps_kernel
 from mabdi.stages.registration_kernels import rigid_from_vector
-from test_classifier import run_classifier, SMALL
+from test_classifier import POSE, SMALL, run_classifier
 from test_registration import room_frames
 
 WALL = 2.0  # metres
@@ -58,6 +63,25 @@ def test_a_region_that_departs_gradually_is_known(amplitude):
     off = ClassifierParameters(min_width=1, min_region=0, rim=0, gradual=False)
     _, labels, _ = run_classifier(measured, wall(), off)
     assert (labels[beyond] == (NOVEL if amplitude < 0 else CONTRADICTED)).all()
+
+
+def test_a_gradual_contradiction_votes_where_the_pose_is_uncertain():
+    """Where poor poses are being corrected (E's depth uncertain from the pose by about the sensor's sigma), the
+    map's patches may lie where poor poses put them, and a gradual contradiction is as likely such a patch:
+    it stays contradicted (removal mends it). A gradual region in front of the map is still known."""
+    measured = wall() + bump(0.04).astype(np.float32)
+    in_front = wall() - bump(0.04).astype(np.float32)
+    classifier = FilterClassifier(PARAMETERS)
+    uncertain = np.diag([1e-6, 1e-6, 1e-6, 4e-5, 4e-5, 4e-5])  # 6 mm a translation axis: E uncertain by ~6 mm
+    for depth, label in ((measured, CONTRADICTED), (in_front, KNOWN)):
+        d = Measured.from_image(depth_image(depth, SMALL, POSE, frame=4, noise="kinect"))
+        e = expected_of_image(depth_image(wall(), SMALL, POSE, frame=4))
+        beyond = np.abs(depth - WALL) > 0.03  # beyond tau with the pose's uncertainty too (2.5 cm)
+        assert beyond.sum() > 30
+        assert (classifier.classify(d, e, uncertain).labels[beyond] == label).all()
+        assert (classifier.classify(d, e, np.zeros((6, 6))).labels[beyond] == KNOWN).all()
+    assert not pose_trusted(np.full(SMALL.shape, 0.006), np.full(SMALL.shape, 0.01))
+    assert pose_trusted(np.full(SMALL.shape, 0.004), np.full(SMALL.shape, 0.01)) and pose_trusted(None, np.ones(1))
 
 
 def test_an_object_with_a_step_at_its_border_stays_new_and_a_departed_one_stays_seen_through():

@@ -20,8 +20,9 @@ Known besides: a novel pixel in front of the map or a contradicted one that
 agrees with E once D is placed at the pose registration fitted it at
 (:func:`explained_by_fit`), and a region of either whose D - E steps by more
 than tau across fewer than :data:`GRADUAL_STEP_SHARE` of its border with
-known pixels (``gradual``, :func:`gradual_regions`): the map seen with a
-real camera's bias, where a new or departed object's border is a step.
+known pixels (``gradual``, :func:`gradual_regions`; contradicted regions
+where the pose is trusted, :func:`pose_trusted`): the map seen with a real
+camera's bias, where a new or departed object's border is a step.
 Specks: the novel mask is opened with a ``min_width`` square and regions of
 fewer than ``min_region`` pixels go (label 1); a speck that fills a hole of
 the map stays novel (``fill_holes``, :func:`hole_fills`).
@@ -349,6 +350,24 @@ GRADUAL_MIN_PAIRS = 8
 GRADUAL_KNOWN_SHARE = 0.5
 
 
+#: Contradicted regions are judged gradual only in frames whose pose uncertainty moves E by at most this share of
+#: the sensor's sigma (the median over E's pixels): where the poses are poorer, the map's patches may lie where
+#: poor poses put them, and a gradual contradiction is as likely such a patch, which removal mends.
+TRUSTED_POSE_SHARE = 0.5
+
+
+def pose_trusted(pose_sigma: np.ndarray | None, sensor_sigma: np.ndarray) -> bool:
+    """Whether a frame's pose is good enough for a contradicted region to be read as the camera's bias: no pose
+    uncertainty, or E's depth uncertainty from it (``pose_sigma``, (H, W) m, NaN where E has no surface) at most
+    :data:`TRUSTED_POSE_SHARE` of the sensor's ``sensor_sigma`` (H, W) (the median over every 4th pixel)."""
+    if pose_sigma is None:
+        return True
+    with np.errstate(invalid="ignore", divide="ignore"):
+        share = (pose_sigma[::4, ::4] / sensor_sigma[::4, ::4]).ravel()
+    share = share[np.isfinite(share)]
+    return not len(share) or float(np.median(share)) <= TRUSTED_POSE_SHARE
+
+
 def gradual_regions(mask: np.ndarray, labels: np.ndarray, measured: np.ndarray, expected: np.ndarray, tau: np.ndarray) -> np.ndarray:
     """Bool (H, W): the 8-connected regions of ``mask`` (pixels where D departs from E by more than tau) whose
     border with known pixels is gradual (see the module docs): D - E changes by more than tau across fewer than
@@ -441,9 +460,10 @@ class FilterClassifier(MabdiAlgorithm):
         specks = raw_novel & ~novel
         if p.gradual:
             bulges = gradual_regions(novel & np.isfinite(expected_depth), labels, depth, expected_depth, tau)
-            dents = gradual_regions(labels == CONTRADICTED, labels, depth, expected_depth, tau)
             novel &= ~bulges
-            labels[bulges | dents] = KNOWN
+            labels[bulges] = KNOWN
+            if pose_trusted(pose_sigma, noise.sigma(depth, intrinsics.near, intrinsics.far)):
+                labels[gradual_regions(labels == CONTRADICTED, labels, depth, expected_depth, tau)] = KNOWN
         on_map = labels == KNOWN  # D is the map's surface (a speck is not: it lies in front of the map)
         labels[specks] = KNOWN
         meshed = novel
