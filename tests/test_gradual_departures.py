@@ -10,7 +10,7 @@ import pytest
 from scipy import ndimage
 
 import mabdi
-from mabdi.camera import Intrinsics, look_at
+from mabdi.camera import Intrinsics
 from mabdi.depth import DepthFrame
 from mabdi.sources.frames import FrameList
 from mabdi.spherical import SphericalGeometry
@@ -31,7 +31,7 @@ from mabdi.stages.expected_image import expected_of_image
 from mabdi.stages.image_kernels import border_steps_kernel
 from mabdi.stages.registration_kernels import rigid_from_vector
 from test_classifier import POSE, SMALL, run_classifier
-from test_registration import room_frames
+from test_registration_distorted_depth import there_and_back_frames
 
 WALL = 2.0  # metres
 
@@ -220,20 +220,12 @@ def test_what_the_difference_between_the_meshed_and_the_fitted_pose_makes_is_exp
 
 # --- the loop on a camera with a depth distortion ---------------------------------------------------------
 
-#: Depth 3% too far at the image corners, growing with the square of the distance from the principal point.
-DISTORTION = 0.03
-
-
 @pytest.fixture(scope="module")
 def distorted_there_and_back():
-    """60 frames 1.6 m sideways past a small room and back, Kinect noise, the depth distorted (exact poses)."""
-    intrinsics = Intrinsics()
-    steps = np.concatenate([np.linspace(0, 1.6, 30), np.linspace(1.6, 0, 30)])
-    true = np.stack([look_at([-1.5 + x, -1.8, 1.4], [0.8 + x, 0.8, 0.5]) for x in steps])
-    v, u = np.mgrid[0 : intrinsics.height, 0 : intrinsics.width]
-    r2 = ((u - intrinsics.cx) / intrinsics.cx) ** 2 + ((v - intrinsics.cy) / intrinsics.cy) ** 2
-    depths = [(d * (1 + DISTORTION * r2 / 2)).astype(d.dtype) for d in room_frames(true, noise="kinect")]
-    return [DepthFrame(d, intrinsics, p, i, i / 30) for i, (d, p) in enumerate(zip(depths, true, strict=True))]
+    """60 frames 1.6 m sideways past a small room and back, Kinect noise, the depth 3% too far at the image corners
+    (exact poses; :func:`test_registration_distorted_depth.there_and_back_frames`)."""
+    true, depths = there_and_back_frames()
+    return [DepthFrame(d, Intrinsics(), p, i, i / 30) for i, (d, p) in enumerate(zip(depths, true, strict=True))]
 
 
 @pytest.mark.slow
