@@ -125,6 +125,19 @@ def test_a_region_bordered_mostly_by_pixels_without_a_return_stays():
     assert (labels[measured - WALL > 0.01] == KNOWN).all()
 
 
+def test_a_door_turned_about_its_hinge_stays_seen_through():
+    """A door the map holds, turned open about its hinge: D departs from E gradually at the hinge and by a metre at
+    the free edge, and the region's only border with known pixels is the hinge's (the rest is the image's edge).
+    Most of its pixels lie more than GRADUAL_MAX_TAU tau from E's surface: an object's size, not a bias. It stays
+    contradicted."""
+    measured, expected = wall(), wall()
+    # the room behind the doorway, seen further the further from the hinge: millimetres beside it, a metre at the edge
+    opening = (np.linspace(0.0, 1.0, SMALL.width - 32) ** 2).astype(np.float32)
+    measured[:, 32:] = WALL + opening[None, :]
+    _, labels, _ = run_classifier(measured, expected, PARAMETERS)
+    assert (labels[measured - WALL > 0.01] == CONTRADICTED).all()
+
+
 def test_gradual_regions_needs_a_border_to_judge_by():
     """A region with fewer than eight pairs on its border with known pixels is left as it is (a region the size of
     the image, or one walled in by pixels without a return)."""
@@ -135,7 +148,7 @@ def test_gradual_regions_needs_a_border_to_judge_by():
     assert not gradual_regions(labels == NOVEL, labels, measured, expected, tau).any()
 
 
-def reference_border_steps(regions, count, known, measured, expected, tau):
+def reference_border_steps(regions, count, known, measured, expected, tau, cosine, far_k):
     """border_steps_kernel's counts by array indexing, direction by direction."""
     rows, cols = np.nonzero(regions)
     region = regions[rows, cols]
@@ -151,7 +164,10 @@ def reference_border_steps(regions, count, known, measured, expected, tau):
         outline += np.bincount(region[outside], minlength=count + 1)
         pairs += np.bincount(region[border], minlength=count + 1)
         steps += np.bincount(region[border & step], minlength=count + 1)
-    return pairs, steps, outline
+    size = np.bincount(region, minlength=count + 1)
+    slant = np.nan_to_num(cosine[rows, cols], nan=1.0)
+    far = np.bincount(region[np.abs(here) * slant > far_k * tau[rows, cols]], minlength=count + 1)
+    return pairs, steps, outline, size, far
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
@@ -165,11 +181,13 @@ def test_the_border_kernel_counts_what_array_indexing_counts(seed):
     for mask in (labels == NOVEL, labels == CONTRADICTED):
         regions, count = ndimage.label(mask, structure=np.ones((3, 3), dtype=bool))
         regions = regions.astype(np.int32)
-        got = border_steps_kernel(regions, count, labels == KNOWN, measured, expected, tau)
-        want = reference_border_steps(regions, count, labels == KNOWN, measured, expected, tau)
+        cosine = rng.uniform(0.2, 1.0, measured.shape).astype(np.float32)
+        cosine[rng.random(measured.shape) < 0.05] = np.nan
+        got = border_steps_kernel(regions, count, labels == KNOWN, measured, expected, tau, cosine, 1.5)
+        want = reference_border_steps(regions, count, labels == KNOWN, measured, expected, tau, cosine, 1.5)
         for a, b in zip(got, want, strict=True):
             np.testing.assert_array_equal(a, b)
-        assert want[0].sum() > 100
+        assert want[0].sum() > 100 and want[4].sum() > 10
 
 
 def plane_values(geometry, normal, offset) -> np.ndarray:

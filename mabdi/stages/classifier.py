@@ -48,9 +48,10 @@ from vtkmodules.vtkCommonDataModel import vtkImageData
 from vtkmodules.vtkCommonExecutionModel import vtkStreamingDemandDrivenPipeline
 
 from mabdi.algorithm import MabdiAlgorithm
+from mabdi.camera import Intrinsics
 from mabdi.depth import MEASURED_ARRAY, image_intrinsics
 from mabdi.errors import ConfigError, check_switch
-from mabdi.sensor_noise import SensorNoise
+from mabdi.sensor_noise import SensorNoise, incidence_cosine
 from mabdi.stages.expected_image import expected_of_image
 from mabdi.frame_values import Classified, Expected, Measured
 from mabdi.stages.image_kernels import border_steps_kernel, dilate_kernel
@@ -350,6 +351,9 @@ GRADUAL_MIN_PAIRS = 8
 GRADUAL_KNOWN_SHARE = 0.5
 
 
+#: A region at least half of whose pixels lie further than this many tau from E's surface along its normal is an
+#: object's size, not a bias (a door turned about its hinge departs gradually there and by a metre at its edge).
+GRADUAL_MAX_TAU = 6.0
 #: Contradicted regions are judged gradual only in frames whose pose uncertainty moves E by at most this share of
 #: the sensor's sigma (the median over E's pixels): where the poses are poorer, the map's patches may lie where
 #: poor poses put them, and a gradual contradiction is as likely such a patch, which removal mends.
@@ -368,17 +372,31 @@ def pose_trusted(pose_sigma: np.ndarray | None, sensor_sigma: np.ndarray) -> boo
     return not len(share) or float(np.median(share)) <= TRUSTED_POSE_SHARE
 
 
-def gradual_regions(mask: np.ndarray, labels: np.ndarray, measured: np.ndarray, expected: np.ndarray, tau: np.ndarray) -> np.ndarray:
+def gradual_regions(
+    mask: np.ndarray,
+    labels: np.ndarray,
+    measured: np.ndarray,
+    expected: np.ndarray,
+    tau: np.ndarray,
+    cosine: np.ndarray | None = None,
+) -> np.ndarray:
     """Bool (H, W): the 8-connected regions of ``mask`` (pixels where D departs from E by more than tau) whose
     border with known pixels is gradual (see the module docs): D - E changes by more than tau across fewer than
     :data:`GRADUAL_STEP_SHARE` of the 4-neighbour pairs of a region pixel and a known pixel, there are at
-    least :data:`GRADUAL_MIN_PAIRS` of them, and they are at least :data:`GRADUAL_KNOWN_SHARE` of the region's
-    border (:func:`~mabdi.stages.image_kernels.border_steps_kernel`)."""
+    least :data:`GRADUAL_MIN_PAIRS` of them, they are at least :data:`GRADUAL_KNOWN_SHARE` of the region's
+    border, and at most half of its pixels lie more than :data:`GRADUAL_MAX_TAU` tau from E's surface along its
+    normal (|D - E| times ``cosine``, the incidence on E, (H, W); None: along the ray)
+    (:func:`~mabdi.stages.image_kernels.border_steps_kernel`)."""
     if not mask.any():
         return np.zeros(mask.shape, dtype=bool)
     regions, count = ndimage.label(mask, structure=_EIGHT_NEIGHBOURS)
-    pairs, steps, outline = border_steps_kernel(regions.astype(np.int32, copy=False), int(count), labels == KNOWN, measured, expected, tau)
+    if cosine is None:
+        cosine = np.ones(mask.shape, dtype=np.float32)
+    pairs, steps, outline, size, far = border_steps_kernel(
+        regions.astype(np.int32, copy=False), int(count), labels == KNOWN, measured, expected, tau, cosine, GRADUAL_MAX_TAU
+    )  # fmt: skip
     keep = (pairs >= GRADUAL_MIN_PAIRS) & (steps < GRADUAL_STEP_SHARE * pairs) & (pairs >= GRADUAL_KNOWN_SHARE * outline)
+    keep &= 2 * far <= size
     keep[0] = False
     return keep[regions]
 
@@ -459,11 +477,13 @@ class FilterClassifier(MabdiAlgorithm):
             novel |= hole_fills(raw_novel & ~novel, depth, expected_depth, labels, tau, covered)
         specks = raw_novel & ~novel
         if p.gradual:
-            bulges = gradual_regions(novel & np.isfinite(expected_depth), labels, depth, expected_depth, tau)
+            # E's incidence, so that a departure is measured along E's normal (a camera's; a LiDAR's along the ray)
+            cosine = incidence_cosine(expected_depth, intrinsics) if isinstance(intrinsics, Intrinsics) else None
+            bulges = gradual_regions(novel & np.isfinite(expected_depth), labels, depth, expected_depth, tau, cosine)
             novel &= ~bulges
             labels[bulges] = KNOWN
             if pose_trusted(pose_sigma, noise.sigma(depth, intrinsics.near, intrinsics.far)):
-                labels[gradual_regions(labels == CONTRADICTED, labels, depth, expected_depth, tau)] = KNOWN
+                labels[gradual_regions(labels == CONTRADICTED, labels, depth, expected_depth, tau, cosine)] = KNOWN
         on_map = labels == KNOWN  # D is the map's surface (a speck is not: it lies in front of the map)
         labels[specks] = KNOWN
         meshed = novel

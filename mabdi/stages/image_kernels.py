@@ -70,15 +70,18 @@ def dilate_kernel(mask, radius):
 
 
 @njit(cache=True)
-def border_steps_kernel(regions, count, known, measured, expected, tau):
-    """(pairs, steps, outline), int64 (count + 1,) each: for every region of ``regions`` (int32 (H, W), 0 none,
-    1..count), the 4-neighbour pairs of one of its pixels and a ``known`` pixel (bool (H, W)), how many of them
-    have D - E (``measured`` - ``expected``, (H, W), in float64) differing by more than ``tau`` (the region
-    pixel's, (H, W)), and the pairs of one of its pixels and any pixel of the image outside it. One pass."""
+def border_steps_kernel(regions, count, known, measured, expected, tau, cosine, far_k):
+    """(pairs, steps, outline, size, far), int64 (count + 1,) each: for every region of ``regions`` (int32 (H, W),
+    0 none, 1..count), the 4-neighbour pairs of one of its pixels and a ``known`` pixel (bool (H, W)), how many of
+    them have D - E (``measured`` - ``expected``, (H, W), in float64) differing by more than ``tau`` (the region
+    pixel's, (H, W)), the pairs of one of its pixels and any pixel of the image outside it, its pixels, and those
+    of them where |D - E| exceeds ``far_k`` tau. One pass."""
     height, width = regions.shape
     pairs = np.zeros(count + 1, dtype=np.int64)
     steps = np.zeros(count + 1, dtype=np.int64)
     outline = np.zeros(count + 1, dtype=np.int64)
+    size = np.zeros(count + 1, dtype=np.int64)
+    far = np.zeros(count + 1, dtype=np.int64)
     for row in range(height):
         for col in range(width):
             region = regions[row, col]
@@ -86,6 +89,10 @@ def border_steps_kernel(regions, count, known, measured, expected, tau):
                 continue
             here = np.float64(measured[row, col]) - np.float64(expected[row, col])
             limit = tau[row, col]
+            size[region] += 1
+            slant = cosine[row, col]
+            if abs(here) * (slant if slant == slant else 1.0) > far_k * limit:
+                far[region] += 1
             for k in range(4):
                 r = row + (1 if k == 0 else (-1 if k == 1 else 0))
                 c = col + (1 if k == 2 else (-1 if k == 3 else 0))
@@ -97,4 +104,4 @@ def border_steps_kernel(regions, count, known, measured, expected, tau):
                 pairs[region] += 1
                 if abs(here - (np.float64(measured[r, c]) - np.float64(expected[r, c]))) > limit:
                     steps[region] += 1
-    return pairs, steps, outline
+    return pairs, steps, outline, size, far
