@@ -6,8 +6,6 @@ depth camera makes on surfaces that did not move are no contradiction, while a s
   along the ray.
 * A foreground edge the map places a few pixels off the sensor's (a structured-light camera's edges, mixed
   pixels) shows D's background where E shows the foreground: the map beside it explains D.
-* A camera whose errors reach together over several pixels (block matching) misplaces its edges by about
-  that much more, in D and in the frames that made the map: the reach of a misplaced edge grows with it.
 """
 
 from __future__ import annotations
@@ -16,12 +14,7 @@ import numpy as np
 
 from mabdi.camera import Intrinsics, unit_rays
 from mabdi.stages.classifier import CONTRADICTED, KNOWN
-from dataclasses import replace
-
-from mabdi.sensor_noise import SensorNoise
-from mabdi.stages.object_removal import ObjectRemoval
-from mabdi.stages.removal import RemovalParameters, misplaced_reach, removal_votes
-from mabdi.surfaces.registry import SurfaceCapabilities
+from mabdi.stages.removal import RemovalParameters, removal_votes
 
 RULES = RemovalParameters()
 
@@ -46,12 +39,12 @@ def labelled(measured, expected) -> np.ndarray:
     return np.where(measured > expected + 0.01, CONTRADICTED, KNOWN).astype(np.uint8)
 
 
-def votes(measured, expected, face_ids, rays, normals: dict, sigma=None, rules: RemovalParameters = RULES):
+def votes(measured, expected, face_ids, rays, normals: dict, sigma=None):
     def normals_of(ids):
         return np.array([normals.get(int(i), [np.nan] * 3) for i in ids], dtype=np.float32)
 
     faces, contradicted, confirmed, voting = removal_votes(
-        labelled(measured, expected), measured, expected, face_ids, rays, np.eye(4), normals_of, rules, sigma=sigma
+        labelled(measured, expected), measured, expected, face_ids, rays, np.eye(4), normals_of, RULES, sigma=sigma
     )
     return dict(zip(faces.tolist(), contradicted.tolist(), strict=True)), voting
 
@@ -117,42 +110,3 @@ def test_a_foreground_edge_the_map_misplaces_by_eight_pixels_is_not_seen_through
     margin = RULES.edge_margin
     inner = (40 - 2 * margin) * (38 - 2 * margin)  # the box's pixels more than the margin inside its rim in E
     assert inner <= by_face[1] <= 40 * 38 and voting[10 + margin : 50 - margin, 10 + margin : 48 - margin].all()
-
-
-def test_a_block_matching_camera_misplaces_an_edge_by_its_window_too():
-    """The map's box reaches 16 pixels past the box's edge in D (a fast frame of a real Kinect: the map's edge
-    and D's each off by the margin and by the camera's matching window). With a camera whose errors are its
-    own per pixel the strip beyond twice the margin (10 pixels) votes against the box; with one whose errors
-    reach together over 5.6 pixels (what `noise = "auto"` learns on a Kinect v1), the reach is
-    2 (5 + 5.6) = 22 pixels and the wall E shows beside the strip explains it. A box that left is still seen
-    through away from its rim."""
-    rays, _ = unit_rays(WIDE)
-    measured, expected, face_ids = edge_scene(box_right_in_d=40, box_right_in_e=56)
-    own_pixels = replace(RULES, edge_spread=0.0)
-    block_matching = replace(RULES, edge_spread=5.6)
-    assert misplaced_reach(own_pixels, RULES.edge_margin) == 10 and misplaced_reach(block_matching, RULES.edge_margin) == 22
-    by_face, voting = votes(measured, expected, face_ids, rays, FACE_ON, rules=own_pixels)
-    assert by_face[1] > 0 and voting[10:50, 50:56].all()
-    by_face, voting = votes(measured, expected, face_ids, rays, FACE_ON, rules=block_matching)
-    assert by_face.get(1, 0) == 0 and not voting.any()
-    measured, expected, face_ids = edge_scene(box_right_in_d=40, box_right_in_e=56, box_in_d=False)
-    by_face, voting = votes(measured, expected, face_ids, rays, FACE_ON, rules=block_matching)
-    margin = RULES.edge_margin
-    assert voting[10 + margin : 50 - margin, 10 + margin : 56 - margin].all()
-
-
-def test_the_removal_stage_takes_a_cameras_edge_spread_from_its_noise_model():
-    """A frame's rules take the distance the noise model's errors reach together as the edge spread: a
-    structured-light camera's correlation length, none for the simulator's per-pixel models and none for a
-    LiDAR, whose misplaced edge reaches one beam whatever its noise."""
-    from mabdi.spherical import SphericalGeometry
-
-    stage = ObjectRemoval(RULES, threshold=None)
-    expected = np.full(WIDE.shape, 1.0, np.float32)
-    caps = SurfaceCapabilities()
-    structured = SensorNoise("structured_light", correlation_length=4.0)
-    assert stage._parameters_for(expected, WIDE, None, caps, structured).edge_spread == 4.0
-    assert stage._parameters_for(expected, WIDE, None, caps, SensorNoise("kinect")).edge_spread == 0.0
-    lidar = SphericalGeometry(beams=64, columns=1024, fov_up=22.5, fov_down=-22.5)
-    rules = stage._parameters_for(np.full(lidar.shape, 5.0, np.float32), lidar, None, caps, structured)
-    assert rules.edge_spread == 0.0 and misplaced_reach(rules, rules.edge_margin) == 1

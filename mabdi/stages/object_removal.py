@@ -137,7 +137,7 @@ class ObjectRemoval:
         pose_sigma = classified.pose_sigma
         labels, expected, codes, table = self._retraced(labels, measured, expected, codes, table, frame, pose_sigma, world)
         rays, _ = unit_rays(geometry, np.float32)
-        parameters = self._parameters_for(expected, geometry, surface, capabilities, noise)
+        parameters = self._parameters_for(expected, geometry, surface, capabilities)
         pose = frame.pose
 
         def sigma(depth):
@@ -307,14 +307,11 @@ class ObjectRemoval:
         flat_labels[pixels] = classify(d, flat_expected[pixels], tau)
         return labels, expected, codes, FaceIdTable(names, np.array(bases), np.array(counts), np.array(addresses))
 
-    def _parameters_for(self, expected: np.ndarray, geometry, surface, capabilities: SurfaceCapabilities, noise=None) -> RemovalParameters:
-        """The removal rules for this frame: for the sensor's geometry, a camera's edges straying as far as its
-        ``noise`` model's errors reach together (``edge_spread``), and the edge margin widened to the
+    def _parameters_for(self, expected: np.ndarray, geometry, surface, capabilities: SurfaceCapabilities) -> RemovalParameters:
+        """The removal rules for this frame: for the sensor's geometry, and the edge margin widened to the
         surface's ``face_overhang`` (metres, voxel planes) in pixels at the median depth of E (see
         :mod:`mabdi.stages.removal`)."""
         parameters = for_geometry(self.parameters, geometry)
-        if noise is not None and geometry.jump_scale() == 1.0:
-            parameters = replace(parameters, edge_spread=float(noise.correlation_px))
         overhang = surface.face_overhang if capabilities.overhang else 0.0
         if overhang <= 0:
             return parameters

@@ -10,8 +10,7 @@ map vote (registered frames, :mod:`mabdi.stages.registration`).
 Which pixels vote (:func:`removal_votes`): not at depth discontinuities
 (``edge_jump``, ``edge_margin`` pixels, widened by a surface's
 ``face_overhang``), not at grazing incidence (``grazing_deg``), not where a
-misplaced edge explains D (:func:`misplaced_edge_explains`, within
-:func:`misplaced_reach`: a camera's edges stray as far as its errors reach together),
+misplaced edge explains D (:func:`misplaced_edge_explains`),
 and a contradiction only when D lies beyond E by more than ``k_sigma``
 times the noise of D - E and ``min_gap`` (:func:`contradiction_gap`).
 Pixels with no return see through to the far limit (``no_return_is_free``)
@@ -65,20 +64,13 @@ class RemovalParameters:
     no_return_is_free: bool = True
     far_margin: float = 0.5
     #: Hold back a contradiction that a depth edge misplaced by a few pixels explains (module docs), within
-    #: ``misplaced_reach`` pixels: "auto" twice the edge margin plus ``edge_spread`` for a camera
-    #: (:func:`misplaced_reach`), one beam for a LiDAR.
+    #: ``misplaced_reach`` pixels: "auto" twice the edge margin for a camera, one beam for a LiDAR.
     misplaced_edges: bool = True
     misplaced_reach: int | str = "auto"
     #: Columns the misplaced-edge window reaches per row of ``misplaced_reach``: 1 for a camera; a range
     #: image's widest beam spacing over its azimuth step (the same angle across as down), set by
     #: :func:`for_geometry`. Not a config key.
     misplaced_columns: float = field(default=1.0, metadata={"toml": False})
-    #: How far (pixels) a camera's depth edges stray together with its errors: the distance its noise model's
-    #: errors reach together (``SensorNoise.correlation_px``: a block-matching camera's window fattens a
-    #: foreground edge by about that), which widens a camera's "auto" ``misplaced_reach``. Set by the removal
-    #: stage from the frame's noise model; 0 for a LiDAR and for models that draw each pixel on its own.
-    #: Not a config key.
-    edge_spread: float = field(default=0.0, metadata={"toml": False})
     #: The uncertainty (radians, one sigma) of a return's direction against the map (module docs, "within the
     #: noise"); "auto": a LiDAR's beam spacing over sqrt(12), none for a camera (:func:`for_geometry`).
     ray_sigma: float | str = "auto"
@@ -126,15 +118,6 @@ def for_geometry(parameters: RemovalParameters, geometry) -> RemovalParameters:
         edge_margin=margin,
         max_edge_margin=max(margin, math.ceil(parameters.max_edge_margin / scale)),
     )
-
-
-def misplaced_reach(parameters: RemovalParameters, margin: int) -> int:
-    """How far (pixels) a misplaced edge reaches: ``misplaced_reach`` where set; "auto" twice the edge
-    ``margin`` plus the camera's ``edge_spread`` (each of the two edges, the map's and D's, made by the same
-    camera, off by that much), rounded up."""
-    if parameters.misplaced_reach != "auto":
-        return int(parameters.misplaced_reach)
-    return math.ceil(2.0 * (margin + parameters.edge_spread) - 1e-9)
 
 
 def depth_edges(depth: np.ndarray, jump: float) -> np.ndarray:
@@ -206,7 +189,7 @@ def removal_votes(
             # within twice the margin of a silhouette of E (the map's edge and the sensor's may each be off by the
             # margin), a misplaced edge explains a contradiction where E shows D's depth (or beyond) nearby and D
             # shows E's (or nearer): the surface the map shows is still there, a few pixels off
-            reach = misplaced_reach(parameters, margin)
+            reach = 2 * margin if parameters.misplaced_reach == "auto" else parameters.misplaced_reach
             explained = misplaced_edge_explains(
                 contradicting_pixels, measured, expected, silhouettes, gap, reach, parameters.misplaced_reach == "auto",
                 math.ceil(reach * parameters.misplaced_columns - 1e-9),
