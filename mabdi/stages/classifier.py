@@ -476,14 +476,15 @@ class FilterClassifier(MabdiAlgorithm):
         if p.fill_holes and noise.noisy:
             novel |= hole_fills(raw_novel & ~novel, depth, expected_depth, labels, tau, covered)
         specks = raw_novel & ~novel
-        if p.gradual:
+        in_front, contradicted = novel & np.isfinite(expected_depth), labels == CONTRADICTED
+        if p.gradual and (in_front.any() or contradicted.any()):  # a frame that departs nowhere costs nothing here
             # E's incidence, so that a departure is measured along E's normal (a camera's; a LiDAR's along the ray)
             cosine = incidence_cosine(expected_depth, intrinsics) if isinstance(intrinsics, Intrinsics) else None
-            bulges = gradual_regions(novel & np.isfinite(expected_depth), labels, depth, expected_depth, tau, cosine)
+            bulges = gradual_regions(in_front, labels, depth, expected_depth, tau, cosine)
             novel &= ~bulges
             labels[bulges] = KNOWN
-            if pose_trusted(pose_sigma, noise.sigma(depth, intrinsics.near, intrinsics.far)):
-                labels[gradual_regions(labels == CONTRADICTED, labels, depth, expected_depth, tau, cosine)] = KNOWN
+            if contradicted.any() and pose_trusted(pose_sigma, noise.sigma(depth, intrinsics.near, intrinsics.far)):
+                labels[gradual_regions(contradicted, labels, depth, expected_depth, tau, cosine)] = KNOWN
         on_map = labels == KNOWN  # D is the map's surface (a speck is not: it lies in front of the map)
         labels[specks] = KNOWN
         meshed = novel
