@@ -489,7 +489,9 @@ class MabdiLoop:
         if self.classifier_enabled:
             expected = self.expected.render(self.world.map, measured)
             t_expected = time.perf_counter()
-            classified = self.classifier.classify(measured, expected, placement.covariance, placement.fitted_pose)
+            last = self._poses[index - 1] if index > 0 else None  # the last frame's pose (map frame), NaN if not run
+            motion = np.linalg.inv(last) @ measured.pose if last is not None and np.isfinite(last).all() else None
+            classified = self.classifier.classify(measured, expected, placement.covariance, placement.fitted_pose, motion)
             t_classify = time.perf_counter()
             surface_input, whole = measured.showing(classified.depth), measured.depth
         added = mesh_frame(self.surface, surface_input, whole)

@@ -25,14 +25,19 @@ where the pose is trusted, :func:`pose_trusted`): the map seen with a real
 camera's bias, where a new or departed object's border is a step.
 Specks: the novel mask is opened with a ``min_width`` square and regions of
 fewer than ``min_region`` pixels go (label 1); a speck that fills a hole of
-the map stays novel (``fill_holes``, :func:`hole_fills`).
+the map stays novel (``fill_holes``, :func:`hole_fills`). A camera's new
+surface (novel where E has none) beyond ``outer_radius`` of the image's
+normalised radius waits, unmeshed but novel, while the camera's motion brings
+it nearer the image centre (:func:`waiting_for_centre`): the map is made
+from a look nearer the centre, where a real camera errs least.
 
 Output: ``depth`` is D on the novel pixels and a ``rim`` of pixels around
 them (NaN elsewhere; ``rim_on_map`` puts the rim's known pixels on E), plus
 the point arrays ``measured_depth``, ``label`` and ``pose_sigma`` and the
 field-data ``pixel_counts`` (:func:`pixel_counts`); field data is D's.
 Defaults: tau_min = 0.01 m, k_sigma = 3, min_width = 3 px, min_region = 32 px,
-rim = "auto", rim_on_map = "auto", fill_holes = true, gradual = true.
+rim = "auto", rim_on_map = "auto", fill_holes = true, gradual = true,
+outer_radius = 0.7.
 
 Why the rules are what they are: docs/architecture.md (``mabdi.stages.classifier``).
 """
@@ -91,6 +96,9 @@ class ClassifierParameters:
     fill_holes: bool = True
     #: Regions that depart from the map gradually are the map seen with a bias: known (see the module docs).
     gradual: bool = True
+    #: A camera's new surface beyond this normalised radius (0 at the principal point, 1 at the image's corners)
+    #: waits while the camera's motion brings it nearer the centre (see the module docs); 1: nothing waits.
+    outer_radius: float = 0.7
 
     def __post_init__(self) -> None:
         check_switch("rim_on_map", self.rim_on_map)
@@ -102,6 +110,8 @@ class ClassifierParameters:
             raise ConfigError(f"min_width must be >= 1 pixel, got {self.min_width}")
         if self.min_region < 0:
             raise ConfigError(f"min_region must be >= 0 pixels, got {self.min_region}")
+        if not 0 < self.outer_radius <= 1:
+            raise ConfigError(f"outer_radius must be in (0, 1] (1: nothing waits), got {self.outer_radius}")
         if self.rim != "auto" and (isinstance(self.rim, bool) or not isinstance(self.rim, int) or self.rim < 0):
             raise ConfigError(f'rim must be an integer >= 0 (pixels) or "auto", got {self.rim!r}')
 
@@ -360,6 +370,46 @@ GRADUAL_MAX_TAU = 6.0
 TRUSTED_POSE_SHARE = 0.5
 
 
+#: A pixel of new surface nears the image centre when the camera's motion, carried on one more frame, moves it at
+#: least this many pixels towards the principal point (less: the camera is still and no better look is coming).
+INWARD_STEP_PX = 0.5
+
+
+def normalised_radius(intrinsics: Intrinsics) -> np.ndarray:
+    """(H, W) float32: each pixel centre's distance from the principal point, x over the image's half-width and y
+    over its half-height, divided by sqrt(2): 0 at the principal point, about 1 at the corners."""
+    v, u = np.mgrid[0 : intrinsics.height, 0 : intrinsics.width]
+    x = (u + 0.5 - intrinsics.cx) / (intrinsics.width / 2)
+    y = (v + 0.5 - intrinsics.cy) / (intrinsics.height / 2)
+    return (np.hypot(x, y) / np.sqrt(2)).astype(np.float32)
+
+
+def waiting_for_centre(
+    new_surface: np.ndarray, measured: np.ndarray, intrinsics: Intrinsics, camera_motion: np.ndarray, outer_radius: float
+) -> np.ndarray:
+    """Bool (H, W): the pixels of ``new_surface`` (bool (H, W), D where the map has none) beyond ``outer_radius``
+    (:func:`normalised_radius`) that the next frame should see nearer the image centre: D's point at the pixel,
+    moved by ``camera_motion`` once more (4x4, the last frame's camera from this one's: constant velocity), lands
+    at least :data:`INWARD_STEP_PX` pixels nearer the principal point, in front of the camera (see the module
+    docs).
+    ``measured``: D (metres, z-depth)."""
+    radius = normalised_radius(intrinsics)
+    rows, cols = np.nonzero(new_surface & (radius > outer_radius))
+    waiting = np.zeros(new_surface.shape, dtype=bool)
+    if not len(rows):
+        return waiting
+    z = measured[rows, cols].astype(np.float64)
+    points = np.stack([(cols + 0.5 - intrinsics.cx) / intrinsics.fx * z, (rows + 0.5 - intrinsics.cy) / intrinsics.fy * z, z])
+    next_from_this = np.linalg.inv(np.asarray(camera_motion, dtype=np.float64))
+    moved = next_from_this[:3, :3] @ points + next_from_this[:3, 3:4]
+    with np.errstate(divide="ignore", invalid="ignore"):  # pixels from the principal point, now and next frame
+        off_axis_next = np.hypot(intrinsics.fx * moved[0] / moved[2], intrinsics.fy * moved[1] / moved[2])
+    off_axis = np.hypot(cols + 0.5 - intrinsics.cx, rows + 0.5 - intrinsics.cy)
+    nearer = (moved[2] > 0) & (off_axis - off_axis_next >= INWARD_STEP_PX)
+    waiting[rows[nearer], cols[nearer]] = True
+    return waiting
+
+
 def pose_trusted(pose_sigma: np.ndarray | None, sensor_sigma: np.ndarray) -> bool:
     """Whether a frame's pose is good enough for a contradicted region to be read as the camera's bias: no pose
     uncertainty, or E's depth uncertainty from it (``pose_sigma``, (H, W) m, NaN where E has no surface) at most
@@ -444,12 +494,19 @@ class FilterClassifier(MabdiAlgorithm):
         return 1
 
     def classify(
-        self, measured: Measured, expected: Expected, pose_covariance: np.ndarray | None = None, fitted_pose: np.ndarray | None = None
+        self,
+        measured: Measured,
+        expected: Expected,
+        pose_covariance: np.ndarray | None = None,
+        fitted_pose: np.ndarray | None = None,
+        camera_motion: np.ndarray | None = None,
     ) -> Classified:
         """Label D (``measured``) against E (``expected``, drawn from the same pose with the same geometry) and
         choose the pixels the surface meshes (see the module docs). ``pose_covariance``: 6x6 of D's pose
         (registration's), which widens tau by E's depth uncertainty; None: the pose is taken as exact.
-        ``fitted_pose``: 4x4 camera-to-map where registration fitted D to the map (None: not registered)."""
+        ``fitted_pose``: 4x4 camera-to-map where registration fitted D to the map (None: not registered).
+        ``camera_motion``: 4x4, the last frame's camera from this frame's (None: no last frame; no new surface
+        waits for a look nearer the image centre)."""
         intrinsics = measured.geometry
         if intrinsics != expected.geometry:
             raise ValueError(
@@ -485,6 +542,10 @@ class FilterClassifier(MabdiAlgorithm):
             labels[bulges] = KNOWN
             if contradicted.any() and pose_trusted(pose_sigma, noise.sigma(depth, intrinsics.near, intrinsics.far)):
                 labels[gradual_regions(contradicted, labels, depth, expected_depth, tau, cosine)] = KNOWN
+        if camera_motion is not None and p.outer_radius < 1 and isinstance(intrinsics, Intrinsics):
+            # new surface at the image's rim that the camera is bringing towards the centre: meshed from a later,
+            # more central look (a camera's depth errs most at its corners); it stays labelled novel
+            novel &= ~waiting_for_centre(novel & ~np.isfinite(expected_depth), depth, intrinsics, camera_motion, p.outer_radius)
         on_map = labels == KNOWN  # D is the map's surface (a speck is not: it lies in front of the map)
         labels[specks] = KNOWN
         meshed = novel
