@@ -44,6 +44,7 @@ Why the rules are what they are: docs/architecture.md (``mabdi.stages.classifier
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -375,13 +376,16 @@ TRUSTED_POSE_SHARE = 0.5
 INWARD_STEP_PX = 0.5
 
 
+@functools.lru_cache(maxsize=4)
 def normalised_radius(intrinsics: Intrinsics) -> np.ndarray:
-    """(H, W) float32: each pixel centre's distance from the principal point, x over the image's half-width and y
-    over its half-height, divided by sqrt(2): 0 at the principal point, about 1 at the corners."""
+    """(H, W) float32, read-only: each pixel centre's distance from the principal point, x over the image's
+    half-width and y over its half-height, divided by sqrt(2): 0 at the principal point, about 1 at the corners."""
     v, u = np.mgrid[0 : intrinsics.height, 0 : intrinsics.width]
     x = (u + 0.5 - intrinsics.cx) / (intrinsics.width / 2)
     y = (v + 0.5 - intrinsics.cy) / (intrinsics.height / 2)
-    return (np.hypot(x, y) / np.sqrt(2)).astype(np.float32)
+    radius = (np.hypot(x, y) / np.sqrt(2)).astype(np.float32)
+    radius.flags.writeable = False
+    return radius
 
 
 def waiting_for_centre(
@@ -391,8 +395,7 @@ def waiting_for_centre(
     (:func:`normalised_radius`) that the next frame should see nearer the image centre: D's point at the pixel,
     moved by ``camera_motion`` once more (4x4, the last frame's camera from this one's: constant velocity), lands
     at least :data:`INWARD_STEP_PX` pixels nearer the principal point, in front of the camera (see the module
-    docs).
-    ``measured``: D (metres, z-depth)."""
+    docs). ``measured``: D (metres, z-depth)."""
     radius = normalised_radius(intrinsics)
     rows, cols = np.nonzero(new_surface & (radius > outer_radius))
     waiting = np.zeros(new_surface.shape, dtype=bool)
