@@ -249,15 +249,13 @@ def distorted_there_and_back():
 @pytest.mark.slow
 def test_a_static_room_seen_through_a_distorting_camera_keeps_its_faces_and_stops_growing(distorted_there_and_back):
     """The room seen again on the way back shows each surface at another place in the image, so with another bias
-    (up to 7 cm): the map neither loses faces to it nor grows by it. Measured: 4 faces removed of 106,363 made;
-    the turning frame meshes the new surface that waited at the rim the camera was moving towards (24,394
-    pixels, :mod:`test_new_surface_waits_for_centre`), and the 29 frames after it 5,214 pixels. Before (each
-    such region novel or contradicted): 961 faces removed (0.8%) and 10,549 pixels meshed on the way back,
-    layers of the walls in front of the first."""
+    (up to 7 cm): the map neither loses faces to it nor grows by it. Measured: 5 faces removed of 102,255 made, and
+    2,302 novel pixels meshed over the 30 frames back. Before (each such region novel or contradicted): 961 faces
+    removed (0.8%) and 10,549 pixels meshed on the way back, layers of the walls in front of the first."""
     loop = mabdi.MabdiLoop(FrameList(distorted_there_and_back), surface="quadtree", noise="kinect")
     records = [loop.step(i) for i in range(len(distorted_there_and_back))]
     removed = sum(r.cells_removed for r in records)
     made = loop.mesh().GetNumberOfCells() + removed
     assert removed < 0.001 * made, (removed, made)
-    back = sum(r.novel_pixels for r in records[31:])
-    assert back < 6000, back
+    back = sum(r.novel_pixels for r in records[30:])
+    assert back < 5000, back

@@ -1,4 +1,5 @@
-"""New surface at the image's rim waits for a look nearer the centre (``[classifier] outer_radius``).
+"""New surface at the image's rim waits for a look nearer the centre (``[classifier] outer_radius``; "auto": a
+real camera's, whose noise model is learnt from its frames).
 
 A panning camera first sees new surface at the rim of its image, where a real camera's depth errs most; the
 frames after it see the same surface nearer the centre. The classifier leaves such pixels unmeshed while the
@@ -87,10 +88,21 @@ def test_the_classifier_leaves_waiting_pixels_unmeshed_and_labelled_novel():
     assert np.isfinite(in_front.depth).all()
 
 
-@pytest.mark.parametrize("value", [0.0, -0.1, 1.5])
+@pytest.mark.parametrize("value", [0.0, -0.1, 1.5, "half", True])
 def test_outer_radius_outside_its_range_is_an_error_naming_it(value):
     with pytest.raises(ConfigError, match="outer_radius"):
         ClassifierParameters(outer_radius=value)
+
+
+def test_auto_waits_for_a_real_cameras_learnt_noise_only():
+    """A noise model learnt from a real camera's frames (``auto``): its depth errs most at the corners, and new
+    surface waits beyond 0.7; the simulator's models err alike across the image: nothing waits."""
+    parameters = ClassifierParameters()
+    assert parameters.outer_radius == "auto"
+    assert parameters.outer_radius_for(SensorNoise("auto")) == 0.7
+    for model in ("none", "kinect", "structured_light"):
+        assert parameters.outer_radius_for(SensorNoise(model)) == 1.0
+    assert ClassifierParameters(outer_radius=0.5).outer_radius_for(SensorNoise("kinect")) == 0.5
 
 
 @pytest.mark.slow

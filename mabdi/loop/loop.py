@@ -189,6 +189,8 @@ def resolve_settings(
     refining = classifier.enabled and refinement_on and noise.noisy
     registration = registration if registration is not None else RegistrationParameters()
     refining, registration = lidar_rules(geometry, refining, registration)
+    if classifier.outer_radius == "auto":  # a real camera's new surface waits for a more central look
+        classifier = replace(classifier, outer_radius=classifier.outer_radius_for(noise))
     if classifier.rim_on_map == "auto":  # the seam on the map's surface where the map is refined
         classifier = replace(classifier, rim_on_map=bool(refining))
     return LoopSettings(classifier, removal, refinement, registration, removing, refining)

@@ -37,7 +37,7 @@ the point arrays ``measured_depth``, ``label`` and ``pose_sigma`` and the
 field-data ``pixel_counts`` (:func:`pixel_counts`); field data is D's.
 Defaults: tau_min = 0.01 m, k_sigma = 3, min_width = 3 px, min_region = 32 px,
 rim = "auto", rim_on_map = "auto", fill_holes = true, gradual = true,
-outer_radius = 0.7.
+outer_radius = "auto" (0.7 for a real camera's learnt noise, else 1).
 
 Why the rules are what they are: docs/architecture.md (``mabdi.stages.classifier``).
 """
@@ -98,8 +98,9 @@ class ClassifierParameters:
     #: Regions that depart from the map gradually are the map seen with a bias: known (see the module docs).
     gradual: bool = True
     #: A camera's new surface beyond this normalised radius (0 at the principal point, 1 at the image's corners)
-    #: waits while the camera's motion brings it nearer the centre (see the module docs); 1: nothing waits.
-    outer_radius: float = 0.7
+    #: waits while the camera's motion brings it inside (see the module docs); 1: nothing waits; "auto":
+    #: :data:`REAL_CAMERA_OUTER_RADIUS` with a noise model learnt from a real camera's frames, else 1.
+    outer_radius: float | str = "auto"
 
     def __post_init__(self) -> None:
         check_switch("rim_on_map", self.rim_on_map)
@@ -111,10 +112,19 @@ class ClassifierParameters:
             raise ConfigError(f"min_width must be >= 1 pixel, got {self.min_width}")
         if self.min_region < 0:
             raise ConfigError(f"min_region must be >= 0 pixels, got {self.min_region}")
-        if not 0 < self.outer_radius <= 1:
-            raise ConfigError(f"outer_radius must be in (0, 1] (1: nothing waits), got {self.outer_radius}")
+        if self.outer_radius != "auto" and (
+            isinstance(self.outer_radius, (bool, str)) or not 0 < self.outer_radius <= 1
+        ):
+            raise ConfigError(f'outer_radius must be in (0, 1] (1: nothing waits) or "auto", got {self.outer_radius!r}')
         if self.rim != "auto" and (isinstance(self.rim, bool) or not isinstance(self.rim, int) or self.rim < 0):
             raise ConfigError(f'rim must be an integer >= 0 (pixels) or "auto", got {self.rim!r}')
+
+    def outer_radius_for(self, noise: SensorNoise) -> float:
+        """``outer_radius``, or for "auto" :data:`REAL_CAMERA_OUTER_RADIUS` where ``noise`` is learnt from a real
+        camera's frames (model ``auto``) and 1 (nothing waits) for a model of the simulator's."""
+        if self.outer_radius != "auto":
+            return float(self.outer_radius)
+        return REAL_CAMERA_OUTER_RADIUS if noise.model == "auto" else 1.0
 
     @property
     def rim_pixels(self) -> int:
@@ -371,6 +381,10 @@ GRADUAL_MAX_TAU = 6.0
 TRUSTED_POSE_SHARE = 0.5
 
 
+#: ``outer_radius = "auto"`` for a real camera (a noise model learnt from its frames): its depth errs most at the
+#: image's corners. The simulator's models err alike across the image: nothing waits there (docs/benchmarks.md,
+#: "New surface meshed nearer the centre of the image").
+REAL_CAMERA_OUTER_RADIUS = 0.7
 #: A pixel of new surface nears the image centre when the camera's motion, carried on one more frame, moves it at
 #: least this many pixels towards the principal point (less: the camera is still and no better look is coming).
 INWARD_STEP_PX = 0.5
@@ -545,10 +559,11 @@ class FilterClassifier(MabdiAlgorithm):
             labels[bulges] = KNOWN
             if contradicted.any() and pose_trusted(pose_sigma, noise.sigma(depth, intrinsics.near, intrinsics.far)):
                 labels[gradual_regions(contradicted, labels, depth, expected_depth, tau, cosine)] = KNOWN
-        if camera_motion is not None and p.outer_radius < 1 and isinstance(intrinsics, Intrinsics):
+        outer_radius = p.outer_radius_for(noise)
+        if camera_motion is not None and outer_radius < 1 and isinstance(intrinsics, Intrinsics):
             # new surface at the image's rim that the camera is bringing towards the centre: meshed from a later,
             # more central look (a camera's depth errs most at its corners); it stays labelled novel
-            novel &= ~waiting_for_centre(novel & ~np.isfinite(expected_depth), depth, intrinsics, camera_motion, p.outer_radius)
+            novel &= ~waiting_for_centre(novel & ~np.isfinite(expected_depth), depth, intrinsics, camera_motion, outer_radius)
         on_map = labels == KNOWN  # D is the map's surface (a speck is not: it lies in front of the map)
         labels[specks] = KNOWN
         meshed = novel
