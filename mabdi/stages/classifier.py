@@ -29,7 +29,8 @@ the map stays novel (``fill_holes``, :func:`hole_fills`). A camera's new
 surface (novel where E has none) beyond ``outer_radius`` of the image's
 normalised radius waits, unmeshed but novel, while the camera's motion brings
 it nearer the image centre (:func:`waiting_for_centre`): the map is made
-from a look nearer the centre, where a real camera errs least.
+from a look nearer the centre, where a real camera errs least ("auto": a
+real camera's, whose noise model is learnt from its frames).
 
 Output: ``depth`` is D on the novel pixels and a ``rim`` of pixels around
 them (NaN elsewhere; ``rim_on_map`` puts the rim's known pixels on E), plus
