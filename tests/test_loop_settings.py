@@ -60,7 +60,8 @@ def test_the_run_folder_s_config_states_what_every_auto_became(tmp_path):
     assert '# [resolved] is written by the run and not read' in text
     resolved = tomllib.loads(text)["resolved"]
     assert resolved["removing"] is True and resolved["refining"] is True  # correlated noise: refined
-    assert resolved["classifier"] == {"rim": 3, "rim_on_map": True}  # "auto": the quad-tree's block, the map's depth
+    # "auto": the quad-tree's block, the map's depth, and nothing waits at the rim (a model of the simulator's)
+    assert resolved["classifier"] == {"rim": 3, "rim_on_map": True, "outer_radius": 1.0}
     assert resolved["removal"] == {"no_return_is_free": False}  # structured light loses returns on real surfaces
     assert "refinement" not in resolved and "registration" not in resolved  # as the config says
     config = load_run_config(out / "config.toml")

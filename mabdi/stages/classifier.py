@@ -25,20 +25,16 @@ where the pose is trusted, :func:`pose_trusted`): the map seen with a real
 camera's bias, where a new or departed object's border is a step.
 Specks: the novel mask is opened with a ``min_width`` square and regions of
 fewer than ``min_region`` pixels go (label 1); a speck that fills a hole of
-the map stays novel (``fill_holes``, :func:`hole_fills`). A camera's new
-surface (novel where E has none) beyond ``outer_radius`` of the image's
-normalised radius waits, unmeshed but novel, while the camera's motion brings
-it nearer the image centre (:func:`waiting_for_centre`): the map is made
-from a look nearer the centre, where a real camera errs least ("auto": a
-real camera's, whose noise model is learnt from its frames).
+the map stays novel (``fill_holes``, :func:`hole_fills`). A real camera's
+new surface (novel where E has none) beyond ``outer_radius`` waits, unmeshed
+but novel, while its motion brings it nearer the centre (:func:`waiting_for_centre`).
 
 Output: ``depth`` is D on the novel pixels and a ``rim`` of pixels around
 them (NaN elsewhere; ``rim_on_map`` puts the rim's known pixels on E), plus
 the point arrays ``measured_depth``, ``label`` and ``pose_sigma`` and the
 field-data ``pixel_counts`` (:func:`pixel_counts`); field data is D's.
 Defaults: tau_min = 0.01 m, k_sigma = 3, min_width = 3 px, min_region = 32 px,
-rim = "auto", rim_on_map = "auto", fill_holes = true, gradual = true,
-outer_radius = "auto" (0.7 for a real camera's learnt noise, else 1).
+rim = "auto", rim_on_map = "auto", fill_holes = true, gradual = true, outer_radius = "auto".
 
 Why the rules are what they are: docs/architecture.md (``mabdi.stages.classifier``).
 """
