@@ -412,14 +412,12 @@ def waiting_for_centre(
     waiting = np.zeros(new_surface.shape, dtype=bool)
     if not len(rows):
         return waiting
-    z = measured[rows, cols].astype(np.float64)
-    points = np.stack([(cols + 0.5 - intrinsics.cx) / intrinsics.fx * z, (rows + 0.5 - intrinsics.cy) / intrinsics.fy * z, z])
-    next_from_this = np.linalg.inv(np.asarray(camera_motion, dtype=np.float64))
-    moved = next_from_this[:3, :3] @ points + next_from_this[:3, 3:4]
-    with np.errstate(divide="ignore", invalid="ignore"):  # pixels from the principal point, now and next frame
-        off_axis_next = np.hypot(intrinsics.fx * moved[0] / moved[2], intrinsics.fy * moved[1] / moved[2])
-    off_axis = np.hypot(cols + 0.5 - intrinsics.cx, rows + 0.5 - intrinsics.cy)
-    nearer = (moved[2] > 0) & (off_axis - off_axis_next >= INWARD_STEP_PX)
+    points = intrinsics.rays_at(cols + 0.5, rows + 0.5) * measured[rows, cols].astype(np.float64)[:, None]
+    # at constant velocity the next camera stands to this one as this one to the last: camera_motion is its pose here
+    uv, z_next = intrinsics.project_points(points, np.asarray(camera_motion, dtype=np.float64))
+    off_axis = np.hypot(cols + 0.5 - intrinsics.cx, rows + 0.5 - intrinsics.cy)  # pixels from the principal point
+    with np.errstate(invalid="ignore"):
+        nearer = (z_next > 0) & (off_axis - np.hypot(uv[:, 0] - intrinsics.cx, uv[:, 1] - intrinsics.cy) >= INWARD_STEP_PX)
     waiting[rows[nearer], cols[nearer]] = True
     return waiting
 
