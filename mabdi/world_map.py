@@ -153,12 +153,14 @@ def update_log_odds(
     evidence: np.ndarray, frames: np.ndarray, contradicted: np.ndarray, confirmed: np.ndarray, parameters
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """One frame of removal's evidence rule (:mod:`mabdi.stages.removal`, "The rule"; ``parameters``: its
-    :class:`~mabdi.stages.removal.RemovalParameters`): (new log-odds, new contradicting-frame counts, removed mask)."""
+    :class:`~mabdi.stages.removal.RemovalParameters`): (new log-odds, new counts of the frames that contradicted
+    each face since a frame last confirmed it, removed mask)."""
     against = contradicted > confirmed
     evidence = evidence + np.where(against, parameters.hit, np.where(confirmed > 0, -parameters.miss, 0.0))
     evidence = np.clip(evidence, parameters.floor, parameters.ceiling).astype(np.float32)
-    frames = (frames + against).astype(np.uint16)
-    gone = (evidence >= parameters.threshold) & (frames >= parameters.min_frames)
+    # frames that saw through the face since a frame last confirmed it (one confirming frame starts it again)
+    frames = np.where(against, frames + 1, np.where(confirmed > 0, 0, frames)).astype(np.uint16)
+    gone = (evidence >= parameters.threshold) & (frames >= parameters.frames_required)
     return evidence, frames, gone
 
 
@@ -597,7 +599,7 @@ class WorldMap:
             patch.contradicting_frames += int(against)
             gone |= patch.beside_removed_faces()[cells] & (evidence > 0)
             condemned.append(codes[rows[gone]])
-            if not against or patch.contradicting_frames < parameters.min_frames:
+            if not against or patch.contradicting_frames < parameters.frames_required:
                 continue  # a frame that contradicts nothing here cannot make the patch's case
             voted = (patch.evidence != 0) | (patch.contradicted > 0)
             if (patch.evidence[voted] > 0).all():

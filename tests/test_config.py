@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import tomllib
 
 import pytest
@@ -248,7 +249,9 @@ def test_removal_and_refinement_sections_reach_the_loop(tmp_path):
     small = Intrinsics(fx=50, fy=50, cx=20, cy=15, width=40, height=30)
     frames = FrameList([DepthFrame(np.full(small.shape, 2.0, np.float32), small, np.eye(4), 0)])
     loop = mabdi.MabdiLoop.from_config(config, frames)
-    assert loop.removal_parameters == config.removal and loop.refinement.parameters == config.refinement
+    # the section's values, with min_frames "auto" resolved for the sensor (frames that return every surface: 2)
+    assert loop.removal_parameters == dataclasses.replace(config.removal, min_frames=2)
+    assert loop.refinement.parameters == config.refinement
     assert "edge_margin = 3" in dump_toml(config)
     path.write_text("[removal]\nedge_margin = -1\n")
     with pytest.raises(ConfigError, match=r"run.toml.*\[removal\].*0 <= edge_margin"):

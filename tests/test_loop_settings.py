@@ -62,7 +62,8 @@ def test_the_run_folder_s_config_states_what_every_auto_became(tmp_path):
     assert resolved["removing"] is True and resolved["refining"] is True  # correlated noise: refined
     # "auto": the quad-tree's block, the map's depth, and nothing waits at the rim (a model of the simulator's)
     assert resolved["classifier"] == {"rim": 3, "rim_on_map": True, "outer_radius": 1.0}
-    assert resolved["removal"] == {"no_return_is_free": False}  # structured light loses returns on real surfaces
+    # structured light loses returns on real surfaces: no free space where it has none, four frames to remove a face
+    assert resolved["removal"] == {"no_return_is_free": False, "min_frames": 4}
     assert "refinement" not in resolved and "registration" not in resolved  # as the config says
     config = load_run_config(out / "config.toml")
     given = with_overrides(

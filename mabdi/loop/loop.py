@@ -177,10 +177,12 @@ def resolve_settings(
         classifier = replace(classifier, rim=seam_pixels(surface, chosen, noise.noisy))
     removal = removal if removal is not None else RemovalParameters()
     removing = classifier.enabled and removal.enabled
-    if removal.no_return_is_free and (noise.loses_returns or loses_returns):
-        # a sensor that loses returns on real surfaces (a camera's noise model says so, a recording's source
-        # does): a pixel without one is not free space
+    real_sensor = noise.loses_returns or loses_returns  # a camera's noise model says so, a recording's source does
+    if removal.no_return_is_free and real_sensor:
+        # a sensor that loses returns on real surfaces: a pixel without one is not free space
         removal = replace(removal, no_return_is_free=False)
+    if removal.min_frames == "auto":  # a real sensor's false contradictions come back for a few frames
+        removal = replace(removal, min_frames=removal.min_frames_for(real_sensor))
     refinement = refinement if refinement is not None else RefinementParameters()
     refinement_on = refinement.enabled
     if refinement_on == "auto":

@@ -20,8 +20,11 @@ The rule (:func:`mabdi.world_map.update_log_odds`): each face keeps the log-odds
 is gone, from 0; a frame with a majority of contradictions adds ``hit``,
 otherwise confirmations subtract ``miss``; L stays in [``floor``,
 ``ceiling``]; a face goes when L >= ``threshold`` and at least
-``min_frames`` frames contradicted it. Faces smaller than a pixel are voted
-on between pixels (:func:`votes_between_pixels`), and a removed face's
+``min_frames`` frames contradicted it since a frame last confirmed it: 2
+for the simulator's sensors, 4 for a real one ("auto"; a sensor that loses
+returns), whose contradictions that are not departures (a mixed pixel, an
+edge a beam off, multipath) come back for a frame or two while it passes.
+Faces smaller than a pixel are voted on between pixels (:func:`votes_between_pixels`), and a removed face's
 contradicted and never-voted neighbours follow it
 (:meth:`~mabdi.world_map.WorldMap.remove_faces`).
 
@@ -43,6 +46,13 @@ from mabdi.stages.classifier import CONTRADICTED, KNOWN, NO_RETURN, dilate
 from mabdi.stages.removal_kernels import window_extremes_at
 
 
+#: ``min_frames = "auto"``: frames that must contradict a face for a real sensor (one that loses returns) and
+#: for the simulator's, which return every surface where it lies (docs/benchmarks.md, "Four frames against a
+#: face for a real sensor").
+REAL_SENSOR_MIN_FRAMES = 4
+SIMULATED_MIN_FRAMES = 2
+
+
 @dataclass(frozen=True)
 class RemovalParameters:
     """The evidence rule and the vote filters (see the module docs); angles in degrees. The ``[removal]``
@@ -54,7 +64,9 @@ class RemovalParameters:
     floor: float = -0.7
     ceiling: float = 3.0
     threshold: float = 1.5
-    min_frames: int = 2
+    #: Frames that must have contradicted a face before it goes: "auto" :data:`REAL_SENSOR_MIN_FRAMES` for a
+    #: sensor that loses returns (a real one: a recording, a learnt noise model), else 2 (:meth:`min_frames_for`).
+    min_frames: int | str = "auto"
     grazing_deg: float = 75.0
     edge_jump: float = 0.05
     edge_margin: int = 5
@@ -90,8 +102,23 @@ class RemovalParameters:
             raise ConfigError(f"removal: misplaced_reach must be \"auto\" or a whole number of pixels >= 1, got {self.misplaced_reach!r}")
         if self.ray_sigma != "auto" and (isinstance(self.ray_sigma, (bool, str)) or not 0 <= self.ray_sigma < 0.5):
             raise ConfigError(f"removal: ray_sigma must be \"auto\" or 0 <= ray_sigma < 0.5 (radians), got {self.ray_sigma!r}")
-        if self.min_frames < 1 or self.edge_margin < 0 or self.max_edge_margin < self.edge_margin or not 0 < self.grazing_deg < 90 or self.edge_jump <= 0:
-            raise ConfigError("removal: need min_frames >= 1, 0 <= edge_margin <= max_edge_margin, 0 < grazing_deg < 90, edge_jump > 0")
+        if self.min_frames != "auto" and (isinstance(self.min_frames, (bool, str)) or not isinstance(self.min_frames, int) or self.min_frames < 1):
+            raise ConfigError(f"removal: min_frames must be \"auto\" or a whole number of frames >= 1, got {self.min_frames!r}")
+        if self.edge_margin < 0 or self.max_edge_margin < self.edge_margin or not 0 < self.grazing_deg < 90 or self.edge_jump <= 0:
+            raise ConfigError("removal: need 0 <= edge_margin <= max_edge_margin, 0 < grazing_deg < 90, edge_jump > 0")
+
+    @property
+    def frames_required(self) -> int:
+        """The contradicting frames a face needs before it goes: ``min_frames``, or where "auto" was not resolved
+        for a sensor (:func:`mabdi.loop.loop.resolve_settings` does) the simulator's 2."""
+        return self.min_frames_for(False)
+
+    def min_frames_for(self, real_sensor: bool) -> int:
+        """``min_frames`` as it applies to a sensor: "auto" is :data:`REAL_SENSOR_MIN_FRAMES` for a
+        ``real_sensor`` (one that loses returns) and :data:`SIMULATED_MIN_FRAMES` otherwise (module docs)."""
+        if self.min_frames != "auto":
+            return int(self.min_frames)
+        return REAL_SENSOR_MIN_FRAMES if real_sensor else SIMULATED_MIN_FRAMES
 
 
 def for_geometry(parameters: RemovalParameters, geometry) -> RemovalParameters:
