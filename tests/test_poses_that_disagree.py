@@ -151,6 +151,11 @@ def test_a_pose_jump_is_found_beside_steady_steps_and_fast_smooth_motion_is_not(
     removed[25] = 10_000  # most of the run's removal elsewhere: the jump is not what took the map
     assert jumps_that_removed(poses, removed) is None
     assert jumps_that_removed(poses, np.zeros(30)) is None
+    # removal that asks four frames (a real sensor's) takes the map two frames later: the window follows it
+    late = np.zeros(30)
+    late[12 + JUMP_FRAMES : 12 + JUMP_FRAMES + 2] = 600
+    assert jumps_that_removed(poses, late) is None
+    assert "in 5 frames" in jumps_that_removed(poses, late, window=5)
 
 
 def _jumped(recording: Path, out: Path, frame: int, drop: float) -> Path:
@@ -186,4 +191,5 @@ def test_a_pose_jump_that_removal_follows_is_named(tmp_path, capsys):
     err = _run(_jumped(tmp_path / "tum", tmp_path / "jumped", 5, 0.3), tmp_path / "jumped_run", capsys, "--no-registration")
     assert err.count(jump) == 1, err
     line = next(line for line in err.splitlines() if jump in line)
-    assert line.startswith("mabdi: warning: ") and "faces were removed in 3 frames" in line
+    # a recording's removal asks four frames: the five from the jump on are counted
+    assert line.startswith("mabdi: warning: ") and "faces were removed in 5 frames" in line

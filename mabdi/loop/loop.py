@@ -435,7 +435,9 @@ class MabdiLoop:
             given = np.asarray(self.source.poses, dtype=np.float64)[: self._frames]
         except Exception:  # a source that cannot list its poses
             return
-        message = jumps_that_removed(given, self._registrations[: len(given), 4])
+        # removal takes what the frames after a jump see through once it has seen through it long enough
+        window = self.removal_parameters.frames_required + 1
+        message = jumps_that_removed(given, self._registrations[: len(given), 4], window)
         if message is not None:
             warnings.warn(message, PoseJumpWarning, stacklevel=3)
 

@@ -79,7 +79,8 @@ JUMP_RATIO = 4.0
 #: ... and over this far (metres) or this much (degrees).
 JUMP_MIN_M = 0.02
 JUMP_MIN_DEG = 1.0
-#: A jump is named when the frames from it to this many after removed ...
+#: A jump is named when the frames from it to this many after removed (removal that asks two frames to see
+#: through a face; :func:`jumps_that_removed` takes the window as removal asks it) ...
 JUMP_FRAMES = 3
 #: ... at least this share of the faces the run removed, and at least :data:`JUMP_MIN_REMOVED` faces.
 JUMP_REMOVED_SHARE = 0.2
@@ -127,21 +128,21 @@ def pose_jumps(poses) -> list[tuple[int, float, float, float, float]]:
     return found
 
 
-def jumps_that_removed(poses, removed) -> str | None:
-    """Where the given ``poses`` (N, 4, 4; :func:`pose_jumps`) jump and the frames from a jump to
-    :data:`JUMP_FRAMES` after it removed at least :data:`JUMP_REMOVED_SHARE` of the faces the run removed
-    (``removed`` (N,): faces each frame removed, NaN where not known), why the run is doubtful there, in one
-    line; None otherwise."""
+def jumps_that_removed(poses, removed, window: int = JUMP_FRAMES) -> str | None:
+    """Where the given ``poses`` (N, 4, 4; :func:`pose_jumps`) jump and the ``window`` frames from a jump on
+    (removal's frames required plus one) removed at least :data:`JUMP_REMOVED_SHARE` of the faces the run
+    removed (``removed`` (N,): faces each frame removed, NaN where not known), why the run is doubtful there, in
+    one line; None otherwise."""
     removed = np.nan_to_num(np.asarray(removed, dtype=np.float64), nan=0.0)
     total = float(removed.sum())
     named = []
     for frame, metres, degrees, beside_m, beside_deg in pose_jumps(poses):
-        after = float(removed[frame : frame + JUMP_FRAMES].sum())
+        after = float(removed[frame : frame + window].sum())
         if after >= JUMP_MIN_REMOVED and after >= JUMP_REMOVED_SHARE * total:
             named.append(
                 f"at frame {frame} ({1000 * metres:.0f} mm and {degrees:.1f} deg from frame {frame - 1}, against at most "
                 f"{1000 * beside_m:.0f} mm and {beside_deg:.1f} deg for the steps beside it), after which {after:,.0f} faces "
-                f"were removed in {JUMP_FRAMES} frames ({after / total:.0%} of the {total:,.0f} the run removed)"
+                f"were removed in {window} frames ({after / total:.0%} of the {total:,.0f} the run removed)"
             )
     if not named:
         return None
