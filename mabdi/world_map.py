@@ -607,11 +607,12 @@ class WorldMap:
                 condemned.append(table.bases[b] + np.flatnonzero(patch.evidence > 0))
         return np.unique(np.concatenate(condemned)) if condemned else np.zeros(0, dtype=np.int64)
 
-    def remove_faces(self, codes, table: FaceIdTable) -> vtkPolyData:
+    def remove_faces(self, codes, table: FaceIdTable, follow_frames: int = 1) -> vtkPolyData:
         """Remove the faces ``codes`` from their patches (each changed patch is rebuilt, so only it is re-uploaded).
 
-        Faces go with their edge-connected neighbours as :meth:`_removed_with` says. Returns the removed faces
-        as one vtkPolyData (for the dashboard).
+        Faces go with their edge-connected neighbours as :meth:`_removed_with` says (``follow_frames``: removal's
+        :attr:`~mabdi.stages.removal.RemovalParameters.follow_frames`). Returns the removed faces as one
+        vtkPolyData (for the dashboard).
         """
         groups, local = self._current_groups(np.asarray(codes, dtype=np.int64), table)
         removed_parts = []
@@ -621,7 +622,7 @@ class WorldMap:
             gone = np.zeros(patch.cells, dtype=bool)
             gone[local[rows]] = True
             if triangles is not None:  # polygons other than triangles: no edges to follow
-                gone = self._removed_with(patch, triangles, gone)
+                gone = self._removed_with(patch, triangles, gone, follow_frames)
             removed_parts.append(extract_polys(patch.polydata, np.flatnonzero(gone)))
             keep = np.flatnonzero(~gone)
             if keep.size == 0:
@@ -641,10 +642,11 @@ class WorldMap:
         return _append(removed_parts)
 
     @staticmethod
-    def _removed_with(patch: Patch, triangles: np.ndarray, gone: np.ndarray) -> np.ndarray:
+    def _removed_with(patch: Patch, triangles: np.ndarray, gone: np.ndarray, follow_frames: int = 1) -> np.ndarray:
         """The faces that go with the condemned ``gone`` of a patch of ``triangles`` (its (M, 3) vertex ids).
 
-        A departed object's faces are contiguous: faces already contradicted (evidence above 0) go with a
+        A departed object's faces are contiguous: faces already contradicted (evidence above 0, and at least
+        ``follow_frames`` frames against them since a frame last confirmed them) go with a
         removed face they are edge-connected to, and so do the direct neighbours of the removed faces that
         were never voted on at all (smaller than a pixel: no pixel centre showed them), and kept faces left
         as islands inside the removed region. Contradicted faces beside those that joined (a never-voted
@@ -652,7 +654,7 @@ class WorldMap:
         never-voted faces alone does not spread the removal beyond one ring.
         """
         points = patch.polydata.GetNumberOfPoints()
-        contradicted = patch.evidence > 0
+        contradicted = (patch.evidence > 0) & (patch.contradicted >= follow_frames)
         never_voted = (patch.evidence == 0) & (patch.contradicted == 0)
         gone = spread_removal(triangles, points, gone, contradicted)
         while True:

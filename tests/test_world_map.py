@@ -387,3 +387,50 @@ def test_triangle_centres_and_radii_by_the_compiled_pass_equal_the_corner_formul
         centres, radii = face_centres(sphere, cells)
         assert np.allclose(centres, corners.mean(axis=1), atol=1e-12)
         assert np.allclose(radii, np.linalg.norm(corners - corners.mean(axis=1, keepdims=True), axis=2).max(axis=1), atol=1e-12)
+
+
+def test_a_real_sensors_contradicted_faces_follow_a_removed_neighbour_only_after_two_frames_against_them():
+    """With a real sensor's four frames (``min_frames = 4``: ``follow_frames`` 2) a removed face takes along the
+    neighbours two frames have contradicted since they were last confirmed, not those one frame contradicted (a
+    static surface's passing mixed pixel beside a false removal, which would otherwise chain across the
+    surface); such a neighbour, now beside a removed face, goes at its next contradicting frame. The
+    simulator's rule (``follow_frames`` 1) takes both at once."""
+
+    def run(params: RemovalParameters):
+        world = WorldMap(chunk_size=100.0)
+        world.add_patch("frame_0", plane_mesh([0, 0, 0], [0, 0, 1], size=1.0, subdivisions=4), frame=0)
+        n = world.number_of_cells
+        table = FaceIdTable(["frame_0"], [1], [n])
+        _, triangles = polydata_arrays(world.block("frame_0"))
+        target = 5
+        once, twice = [f for f in range(n) if f != target and len(set(triangles[f]) & set(triangles[target])) == 2][:2]
+
+        def vote(against):
+            contradicted = np.isin(np.arange(n), against)
+            return world.update_evidence(np.arange(1, n + 1), contradicted, ~contradicted, params, table)
+
+        vote([])  # every face confirmed: none is "never voted"
+        for frame in range(params.frames_required):
+            condemned = vote([target] + [twice] * (frame >= params.frames_required - 2) + [once] * (frame == params.frames_required - 1))
+        gone = world.remove_faces(condemned, table, params.follow_frames)
+        return n, condemned.tolist(), gone.GetNumberOfCells(), world
+
+    real = RemovalParameters(min_frames=4)
+    assert (real.follow_frames, RemovalParameters(min_frames=2).follow_frames, RemovalParameters(min_frames=1).follow_frames) == (2, 1, 1)
+    n, condemned, removed, world = run(real)
+    assert condemned == [5 + 1]
+    assert removed == 2  # the face and the neighbour two frames saw through; the one seen through once stays
+
+    left = n - 2
+    table = FaceIdTable(["frame_0"], [1], [left])
+    assert world.number_of_cells == left
+    # the face one frame contradicted is now beside a removed face: the next frame against it takes it
+    beside = np.flatnonzero(world.patch("frame_0").beside_removed_faces())
+    evidence = world.patch("frame_0").evidence
+    waiting = int(beside[np.argmax(evidence[beside])])  # the contradicted one among the removed faces' neighbours
+    assert evidence[waiting] > 0 and world.patch("frame_0").contradicted[waiting] == 1
+    codes = np.arange(1, left + 1)
+    against = codes - 1 == waiting
+    assert world.update_evidence(codes, against, ~against, real, table).tolist() == [waiting + 1]
+    _, condemned, removed, _ = run(RemovalParameters(min_frames=2))  # the second neighbour's two frames condemn it
+    assert len(condemned) == 2 and removed == 3  # and the one seen through once follows

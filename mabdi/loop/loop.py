@@ -124,7 +124,7 @@ def apply_removal(
         gone = np.union1d(gone, condemned)
     if not len(gone):
         return RemovalResult()
-    result = RemovalResult(world.remove_faces(gone, table))
+    result = RemovalResult(world.remove_faces(gone, table, stage.parameters.follow_frames))
     if capabilities.clears_space and result.cells_removed:
         # voxel planes: the statistics that made the removed faces go with them (else re-meshing brings them back)
         points, triangles = polydata_arrays(result.removed)

@@ -24,9 +24,12 @@ otherwise confirmations subtract ``miss``; L stays in [``floor``,
 for the simulator's sensors, 4 for a real one ("auto"; a sensor that loses
 returns), whose contradictions that are not departures (a mixed pixel, an
 edge a beam off, multipath) come back for a frame or two while it passes.
-Faces smaller than a pixel are voted on between pixels (:func:`votes_between_pixels`), and a removed face's
-contradicted and never-voted neighbours follow it
-(:meth:`~mabdi.world_map.WorldMap.remove_faces`).
+Faces smaller than a pixel are voted on between pixels (:func:`votes_between_pixels`). A face removed takes
+along its never-voted neighbours and the contradicted faces edge-connected to it that half the frames a face
+needs (``follow_frames``: 1 for the simulator's sensors, 2 for a real one) contradicted since a frame last
+confirmed them (:meth:`~mabdi.world_map.WorldMap.remove_faces`), so a real static surface's one-frame
+contradictions do not chain a false removal across it; a face beside one removed earlier goes at its next
+contradicting frame (:meth:`~mabdi.world_map.WorldMap.update_evidence`).
 
 Units: metres (depths, gaps), degrees (angles), pixels (margins).
 Why each rule is what it is: docs/architecture.md (``mabdi.stages.removal``).
@@ -112,6 +115,12 @@ class RemovalParameters:
         """The contradicting frames a face needs before it goes: ``min_frames``, or where "auto" was not resolved
         for a sensor (:func:`mabdi.loop.loop.resolve_settings` does) the simulator's 2."""
         return self.min_frames_for(False)
+
+    @property
+    def follow_frames(self) -> int:
+        """The contradicting frames (since a frame last confirmed it) a face needs to go with a removed neighbour:
+        half of :attr:`frames_required`, at least one (the module docs)."""
+        return max(1, self.frames_required // 2)
 
     def min_frames_for(self, real_sensor: bool) -> int:
         """``min_frames`` as it applies to a sensor: "auto" is :data:`REAL_SENSOR_MIN_FRAMES` for a

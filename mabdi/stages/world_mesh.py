@@ -162,9 +162,9 @@ class FilterWorldMesh(MabdiAlgorithm):
         """One frame's removal votes; the codes of the faces now condemned (:meth:`WorldMap.update_evidence`)."""
         return self.store.update_evidence(codes, contradicted, confirmed, parameters, table)
 
-    def remove_faces(self, codes, table: FaceIdTable) -> vtkPolyData:
+    def remove_faces(self, codes, table: FaceIdTable, follow_frames: int = 1) -> vtkPolyData:
         """Remove faces (and those that go with them); returns the removed faces (:meth:`WorldMap.remove_faces`)."""
-        return self.store.remove_faces(codes, table)
+        return self.store.remove_faces(codes, table, follow_frames)
 
     def append(self, surface: vtkPolyData, frame: int) -> int:
         """Append frame ``frame``'s surface (world coordinates; cell data ``patch_key`` for keyed patches, field
