@@ -53,6 +53,9 @@ from mabdi.spherical import BEAM_ELEVATIONS_ARRAY, SPHERICAL_ARRAY, on_for_range
 OUTPUTS = ("changed", "full")
 #: Voxels on a side that a patch of the output spans at least (the seed's 1 m block of 5 cm voxels; module docs).
 PATCH_VOXELS = 20
+#: The least share of its window a plane's points must span along each in-plane axis (their variance at least
+#: (MIN_SPAN * window * voxel_size)^2 / 12: a uniform strip that wide); module docs, and docs/architecture.md.
+MIN_SPAN = 0.5
 #: The colour of a polygon whose voxels hold no coloured point (in a map that has colour: points added without it).
 NO_COLOUR = (128, 128, 128)
 
@@ -99,20 +102,25 @@ class VoxelPlanesParameters:
 
     @property
     def lambda_large(self) -> float:
-        """Smallest variance along the plane (m^2): min(epsilon^2, (window * voxel_size)^2 / 24)."""
-        return min(self.epsilon**2, (self.window * self.voxel_size) ** 2 / 24.0)
+        """Smallest variance along the plane (m^2): min(epsilon^2, (MIN_SPAN * window * voxel_size)^2 / 12)."""
+        return min(self.epsilon**2, span_variance(self.window * self.voxel_size))
 
     @property
     def refines(self) -> bool:
         """Whether creases are filled from half-size voxels: ``refine`` true, or "auto" and a half-size window
         spans enough for the planarity test to hold as it is (its lambda_large still epsilon^2)."""
         if self.refine == "auto":
-            return (self.window * self.voxel_size / 2.0) ** 2 / 24.0 >= self.epsilon**2
+            return span_variance(self.window * self.voxel_size / 2.0) >= self.epsilon**2
         return bool(self.refine)
 
     def halved(self) -> VoxelPlanesParameters:
         """The same parameters at half the voxel size (the refinement's)."""
         return dataclasses.replace(self, voxel_size=self.voxel_size / 2.0, refine=False)
+
+
+def span_variance(width: float) -> float:
+    """The variance (m^2) along an axis of points spread uniformly over :data:`MIN_SPAN` of ``width`` (m)."""
+    return (MIN_SPAN * width) ** 2 / 12.0
 
 
 @dataclass
