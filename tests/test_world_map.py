@@ -434,3 +434,43 @@ def test_a_real_sensors_contradicted_faces_follow_a_removed_neighbour_only_after
     assert world.update_evidence(codes, against, ~against, real, table).tolist() == [waiting + 1]
     _, condemned, removed, _ = run(RemovalParameters(min_frames=2))  # the second neighbour's two frames condemn it
     assert len(condemned) == 2 and removed == 3  # and the one seen through once follows
+
+
+def named_multiblock(blocks: dict[str, vtkPolyData]):
+    """A multiblock of the named polydata ``blocks``, as the world map hands the renderer its patches."""
+    from vtkmodules.vtkCommonDataModel import vtkCompositeDataSet, vtkMultiBlockDataSet
+
+    multiblock = vtkMultiBlockDataSet()
+    for number, (name, polydata) in enumerate(blocks.items()):
+        multiblock.SetBlock(number, polydata)
+        multiblock.GetMetaData(number).Set(vtkCompositeDataSet.NAME(), name)
+    return multiblock
+
+
+def test_codes_split_into_gaps_over_a_long_run_are_given_out_afresh(monkeypatch):
+    """Blocks that change take new codes while the old ones wait hidden: over a long run the free codes split
+    into gaps, until a block in view found none large enough (a real kitchen's pixel-grid map stopped so after
+    hundreds of frames, its view holding a quarter of the codes). The renderer then gives the blocks in view
+    their codes afresh, and they still name their faces; a view that holds more faces than codes is an error."""
+    import mabdi.face_identity as face_identity
+
+    monkeypatch.setattr(face_identity, "MAX_FACE_CODE", 150)
+    renderer = DepthRenderer(face_identity=True)
+    pose = look_at([0.5, 0.5, 1.0], [0.5, 0.5001, 0.0])
+    left = plane_mesh([0.25, 0.5, 0], [0, 0, 1], size=0.5, subdivisions=4)  # 32 faces each
+    right = plane_mesh([0.75, 0.5, 0], [0, 0, 1], size=0.5, subdivisions=4)
+    renderer.render_zbuffer(named_multiblock({"left": left, "right": right}), SMALL, pose)
+    renderer.render_identity()
+    for size in (5, 6, 7):  # the left block re-made bigger, three times: its old codes wait hidden
+        left = plane_mesh([0.25, 0.5, 0], [0, 0, 1], size=0.5, subdivisions=size)
+        renderer.render_zbuffer(named_multiblock({"left": left, "right": right}), SMALL, pose)
+    codes = renderer.render_identity()
+    table = renderer.identities
+    assert sorted(table.names) == ["left", "right"] and table.counts.sum() == 2 * 7 * 7 + 32 <= 150
+    block = table.lookup(codes[codes > 0])[0]
+    u = np.nonzero(codes > 0)[1]
+    shown = np.array(table.names)[block]
+    assert (shown[u < SMALL.width // 2 - 2] == "left").all() and (shown[u > SMALL.width // 2 + 2] == "right").all()
+    bigger = plane_mesh([0.75, 0.5, 0], [0, 0, 1], size=0.5, subdivisions=8)  # 98 + 128 faces in view: too many
+    with pytest.raises(MemoryError, match="in view"):
+        renderer.render_zbuffer(named_multiblock({"left": left, "right": bigger}), SMALL, pose)

@@ -142,7 +142,23 @@ class DepthRenderer:
     def _sync_actors(self, leaves: list[tuple[str, vtkPolyData]]) -> None:
         """One actor per polydata of ``leaves``, shown; actors of polydata not drawn are hidden, and dropped
         (with their codes and upload) after :data:`KEEP_HIDDEN_RENDERS` renders without them, so a block at
-        the edge of the view (seen by one of two nearby poses) is not uploaded again and again."""
+        the edge of the view (seen by one of two nearby poses) is not uploaded again and again.
+
+        Face codes are given out block by block as blocks change, so over a long run the free codes split into
+        gaps; when a block finds none large enough, every actor is dropped and the blocks in view take their
+        codes afresh from 1 (one upload of the view), and only if those alone hold more faces than there are
+        codes is it an error."""
+        try:
+            self._sync_actors_once(leaves)
+        except MemoryError:
+            if not self.face_identity:
+                raise
+            for key in list(self._actors):
+                self._drop(key)
+            self._last_scene = None  # the window's buffers hold the old codes
+            self._sync_actors_once(leaves)
+
+    def _sync_actors_once(self, leaves: list[tuple[str, vtkPolyData]]) -> None:
         self._renders += 1
         drawn: set[int] = set()
         for name, leaf in leaves:
