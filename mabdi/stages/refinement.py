@@ -197,8 +197,9 @@ class MapRefinement:
         binds the state to the restored block, else to a copy of those points, as an uninterrupted run has it).
         """
         blocks = {}
+        in_map = set(world.patch_keys)
         for key, block in self._blocks.items():
-            current = key in world.patch_keys and world.block(key) is block.patch
+            current = key in in_map and world.block(key) is block.patch
             blocks[key] = {
                 "current": bool(current),
                 "points": _points(block.patch).copy(),
@@ -211,8 +212,9 @@ class MapRefinement:
     def set_state(self, state: dict, world) -> None:
         """Go on from :meth:`state` (after ``world`` was restored from the same checkpoint)."""
         self.reset()
+        in_map = set(world.patch_keys)
         for key, block in state["blocks"].items():
-            if block["current"] and key in world.patch_keys:
+            if block["current"] and key in in_map:
                 patch = world.block(key)
             else:
                 patch = vtkPolyData()
@@ -324,11 +326,13 @@ class MapRefinement:
             return result  # E drawn without face identity: nothing to attribute pixels to
         view = _FrameView(measured, intrinsics, pose_of)
         pose = measured.pose
-        for key in world.patch_keys:  # blocks merged since the last frame carry their parts' states
+        in_map = world.patch_keys
+        for key in in_map:  # blocks merged since the last frame carry their parts' states
             parts = world.store.merged_parts(key)
             if parts and key not in self._blocks and any(part in self._blocks for part, _ in parts):
                 self._merge_states(key, world.block(key), parts, view, pose)
-        for key in [k for k in self._blocks if k not in set(world.patch_keys)]:
+        in_map = set(in_map)
+        for key in [k for k in self._blocks if k not in in_map]:
             del self._blocks[key]
 
         s = p.stride
