@@ -64,7 +64,8 @@ def test_the_run_folder_s_config_states_what_every_auto_became(tmp_path):
     assert resolved["classifier"] == {"rim": 3, "rim_on_map": True, "outer_radius": 1.0}
     # structured light loses returns on real surfaces: no free space where it has none, four frames to remove a face
     assert resolved["removal"] == {"no_return_is_free": False, "min_frames": 4}
-    assert "refinement" not in resolved and "registration" not in resolved  # as the config says
+    assert resolved["refinement"] == {"gate_k": 3.0}  # "auto": a model of the simulator's, not a learnt one
+    assert "registration" not in resolved  # as the config says
     config = load_run_config(out / "config.toml")
     given = with_overrides(
         load_run_config(SCENES / "table.toml"),

@@ -12,7 +12,8 @@ from mabdi.camera import Intrinsics
 from mabdi.depth import DepthFrame
 from mabdi.surfaces.pixel_grid import PixelGridParameters
 from mabdi.surfaces.quadtree import QuadTreeParameters
-from mabdi.stages.refinement import RADIUS_PX_INDEPENDENT, MapRefinement, RefinementParameters
+from mabdi.errors import ConfigError
+from mabdi.stages.refinement import GATE_K, RADIUS_PX_INDEPENDENT, REAL_CAMERA_GATE_K, MapRefinement, RefinementParameters
 from mabdi.noise_calibration import NoiseCurve
 from mabdi.sensor_noise import SensorNoise, correlated_field
 from mabdi.polydata import vertex_normals
@@ -397,3 +398,56 @@ def test_refinement_goes_on_through_the_world_maps_merges_of_frame_patches():
     assert rebuilt > 0  # and so did those of a part rebuilt between its last refinement and the merge
     assert medians[-1] <= 0.5 * sigma(NEAR), medians
     assert abs(medians[-1] - plain_medians[-1]) <= 0.2e-3, (medians, plain_medians)
+
+
+def biased_plate_frames(looks: int, bias: float, seed: int = 5) -> FrameList:
+    """Near looks at the plate (as :func:`plate_frames`, Kinect noise) whose depth errs by -``bias`` and +``bias``
+    metres in turn, the first too near: a real camera's looks at one surface differ by a view-dependent bias
+    (its depth pattern across the image) beside their per-pixel noise. The looks too far see the map in front
+    of them (nothing novel: the refinement alone decides what they change, removal made unable to fire)."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for i in range(looks):
+        pose = np.eye(4)
+        pose[:3, 3] = CENTRE - [0.0, 0.0, NEAR] + [0.01 * i, -0.006 * i, 0.004 * (i % 3)]
+        depth = plate_depth(pose, rng) + np.float32(-bias if i % 2 == 0 else bias)
+        out.append(DepthFrame(depth, SMALL, pose, i))
+    return FrameList(out)
+
+
+def signed_vertex_offsets(loop) -> np.ndarray:
+    """Each map vertex's offset from the plate along the camera's view (metres; + beyond the plate)."""
+    points, triangles = polydata_arrays(loop.mesh())
+    return -((points[np.unique(triangles)] - CENTRE) @ NORMAL)
+
+
+def test_a_real_cameras_looks_that_differ_by_more_than_their_noise_are_averaged():
+    """Looks too near and too far in turn: the first look makes the plate too near, and each look of the other
+    sign sees it twice the bias off. A gate of 3 (the simulator's sensors) takes few of those in and the plate
+    stays near where the first look put it; "auto" for a camera whose noise is learnt (5) averages both signs,
+    and the plate ends nearer where it is."""
+    bias = 2.5 * sigma(NEAR)
+    frames = biased_plate_frames(10, bias)
+    ends = {}
+    for gate_k in (GATE_K, REAL_CAMERA_GATE_K):
+        loop = mabdi.MabdiLoop(
+            frames, surface="pixel_grid", surface_parameters=RAW["pixel_grid"], noise="kinect",
+            registration=EXACT_POSES, refinement=RefinementParameters(enabled=True, gate_k=gate_k),
+        )  # fmt: skip
+        loop.removal_parameters = RemovalParameters(min_frames=60000)  # the refinement alone changes the map
+        for i in range(len(frames)):
+            loop.step(i)
+        ends[gate_k] = float(np.median(signed_vertex_offsets(loop)))
+    assert ends[GATE_K] < -0.8 * bias, ends  # measured: -7.4 mm of the -8.0 mm the first look made
+    assert abs(ends[REAL_CAMERA_GATE_K]) < 0.55 * bias, ends  # measured: -3.4 mm
+
+
+def test_the_gate_is_wider_for_a_real_cameras_learnt_noise():
+    parameters = RefinementParameters()
+    assert parameters.gate_k == "auto"
+    assert parameters.gate_k_for(SensorNoise("kinect")) == GATE_K == 3.0
+    assert parameters.gate_k_for(SensorNoise("structured_light")) == 3.0
+    assert parameters.gate_k_for(SensorNoise("auto", calibration=NoiseCurve(0.0, 1e-3, 2.0))) == REAL_CAMERA_GATE_K == 5.0
+    assert RefinementParameters(gate_k=4).gate_k_for(SensorNoise("auto")) == 4.0
+    with pytest.raises(ConfigError, match="gate_k"):
+        RefinementParameters(gate_k="wide")

@@ -184,6 +184,8 @@ def resolve_settings(
     if removal.min_frames == "auto":  # a real sensor's false contradictions come back for a few frames
         removal = replace(removal, min_frames=removal.min_frames_for(real_sensor))
     refinement = refinement if refinement is not None else RefinementParameters()
+    if refinement.gate_k == "auto":  # a real camera's looks at a surface differ by more than its pixels' noise
+        refinement = replace(refinement, gate_k=refinement.gate_k_for(noise))
     refinement_on = refinement.enabled
     if refinement_on == "auto":
         refinement_on = noise.correlated  # errors one look's smoothing cannot remove: average later looks in

@@ -9,7 +9,8 @@ labels and the pose, and:
 * **refines**: every vertex keeps a running estimate of the surface along
   its normal, an offset t_v (metres) from its original position: a prior of
   weight sigma(z_create)^-2, and each pixel that shows one of its faces and
-  lies on that face's surface within ``gate_k`` sigma adds an observation
+  lies on that face's surface within ``gate_k`` sigma (3; 5 for a real
+  camera's learnt noise, whose looks differ by more) adds an observation
   weighted cos(incidence) / sigma(D)^2, near the corner only
   (``radius_px``). A vertex moves to its estimate once the observations
   weigh ``confidence`` times its prior and the move is at least ``min_step``;
@@ -51,6 +52,12 @@ from mabdi.stages import refinement_kernels as kernels
 RADIUS_PX_INDEPENDENT = 2.5
 RADIUS_PER_CORRELATION = 4.0
 
+#: ``gate_k = "auto"``: a look observes a face within this many sigma of it where the sensor's noise model is its
+#: own (the simulator's), and within :data:`REAL_CAMERA_GATE_K` where the model is learnt from a real camera's
+#: frames, whose looks at one surface differ by more than their per-pixel noise (see the module docs).
+GATE_K = 3.0
+REAL_CAMERA_GATE_K = 5.0
+
 #: Blocks of these key prefixes are refined (pixel grid and quad-tree patches, and the world map's merges of
 #: them); voxel planes use ``patch_``.
 REFINED_PREFIX = ("frame_", "merged_")
@@ -68,7 +75,8 @@ class RefinementParameters:
     ``confidence``: a vertex moves once its observations' weight is at least this times its prior's;
     ``min_step``: nor unless its estimate is at least this far from where it is; ``min_sigma``: floor on
     sigma(z); ``replace_ratio``: a face is replaced when its sigma is at least this times the pixel's;
-    ``gate_k``: same surface when |D - E| <= gate_k sqrt(sigma_D^2 + sigma_f^2); ``replace_share``: share
+    ``gate_k``: same surface when |D - E| <= gate_k sqrt(sigma_D^2 + sigma_f^2) ("auto": :meth:`gate_k_for`);
+    ``replace_share``: share
     of a face's pixels that must prefer the better look; ``replace``: False refines only.
 
     ``enabled``: the ``[refinement]`` section's switch (refinement runs only with the classifier on and a noisy
@@ -88,7 +96,7 @@ class RefinementParameters:
     min_sigma: float = 1e-4
     replace: bool = False
     replace_ratio: float = 2.0
-    gate_k: float = 3.0
+    gate_k: float | str = "auto"
     replace_share: float = 0.5
 
     def __post_init__(self) -> None:
@@ -103,8 +111,20 @@ class RefinementParameters:
             raise ConfigError(f"refinement: radius_px must be > 0 pixels or \"auto\", got {self.radius_px!r}")
         if not (self.confidence >= 0 and self.min_step >= 0 and self.min_sigma > 0):
             raise ConfigError("refinement: need confidence >= 0, min_step >= 0 and min_sigma > 0")
-        if not (self.replace_ratio > 1 and self.gate_k > 0 and 0 < self.replace_share <= 1):
-            raise ConfigError("refinement: need replace_ratio > 1, gate_k > 0 and 0 < replace_share <= 1")
+        if self.gate_k != "auto" and not (
+            isinstance(self.gate_k, (int, float)) and not isinstance(self.gate_k, bool) and self.gate_k > 0
+        ):
+            raise ConfigError(f'refinement: gate_k must be > 0 (sigmas) or "auto", got {self.gate_k!r}')
+        if not (self.replace_ratio > 1 and 0 < self.replace_share <= 1):
+            raise ConfigError("refinement: need replace_ratio > 1 and 0 < replace_share <= 1")
+
+    def gate_k_for(self, noise) -> float:
+        """The gate in sigmas for depth of noise ``noise`` (a SensorNoise): ``gate_k``, or for "auto"
+        :data:`REAL_CAMERA_GATE_K` where the model is learnt from a real camera's frames (model ``auto``) and
+        :data:`GATE_K` for a model of the simulator's."""
+        if self.gate_k != "auto":
+            return float(self.gate_k)
+        return REAL_CAMERA_GATE_K if noise.model == "auto" else GATE_K
 
     def radius_for(self, noise) -> float:
         """The radius (pixel footprints) for a depth image of noise ``noise`` (a SensorNoise): ``radius_px``, or
@@ -355,6 +375,7 @@ class MapRefinement:
         focal = 0.5 * (intrinsics.fx + intrinsics.fy)
         cos_grazing = np.cos(np.radians(p.grazing_deg))
         radius = p.radius_for(noise)
+        gate_k = p.gate_k_for(noise)
 
         replaced = []
         touched = []
@@ -372,7 +393,7 @@ class MapRefinement:
             arguments = (
                 state.triangles, _points(state.patch), state.original, state.normal, state.prior, state.weight,
                 state.total, local[chosen], rays[chosen], measured[chosen], expected[chosen], length[chosen],
-                sigma_d[chosen], centre, focal, cos_grazing, p.gate_k, p.replace, p.replace_ratio,
+                sigma_d[chosen], centre, focal, cos_grazing, gate_k, p.replace, p.replace_ratio,
                 p.replace_share, radius,
             )  # fmt: skip
             gone, count, vertices = kernels.observe_block_kernel(*arguments)
