@@ -251,7 +251,8 @@ def test_removal_and_refinement_sections_reach_the_loop(tmp_path):
     loop = mabdi.MabdiLoop.from_config(config, frames)
     # the section's values, with min_frames "auto" resolved for the sensor (frames that return every surface: 2)
     assert loop.removal_parameters == dataclasses.replace(config.removal, min_frames=2)
-    assert loop.refinement.parameters == config.refinement
+    # and gate_k "auto" resolved for the noise model (a model of the simulator's: 3)
+    assert loop.refinement.parameters == dataclasses.replace(config.refinement, gate_k=3.0)
     assert "edge_margin = 3" in dump_toml(config)
     path.write_text("[removal]\nedge_margin = -1\n")
     with pytest.raises(ConfigError, match=r"run.toml.*\[removal\].*0 <= edge_margin"):
