@@ -351,3 +351,28 @@ def test_the_rim_closes_the_seam_between_a_new_quad_tree_patch_and_the_map():
     # without a rim the crack runs along the whole seam (where the seam falls inside a block, the map's last
     # block, a minority of pixels short of it, ends where the novel pixels begin)
     assert min(by_rim[0][:2]) >= 2 * intrinsics.height, cracks  # a crack along a good part of the wall
+
+
+def test_a_look_in_front_of_the_map_within_front_k_sigma_is_known_not_novel():
+    """A wall 2 m away (Kinect sigma(2 m) = 5.7 mm) seen 4 sigma nearer on one half and 4 sigma further on the other:
+    with k_sigma (front_k "auto" and no loop) the near half is new surface and the far half contradicts; with
+    front_k 5 (a real camera's map refined within 5 sigma) the near half is the map's surface seen again, and the
+    far half still contradicts: only the side in front of the map changes."""
+    from mabdi.errors import ConfigError
+    from mabdi.frame_values import Expected, Measured
+
+    camera = Intrinsics(fx=80.0, fy=80.0, cx=40.0, cy=30.0, width=80, height=60)
+    noise = SensorNoise("kinect")
+    step = 4.0 * float(noise.sigma(np.array([2.0]), camera.near, camera.far)[0])
+    depth = np.full(camera.shape, 2.0, np.float32)
+    depth[:, :40] -= step
+    depth[:, 40:] += step
+    measured = Measured(depth, camera, np.eye(4), noise, 1)
+    expected = Expected(np.full(camera.shape, 2.0, np.float32), camera, np.eye(4), 1)
+    for front_k, near_label in (("auto", NOVEL), (3.0, NOVEL), (5.0, KNOWN)):
+        classifier = FilterClassifier(ClassifierParameters(front_k=front_k, rim=0, gradual=False))
+        labels = classifier.classify(measured, expected).labels
+        assert (labels[:, :40] == near_label).all(), front_k
+        assert (labels[:, 40:] == CONTRADICTED).all(), front_k
+    with pytest.raises(ConfigError, match="front_k"):
+        ClassifierParameters(front_k=-1.0)

@@ -7,6 +7,7 @@ from mabdi.stages.classifier import ClassifierParameters
 from mabdi.stages.refinement import RefinementParameters
 from mabdi.stages.removal import RemovalParameters
 from mabdi.loop.loop import resolve_settings
+from mabdi.noise_calibration import NoiseCurve
 from mabdi.sensor_noise import SensorNoise
 from mabdi.spherical import SphericalGeometry
 
@@ -61,7 +62,8 @@ def test_the_run_folder_s_config_states_what_every_auto_became(tmp_path):
     resolved = tomllib.loads(text)["resolved"]
     assert resolved["removing"] is True and resolved["refining"] is True  # correlated noise: refined
     # "auto": the quad-tree's block, the map's depth, and nothing waits at the rim (a model of the simulator's)
-    assert resolved["classifier"] == {"rim": 3, "rim_on_map": True, "outer_radius": 1.0}
+    # and a look in front of the map is novel beyond k_sigma, refinement's gate being no wider
+    assert resolved["classifier"] == {"rim": 3, "rim_on_map": True, "outer_radius": 1.0, "front_k": 3.0}
     # structured light loses returns on real surfaces: no free space where it has none, four frames to remove a face
     assert resolved["removal"] == {"no_return_is_free": False, "min_frames": 4}
     assert resolved["refinement"] == {"gate_k": 3.0}  # "auto": a model of the simulator's, not a learnt one
@@ -74,3 +76,16 @@ def test_the_run_folder_s_config_states_what_every_auto_became(tmp_path):
     )  # fmt: skip
     assert config == given and config.classifier.rim == "auto"  # the file's "auto" stays: resolved again when run
     assert config.sensor.camera.width == 80 and "[sensor.camera]\nwidth = 80" in text
+
+
+def test_a_real_cameras_look_in_front_of_the_map_within_refinements_gate_refines_it():
+    """front_k "auto": refinement's gate where the loop refines and that is wider than k_sigma (a real camera's
+    learnt noise: 5), else k_sigma; a LiDAR (no refinement) and the simulator's models keep k_sigma."""
+    learnt = SensorNoise("auto", calibration=NoiseCurve(0.0, 1.4e-3, 2.0))  # correlated: refined
+    settings = _settings(Intrinsics(), learnt)
+    assert settings.refining and settings.refinement.gate_k == 5.0 and settings.classifier.front_k == 5.0
+    assert _settings(Intrinsics(), "structured_light").classifier.front_k == 3.0
+    assert _settings(Intrinsics(), "zbuffer").classifier.front_k == 3.0  # not refined
+    assert _settings(SphericalGeometry(), "range", loses_returns=True).classifier.front_k == 3.0
+    stated = _settings(Intrinsics(), learnt, classifier=ClassifierParameters(front_k=4.0))
+    assert stated.classifier.front_k == 4.0  # the config's word stands

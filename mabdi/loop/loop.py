@@ -197,6 +197,9 @@ def resolve_settings(
         classifier = replace(classifier, outer_radius=classifier.outer_radius_for(noise))
     if classifier.rim_on_map == "auto":  # the seam on the map's surface where the map is refined
         classifier = replace(classifier, rim_on_map=bool(refining))
+    if classifier.front_k == "auto":  # a look in front of the map within refinement's gate refines the map
+        front = max(classifier.k_sigma, float(refinement.gate_k)) if refining else classifier.k_sigma
+        classifier = replace(classifier, front_k=float(front))
     return LoopSettings(classifier, removal, refinement, registration, removing, refining)
 
 

@@ -1,8 +1,7 @@
 """FilterClassifier: which pixels of the measured image D are novel, given the expected image E.
 
-Port 0 is D (what the sensor measured), port 1 is E (the map rendered from
-the same pose); both are depth images (:mod:`mabdi.depth`, metres) of the
-same size, intrinsics and pose. Per pixel, with
+Port 0 is D (what the sensor measured), port 1 is E (the map rendered from the same pose); both are depth
+images (:mod:`mabdi.depth`, metres) of the same size, intrinsics and pose. Per pixel, with
 tau = max(tau_min, k_sigma * sqrt(sigma(z)^2 + sigma_pose^2)) at z = D
 (sigma from D's noise model, sigma_pose from D's ``pose_covariance`` when
 registration put one there):
@@ -11,12 +10,13 @@ registration put one there):
 label  name          rule
 ====  ============  ====================================================
 0     no return     D is NaN
-1     known         |D - E| <= tau
-2     novel         E is NaN (the map has no surface there), or D < E - tau
+1     known         -tau_front <= D - E <= tau
+2     novel         E is NaN (the map has no surface there), or D < E - tau_front
 3     contradicted  D > E + tau: the sensor sees through a surface of the map
 ====  ============  ====================================================
 
-Known besides: a novel pixel in front of the map or a contradicted one that
+tau_front is tau with ``front_k`` for k_sigma (refinement's gate where the loop refines a real camera's
+map: such a look refines the face, not a second surface in front of it). Known besides: a novel pixel in front of the map or a contradicted one that
 agrees with E once D is placed at the pose registration fitted it at
 (:func:`explained_by_fit`), and a region of either whose D - E steps by more
 than tau across fewer than :data:`GRADUAL_STEP_SHARE` of its border with
@@ -33,8 +33,8 @@ Output: ``depth`` is D on the novel pixels and a ``rim`` of pixels around
 them (NaN elsewhere; ``rim_on_map`` puts the rim's known pixels on E), plus
 the point arrays ``measured_depth``, ``label`` and ``pose_sigma`` and the
 field-data ``pixel_counts`` (:func:`pixel_counts`); field data is D's.
-Defaults: tau_min = 0.01 m, k_sigma = 3, min_width = 3 px, min_region = 32 px,
-rim = "auto", rim_on_map = "auto", fill_holes = true, gradual = true, outer_radius = "auto".
+Defaults: tau_min = 0.01 m, k_sigma = 3, front_k, rim, rim_on_map and outer_radius "auto", min_width = 3 px,
+min_region = 32 px, fill_holes = true, gradual = true.
 
 Why the rules are what they are: docs/architecture.md (``mabdi.stages.classifier``).
 """
@@ -84,6 +84,9 @@ class ClassifierParameters:
     enabled: bool = True
     tau_min: float = 0.01
     k_sigma: float = 3.0
+    #: k_sigma for a pixel in front of the map (see the module docs); "auto": k_sigma, or where the loop refines
+    #: the map, the refinement's gate if that is wider (:func:`mabdi.loop.loop.resolve_settings`).
+    front_k: float | str = "auto"
     min_width: int = 3
     min_region: int = 32
     #: Pixels around the novel ones passed on with them (see the module docs); "auto": what the surface needs.
@@ -105,6 +108,10 @@ class ClassifierParameters:
             raise ConfigError(f"tau_min must be > 0 metres, got {self.tau_min}")
         if self.k_sigma < 0:
             raise ConfigError(f"k_sigma must be >= 0, got {self.k_sigma}")
+        if self.front_k != "auto" and (
+            isinstance(self.front_k, (bool, str)) or not isinstance(self.front_k, (int, float)) or self.front_k < 0
+        ):
+            raise ConfigError(f'front_k must be >= 0 (sigmas) or "auto", got {self.front_k!r}')
         if self.min_width < 1:
             raise ConfigError(f"min_width must be >= 1 pixel, got {self.min_width}")
         if self.min_region < 0:
@@ -124,19 +131,25 @@ class ClassifierParameters:
         return REAL_CAMERA_OUTER_RADIUS if noise.model == "auto" else 1.0
 
     @property
+    def front_sigmas(self) -> float:
+        """``front_k``, or ``k_sigma`` where it is "auto" and no loop has set it."""
+        return self.k_sigma if self.front_k == "auto" else float(self.front_k)
+
+    @property
     def rim_pixels(self) -> int:
         """The rim in pixels: ``rim``, or 1 where it is "auto" and no surface has set it (the loop does)."""
         return 1 if self.rim == "auto" else self.rim
 
 
-def classify(measured: np.ndarray, expected: np.ndarray, tau: np.ndarray) -> np.ndarray:
-    """uint8 labels (0-3, see the module docs) from D, E and the per-pixel threshold tau (all (H, W), metres)."""
+def classify(measured: np.ndarray, expected: np.ndarray, tau: np.ndarray, tau_front: np.ndarray | None = None) -> np.ndarray:
+    """uint8 labels (0-3, see the module docs) from D, E and the per-pixel thresholds tau and, in front of the map,
+    ``tau_front`` (None: tau) (all (H, W), metres)."""
     labels = np.full(measured.shape, KNOWN, dtype=np.uint8)
     d_valid = np.isfinite(measured)
     e_valid = np.isfinite(expected)
     with np.errstate(invalid="ignore"):
         difference = measured - expected
-        labels[difference < -tau] = NOVEL
+        labels[difference < -(tau if tau_front is None else tau_front)] = NOVEL
         labels[difference > tau] = CONTRADICTED
     labels[d_valid & ~e_valid] = NOVEL
     labels[~d_valid] = NO_RETURN
@@ -479,14 +492,16 @@ class FilterClassifier(MabdiAlgorithm):
         self._set("_parameters", value)
 
     def threshold(
-        self, depth: np.ndarray, noise: SensorNoise, near: float, far: float, pose_sigma: np.ndarray | None = None
+        self, depth: np.ndarray, noise: SensorNoise, near: float, far: float, pose_sigma: np.ndarray | None = None,
+        k: float | None = None,
     ) -> np.ndarray:
         """tau = max(tau_min, k_sigma sqrt(sigma(z)^2 + pose_sigma^2)) in metres, sigma(z) of the sensor's
-        ``noise`` model (the one D carries) (``pose_sigma`` NaN counts as 0)."""
+        ``noise`` model (the one D carries) (``pose_sigma`` NaN counts as 0); ``k``: in place of k_sigma."""
         sigma = noise.sigma(depth, near, far)
         if pose_sigma is not None:
             sigma = np.sqrt(sigma * sigma + np.nan_to_num(pose_sigma, nan=0.0).astype(sigma.dtype) ** 2)
-        return np.maximum(sigma.dtype.type(self._parameters.tau_min), sigma.dtype.type(self._parameters.k_sigma) * sigma)
+        k = self._parameters.k_sigma if k is None else k
+        return np.maximum(sigma.dtype.type(self._parameters.tau_min), sigma.dtype.type(k) * sigma)
 
     def RequestInformation(self, request, inInfo, outInfo):  # noqa: N802 (VTK API)
         source = inInfo[0].GetInformationObject(0)
@@ -533,12 +548,15 @@ class FilterClassifier(MabdiAlgorithm):
         depth, expected_depth, noise = measured.depth, expected.depth, measured.noise
         pose_sigma = None if pose_covariance is None else pose_depth_sigma(expected_depth, intrinsics, pose_covariance)
         tau = self.threshold(depth, noise, intrinsics.near, intrinsics.far, pose_sigma)
-        labels = classify(depth, expected_depth, tau)
+        p = self._parameters
+        tau_front = None
+        if p.front_sigmas != p.k_sigma:
+            tau_front = self.threshold(depth, noise, intrinsics.near, intrinsics.far, pose_sigma, p.front_sigmas)
+        labels = classify(depth, expected_depth, tau, tau_front)
         if fitted_pose is not None:
             meshed_from_fitted = np.linalg.inv(measured.pose) @ fitted_pose
             if np.abs(meshed_from_fitted - np.eye(4)).max() > 1e-12:
                 labels[explained_by_fit(labels, depth, expected_depth, tau, intrinsics, meshed_from_fitted)] = KNOWN
-        p = self._parameters
         raw_novel = labels == NOVEL
         covered = expected.covered
         novel = remove_specks(raw_novel, p.min_width, p.min_region, covered)
