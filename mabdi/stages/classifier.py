@@ -16,8 +16,8 @@ label  name          rule
 ====  ============  ====================================================
 
 tau_front is tau with ``front_k`` for k_sigma (refinement's gate where the loop refines a real camera's
-map: such a look refines the face, not a second surface in front of it). Known besides: a novel pixel in front of the map or a contradicted one that
-agrees with E once D is placed at the pose registration fitted it at
+map: such a look refines the face, not a second surface in front of it). Known besides: a novel pixel in
+front of the map or a contradicted one that agrees with E once D is placed at the pose registration fitted it at
 (:func:`explained_by_fit`), and a region of either whose D - E steps by more
 than tau across fewer than :data:`GRADUAL_STEP_SHARE` of its border with
 known pixels (``gradual``, :func:`gradual_regions`; contradicted regions
@@ -141,7 +141,9 @@ class ClassifierParameters:
         return 1 if self.rim == "auto" else self.rim
 
 
-def classify(measured: np.ndarray, expected: np.ndarray, tau: np.ndarray, tau_front: np.ndarray | None = None) -> np.ndarray:
+def classify(
+    measured: np.ndarray, expected: np.ndarray, tau: np.ndarray, tau_front: np.ndarray | None = None
+) -> np.ndarray:
     """uint8 labels (0-3, see the module docs) from D, E and the per-pixel thresholds tau and, in front of the map,
     ``tau_front`` (None: tau) (all (H, W), metres)."""
     labels = np.full(measured.shape, KNOWN, dtype=np.uint8)
