@@ -150,6 +150,11 @@ class SensorNoise:
         return cls(model, **parameters, calibration=curve)
 
     @property
+    def learnt(self) -> bool:
+        """Whether the model is learnt from a real camera's frames (``auto``), not one of the simulator's."""
+        return self.model == "auto"
+
+    @property
     def correlated(self) -> bool:
         """Whether neighbouring pixels err together: ``structured_light`` with its correlated field or its
         disparity quantisation (a surface facing the camera comes as one terrace), and ``auto`` (a real

@@ -128,7 +128,7 @@ class ClassifierParameters:
         camera's frames (model ``auto``) and 1 (nothing waits) for a model of the simulator's."""
         if self.outer_radius != "auto":
             return float(self.outer_radius)
-        return REAL_CAMERA_OUTER_RADIUS if noise.model == "auto" else 1.0
+        return REAL_CAMERA_OUTER_RADIUS if noise.learnt else 1.0
 
     @property
     def front_sigmas(self) -> float:
@@ -156,6 +156,17 @@ def classify(
     labels[d_valid & ~e_valid] = NOVEL
     labels[~d_valid] = NO_RETURN
     return labels
+
+
+def _depth_sigma(
+    depth: np.ndarray, noise: SensorNoise, near: float, far: float, pose_sigma: np.ndarray | None
+) -> np.ndarray:
+    """sqrt(sigma(z)^2 + pose_sigma^2) per pixel (metres): ``noise``'s sigma at D's depth, widened by E's depth
+    uncertainty from the pose (``pose_sigma``, None or NaN: 0)."""
+    sigma = noise.sigma(depth, near, far)
+    if pose_sigma is not None:
+        sigma = np.sqrt(sigma * sigma + np.nan_to_num(pose_sigma, nan=0.0).astype(sigma.dtype) ** 2)
+    return sigma
 
 
 def neighbourhood_3x3(values: np.ndarray, combine, outside=None) -> np.ndarray:
@@ -494,15 +505,14 @@ class FilterClassifier(MabdiAlgorithm):
         self._set("_parameters", value)
 
     def threshold(
-        self, depth: np.ndarray, noise: SensorNoise, near: float, far: float, pose_sigma: np.ndarray | None = None,
-        k: float | None = None,
+        self, depth: np.ndarray, noise: SensorNoise, near: float, far: float, pose_sigma: np.ndarray | None = None
     ) -> np.ndarray:
         """tau = max(tau_min, k_sigma sqrt(sigma(z)^2 + pose_sigma^2)) in metres, sigma(z) of the sensor's
-        ``noise`` model (the one D carries) (``pose_sigma`` NaN counts as 0); ``k``: in place of k_sigma."""
-        sigma = noise.sigma(depth, near, far)
-        if pose_sigma is not None:
-            sigma = np.sqrt(sigma * sigma + np.nan_to_num(pose_sigma, nan=0.0).astype(sigma.dtype) ** 2)
-        k = self._parameters.k_sigma if k is None else k
+        ``noise`` model (the one D carries) (``pose_sigma`` NaN counts as 0)."""
+        return self._tau(_depth_sigma(depth, noise, near, far, pose_sigma), self._parameters.k_sigma)
+
+    def _tau(self, sigma: np.ndarray, k: float) -> np.ndarray:
+        """max(tau_min, k sigma) (metres) for the per-pixel ``sigma`` of :func:`_depth_sigma`."""
         return np.maximum(sigma.dtype.type(self._parameters.tau_min), sigma.dtype.type(k) * sigma)
 
     def RequestInformation(self, request, inInfo, outInfo):  # noqa: N802 (VTK API)
@@ -549,11 +559,10 @@ class FilterClassifier(MabdiAlgorithm):
             )
         depth, expected_depth, noise = measured.depth, expected.depth, measured.noise
         pose_sigma = None if pose_covariance is None else pose_depth_sigma(expected_depth, intrinsics, pose_covariance)
-        tau = self.threshold(depth, noise, intrinsics.near, intrinsics.far, pose_sigma)
         p = self._parameters
-        tau_front = None
-        if p.front_sigmas != p.k_sigma:
-            tau_front = self.threshold(depth, noise, intrinsics.near, intrinsics.far, pose_sigma, p.front_sigmas)
+        sigma = _depth_sigma(depth, noise, intrinsics.near, intrinsics.far, pose_sigma)
+        tau = self._tau(sigma, p.k_sigma)
+        tau_front = self._tau(sigma, p.front_sigmas) if p.front_sigmas != p.k_sigma else None
         labels = classify(depth, expected_depth, tau, tau_front)
         if fitted_pose is not None:
             meshed_from_fitted = np.linalg.inv(measured.pose) @ fitted_pose

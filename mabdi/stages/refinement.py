@@ -124,7 +124,7 @@ class RefinementParameters:
         :data:`GATE_K` for a model of the simulator's."""
         if self.gate_k != "auto":
             return float(self.gate_k)
-        return REAL_CAMERA_GATE_K if noise.model == "auto" else GATE_K
+        return REAL_CAMERA_GATE_K if noise.learnt else GATE_K
 
     def radius_for(self, noise) -> float:
         """The radius (pixel footprints) for a depth image of noise ``noise`` (a SensorNoise): ``radius_px``, or
