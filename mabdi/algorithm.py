@@ -32,16 +32,14 @@ Setters call ``Modified()`` only when the value changes (:meth:`_set`).
 from __future__ import annotations
 
 import contextlib
-import signal
 import sys
-import threading
 from typing import Any
 
 import numpy as np
 from vtkmodules.util.vtkAlgorithm import VTKPythonAlgorithmBase
 from vtkmodules.vtkCommonCore import vtkLogger, vtkOutputWindow, vtkStringOutputWindow
 
-from mabdi.interrupts import caused_by_interrupt, note as note_interrupt, raising_handlers
+from mabdi.interrupts import caused_by_interrupt, interrupts_held
 
 
 class MabdiAlgorithm(VTKPythonAlgorithmBase):
@@ -141,51 +139,6 @@ def vtk_messages_held():
             previous.DisplayText(text)
         else:
             sys.stderr.write(text)
-
-
-_held = {"depth": 0, "pending": False}
-
-
-@contextlib.contextmanager
-def interrupts_held():
-    """Hold Ctrl-C (SIGINT) inside the block and raise ``KeyboardInterrupt`` when it ends.
-
-    Only in the main thread and only while Python's default SIGINT handler, or
-    the command line's (:mod:`mabdi.interrupts`: it raises the same), is
-    installed (a program with its own handler keeps it); that one is back when
-    the block ends. Nested blocks hold
-    until the outermost one ends. A second SIGINT while one is held raises
-    ``KeyboardInterrupt`` at once (for an update that never returns).
-    """
-    if _held["depth"]:
-        _held["depth"] += 1
-        try:
-            yield
-        finally:
-            _held["depth"] -= 1
-        return
-    previous = signal.getsignal(signal.SIGINT) if threading.current_thread() is threading.main_thread() else None
-    if previous not in raising_handlers():
-        yield
-        return
-
-    def hold(signum, frame):
-        if previous is not signal.default_int_handler:  # the command line's: its note, should the interrupt be lost later
-            note_interrupt()
-        if _held["pending"]:
-            raise KeyboardInterrupt
-        _held["pending"] = True
-
-    _held["depth"], _held["pending"] = 1, False
-    signal.signal(signal.SIGINT, hold)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGINT, previous)
-        _held["depth"] = 0
-        pending, _held["pending"] = _held["pending"], False
-        if pending:
-            raise KeyboardInterrupt
 
 
 def upstream_algorithms(algorithm) -> list:

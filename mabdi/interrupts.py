@@ -44,7 +44,7 @@ _previous_unraisable_hook = None
 
 
 def note() -> None:
-    """Note a SIGINT (:func:`_interrupt`; and :func:`mabdi.algorithm.interrupts_held` for one it holds)."""
+    """Note a SIGINT (:func:`_interrupt`; and :func:`interrupts_held` for one it holds)."""
     global _interrupted
     _interrupted = True
 
@@ -151,3 +151,48 @@ def interrupts_unwrapped():
         if caused_by_interrupt(error):
             raise KeyboardInterrupt from error
         raise
+
+
+_held = {"depth": 0, "pending": False}
+
+
+@contextlib.contextmanager
+def interrupts_held():
+    """Hold Ctrl-C (SIGINT) inside the block and raise ``KeyboardInterrupt`` when it ends.
+
+    Only in the main thread and only while Python's default SIGINT handler, or
+    the command line's (:mod:`mabdi.interrupts`: it raises the same), is
+    installed (a program with its own handler keeps it); that one is back when
+    the block ends. Nested blocks hold
+    until the outermost one ends. A second SIGINT while one is held raises
+    ``KeyboardInterrupt`` at once (for an update that never returns).
+    """
+    if _held["depth"]:
+        _held["depth"] += 1
+        try:
+            yield
+        finally:
+            _held["depth"] -= 1
+        return
+    previous = signal.getsignal(signal.SIGINT) if threading.current_thread() is threading.main_thread() else None
+    if previous not in raising_handlers():
+        yield
+        return
+
+    def hold(signum, frame):
+        if previous is not signal.default_int_handler:  # the command line's: its note, should the interrupt be lost later
+            note()
+        if _held["pending"]:
+            raise KeyboardInterrupt
+        _held["pending"] = True
+
+    _held["depth"], _held["pending"] = 1, False
+    signal.signal(signal.SIGINT, hold)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+        _held["depth"] = 0
+        pending, _held["pending"] = _held["pending"], False
+        if pending:
+            raise KeyboardInterrupt

@@ -29,6 +29,40 @@ def test_failed_write_keeps_the_old_file(tmp_path):
     assert list(tmp_path.iterdir()) == [target]  # no temporary left behind
 
 
+@pytest.mark.parametrize("moment", ["after the file is made", "while it is removed"])
+def test_ctrl_c_while_the_temporary_file_is_made_or_removed_leaves_none_behind(tmp_path, monkeypatch, moment):
+    """A SIGINT that lands between creating the temporary file and owning it (or while removing it) still
+    removes it: the interrupt is raised once the file is in the writer's hands."""
+    import os
+    import signal
+
+    import mabdi.io.atomic as atomic
+    from mabdi import interrupts
+
+    def interrupt_after(function):
+        def wrapped(*args, **kwargs):
+            result = function(*args, **kwargs)
+            os.kill(os.getpid(), signal.SIGINT)  # Python runs the handler at the next bytecode
+            return result
+
+        return wrapped
+
+    target = tmp_path / "checkpoint.npz"
+    if moment == "after the file is made":
+        monkeypatch.setattr(atomic.os, "close", interrupt_after(os.close))
+        with pytest.raises(KeyboardInterrupt):
+            with atomic_output(target) as temporary:
+                temporary.write_bytes(b"never reached")
+    else:
+        with pytest.raises(KeyboardInterrupt):
+            with atomic_output(target) as temporary:
+                monkeypatch.setattr(atomic.Path, "exists", interrupt_after(atomic.Path.exists))
+                raise KeyboardInterrupt
+    monkeypatch.undo()
+    interrupts.clear()  # the SIGINT noted (where the command line's handler took it) is this test's alone
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_write_into_a_missing_folder_is_a_clear_error(tmp_path):
     blocker = tmp_path / "file"
     blocker.write_text("x")

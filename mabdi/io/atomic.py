@@ -4,9 +4,10 @@ A crash, a full disk or an exception while writing never leaves a
 half-written file where a good one was: the old file stays until the new one
 is complete, and the temporary file is removed on failure. Python's own
 writes raise on a full disk; an ``OSError`` in the block (or in the final
-fsync) becomes :class:`~mabdi.errors.WriteError` naming the target. Writers
-that do not report a full disk (VTK's) must check what they wrote before the
-block ends (:mod:`mabdi.io.vtk_files` does).
+fsync) becomes :class:`~mabdi.errors.WriteError` naming the target. Ctrl-C
+while the temporary file is made or removed is held until it is owned or
+gone. Writers that do not report a full disk (VTK's) must check what they
+wrote before the block ends (:mod:`mabdi.io.vtk_files` does).
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ import tempfile
 from pathlib import Path
 
 from mabdi.errors import MabdiError, WriteError
+from mabdi.interrupts import interrupts_held
 
 
 def _umask() -> int:
@@ -36,10 +38,12 @@ def atomic_output(path):
     parent = path.parent if str(path.parent) else Path(".")
     if not parent.is_dir():
         raise FileNotFoundError(f"cannot write {path}: folder {parent} does not exist")
-    handle, temporary = tempfile.mkstemp(prefix=f".{path.name}.", suffix=f".tmp{path.suffix}", dir=parent)
-    os.close(handle)
-    temporary = Path(temporary)
+    temporary = None
     try:
+        with interrupts_held():  # Ctrl-C between making the file and holding its name would leave it behind
+            handle, name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=f".tmp{path.suffix}", dir=parent)
+            os.close(handle)
+            temporary = Path(name)
         try:
             yield temporary
             with open(temporary, "rb+") as stream:
@@ -52,8 +56,9 @@ def atomic_output(path):
             reason = error.strerror or str(error)
             raise WriteError(f"cannot write {path}: {reason}") from error
     finally:
-        if temporary.exists():
-            temporary.unlink()
+        with interrupts_held():  # and one while it is removed (after an error, or the first Ctrl-C)
+            if temporary is not None and temporary.exists():
+                temporary.unlink()
 
 
 def write_text(path, text: str) -> None:

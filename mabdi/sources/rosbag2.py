@@ -42,6 +42,7 @@ import numpy as np
 
 from mabdi.camera import Intrinsics, quaternions_from_rotations
 from mabdi.depth import DepthFrame
+from mabdi.interrupts import interrupts_held
 from mabdi.io.atomic import write_text
 from mabdi.io.toml_writer import toml_lines
 from mabdi.spherical import SphericalGeometry
@@ -874,9 +875,11 @@ def _new_bag(path: Path, storage: str):
     parent = path.parent if str(path.parent) else Path(".")
     if not parent.is_dir():
         raise SequenceError(f"cannot write ROS 2 bag {path}: folder {parent} does not exist")
-    temporary = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".tmp", dir=parent))
-    folder = temporary / "bag"
+    temporary = None
     try:
+        with interrupts_held():  # Ctrl-C between making the folder and holding its name would leave it behind
+            temporary = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".tmp", dir=parent))
+        folder = temporary / "bag"
         try:
             writer = rosbags.Writer(folder, version=rosbags.Writer.VERSION_LATEST, storage_plugin=plugins[storage])
             writer.open()
@@ -897,7 +900,9 @@ def _new_bag(path: Path, storage: str):
             path.rmdir()
         os.replace(folder, path)
     finally:
-        shutil.rmtree(temporary, ignore_errors=True)
+        if temporary is not None:
+            with interrupts_held():
+                shutil.rmtree(temporary, ignore_errors=True)
 
 
 def write_rosbag2(
