@@ -70,7 +70,8 @@ from mabdi.evaluate.bench import machine_info
 from mabdi.evaluate.held_out import THRESHOLDS, corrected_poses, held_out_split, pose_differences, score_map
 from mabdi.evaluate.tsdf import TsdfSettings, open3d_status, run_tsdf
 from mabdi.io.atomic import write_text
-from mabdi.loop.mapping_run import RECORDING_NOISE, MappingRun
+from mabdi.loop.mapping_run import RECORDING_NOISE, MappingRun, RecordedFrames, depth_range_stated
+from mabdi.sources.depth_range import learn_depth_range
 from mabdi.sources.frames import FrameSubset
 from mabdi.sources.sequences import open_sequence
 from mabdi.stages.time_offset import AUTO, learn_time_offset
@@ -318,6 +319,12 @@ def main(argv=None) -> int:
     elif args.time_offset not in (None, AUTO):
         source = source.with_time_offset(float(args.time_offset))
     frames = min(frames, len(source))  # poses taken at other times may leave a frame at either end without one
+    if isinstance(source.intrinsics, Intrinsics) and not depth_range_stated(args.sequence, args.camera):
+        # as mabdi run does: near and far from the frames where the recording states none
+        depth_range = learn_depth_range(source, frames)
+        if depth_range is not None:
+            log(f"note: {depth_range.note()}")
+            source = RecordedFrames(source, frames, path=args.sequence, depth_range=depth_range)
     integrated, held = held_out_split(frames, args.every)
     subset = FrameSubset(source, integrated) if args.jitter is None else JitteredFrames(source, integrated, *args.jitter)
     log(f"{source.description}: {frames} frames, {len(integrated)} integrated, {len(held)} held out")

@@ -26,6 +26,7 @@ last frame.
 
 from __future__ import annotations
 
+import dataclasses
 import tomllib
 from pathlib import Path
 
@@ -43,6 +44,7 @@ from mabdi.simulate.recording import TRUE_POSES
 from mabdi.simulate.rig import SimulatedRig
 from mabdi.loop.run_outputs import CHECKPOINT, OLD_CHECKPOINT, RunResult, depth_range_counts, depth_returns_summary
 from mabdi.loop.run_pipeline import FrameCallback, ResumePoint, RunPipeline
+from mabdi.sources.depth_range import DepthRange, learn_depth_range
 from mabdi.sources.frames import FrameSource, FrameSubset
 from mabdi.sources.scene import SourceScene
 from mabdi.sources.sequences import FORMATS, READER_OPTIONS, metadata_path, open_sequence, read_sequence_metadata, sequence_format
@@ -267,11 +269,14 @@ class RecordedFrames(FrameSubset):
     """A recording's first ``frames`` frames (all when None, or when it has fewer), counting per frame the pixels
     its depth loses before the loop sees it: no return, nearer than near, beyond far (:meth:`depth_returns`).
 
-    Everything else is the recording's (``recording``: the reader). ``asked``: the frames asked for (None: all).
+    ``depth_range``: a near and far learnt from the frames (:mod:`mabdi.sources.depth_range`) that replace the
+    camera's; None keeps them. Everything else is the recording's (``recording``: the reader). ``asked``: the
+    frames asked for (None: all).
     """
 
-    def __init__(self, recording: FrameSource, frames: int | None = None, path=None) -> None:
+    def __init__(self, recording: FrameSource, frames: int | None = None, path=None, depth_range: DepthRange | None = None) -> None:
         self.recording = recording
+        self.depth_range = depth_range
         self.available = len(recording)
         self.asked = None if frames is None else int(frames)
         if self.asked is not None and self.asked < 1:
@@ -281,6 +286,8 @@ class RecordedFrames(FrameSubset):
         self.description = recording.description
         if self.count < self.available:
             self.description += f", its first {self.count} frame{'s' if self.count != 1 else ''} run"
+        if depth_range is not None:
+            self.description += f", {depth_range.note()}"
         self.path = None if path is None else Path(path)
         self._counts: dict[int, np.ndarray] = {}
 
@@ -289,8 +296,17 @@ class RecordedFrames(FrameSubset):
             raise AttributeError(name)
         return getattr(self.recording, name)  # the reader's own (depth_scale, folder, skipped, ...)
 
+    @property
+    def intrinsics(self):
+        geometry = self.recording.intrinsics
+        if self.depth_range is None:
+            return geometry
+        return dataclasses.replace(geometry, near=self.depth_range.near, far=self.depth_range.far)
+
     def read_frame(self, index: int):
         frame = self.recording.read_frame(index)  # as the recording has it: the counts come before the near/far cut
+        if self.depth_range is not None:
+            frame.intrinsics = self.intrinsics
         geometry = frame.intrinsics
         self._counts[index] = depth_range_counts(frame.depth, geometry.near, geometry.far)
         return frame
@@ -311,6 +327,18 @@ class RecordedFrames(FrameSubset):
         """Take back :meth:`counts_state` (a resumed run counts its first frames too)."""
         state = np.asarray(state, dtype=np.float64).reshape(-1, 7)
         self._counts = {int(row[0]): row[1:].copy() for row in state}
+
+def depth_range_stated(path, camera) -> bool:
+    """Whether a depth camera's near and far are stated for the recording at ``path``: near or far in its
+    ``mabdi.toml`` ``[camera]`` table (mabdi writes both with every recording), or ``camera`` given as
+    ``"fx,fy,cx,cy,width,height,near,far"`` or as :class:`Intrinsics` (a preset's name states no range)."""
+    table = read_sequence_metadata(path).get("camera", {})
+    if isinstance(table, dict) and ("near" in table or "far" in table):
+        return True
+    if isinstance(camera, str):
+        return camera.count(",") == len(CAMERA_FIELDS) - 1
+    return isinstance(camera, Intrinsics)
+
 
 def recorded_simulation(
     config: RunConfig, path, noise_stated: bool = True, frames: int | None = None, **options
@@ -340,7 +368,10 @@ def recorded_simulation(
     time_offset = learn_recording_time_offset(recording, frames) if learn_offset else None
     if time_offset is not None and time_offset.applied:
         recording = recording.with_time_offset(time_offset.seconds)
-    source = RecordedFrames(recording, frames, path=path)
+    depth_range = None
+    if isinstance(recording.intrinsics, Intrinsics) and not depth_range_stated(path, camera):
+        depth_range = learn_depth_range(recording, len(recording) if frames is None else max(1, min(int(frames), len(recording))))
+    source = RecordedFrames(recording, frames, path=path, depth_range=depth_range)
     source.options = wanted  # the remedies a message may name (--camera, --depth-scale)
     if not noise_stated:
         if isinstance(source.intrinsics, Intrinsics):

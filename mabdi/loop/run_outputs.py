@@ -62,6 +62,7 @@ from mabdi.mesh_maps.mesh_map import MeshMap
 from mabdi.polydata import polyline
 from mabdi.loop.loop import FrameRecord
 from mabdi.simulate.recording import TRUE_POSES  # in a run's folder too, when the source knows the true poses
+from mabdi.sources.depth_range import DROPPED_SHARE
 from mabdi.sources.tum import write_tum_trajectory
 
 #: The loop's state every ``output.checkpoint_every`` frames (data only: :mod:`mabdi.io.checkpoint`).
@@ -255,11 +256,7 @@ class EmptyMapWarning(UserWarning):
 
 
 class DepthRangeWarning(UserWarning):
-    """A recording's frames lost more than :data:`DROPPED_SHARE_NOTE` of their depth values to near and far."""
-
-
-#: The share of a recording's depth values dropped as nearer than near or beyond far above which a run says so.
-DROPPED_SHARE_NOTE = 0.02
+    """A recording's frames lost more than :data:`DROPPED_SHARE` of their depth values to near and far."""
 
 
 def depth_range_counts(depth, near: float, far: float) -> np.ndarray:
@@ -351,8 +348,8 @@ def _range_remedy(counts: dict, source) -> str:
 
 def dropped_depth_note(counts: dict | None, source) -> str | None:
     """A line on the depth values a recording's frames lost to near and far, when more than
-    :data:`DROPPED_SHARE_NOTE` of them; None otherwise."""
-    if counts is None or dropped_share(counts) <= DROPPED_SHARE_NOTE:
+    :data:`DROPPED_SHARE` of them; None otherwise."""
+    if counts is None or dropped_share(counts) <= DROPPED_SHARE:
         return None
     return (
         f"{100.0 * dropped_share(counts):.1f}% of the depth values were dropped as outside near..far: "
