@@ -114,7 +114,7 @@ def _parser() -> argparse.ArgumentParser:
     sequence = run.add_argument_group("recorded sequences (--sequence)")
     sequence.add_argument(
         "--sequence", type=Path,
-        help="run on a recorded sequence (a TUM RGB-D folder, a ROS 2 bag, or a 3DMatch / 7-Scenes, Redwood / Open3D, "
+        help="run on a recorded sequence (a TUM RGB-D folder, a ROS 2 or ROS 1 bag, or a 3DMatch / 7-Scenes, Redwood / Open3D, "
         "ScanNet, Replica (NICE-SLAM) or KITTI-style LiDAR folder, told apart by their files) instead of the simulated sensor; "
         "CONFIG then gives the classifier, surface and output settings (its [sensor] noise sets the thresholds; "
         "when neither CONFIG's [sensor] nor --noise names a noise model, a depth camera's is learnt from the run, noise = auto)",
@@ -129,17 +129,17 @@ def _parser() -> argparse.ArgumentParser:
         "--depth-scale", type=float,
         help="depth PNG units per metre, replacing the layout's own (TUM 5000, 3DMatch / Redwood / ScanNet 1000, Replica 6553.5)",
     )
-    sequence.add_argument("--depth-topic", help="ROS 2 bag: the depth image topic (when there are several)")
-    sequence.add_argument("--info-topic", help="ROS 2 bag: the CameraInfo topic (when there are several)")
-    sequence.add_argument("--pose-topic", help="ROS 2 bag: a PoseStamped topic for the poses (default: /tf when present)")
-    sequence.add_argument("--cloud-topic", help="ROS 2 bag: a PointCloud2 topic of LiDAR scans to read instead of depth images")
-    sequence.add_argument("--colour-topic", help="ROS 2 bag: the rgb8 / bgr8 colour image topic registered to the depth (when there are several)")
+    sequence.add_argument("--depth-topic", help="ROS bag: the depth image topic (when there are several)")
+    sequence.add_argument("--info-topic", help="ROS bag: the CameraInfo topic (when there are several)")
+    sequence.add_argument("--pose-topic", help="ROS bag: a PoseStamped topic for the poses (default: /tf when present)")
+    sequence.add_argument("--cloud-topic", help="ROS bag: a PointCloud2 topic of LiDAR scans to read instead of depth images")
+    sequence.add_argument("--colour-topic", help="ROS bag: the rgb8 / bgr8 colour image topic registered to the depth (when there are several)")
     sequence.add_argument(
-        "--tolerance", type=float, help="TUM, ROS 2 bag: largest time between a depth frame and its pose, seconds (default 0.02)"
+        "--tolerance", type=float, help="TUM, ROS bag: largest time between a depth frame and its pose, seconds (default 0.02)"
     )
     sequence.add_argument(
         "--time-offset", type=_time_offset,
-        help="TUM, ROS 2 bag: seconds from a depth frame's timestamp to the time its pose is taken at, or auto (the default: "
+        help="TUM, ROS bag: seconds from a depth frame's timestamp to the time its pose is taken at, or auto (the default: "
         "learnt from the depth where the pose clock and the depth clock disagree; 0 keeps the recording's pairing)",
     )
 

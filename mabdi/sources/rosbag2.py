@@ -1,8 +1,10 @@
-"""ROS 2 bags (sqlite3 and MCAP storage) as a frame source, and any frame source written as a bag.
+"""ROS bags as a frame source: ROS 2 (sqlite3 and MCAP storage) and ROS 1 (``.bag``); any frame source written as a ROS 2 bag.
 
 Reading and writing use the pure-Python ``rosbags`` package (imported when a
 bag is first opened or written, :func:`_rosbags`); message layouts are
-ROS 2 Humble's.
+ROS 2 Humble's, and a ROS 1 bag's those its own message definitions give
+(CameraInfo's ``K``; ``tf/tfMessage`` on /tf as ``tf2_msgs/TFMessage``;
+frame names with a leading ``/`` as tf2 names them, without).
 
 * **Depth**: ``sensor_msgs/msg/Image``, ``16UC1`` (millimetres, 0 = no
   return) or ``32FC1`` (metres, NaN or 0 = no return).
@@ -66,6 +68,8 @@ IMAGE = "sensor_msgs/msg/Image"
 CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
 POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
 TF_MESSAGE = "tf2_msgs/msg/TFMessage"
+#: The transform messages read on /tf and /tf_static: tf2's, and tf's of older ROS 1 bags (the same layout).
+TF_MESSAGES = (TF_MESSAGE, "tf/msg/tfMessage")
 POINT_CLOUD2 = "sensor_msgs/msg/PointCloud2"
 #: Compressed images (image_transport's compressed / compressedDepth): named in errors, not read.
 COMPRESSED_IMAGE = "sensor_msgs/msg/CompressedImage"
@@ -102,10 +106,13 @@ LINK_FROM_OPTICAL = np.array(
 @functools.cache
 def _rosbags() -> SimpleNamespace:
     """The ``rosbags`` names this module uses and the ROS 2 Humble type store, imported on first use."""
+    from rosbags.highlevel import AnyReader, AnyReaderError
     from rosbags.rosbag2 import Reader, ReaderError, StoragePlugin, Writer, WriterError
     from rosbags.typesys import Stores, get_typestore
 
     return SimpleNamespace(
+        AnyReader=AnyReader,
+        AnyReaderError=AnyReaderError,
         Reader=Reader,
         ReaderError=ReaderError,
         StoragePlugin=StoragePlugin,
@@ -231,12 +238,15 @@ class Rosbag2Sequence(FrameSource):
         time_offset: float = 0.0,
     ) -> None:
         self.path = Path(path)
+        #: A ROS 1 bag (one ``.bag`` file) or a ROS 2 one, for messages.
+        self.ros1 = self.path.suffix == ".bag"
+        self.kind = "ROS 1 bag" if self.ros1 else "ROS 2 bag"
         if not self.path.exists():
-            raise SequenceError(f"ROS 2 bag {self.path} does not exist")
+            raise SequenceError(f"{self.kind} {self.path} does not exist")
         if not (np.isfinite(tolerance) and tolerance >= 0):
-            raise SequenceError(f"ROS 2 bag {self.path}: tolerance must be >= 0 seconds, got {tolerance!r}")
+            raise SequenceError(f"{self.kind} {self.path}: tolerance must be >= 0 seconds, got {tolerance!r}")
         if not np.isfinite(time_offset):
-            raise SequenceError(f"ROS 2 bag {self.path}: time offset must be a number of seconds, got {time_offset!r}")
+            raise SequenceError(f"{self.kind} {self.path}: time offset must be a number of seconds, got {time_offset!r}")
         self.tolerance = float(tolerance)
         self.time_offset = float(time_offset)
         self._options = {
@@ -258,7 +268,7 @@ class Rosbag2Sequence(FrameSource):
         else:
             for name, value in (("info_topic", info_topic), ("colour_topic", colour_topic)):
                 if value is not None:
-                    raise SequenceError(f"ROS 2 bag {self.path}: {_option(name)} is for depth images, not the point clouds of {self.cloud_topic}")
+                    raise SequenceError(f"{self.kind} {self.path}: {_option(name)} is for depth images, not the point clouds of {self.cloud_topic}")
             self.depth_topic = self.cloud_topic  # the topic the frames come from
             self.info_topic = None
             first = self._index_clouds()
@@ -274,7 +284,7 @@ class Rosbag2Sequence(FrameSource):
         self._occurrence = self._all_occurrence[keep]
         self.colour_topic = self._choose_colour_topic(colour_topic) if self.cloud_topic is None else None
         far_colour = self._index_colour() if self.colour_topic is not None else 0
-        self.description = f"ROS 2 bag {self.path} ({self.depth_topic}, poses from {self.pose_source}, {len(self._poses)} frames"
+        self.description = f"{self.kind} {self.path} ({self.depth_topic}, poses from {self.pose_source}, {len(self._poses)} frames"
         if self.time_offset:
             self.description += f", poses taken {1000 * self.time_offset:+.1f} ms from the image stamps"
         if self.colour_topic is not None:
@@ -289,7 +299,7 @@ class Rosbag2Sequence(FrameSource):
             self.description = self.description[:-1] + f"; not reached by {_list(spans)})"
         if not len(self._poses):
             raise SequenceError(
-                f"ROS 2 bag {self.path}: no image on {self.depth_topic} has a pose from {self.pose_source} "
+                f"{self.kind} {self.path}: no image on {self.depth_topic} has a pose from {self.pose_source} "
                 f"within {self.tolerance * 1000:g} ms ({self.skipped} images)"
                 + (f"; the links that do not reach them: {'; '.join(spans.values())}" if spans else "")
             )
@@ -300,10 +310,16 @@ class Rosbag2Sequence(FrameSource):
         if self._reader is None:
             rosbags = _rosbags()
             try:
-                reader = rosbags.Reader(self.path)
-                reader.open()
-            except (rosbags.ReaderError, FileNotFoundError, OSError, ValueError, KeyError) as exc:
-                raise SequenceError(f"ROS 2 bag {self.path}: cannot open: {exc}") from None
+                if self.ros1:  # the bag carries its message definitions (ROS 1 field names: CameraInfo's K)
+                    reader = rosbags.AnyReader([self.path])
+                    reader.open()
+                    self._deserialize = reader.deserialize
+                else:
+                    reader = rosbags.Reader(self.path)
+                    reader.open()
+                    self._deserialize = rosbags.typestore.deserialize_cdr
+            except (rosbags.ReaderError, rosbags.AnyReaderError, FileNotFoundError, OSError, ValueError, KeyError) as exc:
+                raise SequenceError(f"{self.kind} {self.path}: cannot open: {exc}") from None
             self._reader = reader
         return self._reader
 
@@ -317,22 +333,22 @@ class Rosbag2Sequence(FrameSource):
 
     def _messages(self, topic: str, start: int | None = None, stop: int | None = None):
         """(bag time ns, deserialised message) of ``topic``, in bag-time order."""
-        typestore = _rosbags().typestore
-        for connection, log_time, raw in self._open().messages(self._connections(topic), start=start, stop=stop):
+        connections = self._connections(topic)
+        for connection, log_time, raw in self._open().messages(connections, start=start, stop=stop):
             try:
-                yield log_time, typestore.deserialize_cdr(raw, connection.msgtype)
+                yield log_time, self._deserialize(raw, connection.msgtype)
             except Exception as exc:  # noqa: BLE001 (rosbags raises several kinds for a corrupt message)
-                raise SequenceError(f"ROS 2 bag {self.path}: topic {topic}: cannot decode a message: {exc}") from None
+                raise SequenceError(f"{self.kind} {self.path}: topic {topic}: cannot decode a message: {exc}") from None
 
     def _check_topic(self, topic: str, msgtype: str, argument: str) -> str:
         if topic not in self.topics:
             raise SequenceError(
-                f"ROS 2 bag {self.path}: no topic {topic!r} ({argument}); the bag has: "
+                f"{self.kind} {self.path}: no topic {topic!r} ({argument}); the bag has: "
                 + _list(f"{t} [{m}]" for t, m in self.topics.items())
             )
         if self.topics[topic] != msgtype:
             raise SequenceError(
-                f"ROS 2 bag {self.path}: topic {topic} ({argument}) is {self.topics[topic]}, expected {msgtype}"
+                f"{self.kind} {self.path}: topic {topic} ({argument}) is {self.topics[topic]}, expected {msgtype}"
             )
         return topic
 
@@ -344,7 +360,7 @@ class Rosbag2Sequence(FrameSource):
         depth, the only PointCloud2 topic (several are an error naming them); else None (depth images)."""
         if topic is not None:
             if depth_topic is not None:
-                raise SequenceError(f"ROS 2 bag {self.path}: give {_option('depth_topic')} or {_option('cloud_topic')}, not both")
+                raise SequenceError(f"{self.kind} {self.path}: give {_option('depth_topic')} or {_option('cloud_topic')}, not both")
             return self._check_topic(topic, POINT_CLOUD2, _option("cloud_topic"))
         clouds = self._of_type(POINT_CLOUD2)
         if depth_topic is not None or not clouds:
@@ -354,7 +370,7 @@ class Rosbag2Sequence(FrameSource):
             if first is not None and first[1].encoding in DEPTH_ENCODINGS:
                 return None
         if len(clouds) > 1:
-            raise SequenceError(f"ROS 2 bag {self.path}: several point cloud topics ({_list(clouds)}); choose one with {_option('cloud_topic')}")
+            raise SequenceError(f"{self.kind} {self.path}: several point cloud topics ({_list(clouds)}); choose one with {_option('cloud_topic')}")
         return clouds[0]
 
     def _index_clouds(self):
@@ -368,7 +384,7 @@ class Rosbag2Sequence(FrameSource):
 
         self._all_stamps, self._all_log_times, self._all_occurrence = self._index_images(self.cloud_topic, check)
         if len(frame_ids) != 1:
-            raise SequenceError(f"ROS 2 bag {self.path}: topic {self.cloud_topic}: clouds in several frames ({_list(frame_ids)})")
+            raise SequenceError(f"{self.kind} {self.path}: topic {self.cloud_topic}: clouds in several frames ({_list(frame_ids)})")
         self.camera_frame = frame_ids.pop()
         self._time_origin = int(self._all_stamps.min())
         return first[0]
@@ -379,7 +395,7 @@ class Rosbag2Sequence(FrameSource):
         table = self.metadata.get("lidar", {})
         if not isinstance(table, dict):
             raise SequenceError(f"{file}: 'lidar' must be a table")
-        where = f"ROS 2 bag {self.path}: topic {self.cloud_topic}"
+        where = f"{self.kind} {self.path}: topic {self.cloud_topic}"
         points, rings, organised = cloud_points(message, f"{where}: first message")
         index = rings if rings is not None else organised
         derived: dict = {"columns": int(message.width) if organised is not None else DEFAULT_COLUMNS}
@@ -417,13 +433,13 @@ class Rosbag2Sequence(FrameSource):
         packed = self._of_type(COMPRESSED_IMAGE)
         if not candidates and packed:
             raise SequenceError(
-                f"ROS 2 bag {self.path}: no {IMAGE} topic; compressed images ({_list(packed)}) are not read: "
+                f"{self.kind} {self.path}: no {IMAGE} topic; compressed images ({_list(packed)}) are not read: "
                 f"decompress them into a {IMAGE} topic (e.g. ros2 run image_transport republish) and choose it with "
                 f"{_option('depth_topic')}"
             )
         if len(candidates) != 1:
             raise SequenceError(
-                f"ROS 2 bag {self.path}: "
+                f"{self.kind} {self.path}: "
                 + (f"several depth image topics ({_list(candidates)})" if candidates else f"no {IMAGE} topic")
                 + f"; choose one with {_option('depth_topic')} (topics: "
                 + _list(f"{t} [{m}]" for t, m in self.topics.items())
@@ -443,7 +459,7 @@ class Rosbag2Sequence(FrameSource):
                 candidates.append(name)
         if len(candidates) > 1:
             raise SequenceError(
-                f"ROS 2 bag {self.path}: several colour image topics ({_list(candidates)}); choose one with {_option('colour_topic')}"
+                f"{self.kind} {self.path}: several colour image topics ({_list(candidates)}); choose one with {_option('colour_topic')}"
             )
         return candidates[0] if candidates else None
 
@@ -452,7 +468,7 @@ class Rosbag2Sequence(FrameSource):
         def check(message) -> None:
             if message.encoding not in COLOUR_ENCODINGS:
                 raise SequenceError(
-                    f"ROS 2 bag {self.path}: topic {self.colour_topic}: colour encoding {message.encoding!r} is not read "
+                    f"{self.kind} {self.path}: topic {self.colour_topic}: colour encoding {message.encoding!r} is not read "
                     f"(known: {', '.join(COLOUR_ENCODINGS)})"
                 )
 
@@ -475,7 +491,7 @@ class Rosbag2Sequence(FrameSource):
             return beside
         if len(candidates) != 1:
             raise SequenceError(
-                f"ROS 2 bag {self.path}: "
+                f"{self.kind} {self.path}: "
                 + (f"several {CAMERA_INFO} topics ({_list(candidates)})" if candidates else f"no {CAMERA_INFO} topic")
                 + f" for the depth images on {self.depth_topic}; choose one with {_option('info_topic')} (topics: "
                 + _list(f"{t} [{m}]" for t, m in self.topics.items())
@@ -485,10 +501,10 @@ class Rosbag2Sequence(FrameSource):
 
     def _choose_pose_source(self, topic: str | None) -> str:
         if topic is not None:
-            if topic in ("/tf", "/tf_static") or self.topics.get(topic) == TF_MESSAGE:
+            if topic in ("/tf", "/tf_static") or self.topics.get(topic) in TF_MESSAGES:
                 if "/tf" not in self.topics and "/tf_static" not in self.topics:
                     raise SequenceError(
-                        f"ROS 2 bag {self.path}: pose topic {topic!r} ({_option('pose_topic')}) but the bag has no /tf or /tf_static"
+                        f"{self.kind} {self.path}: pose topic {topic!r} ({_option('pose_topic')}) but the bag has no /tf or /tf_static"
                     )
                 return "/tf"
             return self._check_topic(topic, POSE_STAMPED, _option("pose_topic"))
@@ -497,13 +513,13 @@ class Rosbag2Sequence(FrameSource):
             return candidates[0]
         if len(candidates) > 1:
             raise SequenceError(
-                f"ROS 2 bag {self.path}: several {POSE_STAMPED} topics ({_list(candidates)}); "
+                f"{self.kind} {self.path}: several {POSE_STAMPED} topics ({_list(candidates)}); "
                 f"choose one with {_option('pose_topic')} (or /tf)"
             )
-        if self.topics.get("/tf") == TF_MESSAGE or self.topics.get("/tf_static") == TF_MESSAGE:
+        if self.topics.get("/tf") in TF_MESSAGES or self.topics.get("/tf_static") in TF_MESSAGES:
             return "/tf"
         raise SequenceError(
-            f"ROS 2 bag {self.path}: no pose source for {self.depth_topic}: no {POSE_STAMPED} topic and no /tf "
+            f"{self.kind} {self.path}: no pose source for {self.depth_topic}: no {POSE_STAMPED} topic and no /tf "
             "(topics: " + _list(f"{t} [{m}]" for t, m in self.topics.items()) + ")"
         )
 
@@ -514,7 +530,7 @@ class Rosbag2Sequence(FrameSource):
         def check(message) -> None:
             if message.encoding not in DEPTH_ENCODINGS:
                 raise SequenceError(
-                    f"ROS 2 bag {self.path}: topic {self.depth_topic}: unknown depth encoding {message.encoding!r} "
+                    f"{self.kind} {self.path}: topic {self.depth_topic}: unknown depth encoding {message.encoding!r} "
                     f"(known: {', '.join(DEPTH_ENCODINGS)})"
                 )
             frame_ids.add(message.header.frame_id)
@@ -522,7 +538,7 @@ class Rosbag2Sequence(FrameSource):
 
         self._all_stamps, self._all_log_times, self._all_occurrence = self._index_images(self.depth_topic, check)
         if len(frame_ids) != 1:
-            raise SequenceError(f"ROS 2 bag {self.path}: topic {self.depth_topic}: images in several frames ({_list(frame_ids)})")
+            raise SequenceError(f"{self.kind} {self.path}: topic {self.depth_topic}: images in several frames ({_list(frame_ids)})")
         self.camera_frame = frame_ids.pop()
         self._time_origin = int(self._all_stamps.min())
 
@@ -539,7 +555,7 @@ class Rosbag2Sequence(FrameSource):
             log_times.append(log_time)
             occurrence.append(count)
         if not stamps:
-            raise SequenceError(f"ROS 2 bag {self.path}: topic {topic} has no messages")
+            raise SequenceError(f"{self.kind} {self.path}: topic {topic} has no messages")
         return (np.array(stamps, dtype=np.int64), np.array(log_times, dtype=np.int64), np.array(occurrence, dtype=np.int64))
 
     def _seconds(self, stamps_ns) -> np.ndarray:
@@ -549,12 +565,12 @@ class Rosbag2Sequence(FrameSource):
     def _read_intrinsics(self) -> Intrinsics:
         first = next(self._messages(self.info_topic), None)
         if first is None:
-            raise SequenceError(f"ROS 2 bag {self.path}: topic {self.info_topic} has no {CAMERA_INFO} message")
+            raise SequenceError(f"{self.kind} {self.path}: topic {self.info_topic} has no {CAMERA_INFO} message")
         info = first[1]
-        k = np.asarray(info.k, dtype=np.float64)
+        k = np.asarray(info.k if hasattr(info, "k") else info.K, dtype=np.float64)  # ROS 2's name, ROS 1's
         if (int(info.width), int(info.height)) != self._image_size:
             raise SequenceError(
-                f"ROS 2 bag {self.path}: {self.info_topic} says {info.width}x{info.height}, "
+                f"{self.kind} {self.path}: {self.info_topic} says {info.width}x{info.height}, "
                 f"images on {self.depth_topic} are {self._image_size[0]}x{self._image_size[1]}"
             )
         file = metadata_path(self.path)
@@ -566,24 +582,24 @@ class Rosbag2Sequence(FrameSource):
                 width=int(info.width), height=int(info.height), **values,
             )
         except Exception as exc:  # noqa: BLE001 (ConfigError from Intrinsics, or a short K)
-            raise SequenceError(f"ROS 2 bag {self.path}: {self.info_topic}: bad camera info (K = {k.tolist()}): {exc}") from None
+            raise SequenceError(f"{self.kind} {self.path}: {self.info_topic}: bad camera info (K = {k.tolist()}): {exc}") from None
 
     # -- poses ----------------------------------------------------------------
 
     def _poses_from_topic(self, frame_id: str | None) -> tuple[np.ndarray, np.ndarray]:
         stamps, poses = [], []
         for _, message in self._messages(self.pose_source):
-            if frame_id is not None and message.header.frame_id != frame_id:
+            if frame_id is not None and message.header.frame_id.lstrip("/") != frame_id.lstrip("/"):  # ROS 1 frames may lead with /
                 raise SequenceError(
-                    f"ROS 2 bag {self.path}: topic {self.pose_source}: pose in frame {message.header.frame_id!r}, "
+                    f"{self.kind} {self.path}: topic {self.pose_source}: pose in frame {message.header.frame_id!r}, "
                     f"expected frame_id={frame_id!r}"
                 )
             stamp = _stamp_ns(message.header.stamp)
             stamps.append(stamp)
-            where = f"ROS 2 bag {self.path}: topic {self.pose_source}: the pose at stamp {float(ns_to_seconds(stamp)):.9f} s"
+            where = f"{self.kind} {self.path}: topic {self.pose_source}: the pose at stamp {float(ns_to_seconds(stamp)):.9f} s"
             poses.append(_pose_matrix(message.pose.position, message.pose.orientation, where))
         if not poses:
-            raise SequenceError(f"ROS 2 bag {self.path}: pose topic {self.pose_source} has no messages")
+            raise SequenceError(f"{self.kind} {self.path}: pose topic {self.pose_source} has no messages")
         self._pose_stream = (ns_to_seconds(np.array(stamps, dtype=np.int64)), np.array(poses))
         # interpolated between the two samples around the image within the tolerance, else the nearest within it,
         # as a TUM ground truth (a pose topic at the camera's rate is up to half a frame from the image)
@@ -595,14 +611,14 @@ class Rosbag2Sequence(FrameSource):
         static: dict[str, tuple[str, np.ndarray]] = {}
         dynamic: dict[str, tuple[str, list[int], list[np.ndarray]]] = {}
         for topic in ("/tf_static", "/tf"):
-            if self.topics.get(topic) != TF_MESSAGE:
+            if self.topics.get(topic) not in TF_MESSAGES:
                 continue
             for _, message in self._messages(topic):
                 for transform in message.transforms:
                     parent, child = transform.header.frame_id.lstrip("/"), transform.child_frame_id.lstrip("/")
                     stamp = _stamp_ns(transform.header.stamp)
                     where = (
-                        f"ROS 2 bag {self.path}: {topic}: transform {parent} -> {child} "
+                        f"{self.kind} {self.path}: {topic}: transform {parent} -> {child} "
                         f"at stamp {float(ns_to_seconds(stamp)):.9f} s"
                     )
                     matrix = _pose_matrix(transform.transform.translation, transform.transform.rotation, where)
@@ -612,7 +628,7 @@ class Rosbag2Sequence(FrameSource):
                         entry = dynamic.setdefault(child, (parent, [], []))
                         if entry[0] != parent:
                             raise SequenceError(
-                                f"ROS 2 bag {self.path}: /tf: frame {child!r} has two parents ({entry[0]!r}, {parent!r})"
+                                f"{self.kind} {self.path}: /tf: frame {child!r} has two parents ({entry[0]!r}, {parent!r})"
                             )
                         entry[1].append(stamp)
                         entry[2].append(matrix)
@@ -620,21 +636,22 @@ class Rosbag2Sequence(FrameSource):
 
     def _poses_from_tf(self, frame_id: str | None) -> tuple[np.ndarray, np.ndarray]:
         static, dynamic = self._read_tf()
+        frame_id = None if frame_id is None else frame_id.lstrip("/")  # as tf2 names frames (ROS 1's may lead with /)
         parents = {child: value[0] for child, value in {**dynamic, **static}.items()}
         camera = self.camera_frame.lstrip("/")
         if camera not in parents:
             raise SequenceError(
-                f"ROS 2 bag {self.path}: /tf has no transform to the depth images' frame {camera!r}: missing link ? -> {camera} "
+                f"{self.kind} {self.path}: /tf has no transform to the depth images' frame {camera!r}: missing link ? -> {camera} "
                 f"(frames with a parent: {_list(parents)})"
             )
         chain = [camera]  # camera, its parent, ..., up to the world frame
         while chain[-1] in parents and chain[-1] != frame_id:
             chain.append(parents[chain[-1]])
             if len(chain) > len(parents) + 1:
-                raise SequenceError(f"ROS 2 bag {self.path}: /tf has a loop through {chain[-1]!r}")
+                raise SequenceError(f"{self.kind} {self.path}: /tf has a loop through {chain[-1]!r}")
         if frame_id is not None and chain[-1] != frame_id:
             raise SequenceError(
-                f"ROS 2 bag {self.path}: /tf: frame_id={frame_id!r} is not above {camera!r}: missing link ? -> {chain[-1]} "
+                f"{self.kind} {self.path}: /tf: frame_id={frame_id!r} is not above {camera!r}: missing link ? -> {chain[-1]} "
                 f"(chain: {' <- '.join(reversed(chain))})"
             )
         if frame_id is None:
@@ -643,7 +660,7 @@ class Rosbag2Sequence(FrameSource):
                 # a forest: the camera's part is not linked to the rest, so its root is not the world
                 others = sorted(f for f in {*parents, *parents.values()} if self._root(f, parents) in roots)
                 raise SequenceError(
-                    f"ROS 2 bag {self.path}: /tf: the images' frame {camera!r} is not connected to "
+                    f"{self.kind} {self.path}: /tf: the images' frame {camera!r} is not connected to "
                     f"{_list(roots)}: missing link ? -> {chain[-1]} (the chain from {camera!r} ends at {chain[-1]!r}: "
                     f"{' <- '.join(reversed(chain))}; no transform has {chain[-1]!r} as its child; the other tree has "
                     f"{_list(others)})"
@@ -748,27 +765,27 @@ class Rosbag2Sequence(FrameSource):
                 colour = self._read_colour(index) if self.colour_topic is not None else None
                 stamp = float(ns_to_seconds(self._stamps[index]))
                 return DepthFrame(depth, self._intrinsics, self._poses[index], index, stamp, colour)
-        raise SequenceError(f"ROS 2 bag {self.path}: topic {self.depth_topic}: image {index} vanished since the bag was opened")
+        raise SequenceError(f"{self.kind} {self.path}: topic {self.depth_topic}: image {index} vanished since the bag was opened")
 
     def _read_colour(self, index: int) -> np.ndarray:
         log_time, wanted = int(self._colour_log_times[index]), int(self._colour_occurrence[index])
         for position, (_, message) in enumerate(self._messages(self.colour_topic, start=log_time, stop=log_time + 1)):
             if position == wanted:
                 return self.decode_colour(message)
-        raise SequenceError(f"ROS 2 bag {self.path}: topic {self.colour_topic}: image for frame {index} vanished since the bag was opened")
+        raise SequenceError(f"{self.kind} {self.path}: topic {self.colour_topic}: image for frame {index} vanished since the bag was opened")
 
     def decode_colour(self, message) -> np.ndarray:
         """(H, W, 3) uint8 RGB of an rgb8 / bgr8 Image message, which must be registered to the depth (its size)."""
         height, width, step = int(message.height), int(message.width), int(message.step)
         if (width, height) != (self._intrinsics.width, self._intrinsics.height):
             raise SequenceError(
-                f"ROS 2 bag {self.path}: topic {self.colour_topic}: colour image {width}x{height}, depth "
+                f"{self.kind} {self.path}: topic {self.colour_topic}: colour image {width}x{height}, depth "
                 f"{self._intrinsics.width}x{self._intrinsics.height}: the colour must be registered to the depth"
             )
         data = np.asarray(message.data, dtype=np.uint8)
         if step < 3 * width or data.size < step * (height - 1) + 3 * width:
             raise SequenceError(
-                f"ROS 2 bag {self.path}: topic {self.colour_topic}: image of {width}x{height} {message.encoding} "
+                f"{self.kind} {self.path}: topic {self.colour_topic}: image of {width}x{height} {message.encoding} "
                 f"with step {step} has only {data.size} bytes"
             )
         pixels = np.ndarray((height, width, 3), dtype=np.uint8, buffer=data, strides=(step, 3, 1))
@@ -776,7 +793,7 @@ class Rosbag2Sequence(FrameSource):
 
     def decode_cloud(self, message, stamp: float = float("nan")) -> np.ndarray:
         """(beams, columns) float32 range image (m, NaN = no return) of a PointCloud2 message (module docs)."""
-        where = f"ROS 2 bag {self.path}: topic {self.cloud_topic}: the cloud at stamp {stamp:.9f} s"
+        where = f"{self.kind} {self.path}: topic {self.cloud_topic}: the cloud at stamp {stamp:.9f} s"
         points, rings, organised = cloud_points(message, where)
         index = rings if rings is not None else organised
         geometry = self._intrinsics
@@ -791,7 +808,7 @@ class Rosbag2Sequence(FrameSource):
         data = np.asarray(message.data)
         if step < width * dtype.itemsize or data.size < step * (height - 1) + width * dtype.itemsize:
             raise SequenceError(
-                f"ROS 2 bag {self.path}: topic {self.depth_topic}: image of {width}x{height} {message.encoding} "
+                f"{self.kind} {self.path}: topic {self.depth_topic}: image of {width}x{height} {message.encoding} "
                 f"with step {step} has only {data.size} bytes"
             )
         pixels = np.ndarray((height, width), dtype=dtype, buffer=data, strides=(step, dtype.itemsize))

@@ -5,7 +5,7 @@ Formats read and written (each a :class:`~mabdi.sources.frames.FrameSource`):
 * a TUM RGB-D benchmark folder (``depth/*.png``, ``depth.txt``,
   ``groundtruth.txt``): :mod:`mabdi.sources.tum`;
 * a ROS 2 bag folder (``metadata.yaml`` with ``.db3`` or ``.mcap`` files), or a
-  single ``.db3`` / ``.mcap`` file: :mod:`mabdi.sources.rosbag2`;
+  single ``.db3`` / ``.mcap`` file, or a ROS 1 ``.bag`` file: :mod:`mabdi.sources.rosbag2`;
 * the common RGB-D dataset layouts (:mod:`mabdi.sources.image_sequence` has
   what they share): 3DMatch / 7-Scenes (:mod:`mabdi.sources.threedmatch`),
   Redwood / Open3D (:mod:`mabdi.sources.redwood`), ScanNet's exporter
@@ -16,7 +16,7 @@ Formats read and written (each a :class:`~mabdi.sources.frames.FrameSource`):
 
 :func:`open_sequence` tells them apart, in the order of
 :func:`sequence_format`: ``depth.txt`` is TUM; ``metadata.yaml`` or a
-``.db3`` / ``.mcap`` is a bag; ``velodyne/`` with ``poses.txt`` is KITTI; ``traj.txt`` with ``results/`` is Replica;
+``.db3`` / ``.mcap`` (or a ``.bag`` file) is a bag; ``velodyne/`` with ``poses.txt`` is KITTI; ``traj.txt`` with ``results/`` is Replica;
 ``depth/`` with ``pose/`` is ScanNet; ``depth/`` with a ``.log`` is Redwood;
 ``frame-*.depth.png`` (here or in ``seq-*`` folders) is 3DMatch. A folder
 that holds the files of two formats is read as the first, with a warning
@@ -94,6 +94,7 @@ __all__ = [
 FORMATS = {
     "tum": ("TUM RGB-D folder", "mabdi.sources.tum", "TumSequence"),
     "rosbag2": ("ROS 2 bag", "mabdi.sources.rosbag2", "Rosbag2Sequence"),
+    "rosbag1": ("ROS 1 bag", "mabdi.sources.rosbag2", "Rosbag2Sequence"),
     "3dmatch": ("3DMatch / 7-Scenes folder", "mabdi.sources.threedmatch", "ThreeDMatchSequence"),
     "redwood": ("Redwood / Open3D folder", "mabdi.sources.redwood", "RedwoodSequence"),
     "scannet": ("ScanNet folder", "mabdi.sources.scannet", "ScanNetSequence"),
@@ -105,6 +106,7 @@ FORMATS = {
 READER_OPTIONS = {
     "tum": ("camera", "tolerance", "depth_scale", "time_offset"),
     "rosbag2": ("depth_topic", "info_topic", "pose_topic", "tolerance", "colour_topic", "cloud_topic", "time_offset"),
+    "rosbag1": ("depth_topic", "info_topic", "pose_topic", "tolerance", "colour_topic", "cloud_topic", "time_offset"),
     "3dmatch": ("camera", "depth_scale"),
     "redwood": ("camera", "depth_scale"),
     "scannet": ("camera", "depth_scale"),
@@ -113,7 +115,7 @@ READER_OPTIONS = {
 }
 
 _WHAT_IS_READ = (
-    "a TUM RGB-D folder (depth.txt), a ROS 2 bag (metadata.yaml, .db3 or .mcap), a 3DMatch / 7-Scenes folder "
+    "a TUM RGB-D folder (depth.txt), a ROS 2 bag (metadata.yaml, .db3 or .mcap), a ROS 1 bag (.bag), a 3DMatch / 7-Scenes folder "
     "(frame-*.depth.png, or seq-* folders of them), a Redwood / Open3D folder (depth/ and trajectory.log), "
     "a ScanNet folder (depth/ and pose/), a Replica NICE-SLAM folder (results/ and traj.txt) "
     "or a KITTI-style LiDAR folder (velodyne/ and poses.txt)"
@@ -124,6 +126,7 @@ _WHAT_IS_READ = (
 _CLUES = {
     "tum": "depth.txt",
     "rosbag2": "metadata.yaml, .db3 or .mcap",
+    "rosbag1": ".bag",
     "kitti": "velodyne/ and poses.txt",
     "replica": "results/ and traj.txt",
     "scannet": "depth/ and pose/",
@@ -172,6 +175,8 @@ def _choose_format(path: Path) -> tuple[str, list[str]]:
     if path.is_file():
         if path.suffix in (".db3", ".mcap"):
             return "rosbag2", []
+        if path.suffix == ".bag":
+            return "rosbag1", []
         raise SequenceError(f"{path}: not a recorded sequence (expected {_WHAT_IS_READ})")
     named = _named_format(path)
     if named is not None:
