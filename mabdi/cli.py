@@ -160,12 +160,12 @@ def _parser() -> argparse.ArgumentParser:
     record.add_argument("--overwrite", action="store_true", help="replace a previous recording in --out")
 
     export = commands.add_parser("export", help="convert a saved map between VTP, PLY, OBJ, STL and HDF5 (.h5)")
-    export.add_argument("source", type=Path, help="map file to read (.vtp, .ply, .obj, .stl, .h5)")
+    export.add_argument("source", type=Path, help="map file to read (.vtp, .ply, .obj, .stl, .h5), or a run folder (its world_mesh.h5, .vtp or .ply)")
     export.add_argument("target", type=Path, help="file to write; the format follows the suffix")
     export.add_argument("--layout", default="mesh_tools", help="HDF5 layout: mesh_tools (default) or lvr2")
 
     info = commands.add_parser("info", help="counts, bounds, layers, labels and cluster sets of a map file")
-    info.add_argument("map", type=Path, help="map file (.h5, .vtp, .ply, .obj, .stl)")
+    info.add_argument("map", type=Path, help="map file (.h5, .vtp, .ply, .obj, .stl), or a run folder (its world_mesh.h5, .vtp or .ply)")
 
     view = commands.add_parser("view", help="show a map or a run folder (a PNG when there is no display)")
     view.add_argument("path", type=Path, help="map file (.vtp, .ply, .h5, ...) or run folder")
@@ -182,7 +182,7 @@ def _parser() -> argparse.ArgumentParser:
     )
 
     plan = commands.add_parser("plan", help="plan a path on a map (Dijkstra or fast marching)")
-    plan.add_argument("map", type=Path, help="map file (.h5, .vtp, .ply, .obj, .stl)")
+    plan.add_argument("map", type=Path, help="map file (.h5, .vtp, .ply, .obj, .stl), or a run folder (its world_mesh.h5, .vtp or .ply)")
     plan.add_argument("--start", required=True, help="start point x,y,z (m)")
     plan.add_argument("--goal", required=True, help="goal point x,y,z (m)")
     plan.add_argument("--planner", default="fmm", help="fmm (default) or dijkstra")
@@ -548,9 +548,10 @@ def cmd_sweep(args) -> int:
 
 def cmd_export(args) -> int:
     from mabdi.errors import ConfigError
-    from mabdi.io.mesh_map_files import MAP_FORMATS, is_hdf5, load_map, save_map
+    from mabdi.io.mesh_map_files import MAP_FORMATS, is_hdf5, load_map, map_file, save_map
     from mabdi.io.vtk_files import read_mesh_file, write_mesh_file
 
+    args.source = map_file(args.source)  # a run's folder: its map file
     for what, path in (("source", args.source), ("target", args.target)):
         if path.suffix.lower() not in MAP_FORMATS:
             raise ConfigError(f"export: {what} {path}: unknown format '{path.suffix}' (known: {', '.join(MAP_FORMATS)})")
@@ -579,12 +580,13 @@ def _layer_line(name: str, values) -> str:
 
 def cmd_info(args) -> int:
     from mabdi.io.hdf5 import map_layout
-    from mabdi.io.mesh_map_files import is_hdf5, load_map
+    from mabdi.io.mesh_map_files import is_hdf5, load_map, map_file
 
-    mesh_map = load_map(args.map)
+    path = map_file(args.map)  # a run's folder: its map file
+    mesh_map = load_map(path)
     low, high = mesh_map.bounds()
-    layout = f" ({map_layout(args.map)} layout)" if is_hdf5(args.map) else ""
-    print(f"{args.map}{layout}")
+    layout = f" ({map_layout(path)} layout)" if is_hdf5(path) else ""
+    print(f"{path}{layout}")
     print(f"  {mesh_map.number_of_vertices:,} vertices, {mesh_map.number_of_faces:,} triangles")
     if mesh_map.number_of_vertices:
         print(f"  bounds: x {low[0]:.3f} .. {high[0]:.3f}, y {low[1]:.3f} .. {high[1]:.3f}, z {low[2]:.3f} .. {high[2]:.3f} m")

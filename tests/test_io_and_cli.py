@@ -199,3 +199,10 @@ def test_run_h5_then_info_export_and_plan(tmp_path, scenes_dir, capsys):
     assert "from the nearest free vertex" in capsys.readouterr().err
     assert main(["plan", str(out / "world_mesh.h5"), "--start=1,2", "--goal=0,0,0"]) == 2
     assert "--start must be three numbers" in capsys.readouterr().err
+    # the run's folder stands for its map (the HDF5 file: the richest), as `mabdi view` takes it
+    assert main(["info", str(out)]) == 0
+    assert f"{out / 'world_mesh.h5'} (mesh_tools layout)" in capsys.readouterr().out
+    assert main(["export", str(out), str(tmp_path / "from_folder.ply")]) == 0
+    assert (tmp_path / "from_folder.ply").is_file()
+    assert main(["info", str(tmp_path)]) == 2  # a folder that is not a run's
+    assert "holds none of world_mesh.h5, world_mesh.vtp, world_mesh.ply" in capsys.readouterr().err

@@ -1,8 +1,9 @@
 """Mesh maps from and to any file mabdi writes: HDF5 (.h5, .hdf5) and VTK's VTP, PLY, OBJ, STL.
 
 :func:`load_map` gives a :class:`~mabdi.mesh_maps.mesh_map.MeshMap` (layers from
-the HDF5 groups or the VTK point and cell data); :func:`save_map` writes one,
-atomically, the format following the suffix.
+the HDF5 groups or the VTK point and cell data), of a file or of a run's folder
+(:func:`map_file`); :func:`save_map` writes one, atomically, the format
+following the suffix.
 """
 
 from __future__ import annotations
@@ -24,13 +25,29 @@ def is_hdf5(path) -> bool:
     return Path(path).suffix.lower() in HDF5_SUFFIXES
 
 
+#: A run folder's map files, the richest first (the HDF5 file holds the cost layers and labels too).
+RUN_MAP_FILES = ("world_mesh.h5", "world_mesh.vtp", "world_mesh.ply")
+
+
+def map_file(path) -> Path:
+    """``path`` itself, or for a run's folder (``mabdi run --out``) its map: the first of :data:`RUN_MAP_FILES`
+    there (a :class:`ConfigError` naming them when it holds none)."""
+    path = Path(path)
+    if not path.is_dir():
+        return path
+    for name in RUN_MAP_FILES:
+        if (path / name).is_file():
+            return path / name
+    raise ConfigError(f"{path}: a folder, and not a run's: it holds none of {', '.join(RUN_MAP_FILES)}")
+
+
 def load_map(path) -> MeshMap:
-    """Read a map file (.h5/.hdf5 in either HDF5 layout, or .vtp/.ply/.obj/.stl).
+    """Read a map file (.h5/.hdf5 in either HDF5 layout, or .vtp/.ply/.obj/.stl), or a run folder's map (:func:`map_file`).
 
     A map with NaN or infinite vertex coordinates is damaged (bounds, picking
     and planning all go wrong on it): :class:`DamagedFileError` says how many.
     """
-    path = Path(path)
+    path = map_file(path)
     if is_hdf5(path):
         mesh_map = read_map(path)
     elif path.suffix.lower() not in MESH_FORMATS:
