@@ -5,6 +5,7 @@ written from, and run by ``mabdi run --sequence``."""
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -17,51 +18,15 @@ from mabdi.sources.sequences import SequenceError, open_sequence, sequence_forma
 rosbag1 = pytest.importorskip("rosbags.rosbag1")
 typesys = pytest.importorskip("rosbags.typesys")
 
-SMALL = """
-[run]
-name = "small"
-frames = 4
-seed = 1
-
-[sensor]
-noise = "none"
-
-[sensor.camera]
-width = 80
-height = 60
-fx = 65.625
-fy = 65.625
-cx = 40.0
-cy = 30.0
-
-[path]
-center = [0.0, 0.0]
-radius_x = 2.2
-radius_y = 2.0
-z0 = 1.5
-z1 = 1.9
-look_from = [0.0, 0.0, 0.7]
-look_to = [0.0, 0.0, 0.9]
-
-[[scene.objects]]
-type = "plane"
-size = [6.0, 6.0]
-
-[[scene.objects]]
-type = "box"
-size = [1.2, 0.8, 0.04]
-position = [0.0, 0.0, 0.96]
-"""
-
 OPTICAL = "/openni_depth_optical_frame"
 
 
 @pytest.fixture(scope="module")
 def recording(tmp_path_factory):
-    """A 4-frame TUM folder of a small table scene (80 x 60 pixels), recorded by mabdi."""
+    """4 frames of the table scene as a TUM folder, recorded by mabdi."""
     root = tmp_path_factory.mktemp("ros1")
-    (root / "small.toml").write_text(SMALL)
-    assert main(["record", str(root / "small.toml"), "--format", "tum", "--out", str(root / "tum")]) == 0
+    table = Path(__file__).resolve().parents[1] / "scenes" / "table.toml"
+    assert main(["record", str(table), "--frames", "4", "--format", "tum", "--out", str(root / "tum")]) == 0
     return open_sequence(root / "tum")
 
 
@@ -129,7 +94,8 @@ def test_a_ros1_bag_reads_as_the_frames_it_was_written_from(recording, bag):
     assert sequence_format(bag) == "rosbag1"
     read = open_sequence(bag)
     assert "ROS 1 bag" in read.description and len(read) == len(recording)
-    assert read.intrinsics.fx == recording.intrinsics.fx and (read.intrinsics.cx, read.intrinsics.cy) == (40.0, 30.0)
+    k = recording.intrinsics
+    assert (read.intrinsics.fx, read.intrinsics.fy, read.intrinsics.cx, read.intrinsics.cy) == (k.fx, k.fy, k.cx, k.cy)
     assert read.world_frame == "world"
     for i in range(len(recording)):
         mine, theirs = read.read(i), recording.read(i)
