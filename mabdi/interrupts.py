@@ -161,11 +161,12 @@ def interrupts_held():
     """Hold Ctrl-C (SIGINT) inside the block and raise ``KeyboardInterrupt`` when it ends.
 
     Only in the main thread and only while Python's default SIGINT handler, or
-    the command line's (:mod:`mabdi.interrupts`: it raises the same), is
-    installed (a program with its own handler keeps it); that one is back when
-    the block ends. Nested blocks hold
-    until the outermost one ends. A second SIGINT while one is held raises
-    ``KeyboardInterrupt`` at once (for an update that never returns).
+    the command line's (:func:`_interrupt`: it raises the same), is installed
+    (a program with its own handler keeps it); that one is back when the block
+    ends. Nested blocks hold until the outermost one ends. A second SIGINT
+    while one is held raises ``KeyboardInterrupt`` at once (for an update that
+    never returns). Used around pipeline updates (:mod:`mabdi.algorithm`) and
+    an atomic write's temporary file (:mod:`mabdi.io.atomic`).
     """
     if _held["depth"]:
         _held["depth"] += 1
