@@ -328,6 +328,7 @@ class RecordedFrames(FrameSubset):
         state = np.asarray(state, dtype=np.float64).reshape(-1, 7)
         self._counts = {int(row[0]): row[1:].copy() for row in state}
 
+
 def depth_range_stated(path, camera) -> bool:
     """Whether a depth camera's near and far are stated for the recording at ``path``: near or far in its
     ``mabdi.toml`` ``[camera]`` table (mabdi writes both with every recording), or ``camera`` given as
