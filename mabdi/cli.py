@@ -160,12 +160,16 @@ def _parser() -> argparse.ArgumentParser:
     record.add_argument("--overwrite", action="store_true", help="replace a previous recording in --out")
 
     export = commands.add_parser("export", help="convert a saved map between VTP, PLY, OBJ, STL and HDF5 (.h5)")
-    export.add_argument("source", type=Path, help="map file to read (.vtp, .ply, .obj, .stl, .h5), or a run folder (its world_mesh.h5, .vtp or .ply)")
+    export.add_argument(
+        "source", type=Path, help="map file to read (.vtp, .ply, .obj, .stl, .h5), or a run folder (its world_mesh.h5, .vtp or .ply)"
+    )
     export.add_argument("target", type=Path, help="file to write; the format follows the suffix")
     export.add_argument("--layout", default="mesh_tools", help="HDF5 layout: mesh_tools (default) or lvr2")
 
     info = commands.add_parser("info", help="counts, bounds, layers, labels and cluster sets of a map file")
-    info.add_argument("map", type=Path, help="map file (.h5, .vtp, .ply, .obj, .stl), or a run folder (its world_mesh.h5, .vtp or .ply)")
+    info.add_argument(
+        "map", type=Path, help="map file (.h5, .vtp, .ply, .obj, .stl), or a run folder (its world_mesh.h5, .vtp or .ply)"
+    )
 
     view = commands.add_parser("view", help="show a map or a run folder (a PNG when there is no display)")
     view.add_argument("path", type=Path, help="map file (.vtp, .ply, .h5, ...) or run folder")
@@ -182,7 +186,9 @@ def _parser() -> argparse.ArgumentParser:
     )
 
     plan = commands.add_parser("plan", help="plan a path on a map (Dijkstra or fast marching)")
-    plan.add_argument("map", type=Path, help="map file (.h5, .vtp, .ply, .obj, .stl), or a run folder (its world_mesh.h5, .vtp or .ply)")
+    plan.add_argument(
+        "map", type=Path, help="map file (.h5, .vtp, .ply, .obj, .stl), or a run folder (its world_mesh.h5, .vtp or .ply)"
+    )
     plan.add_argument("--start", required=True, help="start point x,y,z (m)")
     plan.add_argument("--goal", required=True, help="goal point x,y,z (m)")
     plan.add_argument("--planner", default="fmm", help="fmm (default) or dijkstra")

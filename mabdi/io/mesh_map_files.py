@@ -42,7 +42,8 @@ def map_file(path) -> Path:
 
 
 def load_map(path) -> MeshMap:
-    """Read a map file (.h5/.hdf5 in either HDF5 layout, or .vtp/.ply/.obj/.stl), or a run folder's map (:func:`map_file`).
+    """Read a map file (.h5/.hdf5 in either HDF5 layout, or .vtp/.ply/.obj/.stl), or a run folder's map
+    (:func:`map_file`).
 
     A map with NaN or infinite vertex coordinates is damaged (bounds, picking
     and planning all go wrong on it): :class:`DamagedFileError` says how many.
