@@ -51,6 +51,11 @@ def _read_all(source):
 
 WIDE_32 = np.linspace(45.0, -45.0, 32)  # a +-45 degree sensor of 32 evenly spread beams
 HDL_64 = np.linspace(2.0, -24.8, 64)  # the Velodyne HDL-64E's span
+#: The Velodyne VLP-32C's beam elevations (degrees, top first; its manual's table).
+VLP_32C = np.array([
+    15.0, 10.333, 7.0, 4.667, 3.333, 2.333, 1.667, 1.333, 1.0, 0.667, 0.333, 0.0, -0.333, -0.667, -1.0, -1.333,
+    -1.667, -2.0, -2.333, -2.667, -3.0, -3.333, -3.667, -4.0, -4.667, -5.333, -6.148, -7.254, -8.843, -11.31, -15.639, -25.0,
+])  # fmt: skip
 
 
 def test_wide_sensor_without_lidar_table_is_learnt_and_said_once(tmp_path):
@@ -123,6 +128,21 @@ def test_uneven_smeared_beams_with_stray_returns_are_counted(tmp_path):
     assert rows_filled.min() > 0.9  # every row holds returns carried to its centre
 
 
+def test_a_sensor_that_the_default_geometry_mostly_holds_is_kept_but_what_it_misses_is_said(tmp_path):
+    """A Velodyne VLP-32C (+15 to -25 degrees, its beams dense about the horizon): 5 of its 32 beams lie above the
+    default image's top edge. The default geometry is kept (under a quarter misses it), but the run says what it
+    misses; before, a share under a quarter went unsaid."""
+    folder = _folder(tmp_path / "seq", VLP_32C, jitter=0.02)
+    source, frames, said = _read_all(lambda: open_sequence(folder))
+    assert source.intrinsics == KITTI_GEOMETRY
+    assert len(said) == 1
+    message = str(said[0].message)
+    # 5 of 32 rings above the top edge, and the jittered -25 degree ring half below the bottom one
+    share = int(re.search(r"(\d+)% of its", message).group(1))
+    assert 100 * 5 / 32 <= share <= 100 * 5.5 / 32 + 1 and "the map will miss those points" in message
+    assert "fov_up" in message and str(folder / "mabdi.toml") in message
+
+
 def test_wrong_lidar_table_is_said_once_and_kept(tmp_path):
     table = "beams = 64\ncolumns = 1024\nfov_up = 3.0\nfov_down = -25.0\nrange_min = 1.0\nrange_max = 120.0\n"
     folder = _folder(tmp_path / "seq", WIDE_32, lidar=table)
@@ -164,3 +184,13 @@ def test_scan_with_trailing_bytes_stops_the_folder(tmp_path):
     source = KittiSequence(folder)
     with pytest.raises(SequenceError, match=re.escape(f"{folder / 'velodyne' / '000001.bin'}: {64 * 360 * 16 + 2} bytes")):
         source.read(1)
+
+
+def test_a_lidar_recordings_run_names_its_default_noise_not_a_learnt_one(tmp_path, capsys):
+    from mabdi.cli import main
+
+    folder = _folder(tmp_path / "seq", HDL_64, scans=2)
+    assert main(["run", "--sequence", str(folder), "--quiet", "--no-eval", "--out", str(tmp_path / "run")]) == 0
+    printed = capsys.readouterr().out
+    assert "noise: range, 0.02 m (a LiDAR's default: no config and no --noise name the sensor's model)" in printed
+    assert "learnt from the run" not in printed

@@ -20,10 +20,11 @@ poses file copied in as ``poses.txt``):
   fov_down, range_min, range_max, beam_elevations); without it
   :data:`~mabdi.sources.range_images.KITTI_GEOMETRY` (the HDL-64E), unless
   the first scan mostly misses it: then the geometry learnt from that scan
-  (:func:`~mabdi.sources.range_images.learn_geometry`). A scan with more than
-  a quarter of its points outside the image (above, below, beyond range_max)
-  is said once, as a :class:`~mabdi.sources.range_images.LidarGeometryWarning`
-  with the numbers and the ``[lidar]`` keys to set.
+  (:func:`~mabdi.sources.range_images.learn_geometry`; more than a quarter
+  of its points outside). A scan with more than 5% of its points outside the
+  image (above, below, beyond range_max) is said once, as a
+  :class:`~mabdi.sources.range_images.LidarGeometryWarning` with the numbers
+  and the ``[lidar]`` keys to set.
 
 The pose of scan i is ``world_from_sensor = Tr^-1 P_i Tr`` (SemanticKITTI's
 reading of the poses): the LiDAR's motion in a world that is the first

@@ -48,8 +48,12 @@ KITTI_GEOMETRY = SphericalGeometry(beams=64, columns=1024, fov_up=3.0, fov_down=
 #: Keys of a ``[lidar]`` table: the fields of :class:`SphericalGeometry`.
 LIDAR_KEYS = tuple(f.name for f in dataclasses.fields(SphericalGeometry))
 
-#: A scan with more than this share of its points outside the range image is warned of (:class:`LidarGeometryWarning`).
-OUTSIDE_SHARE_WARNING = 0.25
+#: A scan with more than this share of its points outside the range image is warned of (:class:`LidarGeometryWarning`):
+#: a sensor of +15 to -25 degrees (a VLP-32C's, a Pandar64's) leaves an eighth of its points above the default image.
+OUTSIDE_SHARE_WARNING = 0.05
+#: A first scan with more than this share outside the default geometry has its geometry learnt (:func:`learn_geometry`);
+#: below it the default is kept (a sensor it mostly holds keeps the image's resolution) and the rest warned of.
+OUTSIDE_SHARE_LEARN = 0.25
 #: The percentiles of a scan's elevations :func:`learn_geometry` takes as its outer beams when it cannot count them.
 LEARNT_PERCENTILES = (0.5, 99.5)
 
@@ -166,7 +170,7 @@ def beam_elevations_of(elevation, step: float = 0.05) -> np.ndarray | None:
 
 
 def learn_geometry(points, default: SphericalGeometry) -> tuple[SphericalGeometry | None, ScanFit]:
-    """The geometry of a scan that does not fit ``default`` (more than :data:`OUTSIDE_SHARE_WARNING` of its points
+    """The geometry of a scan that does not fit ``default`` (more than :data:`OUTSIDE_SHARE_LEARN` of its points
     above or below the image), and how it fit ``default``; None when it fits, or misses by range only.
 
     Uniform beams: the counted rings (:func:`beam_elevations_of`) when they stand apart, else ``default``'s count
@@ -174,7 +178,7 @@ def learn_geometry(points, default: SphericalGeometry) -> tuple[SphericalGeometr
     (so each beam lies on a row's centre). Columns and range are ``default``'s.
     """
     fit = scan_fit(points, default)
-    if not fit.returns or fit.above + fit.below <= OUTSIDE_SHARE_WARNING * fit.returns:
+    if not fit.returns or fit.above + fit.below <= OUTSIDE_SHARE_LEARN * fit.returns:
         return None, fit
     centres = beam_elevations_of(_returns(points)[1])
     if centres is not None:
@@ -433,6 +437,7 @@ def geometry_from_table(table, file, default: SphericalGeometry | None = None) -
 __all__ = [
     "KITTI_GEOMETRY",
     "LIDAR_KEYS",
+    "OUTSIDE_SHARE_LEARN",
     "OUTSIDE_SHARE_WARNING",
     "LidarGeometryWarning",
     "ScanFit",
