@@ -737,5 +737,21 @@ def main(argv=None) -> int:
             print(f"mabdi: note: VTK printed {count} message(s); MABDI_VTK_MESSAGES=1 shows them", file=sys.stderr)
 
 
+def console() -> None:
+    """The ``mabdi`` command: :func:`main`, then the process ends with its status. After Ctrl-C (130) it ends at
+    once, once the output is flushed: Python's teardown would otherwise stop the native libraries' threads that
+    the interrupt left running (an EGL render, a TBB pool), and that can crash the process on its way out.
+    Everything a run writes is complete or removed by then (mabdi.io.atomic, the run folder's staging)."""
+    status = main()
+    if status == 130:
+        for stream in (sys.stdout, sys.stderr):
+            try:
+                stream.flush()
+            except (OSError, ValueError):  # a reader gone, a stream closed: nothing more to say
+                pass
+        os._exit(status)
+    sys.exit(status)
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    console()
