@@ -512,8 +512,9 @@ def test_a_mesh_without_type_mesh_says_so(tmp_path):
         load_run_config(path)
 
 
-def test_a_compressed_only_bag_names_the_command_line_option(bag, tmp_path):
-    """A bag whose depth is only a CompressedImage topic: the error says so, and names --depth-topic."""
+def test_a_compressed_depth_topic_of_another_codec_says_so(bag, tmp_path):
+    """A bag whose depth is only a CompressedImage topic, its payload not a PNG (another codec, rvl say): the
+    topic is taken as the depth (compressed depth is read), and the error names the format and the remedy."""
     path = tmp_path / "bag"
     compressed = "sensor_msgs/msg/CompressedImage"
     with Reader(bag) as reader, Writer(path, version=9, storage_plugin=StoragePlugin.SQLITE3) as writer:
@@ -529,8 +530,8 @@ def test_a_compressed_only_bag_names_the_command_line_option(bag, tmp_path):
     with pytest.raises(SequenceError) as error:
         Rosbag2Sequence(path)
     text = str(error.value)
-    assert "compressed images (/camera/depth/image/compressedDepth) are not read" in text
-    assert "choose it with --depth-topic (Python: depth_topic=)" in text
+    assert "topic /camera/depth/image/compressedDepth" in text
+    assert "compressed depth of format '16UC1; compressedDepth' is not a PNG" in text and "republish it raw" in text
 
 
 def test_view_of_an_empty_map_says_it_is_empty(tmp_path, capsys):

@@ -4,11 +4,14 @@ written from, and run by ``mabdi run --sequence``."""
 
 from __future__ import annotations
 
+import io
 import json
+import struct
 from pathlib import Path
 
 import numpy as np
 import pytest
+from PIL import Image
 
 from mabdi.camera import quaternions_from_rotations
 from mabdi.cli import main
@@ -30,10 +33,12 @@ def recording(tmp_path_factory):
     return open_sequence(root / "tum")
 
 
-def _write_ros1_bag(source, path) -> None:
+def _write_ros1_bag(source, path, compressed: bool = False) -> None:
     """``source``'s frames as a ROS 1 bag laid out as TUM's: /camera/depth/image (32FC1, metres),
     /camera/depth/camera_info (K with pixel centres at integers) and /tf (``tf/tfMessage``) carrying
-    /world -> /kinect at each image's stamp and /kinect -> the optical frame (a camera link, REP 103)."""
+    /world -> /kinect at each image's stamp and /kinect -> the optical frame (a camera link, REP 103).
+    ``compressed``: the depth as a robot's driver records it instead, /camera/depth/image_raw/compressedDepth
+    (16UC1 millimetres, image_transport's header and PNG), beside a colour image topic."""
     store = typesys.get_typestore(typesys.Stores.ROS1_NOETIC)
     store.register(typesys.get_types_from_msg("geometry_msgs/TransformStamped[] transforms", "tf/msg/tfMessage"))
     t = store.types
@@ -55,7 +60,11 @@ def _write_ros1_bag(source, path) -> None:
         )  # fmt: skip
 
     with rosbag1.Writer(path) as writer:
-        depth_topic = writer.add_connection("/camera/depth/image", "sensor_msgs/msg/Image", typestore=store)
+        if compressed:
+            depth_topic = writer.add_connection("/camera/depth/image_raw/compressedDepth", "sensor_msgs/msg/CompressedImage", typestore=store)
+            colour_topic = writer.add_connection("/camera/rgb/image_raw", "sensor_msgs/msg/Image", typestore=store)
+        else:
+            depth_topic = writer.add_connection("/camera/depth/image", "sensor_msgs/msg/Image", typestore=store)
         info_topic = writer.add_connection("/camera/depth/camera_info", "sensor_msgs/msg/CameraInfo", typestore=store)
         tf_topic = writer.add_connection("/tf", "tf/msg/tfMessage", typestore=store)
         for i in range(len(source)):
@@ -68,12 +77,26 @@ def _write_ros1_bag(source, path) -> None:
                 transform(seconds, "/kinect", OPTICAL, link_from_optical),
             ])  # fmt: skip
             writer.write(tf_topic, stamp, store.serialize_ros1(tf, "tf/msg/tfMessage"))
-            depth = np.nan_to_num(frame.depth, nan=0.0).astype("<f4")
-            image = t["sensor_msgs/msg/Image"](
-                header=header(seconds, OPTICAL), height=k.height, width=k.width, encoding="32FC1", is_bigendian=0,
-                step=4 * k.width, data=np.frombuffer(depth.tobytes(), dtype=np.uint8),
-            )  # fmt: skip
-            writer.write(depth_topic, stamp, store.serialize_ros1(image, "sensor_msgs/msg/Image"))
+            if compressed:
+                stream = io.BytesIO()
+                Image.fromarray(np.nan_to_num(np.round(frame.depth * 1000.0), nan=0.0).astype(np.uint16)).save(stream, format="PNG")
+                payload = struct.pack("<iff", 0, 0.0, 0.0) + stream.getvalue()
+                image = t["sensor_msgs/msg/CompressedImage"](
+                    header=header(seconds, OPTICAL), format="16UC1; compressedDepth png", data=np.frombuffer(payload, np.uint8),
+                )  # fmt: skip
+                writer.write(depth_topic, stamp, store.serialize_ros1(image, "sensor_msgs/msg/CompressedImage"))
+                colour = t["sensor_msgs/msg/Image"](
+                    header=header(seconds, "/openni_rgb_optical_frame"), height=k.height, width=k.width, encoding="rgb8",
+                    is_bigendian=0, step=3 * k.width, data=np.zeros(3 * k.width * k.height, dtype=np.uint8),
+                )  # fmt: skip
+                writer.write(colour_topic, stamp, store.serialize_ros1(colour, "sensor_msgs/msg/Image"))
+            else:
+                depth = np.nan_to_num(frame.depth, nan=0.0).astype("<f4")
+                image = t["sensor_msgs/msg/Image"](
+                    header=header(seconds, OPTICAL), height=k.height, width=k.width, encoding="32FC1", is_bigendian=0,
+                    step=4 * k.width, data=np.frombuffer(depth.tobytes(), dtype=np.uint8),
+                )  # fmt: skip
+                writer.write(depth_topic, stamp, store.serialize_ros1(image, "sensor_msgs/msg/Image"))
             info = t["sensor_msgs/msg/CameraInfo"](
                 header=header(seconds, OPTICAL), height=k.height, width=k.width, distortion_model="plumb_bob",
                 D=np.zeros(5), K=np.array([k.fx, 0, k.cx - 0.5, 0, k.fy, k.cy - 0.5, 0, 0, 1.0]), R=np.eye(3).ravel(),
@@ -125,3 +148,19 @@ def test_a_damaged_ros1_bag_is_an_error_naming_it(tmp_path):
     path.write_bytes(b"#ROSBAG V2.0\n" + b"\x00" * 64)
     with pytest.raises(SequenceError, match=r"ROS 1 bag .*broken\.bag: cannot open"):
         open_sequence(path)
+
+
+def test_depth_compressed_as_a_robot_records_it_is_read(recording, tmp_path):
+    """A bag of image_transport's compressedDepth (16UC1, PNG) and a colour Image topic: the compressed topic is
+    the depth (the Image one holds colour), its size its PNG's, and its frames the recording's to the millimetre."""
+    path = tmp_path / "compressed.bag"
+    _write_ros1_bag(recording, path, compressed=True)
+    read = open_sequence(path)
+    assert read.depth_topic == "/camera/depth/image_raw/compressedDepth"
+    assert (read.intrinsics.width, read.intrinsics.height) == (recording.intrinsics.width, recording.intrinsics.height)
+    for i in range(len(recording)):
+        mine, theirs = read.read(i), recording.read(i)
+        np.testing.assert_array_equal(np.isnan(mine.depth), np.isnan(theirs.depth))
+        np.testing.assert_allclose(mine.depth, theirs.depth, atol=0.0005 + 1e-6, equal_nan=True)
+        np.testing.assert_allclose(mine.world_from_camera, theirs.world_from_camera, atol=1e-9)
+    read.close()

@@ -7,7 +7,9 @@ ROS 2 Humble's, and a ROS 1 bag's those its own message definitions give
 frame names with a leading ``/`` as tf2 names them, without).
 
 * **Depth**: ``sensor_msgs/msg/Image``, ``16UC1`` (millimetres, 0 = no
-  return) or ``32FC1`` (metres, NaN or 0 = no return).
+  return) or ``32FC1`` (metres, NaN or 0 = no return); or, where no Image
+  topic holds depth, a ``CompressedImage`` one as image_transport's
+  ``compressed`` / ``compressedDepth`` write it (:mod:`mabdi.sources.compressed_depth`).
 * **LiDAR**: ``sensor_msgs/msg/PointCloud2`` scans (``cloud_topic``), each
   turned into a range image by :func:`mabdi.sources.range_images.range_image`
   (fields ``x``, ``y``, ``z`` in metres, ``ring`` when present; the
@@ -48,6 +50,7 @@ from mabdi.interrupts import interrupts_held
 from mabdi.io.atomic import write_text
 from mabdi.io.toml_writer import toml_lines
 from mabdi.spherical import SphericalGeometry
+from mabdi.sources.compressed_depth import decode_compressed_depth, depth_encoding
 from mabdi.sources.frames import FrameSource
 from mabdi.sources.range_images import geometry_from_table, lidar_table, range_image, range_image_points, rows_from_rings
 from mabdi.sources.sequence_files import (
@@ -71,7 +74,7 @@ TF_MESSAGE = "tf2_msgs/msg/TFMessage"
 #: The transform messages read on /tf and /tf_static: tf2's, and tf's of older ROS 1 bags (the same layout).
 TF_MESSAGES = (TF_MESSAGE, "tf/msg/tfMessage")
 POINT_CLOUD2 = "sensor_msgs/msg/PointCloud2"
-#: Compressed images (image_transport's compressed / compressedDepth): named in errors, not read.
+#: Compressed images (image_transport's compressed / compressedDepth): depth read (:mod:`mabdi.sources.compressed_depth`).
 COMPRESSED_IMAGE = "sensor_msgs/msg/CompressedImage"
 
 #: Depth encodings read: name -> (dtype of one pixel, metres per unit).
@@ -157,6 +160,16 @@ def _pose_matrix(position, orientation, what: str = "") -> np.ndarray:
             else f"{what}: the translation ({', '.join(f'{v:g}' for v in translation[0])}) is not finite"
         )
     return poses_from_translations_quaternions(translation, quaternion)[0]
+
+
+def _compressed(message) -> bool:
+    """Whether an image message is a CompressedImage (it has a ``format``, not an ``encoding``)."""
+    return hasattr(message, "format") and not hasattr(message, "encoding")
+
+
+def _holds_depth(message) -> bool:
+    """Whether an Image or CompressedImage message holds depth (:data:`DEPTH_ENCODINGS`, raw or compressed)."""
+    return depth_encoding(message.format) is not None if _compressed(message) else message.encoding in DEPTH_ENCODINGS
 
 
 def _option(name: str) -> str:
@@ -365,9 +378,8 @@ class Rosbag2Sequence(FrameSource):
         clouds = self._of_type(POINT_CLOUD2)
         if depth_topic is not None or not clouds:
             return None
-        for name in self._of_type(IMAGE):
-            first = next(self._messages(name), None)
-            if first is not None and first[1].encoding in DEPTH_ENCODINGS:
+        for name in self._of_type(IMAGE) + self._of_type(COMPRESSED_IMAGE):
+            if self._first_is_depth(name):
                 return None
         if len(clouds) > 1:
             raise SequenceError(f"{self.kind} {self.path}: several point cloud topics ({_list(clouds)}); choose one with {_option('cloud_topic')}")
@@ -419,23 +431,25 @@ class Rosbag2Sequence(FrameSource):
         except ValueError as exc:
             raise SequenceError(f"{where}: {exc}") from None
 
+    def _first_is_depth(self, topic: str) -> bool:
+        """Whether the first message of an Image or CompressedImage topic holds depth."""
+        first = next(self._messages(topic), None)
+        return first is not None and _holds_depth(first[1])
+
     def _choose_depth_topic(self, topic: str | None) -> str:
         if topic is not None:
-            return self._check_topic(topic, IMAGE, _option("depth_topic"))
+            expected = COMPRESSED_IMAGE if self.topics.get(topic) == COMPRESSED_IMAGE else IMAGE
+            return self._check_topic(topic, expected, _option("depth_topic"))
         candidates = self._of_type(IMAGE)
-        if len(candidates) > 1:
-            depth = []
-            for name in candidates:
-                first = next(self._messages(name), None)
-                if first is not None and first[1].encoding in DEPTH_ENCODINGS:
-                    depth.append(name)
-            candidates = depth or candidates
+        raw_depth = [name for name in candidates if self._first_is_depth(name)]
         packed = self._of_type(COMPRESSED_IMAGE)
+        packed_depth = [name for name in packed if self._first_is_depth(name)] if not raw_depth else []
+        # raw depth first, else compressed depth (image_transport's), else every Image topic (the errors name them)
+        candidates = raw_depth or packed_depth or candidates
         if not candidates and packed:
             raise SequenceError(
-                f"{self.kind} {self.path}: no {IMAGE} topic; compressed images ({_list(packed)}) are not read: "
-                f"decompress them into a {IMAGE} topic (e.g. ros2 run image_transport republish) and choose it with "
-                f"{_option('depth_topic')}"
+                f"{self.kind} {self.path}: no depth image topic; the compressed images ({_list(packed)}) hold no depth "
+                f"(16UC1 or 32FC1): choose the depth topic with {_option('depth_topic')}"
             )
         if len(candidates) != 1:
             raise SequenceError(
@@ -528,13 +542,18 @@ class Rosbag2Sequence(FrameSource):
         frame_ids = set()
 
         def check(message) -> None:
-            if message.encoding not in DEPTH_ENCODINGS:
+            if not _holds_depth(message):
+                shown = message.format if _compressed(message) else message.encoding
                 raise SequenceError(
-                    f"{self.kind} {self.path}: topic {self.depth_topic}: unknown depth encoding {message.encoding!r} "
-                    f"(known: {', '.join(DEPTH_ENCODINGS)})"
+                    f"{self.kind} {self.path}: topic {self.depth_topic}: unknown depth encoding {shown!r} "
+                    f"(known: {', '.join(DEPTH_ENCODINGS)}, raw or compressed)"
                 )
             frame_ids.add(message.header.frame_id)
-            self._image_size = (int(message.width), int(message.height))
+            if not _compressed(message):
+                self._image_size = (int(message.width), int(message.height))
+            elif not hasattr(self, "_image_size"):  # a compressed image's size is its PNG's: the first one decoded
+                height, width = self.decode_depth(message).shape
+                self._image_size = (width, height)
 
         self._all_stamps, self._all_log_times, self._all_occurrence = self._index_images(self.depth_topic, check)
         if len(frame_ids) != 1:
@@ -801,7 +820,12 @@ class Rosbag2Sequence(FrameSource):
         return range_image(points, geometry, rows)
 
     def decode_depth(self, message) -> np.ndarray:
-        """(H, W) float32 metres of a depth Image message; no return (0, NaN) as NaN."""
+        """(H, W) float32 metres of a depth Image message, or a CompressedImage one
+        (:mod:`mabdi.sources.compressed_depth`); no return (0, NaN) as NaN."""
+        if _compressed(message):
+            stamp = float(ns_to_seconds(_stamp_ns(message.header.stamp)))
+            where = f"{self.kind} {self.path}: topic {self.depth_topic}: the image at stamp {stamp:.9f} s"
+            return decode_compressed_depth(message.format, message.data, where)
         dtype, scale = DEPTH_ENCODINGS[message.encoding]
         dtype = np.dtype(dtype).newbyteorder(">" if message.is_bigendian else "<")
         height, width, step = int(message.height), int(message.width), int(message.step)
