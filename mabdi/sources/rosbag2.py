@@ -500,9 +500,12 @@ class Rosbag2Sequence(FrameSource):
         if topic is not None:
             return self._check_topic(topic, CAMERA_INFO, _option("info_topic"))
         candidates = self._of_type(CAMERA_INFO)
-        beside = self.depth_topic.rsplit("/", 1)[0] + "/camera_info"
-        if beside in candidates:
-            return beside
+        # beside the image topic (/camera/depth/image_raw -> /camera/depth/camera_info), or beside the topic a
+        # compressed one is a transport of (/camera/depth/image_raw/compressedDepth)
+        for levels in (1, 2):
+            beside = self.depth_topic.rsplit("/", levels)[0] + "/camera_info"
+            if beside in candidates:
+                return beside
         if len(candidates) != 1:
             raise SequenceError(
                 f"{self.kind} {self.path}: "
