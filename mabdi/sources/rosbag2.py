@@ -1,4 +1,4 @@
-"""ROS bags as a frame source: ROS 2 (sqlite3 and MCAP storage) and ROS 1 (``.bag``); any frame source written as a ROS 2 bag.
+"""ROS bags as a frame source, ROS 2 (sqlite3 and MCAP storage) and ROS 1 (``.bag``); frames written as a ROS 2 bag.
 
 Reading and writing use the pure-Python ``rosbags`` package (imported when a
 bag is first opened or written, :func:`_rosbags`); message layouts are
