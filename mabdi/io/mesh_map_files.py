@@ -29,16 +29,16 @@ def is_hdf5(path) -> bool:
 RUN_MAP_FILES = ("world_mesh.h5", "world_mesh.vtp", "world_mesh.ply")
 
 
-def map_file(path) -> Path:
-    """``path`` itself, or for a run's folder (``mabdi run --out``) its map: the first of :data:`RUN_MAP_FILES`
-    there (a :class:`ConfigError` naming them when it holds none)."""
+def map_file(path, names: tuple[str, ...] = RUN_MAP_FILES) -> Path:
+    """``path`` itself, or for a run's folder (``mabdi run --out``) its map: the first of ``names`` there (a
+    :class:`ConfigError` naming them when it holds none)."""
     path = Path(path)
     if not path.is_dir():
         return path
-    for name in RUN_MAP_FILES:
+    for name in names:
         if (path / name).is_file():
             return path / name
-    raise ConfigError(f"{path}: a folder, and not a run's: it holds none of {', '.join(RUN_MAP_FILES)}")
+    raise ConfigError(f"{path}: a folder, and not a run's: it holds none of {', '.join(names)}")
 
 
 def load_map(path) -> MeshMap:

@@ -369,10 +369,11 @@ def recorded_simulation(
     time_offset = learn_recording_time_offset(recording, frames) if learn_offset else None
     if time_offset is not None and time_offset.applied:
         recording = recording.with_time_offset(time_offset.seconds)
-    depth_range = None
+    source = RecordedFrames(recording, frames, path=path)
     if isinstance(recording.intrinsics, Intrinsics) and not depth_range_stated(path, camera):
-        depth_range = learn_depth_range(recording, len(recording) if frames is None else max(1, min(int(frames), len(recording))))
-    source = RecordedFrames(recording, frames, path=path, depth_range=depth_range)
+        depth_range = learn_depth_range(recording, source.count)  # from the frames the run takes
+        if depth_range is not None:
+            source = RecordedFrames(recording, frames, path=path, depth_range=depth_range)
     source.options = wanted  # the remedies a message may name (--camera, --depth-scale)
     if not noise_stated:
         if isinstance(source.intrinsics, Intrinsics):

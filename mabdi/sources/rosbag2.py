@@ -543,6 +543,7 @@ class Rosbag2Sequence(FrameSource):
     def _index_depth(self) -> None:
         """One pass over the depth topic: header stamps, bag times, position among equal bag times, frame id."""
         frame_ids = set()
+        self._image_size = None
 
         def check(message) -> None:
             if not _holds_depth(message):
@@ -554,7 +555,7 @@ class Rosbag2Sequence(FrameSource):
             frame_ids.add(message.header.frame_id)
             if not _compressed(message):
                 self._image_size = (int(message.width), int(message.height))
-            elif not hasattr(self, "_image_size"):  # a compressed image's size is its PNG's: the first one decoded
+            elif self._image_size is None:  # a compressed image's size is its PNG's: the first one decoded
                 height, width = self.decode_depth(message).shape
                 self._image_size = (width, height)
 

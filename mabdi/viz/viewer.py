@@ -28,6 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from mabdi.errors import ConfigError
+from mabdi.io import mesh_map_files
 from mabdi.io.mesh_map_files import load_map
 from mabdi.mesh_maps.colours import colours_by_frame, colours_by_normal
 from mabdi.mesh_maps.layers import face_normals
@@ -40,11 +41,10 @@ def has_display() -> bool:
 
 
 def _run_files(folder: Path) -> tuple[Path, Path | None, Path | None]:
-    for name in ("world_mesh.vtp", "world_mesh.h5", "world_mesh.ply"):
-        if (folder / name).is_file():
-            scene, path = folder / "scene.vtp", folder / "path.vtp"
-            return folder / name, scene if scene.is_file() else None, path if path.is_file() else None
-    raise ConfigError(f"{folder}: a run folder needs world_mesh.vtp, .h5 or .ply (none here)")
+    """A run folder's map (the VTP first: its faces carry the frame that made them), scene and path."""
+    scene, path = folder / "scene.vtp", folder / "path.vtp"
+    shown = mesh_map_files.map_file(folder, ("world_mesh.vtp", "world_mesh.h5", "world_mesh.ply"))
+    return shown, scene if scene.is_file() else None, path if path.is_file() else None
 
 
 def face_colours(mesh_map, colour: str) -> tuple[np.ndarray | None, np.ndarray | None, str]:
