@@ -62,8 +62,8 @@ def test_the_run_folder_s_config_states_what_every_auto_became(tmp_path):
     resolved = tomllib.loads(text)["resolved"]
     assert resolved["removing"] is True and resolved["refining"] is True  # correlated noise: refined
     # "auto": the quad-tree's block, the map's depth, and nothing waits at the rim (a model of the simulator's)
-    # and a look in front of the map is novel beyond k_sigma, refinement's gate being no wider
-    assert resolved["classifier"] == {"rim": 3, "rim_on_map": True, "outer_radius": 1.0, "front_k": 3.0}
+    # and a look in front of the map is novel beyond k_sigma, refinement's gate being no wider, and meshed at once
+    assert resolved["classifier"] == {"rim": 3, "rim_on_map": True, "outer_radius": 1.0, "front_k": 3.0, "front_frames": 1}
     # structured light loses returns on real surfaces: no free space where it has none, four frames to remove a face
     assert resolved["removal"] == {"no_return_is_free": False, "min_frames": 4}
     assert resolved["refinement"] == {"gate_k": 3.0}  # "auto": a model of the simulator's, not a learnt one

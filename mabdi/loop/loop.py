@@ -35,6 +35,7 @@ from mabdi.stages.classifier import ClassifierParameters, FilterClassifier, dila
 from mabdi.render.depth_image import BACKENDS
 from mabdi.sensor_noise import SensorNoise
 from mabdi.stages.expected_image import FilterExpectedImage, write_expected
+from mabdi.stages.front_confirmation import FrontConfirmation
 from mabdi.stages.refinement import MapRefinement, RefinementParameters, RefinementResult
 from mabdi.surfaces.quadtree import QuadTreeParameters, resolved as resolved_quadtree
 from mabdi.stages.registration import STATUSES, FilterRegistration, RegistrationParameters, write_placement
@@ -195,6 +196,8 @@ def resolve_settings(
     refining, registration = lidar_rules(geometry, refining, registration)
     if classifier.outer_radius == "auto":  # a real camera's new surface waits for a more central look
         classifier = replace(classifier, outer_radius=classifier.outer_radius_for(noise))
+    if classifier.front_frames == "auto":  # a real camera's surface in front of the map waits for more looks
+        classifier = replace(classifier, front_frames=classifier.front_frames_for(noise))
     if classifier.rim_on_map == "auto":  # the seam on the map's surface where the map is refined
         classifier = replace(classifier, rim_on_map=bool(refining))
     if classifier.front_k == "auto":  # a look in front of the map within refinement's gate refines the map
@@ -300,6 +303,10 @@ class MabdiLoop:
                 self.registration_parameters, renderer=self.expected.renderer, pose_accuracy=source.pose_accuracy
             )
         self.classifier = FilterClassifier(self.classifier_parameters)
+        #: The frames each part of the map was seen covered by a surface in front of it (None: such a surface is
+        #: meshed at once)
+        frames = int(self.classifier_parameters.front_frames)
+        self.front_memory = FrontConfirmation(frames) if frames > 1 else None
         #: The removal stage (its rules: :attr:`removal_parameters`).
         self.object_removal = ObjectRemoval(removal_parameters, self.classifier.threshold)
         self.surface = make_surface_filter(surface, surface_parameters)
@@ -360,6 +367,8 @@ class MabdiLoop:
         """Empty the map, and a surface filter's own memory (voxel statistics); render windows stay."""
         self.world.reset()
         self.refinement.reset()
+        if self.front_memory is not None:
+            self.front_memory.reset()
         if self.registration is not None:
             self.registration.reset()
         if self.noise.calibration is not None:
@@ -386,6 +395,8 @@ class MabdiLoop:
             state["registration"] = self.registration.state()
         if self.noise.calibration is not None:
             state["noise_calibration"] = self.noise.calibration.state()
+        if self.front_memory is not None:
+            state["front_memory"] = self.front_memory.state()
         return state
 
     def set_state(self, state: dict) -> None:
@@ -406,6 +417,8 @@ class MabdiLoop:
             self.registration.set_state(state["registration"])
         if self.noise.calibration is not None:
             self.noise.calibration.set_state(state["noise_calibration"])
+        if self.front_memory is not None and "front_memory" in state:  # (checkpoints before it: an empty memory)
+            self.front_memory.set_state(state["front_memory"])
 
     def step(self, index: int) -> FrameRecord:
         """Run frame ``index``: read D, render E, classify, mesh, append. Times each stage. An error that Ctrl-C
@@ -502,7 +515,9 @@ class MabdiLoop:
             t_expected = time.perf_counter()
             last = self._poses[index - 1] if index > 0 else None  # the last frame's pose (map frame), NaN if not run
             motion = np.linalg.inv(last) @ measured.pose if last is not None and np.isfinite(last).all() else None
-            classified = self.classifier.classify(measured, expected, placement.covariance, placement.fitted_pose, motion)
+            classified = self.classifier.classify(
+                measured, expected, placement.covariance, placement.fitted_pose, motion, self.front_memory
+            )
             t_classify = time.perf_counter()
             surface_input, whole = measured.showing(classified.depth), measured.depth
         added = mesh_frame(self.surface, surface_input, whole)

@@ -27,14 +27,15 @@ Specks: the novel mask is opened with a ``min_width`` square and regions of
 fewer than ``min_region`` pixels go (label 1); a speck that fills a hole of
 the map stays novel (``fill_holes``, :func:`hole_fills`). A real camera's
 new surface (novel where E has none) beyond ``outer_radius`` waits, unmeshed
-but novel, while its motion brings it nearer the centre (:func:`waiting_for_centre`).
+but novel, while its motion brings it nearer the centre (:func:`waiting_for_centre`), and one in front of
+the map until ``front_frames`` frames have seen it there (:mod:`mabdi.stages.front_confirmation`).
 
 Output: ``depth`` is D on the novel pixels and a ``rim`` of pixels around
 them (NaN elsewhere; ``rim_on_map`` puts the rim's known pixels on E), plus
 the point arrays ``measured_depth``, ``label`` and ``pose_sigma`` and the
 field-data ``pixel_counts`` (:func:`pixel_counts`); field data is D's.
 Defaults: tau_min = 0.01 m, k_sigma = 3, front_k, rim, rim_on_map and outer_radius "auto", min_width = 3 px,
-min_region = 32 px, fill_holes = true, gradual = true.
+min_region = 32 px, fill_holes = true, gradual = true; front_frames "auto".
 
 Why the rules are what they are: docs/architecture.md (``mabdi.stages.classifier``).
 """
@@ -57,6 +58,7 @@ from mabdi.errors import ConfigError, check_switch
 from mabdi.sensor_noise import SensorNoise, incidence_cosine
 from mabdi.stages.expected_image import expected_of_image
 from mabdi.frame_values import Classified, Expected, Measured
+from mabdi.stages.front_confirmation import FrontConfirmation
 from mabdi.stages.image_kernels import border_steps_kernel, dilate_kernel
 from mabdi.stages.registration import image_fitted_pose, image_pose_covariance, pose_depth_sigma
 
@@ -101,6 +103,9 @@ class ClassifierParameters:
     #: waits while the camera's motion brings it inside (see the module docs); 1: nothing waits; "auto":
     #: :data:`REAL_CAMERA_OUTER_RADIUS` with a noise model learnt from a real camera's frames, else 1.
     outer_radius: float | str = "auto"
+    #: Frames a surface in front of the map must be seen there before it is meshed (see the module docs); 1: at
+    #: once; "auto": :data:`REAL_CAMERA_FRONT_FRAMES` with a noise model learnt from a real camera's frames, else 1.
+    front_frames: int | str = "auto"
 
     def __post_init__(self) -> None:
         check_switch("rim_on_map", self.rim_on_map)
@@ -120,6 +125,10 @@ class ClassifierParameters:
             isinstance(self.outer_radius, (bool, str)) or not 0 < self.outer_radius <= 1
         ):
             raise ConfigError(f'outer_radius must be in (0, 1] (1: nothing waits) or "auto", got {self.outer_radius!r}')
+        if self.front_frames != "auto" and (
+            isinstance(self.front_frames, bool) or not isinstance(self.front_frames, int) or self.front_frames < 1
+        ):
+            raise ConfigError(f'front_frames must be an integer >= 1 (frames) or "auto", got {self.front_frames!r}')
         if self.rim != "auto" and (isinstance(self.rim, bool) or not isinstance(self.rim, int) or self.rim < 0):
             raise ConfigError(f'rim must be an integer >= 0 (pixels) or "auto", got {self.rim!r}')
 
@@ -129,6 +138,13 @@ class ClassifierParameters:
         if self.outer_radius != "auto":
             return float(self.outer_radius)
         return REAL_CAMERA_OUTER_RADIUS if noise.learnt else 1.0
+
+    def front_frames_for(self, noise: SensorNoise) -> int:
+        """``front_frames``, or for "auto" :data:`REAL_CAMERA_FRONT_FRAMES` where ``noise`` is learnt from a real
+        camera's frames and 1 (meshed at once) for a model of the simulator's."""
+        if self.front_frames != "auto":
+            return int(self.front_frames)
+        return REAL_CAMERA_FRONT_FRAMES if noise.learnt else 1
 
     @property
     def front_sigmas(self) -> float:
@@ -408,6 +424,10 @@ TRUSTED_POSE_SHARE = 0.5
 #: image's corners. The simulator's models err alike across the image: nothing waits there (docs/benchmarks.md,
 #: "New surface meshed nearer the centre of the image").
 REAL_CAMERA_OUTER_RADIUS = 0.7
+#: ``front_frames = "auto"`` for a real camera: a surface in front of its map is meshed in the third frame that
+#: sees it there (docs/benchmarks.md, "Surface in front of the map waits for a second and third look"). The
+#: simulator's poses and depth agree with its map: what lies in front of it is new, and is meshed at once.
+REAL_CAMERA_FRONT_FRAMES = 3
 #: A pixel of new surface nears the image centre when the camera's motion, carried on one more frame, moves it at
 #: least this many pixels towards the principal point (less: the camera is still and no better look is coming).
 INWARD_STEP_PX = 0.5
@@ -539,13 +559,16 @@ class FilterClassifier(MabdiAlgorithm):
         pose_covariance: np.ndarray | None = None,
         fitted_pose: np.ndarray | None = None,
         camera_motion: np.ndarray | None = None,
+        front_memory: FrontConfirmation | None = None,
     ) -> Classified:
         """Label D (``measured``) against E (``expected``, drawn from the same pose with the same geometry) and
         choose the pixels the surface meshes (see the module docs). ``pose_covariance``: 6x6 of D's pose
         (registration's), which widens tau by E's depth uncertainty; None: the pose is taken as exact.
         ``fitted_pose``: 4x4 camera-to-map where registration fitted D to the map (None: not registered).
         ``camera_motion``: 4x4, the last frame's camera from this frame's (None: no last frame; no new surface
-        waits for a look nearer the image centre)."""
+        waits for a look nearer the image centre). ``front_memory``: the frames each part of the map was seen
+        covered by something in front of it, which this frame counts on (the loop's; None: what lies in front of
+        the map is meshed at once)."""
         intrinsics = measured.geometry
         if intrinsics != expected.geometry:
             raise ValueError(
@@ -583,6 +606,12 @@ class FilterClassifier(MabdiAlgorithm):
             labels[bulges] = KNOWN
             if contradicted.any() and pose_trusted(pose_sigma, noise.sigma(depth, intrinsics.near, intrinsics.far)):
                 labels[gradual_regions(contradicted, labels, depth, expected_depth, tau, cosine)] = KNOWN
+        if front_memory is not None and isinstance(intrinsics, Intrinsics):
+            # a surface in front of the map waits until it has been seen there in a few frames: a real camera's
+            # look at a known surface falls in front of it now and then, a new object stays there
+            finite = np.isfinite(expected_depth)
+            known = (labels == KNOWN) & finite
+            novel &= ~front_memory.waiting(novel & finite, known, expected_depth, intrinsics, measured.pose)
         outer_radius = p.outer_radius_for(noise)
         if camera_motion is not None and outer_radius < 1 and isinstance(intrinsics, Intrinsics):
             # new surface at the image's rim that the camera is bringing towards the centre: meshed from a later,
