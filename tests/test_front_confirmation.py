@@ -216,3 +216,13 @@ def test_the_loops_checkpoint_carries_the_memory(tmp_path):
     resumed.set_state(read_tree(tmp_path / "state.ckpt"))
     assert resumed.front_memory.voxels == first.front_memory.voxels
     assert resumed.step(3).cells_added == added[3]
+
+
+def test_pixels_where_the_map_has_no_surface_are_neither_counted_nor_confirming():
+    memory = FrontConfirmation(3)
+    expected = wall()
+    expected[:, :10] = np.nan  # no surface of the map there
+    everywhere = np.ones(CAMERA.shape, dtype=bool)
+    waiting = memory.waiting(everywhere, ~everywhere, expected, CAMERA, np.eye(4))
+    assert waiting[:, 10:].all() and not waiting[:, :10].any()
+    assert memory.voxels > 0

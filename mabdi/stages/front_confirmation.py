@@ -90,6 +90,8 @@ class FrontConfirmation:
         waiting = np.zeros(front.shape, dtype=bool)
         if self.frames <= 1:
             return waiting
+        finite = np.isfinite(expected)
+        front, known = front & finite, known & finite  # E's surface behind the pixel is what is counted
         rows, cols = np.nonzero(front)
         front_keys = self._keys_of(rows, cols, expected, intrinsics, pose)
         covered, pixel_voxel, front_pixels = np.unique(front_keys, return_inverse=True, return_counts=True)
