@@ -335,12 +335,12 @@ def cmd_run(args) -> int:
             )
         if not noise_stated and simulation.config.sensor.noise != config.sensor.noise:
             unstated = "the config does not set [sensor] noise" if args.config is not None else "no config"
-            noise = simulation.config.sensor
-            if noise.noise == "auto":
+            sensor = simulation.config.sensor
+            if sensor.noise == "auto":
                 print(f"noise: auto (learnt from the run: {unstated} and no --noise name the camera's model)")
             else:  # a LiDAR's recording: its datasheet-class default
-                sigma = noise.noise_parameters.range_sigma
-                print(f"noise: {noise.noise}, {sigma:g} m (a LiDAR's default: {unstated} and no --noise name the sensor's model)")
+                sigma = sensor.noise_parameters.range_sigma
+                print(f"noise: {sensor.noise}, {sigma:g} m (a LiDAR's default: {unstated} and no --noise name the sensor's model)")
     else:
         for option in ("camera", "depth_scale", "depth_topic", "info_topic", "pose_topic", "colour_topic", "cloud_topic", "tolerance", "time_offset"):
             if getattr(args, option) is not None:

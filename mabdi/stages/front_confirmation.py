@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from mabdi.camera import Intrinsics, pixel_rays
+from mabdi.camera import Intrinsics, pixel_rays, project
 from mabdi.stages.image_kernels import dilate_kernel
 
 #: Edge of the memory's voxels (metres): a few pixels of a camera's surface at 1-3 m, below the 5 cm at
@@ -130,11 +130,10 @@ class FrontConfirmation:
         if not len(self._keys):
             return self._keys
         keys = self._keys[~np.isin(self._keys, covered, assume_unique=True)]
-        camera = (voxel_centres(keys, self.voxel) - pose[:3, 3]) @ pose[:3, :3]
-        ahead = camera[:, 2] > 0
-        keys, camera = keys[ahead], camera[ahead]
-        u = np.floor(intrinsics.fx * camera[:, 0] / camera[:, 2] + intrinsics.cx).astype(np.int64)
-        v = np.floor(intrinsics.fy * camera[:, 1] / camera[:, 2] + intrinsics.cy).astype(np.int64)
+        uv, z = project(voxel_centres(keys, self.voxel), intrinsics, pose)
+        ahead = z > 0
+        keys, pixels = keys[ahead], np.floor(uv[ahead]).astype(np.int64)
+        u, v = pixels[:, 0], pixels[:, 1]
         inside = (u >= 0) & (u < intrinsics.width) & (v >= 0) & (v < intrinsics.height)
         keys, u, v = keys[inside], u[inside], v[inside]
         on_map = known[v, u]

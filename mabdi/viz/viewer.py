@@ -28,8 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from mabdi.errors import ConfigError
-from mabdi.io import mesh_map_files
-from mabdi.io.mesh_map_files import load_map
+from mabdi.io.mesh_map_files import load_map, map_file
 from mabdi.mesh_maps.colours import colours_by_frame, colours_by_normal
 from mabdi.mesh_maps.layers import face_normals
 from mabdi.mesh_maps.mesh_map import COLOUR_LAYER
@@ -43,7 +42,7 @@ def has_display() -> bool:
 def _run_files(folder: Path) -> tuple[Path, Path | None, Path | None]:
     """A run folder's map (the VTP first: its faces carry the frame that made them), scene and path."""
     scene, path = folder / "scene.vtp", folder / "path.vtp"
-    shown = mesh_map_files.map_file(folder, ("world_mesh.vtp", "world_mesh.h5", "world_mesh.ply"))
+    shown = map_file(folder, ("world_mesh.vtp", "world_mesh.h5", "world_mesh.ply"))
     return shown, scene if scene.is_file() else None, path if path.is_file() else None
 
 
