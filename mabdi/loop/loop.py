@@ -4,7 +4,7 @@ Frame i, each stage called with the frame's values (:mod:`mabdi.frame_values`)::
 
     SourceDepthFrames.measured(i) -> D --> FilterRegistration.place(D, map) -> D at its map pose, Placement
     FilterExpectedImage.render(map, D) -> E --> FilterClassifier.classify(D, E) -> labels, novel depth
-    surface.mesh_frame(novel depth, D) -> triangles --> FilterWorldMesh.append (the map)
+    surface.mesh_frame(novel depth, D) -> triangles, less those wholly on the rim --> FilterWorldMesh.append
     then MapRefinement.step and ObjectRemoval.find: what they find, the loop applies to the map
 
 E is the map as it stood after frame i - 1; refinement and removal change
@@ -41,6 +41,7 @@ from mabdi.surfaces.quadtree import QuadTreeParameters, resolved as resolved_qua
 from mabdi.stages.registration import STATUSES, FilterRegistration, RegistrationParameters, write_placement
 from mabdi.stages.registration_check import PosesDisagreeWarning, PoseJumpWarning, jumps_that_removed, poses_disagree
 from mabdi.surfaces.registry import make_surface_filter, mesh_frame, seam_pixels, surface_filter
+from mabdi.surfaces.seam_trim import trimmed_patch
 from mabdi.stages.object_removal import ObjectRemoval, RemovalResult, RemovalVotes
 from mabdi.stages.removal import RemovalParameters, depth_edges
 from mabdi.frame_values import Classified, Expected, Measured, Placement
@@ -521,6 +522,8 @@ class MabdiLoop:
             t_classify = time.perf_counter()
             surface_input, whole = measured.showing(classified.depth), measured.depth
         added = mesh_frame(self.surface, surface_input, whole)
+        if classified is not None and classified.novel_pixels is not None:  # the rim's own faces are the map's
+            added = trimmed_patch(added, classified.novel_pixels, measured.geometry, measured.pose)
         t_surface = time.perf_counter()
         self.world.append(added, index)
         t_append = time.perf_counter()

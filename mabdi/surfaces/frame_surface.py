@@ -5,17 +5,21 @@ A subclass implements ``mesh_frame(frame, whole)`` (a
 D or None) and returns the triangles in the world of the frame's pose; the
 loop calls it with the frame's values. As a VTK filter it takes a depth
 image (the classifier's output, or D itself), reads it into those values,
-and passes the image's field data on to its vtkPolyData output.
+trims the faces wholly on the classifier's rim where the image marks its
+novel pixels (:mod:`mabdi.surfaces.seam_trim`, as the loop does), and passes
+the image's field data on to its vtkPolyData output.
 """
 
 from __future__ import annotations
 
 import numpy as np
+from vtkmodules.util.numpy_support import vtk_to_numpy
 from vtkmodules.vtkCommonDataModel import vtkImageData, vtkPolyData
 
 from mabdi.algorithm import MabdiAlgorithm
 from mabdi.depth import measured_depth
 from mabdi.frame_values import Measured
+from mabdi.surfaces.seam_trim import NOVEL_PIXELS_ARRAY, trimmed_patch
 
 
 class FrameSurface(MabdiAlgorithm):
@@ -30,6 +34,12 @@ class FrameSurface(MabdiAlgorithm):
     def RequestData(self, request, inInfo, outInfo):  # noqa: N802 (VTK API)
         image = vtkImageData.GetData(inInfo[0])
         output = vtkPolyData.GetData(outInfo)
-        output.ShallowCopy(self.mesh_frame(Measured.from_image(image), measured_depth(image)))
+        frame = Measured.from_image(image)
+        patch = self.mesh_frame(frame, measured_depth(image))
+        novel = image.GetPointData().GetArray(NOVEL_PIXELS_ARRAY)
+        if novel is not None:
+            novel_pixels = vtk_to_numpy(novel).reshape(frame.depth.shape).astype(bool)
+            patch = trimmed_patch(patch, novel_pixels, frame.geometry, frame.pose)
+        output.ShallowCopy(patch)
         output.GetFieldData().ShallowCopy(image.GetFieldData())
         return 1
