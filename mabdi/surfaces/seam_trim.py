@@ -11,12 +11,14 @@ own faces trimmed").
 
 :func:`trimmed_patch` drops every face whose centroid projects onto a pixel
 with no novel pixel within ``reach`` pixels (a square window; the frame's
-pixels, its pose): the faces over novel pixels and those a pixel beside them
-stay, so the patch still reaches over the seam; the others go. Keeping only
-the faces whose centroid or an inset corner lies on a novel pixel trimmed a
-third of the triangles but opened seams other views see through. Only a
-camera's patches are trimmed, and only where the rim is wider than a pixel
-(the quad-tree on noisy depth): a one-pixel rim is all seam.
+pixels, its pose): the faces over novel pixels and those up to two pixels
+beside them stay, so the patch still reaches over the seam; the others go.
+A reach of one pixel trimmed four times as many faces, but left cracks
+narrower than a pixel along the seams (where the map's patch ends between
+two pixel centres), which oblique views see through and which changed where
+registration placed later frames. Only a camera's patches are trimmed, and
+only where the rim is wider than a pixel (the quad-tree on noisy depth): a
+one-pixel rim is all seam.
 
 Units: pixels; the patch is in the world frame of the frame's pose.
 """
@@ -36,7 +38,7 @@ from mabdi.polydata import extract_polys
 NOVEL_PIXELS_ARRAY = "novel_pixels"
 
 #: A face stays when a novel pixel lies within this many pixels of the pixel its centroid projects onto.
-TRIM_REACH_PX = 1
+TRIM_REACH_PX = 2
 
 
 def trims(geometry, rim_pixels: int) -> bool:
