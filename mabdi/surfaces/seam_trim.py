@@ -26,7 +26,6 @@ Units: pixels; the patch is in the world frame of the frame's pose.
 from __future__ import annotations
 
 import numpy as np
-from scipy import ndimage
 from vtkmodules.util.numpy_support import vtk_to_numpy
 from vtkmodules.vtkCommonDataModel import vtkPolyData
 
@@ -68,14 +67,19 @@ def kept_faces(
     if patch.GetNumberOfCells() == 0:
         return np.zeros(0, dtype=bool)
     uv, z = project(face_centroids(patch), intrinsics, world_from_camera)
-    square = np.ones((2 * int(reach) + 1,) * 2, dtype=bool)
-    near = ndimage.binary_dilation(novel, structure=square) if reach > 0 else np.asarray(novel, dtype=bool)
     with np.errstate(invalid="ignore"):
         u = np.floor(uv[:, 0])
         v = np.floor(uv[:, 1])
         inside = (z > 0) & (u >= 0) & (u < intrinsics.width) & (v >= 0) & (v < intrinsics.height)
     keep = ~inside
-    keep[inside] = near[v[inside].astype(np.int64), u[inside].astype(np.int64)]
+    rows, cols = v[inside].astype(np.int64), u[inside].astype(np.int64)
+    near = np.zeros(len(rows), dtype=bool)
+    for dv in range(-int(reach), int(reach) + 1):  # the window read at the faces' pixels only
+        for du in range(-int(reach), int(reach) + 1):
+            r, c = rows + dv, cols + du
+            valid = (r >= 0) & (r < intrinsics.height) & (c >= 0) & (c < intrinsics.width)
+            near[valid] |= novel[r[valid], c[valid]]
+    keep[inside] = near
     return keep
 
 
