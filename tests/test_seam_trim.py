@@ -1,5 +1,5 @@
-"""A new patch keeps the faces over its novel pixels and the pixel beside them; faces wholly on the classifier's
-rim, the map's surface meshed again, are dropped (:mod:`mabdi.surfaces.seam_trim`)."""
+"""A new patch keeps the faces within two pixels of its novel pixels; the other faces of the classifier's rim, the
+map's surface meshed again, are dropped (:mod:`mabdi.surfaces.seam_trim`)."""
 
 from __future__ import annotations
 

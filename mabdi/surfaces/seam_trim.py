@@ -13,7 +13,7 @@ own faces trimmed").
 with no novel pixel within ``reach`` pixels (a square window; the frame's
 pixels, its pose): the faces over novel pixels and those up to two pixels
 beside them stay, so the patch still reaches over the seam; the others go.
-A reach of one pixel trimmed four times as many faces, but left cracks
+A reach of one pixel trimmed several times as many faces, but left cracks
 narrower than a pixel along the seams (where the map's patch ends between
 two pixel centres), which oblique views see through and which changed where
 registration placed later frames. Only a camera's patches are trimmed, and
