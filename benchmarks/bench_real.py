@@ -30,7 +30,10 @@ Maps, all from the same integrated frames and the same given poses:
   Skipped with a note when Open3D cannot be imported.
 
 Also per map: triangles; for mabdi the faces removal deleted (the run's
-records), and the meshed poses against the given ones; time per frame of
+records), the meshed poses against the given ones, and its second layer: the
+share of its area within 1 cm (along the face's normal) of a face another
+frame made (:func:`mabdi.evaluate.redundancy.redundancy`, ``LAYER_SAMPLES``
+area-weighted samples); time per frame of
 every method, measured in this one run (mabdi: everything after reading the
 frame, ``t_total_ms - t_depth_ms`` of the records; TSDF: the integration,
 its depth smoothing included where asked; reading a frame is not counted for either).
@@ -68,6 +71,8 @@ from mabdi.camera import Intrinsics
 from mabdi.config import RunConfig, settings_overrides, with_overrides
 from mabdi.evaluate.bench import machine_info
 from mabdi.evaluate.held_out import THRESHOLDS, corrected_poses, held_out_split, pose_differences, score_map
+from mabdi.evaluate.redundancy import redundancy
+from mabdi.evaluate.sampling import sample_surface
 from mabdi.evaluate.tsdf import TsdfSettings, open3d_status, run_tsdf
 from mabdi.io.atomic import write_text
 from mabdi.loop.mapping_run import RECORDING_NOISE, MappingRun, RecordedFrames, depth_range_stated
@@ -140,6 +145,10 @@ def scored(mesh, frames) -> dict:
     return out
 
 
+#: Area-weighted samples of a mabdi map for its second layer (the share's standard error: about 0.4 points).
+LAYER_SAMPLES = 20_000
+
+
 def run_mabdi(source, subset, integrated, held, surface: str, registration: bool = True, settings=()) -> tuple[dict, object]:
     config = RunConfig()
     overrides = {"surface.method": surface}
@@ -186,6 +195,7 @@ def run_mabdi(source, subset, integrated, held, surface: str, registration: bool
         "noise": config.sensor.noise,
         "noise_calibration": result.noise_calibration,
         "held_out": scored(mesh, held_out_frames(source, held)),
+        "second_layer_1cm": redundancy(mesh, sample_surface(mesh, LAYER_SAMPLES), 0.01) if triangles else None,
     }
     corrected = corrected_poses(given_all, integrated, meshed, held)
     row["held_out_pose_correction"] = pose_differences(given_all[held], corrected)
@@ -246,6 +256,7 @@ def markdown(bench: dict) -> str:
                 f"(max {d['translation_mm_max']:.0f}), rotation median {d['rotation_deg_median']:.2f} deg (max {d['rotation_deg_max']:.2f}); "
                 f"held-out poses corrected by median {c['translation_mm_median']:.0f} mm / {c['rotation_deg_median']:.2f} deg; "
                 f"faces removed {row['faces_removed']:,} ({percent(row['faces_removed_share'])} of the faces made); "
+                f"area within 1 cm of another frame's face {percent(row.get('second_layer_1cm'))}; "
                 f"registration {row['registration']}",
             ]
             r = row.get("meshed_poses_vs_recording")
