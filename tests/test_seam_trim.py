@@ -87,7 +87,9 @@ def panned_wall(frames: int, step_px: int = 6) -> FrameList:
 
 def map_of_panned_wall(step_px: int):
     frames = panned_wall(8, step_px)
-    loop = mabdi.MabdiLoop(frames, surface="quadtree", noise="kinect", registration=RegistrationParameters(enabled=False))
+    loop = mabdi.MabdiLoop(
+        frames, surface="quadtree", noise="kinect", registration=RegistrationParameters(enabled=False)
+    )
     assert loop.classifier_parameters.rim == 3
     for i in range(len(frames)):
         loop.step(i)
@@ -106,7 +108,8 @@ def interior_holes(loop, yaw_deg: float) -> int:
     camera = Intrinsics(fx=320.0, fy=320.0, cx=160.0, cy=120.0, width=320, height=240)
     middle = np.array([0.8, 0.0, 2.0])
     eye = middle + 2.0 * np.array([np.sin(np.radians(yaw_deg)), 0.0, -np.cos(np.radians(yaw_deg))])
-    view = Measured(np.zeros(camera.shape, np.float32), camera, look_at(eye, middle, up=(0, -1, 0)), mabdi.SensorNoise(), 0)
+    pose = look_at(eye, middle, up=(0, -1, 0))
+    view = Measured(np.zeros(camera.shape, np.float32), camera, pose, mabdi.SensorNoise(), 0)
     covered = np.isfinite(loop.expected.render(loop.world.map, view).depth)
     return int(np.count_nonzero(ndimage.binary_fill_holes(covered) & ~covered))
 
@@ -142,3 +145,22 @@ def test_the_classifier_image_marks_its_novel_pixels_only_where_the_patch_is_tri
         if marked:
             novel = np.asarray(array).reshape(CAMERA.shape).astype(bool)
             assert novel[:, 40:].all() and not novel[:, :40].any()
+
+
+def test_a_surface_that_keeps_state_hands_out_its_patches_whole(monkeypatch):
+    """Voxel planes replace their own patches by key: with a rim wider than a pixel set by hand, the loop does not
+    trim what they hand out."""
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("a stateful surface's patch was trimmed")
+
+    monkeypatch.setattr("mabdi.loop.loop.trimmed_patch", refuse)
+    frames = panned_wall(3, 11)
+    loop = mabdi.MabdiLoop(
+        frames, surface="voxel_planes", noise="kinect", classifier=ClassifierParameters(rim=3),
+        registration=RegistrationParameters(enabled=False),
+    )  # fmt: skip
+    for i in range(len(frames)):
+        loop.step(i)
+    assert loop.last_frame.classified.novel_pixels is not None and loop.mesh().GetNumberOfCells() > 0
+

@@ -59,7 +59,11 @@ def face_centroids(patch: vtkPolyData) -> np.ndarray:
 
 
 def kept_faces(
-    patch: vtkPolyData, novel: np.ndarray, intrinsics: Intrinsics, world_from_camera: np.ndarray, reach: int = TRIM_REACH_PX
+    patch: vtkPolyData,
+    novel: np.ndarray,
+    intrinsics: Intrinsics,
+    world_from_camera: np.ndarray,
+    reach: int = TRIM_REACH_PX,
 ) -> np.ndarray:
     """(N,) bool per polygon of ``patch``: its centroid projects (``intrinsics``, 4x4 ``world_from_camera``)
     within ``reach`` pixels (a square) of a pixel of ``novel`` ((H, W) bool), or outside the image or behind
@@ -84,7 +88,11 @@ def kept_faces(
 
 
 def trimmed_patch(
-    patch: vtkPolyData, novel: np.ndarray, intrinsics: Intrinsics, world_from_camera: np.ndarray, reach: int = TRIM_REACH_PX
+    patch: vtkPolyData,
+    novel: np.ndarray,
+    intrinsics: Intrinsics,
+    world_from_camera: np.ndarray,
+    reach: int = TRIM_REACH_PX,
 ) -> vtkPolyData:
     """``patch`` without the faces :func:`kept_faces` drops (the same object when it keeps them all); point and
     cell arrays and field data carried over."""
