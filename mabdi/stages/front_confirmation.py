@@ -28,6 +28,7 @@ import numpy as np
 
 from mabdi.camera import Intrinsics, pixel_rays, project
 from mabdi.stages.image_kernels import dilate_kernel
+from mabdi.voxels.voxel_map import pack_keys, unpack_keys
 
 #: Edge of the memory's voxels (metres): a few pixels of a camera's surface at 1-3 m, below the 5 cm at
 #: which the held-out scores count a surface as misplaced.
@@ -35,26 +36,22 @@ VOXEL = 0.02
 #: A voxel's pixels on the map's surface are counted within this many pixels of its pixels in front (the
 #: voxel's few pixels at 1-3 m).
 MAJORITY_REACH_PX = 8
-#: Voxel indices are packed into one int64 key, 21 bits an axis: +-2**20 voxels (+-21 km at 2 cm) around the
-#: map's origin.
-_BITS = 21
-_OFFSET = 1 << (_BITS - 1)
-_MASK = (1 << _BITS) - 1
+#: Voxel indices are packed into one int64 key (:func:`mabdi.voxels.voxel_map.pack_keys`): +-2**20 voxels
+#: (+-21 km at 2 cm) around the map's origin.
+_REACH = 1 << 20
 
 
 def voxel_keys(points: np.ndarray, voxel: float = VOXEL) -> np.ndarray:
     """(N,) int64 keys of the voxels that hold ``points`` ((N, 3) metres)."""
-    index = np.floor(np.asarray(points, dtype=np.float64) / voxel).astype(np.int64) + _OFFSET
-    if len(index) and ((index < 0).any() or (index > _MASK).any()):
-        raise ValueError(f"a point lies more than {_OFFSET * voxel:.0f} m from the map's origin")
-    return (index[:, 0] << (2 * _BITS)) | (index[:, 1] << _BITS) | index[:, 2]
+    index = np.floor(np.asarray(points, dtype=np.float64) / voxel).astype(np.int64)
+    if len(index) and ((index < -_REACH).any() or (index >= _REACH).any()):
+        raise ValueError(f"a point lies more than {_REACH * voxel:.0f} m from the map's origin")
+    return pack_keys(index)
 
 
 def voxel_centres(keys: np.ndarray, voxel: float = VOXEL) -> np.ndarray:
     """(N, 3) centres (metres) of the voxels of ``keys``."""
-    keys = np.asarray(keys, dtype=np.int64)
-    index = np.stack([(keys >> (2 * _BITS)) & _MASK, (keys >> _BITS) & _MASK, keys & _MASK], axis=1) - _OFFSET
-    return (index + 0.5) * voxel
+    return (unpack_keys(keys) + 0.5) * voxel
 
 
 class FrontConfirmation:

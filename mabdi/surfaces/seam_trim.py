@@ -26,11 +26,11 @@ Units: pixels; the patch is in the world frame of the frame's pose.
 from __future__ import annotations
 
 import numpy as np
-from vtkmodules.util.numpy_support import vtk_to_numpy
 from vtkmodules.vtkCommonDataModel import vtkPolyData
 
 from mabdi.camera import Intrinsics, project
 from mabdi.polydata import extract_polys
+from mabdi.world_map import face_centres
 
 #: Point data of the classifier's output image (uint8): 1 where a pixel is meshed for its own sake, 0 on the
 #: rim; present only where the patch is trimmed.
@@ -46,18 +46,6 @@ def trims(geometry, rim_pixels: int) -> bool:
     return isinstance(geometry, Intrinsics) and rim_pixels > 1
 
 
-def face_centroids(patch: vtkPolyData) -> np.ndarray:
-    """(N, 3) the centroid of each polygon of ``patch`` (the mean of its corners; world frame, m)."""
-    points = vtk_to_numpy(patch.GetPoints().GetData()).astype(np.float64)
-    polys = patch.GetPolys()
-    offsets = vtk_to_numpy(polys.GetOffsetsArray()).astype(np.int64)
-    connectivity = vtk_to_numpy(polys.GetConnectivityArray()).astype(np.int64)
-    sizes = np.diff(offsets)
-    sums = np.zeros((len(sizes), 3))
-    np.add.at(sums, np.repeat(np.arange(len(sizes)), sizes), points[connectivity])
-    return sums / np.maximum(sizes, 1)[:, None]
-
-
 def kept_faces(
     patch: vtkPolyData,
     novel: np.ndarray,
@@ -70,7 +58,7 @@ def kept_faces(
     the camera (kept: nothing to say of it)."""
     if patch.GetNumberOfCells() == 0:
         return np.zeros(0, dtype=bool)
-    uv, z = project(face_centroids(patch), intrinsics, world_from_camera)
+    uv, z = project(face_centres(patch)[0], intrinsics, world_from_camera)
     with np.errstate(invalid="ignore"):
         u = np.floor(uv[:, 0])
         v = np.floor(uv[:, 1])
