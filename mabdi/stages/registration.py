@@ -523,10 +523,13 @@ def register_depth(
     median_scale = _median(scale) if len(scale) else 0.0
     improvement, reference_index = float("nan"), 0
     if status == "registered":
-        # D's finest samples against E at each reference and at the result, every candidate (the gate is moot)
+        # D's finest samples against E at each reference and at the result, every candidate (the gate is moot);
+        # a median of many needs every MEDIAN_STRIDE-th sample only, so only those are paired (4 passes a frame)
         judged = () if judged_against is None else (judged_against(transform, covariance),)
+        fit_points = points[::MEDIAN_STRIDE] if len(points) > MEDIAN_MANY else points
         medians = [
-            _median(r) if len(r) else np.inf for r in (map_image.residuals(points, pose) for pose in (*references, *judged, transform))
+            float(median_every(r, 1)) if len(r) else np.inf
+            for r in (map_image.residuals(fit_points, pose) for pose in (*references, *judged, transform))
         ]
         reference_index = int(np.argmin(medians[: len(references)]))
         if reference_index > 0 and medians[0] < CARRY_FROM * medians[reference_index]:
