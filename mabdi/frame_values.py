@@ -140,13 +140,13 @@ class Classified:
     ``labels``: (H, W) uint8 (0 no return, 1 known, 2 novel, 3 contradicted); ``depth``: (H, W) float32 what
     the surface meshes (the novel pixels and their rim, metres; NaN elsewhere); ``pose_sigma``: (H, W) float32
     E's depth uncertainty from D's pose covariance (m), None without one; ``counts``: pixels ``valid``,
-    ``novel``, ``specks``, ``contradicted``; ``trim_reach``: (H, W) uint8, per pixel of ``depth`` meshed for its
-    own sake how far (pixels) from it the surface's patch keeps its faces (0 on the rim;
-    :func:`mabdi.surfaces.seam_trim.trim_reach`), None where the patch is kept whole.
+    ``novel``, ``specks``, ``contradicted``; ``novel_pixels``: (H, W) bool, the pixels of ``depth`` meshed for
+    their own sake (the rest is the rim), where the surface's patch keeps only their faces
+    (:mod:`mabdi.surfaces.seam_trim`), None where the patch is kept whole.
     """
 
     labels: np.ndarray
     depth: np.ndarray
     counts: dict[str, int]
     pose_sigma: np.ndarray | None = None
-    trim_reach: np.ndarray | None = None
+    novel_pixels: np.ndarray | None = None

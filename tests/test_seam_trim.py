@@ -1,6 +1,5 @@
-"""A new patch keeps the faces within two pixels of its novel pixels (one of a speck that fills a hole of the map);
-the other faces of the classifier's rim, the map's surface meshed again, are dropped
-(:mod:`mabdi.surfaces.seam_trim`)."""
+"""A new patch keeps the faces within two pixels of its novel pixels; the other faces of the classifier's rim, the
+map's surface meshed again, are dropped (:mod:`mabdi.surfaces.seam_trim`)."""
 
 from __future__ import annotations
 
@@ -14,9 +13,7 @@ from mabdi.sources.frames import FrameList
 from mabdi.spherical import SphericalGeometry
 from mabdi.stages.classifier import ClassifierParameters, FilterClassifier
 from mabdi.stages.registration import RegistrationParameters
-from mabdi.surfaces.seam_trim import (
-    FILL_REACH_PX, TRIM_REACH_ARRAY, TRIM_REACH_PX, kept_faces, trim_reach, trimmed_patch, trims,
-)
+from mabdi.surfaces.seam_trim import NOVEL_PIXELS_ARRAY, kept_faces, trimmed_patch, trims
 
 CAMERA = Intrinsics(fx=80.0, fy=80.0, cx=40.0, cy=30.0, width=80, height=60)
 
@@ -40,11 +37,7 @@ def patch_of(triangles: list[np.ndarray]):
     return triangles_polydata(points, np.arange(len(points)).reshape(-1, 3))
 
 
-def reach_of(novel: np.ndarray, fills: np.ndarray | None = None) -> np.ndarray:
-    return trim_reach(novel, np.zeros_like(novel) if fills is None else fills)
-
-
-def test_a_face_stays_when_a_novel_pixel_lies_within_its_reach_of_the_centroid():
+def test_a_face_stays_when_a_novel_pixel_lies_within_two_pixels_of_its_centroid():
     novel = np.zeros(CAMERA.shape, bool)
     novel[30, 40] = True
     places = [(40, 30), (41, 31), (38, 28), (42, 32), (43, 30), (40, 27), (37, 33)]
@@ -52,20 +45,11 @@ def test_a_face_stays_when_a_novel_pixel_lies_within_its_reach_of_the_centroid()
     faces.append(triangle([[36.0, 30.0], [44.0, 30.0], [36.0, 33.0]]))  # centroid at (38.7, 31): beside it
     faces.append(triangle([[40.2, 30.2], [49.0, 30.2], [40.2, 39.0]]))  # a corner on it, centroid 3 pixels off
     patch = patch_of(faces)
-    assert (TRIM_REACH_PX, FILL_REACH_PX) == (2, 1)
-    keep = kept_faces(patch, reach_of(novel), CAMERA, np.eye(4))
+    keep = kept_faces(patch, novel, CAMERA, np.eye(4))
     np.testing.assert_array_equal(keep, [True, True, True, True, False, False, False, True, False])
-    # the same pixel filling a hole of the map reaches one pixel
-    assert kept_faces(patch, reach_of(novel, novel), CAMERA, np.eye(4)).tolist() == [True, True] + [False] * 7
-    trimmed = trimmed_patch(patch, reach_of(novel), CAMERA, np.eye(4))
+    assert kept_faces(patch, novel, CAMERA, np.eye(4), reach=1).tolist() == [True, True] + [False] * 7
+    trimmed = trimmed_patch(patch, novel, CAMERA, np.eye(4))
     assert trimmed.GetNumberOfCells() == 5 and trimmed.GetNumberOfPoints() == 15
-    # a fill one pixel from a novel pixel: each reaches as far as its own
-    fill = np.zeros(CAMERA.shape, bool)
-    fill[30, 44] = True
-    reach = trim_reach(novel | fill, fill)
-    assert reach[30, 40] == 2 and reach[30, 44] == 1 and reach.sum() == 3
-    beside_fill = patch_of([triangle_at(45, 31), triangle_at(46, 30), triangle_at(42, 30)])
-    assert kept_faces(beside_fill, reach, CAMERA, np.eye(4)).tolist() == [True, False, True]
 
 
 def test_faces_outside_the_image_or_behind_the_camera_are_kept():
@@ -73,10 +57,10 @@ def test_faces_outside_the_image_or_behind_the_camera_are_kept():
     behind = triangle_at(40, 30, z=2.0) * np.array([1.0, 1.0, -1.0])
     straddling = triangle([[-3.0, 10.0], [2.0, 10.0], [-3.0, 14.0]])  # its centroid left of the image
     patch = patch_of([triangle_at(-6, 30), triangle_at(40, 70), behind, triangle_at(10, 10), straddling])
-    assert kept_faces(patch, reach_of(novel), CAMERA, np.eye(4)).tolist() == [True, True, True, False, True]
+    assert kept_faces(patch, novel, CAMERA, np.eye(4)).tolist() == [True, True, True, False, True]
     whole = patch_of([triangle_at(40, 30)])
     novel[30, 40] = True
-    assert trimmed_patch(whole, reach_of(novel), CAMERA, np.eye(4)) is whole  # nothing to drop: the same patch
+    assert trimmed_patch(whole, novel, CAMERA, np.eye(4)) is whole  # nothing to drop: the same patch
 
 
 def test_only_a_cameras_rim_wider_than_the_reach_is_trimmed():
@@ -109,7 +93,7 @@ def map_of_panned_wall(step_px: int):
     assert loop.classifier_parameters.rim == 3
     for i in range(len(frames)):
         loop.step(i)
-        assert loop.last_frame.classified.trim_reach is not None
+        assert loop.last_frame.classified.novel_pixels is not None
     return loop
 
 
@@ -144,7 +128,7 @@ def test_a_panned_wall_keeps_fewer_rim_faces_and_no_cracks(monkeypatch):
         assert interior_holes(trimmed, yaw) == 0, yaw
 
 
-def test_the_classifier_image_marks_its_novel_pixels_reach_only_where_the_patch_is_trimmed():
+def test_the_classifier_image_marks_its_novel_pixels_only_where_the_patch_is_trimmed():
     from mabdi.depth import depth_image
     from mabdi.sensor_noise import SensorNoise
 
@@ -156,11 +140,11 @@ def test_the_classifier_image_marks_its_novel_pixels_reach_only_where_the_patch_
         classifier.SetInputDataObject(0, depth_image(measured, CAMERA, np.eye(4), frame=1, noise=SensorNoise("kinect")))
         classifier.SetInputDataObject(1, depth_image(expected, CAMERA, np.eye(4), frame=1))
         classifier.Update()
-        array = classifier.GetOutput().GetPointData().GetArray(TRIM_REACH_ARRAY)
+        array = classifier.GetOutput().GetPointData().GetArray(NOVEL_PIXELS_ARRAY)
         assert (array is not None) == marked
         if marked:
-            reach = np.asarray(array).reshape(CAMERA.shape)
-            assert (reach[:, 40:] == TRIM_REACH_PX).all() and not reach[:, :40].any()
+            novel = np.asarray(array).reshape(CAMERA.shape).astype(bool)
+            assert novel[:, 40:].all() and not novel[:, :40].any()
 
 
 def test_a_surface_that_keeps_state_hands_out_its_patches_whole(monkeypatch):
@@ -178,28 +162,5 @@ def test_a_surface_that_keeps_state_hands_out_its_patches_whole(monkeypatch):
     )  # fmt: skip
     for i in range(len(frames)):
         loop.step(i)
-    assert loop.last_frame.classified.trim_reach is not None and loop.mesh().GetNumberOfCells() > 0
+    assert loop.last_frame.classified.novel_pixels is not None and loop.mesh().GetNumberOfCells() > 0
 
-
-
-def test_a_speck_that_fills_a_hole_of_the_map_reaches_one_pixel():
-    """A 3 x 3 hole in the map, ringed by it at D's depth, is a speck the classifier keeps (it fills the hole); its
-    patch keeps the faces within one pixel of it, new surface beside the map those within two."""
-    from mabdi.depth import depth_image
-    from mabdi.sensor_noise import SensorNoise
-
-    measured = np.full(CAMERA.shape, 2.0, np.float32)
-    expected = measured.copy()
-    expected[20:23, 10:13] = np.nan  # a hole of the map
-    expected[:, 50:] = np.nan  # new surface
-    classifier = FilterClassifier(ClassifierParameters(rim=3))
-    classifier.SetInputDataObject(0, depth_image(measured, CAMERA, np.eye(4), frame=1, noise=SensorNoise("kinect")))
-    classifier.SetInputDataObject(1, depth_image(expected, CAMERA, np.eye(4), frame=1))
-    classifier.Update()
-    reach = np.asarray(classifier.GetOutput().GetPointData().GetArray(TRIM_REACH_ARRAY)).reshape(CAMERA.shape)
-    assert (reach[20:23, 10:13] == FILL_REACH_PX).all()
-    assert (reach[:, 50:] == TRIM_REACH_PX).all()
-    assert np.count_nonzero(reach) == 9 + 60 * 30
-    # the fill's patch: faces one pixel out stay, two pixels out go
-    around = patch_of([triangle_at(13, 21), triangle_at(14, 21), triangle_at(11, 18)])
-    assert kept_faces(around, reach, CAMERA, np.eye(4)).tolist() == [True, False, False]

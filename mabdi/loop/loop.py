@@ -522,9 +522,9 @@ class MabdiLoop:
             t_classify = time.perf_counter()
             surface_input, whole = measured.showing(classified.depth), measured.depth
         added = mesh_frame(self.surface, surface_input, whole)
-        if classified is not None and classified.trim_reach is not None and not self.surface_capabilities.keeps_state:
+        if classified is not None and classified.novel_pixels is not None and not self.surface_capabilities.keeps_state:
             # the rim's own faces are the map's (a surface that keeps state hands out its own patches whole)
-            added = trimmed_patch(added, classified.trim_reach, measured.geometry, measured.pose)
+            added = trimmed_patch(added, classified.novel_pixels, measured.geometry, measured.pose)
         t_surface = time.perf_counter()
         self.world.append(added, index)
         t_append = time.perf_counter()

@@ -32,7 +32,7 @@ the map until ``front_frames`` frames have seen it there (:mod:`mabdi.stages.fro
 
 Output: ``depth`` is D on the novel pixels and a ``rim`` of pixels around them (NaN elsewhere; ``rim_on_map``
 puts the rim's known pixels on E), point arrays ``measured_depth``, ``label``, ``pose_sigma`` and, where faces
-wholly on the rim are trimmed (:mod:`mabdi.surfaces.seam_trim`), ``trim_reach``; field data D's and
+wholly on the rim are trimmed (:mod:`mabdi.surfaces.seam_trim`), ``novel_pixels``; field data D's and
 ``pixel_counts`` (:func:`pixel_counts`).
 Defaults: tau_min = 0.01 m, k_sigma = 3, front_k, rim, rim_on_map and outer_radius "auto", min_width = 3 px,
 min_region = 32 px, fill_holes = true, gradual = true; front_frames "auto".
@@ -61,7 +61,7 @@ from mabdi.frame_values import Classified, Expected, Measured
 from mabdi.stages.front_confirmation import FrontConfirmation
 from mabdi.stages.image_kernels import border_steps_kernel, dilate_kernel
 from mabdi.stages.registration import image_fitted_pose, image_pose_covariance, pose_depth_sigma
-from mabdi.surfaces.seam_trim import TRIM_REACH_ARRAY, trim_reach, trims
+from mabdi.surfaces.seam_trim import NOVEL_PIXELS_ARRAY, trims
 
 NO_RETURN, KNOWN, NOVEL, CONTRADICTED = 0, 1, 2, 3
 LABEL_ARRAY = "label"
@@ -595,10 +595,8 @@ class FilterClassifier(MabdiAlgorithm):
         raw_novel = labels == NOVEL
         covered = expected.covered
         novel = remove_specks(raw_novel, p.min_width, p.min_region, covered)
-        fills = None
         if p.fill_holes and noise.noisy:
-            fills = hole_fills(raw_novel & ~novel, depth, expected_depth, labels, tau, covered)
-            novel |= fills
+            novel |= hole_fills(raw_novel & ~novel, depth, expected_depth, labels, tau, covered)
         specks = raw_novel & ~novel
         in_front, contradicted = novel & np.isfinite(expected_depth), labels == CONTRADICTED
         if p.gradual and (in_front.any() or contradicted.any()):  # a frame that departs nowhere costs nothing here
@@ -633,11 +631,9 @@ class FilterClassifier(MabdiAlgorithm):
             np.count_nonzero(labels != NO_RETURN), np.count_nonzero(novel), np.count_nonzero(specks),
             np.count_nonzero(labels == CONTRADICTED),
         )  # fmt: skip
-        reach = None
-        if trims(intrinsics, p.rim_pixels):  # the rim's own faces are trimmed
-            reach = trim_reach(novel, fills if fills is not None else np.zeros_like(novel))
+        novel_pixels = novel if trims(intrinsics, p.rim_pixels) else None  # the rim's own faces are trimmed
         counted = dict(zip(PIXEL_COUNT_NAMES, (int(c) for c in counts), strict=True))
-        return Classified(labels, meshed_depth, counted, pose_sigma, reach)
+        return Classified(labels, meshed_depth, counted, pose_sigma, novel_pixels)
 
     def RequestData(self, request, inInfo, outInfo):  # noqa: N802 (VTK API)
         measured_image = vtkImageData.GetData(inInfo[0])
@@ -653,7 +649,7 @@ class FilterClassifier(MabdiAlgorithm):
 def write_classified(image, measured: Measured, classified: Classified) -> None:
     """The classifier's output image (the filter's edge): the depth the surface meshes with D's geometry,
     pose, frame, noise and colour; point data ``measured_depth`` (all of D), ``label``, with a pose
-    covariance ``pose_sigma``, and where the patch is trimmed ``trim_reach``; field data ``pixel_counts``."""
+    covariance ``pose_sigma``, and where the patch is trimmed ``novel_pixels``; field data ``pixel_counts``."""
     measured.showing(classified.depth).fill(image)
     whole = numpy_to_vtk(measured.depth.ravel(), deep=True)  # D's values as they are now
     whole.SetName(MEASURED_ARRAY)
@@ -661,10 +657,10 @@ def write_classified(image, measured: Measured, classified: Classified) -> None:
     labels = numpy_to_vtk(classified.labels.ravel(), deep=True)
     labels.SetName(LABEL_ARRAY)
     image.GetPointData().AddArray(labels)
-    if classified.trim_reach is not None:
-        reach = numpy_to_vtk(classified.trim_reach.ravel().astype(np.uint8), deep=True)
-        reach.SetName(TRIM_REACH_ARRAY)
-        image.GetPointData().AddArray(reach)
+    if classified.novel_pixels is not None:
+        own = numpy_to_vtk(classified.novel_pixels.ravel().astype(np.uint8), deep=True)
+        own.SetName(NOVEL_PIXELS_ARRAY)
+        image.GetPointData().AddArray(own)
     if classified.pose_sigma is not None:
         sigma = numpy_to_vtk(classified.pose_sigma.ravel(), deep=True)
         sigma.SetName(POSE_SIGMA_ARRAY)

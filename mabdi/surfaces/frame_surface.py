@@ -19,7 +19,7 @@ from vtkmodules.vtkCommonDataModel import vtkImageData, vtkPolyData
 from mabdi.algorithm import MabdiAlgorithm
 from mabdi.depth import measured_depth
 from mabdi.frame_values import Measured
-from mabdi.surfaces.seam_trim import TRIM_REACH_ARRAY, trimmed_patch
+from mabdi.surfaces.seam_trim import NOVEL_PIXELS_ARRAY, trimmed_patch
 
 
 class FrameSurface(MabdiAlgorithm):
@@ -36,9 +36,10 @@ class FrameSurface(MabdiAlgorithm):
         output = vtkPolyData.GetData(outInfo)
         frame = Measured.from_image(image)
         patch = self.mesh_frame(frame, measured_depth(image))
-        reach = image.GetPointData().GetArray(TRIM_REACH_ARRAY)
-        if reach is not None:
-            patch = trimmed_patch(patch, vtk_to_numpy(reach).reshape(frame.depth.shape), frame.geometry, frame.pose)
+        novel = image.GetPointData().GetArray(NOVEL_PIXELS_ARRAY)
+        if novel is not None:
+            novel_pixels = vtk_to_numpy(novel).reshape(frame.depth.shape).astype(bool)
+            patch = trimmed_patch(patch, novel_pixels, frame.geometry, frame.pose)
         output.ShallowCopy(patch)
         output.GetFieldData().ShallowCopy(image.GetFieldData())
         return 1

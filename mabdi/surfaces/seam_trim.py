@@ -10,17 +10,13 @@ ragged strip, they made up much of the map (docs/benchmarks.md, "The rim's
 own faces trimmed").
 
 :func:`trimmed_patch` drops every face whose centroid projects onto a pixel
-with no novel pixel within that pixel's reach (a square window; the frame's
-pixels, its pose). The classifier states the reach per novel pixel
-(:func:`trim_reach`): two pixels for new surface, so the patch still reaches
-over the seam wherever across the rim the map's edge lies; one pixel for a
-speck that fills a hole of the map, which the map rings at its depth on every
-side, so that one pixel out the patch already lies on the hole's edge. A
-reach of one pixel for new surface trimmed several times as many faces, but
-left cracks narrower than a pixel along the seams (where the map's patch ends
-between two pixel centres), which oblique views see through and which changed
-where registration placed later frames; a reach of none for a hole's fill
-reopened holes. Only a camera's patches are trimmed, and
+with no novel pixel within ``reach`` pixels (a square window; the frame's
+pixels, its pose): the faces over novel pixels and those up to two pixels
+beside them stay, so the patch still reaches over the seam; the others go.
+A reach of one pixel trimmed several times as many faces, but left cracks
+narrower than a pixel along the seams (where the map's patch ends between
+two pixel centres), which oblique views see through and which changed where
+registration placed later frames. Only a camera's patches are trimmed, and
 only where the rim is wider than a pixel (the quad-tree on noisy depth): a
 one-pixel rim is all seam.
 
@@ -36,23 +32,12 @@ from mabdi.camera import Intrinsics, project
 from mabdi.polydata import extract_polys
 from mabdi.world_map import face_centres
 
-#: Point data of the classifier's output image (uint8): per pixel the reach of :func:`trim_reach`, 0 on the
+#: Point data of the classifier's output image (uint8): 1 where a pixel is meshed for its own sake, 0 on the
 #: rim; present only where the patch is trimmed.
-TRIM_REACH_ARRAY = "trim_reach"
+NOVEL_PIXELS_ARRAY = "novel_pixels"
 
-#: A face stays when a novel pixel lies within this many pixels of the pixel its centroid projects onto ...
+#: A face stays when a novel pixel lies within this many pixels of the pixel its centroid projects onto.
 TRIM_REACH_PX = 2
-#: ... or within this many of a pixel that fills a hole of the map.
-FILL_REACH_PX = 1
-
-
-def trim_reach(novel: np.ndarray, fills: np.ndarray) -> np.ndarray:
-    """(H, W) uint8: per pixel, how far (pixels, a square) from it the patch's faces stay: :data:`TRIM_REACH_PX`
-    at a pixel of ``novel`` ((H, W) bool, the pixels meshed for their own sake), :data:`FILL_REACH_PX` where it
-    fills a hole of the map (``fills``, (H, W) bool), 0 elsewhere (the rim)."""
-    reach = np.where(novel, np.uint8(TRIM_REACH_PX), np.uint8(0))
-    reach[novel & fills] = FILL_REACH_PX
-    return reach
 
 
 def trims(geometry, rim_pixels: int) -> bool:
@@ -63,13 +48,14 @@ def trims(geometry, rim_pixels: int) -> bool:
 
 def kept_faces(
     patch: vtkPolyData,
-    reach: np.ndarray,
+    novel: np.ndarray,
     intrinsics: Intrinsics,
     world_from_camera: np.ndarray,
+    reach: int = TRIM_REACH_PX,
 ) -> np.ndarray:
     """(N,) bool per polygon of ``patch``: its centroid projects (``intrinsics``, 4x4 ``world_from_camera``)
-    within a pixel's ``reach`` ((H, W) uint8, :func:`trim_reach`; 0: none) of that pixel (a square), or outside
-    the image or behind the camera (kept: nothing to say of it)."""
+    within ``reach`` pixels (a square) of a pixel of ``novel`` ((H, W) bool), or outside the image or behind
+    the camera (kept: nothing to say of it)."""
     if patch.GetNumberOfCells() == 0:
         return np.zeros(0, dtype=bool)
     uv, z = project(face_centres(patch)[0], intrinsics, world_from_camera)
@@ -80,25 +66,25 @@ def kept_faces(
     keep = ~inside
     rows, cols = v[inside].astype(np.int64), u[inside].astype(np.int64)
     near = np.zeros(len(rows), dtype=bool)
-    widest = int(reach.max()) if reach.size else 0
-    for dv in range(-widest, widest + 1):  # the window read at the faces' pixels only
-        for du in range(-widest, widest + 1):
+    for dv in range(-int(reach), int(reach) + 1):  # the window read at the faces' pixels only
+        for du in range(-int(reach), int(reach) + 1):
             r, c = rows + dv, cols + du
             valid = (r >= 0) & (r < intrinsics.height) & (c >= 0) & (c < intrinsics.width)
-            near[valid] |= reach[r[valid], c[valid]] >= max(abs(dv), abs(du), 1)
+            near[valid] |= novel[r[valid], c[valid]]
     keep[inside] = near
     return keep
 
 
 def trimmed_patch(
     patch: vtkPolyData,
-    reach: np.ndarray,
+    novel: np.ndarray,
     intrinsics: Intrinsics,
     world_from_camera: np.ndarray,
+    reach: int = TRIM_REACH_PX,
 ) -> vtkPolyData:
-    """``patch`` without the faces :func:`kept_faces` drops (``reach``: :func:`trim_reach`; the same object when
-    it keeps them all); point and cell arrays and field data carried over."""
-    keep = kept_faces(patch, reach, intrinsics, world_from_camera)
+    """``patch`` without the faces :func:`kept_faces` drops (the same object when it keeps them all); point and
+    cell arrays and field data carried over."""
+    keep = kept_faces(patch, novel, intrinsics, world_from_camera, reach)
     if keep.all():
         return patch
     trimmed = extract_polys(patch, np.flatnonzero(keep))
