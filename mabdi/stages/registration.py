@@ -130,7 +130,8 @@ STEP_TRANSLATION = 5e-5
 STEP_ROTATION = 5e-4
 #: ... and at each level coarser than the finest, this many times more (they only bring the pose near).
 COARSE_TOLERANCE = 10.0
-#: The residuals' median is taken over every MEDIAN_STRIDE-th where there are more than MEDIAN_MANY.
+#: The residuals' median is taken over every MEDIAN_STRIDE-th residual (or, judging poses, sample) where there
+#: are more than MEDIAN_MANY.
 MEDIAN_STRIDE = 4
 MEDIAN_MANY = 20_000
 #: The gate's reach shrinks with the residuals only while the pairs hold every direction the map constrains at
@@ -524,7 +525,7 @@ def register_depth(
     improvement, reference_index = float("nan"), 0
     if status == "registered":
         # D's finest samples against E at each reference and at the result, every candidate (the gate is moot);
-        # a median of many needs every MEDIAN_STRIDE-th sample only, so only those are paired (4 passes a frame)
+        # a median of many needs every MEDIAN_STRIDE-th sample only, so only those are paired (up to four passes)
         judged = () if judged_against is None else (judged_against(transform, covariance),)
         fit_points = points[::MEDIAN_STRIDE] if len(points) > MEDIAN_MANY else points
         medians = [
