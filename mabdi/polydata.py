@@ -360,3 +360,22 @@ def _collect_leaves(tree, prefix: str, planes, leaves: list) -> None:
             _collect_leaves(block, f"{prefix}{index}/", planes, leaves)
         else:
             raise TypeError(f"composite dataset has a {block.GetClassName()} block; only vtkPolyData can be rendered")
+
+
+def segment_crossings(origins, directions, reach, a, b, c, inside: float = 0.0) -> np.ndarray:
+    """Whether the segments ``origins`` + t ``directions`` (unit), |t| <= ``reach`` (m), cross the triangles
+    (``a``, ``b``, ``c``) (Moller-Trumbore); all arrays broadcast together, (..., 3) points and (...) reaches.
+    A crossing lies ``inside`` or more into the triangle in barycentric terms (0: its edges count; a small
+    positive value: a point on the edge two abutting triangles share crosses neither). NaN corners cross nothing."""
+    e1, e2 = b - a, c - a
+    directions = np.broadcast_to(directions, np.broadcast_shapes(np.shape(directions), e2.shape))
+    p = np.cross(directions, e2)
+    det = np.einsum("...i,...i->...", e1, p)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        inv = 1.0 / det
+        s = origins - a
+        u = np.einsum("...i,...i->...", s, p) * inv
+        q = np.cross(s, e1)
+        v = np.einsum("...i,...i->...", directions, q) * inv
+        t = np.einsum("...i,...i->...", e2, q) * inv
+        return (np.abs(det) > 1e-12) & (u >= inside) & (v >= inside) & (u + v <= 1.0 - inside) & (np.abs(t) <= reach)

@@ -557,6 +557,21 @@ class WorldMap:
             out[rows] = getattr(self._patches[table.names[b]], attribute)[local[rows]]
         return out
 
+    def face_corners_of(self, codes, table: FaceIdTable) -> np.ndarray:
+        """(N, 3, 3) float64 world corners of the triangles ``codes``; NaN for codes of no face in the map, or of a
+        face of a patch with other polygons than triangles."""
+        codes = np.asarray(codes, dtype=np.int64).reshape(-1)
+        out = np.full((len(codes), 3, 3), np.nan)
+        groups, local = self._current_groups(codes, table)
+        for b, rows in groups:
+            patch = self._patches[table.names[b]]
+            triangles = patch_triangles(patch.polydata)
+            if triangles is None:
+                continue
+            points = vtk_to_numpy(patch.polydata.GetPoints().GetData())
+            out[rows] = points[triangles[local[rows]]]
+        return out
+
     def face_normals_of(self, codes, table: FaceIdTable) -> np.ndarray:
         """(N, 3) world normals of the faces ``codes``; NaN for codes of no face in the map."""
         return self._per_face(codes, table, "normals", np.nan).reshape(-1, 3) if self._patches else np.full((len(codes), 3), np.nan, np.float32)

@@ -1,5 +1,6 @@
 """A new patch keeps the faces within two pixels of its novel pixels; the other faces of the classifier's rim, the
-map's surface meshed again, are dropped (:mod:`mabdi.surfaces.seam_trim`)."""
+map's surface meshed again, are dropped, and so are the faces the map already holds within 1 cm
+(:mod:`mabdi.surfaces.seam_trim`)."""
 
 from __future__ import annotations
 
@@ -13,7 +14,8 @@ from mabdi.sources.frames import FrameList
 from mabdi.spherical import SphericalGeometry
 from mabdi.stages.classifier import ClassifierParameters, FilterClassifier
 from mabdi.stages.registration import RegistrationParameters
-from mabdi.surfaces.seam_trim import NOVEL_PIXELS_ARRAY, kept_faces, trimmed_patch, trims
+from mabdi.frame_values import Expected
+from mabdi.surfaces.seam_trim import NOVEL_PIXELS_ARRAY, faces_on_map, kept_faces, trimmed_patch, trims
 
 CAMERA = Intrinsics(fx=80.0, fy=80.0, cx=40.0, cy=30.0, width=80, height=60)
 
@@ -117,7 +119,9 @@ def interior_holes(loop, yaw_deg: float) -> int:
 def test_a_panned_wall_keeps_fewer_rim_faces_and_no_cracks(monkeypatch):
     """The quad-tree on noisy depth meshes each new strip with a rim of a 3 x 3 block over the map (so that its
     edge reaches the seam); faces more than two pixels from the strip are trimmed: fewer faces and less area for
-    the same wall, and seen from oblique views the map has no crack along its seams."""
+    the same wall, and seen from oblique views the map has no crack along its seams. (The faces on the map are
+    kept here: they are the next test's.)"""
+    monkeypatch.setattr("mabdi.loop.loop.without_faces_on_map", lambda patch, *args, **kwargs: patch)
     trimmed = map_of_panned_wall(11)
     monkeypatch.setattr("mabdi.loop.loop.trimmed_patch", lambda patch, *args, **kwargs: patch)
     whole = map_of_panned_wall(11)
@@ -164,3 +168,89 @@ def test_a_surface_that_keeps_state_hands_out_its_patches_whole(monkeypatch):
         loop.step(i)
     assert loop.last_frame.classified.novel_pixels is not None and loop.mesh().GetNumberOfCells() > 0
 
+
+
+def plane_map_expected(hole=None) -> tuple[Expected, object]:
+    """E of a map that is the plane z = 2 m (two triangles wider than the view, codes 1 and 2, split along the
+    image's diagonal) seen by CAMERA at the origin, with no face drawn in ``hole`` (a (rows, cols) slice pair);
+    and the map's face_corners_of."""
+    far = 400.0  # pixels from the image's centre
+    low_u, high_u, low_v, high_v = CAMERA.cx - far, CAMERA.cx + far, CAMERA.cy - far, CAMERA.cy + far
+    corners = {
+        1: triangle([[low_u, low_v], [high_u, low_v], [low_u, high_v]]),
+        2: triangle([[high_u, low_v], [high_u, high_v], [low_u, high_v]]),
+    }
+    v, u = np.mgrid[0 : CAMERA.height, 0 : CAMERA.width]
+    codes = np.where((u + 0.5 - CAMERA.cx) + (v + 0.5 - CAMERA.cy) < 0, 1, 2).astype(np.int32)
+    if hole is not None:
+        codes[hole] = 0
+    depth = np.where(codes > 0, 2.0, np.nan).astype(np.float32)
+
+    def face_corners_of(asked, table):
+        assert table == "table"
+        return np.stack([corners[int(c)] for c in np.asarray(asked)])
+
+    return Expected(depth, CAMERA, np.eye(4), 0, face_ids=codes, table="table"), face_corners_of
+
+
+def test_a_new_face_on_the_map_within_a_centimetre_is_dropped_and_others_stay():
+    """Faces whose centroid and corners lie within 1 cm of the map along their normal go, whichever of the map's
+    faces is under them (the two straddle the diagonal); a face 3 cm in front stays, and so does a face with a
+    corner over a hole of the map (E shows no face there) or outside the image."""
+    expected, corners_of = plane_map_expected(hole=(slice(40, 50), slice(60, 70)))
+    big = [[10, 10], [22, 10], [10, 22]]  # a dozen pixels across
+    patch = patch_of(
+        [
+            triangle(big, 2.005),  # on the map, 5 mm behind it
+            triangle([[36, 26], [44, 26], [40, 34]], 1.995),  # on the map, across the faces' shared diagonal
+            triangle(big, 2.03),  # 3 cm in front: a new surface
+            triangle([[50, 36], [65, 45], [50, 45]], 2.0),  # a corner over the hole, 3 pixels inside it
+            triangle([[75, 5], [85, 5], [75, 12]], 2.0),  # a corner outside the image
+        ]
+    )
+    assert faces_on_map(patch, expected, corners_of).tolist() == [True, True, False, False, False]
+    assert faces_on_map(patch, expected, corners_of, reach=0.004).tolist() == [False, False, False, False, False]
+
+
+def test_a_face_over_a_crack_of_the_map_stays_though_its_corners_lie_on_the_map():
+    """A crack one pixel wide through a face's pixels (E shows no face there) keeps the face, which covers it,
+    though its centroid and corners all lie on the map's faces; the same face with no crack under it goes."""
+    face = [[10, 10], [22, 10], [10, 22]]  # the centroid at (14, 14); no tested point in column 12
+    cracked, corners_of = plane_map_expected(hole=(slice(0, CAMERA.height), slice(12, 13)))
+    whole, _ = plane_map_expected()
+    patch = patch_of([triangle(face, 2.005)])
+    assert faces_on_map(patch, cracked, corners_of).tolist() == [False]
+    assert faces_on_map(patch, whole, corners_of).tolist() == [True]
+
+
+def test_no_face_is_dropped_where_e_has_no_face_identity():
+    expected, corners_of = plane_map_expected()
+    patch = patch_of([triangle([[10, 10], [22, 10], [10, 22]], 2.0)])
+    plain = Expected(expected.depth, CAMERA, np.eye(4), 0)
+    assert faces_on_map(patch, plain, corners_of).tolist() == [False]
+    assert faces_on_map(patch, expected, corners_of).tolist() == [True]
+
+
+def test_a_panned_wall_drops_the_faces_the_map_holds_and_keeps_no_cracks(monkeypatch):
+    """A new strip's faces that lie on the map's wall (the rim within two pixels of the strip) are dropped: fewer
+    faces than with the trim alone, and from oblique views the map still has no crack along its seams."""
+    dropped = map_of_panned_wall(11)
+    monkeypatch.setattr("mabdi.loop.loop.without_faces_on_map", lambda patch, *args, **kwargs: patch)
+    kept = map_of_panned_wall(11)
+    cells = dropped.mesh().GetNumberOfCells(), kept.mesh().GetNumberOfCells()
+    assert cells[0] < 0.95 * cells[1], cells
+    for yaw in (-40.0, -20.0, 0.0, 20.0, 40.0):
+        assert interior_holes(dropped, yaw) == 0, yaw
+
+
+def test_the_box_kernel_agrees_with_array_slices():
+    from mabdi.surfaces.seam_trim_kernels import boxes_hold_kernel
+
+    rng = np.random.default_rng(5)
+    mask = rng.random((30, 40)) < 0.02
+    u0, v0 = rng.integers(0, 40, 500), rng.integers(0, 30, 500)
+    u1, v1 = np.minimum(u0 + rng.integers(-1, 6, 500), 39), np.minimum(v0 + rng.integers(-1, 6, 500), 29)
+    boxes = np.stack([u0, u1, v0, v1], axis=1)
+    expected = [bool(mask[b[2] : b[3] + 1, b[0] : b[1] + 1].any()) for b in boxes]
+    assert boxes_hold_kernel(mask, boxes).tolist() == expected
+    assert any(expected) and not all(expected)

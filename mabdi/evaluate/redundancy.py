@@ -26,36 +26,13 @@ from vtkmodules.util.numpy_support import vtk_to_numpy
 from vtkmodules.vtkCommonDataModel import vtkPolyData
 
 from mabdi.evaluate.sampling import SurfaceSamples
-from mabdi.polydata import polydata_arrays
+from mabdi.polydata import polydata_arrays, segment_crossings
 
 #: Smallest delta (m) of the overlap test.
 DELTA_MIN = 0.01
 #: Nearest triangle centroids of one frame tested per sample.
 CANDIDATES = 8
 _CHUNK = 8192
-
-
-def segment_hits(
-    origins: np.ndarray, directions: np.ndarray, reach: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray
-) -> np.ndarray:
-    """Whether the segments o + t d, |t| <= reach, cross triangles (a, b, c); shapes (N, K, 3) / (N, K).
-
-    Moller-Trumbore with the barycentric test strict on the edges (a point
-    exactly on a shared edge of abutting triangles is not a crossing).
-    """
-    e1 = b - a
-    e2 = c - a
-    p = np.cross(directions, e2)
-    det = np.einsum("...i,...i->...", e1, p)
-    parallel = np.abs(det) < 1e-12
-    inv = np.where(parallel, 0.0, 1.0 / np.where(parallel, 1.0, det))
-    s = origins - a
-    u = np.einsum("...i,...i->...", s, p) * inv
-    q = np.cross(s, e1)
-    v = np.einsum("...i,...i->...", directions, q) * inv
-    t = np.einsum("...i,...i->...", e2, q) * inv
-    eps = 1e-9
-    return ~parallel & (u > eps) & (v > eps) & (u + v < 1.0 - eps) & (np.abs(t) <= reach)
 
 
 def _voxel_keys(cells: np.ndarray) -> np.ndarray:
@@ -108,8 +85,9 @@ def redundancy(mesh: vtkPolyData, samples: SurfaceSamples, delta) -> float | Non
             _, nearest = tree.query(samples.points[chunk], k=k)
             candidates = faces[nearest.reshape(len(chunk), k)]
             a, b, c = (corners[candidates, j] for j in range(3))
-            hits = segment_hits(
-                samples.points[chunk, None, :], samples.normals[chunk, None, :], reach[chunk, None], a, b, c
+            # strict on the edges: a point on the edge abutting triangles share is not a crossing
+            hits = segment_crossings(
+                samples.points[chunk, None, :], samples.normals[chunk, None, :], reach[chunk, None], a, b, c, inside=1e-9
             )
             redundant[chunk] |= hits.any(axis=1)
     return float(redundant.mean())

@@ -41,7 +41,7 @@ from mabdi.surfaces.quadtree import QuadTreeParameters, resolved as resolved_qua
 from mabdi.stages.registration import STATUSES, FilterRegistration, RegistrationParameters, write_placement
 from mabdi.stages.registration_check import PosesDisagreeWarning, PoseJumpWarning, jumps_that_removed, poses_disagree
 from mabdi.surfaces.registry import make_surface_filter, mesh_frame, seam_pixels, surface_filter
-from mabdi.surfaces.seam_trim import trimmed_patch
+from mabdi.surfaces.seam_trim import trimmed_patch, without_faces_on_map
 from mabdi.stages.object_removal import ObjectRemoval, RemovalResult, RemovalVotes
 from mabdi.stages.removal import RemovalParameters, depth_edges
 from mabdi.frame_values import Classified, Expected, Measured, Placement
@@ -525,6 +525,8 @@ class MabdiLoop:
         if classified is not None and classified.novel_pixels is not None and not self.surface_capabilities.keeps_state:
             # the rim's own faces are the map's (a surface that keeps state hands out its own patches whole)
             added = trimmed_patch(added, classified.novel_pixels, measured.geometry, measured.pose)
+            # and so are the faces the map already holds where they stand
+            added = without_faces_on_map(added, expected, self.world.face_corners_of)
         t_surface = time.perf_counter()
         self.world.append(added, index)
         t_append = time.perf_counter()

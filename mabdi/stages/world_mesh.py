@@ -152,6 +152,9 @@ class FilterWorldMesh(MabdiAlgorithm):
         """Blocks of ``table`` re-meshed since it was drawn (:meth:`WorldMap.stale_blocks`)."""
         return self.store.stale_blocks(table)
 
+    def face_corners_of(self, codes, table: FaceIdTable) -> np.ndarray:
+        return self.store.face_corners_of(codes, table)
+
     def face_normals_of(self, codes, table: FaceIdTable) -> np.ndarray:
         return self.store.face_normals_of(codes, table)
 
