@@ -4,7 +4,8 @@ Frame i, each stage called with the frame's values (:mod:`mabdi.frame_values`)::
 
     SourceDepthFrames.measured(i) -> D --> FilterRegistration.place(D, map) -> D at its map pose, Placement
     FilterExpectedImage.render(map, D) -> E --> FilterClassifier.classify(D, E) -> labels, novel depth
-    surface.mesh_frame(novel depth, D) -> triangles, less those wholly on the rim --> FilterWorldMesh.append
+    surface.mesh_frame(novel depth, D) -> triangles, less those wholly on the rim or on the map (E's faces)
+        --> FilterWorldMesh.append
     then MapRefinement.step and ObjectRemoval.find: what they find, the loop applies to the map
 
 E is the map as it stood after frame i - 1; refinement and removal change
