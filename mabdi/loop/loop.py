@@ -40,7 +40,9 @@ from mabdi.stages.front_confirmation import FrontConfirmation
 from mabdi.stages.refinement import MapRefinement, RefinementParameters, RefinementResult
 from mabdi.surfaces.quadtree import QuadTreeParameters, resolved as resolved_quadtree
 from mabdi.stages.registration import STATUSES, FilterRegistration, RegistrationParameters, write_placement
-from mabdi.stages.registration_check import PosesDisagreeWarning, PoseJumpWarning, jumps_that_removed, poses_disagree
+from mabdi.stages.registration_check import (
+    PosesDisagreeWarning, PoseJumpWarning, jumps_that_removed, pose_excursion, poses_disagree,
+)
 from mabdi.surfaces.registry import make_surface_filter, mesh_frame, seam_pixels, surface_filter
 from mabdi.surfaces.seam_trim import trimmed_patch, without_faces_on_map
 from mabdi.stages.object_removal import ObjectRemoval, RemovalResult, RemovalVotes
@@ -496,7 +498,10 @@ class MabdiLoop:
         self._poses_checked = True
         registrations = self._registrations[: self._frames]
         done = registrations[np.isfinite(registrations[:, 0])]
-        message = poses_disagree([STATUSES[int(code)] for code in done[:, 0]], done[:, 1], done[:, 2], done[:, 3])
+        statuses = [STATUSES[int(code)] for code in done[:, 0]]
+        message = poses_disagree(statuses, done[:, 1], done[:, 2], done[:, 3])
+        if message is None:  # a stretch of frames moved far, which the medians hide
+            message = pose_excursion(np.flatnonzero(np.isfinite(registrations[:, 0])), statuses, done[:, 1], done[:, 2])
         if message is not None:
             warnings.warn(message, PosesDisagreeWarning, stacklevel=3)
 

@@ -14,10 +14,8 @@ exit 0):
   several times too long or short, no frame fits the map where its pose
   puts it, and the frames that register are moved by decimetres.
 
-Large corrections of frames that do register have a third cause the run
-cannot tell from these: registration itself drifting away from good given
-poses (a real camera's depth against a map of single looks), so that
-warning names it too.
+Large corrections of frames that register may also be registration itself
+drifting away from good given poses; that warning names it too.
 
 The rule, over the frames judged against the map (registered or not; not
 the first, which has no map to fit, nor frames whose poses are stated
@@ -33,7 +31,8 @@ small image, see through almost none of it), or fewer than
 (:data:`MANY_SEEN_THROUGH_SHARE`), or when at least
 :data:`MIN_REGISTERED` registered and their median correction is beyond
 :data:`MAX_CORRECTION_M` or :data:`MAX_CORRECTION_DEG`. The loop checks it
-once a run's last frame is done and warns once.
+once a run's last frame is done and warns once; also for :data:`MIN_STRETCH`
+registered frames in a row corrected beyond them (:func:`pose_excursion`).
 
 Given poses that jump (:func:`pose_jumps`; a tracking reset, a loop closure)
 make the frames after the jump see the map displaced; the run warns
@@ -64,6 +63,8 @@ MANY_SEEN_THROUGH_SHARE = 0.10
 MAX_CORRECTION_M = 0.05
 MAX_CORRECTION_DEG = 2.0
 MIN_REGISTERED = 3
+#: Registered frames in a row, each corrected beyond MAX_CORRECTION_M or MAX_CORRECTION_DEG, that make an excursion.
+MIN_STRETCH = 10
 #: The statuses of frames not judged (:data:`mabdi.stages.registration.STATUSES`).
 NOT_JUDGED = ("off", "no_map", "exact")
 #: The likely causes, named in the warning.
@@ -85,6 +86,34 @@ JUMP_FRAMES = 3
 #: ... at least this share of the faces the run removed, and at least :data:`JUMP_MIN_REMOVED` faces.
 JUMP_REMOVED_SHARE = 0.2
 JUMP_MIN_REMOVED = 100
+
+
+def pose_excursion(frames, statuses, corrections_m, corrections_deg) -> str | None:
+    """The longest stretch of at least :data:`MIN_STRETCH` frames in a row that registered with a correction
+    beyond :data:`MAX_CORRECTION_M` or :data:`MAX_CORRECTION_DEG`, in one line, or None. One entry per frame
+    judged, in order: its index in the run, status, correction (m) and correction (degrees)."""
+    best, start = None, None
+    rows = list(zip(frames, statuses, corrections_m, corrections_deg))
+    for i, (_, status, metres, degrees) in enumerate([*rows, (None, "", 0.0, 0.0)]):
+        beyond = status == "registered" and (metres > MAX_CORRECTION_M or degrees > MAX_CORRECTION_DEG)
+        if beyond and start is None:
+            start = i
+        elif not beyond and start is not None:
+            if i - start >= MIN_STRETCH and (best is None or i - start > best[1] - best[0]):
+                best = (start, i)
+            start = None
+    if best is None:
+        return None
+    stretch = rows[best[0] : best[1]]
+    metres = max(row[2] for row in stretch)
+    degrees = max(row[3] for row in stretch)
+    return (
+        f"the poses disagree with the depth over frames {int(stretch[0][0])}-{int(stretch[-1][0])}: registration "
+        f"moved {len(stretch)} frames in a row beyond {1000 * MAX_CORRECTION_M:.0f} mm or {MAX_CORRECTION_DEG:g} deg "
+        f"from their given poses (at most {1000 * metres:.0f} mm, {degrees:.1f} deg): the given poses drift or jump "
+        f"there, or, where they are known to be good (a dataset's own), registration drifted away from them "
+        f"(--no-registration keeps them)"
+    )
 
 
 class PoseJumpWarning(UserWarning):
