@@ -10,7 +10,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from mabdi.stages.registration_check import MAX_CORRECTION_DEG, MAX_CORRECTION_M, MIN_STRETCH, pose_excursion, poses_disagree
+from mabdi.stages.registration_check import (
+    MAX_CORRECTION_DEG, MAX_CORRECTION_M, MIN_STRETCH, pose_excursion, poses_disagree,
+)
 
 REPO = Path(__file__).resolve().parents[1]
 WARNING = "the poses disagree with the depth"

@@ -86,8 +86,7 @@ def redundancy(mesh: vtkPolyData, samples: SurfaceSamples, delta) -> float | Non
             candidates = faces[nearest.reshape(len(chunk), k)]
             a, b, c = (corners[candidates, j] for j in range(3))
             # strict on the edges: a point on the edge abutting triangles share is not a crossing
-            hits = segment_crossings(
-                samples.points[chunk, None, :], samples.normals[chunk, None, :], reach[chunk, None], a, b, c, inside=1e-9
-            )
+            origins, directions = samples.points[chunk, None, :], samples.normals[chunk, None, :]
+            hits = segment_crossings(origins, directions, reach[chunk, None], a, b, c, inside=1e-9)
             redundant[chunk] |= hits.any(axis=1)
     return float(redundant.mean())

@@ -123,7 +123,8 @@ def faces_on_map(patch: vtkPolyData, expected, face_corners_of, reach: float = O
     points = vtk_to_numpy(patch.GetPoints().GetData()).astype(np.float64)
     corners = points[triangles]  # (M, 3, 3)
     centroids = corners.mean(axis=1)
-    tested = np.concatenate([centroids[:, None], centroids[:, None] + (1.0 - CORNER_INSET) * (corners - centroids[:, None])], axis=1)
+    inset = centroids[:, None] + (1.0 - CORNER_INSET) * (corners - centroids[:, None])
+    tested = np.concatenate([centroids[:, None], inset], axis=1)  # (M, 4, 3): the centroid, then the corners
     intrinsics = expected.geometry
     uv, z = project(tested.reshape(-1, 3), intrinsics, expected.pose)
     uv, z = uv.reshape(-1, 4, 2), z.reshape(-1, 4)
