@@ -52,12 +52,8 @@ NOVEL_PIXELS_ARRAY = "novel_pixels"
 TRIM_REACH_PX = 2
 #: A new face is the map's when its centroid and corners lie within this (m) of map faces along its normal.
 ON_MAP_M = 0.01
-#: The corners tested are moved this share of the way to the centroid (0: the corners themselves).
-CORNER_INSET = 0.0
 #: The map faces a point is tested against: those E shows within this many pixels of the pixel it projects onto.
 ON_MAP_WINDOW_PX = 1
-#: A face's pixel box is widened by this many pixels when it is searched for pixels where E shows no face.
-HOLE_MARGIN_PX = 0
 
 
 def trims(geometry, rim_pixels: int) -> bool:
@@ -104,12 +100,17 @@ def trimmed_patch(
 ) -> vtkPolyData:
     """``patch`` without the faces :func:`kept_faces` drops (the same object when it keeps them all); point and
     cell arrays and field data carried over."""
-    keep = kept_faces(patch, novel, intrinsics, world_from_camera, reach)
+    return _with_faces(patch, kept_faces(patch, novel, intrinsics, world_from_camera, reach))
+
+
+def _with_faces(patch: vtkPolyData, keep: np.ndarray) -> vtkPolyData:
+    """``patch`` with only the faces ``keep`` ((M,) bool; the same object when it keeps them all), point and cell
+    arrays and field data carried over."""
     if keep.all():
         return patch
-    trimmed = extract_polys(patch, np.flatnonzero(keep))
-    trimmed.GetFieldData().ShallowCopy(patch.GetFieldData())
-    return trimmed
+    kept = extract_polys(patch, np.flatnonzero(keep))
+    kept.GetFieldData().ShallowCopy(patch.GetFieldData())
+    return kept
 
 
 def faces_on_map(patch: vtkPolyData, expected, face_corners_of, reach: float = ON_MAP_M) -> np.ndarray:
@@ -123,8 +124,7 @@ def faces_on_map(patch: vtkPolyData, expected, face_corners_of, reach: float = O
     points = vtk_to_numpy(patch.GetPoints().GetData()).astype(np.float64)
     corners = points[triangles]  # (M, 3, 3)
     centroids = corners.mean(axis=1)
-    inset = centroids[:, None] + (1.0 - CORNER_INSET) * (corners - centroids[:, None])
-    tested = np.concatenate([centroids[:, None], inset], axis=1)  # (M, 4, 3): the centroid, then the corners
+    tested = np.concatenate([centroids[:, None], corners], axis=1)  # (M, 4, 3): the centroid, then the corners
     intrinsics = expected.geometry
     uv, z = project(tested.reshape(-1, 3), intrinsics, expected.pose)
     uv, z = uv.reshape(-1, 4, 2), z.reshape(-1, 4)
@@ -157,12 +157,12 @@ def faces_on_map(patch: vtkPolyData, expected, face_corners_of, reach: float = O
 
 
 def over_a_hole(corners_uv: np.ndarray, hole: np.ndarray) -> np.ndarray:
-    """(M,) bool: whether the pixel box of each triangle's ``corners_uv`` (M, 3, 2), widened by
-    ``HOLE_MARGIN_PX``, holds a pixel of ``hole`` ((H, W) bool: E shows no face there) or leaves the image."""
+    """(M,) bool: whether the pixel box of each triangle's ``corners_uv`` (M, 3, 2) holds a pixel of ``hole``
+    ((H, W) bool: E shows no face there) or leaves the image."""
     height, width = hole.shape
     with np.errstate(invalid="ignore"):
-        low = np.floor(np.nanmin(corners_uv, axis=1)) - HOLE_MARGIN_PX
-        high = np.floor(np.nanmax(corners_uv, axis=1)) + HOLE_MARGIN_PX
+        low = np.floor(np.nanmin(corners_uv, axis=1))
+        high = np.floor(np.nanmax(corners_uv, axis=1))
     finite = np.isfinite(low).all(axis=1) & np.isfinite(high).all(axis=1)
     low, high = np.where(finite[:, None], low, -1), np.where(finite[:, None], high, -1)
     inside = finite & (low >= 0).all(axis=1) & (high[:, 0] < width) & (high[:, 1] < height)
@@ -174,9 +174,4 @@ def over_a_hole(corners_uv: np.ndarray, hole: np.ndarray) -> np.ndarray:
 
 def without_faces_on_map(patch: vtkPolyData, expected, face_corners_of, reach: float = ON_MAP_M) -> vtkPolyData:
     """``patch`` without the faces :func:`faces_on_map` finds (the same object when there are none)."""
-    on_map = faces_on_map(patch, expected, face_corners_of, reach)
-    if not on_map.any():
-        return patch
-    kept = extract_polys(patch, np.flatnonzero(~on_map))
-    kept.GetFieldData().ShallowCopy(patch.GetFieldData())
-    return kept
+    return _with_faces(patch, ~faces_on_map(patch, expected, face_corners_of, reach))
