@@ -405,11 +405,9 @@ class MapRefinement:
 
         moved = 0
         for key, state, vertices in touched:
+            # the weighted mean of the prior and the looks the gate took in, wherever that lies: a first look off
+            # by more than its own noise (a real camera's view-dependent bias, its pose's error) is averaged away
             estimate = state.total[vertices] / (state.prior[vertices] + state.weight[vertices])
-            # never further from the first look than its own noise allows (3 sigma): a bias in the residuals
-            # (a flat face across a curved surface) cannot walk a vertex away
-            bound = 3.0 / np.sqrt(state.prior[vertices])
-            estimate = np.clip(estimate, -bound, bound)
             move = (state.weight[vertices] >= p.confidence * state.prior[vertices]) & (
                 np.abs(estimate - state.offset[vertices]) >= p.min_step
             )
