@@ -32,6 +32,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from mabdi.noise_calibration_kernels import add_residuals_kernel
+
 #: Median absolute deviation to standard deviation, for a normal distribution.
 MAD_TO_SIGMA = 1.4826
 #: The curve before the first fit: the Kinect v1's c (1/m), Khoshelham & Elberink 2012.
@@ -144,29 +146,13 @@ class NoiseCalibration:
         """Add one frame's residuals (D, E: (H, W) metres, NaN = none; ``silhouettes``: pixels to skip) and
         refit the curve and the correlation length. Returns the number of residuals added."""
         self._observe_pairs(measured, expected, silhouettes)
-        s = self.stride
-        d = measured[::s, ::s]
-        e = expected[::s, ::s]
-        use = np.isfinite(d) & np.isfinite(e)
-        if silhouettes is not None:
-            use &= ~silhouettes[::s, ::s]
-        d, e = d[use].astype(np.float64), e[use].astype(np.float64)
-        residual = np.abs(d - e)
-        keep = self._counted(residual, self.sigma(e))
-        z, residual = e[keep], residual[keep]
-        which = np.searchsorted(self.edges, z, side="right") - 1
-        inside = (which >= 0) & (which < len(self._added))
-        which, residual = which[inside], residual[inside]
-        order = np.argsort(which, kind="stable")
-        which, residual = which[order], residual[order]
-        bins, starts, counts = np.unique(which, return_index=True, return_counts=True)
-        for b, start, count in zip(bins, starts, counts, strict=True):
-            values = residual[start : start + count][-self.samples_per_bin :]
-            slots = (self._added[b] + np.arange(len(values))) % self.samples_per_bin
-            self._residuals[b, slots] = values
-            self._added[b] += len(values)
+        skip = silhouettes if silhouettes is not None else np.zeros((1, 1), dtype=bool)
+        counted = add_residuals_kernel(
+            measured, expected, skip, silhouettes is not None, self.stride, self.curve.floor**2,
+            self.curve.coefficient, self.gate_k, self.min_gate, self.edges, self._residuals, self._added,
+        )  # fmt: skip
         self._fit()
-        return int(len(residual))
+        return int(counted)
 
     def _counted(self, residual: np.ndarray, sigma: np.ndarray) -> np.ndarray:
         """Which absolute residuals count: within max(gate_k sigma, min_gate) (new surfaces in front of the map

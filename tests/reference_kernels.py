@@ -17,6 +17,8 @@ that a test can hand both the same inputs and check that they agree:
   :func:`iterative_arrival_times`; tests/test_maps.py.
 * the cost layers' neighbourhood statistics (:func:`mabdi.mesh_maps.neighbourhood.radius_statistics`):
   :func:`neighbourhoods` (a KD-tree), :func:`roughness` and :func:`height_difference`; tests/test_maps.py.
+* the noise calibration's binning of a frame's residuals (:mod:`mabdi.noise_calibration_kernels`):
+  :func:`add_residuals`; tests/test_noise_calibration.py.
 """
 
 from __future__ import annotations
@@ -459,3 +461,30 @@ def height_difference(vertices: np.ndarray, index: np.ndarray) -> np.ndarray:
     """max z - min z over each vertex's neighbourhood (m)."""
     z = np.asarray(vertices, dtype=np.float64)[:, 2]
     return _padded(z, -np.inf)[index].max(axis=1) - _padded(z, np.inf)[index].min(axis=1)
+
+
+def add_residuals(calibration, measured: np.ndarray, expected: np.ndarray, silhouettes: np.ndarray | None) -> int:
+    """:func:`mabdi.noise_calibration_kernels.add_residuals_kernel` on ``calibration``'s rings
+    (:class:`mabdi.noise_calibration.NoiseCalibration`), by a stable sort of the counted residuals by depth bin."""
+    s = calibration.stride
+    d = measured[::s, ::s]
+    e = expected[::s, ::s]
+    use = np.isfinite(d) & np.isfinite(e)
+    if silhouettes is not None:
+        use &= ~silhouettes[::s, ::s]
+    d, e = d[use].astype(np.float64), e[use].astype(np.float64)
+    residual = np.abs(d - e)
+    keep = residual <= np.maximum(calibration.gate_k * calibration.sigma(e), calibration.min_gate)
+    z, residual = e[keep], residual[keep]
+    which = np.searchsorted(calibration.edges, z, side="right") - 1
+    inside = (which >= 0) & (which < len(calibration._added))
+    which, residual = which[inside], residual[inside]
+    order = np.argsort(which, kind="stable")
+    which, residual = which[order], residual[order]
+    bins, starts, counts = np.unique(which, return_index=True, return_counts=True)
+    for b, start, count in zip(bins, starts, counts, strict=True):
+        values = residual[start : start + count][-calibration.samples_per_bin :]
+        slots = (calibration._added[b] + np.arange(len(values))) % calibration.samples_per_bin
+        calibration._residuals[b, slots] = values
+        calibration._added[b] += len(values)
+    return int(len(residual))

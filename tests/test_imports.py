@@ -219,6 +219,7 @@ LAYERS = {
     "mabdi.camera": 0,  # intrinsics, poses, projection
     "mabdi.spherical": 0,  # a LiDAR's spherical image geometry
     "mabdi.noise_calibration": 0,  # the sensor's sigma(z) learnt online
+    "mabdi.noise_calibration_kernels": 0,  # numba binning of a frame's residuals for the noise calibration
     "mabdi.sensor_noise": 0,  # the noise model every depth image carries
     "mabdi.pose_noise": 0,  # the poses a robot gives against those it had
     "mabdi.depth": 0,  # depth images as vtkImageData and their arrays

@@ -92,3 +92,28 @@ def test_auto_recovers_the_kinect_noise_of_a_recording(tmp_path):
         assert kinect * 0.8 <= calibration.sigma(z) <= kinect + 0.005
     summary = result.summary()["noise_calibration"]
     assert summary["coefficient_per_m"] == pytest.approx(1.425e-3, rel=0.2)
+
+
+def test_the_compiled_binning_keeps_what_the_array_version_keeps():
+    """Frames of D and E with holes, silhouettes, residuals beyond the gate and a bin that overflows its ring:
+    the compiled kernel and the numpy reference leave the same rings and counts, frame after frame."""
+    from reference_kernels import add_residuals
+
+    rng = np.random.default_rng(4)
+    compiled, reference = NoiseCalibration(samples_per_bin=512), NoiseCalibration(samples_per_bin=512)
+    for frame in range(4):
+        expected = rng.uniform(0.4, 10.5, (120, 160)).astype(np.float32)
+        expected[:40, :60] = np.float32(2.1)  # one bin with more residuals a frame than its ring holds
+        measured = expected + rng.normal(0.0, 0.01, expected.shape).astype(np.float32)
+        measured[rng.random(expected.shape) < 0.1] += np.float32(0.5)  # beyond the gate
+        measured[rng.random(expected.shape) < 0.1] = np.nan
+        expected[rng.random(expected.shape) < 0.05] = np.nan
+        silhouettes = rng.random(expected.shape) < 0.1 if frame % 2 else None
+        counted = compiled.observe(measured, expected, silhouettes)
+        reference._observe_pairs(measured, expected, silhouettes)
+        assert counted == add_residuals(reference, measured, expected, silhouettes) > 0
+        reference._fit()
+        np.testing.assert_array_equal(compiled._added, reference._added)
+        np.testing.assert_array_equal(compiled._residuals, reference._residuals)  # NaN where empty, in both
+        assert compiled.curve == reference.curve
+    assert compiled._added.max() > 512  # the crowded bin wrapped around its ring
