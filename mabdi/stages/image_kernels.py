@@ -64,9 +64,28 @@ def _dilate_rows(mask, radius):
 
 
 @njit(cache=True)
+def _dilate_columns(mask, radius):
+    """(H, W) bool: ``mask`` dilated along its columns by 2 radius + 1 pixels, outside False; row by row, each
+    column's last True row carried along (the memory read in order, not down the columns)."""
+    height, width = mask.shape
+    out = np.zeros((height, width), dtype=np.bool_)
+    last = np.full(width, -(radius + 1), dtype=np.int64)  # per column, the row of the last True seen
+    for row in range(height + radius):
+        if row < height:
+            for col in range(width):
+                if mask[row, col]:
+                    last[col] = row
+        target = row - radius
+        if target >= 0:
+            for col in range(width):
+                out[target, col] = row - last[col] <= 2 * radius
+    return out
+
+
+@njit(cache=True)
 def dilate_kernel(mask, radius):
     """(H, W) bool: ``mask`` dilated by a (2 radius + 1) square: along the rows, then along the columns."""
-    return np.ascontiguousarray(_dilate_rows(_dilate_rows(mask, radius).T, radius).T)
+    return _dilate_columns(_dilate_rows(mask, radius), radius)
 
 
 @njit(cache=True)
