@@ -799,3 +799,47 @@ def test_pose_jitter_tells_white_jitter_from_a_walk():
     assert 0.8 * 0.005**2 < rotation < 1.2 * 0.005**2 and 0.8 * 0.005**2 < translation < 1.2 * 0.005**2, (rotation, translation)
     assert max(walk.variance()) < 0.1 * 0.004**2, walk.variance()
     assert PoseJitter().variance() is None
+
+
+def test_the_icp_samples_sparsely_first_and_densely_where_few_pixels_hold_a_direction(bunnies):
+    """The ICP first samples D every ``sparse_stride`` (3) pixels and keeps that pose where its pairs hold every
+    direction well (the bunnies: the same pose as every 2nd pixel gives, to a fraction of a millimetre); where
+    they hold one loosely (a wall whose 3 cm recess's edges alone hold the slide along it) or the sparse pass
+    does not register the frame, the pose is the dense pass's, as if there were one pass only."""
+    from dataclasses import replace
+
+    from mabdi.stages.registration import DENSE_BELOW_SUPPORT, register_depth_at_stride
+
+    parameters = RegistrationParameters()
+    assert parameters.sparse_stride == 3 and parameters.stride == 2
+    measured, expected, intrinsics, noise = _bunny_pair(bunnies, 1)
+    result = register_depth(measured, expected, intrinsics, noise, parameters)
+    sparse = register_depth_at_stride(measured, expected, intrinsics, noise, replace(parameters, stride=3))
+    dense = register_depth_at_stride(measured, expected, intrinsics, noise, parameters)
+    assert sparse.registered and sparse.support >= DENSE_BELOW_SUPPORT
+    np.testing.assert_array_equal(result.transform, sparse.transform)
+    assert not np.array_equal(sparse.transform, dense.transform)
+    assert transform_size(np.linalg.inv(dense.transform) @ sparse.transform)[0] < 0.0005
+
+    wall = merged(
+        _moved(box((0.1, 9.5, 20.0)), [2.55, -5.25, 0.0]),
+        _moved(box((0.1, 9.5, 20.0)), [2.55, 5.25, 0.0]),
+        _moved(box((0.1, 1.0, 20.0)), [2.58, 0.0, 0.0]),
+    )
+    renderer = DepthRenderer()
+    true = look_at([0.0, -0.3, 0.0], [2.5, 0.1, 0.05])
+    given = perturbed(true, [0.004, 0.003, 0.006], [0.0, 0.0, 0.0])
+    zbuffer = SensorNoise("zbuffer")
+    measured = depth_of(renderer, wall, intrinsics, true, zbuffer)
+    expected = depth_of(renderer, wall, intrinsics, given)
+    result = register_depth(measured, expected, intrinsics, zbuffer, parameters)
+    sparse = register_depth_at_stride(measured, expected, intrinsics, zbuffer, replace(parameters, stride=3))
+    dense = register_depth_at_stride(measured, expected, intrinsics, zbuffer, parameters)
+    assert not (sparse.registered and sparse.support >= DENSE_BELOW_SUPPORT), (sparse.status, sparse.support)
+    assert result.registered and result.status == dense.status
+    np.testing.assert_array_equal(result.transform, dense.transform)
+    # one pass where sparse_stride is not above stride
+    single = register_depth(measured, expected, intrinsics, zbuffer, replace(parameters, sparse_stride=2))
+    np.testing.assert_array_equal(single.transform, dense.transform)
+    with pytest.raises(ConfigError, match="sparse_stride"):
+        RegistrationParameters(sparse_stride=0)

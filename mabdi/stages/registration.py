@@ -12,7 +12,8 @@ loop renders anyway:
 4. projective point-to-plane ICP, coarse to fine, over samples of D
    (:func:`sample_points`), with a gate of ``gate_k`` noise units or the
    residuals' robust spread, Huber weights, and no step along directions
-   the scene does not constrain;
+   the scene does not constrain; every ``sparse_stride``-th pixel first, every ``stride``-th where
+   that leaves a direction loosely held or the frame unregistered (:func:`register_depth`);
 5. checks (``min_points``, ``min_inliers``, ``min_support``, the last step,
    ``max_translation``, ``max_rotation``): a frame that fails them is
    meshed at its start and casts no removal votes;
@@ -44,7 +45,7 @@ from __future__ import annotations
 import os
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -137,8 +138,12 @@ MEDIAN_MANY = 20_000
 #: The gate's reach shrinks with the residuals only while the pairs hold every direction the map constrains at
 #: least this share of what all candidates hold (:func:`constraint_support`).
 SHRINK_SUPPORT = 0.5
+#: A sparse pass (``sparse_stride``) whose pairs hold some direction the map constrains by less than this share
+#: of what all its candidates hold is done again with every ``stride``-th pixel: where few pixels hold a direction
+#: (a recess's edges, a table's legs), fewer samples leave it loosely held.
+DENSE_BELOW_SUPPORT = 0.8
 #: One ICP step's samples are summed in two halves from this many on (the finest levels).
-SPLIT_MIN_POINTS = 20_000
+SPLIT_MIN_POINTS = 9_000
 SPLIT_PARTS = 2
 
 
@@ -154,6 +159,10 @@ class RegistrationParameters:
     enabled: bool = True
     levels: int = 3
     stride: int = 2
+    #: The ICP first samples D every ``sparse_stride`` pixels at its finest level, and every ``stride`` only where
+    #: that pass does not register the frame or leaves a direction the map constrains held by under
+    #: :data:`DENSE_BELOW_SUPPORT` of its information (:func:`register_depth`); ``stride`` or less: one pass.
+    sparse_stride: int = 3
     iterations: int = 10
     max_distance: float = 0.1
     gate_k: float = 4.0
@@ -173,7 +182,7 @@ class RegistrationParameters:
     given_sigma: list[float] | str = "source"
 
     def __post_init__(self) -> None:
-        for name in ("levels", "stride", "iterations", "min_points"):
+        for name in ("levels", "stride", "sparse_stride", "iterations", "min_points"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ConfigError(f"registration: {name} must be an integer >= 1, got {value!r}")
@@ -411,7 +420,37 @@ def register_depth(
     judged_against: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
     from_identity: bool = True,
 ) -> RegistrationResult:
-    """Align D (``measured``) to E (``expected``, the map rendered at D's pose) by projective point-to-plane ICP.
+    """Align D (``measured``) to E (``expected``, the map rendered at D's pose) by projective point-to-plane ICP:
+    :func:`register_depth_at_stride` with D sampled every ``sparse_stride`` pixels at the finest level, and again
+    every ``stride`` pixels where that pass does not register the frame or its pairs hold some direction the map
+    constrains by less than :data:`DENSE_BELOW_SUPPORT` (the arguments and the result are the same)."""
+    p = parameters
+    arguments = dict(
+        starts=starts, workspace=workspace, references=references, judged_against=judged_against,
+        from_identity=from_identity,
+    )  # fmt: skip
+    if p.sparse_stride > p.stride:
+        sparse_parameters = replace(p, stride=p.sparse_stride)
+        sparse = register_depth_at_stride(measured, expected, intrinsics, noise, sparse_parameters, **arguments)
+        if sparse.status == "no_map" or (sparse.registered and sparse.support >= DENSE_BELOW_SUPPORT):
+            return sparse
+    return register_depth_at_stride(measured, expected, intrinsics, noise, p, **arguments)
+
+
+def register_depth_at_stride(
+    measured: np.ndarray,
+    expected: np.ndarray,
+    intrinsics: Intrinsics,
+    noise: SensorNoise,
+    parameters: RegistrationParameters,
+    starts: tuple[np.ndarray, ...] = (),
+    workspace: IcpWorkspace | None = None,
+    references: tuple[np.ndarray, ...] = (),
+    judged_against: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
+    from_identity: bool = True,
+) -> RegistrationResult:
+    """Align D (``measured``) to E (``expected``, the map rendered at D's pose) by projective point-to-plane ICP,
+    D sampled every ``parameters.stride`` pixels at the finest level.
 
     Both are (H, W) metric depth images (NaN = none) with ``intrinsics``.
     Returns the transform E-camera from D-camera: the registered pose is the
