@@ -142,7 +142,8 @@ SHRINK_SUPPORT = 0.5
 #: of what all its candidates hold is done again with every ``stride``-th pixel: where few pixels hold a direction
 #: (a recess's edges, a table's legs), fewer samples leave it loosely held.
 DENSE_BELOW_SUPPORT = 0.8
-#: One ICP step's samples are summed in two halves from this many on (the finest levels).
+#: One ICP step's samples are summed in two halves from this many on (the finest levels; the sparse pass's on a
+#: VGA frame with returns on half its pixels: about 17,000).
 SPLIT_MIN_POINTS = 9_000
 SPLIT_PARTS = 2
 
