@@ -808,14 +808,15 @@ def test_the_icp_samples_sparsely_first_and_densely_where_few_pixels_hold_a_dire
     does not register the frame, the pose is the dense pass's, as if there were one pass only."""
     from dataclasses import replace
 
-    from mabdi.stages.registration import DENSE_BELOW_SUPPORT, register_depth_at_stride
+    from mabdi.stages.registration import DENSE_BELOW_SUPPORT
 
     parameters = RegistrationParameters()
     assert parameters.sparse_stride == 3 and parameters.stride == 2
+    only_sparse, only_dense = replace(parameters, stride=3), replace(parameters, sparse_stride=2)  # one pass each
     measured, expected, intrinsics, noise = _bunny_pair(bunnies, 1)
     result = register_depth(measured, expected, intrinsics, noise, parameters)
-    sparse = register_depth_at_stride(measured, expected, intrinsics, noise, replace(parameters, stride=3))
-    dense = register_depth_at_stride(measured, expected, intrinsics, noise, parameters)
+    sparse = register_depth(measured, expected, intrinsics, noise, only_sparse)
+    dense = register_depth(measured, expected, intrinsics, noise, only_dense)
     assert sparse.registered and sparse.support >= DENSE_BELOW_SUPPORT
     np.testing.assert_array_equal(result.transform, sparse.transform)
     assert not np.array_equal(sparse.transform, dense.transform)
@@ -833,8 +834,8 @@ def test_the_icp_samples_sparsely_first_and_densely_where_few_pixels_hold_a_dire
     measured = depth_of(renderer, wall, intrinsics, true, zbuffer)
     expected = depth_of(renderer, wall, intrinsics, given)
     result = register_depth(measured, expected, intrinsics, zbuffer, parameters)
-    sparse = register_depth_at_stride(measured, expected, intrinsics, zbuffer, replace(parameters, stride=3))
-    dense = register_depth_at_stride(measured, expected, intrinsics, zbuffer, parameters)
+    sparse = register_depth(measured, expected, intrinsics, zbuffer, only_sparse)
+    dense = register_depth(measured, expected, intrinsics, zbuffer, only_dense)
     assert not (sparse.registered and sparse.support >= DENSE_BELOW_SUPPORT), (sparse.status, sparse.support)
     assert result.registered and result.status == dense.status
     np.testing.assert_array_equal(result.transform, dense.transform)

@@ -421,37 +421,10 @@ def register_depth(
     judged_against: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
     from_identity: bool = True,
 ) -> RegistrationResult:
-    """Align D (``measured``) to E (``expected``, the map rendered at D's pose) by projective point-to-plane ICP:
-    :func:`register_depth_at_stride` with D sampled every ``sparse_stride`` pixels at the finest level, and again
-    every ``stride`` pixels where that pass does not register the frame or its pairs hold some direction the map
-    constrains by less than :data:`DENSE_BELOW_SUPPORT` (the arguments and the result are the same)."""
-    p = parameters
-    arguments = dict(
-        starts=starts, workspace=workspace, references=references, judged_against=judged_against,
-        from_identity=from_identity,
-    )  # fmt: skip
-    if p.sparse_stride > p.stride:
-        sparse_parameters = replace(p, stride=p.sparse_stride)
-        sparse = register_depth_at_stride(measured, expected, intrinsics, noise, sparse_parameters, **arguments)
-        if sparse.status == "no_map" or (sparse.registered and sparse.support >= DENSE_BELOW_SUPPORT):
-            return sparse
-    return register_depth_at_stride(measured, expected, intrinsics, noise, p, **arguments)
-
-
-def register_depth_at_stride(
-    measured: np.ndarray,
-    expected: np.ndarray,
-    intrinsics: Intrinsics,
-    noise: SensorNoise,
-    parameters: RegistrationParameters,
-    starts: tuple[np.ndarray, ...] = (),
-    workspace: IcpWorkspace | None = None,
-    references: tuple[np.ndarray, ...] = (),
-    judged_against: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
-    from_identity: bool = True,
-) -> RegistrationResult:
     """Align D (``measured``) to E (``expected``, the map rendered at D's pose) by projective point-to-plane ICP,
-    D sampled every ``parameters.stride`` pixels at the finest level.
+    D sampled every ``parameters.stride`` pixels at the finest level, or first every ``sparse_stride`` pixels
+    where that is more: that pass's result stands unless it does not register the frame or its pairs hold some
+    direction the map constrains by less than :data:`DENSE_BELOW_SUPPORT` (then the dense pass decides).
 
     Both are (H, W) metric depth images (NaN = none) with ``intrinsics``.
     Returns the transform E-camera from D-camera: the registered pose is the
@@ -466,6 +439,13 @@ def register_depth_at_stride(
     docs for the steps and checks.
     """
     p = parameters
+    if p.sparse_stride > p.stride:  # the sparse pass: one pass at sparse_stride
+        sparse = register_depth(
+            measured, expected, intrinsics, noise, replace(p, stride=p.sparse_stride), starts, workspace, references,
+            judged_against, from_identity,
+        )  # fmt: skip
+        if sparse.status == "no_map" or (sparse.registered and sparse.support >= DENSE_BELOW_SUPPORT):
+            return sparse
     references = references or (np.eye(4),)
     if np.count_nonzero(np.isfinite(expected[::4, ::4])) * 16 < p.min_points:
         # nothing to fit: the last correction carried on is the best guess (drift grows; jitter stays small)
