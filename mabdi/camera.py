@@ -261,6 +261,25 @@ def pixel_rays(intrinsics: Intrinsics) -> np.ndarray:
     return _cached_rays(intrinsics, False, "float64")[0]
 
 
+def at_returns(points: np.ndarray, return_points: np.ndarray | None, shift: np.ndarray | None = None) -> np.ndarray:
+    """Sensor-frame ``points`` (..., 3, m) of a LiDAR's pixels (its unit rays times the range) moved to each
+    pixel's own return where ``return_points`` (..., 3; NaN: none; None: no pixel has one) holds it, pushed
+    along that return's direction by ``shift`` (..., m: how far smoothing moved the pixel's range; None: 0).
+    The range image holds the range along each pixel centre's ray, for comparisons with the map's image;
+    a surface's vertex belongs where the sensor measured (:func:`mabdi.depth.check_return_points`)."""
+    if return_points is None:
+        return points
+    own = np.asarray(return_points, dtype=np.float64)
+    has = np.isfinite(own[..., 0])
+    if not has.any():
+        return points
+    if shift is not None:
+        length = np.linalg.norm(own, axis=-1)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            own = own * ((length + np.nan_to_num(np.asarray(shift, dtype=np.float64))) / length)[..., None]
+    return np.where(has[..., None], own, points)
+
+
 def unit_rays(intrinsics: Intrinsics, dtype=np.float64) -> tuple[np.ndarray, np.ndarray]:
     """(H, W, 3) unit camera-frame rays through pixel centres (as ``dtype``), and (H, W) float64 their length per
     metre of z-depth (a point at depth z lies ``z * length`` along its unit ray). Computed once per intrinsics and

@@ -59,6 +59,8 @@ NOISE_PARAMETERS_ARRAY = "noise_parameters"
 #: Optional point data of a depth image that holds only some pixels (the classifier's output): the whole
 #: measured image, for the surfaces' tests that look at the samples beyond the pixels they mesh.
 MEASURED_ARRAY = "measured_depth"
+#: Optional point data of a LiDAR's range image: each pixel's own return (:func:`check_return_points`).
+RETURN_POINTS_ARRAY = "return_points"
 
 
 def returns(depth: np.ndarray, near: float, far: float) -> np.ndarray:
@@ -95,10 +97,27 @@ def check_colour(colour, shape: tuple[int, int]) -> np.ndarray | None:
     return colour
 
 
+def check_return_points(points, shape: tuple[int, int]) -> np.ndarray | None:
+    """``points`` as a (H, W, 3) float32 array for a range image of ``shape`` (H, W), or None; ValueError otherwise.
+
+    A LiDAR scan's range image holds, at each pixel, the range along the pixel centre's ray; the return the
+    pixel took it from was measured along its own direction, up to half a pixel off. ``return_points`` holds
+    that return (sensor frame, m; NaN: the pixel has none of its own), so that the surfaces mesh where the
+    sensor measured and not a pixel centre's estimate (:func:`mabdi.sources.range_images.range_image_and_returns`).
+    """
+    if points is None:
+        return None
+    points = np.asarray(points)
+    if points.shape != (*shape, 3) or points.dtype.kind != "f":
+        raise ValueError(f"return points must be floats of shape {(*shape, 3)} (one a pixel), got {points.dtype} {points.shape}")
+    return np.asarray(points, dtype=np.float32)
+
+
 @dataclass
 class DepthFrame:
     """A depth image as numpy: (H, W) float32 metres, its intrinsics, pose and frame index, and optionally
-    ``colour``: (H, W, 3) uint8 RGB registered to the depth pixel for pixel (None when the source has none)."""
+    ``colour``: (H, W, 3) uint8 RGB registered to the depth pixel for pixel (None when the source has none)
+    and a LiDAR's ``return_points`` (:func:`check_return_points`; None: every pixel's point is on its centre's ray)."""
 
     depth: np.ndarray
     intrinsics: SensorGeometry
@@ -106,6 +125,7 @@ class DepthFrame:
     frame: int = -1
     timestamp: float = float("nan")
     colour: np.ndarray | None = None
+    return_points: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.depth = np.asarray(self.depth, dtype=np.float32)
@@ -115,19 +135,24 @@ class DepthFrame:
             )
         self.world_from_camera = check_pose(self.world_from_camera, "world_from_camera")
         self.colour = check_colour(self.colour, self.intrinsics.shape)
+        self.return_points = check_return_points(self.return_points, self.intrinsics.shape)
 
     def to_image(self) -> vtkImageData:
         """This frame as a depth-image vtkImageData."""
-        return depth_image(self.depth, self.intrinsics, self.world_from_camera, self.frame, self.timestamp, self.colour)
+        return depth_image(
+            self.depth, self.intrinsics, self.world_from_camera, self.frame, self.timestamp, self.colour,
+            return_points=self.return_points,
+        )  # fmt: skip
 
     @classmethod
     def from_image(cls, image) -> DepthFrame:
         """Read a depth-image vtkImageData (copies the depth array; non-returns become NaN)."""
         intrinsics = image_intrinsics(image)
         colour = image_colour(image)
+        points = image_return_points(image)
         return cls(
             np.array(depth_array(image), copy=True), intrinsics, image_pose(image), image_frame(image), image_timestamp(image),
-            None if colour is None else colour.copy(),
+            None if colour is None else colour.copy(), None if points is None else points.copy(),
         )
 
 
@@ -139,20 +164,23 @@ def depth_image(
     timestamp: float = float("nan"),
     colour=None,
     noise: SensorNoise | str | None = None,
+    return_points=None,
 ) -> vtkImageData:
-    """Build a depth-image vtkImageData from a (H, W) array of metres (v = 0 the top row); copies ``depth`` and
-    ``colour``. ``noise``: the sensor's noise model the image carries (a :class:`SensorNoise` or its name; None:
-    none stated, read as noise-free)."""
+    """Build a depth-image vtkImageData from a (H, W) array of metres (v = 0 the top row); copies ``depth``,
+    ``colour`` and ``return_points``. ``noise``: the sensor's noise model the image carries (a
+    :class:`SensorNoise` or its name; None: none stated, read as noise-free)."""
     depth = np.array(depth, dtype=np.float32, order="C", copy=True)
     if depth.shape != intrinsics.shape:
         raise ValueError(
             f"depth image has shape {depth.shape}, but intrinsics say (height, width) = {intrinsics.shape}"
         )
     colour = check_colour(colour, intrinsics.shape)
+    return_points = check_return_points(return_points, intrinsics.shape)
     image = vtkImageData()
     fill_depth_image(
         image, depth, intrinsics, check_pose(world_from_camera, "world_from_camera"), frame, timestamp,
         None if colour is None else colour.copy(), None if noise is None else SensorNoise.of(noise),
+        None if return_points is None else return_points.copy(),
     )
     return image
 
@@ -166,9 +194,11 @@ def fill_depth_image(
     timestamp: float = float("nan"),
     colour: np.ndarray | None = None,
     noise: SensorNoise | None = None,
+    return_points: np.ndarray | None = None,
 ) -> None:
     """Fill an existing vtkImageData (a filter's output) with a depth image (and its (H, W, 3) uint8
-    ``colour`` and the sensor's ``noise`` model, when given). Inputs are trusted.
+    ``colour``, the sensor's ``noise`` model and a LiDAR's (H, W, 3) float32 ``return_points``, when given).
+    Inputs are trusted.
 
     The image shares ``depth``'s (and ``colour``'s) memory: hand over arrays nobody else writes to.
     """
@@ -184,6 +214,10 @@ def fill_depth_image(
     point_data.SetScalars(array)
     if colour is not None:
         set_colour(image, colour)
+    if return_points is not None:
+        points = numpy_to_vtk(np.ascontiguousarray(return_points, dtype=np.float32).reshape(-1, 3), deep=False)
+        points.SetName(RETURN_POINTS_ARRAY)
+        point_data.AddArray(points)
     field = image.GetFieldData()
     field.Initialize()
     geometry = [(INTRINSICS_ARRAY, intrinsics.to_array())]
@@ -371,6 +405,15 @@ def set_colour(image, colour: np.ndarray) -> None:
 def image_colour(image) -> np.ndarray | None:
     """(H, W, 3) uint8 colour of a depth image (a view), or None when it has none."""
     array = image.GetPointData().GetArray(COLOUR_ARRAY) if image is not None else None
+    if array is None:
+        return None
+    intrinsics = image_intrinsics(image)
+    return vtk_to_numpy(array).reshape(intrinsics.height, intrinsics.width, 3)
+
+
+def image_return_points(image) -> np.ndarray | None:
+    """(H, W, 3) float32 return points of a LiDAR's depth image (a view; :func:`check_return_points`), or None."""
+    array = image.GetPointData().GetArray(RETURN_POINTS_ARRAY) if image is not None else None
     if array is None:
         return None
     intrinsics = image_intrinsics(image)

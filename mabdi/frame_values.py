@@ -20,6 +20,7 @@ from mabdi.depth import (
     depth_array,
     fill_depth_image,
     image_colour,
+    image_return_points,
     image_frame,
     image_intrinsics,
     image_noise,
@@ -38,7 +39,9 @@ class Measured:
     within (near, far); ``geometry``: the sensor's; ``pose``: 4x4 camera-to-frame, the source's
     world_from_camera as read, the map's frame once registered (:meth:`placed`); ``noise``: the sensor's
     noise model as it stood when D was made; ``index``: the frame's index in the run; ``timestamp``: s (NaN:
-    none); ``colour``: (H, W, 3) uint8 RGB registered to the depth, or None.
+    none); ``colour``: (H, W, 3) uint8 RGB registered to the depth, or None; ``return_points``: a LiDAR's
+    (H, W, 3) float32 sensor-frame return each pixel took its range from (NaN: none), or None
+    (:func:`mabdi.depth.check_return_points`): where the surfaces put a pixel's vertex.
     """
 
     depth: np.ndarray
@@ -48,6 +51,7 @@ class Measured:
     index: int
     timestamp: float = float("nan")
     colour: np.ndarray | None = None
+    return_points: np.ndarray | None = None
 
     def placed(self, pose: np.ndarray) -> Measured:
         """The same D at ``pose`` (4x4)."""
@@ -67,7 +71,11 @@ class Measured:
     def fill(self, image: vtkImageData) -> None:
         """Write D into an existing vtkImageData (a filter's output), as :meth:`to_image`."""
         colour = None if self.colour is None else self.colour.copy()
-        fill_depth_image(image, self.depth.copy(), self.geometry, self.pose, self.index, self.timestamp, colour, noise=self.noise)
+        points = None if self.return_points is None else self.return_points.copy()
+        fill_depth_image(
+            image, self.depth.copy(), self.geometry, self.pose, self.index, self.timestamp, colour, noise=self.noise,
+            return_points=points,
+        )  # fmt: skip
 
     @classmethod
     def from_image(cls, image) -> Measured:
@@ -75,7 +83,7 @@ class Measured:
         noise-free)."""
         return cls(
             depth_array(image), image_intrinsics(image), image_pose(image), image_noise(image), image_frame(image),
-            image_timestamp(image), image_colour(image),
+            image_timestamp(image), image_colour(image), image_return_points(image),
         )  # fmt: skip
 
 

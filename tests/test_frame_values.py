@@ -8,6 +8,7 @@ written as an image and read back must be the same value.
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from vtkmodules.util.numpy_support import vtk_to_numpy
 from vtkmodules.vtkCommonDataModel import vtkImageData
 
@@ -55,6 +56,24 @@ def test_d_written_as_an_image_and_read_back_is_the_same_value():
     assert (back.geometry, back.noise, back.index, back.timestamp) == (SMALL, measured.noise, 7, 12.5)
     # a snapshot is what an image carries of the model as it stands: equal to reading it back
     assert image_noise(depth_image(measured.depth, SMALL, _pose(), noise=noise)) == noise.snapshot()
+
+
+def test_a_lidar_s_return_points_go_through_the_image_and_back():
+    from mabdi.depth import DepthFrame, NO_NOISE
+    from mabdi.spherical import SphericalGeometry
+
+    geometry = SphericalGeometry(4, 8, 10.0, -10.0, 0.5, 50.0)
+    depth = np.full(geometry.shape, 5.0, dtype=np.float32)
+    points = np.random.default_rng(1).normal(size=(*geometry.shape, 3)).astype(np.float32)
+    points[1, 2] = np.nan  # a pixel with no return of its own
+    measured = Measured(depth, geometry, np.eye(4), NO_NOISE, 3, return_points=points)
+    back = Measured.from_image(measured.to_image())
+    np.testing.assert_array_equal(back.return_points, points)
+    frame = DepthFrame.from_image(DepthFrame(depth, geometry, np.eye(4), 3, return_points=points).to_image())
+    np.testing.assert_array_equal(frame.return_points, points)
+    assert Measured.from_image(Measured(depth, geometry, np.eye(4), NO_NOISE, 3).to_image()).return_points is None
+    with pytest.raises(ValueError, match="return points must be floats of shape"):
+        DepthFrame(depth, geometry, np.eye(4), return_points=points[:, :4])
 
 
 def test_a_value_image_holds_copies():

@@ -716,3 +716,55 @@ def test_the_quadtree_s_reduction_is_a_camera_s_3_and_a_range_image_s_1():
         quadtree.Update()
         meshes.append(vtk_to_numpy(quadtree.GetOutput().GetPoints().GetData()))
     np.testing.assert_array_equal(meshes[0], meshes[1])
+
+
+def _corridor_scan(geometry, seed=0):
+    """A deskewed-like scan of a 40 x 6 x 3 m corridor from its centre: one return a pixel, each anywhere in its
+    pixel (continuous elevations and azimuths), exact. Returns the points and the corridor's half sizes (m)."""
+    rng = np.random.default_rng(seed)
+    step = np.radians((geometry.fov_up - geometry.fov_down) / geometry.beams)
+    az = geometry.azimuths()[None, :] + 0.9 * 2 * np.pi / geometry.columns * rng.uniform(-0.5, 0.5, geometry.shape)
+    el = geometry.elevations()[:, None] + 0.9 * step * rng.uniform(-0.5, 0.5, geometry.shape)
+    rays = np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el) * np.ones_like(az)], axis=-1)
+    half = np.array([20.0, 3.0, 1.5])
+    with np.errstate(divide="ignore"):
+        t = np.min(np.abs(half / rays), axis=-1)
+    return (rays * t[..., None]).reshape(-1, 3), half
+
+
+def test_a_scan_is_meshed_where_its_returns_lie_not_at_its_pixel_centres():
+    # Walls, floor and ceiling seen at grazing incidence down a corridor: a pixel centre's range, carried from
+    # the returns around it, is off the surface by centimetres there; the pixel's own return is on it.
+    from mabdi.depth import NO_NOISE
+    from mabdi.frame_values import Measured
+    from mabdi.sources.range_images import range_image_and_returns
+    from mabdi.surfaces.quadtree import QuadTreeParameters, leaves_of_image
+
+    geometry = SphericalGeometry(64, 1024, 45.0, -45.0, 0.5, 50.0)
+    points, half = _corridor_scan(geometry)
+    depth, returns = range_image_and_returns(points, geometry)
+
+    def off(vertices):  # m from the nearest wall, floor or ceiling
+        return np.min(np.abs(np.abs(vertices) - half), axis=1)
+
+    at_centres, at_returns = (Measured(depth, geometry, np.eye(4), NO_NOISE, 0, return_points=r) for r in (None, returns))
+    grid = FilterPixelGrid()
+    vertices, triangles = polydata_arrays(grid.mesh_frame(at_returns))
+    assert len(triangles) > 100_000
+    assert off(vertices[np.unique(triangles)]).max() < 1e-3
+    vertices, triangles = polydata_arrays(grid.mesh_frame(at_centres))
+    assert np.percentile(off(vertices[np.unique(triangles)]), 99) > 0.01  # what the pixel centres gave
+
+    # the quad-tree's leaves: each plane through its own pixels' returns
+    def leaf_residuals(measured):
+        _, _, leaves, _ = leaves_of_image(depth, geometry, QuadTreeParameters(), NO_NOISE, None, measured.return_points)
+        worst = []
+        for level, row, col, normal, point in zip(leaves.level, leaves.row, leaves.col, leaves.normal, leaves.point):
+            side = 1 << int(level)
+            block = returns[row * side : (row + 1) * side, col * side : (col + 1) * side].reshape(-1, 3)
+            block = block[np.isfinite(block).all(axis=1)]
+            worst.append(np.abs((block - point) @ normal).max() if len(block) else 0.0)
+        return np.array(worst)
+
+    assert np.percentile(leaf_residuals(at_returns), 99) < 1e-4
+    assert np.percentile(leaf_residuals(at_centres), 99) > 0.01

@@ -6,7 +6,14 @@ import numpy as np
 import pytest
 
 from mabdi.errors import ConfigError
-from mabdi.sources.range_images import KITTI_GEOMETRY, geometry_from_table, lidar_table, range_image, rows_from_rings
+from mabdi.sources.range_images import (
+    KITTI_GEOMETRY,
+    geometry_from_table,
+    lidar_table,
+    range_image,
+    range_image_and_returns,
+    rows_from_rings,
+)
 from mabdi.spherical import SphericalGeometry
 
 GEOMETRY = SphericalGeometry(beams=16, columns=64, fov_up=10.0, fov_down=-20.0, range_min=0.5, range_max=50.0)
@@ -70,6 +77,26 @@ def test_returns_off_their_rows_are_carried_to_the_pixel_centres():
     # Returns exactly on their centres read as they are.
     points, expected = _room_scan(WIDE)
     np.testing.assert_allclose(range_image(points, WIDE), expected, rtol=1e-6)
+
+
+def test_each_pixel_keeps_its_own_return_beside_the_range_at_its_centre():
+    # The range image says where each pixel centre's ray meets the surface; the return the pixel took it from
+    # is kept as it was measured, for the surfaces to mesh (a deskewed return lies up to half a pixel off).
+    points, _ = _room_scan(WIDE, elevation_jitter=0.9, seed=3)
+    depth, returns = range_image_and_returns(points, WIDE)
+    np.testing.assert_array_equal(depth, range_image(points, WIDE))
+    assert returns.shape == (*WIDE.shape, 3) and returns.dtype == np.float32
+    held = np.isfinite(returns).all(axis=2)
+    assert np.isnan(returns[~held]).all() and held.mean() > 0.5
+    # each held return is one of the scan's points, and it falls in its own pixel
+    uv, _ = WIDE.pixels(returns[held].astype(np.float64))
+    rows, cols = np.nonzero(held)
+    np.testing.assert_array_equal(np.floor(uv[:, 1]).astype(int), rows)
+    np.testing.assert_array_equal(np.minimum(np.floor(uv[:, 0]).astype(int), WIDE.columns - 1), cols)
+    distance = np.linalg.norm(points[:, None, :] - returns[held][None, ::97, :], axis=2).min(axis=0)
+    assert distance.max() < 1e-5  # float32 copies of the points themselves
+    # pixels carried to their centres read other ranges than their own returns, and empty pixels hold none
+    assert np.nanmax(np.abs(np.linalg.norm(returns, axis=2) - depth)) > 0.01
 
 
 def test_a_depth_edge_is_not_bridged():

@@ -49,7 +49,7 @@ from mabdi.sensor_noise import SensorNoise
 from mabdi.pose_noise import PoseNoise
 from mabdi.simulate.lidar_sweep import SceneRayCaster, Sweep, SweepSettings, simulate_sweep, sweep_noise_rng
 from mabdi.simulate.path import path_from_config, path_timestamps
-from mabdi.sources.range_images import range_image
+from mabdi.sources.range_images import range_image_and_returns
 from mabdi.sources.frames import FrameSource
 from mabdi.sources.scene import OBJECT_COLOUR_ARRAY, SourceScene
 from mabdi.spherical import SphericalGeometry
@@ -173,8 +173,8 @@ class SimulatedRig(FrameSource):
         frame carries the given pose ``index``. A deskewed sweep's frame: :meth:`read_sweep`'s points binned into
         the range image (:func:`mabdi.sources.range_images.range_image`)."""
         if self.sweep is not None and self.sweep.deskewed:
-            depth = range_image(self.read_sweep(index).points, self.sensor.intrinsics)
-            return DepthFrame(depth, self.sensor.intrinsics, self._poses[index], index, float(self._timestamps[index]))
+            depth, return_points = range_image_and_returns(self.read_sweep(index).points, self.sensor.intrinsics)
+            return DepthFrame(depth, self.sensor.intrinsics, self._poses[index], index, float(self._timestamps[index]), None, return_points)
         self.scene.set_frame(index)
         self.sensor.pose = self._true_poses[index]
         self.sensor.frame = index

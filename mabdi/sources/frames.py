@@ -29,6 +29,7 @@ source's depth, so a loop, a TSDF or a recorder sees the same frames.
 from __future__ import annotations
 
 from collections.abc import Iterator
+from dataclasses import replace
 
 import numpy as np
 from vtkmodules.vtkCommonDataModel import vtkImageData
@@ -217,7 +218,7 @@ class FrameList(FrameSource):
 
     def read_frame(self, index: int) -> DepthFrame:
         frame = self._frames[index]
-        return DepthFrame(frame.depth, frame.intrinsics, frame.world_from_camera, index, frame.timestamp, frame.colour)
+        return replace(frame, frame=index)
 
 
 class StreamOrderError(IndexError):
@@ -328,7 +329,7 @@ class StreamedFrames(FrameSource):
         del self._pulled[:drop]
         self._first = index
         frame = self._pulled[0]
-        return DepthFrame(frame.depth, frame.intrinsics, frame.world_from_camera, index, frame.timestamp, frame.colour)
+        return replace(frame, frame=index)
 
     @property
     def poses(self) -> np.ndarray:
@@ -389,7 +390,7 @@ class FrameSubset(FrameSource):
 
     def read_frame(self, index: int) -> DepthFrame:
         frame = self.base.read(int(self.indices[index]))
-        return DepthFrame(frame.depth, frame.intrinsics, frame.world_from_camera, index, frame.timestamp, frame.colour)
+        return replace(frame, frame=index)
 
     @property
     def poses(self) -> np.ndarray:
@@ -498,7 +499,10 @@ class SourceDepthFrames(MabdiAlgorithm):
         noise = NO_NOISE if self._noise is None else self._noise.snapshot()
         colour = None if frame.colour is None else frame.colour.copy()
         depth = only_returns(np.asarray(depth, dtype=np.float32), geometry.near, geometry.far)
-        return Measured(depth, geometry, np.asarray(frame.world_from_camera, dtype=np.float64), noise, int(index), frame.timestamp, colour)
+        return Measured(
+            depth, geometry, np.asarray(frame.world_from_camera, dtype=np.float64), noise, int(index), frame.timestamp, colour,
+            frame.return_points,
+        )  # fmt: skip
 
     def RequestData(self, request, inInfo, outInfo):  # noqa: N802 (VTK API)
         self.measured(self._frame).fill(vtkImageData.GetData(outInfo))

@@ -57,7 +57,7 @@ from mabdi.sources.range_images import (
     geometry_from_table,
     learn_geometry,
     lidar_table,
-    range_image,
+    range_image_and_returns,
     range_image_points,
     scan_fit,
 )
@@ -234,8 +234,8 @@ class KittiSequence(FrameSource):
         points = read_scan(self._scans[index])
         if not self._warned and (fit := scan_fit(points, self.geometry)).share > OUTSIDE_SHARE_WARNING:
             self._warn(index, fit)
-        depth = range_image(points, self.geometry)
-        return DepthFrame(depth, self.geometry, self._poses[index], index, float(self._times[index]))
+        depth, return_points = range_image_and_returns(points, self.geometry)
+        return DepthFrame(depth, self.geometry, self._poses[index], index, float(self._times[index]), None, return_points)
 
 
 def _read_times(path: Path) -> np.ndarray:

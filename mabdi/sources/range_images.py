@@ -199,12 +199,23 @@ def range_image(points, geometry: SphericalGeometry, rows=None, centred: bool = 
     None: the row follows from the point's elevation, and with ``centred`` each pixel holds the range along its
     centre's ray where the returns around it allow (module docs). Otherwise the nearest point of a pixel wins.
     """
+    return range_image_and_returns(points, geometry, rows, centred)[0]
+
+
+def range_image_and_returns(points, geometry: SphericalGeometry, rows=None, centred: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`range_image`, and (beams, columns, 3) float32 the sensor-frame point (m) of the return each pixel
+    took its range from: the nearest that fell in it (NaN: none fell in it). The range image says where each
+    pixel centre's ray meets the surface, for comparing with the map's image; the returns say where the sensor
+    measured it, for meshing (``returns`` of :class:`mabdi.depth.DepthFrame`)."""
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     uv, distance = geometry.pixels(points)
     binned, fell, chosen = _binned(uv, distance, geometry, rows)
+    returns = np.full((*geometry.shape, 3), np.nan, dtype=np.float32)
+    held = chosen >= 0
+    returns[held] = points[chosen[held]]
     if rows is None and centred:
-        return _carried_to_centres(points, uv, distance, geometry, binned, fell, chosen)
-    return binned
+        return _carried_to_centres(points, uv, distance, geometry, binned, fell, chosen), returns
+    return binned, returns
 
 
 def _binned(uv, distance, geometry: SphericalGeometry, rows) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -447,6 +458,7 @@ __all__ = [
     "learn_geometry",
     "lidar_table",
     "range_image",
+    "range_image_and_returns",
     "range_image_points",
     "rows_from_rings",
     "scan_fit",

@@ -52,7 +52,7 @@ from mabdi.io.toml_writer import toml_lines
 from mabdi.spherical import SphericalGeometry
 from mabdi.sources.compressed_depth import decode_compressed_depth, depth_encoding
 from mabdi.sources.frames import FrameSource
-from mabdi.sources.range_images import geometry_from_table, lidar_table, range_image, range_image_points, rows_from_rings
+from mabdi.sources.range_images import geometry_from_table, lidar_table, range_image_and_returns, range_image_points, rows_from_rings
 from mabdi.sources.sequence_files import (
     SequenceError,
     bad_quaternions,
@@ -782,7 +782,8 @@ class Rosbag2Sequence(FrameSource):
         for position, (_, message) in enumerate(self._messages(self.depth_topic, start=log_time, stop=log_time + 1)):
             if position == wanted and self.cloud_topic is not None:
                 stamp = float(ns_to_seconds(self._stamps[index]))
-                return DepthFrame(self.decode_cloud(message, stamp), self._intrinsics, self._poses[index], index, stamp)
+                depth, return_points = self.decode_cloud(message, stamp)
+                return DepthFrame(depth, self._intrinsics, self._poses[index], index, stamp, None, return_points)
             if position == wanted:
                 depth = self.decode_depth(message)
                 colour = self._read_colour(index) if self.colour_topic is not None else None
@@ -814,14 +815,15 @@ class Rosbag2Sequence(FrameSource):
         pixels = np.ndarray((height, width, 3), dtype=np.uint8, buffer=data, strides=(step, 3, 1))
         return np.ascontiguousarray(pixels[..., COLOUR_ENCODINGS[message.encoding]])
 
-    def decode_cloud(self, message, stamp: float = float("nan")) -> np.ndarray:
-        """(beams, columns) float32 range image (m, NaN = no return) of a PointCloud2 message (module docs)."""
+    def decode_cloud(self, message, stamp: float = float("nan")) -> tuple[np.ndarray, np.ndarray]:
+        """(beams, columns) float32 range image (m, NaN = no return) of a PointCloud2 message (module docs), and
+        each pixel's own return (:func:`mabdi.sources.range_images.range_image_and_returns`)."""
         where = f"{self.kind} {self.path}: topic {self.cloud_topic}: the cloud at stamp {stamp:.9f} s"
         points, rings, organised = cloud_points(message, where)
         index = rings if rings is not None else organised
         geometry = self._intrinsics
         rows = None if index is None else self._rows(index, points, geometry.beams, where)
-        return range_image(points, geometry, rows)
+        return range_image_and_returns(points, geometry, rows)
 
     def decode_depth(self, message) -> np.ndarray:
         """(H, W) float32 metres of a depth Image message, or a CompressedImage one

@@ -16,7 +16,8 @@ edge whose two samples continue one straight line with the samples beyond
 (:func:`mabdi.depth.straight_continuations`): flat ground at grazing incidence.
 
 Triangles face the sensor; vertices are the pixel-centre rays scaled by the
-depth (:func:`mabdi.camera.pixel_rays`). The output keeps the input's field
+depth (:func:`mabdi.camera.pixel_rays`), or a LiDAR pixel's own return where the
+frame carries it (:func:`mabdi.camera.at_returns`). The output keeps the input's field
 data, and point data ``colour`` when the image carries colour. The image is
 first smoothed by the sensor's noise model (``smooth_depth``,
 :mod:`mabdi.surfaces.depth_smoothing`).
@@ -31,7 +32,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from vtkmodules.vtkCommonDataModel import vtkPolyData
 
-from mabdi.camera import pixel_rays
+from mabdi.camera import at_returns, pixel_rays
 from mabdi.depth import (
     straight_continuations,
 )
@@ -158,6 +159,7 @@ def pixel_grid_surface(
     triangles whose three edges lie on straight lines with the samples beyond them (the straight-line rule,
     whatever ``grazing`` says, without the jump rule, which also admits the chord across a crease)."""
     intrinsics, pose, depth, noise = frame.geometry, frame.pose, frame.depth, frame.noise
+    measured = depth
     if parameters.smooth_depth:
         depth = smooth_depth_by_noise(depth, noise, intrinsics)
     rays = pixel_rays(intrinsics)
@@ -187,4 +189,7 @@ def pixel_grid_surface(
     pixel_ids = np.flatnonzero(used)
     renumber = np.cumsum(used) - 1
     camera_points = rays.reshape(-1, 3)[pixel_ids] * depth.ravel()[pixel_ids, None]
+    if frame.return_points is not None:  # a LiDAR's vertex at its pixel's own return
+        shift = depth.ravel()[pixel_ids] - measured.ravel()[pixel_ids]
+        camera_points = at_returns(camera_points, frame.return_points.reshape(-1, 3)[pixel_ids], shift)
     return camera_points @ pose[:3, :3].T + pose[:3, 3], renumber[triangles], pixel_ids

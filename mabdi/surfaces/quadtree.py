@@ -42,7 +42,7 @@ from vtkmodules.util.numpy_support import numpy_to_vtk, numpy_to_vtkIdTypeArray
 from vtkmodules.vtkCommonCore import vtkPoints
 from vtkmodules.vtkCommonDataModel import vtkCellArray, vtkPolyData
 
-from mabdi.camera import Intrinsics, unit_rays
+from mabdi.camera import Intrinsics, at_returns, unit_rays
 from mabdi.depth import (
     colours_at,
     straight_continuations,
@@ -554,12 +554,14 @@ def leaves_of_image(
     p: QuadTreeParameters,
     noise: SensorNoise,
     measured: np.ndarray | None = None,
+    return_points: np.ndarray | None = None,
 ) -> tuple[np.ndarray, Grid, Leaves, np.ndarray]:
     """Smoothing, stages 1-5 and the small-leaf plane test: (reduced points, reduced grid, kept leaves, the
     smoothed image they were reduced from).
 
     ``measured``: the whole measured image behind ``depth`` (which may hold only the novel pixels), where the
-    grazing rule finds the pixels beyond an edge; None: ``depth`` itself.
+    grazing rule finds the pixels beyond an edge; None: ``depth`` itself. ``return_points``: a LiDAR's own
+    returns (:func:`mabdi.camera.at_returns`), its pixels' points where the image is not reduced.
 
     Stages 1-5 and the plane test are the numba kernels of :mod:`mabdi.surfaces.quadtree_kernels`.
     The leaves carry ``regions``, the pyramid root's region count. A LiDAR's range image
@@ -568,12 +570,16 @@ def leaves_of_image(
     p = resolved(p, intrinsics)
     if not grazing_on(p, intrinsics):
         measured = None  # only the grazing rule looks beyond the pixels it meshes
+    raw = depth
     if p.smooth_depth:
         depth = smooth_depth_by_noise(depth, noise, intrinsics)
     if measured is not None:
         measured = measured_around(depth, measured, noise, intrinsics, p.smooth_depth)
     if intrinsics.range_image:
-        return (*_range_leaves(depth, intrinsics, p, noise, measured), depth)
+        returns = None
+        if return_points is not None and p.reduction == 1:  # each pixel's point and its shift by smoothing
+            returns = (return_points, depth - raw)
+        return (*_range_leaves(depth, intrinsics, p, noise, measured, returns), depth)
     k = intrinsics
     r = p.reduction
 
@@ -604,11 +610,18 @@ def leaves_of_image(
 
 
 def _range_leaves(
-    ranges: np.ndarray, geometry: SphericalGeometry, p: QuadTreeParameters, noise: SensorNoise, measured: np.ndarray | None = None
+    ranges: np.ndarray,
+    geometry: SphericalGeometry,
+    p: QuadTreeParameters,
+    noise: SensorNoise,
+    measured: np.ndarray | None = None,
+    returns: tuple | None = None,
 ) -> tuple[np.ndarray, Grid, Leaves]:
     """Stages 1-5 and the plane test on a LiDAR's range image: seed 002 §3.2's transform (every beam block to a
     sensor-frame point: its median range times its unit ray, so a straight wall is flat again), §3.3's normals
-    from the point map's differences, with the depth tests on range instead of z."""
+    from the point map's differences, with the depth tests on range instead of z. ``returns``: (the pixels'
+    own returns, the shift of ``ranges`` by smoothing), unreduced images only: the tests read the range image
+    (its ranges along the pixel centres' rays), and every leaf's plane is then fitted to its own returns."""
     r = p.reduction
     rays = unit_rays(geometry)[0]
 
@@ -633,10 +646,24 @@ def _range_leaves(
     leaves = Leaves(level, row, col, normal, point)
     residual = kernels.plane_residual_depth_kernel(points, depth, level, row, col, normal, point, _depth(point, reduced), jump, 2)
     leaves = fitting_leaves(leaves, residual, reduced, noise)
-    if grazing:
+    if returns is not None:
+        leaves = on_returns(leaves, at_returns(points, *returns))
+    elif grazing:
         leaves = fitted_planes(leaves, points)
     leaves.regions = regions
     return points, reduced, leaves
+
+
+def on_returns(leaves: Leaves, returns: np.ndarray) -> Leaves:
+    """The leaves placed on a LiDAR's own returns (H, W, 3, sensor frame, m; :func:`mabdi.camera.at_returns`):
+    a one-pixel leaf's point is its pixel's return, a larger leaf takes the plane fitted to its returns
+    (:func:`fitted_planes`); normals of one-pixel leaves are kept."""
+    leaves = fitted_planes(leaves, returns)
+    single = np.flatnonzero(leaves.level == 0)
+    point = leaves.point.copy()
+    own = returns[leaves.row[single], leaves.col[single]]
+    point[single] = np.where(np.isfinite(own).all(axis=1)[:, None], own, point[single])
+    return Leaves(leaves.level, leaves.row, leaves.col, leaves.normal, point, leaves.regions)
 
 
 def fitted_planes(leaves: Leaves, points: np.ndarray) -> Leaves:
@@ -730,7 +757,7 @@ class FilterQuadTree(FrameSurface):
         None: the frame is all of D. Sets :attr:`regions`."""
         intrinsics, pose, noise = frame.geometry, frame.pose, frame.noise
         p = resolved(self._parameters, intrinsics)
-        points, reduced, leaves, smoothed = leaves_of_image(frame.depth, intrinsics, p, noise, whole)
+        points, reduced, leaves, smoothed = leaves_of_image(frame.depth, intrinsics, p, noise, whole, frame.return_points)
         fine = SilhouetteEvidence(smoothed, noise)
         self.regions = leaves.regions
         if isinstance(reduced, ReducedSpherical) and len(leaves.level):

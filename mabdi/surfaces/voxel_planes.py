@@ -38,7 +38,7 @@ from vtkmodules.util.numpy_support import numpy_to_vtk
 from vtkmodules.vtkCommonDataModel import vtkDataObject, vtkImageData, vtkPointSet, vtkPolyData
 
 from mabdi.algorithm import MabdiAlgorithm
-from mabdi.camera import pixel_rays
+from mabdi.camera import at_returns, pixel_rays
 from mabdi.depth import COLOUR_ARRAY, FRAME_ARRAY, measured_depth
 from mabdi.frame_values import Measured
 from mabdi.errors import ConfigError, check_switch
@@ -771,6 +771,8 @@ class FilterVoxelPlanes(MabdiAlgorithm):
         v, u = np.nonzero(np.isfinite(depth))  # only the valid (novel) pixels: often a few percent
         z = depth[v, u].astype(np.float64)
         camera = pixel_rays(k)[v, u] * z[:, None]  # a camera's z = 1 rays times depth, or a LiDAR's unit rays times range
+        if frame.return_points is not None:  # a LiDAR pixel's own return, where it has one
+            camera = at_returns(camera, frame.return_points[v, u])
         points, colours = camera @ pose[:3, :3].T + pose[:3, 3], None if colour is None else colour[v, u]
         if on_for_range_images(self._parameters.between_beams, k):
             vertices, triangles, pixel_ids = pixel_grid_surface(frame, whole, PixelGridParameters(), straight_only=True)
