@@ -42,6 +42,7 @@ from vtkmodules.vtkCommonCore import vtkStringArray
 from vtkmodules.vtkCommonDataModel import vtkImageData
 
 from mabdi.camera import Intrinsics, check_pose
+from mabdi.depth_kernels import continues_kernel
 from mabdi.sensor_noise import SensorNoise
 from mabdi.spherical import BEAM_ELEVATIONS_ARRAY, SPHERICAL_ARRAY, SphericalGeometry
 
@@ -298,7 +299,8 @@ LINE_SPACING = 4.0
 def _continues(before: np.ndarray, last: np.ndarray, after: np.ndarray, sigma_after: np.ndarray) -> np.ndarray:
     """Whether ``after`` lies on the straight line through ``before`` and ``last`` (..., 3 points), within
     :data:`LINE_SIGMAS` of the extrapolation's error (sigma sqrt(1 + (1 + k)^2 + k^2), k the step ratio) plus
-    the floor, stepping forwards by a ratio within :data:`LINE_SPACING`."""
+    the floor, stepping forwards by a ratio within :data:`LINE_SPACING`. The definition: the compiled
+    :func:`mabdi.depth_kernels.continues_kernel` computes it over an image (the tests compare the two)."""
     step = last - before
     ahead = after - last
     length = np.linalg.norm(step, axis=-1)
@@ -331,26 +333,32 @@ def straight_continuations(points: np.ndarray, sigma: np.ndarray) -> tuple[np.nd
 
     An edge whose sample beyond is missing (no return, or the image's border) is decided the one way."""
     height, width = points.shape[:2]
-    p, s = points, sigma
+    p = np.ascontiguousarray(points, dtype=np.float64)
+    s = np.ascontiguousarray(sigma, dtype=np.float64)
+
+    def continues(out, start, step) -> None:
+        """``out[v, u]``: the sample at ``start`` + (v, u) + 2 ``step`` on the line through the two before it."""
+        continues_kernel(p, s, start[0], start[1], step[0], step[1], LINE_SIGMAS, LINE_FLOOR, LINE_SPACING, out)
+
     vertical = np.zeros((height - 1, width), dtype=bool)
     horizontal = np.zeros((height, width - 1), dtype=bool)
     diagonal = np.zeros((height - 1, width - 1), dtype=bool)
     if height >= 3:  # edges (v, v + 1): forward from rows v - 1, v (v >= 1); backward from rows v + 2, v + 1
         forward, backward = np.zeros_like(vertical), np.zeros_like(vertical)
-        forward[1:] = _continues(p[:-2], p[1:-1], p[2:], s[2:])
-        backward[:-1] = _continues(p[2:], p[1:-1], p[:-2], s[:-2])
+        continues(forward[1:], (0, 0), (1, 0))  # rows v, v + 1, v + 2
+        continues(backward[:-1], (2, 0), (-1, 0))  # rows v + 2, v + 1, v
         vertical = _straight_edges(forward, backward, _shifted(backward, 1, 0), _shifted(forward, -1, 0))
     if width >= 3:
         forward, backward = np.zeros_like(horizontal), np.zeros_like(horizontal)
-        forward[:, 1:] = _continues(p[:, :-2], p[:, 1:-1], p[:, 2:], s[:, 2:])
-        backward[:, :-1] = _continues(p[:, 2:], p[:, 1:-1], p[:, :-2], s[:, :-2])
+        continues(forward[:, 1:], (0, 0), (0, 1))
+        continues(backward[:, :-1], (0, 2), (0, -1))
         horizontal = _straight_edges(forward, backward, _shifted(backward, 0, 1), _shifted(forward, 0, -1))
     if height >= 3 and width >= 3:
         # the edge (v, u) joins (v, u + 1) and (v + 1, u), on the line ..., (v - 1, u + 2), (v, u + 1), (v + 1, u),
         # (v + 2, u - 1), ...; the next edge along it is (v + 1, u - 1)
         forward, backward = np.zeros_like(diagonal), np.zeros_like(diagonal)
-        forward[1:, :-1] = _continues(p[:-2, 2:], p[1:-1, 1:-1], p[2:, :-2], s[2:, :-2])
-        backward[:-1, 1:] = _continues(p[2:, :-2], p[1:-1, 1:-1], p[:-2, 2:], s[:-2, 2:])
+        continues(forward[1:, :-1], (0, 2), (1, -1))  # (v, u + 2), (v + 1, u + 1), (v + 2, u)
+        continues(backward[:-1, 1:], (2, 0), (-1, 1))  # (v + 2, u), (v + 1, u + 1), (v, u + 2)
         diagonal = _straight_edges(forward, backward, _shifted(backward, 1, -1), _shifted(forward, -1, 1))
     return vertical, horizontal, diagonal
 

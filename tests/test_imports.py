@@ -223,6 +223,7 @@ LAYERS = {
     "mabdi.sensor_noise": 0,  # the noise model every depth image carries
     "mabdi.pose_noise": 0,  # the poses a robot gives against those it had
     "mabdi.depth": 0,  # depth images as vtkImageData and their arrays
+    "mabdi.depth_kernels": 0,  # numba: the straight-line test on a point image's neighbours
     "mabdi.depth_holes": 0,  # one-pixel holes in a depth image, filled
     "mabdi.face_identity": 0,
     "mabdi.frame_values": 0,  # the values a frame's stages hand each other (D, placement, E, labels)  # which map face each pixel of the expected image shows

@@ -768,3 +768,32 @@ def test_a_scan_is_meshed_where_its_returns_lie_not_at_its_pixel_centres():
 
     assert np.percentile(leaf_residuals(at_returns), 99) < 1e-4
     assert np.percentile(leaf_residuals(at_centres), 99) > 0.01
+
+
+def test_the_compiled_straight_line_test_is_the_numpy_definition():
+    # mabdi.depth._continues says what the test is; the kernel computes it over an image in each direction.
+    from mabdi.depth import LINE_FLOOR, LINE_SIGMAS, LINE_SPACING, _continues
+    from mabdi.depth_kernels import continues_kernel
+
+    rng = np.random.default_rng(4)
+    base = np.cumsum(rng.normal(0.0, 0.3, (40, 50, 3)), axis=0)  # lines, some straight enough and some not
+    points = base + rng.normal(0.0, 0.005, base.shape) * (rng.random((40, 50, 1)) < 0.5)
+    points[rng.random((40, 50)) < 0.05] = np.nan
+    points[3, 4] = points[4, 4]  # a zero step
+    sigma = rng.uniform(0.001, 0.05, (40, 50))
+    for start, step in (((0, 0), (1, 0)), ((2, 0), (-1, 0)), ((0, 0), (0, 1)), ((0, 2), (0, -1)), ((0, 2), (1, -1)), ((2, 0), (-1, 1))):
+        rows, cols = 40 - 2 * abs(step[0]), 50 - 2 * abs(step[1])
+        out = np.zeros((rows, cols), dtype=bool)
+        continues_kernel(points, sigma, start[0], start[1], step[0], step[1], LINE_SIGMAS, LINE_FLOOR, LINE_SPACING, out)
+
+        def at(k):  # the k-th sample of each triple
+            v0, u0 = start[0] + k * step[0], start[1] + k * step[1]
+            return v0, u0
+
+        (va, ua), (vb, ub), (vc, uc) = at(0), at(1), at(2)
+        expected = _continues(
+            points[va : va + rows, ua : ua + cols], points[vb : vb + rows, ub : ub + cols], points[vc : vc + rows, uc : uc + cols],
+            sigma[vc : vc + rows, uc : uc + cols],
+        )  # fmt: skip
+        np.testing.assert_array_equal(out, expected)
+        assert 0 < out.sum() < out.size

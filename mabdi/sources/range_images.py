@@ -275,16 +275,16 @@ def _carried_to_centres(points, uv, distance, geometry: SphericalGeometry, binne
 
 
 @njit(cache=True)
-def _one_surface(ra, rb, angle, steep, pa, pb, po, tolerance):
+def _one_surface(ra, rb, angle, steep, pax, pay, pbx, pby, pox, poy, tolerance):
     """Whether returns a and b (ranges ``ra``, ``rb`` m, ``angle`` radians apart) are one surface: their ranges
-    within SURFACE_STEP plus a ``steep`` surface's change, or the 2-D point ``po`` (a third return beyond a)
-    continuing the line b-a in the plane of ``pa``, ``pb``, ``po`` within ``tolerance`` (NaN ``po``: none)."""
+    within SURFACE_STEP plus a ``steep`` surface's change, or the 2-D point o (``pox``, ``poy``: a third return
+    beyond a) continuing the line b-a in the plane of a, b and o within ``tolerance`` (NaN ``pox``: none)."""
     if abs(rb - ra) <= SURFACE_STEP + 0.5 * (ra + rb) * angle * steep:
         return True
-    if not np.isfinite(po[0]):
+    if not np.isfinite(pox):
         return False
-    lx, ly = po[0] - pb[0], po[1] - pb[1]
-    sx, sy = pa[0] - pb[0], pa[1] - pb[1]
+    lx, ly = pox - pbx, poy - pby
+    sx, sy = pax - pbx, pay - pby
     length = np.hypot(lx, ly)
     return length > 1e-9 and abs(lx * sy - ly * sx) / length <= tolerance
 
@@ -301,7 +301,6 @@ def _carry_kernel(image, fell, chosen, upper, key, column, elevation, index, poi
     rows, columns = image.shape
     n = len(key)
     steep = np.tan(np.radians(SURFACE_INCIDENCE))
-    nowhere = np.array([np.nan, np.nan])
     carried = np.full((rows, columns, 3), np.nan)
     for r in range(rows):
         for c in range(columns):
@@ -316,30 +315,32 @@ def _carry_kernel(image, fell, chosen, upper, key, column, elevation, index, poi
             if gap > widest * spacing:
                 continue
             a, b = points[index[lo]], points[index[hi]]
-            ra, rb = np.sqrt(np.sum(a * a)), np.sqrt(np.sum(b * b))
-            pa = np.array([np.hypot(a[0], a[1]), a[2]])
-            pb = np.array([np.hypot(b[0], b[1]), b[2]])
+            ra = np.sqrt(a[0] * a[0] + a[1] * a[1] + a[2] * a[2])
+            rb = np.sqrt(b[0] * b[0] + b[1] * b[1] + b[2] * b[2])
+            pax, pay = np.hypot(a[0], a[1]), a[2]
+            pbx, pby = np.hypot(b[0], b[1]), b[2]
             one = False
             for side in range(2):  # a third return at least half a row beyond either end
                 if side == 0:
                     outer = np.searchsorted(key, key[lo] - 0.5 * row_key, side="right") - 1
                 else:
                     outer = np.searchsorted(key, key[hi] + 0.5 * row_key, side="left")
-                po = nowhere
+                pox, poy = np.nan, np.nan
                 if 0 <= outer < n and column[outer] == c:
                     o = points[index[outer]]
-                    po = np.array([np.hypot(o[0], o[1]), o[2]])
+                    pox, poy = np.hypot(o[0], o[1]), o[2]
                 near_range = ra if side == 0 else rb
                 tolerance = LINE_TOLERANCE[0] + LINE_TOLERANCE[1] * near_range
-                if (side == 0 and _one_surface(ra, rb, gap, steep, pa, pb, po, tolerance)) or (
-                    side == 1 and _one_surface(rb, ra, gap, steep, pb, pa, po, tolerance)
+                if (side == 0 and _one_surface(ra, rb, gap, steep, pax, pay, pbx, pby, pox, poy, tolerance)) or (
+                    side == 1 and _one_surface(rb, ra, gap, steep, pbx, pby, pax, pay, pox, poy, tolerance)
                 ):
                     one = True
                     break
             if not one:
                 continue
             t = min(max((centres[r] - elevation[lo]) / gap if gap > 0 else 0.0, 0.0), 1.0)
-            carried[r, c] = a + t * (b - a)
+            for i in range(3):
+                carried[r, c, i] = a[i] + t * (b[i] - a[i])
     # along the rows: to the centre's azimuth (column c's azimuth falls as c grows)
     step = 2.0 * np.pi / columns
     for r in range(rows):
@@ -349,7 +350,7 @@ def _carry_kernel(image, fell, chosen, upper, key, column, elevation, index, poi
                 continue
             az = np.arctan2(p[1], p[0])
             off = np.angle(np.exp(1j * (az - azimuths[c])))  # radians, wrapped
-            value = np.sqrt(np.sum(p * p))
+            value = np.sqrt(p[0] * p[0] + p[1] * p[1] + p[2] * p[2])
             other = (c + 1) % columns if off > 0 else (c - 1) % columns  # the neighbour across the centre
             beyond = (c - 1) % columns if off > 0 else (c + 1) % columns
             q = carried[r, other]
@@ -357,14 +358,14 @@ def _carry_kernel(image, fell, chosen, upper, key, column, elevation, index, poi
                 qaz = np.arctan2(q[1], q[0])
                 qoff = np.angle(np.exp(1j * (qaz - azimuths[c])))
                 if qoff * off < 0:
-                    rq = np.sqrt(np.sum(q * q))
+                    rq = np.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2])
                     o = carried[r, beyond]
-                    po = np.array([o[0], o[1]]) if np.isfinite(o[0]) else nowhere
+                    pox, poy = (o[0], o[1]) if np.isfinite(o[0]) else (np.nan, np.nan)
                     tolerance = LINE_TOLERANCE[0] + LINE_TOLERANCE[1] * value
-                    if _one_surface(value, rq, abs(qoff - off), steep, np.array([p[0], p[1]]), np.array([q[0], q[1]]), po, tolerance):
+                    if _one_surface(value, rq, abs(qoff - off), steep, p[0], p[1], q[0], q[1], pox, poy, tolerance):
                         t = off / (off - qoff)
-                        x = p + t * (q - p)
-                        value = np.sqrt(np.sum(x * x))
+                        x0, x1, x2 = p[0] + t * (q[0] - p[0]), p[1] + t * (q[1] - p[1]), p[2] + t * (q[2] - p[2])
+                        value = np.sqrt(x0 * x0 + x1 * x1 + x2 * x2)
             image[r, c] = np.float32(value)
     # a pixel still empty between its row's neighbours, one surface: a return that slid into the next column
     filled = image.copy()
