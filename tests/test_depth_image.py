@@ -270,6 +270,10 @@ def test_a_render_from_the_same_pose_of_the_same_unchanged_map_is_not_drawn_agai
     assert not draws
     np.testing.assert_array_equal(again, first)
     np.testing.assert_array_equal(renderer.render_identity(), codes)
+    into = np.full(codes.shape, 7, dtype=np.uint32)  # the range renderer's buffer: the same identities, no copy made
+    assert renderer.render_identity(out=into) is into
+    np.testing.assert_array_equal(into, codes)
+    assert len(np.unique(codes)) > 2
     # the map changed (its points moved 0.5 m nearer): drawn again, and it reads so
     points = vtk_to_numpy(mesh.GetPoints().GetData())
     points[:, 2] -= 0.5

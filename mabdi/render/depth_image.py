@@ -293,8 +293,9 @@ class DepthRenderer:
         self._last_scene = (scene, pose.copy())
         return vtk_to_numpy(self._zbuffer).reshape(height, width)[::-1]
 
-    def render_identity(self) -> np.ndarray:
-        """(H, W) int64 identity of the last render (top row first): the 24-bit RGB of the face seen, 0 = none.
+    def render_identity(self, out: np.ndarray | None = None) -> np.ndarray:
+        """(H, W) int64 identity of the last render (top row first): the 24-bit RGB of the face seen, 0 = none;
+        written into ``out`` instead ((H, W), uint32 or wider) when given, and ``out`` returned.
 
         Call right after :meth:`render_zbuffer` (same frame); needs ``identity_array``.
         """
@@ -302,6 +303,8 @@ class DepthRenderer:
         # RGBA read as one little-endian 32-bit word per pixel: red is the low byte, alpha (the high byte) masked off
         self._window.GetRGBACharPixelData(0, 0, width - 1, height - 1, 0, self._rgba, 0)
         words = vtk_to_numpy(self._rgba).reshape(-1).view("<u4").reshape(height, width)[::-1]
+        if out is not None:
+            return np.bitwise_and(words, np.uint32(0xFFFFFF), out=out)
         return (words & np.uint32(0xFFFFFF)).astype(np.int64)
 
     def describe(self) -> dict:

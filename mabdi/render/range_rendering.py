@@ -235,6 +235,7 @@ class RangeRenderer:
         self._table = _TriangleTable()
         self._hits: np.ndarray | None = None
         self._covered: np.ndarray | None = None
+        self._ids: np.ndarray | None = None
 
     def render(self, data, geometry: SphericalGeometry, world_from_sensor) -> np.ndarray:
         """(beams, columns) float32 range (m) along each beam from ``world_from_sensor`` (x forward, y left,
@@ -244,7 +245,9 @@ class RangeRenderer:
         copies = self._table.copies(data)
         bounds = np.array([copy.GetBounds() for copy in copies]).reshape(-1, 6)
         k = views.intrinsics
-        ids = np.empty((SECTORS, k.height, k.width), dtype=np.int64)
+        if self._ids is None or self._ids.shape != (SECTORS, k.height, k.width):
+            self._ids = np.empty((SECTORS, k.height, k.width), dtype=np.uint32)  # 24-bit identities, kept between frames
+        ids = self._ids
         for sector in range(SECTORS):
             camera = pose @ views.sensor_from_camera[sector]
             # each sector draws only the copies whose bounds reach into its frustum (a quarter of a street's)
@@ -252,19 +255,18 @@ class RangeRenderer:
             for index, visible in enumerate(np.flatnonzero(~boxes_outside(bounds, frustum_planes(k, camera)))):
                 blocks.SetBlock(index, copies[visible])
             self.depth_renderer.render_zbuffer(blocks, k, camera)
-            ids[sector] = self.depth_renderer.render_identity()
-        candidates = ids.reshape(-1)[views.candidates]
+            self.depth_renderer.render_identity(out=ids[sector])
         directions = unit_rays(geometry)[0].reshape(-1, 3) @ pose[:3, :3].T
         table = self._table
-        ranges, hits = cast_beams_kernel(
-            np.ascontiguousarray(pose[:3, 3]), np.ascontiguousarray(directions), candidates, INNER, table.corner, table.edge1,
-            table.edge2, table.width, views.footprint, BARYCENTRIC_TOLERANCE,
+        ranges, hits, covered = cast_beams_kernel(
+            np.ascontiguousarray(pose[:3, 3]), np.ascontiguousarray(directions), ids.reshape(-1), views.candidates, INNER,
+            table.corner, table.edge1, table.edge2, table.width, views.footprint, BARYCENTRIC_TOLERANCE,
         )
         outside = ~((ranges > geometry.range_min) & (ranges < geometry.range_max))
         ranges[outside] = np.nan
         hits[outside] = 0
         self._hits = hits.reshape(geometry.shape)
-        self._covered = (candidates[:, :INNER] != 0).any(axis=1).reshape(geometry.shape)
+        self._covered = covered.reshape(geometry.shape)
         return ranges.astype(np.float32).reshape(geometry.shape)
 
     def face_ids(self) -> tuple[np.ndarray, FaceIdTable]:
