@@ -50,6 +50,28 @@ def test_written_folder_reads_back_the_frames(tmp_path):
     assert points.dtype == np.float32 and len(points) == 16 * 64 - 1
 
 
+def test_a_frame_s_own_returns_are_written_as_measured(tmp_path):
+    # A scan read from points keeps each pixel's own return: written out, the points are those returns, and
+    # read back they give the same returns and range image, not their pixel centres' estimates.
+    rng = np.random.default_rng(2)
+    rays = GEOMETRY.rays()
+    nudged = rays + rng.uniform(-0.002, 0.002, rays.shape)  # returns a little off their pixel centres
+    nudged /= np.linalg.norm(nudged, axis=-1, keepdims=True)
+    scan = (nudged * _room(GEOMETRY)[..., None]).reshape(-1, 3)
+    scan = scan[np.isfinite(scan).all(axis=1)]
+    from mabdi.sources.range_images import range_image_and_returns
+
+    depth, returns = range_image_and_returns(scan, GEOMETRY)
+    source = FrameList([DepthFrame(depth, GEOMETRY, np.eye(4), 0, 0.0, None, returns)], "lidar scans")
+    folder = write_kitti(source, tmp_path / "seq")
+    written = read_scan(folder / "velodyne" / "000000.bin")[:, :3]
+    held = np.isfinite(returns).all(axis=2)
+    np.testing.assert_array_equal(np.sort(written, axis=0), np.sort(returns[held], axis=0))
+    back = KittiSequence(folder).read(0)
+    np.testing.assert_array_equal(back.return_points, returns)
+    np.testing.assert_allclose(back.depth, depth, rtol=1e-6, equal_nan=True)
+
+
 def test_poses_are_read_through_the_calibration(tmp_path):
     source = _source(frames=2)
     folder = write_kitti(source, tmp_path / "seq")

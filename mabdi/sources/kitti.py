@@ -254,8 +254,8 @@ def _read_times(path: Path) -> np.ndarray:
 def write_kitti(source: FrameSource, folder, *, overwrite: bool = False, extra: dict | None = None) -> Path:
     """Write every frame of a LiDAR ``source`` (range images) as a KITTI-style folder; returns the folder.
 
-    Each frame's returns go to ``velodyne/NNNNNN.bin`` as points (float32 x y z, intensity 0) at the pixel
-    centres' directions, ``poses.txt`` holds ``Tr P Tr^-1`` with ``Tr`` = :data:`WRITTEN_TR` in ``calib.txt``
+    Each frame's returns go to ``velodyne/NNNNNN.bin`` as points (float32 x y z, intensity 0): a pixel's own
+    return where the frame carries it (``return_points``), else its range along the pixel centre's ray; ``poses.txt`` holds ``Tr P Tr^-1`` with ``Tr`` = :data:`WRITTEN_TR` in ``calib.txt``
     (so :class:`KittiSequence` reads the source's poses back), ``times.txt`` the timestamps (index / 10 where
     unknown), and ``mabdi.toml`` the ``[lidar]`` geometry and the tables of ``extra``. Atomic file by file.
     """
@@ -273,7 +273,10 @@ def write_kitti(source: FrameSource, folder, *, overwrite: bool = False, extra: 
     for index in range(len(source)):
         frame = source.read(index)
         geometry = frame.intrinsics if geometry is None else geometry
-        xyz = range_image_points(frame.depth, frame.intrinsics)[0]
+        xyz, rows, columns = range_image_points(frame.depth, frame.intrinsics)
+        if frame.return_points is not None:  # the returns as measured, not their pixel centres' estimates
+            own = frame.return_points[rows, columns].astype(np.float64)
+            xyz = np.where(np.isfinite(own).all(axis=1)[:, None], own, xyz)
         points = np.zeros((len(xyz), POINT_FIELDS), dtype="<f4")
         points[:, :3] = xyz
         with atomic_output(folder / SCAN_FOLDER / f"{index:06d}.bin") as temporary:
