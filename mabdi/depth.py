@@ -216,9 +216,7 @@ def fill_depth_image(
     if colour is not None:
         set_colour(image, colour)
     if return_points is not None:
-        points = numpy_to_vtk(np.ascontiguousarray(return_points, dtype=np.float32).reshape(-1, 3), deep=False)
-        points.SetName(RETURN_POINTS_ARRAY)
-        point_data.AddArray(points)
+        _add_pixel_array(image, RETURN_POINTS_ARRAY, np.ascontiguousarray(return_points, dtype=np.float32))
     field = image.GetFieldData()
     field.Initialize()
     geometry = [(INTRINSICS_ARRAY, intrinsics.to_array())]
@@ -403,29 +401,35 @@ def image_timestamp(image) -> float:
     return float(vtk_to_numpy(array)[0]) if array is not None and array.GetNumberOfTuples() else float("nan")
 
 
+def _add_pixel_array(image, name: str, values: np.ndarray) -> None:
+    """Put contiguous (H, W, 3) ``values`` into ``image`` as its point array ``name`` (shared memory)."""
+    array = numpy_to_vtk(values.reshape(-1, 3), deep=False)
+    array.SetName(name)
+    image.GetPointData().AddArray(array)
+
+
+def _pixel_array(image, name: str) -> np.ndarray | None:
+    """The (H, W, 3) point array ``name`` of a depth image (a view), or None when it has none."""
+    array = image.GetPointData().GetArray(name) if image is not None else None
+    if array is None:
+        return None
+    intrinsics = image_intrinsics(image)
+    return vtk_to_numpy(array).reshape(intrinsics.height, intrinsics.width, 3)
+
+
 def set_colour(image, colour: np.ndarray) -> None:
     """Put (H, W, 3) uint8 ``colour`` into ``image`` as its point array ``colour`` (shared memory)."""
-    array = numpy_to_vtk(np.ascontiguousarray(colour, dtype=np.uint8).reshape(-1, 3), deep=False)
-    array.SetName(COLOUR_ARRAY)
-    image.GetPointData().AddArray(array)
+    _add_pixel_array(image, COLOUR_ARRAY, np.ascontiguousarray(colour, dtype=np.uint8))
 
 
 def image_colour(image) -> np.ndarray | None:
     """(H, W, 3) uint8 colour of a depth image (a view), or None when it has none."""
-    array = image.GetPointData().GetArray(COLOUR_ARRAY) if image is not None else None
-    if array is None:
-        return None
-    intrinsics = image_intrinsics(image)
-    return vtk_to_numpy(array).reshape(intrinsics.height, intrinsics.width, 3)
+    return _pixel_array(image, COLOUR_ARRAY)
 
 
 def image_return_points(image) -> np.ndarray | None:
     """(H, W, 3) float32 return points of a LiDAR's depth image (a view; :func:`check_return_points`), or None."""
-    array = image.GetPointData().GetArray(RETURN_POINTS_ARRAY) if image is not None else None
-    if array is None:
-        return None
-    intrinsics = image_intrinsics(image)
-    return vtk_to_numpy(array).reshape(intrinsics.height, intrinsics.width, 3)
+    return _pixel_array(image, RETURN_POINTS_ARRAY)
 
 
 def copy_colour(source, target) -> None:

@@ -159,7 +159,7 @@ def pixel_grid_surface(
     triangles whose three edges lie on straight lines with the samples beyond them (the straight-line rule,
     whatever ``grazing`` says, without the jump rule, which also admits the chord across a crease)."""
     intrinsics, pose, depth, noise = frame.geometry, frame.pose, frame.depth, frame.noise
-    measured = depth
+    raw = depth
     if parameters.smooth_depth:
         depth = smooth_depth_by_noise(depth, noise, intrinsics)
     rays = pixel_rays(intrinsics)
@@ -190,6 +190,6 @@ def pixel_grid_surface(
     renumber = np.cumsum(used) - 1
     camera_points = rays.reshape(-1, 3)[pixel_ids] * depth.ravel()[pixel_ids, None]
     if frame.return_points is not None:  # a LiDAR's vertex at its pixel's own return
-        shift = depth.ravel()[pixel_ids] - measured.ravel()[pixel_ids]
+        shift = depth.ravel()[pixel_ids] - raw.ravel()[pixel_ids]
         camera_points = at_returns(camera_points, frame.return_points.reshape(-1, 3)[pixel_ids], shift)
     return camera_points @ pose[:3, :3].T + pose[:3, 3], renumber[triangles], pixel_ids
