@@ -718,17 +718,18 @@ def test_the_quadtree_s_reduction_is_a_camera_s_3_and_a_range_image_s_1():
     np.testing.assert_array_equal(meshes[0], meshes[1])
 
 
-def _corridor_scan(geometry, seed=0):
-    """A deskewed-like scan of a 40 x 6 x 3 m corridor from its centre: one return a pixel, each anywhere in its
-    pixel (continuous elevations and azimuths), exact. Returns the points and the corridor's half sizes (m)."""
+def _corridor_scan(geometry, seed=0, origin=(0.0, 0.0, 0.0)):
+    """A deskewed-like scan of a 40 x 6 x 3 m corridor centred on the world's origin, from ``origin``: one return a
+    pixel, each anywhere in its pixel (continuous elevations and azimuths), exact. Returns the points (sensor
+    frame, axes as the world's) and the corridor's half sizes (m)."""
     rng = np.random.default_rng(seed)
     step = np.radians((geometry.fov_up - geometry.fov_down) / geometry.beams)
     az = geometry.azimuths()[None, :] + 0.9 * 2 * np.pi / geometry.columns * rng.uniform(-0.5, 0.5, geometry.shape)
     el = geometry.elevations()[:, None] + 0.9 * step * rng.uniform(-0.5, 0.5, geometry.shape)
     rays = np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el) * np.ones_like(az)], axis=-1)
     half = np.array([20.0, 3.0, 1.5])
-    with np.errstate(divide="ignore"):
-        t = np.min(np.abs(half / rays), axis=-1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.nanmin(np.where(rays != 0, (np.sign(rays) * half - np.asarray(origin)) / rays, np.inf), axis=-1)
     return (rays * t[..., None]).reshape(-1, 3), half
 
 
@@ -768,6 +769,117 @@ def test_a_scan_is_meshed_where_its_returns_lie_not_at_its_pixel_centres():
 
     assert np.percentile(leaf_residuals(at_returns), 99) < 1e-4
     assert np.percentile(leaf_residuals(at_centres), 99) > 0.01
+
+
+def test_e_is_compared_with_a_return_along_the_return_s_own_ray():
+    # The same corridor, mapped exactly: a pixel's range carried to its centre's ray is centimetres off at grazing
+    # incidence, so D - E along the centre rays would read the map as seen through or in front of the scan. Cast
+    # along each return's own ray and carried as its return was, E agrees with D to float precision.
+    from mabdi.depth import NO_NOISE
+    from mabdi.frame_values import Measured
+    from dataclasses import replace
+
+    from mabdi.render.range_rendering import sector_views
+    from mabdi.stages.classifier import CONTRADICTED, ClassifierParameters, FilterClassifier
+    from mabdi.sources.range_images import range_image_and_returns
+
+    geometry = SphericalGeometry(64, 1024, 45.0, -45.0, 0.5, 50.0)
+    points, half = _corridor_scan(geometry, seed=1)
+    depth, returns = range_image_and_returns(points, geometry)
+    corridor = box((0.0, 0.0, 0.0), 2 * half, 0.0)
+    measured = Measured(depth, geometry, np.eye(4), NO_NOISE, 0, return_points=returns)
+    stage = FilterExpectedImage(identity=True)
+    at_centres = stage.render(corridor, measured)
+    along = stage.along_returns(measured, at_centres)
+    gaps = {}
+    for name, expected in (("centres", at_centres), ("returns", along)):
+        both = np.isfinite(depth) & np.isfinite(expected.depth)
+        assert both.sum() >= 0.999 * np.isfinite(depth).sum()
+        gaps[name] = np.abs(depth - expected.depth)[both]
+        assert (expected.face_ids[both] > 0).all()
+    assert np.percentile(gaps["centres"], 99) > 0.01  # what the centre rays read
+    assert gaps["returns"].max() < 1e-3
+    # each return's own ray meets the wall, floor or ceiling it lies on
+    x, y, z = (np.abs(returns[..., k]) for k in range(3))
+    on = np.stack([np.abs(x - half[0]), np.abs(y - half[1]), np.abs(z - half[2])]).argmin(axis=0)
+    normals = np.array([[1.0, 0, 0], [0, 1.0, 0], [0, 0, 1.0]])
+    corners, triangles = polydata_arrays(corridor)
+    face_normals = np.abs(np.cross(*(corners[triangles[:, k]] - corners[triangles[:, 0]] for k in (1, 2))))
+    face_axis = face_normals.argmax(axis=1)
+    cells = along.table.lookup(along.face_ids)[1]
+    assert (face_axis[cells[both]] == on[both]).all()
+    # classified as D is: along the centre rays the carried ranges see through the exact map, along the returns none
+    classifier = FilterClassifier(ClassifierParameters())
+    noisy = replace(measured, noise=SensorNoise("range"))
+    assert (classifier.classify(noisy, at_centres).labels == CONTRADICTED).sum() > 100
+    assert (classifier.classify(noisy, along).labels == CONTRADICTED).sum() == 0
+    # a scan without returns of its own (an instant sweep) is compared along its centre rays
+    plain = replace(measured, return_points=None)
+    assert stage.along_returns(plain, at_centres) is at_centres
+    with pytest.raises(ValueError, match="render E of this frame first"):
+        stage.along_returns(replace(measured, index=1), at_centres)
+
+    # a direction's render pixel: a centre ray's is the cached one; NaN, or a window leaving the renders, none
+    views = sector_views(geometry)
+    rays = geometry.rays().reshape(-1, 3)
+    np.testing.assert_array_equal(views.render_pixels(rays), views.centres)
+    up = np.array([[0.0, 0.0, 1.0], [np.nan, np.nan, np.nan]])
+    np.testing.assert_array_equal(views.render_pixels(up), [-1, -1])
+
+
+def test_the_loop_s_removal_votes_along_each_return_s_own_ray():
+    # Scans of the mapped corridor that keep their own returns: the classifier (novelty, along the centre rays)
+    # reads some carried ranges as seeing through the map; removal's votes, along the returns' own rays, none.
+    from mabdi.depth import DepthFrame
+    from mabdi.loop import MabdiLoop
+    from mabdi.sources.frames import FrameList
+    from mabdi.sources.range_images import range_image_and_returns
+    from mabdi.stages.classifier import CONTRADICTED
+
+    geometry = SphericalGeometry(64, 1024, 45.0, -45.0, 0.5, 50.0)
+    frames = []
+    for i in range(3):
+        origin = (-2.0 + 2.0 * i, 0.3 * (i % 2), 0.1 * i - 0.1)
+        points, half = _corridor_scan(geometry, seed=i, origin=origin)
+        depth, returns = range_image_and_returns(points, geometry)
+        pose = np.eye(4)
+        pose[:3, 3] = origin
+        frames.append(DepthFrame(depth, geometry, pose, i, float(i), None, returns))
+    loop = MabdiLoop(FrameList(frames, "corridor"), surface="pixel_grid", noise=SensorNoise("range"))
+    loop.world.append(_box_inside(half, cell=0.25), 0)  # the corridor mapped exactly, in faces a quarter metre wide
+    seen = []
+    find = loop.object_removal.find
+
+    def spy(measured, expected, classified, *rest):
+        seen.append(classified)
+        return find(measured, expected, classified, *rest)
+
+    loop.object_removal.find = spy
+    records = [loop.step(i) for i in range(len(frames))]
+    assert len(seen) == len(frames)
+    assert all(record.contradicted_pixels > 100 for record in records)
+    assert all((classified.labels == CONTRADICTED).sum() == 0 for classified in seen)
+    assert sum(record.cells_removed for record in records) == 0
+
+
+def _box_inside(half, cell):
+    """The six walls of a box of half sizes ``half`` (m) centred on the origin, in squares of about ``cell`` m."""
+    hx, hy, hz = half
+    walls = []
+    for origin, point1, point2 in (
+        ((-hx, -hy, -hz), (hx, -hy, -hz), (-hx, hy, -hz)), ((-hx, -hy, hz), (hx, -hy, hz), (-hx, hy, hz)),
+        ((-hx, -hy, -hz), (hx, -hy, -hz), (-hx, -hy, hz)), ((-hx, hy, -hz), (hx, hy, -hz), (-hx, hy, hz)),
+        ((-hx, -hy, -hz), (-hx, hy, -hz), (-hx, -hy, hz)), ((hx, -hy, -hz), (hx, hy, -hz), (hx, -hy, hz)),
+    ):  # fmt: skip
+        source = vtkPlaneSource()
+        source.SetOrigin(*origin)
+        source.SetPoint1(*point1)
+        source.SetPoint2(*point2)
+        sides = np.linalg.norm(np.subtract(point1, origin)), np.linalg.norm(np.subtract(point2, origin))
+        source.SetResolution(*(max(1, int(side / cell)) for side in sides))
+        source.Update()
+        walls.append(source.GetOutput())
+    return merged(*walls)
 
 
 def test_the_compiled_straight_line_test_is_the_numpy_definition():

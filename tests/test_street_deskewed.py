@@ -21,7 +21,8 @@ CAR_REACH = 0.1
     strict=False,
     reason=(
         "the mapping of deskewed, tilted wide-FoV scans is short of F@2cm 0.95, the way back's 15%, dynamic accuracy "
-        "0.95 and removal 0.5%: docs/benchmarks.md, \"A LiDAR's returns meshed where they lie\", has the measured figures"
+        "0.95 and a ghost share of 1%: docs/benchmarks.md, \"Removal's votes along each return's own ray\", has the "
+        "measured figures"
     ),
 )
 def test_the_deskewed_street_is_mapped_and_removal_keeps_the_static_map():

@@ -8,6 +8,11 @@ Frame i, each stage called with the frame's values (:mod:`mabdi.frame_values`)::
         --> FilterWorldMesh.append
     then MapRefinement.step and ObjectRemoval.find: what they find, the loop applies to the map
 
+A LiDAR's scan that keeps each pixel's own return votes for removal along
+those returns' own rays (:meth:`FilterExpectedImage.along_returns`, cast from
+the same drawing as E and classified as D is); the classifier's novelty reads
+E along the pixels' centre rays, as the surfaces' tests do.
+
 E is the map as it stood after frame i - 1; refinement and removal change
 the map after this frame's E was used. The loop alone changes the map. With
 ``noise = "auto"`` D - E feeds the noise calibration. With the classifier
@@ -515,10 +520,12 @@ class MabdiLoop:
         if self.registration is not None:
             measured, placement = self.registration.place(measured, self.world.map)
             t_register = t_expected = t_classify = time.perf_counter()
-        expected = classified = None
+        expected = classified = voted_on = None
         surface_input, whole = measured, None  # the black box meshes all of D
         if self.classifier_enabled:
             expected = self.expected.render(self.world.map, measured)
+            # removal votes along a LiDAR's own returns' rays: cast now, while the drawing is of this map
+            voted_on = self.expected.along_returns(measured, expected) if self.removal else expected
             t_expected = time.perf_counter()
             last = self._poses[index - 1] if index > 0 else None  # the last frame's pose (map frame), NaN if not run
             motion = np.linalg.inv(last) @ measured.pose if last is not None and np.isfinite(last).all() else None
@@ -557,7 +564,10 @@ class MabdiLoop:
         if (self.removal and votes) or len(replaced):
             found = None
             if self.removal and votes:
-                found = self.object_removal.find(measured, expected, classified, self.world, self.surface, self.surface_capabilities)
+                seen = classified
+                if voted_on is not expected:  # the returns against the map along their own rays, classified as D is
+                    seen = self.classifier.classify(measured, voted_on, placement.covariance, placement.fitted_pose)
+                found = self.object_removal.find(measured, voted_on, seen, self.world, self.surface, self.surface_capabilities)
             removal = apply_removal(
                 self.world, self.surface, self.surface_capabilities, self.object_removal, found, replaced, expected, measured
             )  # fmt: skip

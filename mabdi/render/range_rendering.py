@@ -20,6 +20,11 @@ two steps:
    plane of the nearest thin candidate it misses by less than a render pixel's footprint (a sub-pixel
    extrapolation of the surface next to the one hit), or no return.
 
+**Along given directions** (:meth:`RangeRenderer.cast`): a scan's own returns lie anywhere in their pixels,
+not on the centre rays. The same drawing can be cast along each return's own direction, its candidates the
+render pixels around where that direction falls (:meth:`SectorViews.render_pixels`); the renders reach half a beam
+spacing beyond the outermost beams and to the sectors' edges, so every direction of a pixel has its window.
+
 Returns are ranges strictly between ``range_min`` and ``range_max``; anything else is NaN (a surface nearer
 than ``range_min`` hides what is behind it, as on a real sensor). The renderer keeps, per triangle, the block
 and cell it was drawn for, so E of a map says which face each beam shows with a code and its
@@ -76,11 +81,40 @@ class SectorViews:
     intrinsics: Intrinsics
     #: (SECTORS, 4, 4) each render camera's pose in the sensor frame (``sensor_from_camera``).
     sensor_from_camera: np.ndarray
-    #: (beams * columns, 25) flat indices into the stacked (SECTORS, h, w) identity images: the 5 x 5 render
-    #: pixels around each beam's direction, the 3 x 3 nearest first (:data:`INNER`).
-    candidates: np.ndarray
+    #: (beams * columns,) int64 flat index into the stacked (SECTORS, h, w) identity images of the render
+    #: pixel each beam's centre ray falls in.
+    centres: np.ndarray
+    #: (25,) int64 flat offsets from a beam's render pixel to the 5 x 5 around it, the 3 x 3 nearest first
+    #: (:data:`INNER`): its candidates are ``centres + offsets``.
+    offsets: np.ndarray
     #: Radians per render pixel at the image centre (the largest footprint; metres per metre of range).
     footprint: float
+
+    def render_pixels(self, directions: np.ndarray) -> np.ndarray:
+        """(N,) int64 flat index (as :attr:`centres`) of the render pixel each sensor-frame direction (N, 3)
+        falls in, -1 where its 5 x 5 window would leave the renders (or the direction is NaN)."""
+        k = self.intrinsics
+        with np.errstate(invalid="ignore", divide="ignore"):
+            sector, col, row = _project(directions, k.fx, k.cx, k.cy)
+            inside = (col >= 2) & (col < k.width - 2) & (row >= 2) & (row < k.height - 2)
+        pixels = np.full(len(directions), -1, dtype=np.int64)
+        pixels[inside] = sector[inside] * (k.width * k.height) + row[inside] * k.width + col[inside]
+        return pixels
+
+
+def _project(rays: np.ndarray, focal: float, cx: float, cy: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The sector each sensor-frame ray (N, 3) is drawn in (the nearest in azimuth), and its render pixel's
+    column and row there (int64; garbage where a ray is NaN or not ahead of its sector's camera)."""
+    azimuth = np.arctan2(rays[:, 1], rays[:, 0])
+    sector = np.mod(np.round(np.nan_to_num(azimuth) / (2.0 * math.pi / SECTORS)).astype(np.int64), SECTORS)
+    angles = sector * (2.0 * math.pi / SECTORS)
+    # camera x right, y down, z forward (OpenCV), in the sensor frame (x forward, y left, z up)
+    x = rays[:, 0] * np.sin(angles) - rays[:, 1] * np.cos(angles)
+    y = -rays[:, 2]
+    z = rays[:, 0] * np.cos(angles) + rays[:, 1] * np.sin(angles)
+    col = np.floor(np.nan_to_num(focal * x / z + cx, nan=-1.0, posinf=-1.0, neginf=-1.0)).astype(np.int64)
+    row = np.floor(np.nan_to_num(focal * y / z + cy, nan=-1.0, posinf=-1.0, neginf=-1.0)).astype(np.int64)
+    return sector, col, row
 
 
 @functools.lru_cache(maxsize=4)
@@ -96,8 +130,7 @@ def sector_views(geometry: SphericalGeometry) -> SectorViews:
     step = min(2.0 * math.pi / geometry.columns, spacing)
     focal = OVERSAMPLE / step
     rays = unit_rays(geometry)[0].reshape(-1, 3)
-    azimuth = np.arctan2(rays[:, 1], rays[:, 0])
-    sector = np.mod(np.round(azimuth / (2.0 * math.pi / SECTORS)).astype(np.int64), SECTORS)
+    sector = np.mod(np.round(np.arctan2(rays[:, 1], rays[:, 0]) / (2.0 * math.pi / SECTORS)).astype(np.int64), SECTORS)
     angles = sector * (2.0 * math.pi / SECTORS)
     poses = np.zeros((SECTORS, 4, 4))
     for k in range(SECTORS):
@@ -110,20 +143,28 @@ def sector_views(geometry: SphericalGeometry) -> SectorViews:
     x = rays[:, 0] * np.sin(angles) - rays[:, 1] * np.cos(angles)
     y = -rays[:, 2]
     z = rays[:, 0] * np.cos(angles) + rays[:, 1] * np.sin(angles)
-    pad = 4  # render pixels beyond the outermost beam: the 5 x 5 window stays inside the image
-    half_width = int(math.ceil(focal * np.abs(x / z).max())) + pad
-    half_height = int(math.ceil(focal * np.abs(y / z).max())) + pad
+    # the renders reach the sectors' edges and half a beam spacing beyond the outermost beams (where a scan's
+    # own returns may lie; a sector is tallest at its edges), and pad render pixels beyond: the 5 x 5 window
+    # around any such direction stays inside the image
+    pad = 4
+    ends = np.array([elevations[0], elevations[-1]])
+    if len(elevations) > 1:
+        ends = ends + 0.5 * np.array([elevations[0] - elevations[1], elevations[-1] - elevations[-2]])
+    ends = np.clip(ends, -math.radians(MAX_ELEVATION), math.radians(MAX_ELEVATION))
+    tallest = float(np.max(np.abs(np.tan(ends)))) / math.cos(math.pi / SECTORS)
+    half_width = int(math.ceil(focal * max(float(np.abs(x / z).max()), math.tan(math.pi / SECTORS)))) + pad
+    half_height = int(math.ceil(focal * max(float(np.abs(y / z).max()), tallest))) + pad
     width, height = 2 * half_width, 2 * half_height
     near = 0.999 * geometry.range_min * float(z.min())
     intrinsics = Intrinsics(focal, focal, float(half_width), float(half_height), width, height, near, 1.001 * geometry.range_max)
-    col = np.floor(focal * x / z + half_width).astype(np.int64)
-    row = np.floor(focal * y / z + half_height).astype(np.int64)
+    sector, col, row = _project(rays, focal, float(half_width), float(half_height))
     dr, dc = (a.ravel() for a in np.meshgrid(np.arange(-2, 3), np.arange(-2, 3), indexing="ij"))
     order = np.argsort(np.maximum(np.abs(dr), np.abs(dc)), kind="stable")  # the 3 x 3 first
-    dr, dc = dr[order], dc[order]
-    candidates = sector[:, None] * (width * height) + (row[:, None] + dr) * width + (col[:, None] + dc)
-    candidates.setflags(write=False)
-    return SectorViews(intrinsics, poses, candidates, 1.0 / focal)
+    offsets = dr[order] * width + dc[order]
+    centres = sector * (width * height) + row * width + col
+    centres.setflags(write=False)
+    offsets.setflags(write=False)
+    return SectorViews(intrinsics, poses, centres, offsets, 1.0 / focal)
 
 
 class _TriangleTable:
@@ -236,6 +277,9 @@ class RangeRenderer:
         self._hits: np.ndarray | None = None
         self._covered: np.ndarray | None = None
         self._ids: np.ndarray | None = None
+        self._along: np.ndarray | None = None
+        #: (geometry, world_from_sensor) of the last drawing
+        self._drawn: tuple[SphericalGeometry, np.ndarray] | None = None
 
     def render(self, data, geometry: SphericalGeometry, world_from_sensor) -> np.ndarray:
         """(beams, columns) float32 range (m) along each beam from ``world_from_sensor`` (x forward, y left,
@@ -247,7 +291,6 @@ class RangeRenderer:
         k = views.intrinsics
         if self._ids is None or self._ids.shape != (SECTORS, k.height, k.width):
             self._ids = np.empty((SECTORS, k.height, k.width), dtype=np.uint32)  # 24-bit identities, kept between frames
-        ids = self._ids
         for sector in range(SECTORS):
             camera = pose @ views.sensor_from_camera[sector]
             # each sector draws only the copies whose bounds reach into its frustum (a quarter of a street's)
@@ -255,13 +298,38 @@ class RangeRenderer:
             for index, visible in enumerate(np.flatnonzero(~boxes_outside(bounds, frustum_planes(k, camera)))):
                 blocks.SetBlock(index, copies[visible])
             self.depth_renderer.render_zbuffer(blocks, k, camera)
-            self.depth_renderer.render_identity(out=ids[sector])
-        directions = unit_rays(geometry)[0].reshape(-1, 3) @ pose[:3, :3].T
-        table = self._table
+            self.depth_renderer.render_identity(out=self._ids[sector])
+        self._drawn = (geometry, pose)
+        self._along = None
+        return self._cast(unit_rays(geometry)[0].reshape(-1, 3), views.centres)
+
+    def cast(self, directions: np.ndarray) -> np.ndarray:
+        """(beams, columns) float32 range (m) of the last :meth:`render`'s map along ``directions`` (beams,
+        columns, 3: sensor-frame unit vectors, a scan's own returns' directions) instead of the pixels' centre
+        rays, each with the render pixels around where it falls as its candidates; NaN where no surface is in
+        range, or where a direction is NaN or its window would leave the renders (:meth:`along_directions`
+        says which beams were cast). :meth:`face_ids` and :meth:`footprint_covered` then say this cast's."""
+        if self._drawn is None:
+            raise ValueError("RangeRenderer.cast: nothing rendered yet")
+        geometry, _ = self._drawn
+        own = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
+        pixels = sector_views(geometry).render_pixels(own)
+        cast = pixels >= 0
+        ranges = self._cast(np.where(cast[:, None], own, 0.0), np.where(cast, pixels, sector_views(geometry).centres))
+        ranges[~cast.reshape(geometry.shape)] = np.nan
+        self._hits[~cast.reshape(geometry.shape)] = 0
+        self._along = cast.reshape(geometry.shape)
+        return ranges
+
+    def _cast(self, rays: np.ndarray, centres: np.ndarray) -> np.ndarray:
+        """Cast sensor-frame unit ``rays`` (N, 3) against the last drawing, each with the render pixels around
+        ``centres`` (N,) as its candidates (:func:`cast_beams_kernel`); keeps the hits and footprints."""
+        geometry, pose = self._drawn
+        views, table = sector_views(geometry), self._table
         ranges, hits, covered = cast_beams_kernel(
-            np.ascontiguousarray(pose[:3, 3]), np.ascontiguousarray(directions), ids.reshape(-1), views.candidates, INNER,
-            table.corner, table.edge1, table.edge2, table.width, views.footprint, BARYCENTRIC_TOLERANCE,
-        )
+            np.ascontiguousarray(pose[:3, 3]), np.ascontiguousarray(rays @ pose[:3, :3].T), self._ids.reshape(-1), centres,
+            views.offsets, INNER, table.corner, table.edge1, table.edge2, table.width, views.footprint, BARYCENTRIC_TOLERANCE,
+        )  # fmt: skip
         outside = ~((ranges > geometry.range_min) & (ranges < geometry.range_max))
         ranges[outside] = np.nan
         hits[outside] = 0
@@ -269,8 +337,13 @@ class RangeRenderer:
         self._covered = covered.reshape(geometry.shape)
         return ranges.astype(np.float32).reshape(geometry.shape)
 
+    def along_directions(self) -> np.ndarray | None:
+        """(beams, columns) bool: the last :meth:`cast` cast the beam along its given direction; None after a
+        :meth:`render` (the centre rays)."""
+        return self._along
+
     def face_ids(self) -> tuple[np.ndarray, FaceIdTable]:
-        """(beams, columns) int64 the code of the map face each beam of the last render hit (0: none), and
+        """(beams, columns) int64 the code of the map face each beam of the last render or cast hit (0: none), and
         the table that says which block and cell each code is."""
         if self._hits is None:
             raise ValueError("RangeRenderer.face_ids: nothing rendered yet")

@@ -25,6 +25,14 @@ there; 0 = none) and the field data that says which block and cell each code
 is (:class:`mabdi.face_identity.FaceIdTable`). Object removal
 (:mod:`mabdi.stages.removal`) and refinement vote on faces through it.
 
+**Along a LiDAR's own returns** (:meth:`FilterExpectedImage.along_returns`; range images whose pixels keep
+their own returns, :func:`mabdi.depth.check_return_points`): a pixel's range is carried from its return's ray
+to its centre's, which across a slanted surface or an edge moves it by centimetres or more. E of the same
+drawing can be cast along each return's own ray instead and carried to the centre by the same amount
+(:func:`along_returns`): D - E is then the return against the map along the ray it was measured on, and the
+face code the face that ray meets. Removal votes on it (:mod:`mabdi.loop.loop`); the classifier's novelty,
+which chooses the range image's pixels to mesh, reads E along the centre rays, as the surfaces' own tests do.
+
 **The map within each beam's footprint** (range images only): the uint8
 point array ``map_in_footprint`` is 1 where a map triangle lies within the
 beam's footprint, hit by the beam or not
@@ -33,6 +41,8 @@ The classifier keeps thin novel strips where it is 0 (see its docs).
 """
 
 from __future__ import annotations
+
+from dataclasses import replace
 
 import numpy as np
 from vtkmodules.util.numpy_support import numpy_to_vtk, vtk_to_numpy
@@ -112,6 +122,30 @@ class FilterExpectedImage(MapAndImageAlgorithm):
         write_expected(vtkImageData.GetData(outInfo), expected)
         return 1
 
+    def along_returns(self, measured: Measured, expected: Expected) -> Expected:
+        """E of ``measured`` (a LiDAR's range image) along each pixel's own return's ray, from the drawing of the
+        map that :meth:`render` just made for it (``expected``, the same frame): the map's range along the
+        return's direction carried to the pixel's centre as the return was (:func:`along_returns`), the face
+        that ray meets and the map within its footprint; a pixel without a return of its own keeps ``expected``'s
+        values. ``expected`` itself when D keeps no returns (a camera, an instant sweep). See the module docs."""
+        if measured.return_points is None or not measured.geometry.range_image:
+            return expected
+        renderer = self.range_renderer
+        if renderer is None or expected.index != measured.index or not np.array_equal(expected.pose, measured.pose):
+            raise ValueError("FilterExpectedImage.along_returns: render E of this frame first")
+        own = np.linalg.norm(measured.return_points, axis=-1)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            directions = measured.return_points / own[..., None]
+        depth = along_returns(renderer.cast(directions), measured.depth, own)
+        cast = renderer.along_directions()
+        depth = only_returns(np.where(cast, depth, expected.depth), measured.geometry.near, measured.geometry.far)
+        ids = None
+        if expected.face_ids is not None:
+            ids = np.where(cast, renderer.face_ids()[0], expected.face_ids).astype(np.int32)
+            ids[np.isnan(depth)] = 0
+        covered = np.where(cast, renderer.footprint_covered(), expected.covered)
+        return replace(expected, depth=depth, face_ids=ids, covered=covered)
+
     def _range_image(self, world, geometry: SphericalGeometry, pose):
         """E of a LiDAR: the map's range image, the face code each beam hits and their table
         (:mod:`mabdi.render.range_rendering`); no codes without identity."""
@@ -122,6 +156,16 @@ class FilterExpectedImage(MapAndImageAlgorithm):
             return depth, None, None
         codes, table = self.range_renderer.face_ids()
         return depth, codes.astype(np.int32), table
+
+
+def along_returns(expected: np.ndarray, measured: np.ndarray, own: np.ndarray) -> np.ndarray:
+    """(H, W) float32 E of a LiDAR whose pixels keep their own returns: the map's range ``expected`` along each
+    return's own ray, carried to the pixel's centre ray by the return's own carry (``measured``, D's range
+    there, less ``own``, the return's range; none where either is NaN). So D - E is the return's range less
+    the map's along the same ray: a return carried half a pixel across a slanted surface is compared where it
+    was measured, not where its pixel's centre looks."""
+    carry = np.nan_to_num(np.asarray(measured, dtype=np.float64) - own)
+    return (expected + carry).astype(np.float32)
 
 
 def write_expected(image, expected: Expected) -> None:
