@@ -5,7 +5,12 @@ the classifier's "contradicted"), it sees through a surface of the map;
 where D and E agree ("known"), the face is confirmed. E carries the face
 each pixel shows (:class:`~mabdi.stages.expected_image.FilterExpectedImage`),
 so every such pixel is a vote on one face. Only frames whose pose fits the
-map vote (registered frames, :mod:`mabdi.stages.registration`).
+map vote (registered frames, :mod:`mabdi.stages.registration`). A LiDAR's
+scan that keeps its pixels' own returns votes along those returns' own rays:
+D and E there are the return and the map along the direction it was
+measured (:meth:`~mabdi.stages.expected_image.FilterExpectedImage.along_returns`),
+not a pixel centre's range carried from the returns around it, which errs at
+slant and at edges (the loop passes that E and its classification here).
 
 Which pixels vote (:func:`removal_votes`): not at depth discontinuities
 (``edge_jump``, ``edge_margin`` pixels, widened by a surface's
