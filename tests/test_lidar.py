@@ -818,6 +818,11 @@ def test_e_is_compared_with_a_return_along_the_return_s_own_ray():
     assert stage.along_returns(plain, at_centres) is at_centres
     with pytest.raises(ValueError, match="render E of this frame first"):
         stage.along_returns(replace(measured, index=1), at_centres)
+    moved = np.eye(4)
+    moved[:3, 3] = (1.0, 0.0, 0.0)
+    stage.render(corridor, replace(measured, pose=moved))  # the drawing is another pose's now
+    with pytest.raises(ValueError, match="render E of this frame first"):
+        stage.along_returns(measured, at_centres)
 
     # a direction's render pixel: a centre ray's is the cached one; NaN, or a window leaving the renders, none
     views = sector_views(geometry)

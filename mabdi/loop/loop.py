@@ -567,7 +567,9 @@ class MabdiLoop:
                 seen = classified
                 if voted_on is not expected:  # the returns against the map along their own rays, classified as D is
                     seen = self.classifier.classify(measured, voted_on, placement.covariance, placement.fitted_pose)
-                found = self.object_removal.find(measured, voted_on, seen, self.world, self.surface, self.surface_capabilities)
+                found = self.object_removal.find(
+                    measured, voted_on, seen, self.world, self.surface, self.surface_capabilities
+                )
             removal = apply_removal(
                 self.world, self.surface, self.surface_capabilities, self.object_removal, found, replaced, expected, measured
             )  # fmt: skip

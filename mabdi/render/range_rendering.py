@@ -326,16 +326,22 @@ class RangeRenderer:
         ``centres`` (N,) as its candidates (:func:`cast_beams_kernel`); keeps the hits and footprints."""
         geometry, pose = self._drawn
         views, table = sector_views(geometry), self._table
+        directions = np.ascontiguousarray(rays @ pose[:3, :3].T)  # world frame
         ranges, hits, covered = cast_beams_kernel(
-            np.ascontiguousarray(pose[:3, 3]), np.ascontiguousarray(rays @ pose[:3, :3].T), self._ids.reshape(-1), centres,
-            views.offsets, INNER, table.corner, table.edge1, table.edge2, table.width, views.footprint, BARYCENTRIC_TOLERANCE,
-        )  # fmt: skip
+            np.ascontiguousarray(pose[:3, 3]), directions, self._ids.reshape(-1), centres, views.offsets, INNER,
+            table.corner, table.edge1, table.edge2, table.width, views.footprint, BARYCENTRIC_TOLERANCE,
+        )
         outside = ~((ranges > geometry.range_min) & (ranges < geometry.range_max))
         ranges[outside] = np.nan
         hits[outside] = 0
         self._hits = hits.reshape(geometry.shape)
         self._covered = covered.reshape(geometry.shape)
         return ranges.astype(np.float32).reshape(geometry.shape)
+
+    @property
+    def drawn_pose(self) -> np.ndarray | None:
+        """(4, 4) ``world_from_sensor`` of the last :meth:`render`'s drawing (None before one)."""
+        return None if self._drawn is None else self._drawn[1]
 
     def along_directions(self) -> np.ndarray | None:
         """(beams, columns) bool: the last :meth:`cast` cast the beam along its given direction; None after a

@@ -28,16 +28,19 @@ def _distance_to_edges(px, py, pz, a, e1, e2):
 
 
 @njit(cache=True)
-def cast_beams_kernel(origin, directions, ids, centres, offsets, inner, corner, edge1, edge2, width, footprint, tolerance):
+def cast_beams_kernel(
+    origin, directions, ids, centres, offsets, inner, corner, edge1, edge2, width, footprint, tolerance
+):
     """(N,) float64 range along each unit world-frame beam ``directions`` (N, 3) from ``origin`` (3,) (NaN:
     no hit), (N,) int64 the identity of the triangle hit (0: none), and (N,) bool whether any of the beam's
     ``inner`` first candidates is a triangle (the map drawn within its footprint).
 
     A beam's candidates are ``ids[centres[i] + offsets]`` (``ids``: the renders' triangle identities, flat, 0:
     none; ``centres`` (N,): the render pixel of the beam's direction; ``offsets`` (K,): to the render pixels
-    around it), the ``inner`` first of them the nearest to the beam's direction; triangle ``i`` is ``corner[i]`` + a ``edge1[i]`` + b ``edge2[i]``, ``width[i]`` its
-    height over its longest edge (metres). A beam takes the nearest of the inner candidates it hits inside
-    (barycentric tolerance ``tolerance``; Moller-Trumbore), else the nearest of the others. Only when it
+    around it), the ``inner`` first of them the nearest to the beam's direction; triangle ``i`` is
+    ``corner[i]`` + a ``edge1[i]`` + b ``edge2[i]``, ``width[i]`` its height over its longest edge (metres). A
+    beam takes the nearest of the inner candidates it hits inside (barycentric tolerance ``tolerance``;
+    Moller-Trumbore), else the nearest of the others. Only when it
     hits none inside does it take the plane of a *thin* candidate (narrower than ``footprint`` radians
     times its range, so that its neighbour, which the beam may hit, can be thinner than a render pixel and
     not drawn) that it misses by less than ``footprint`` times the range: the nearest such.

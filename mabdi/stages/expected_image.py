@@ -131,7 +131,8 @@ class FilterExpectedImage(MapAndImageAlgorithm):
         if measured.return_points is None or not measured.geometry.range_image:
             return expected
         renderer = self.range_renderer
-        if renderer is None or expected.index != measured.index or not np.array_equal(expected.pose, measured.pose):
+        drawn = None if renderer is None else renderer.drawn_pose
+        if drawn is None or expected.index != measured.index or not np.array_equal(drawn, measured.pose):
             raise ValueError("FilterExpectedImage.along_returns: render E of this frame first")
         own = np.linalg.norm(measured.return_points, axis=-1)
         with np.errstate(invalid="ignore", divide="ignore"):
