@@ -301,42 +301,47 @@ class RangeRenderer:
             self.depth_renderer.render_identity(out=self._ids[sector])
         self._drawn = (geometry, pose)
         self._along = None
-        return self._cast(unit_rays(geometry)[0].reshape(-1, 3), views.centres)
+        ranges, hits, covered = self._cast(unit_rays(geometry)[0].reshape(-1, 3), views.centres)
+        self._hits, self._covered = hits.reshape(geometry.shape), covered.reshape(geometry.shape)
+        return ranges.astype(np.float32).reshape(geometry.shape)
 
     def cast(self, directions: np.ndarray) -> np.ndarray:
         """(beams, columns) float32 range (m) of the last :meth:`render`'s map along ``directions`` (beams,
         columns, 3: sensor-frame unit vectors, a scan's own returns' directions) instead of the pixels' centre
         rays, each with the render pixels around where it falls as its candidates; NaN where no surface is in
         range, or where a direction is NaN or its window would leave the renders (:meth:`along_directions`
-        says which beams were cast). :meth:`face_ids` and :meth:`footprint_covered` then say this cast's."""
+        says which beams were cast; only those are). :meth:`face_ids` and :meth:`footprint_covered` then say
+        this cast's (none and False for the beams not cast)."""
         if self._drawn is None:
             raise ValueError("RangeRenderer.cast: nothing rendered yet")
         geometry, _ = self._drawn
         own = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
         pixels = sector_views(geometry).render_pixels(own)
         cast = pixels >= 0
-        ranges = self._cast(np.where(cast[:, None], own, 0.0), np.where(cast, pixels, sector_views(geometry).centres))
-        ranges[~cast.reshape(geometry.shape)] = np.nan
-        self._hits[~cast.reshape(geometry.shape)] = 0
+        ranges = np.full(len(own), np.nan)
+        hits = np.zeros(len(own), dtype=np.int64)
+        covered = np.zeros(len(own), dtype=bool)
+        ranges[cast], hits[cast], covered[cast] = self._cast(own[cast], pixels[cast])
+        self._hits, self._covered = hits.reshape(geometry.shape), covered.reshape(geometry.shape)
         self._along = cast.reshape(geometry.shape)
-        return ranges
+        return ranges.astype(np.float32).reshape(geometry.shape)
 
-    def _cast(self, rays: np.ndarray, centres: np.ndarray) -> np.ndarray:
+    def _cast(self, rays: np.ndarray, centres: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Cast sensor-frame unit ``rays`` (N, 3) against the last drawing, each with the render pixels around
-        ``centres`` (N,) as its candidates (:func:`cast_beams_kernel`); keeps the hits and footprints."""
+        ``centres`` (N,) as its candidates (:func:`cast_beams_kernel`): (N,) range (NaN outside the range
+        limits), the identity hit and whether the map lies within the footprint."""
         geometry, pose = self._drawn
         views, table = sector_views(geometry), self._table
         directions = np.ascontiguousarray(rays @ pose[:3, :3].T)  # world frame
         ranges, hits, covered = cast_beams_kernel(
-            np.ascontiguousarray(pose[:3, 3]), directions, self._ids.reshape(-1), centres, views.offsets, INNER,
-            table.corner, table.edge1, table.edge2, table.width, views.footprint, BARYCENTRIC_TOLERANCE,
+            np.ascontiguousarray(pose[:3, 3]), directions, self._ids.reshape(-1), np.ascontiguousarray(centres),
+            views.offsets, INNER, table.corner, table.edge1, table.edge2, table.width, views.footprint,
+            BARYCENTRIC_TOLERANCE,
         )
         outside = ~((ranges > geometry.range_min) & (ranges < geometry.range_max))
         ranges[outside] = np.nan
         hits[outside] = 0
-        self._hits = hits.reshape(geometry.shape)
-        self._covered = covered.reshape(geometry.shape)
-        return ranges.astype(np.float32).reshape(geometry.shape)
+        return ranges, hits, covered
 
     @property
     def drawn_pose(self) -> np.ndarray | None:

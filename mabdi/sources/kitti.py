@@ -255,7 +255,8 @@ def write_kitti(source: FrameSource, folder, *, overwrite: bool = False, extra: 
     """Write every frame of a LiDAR ``source`` (range images) as a KITTI-style folder; returns the folder.
 
     Each frame's returns go to ``velodyne/NNNNNN.bin`` as points (float32 x y z, intensity 0): a pixel's own
-    return where the frame carries it (``return_points``), else its range along the pixel centre's ray; ``poses.txt`` holds ``Tr P Tr^-1`` with ``Tr`` = :data:`WRITTEN_TR` in ``calib.txt``
+    return where the frame carries it (``return_points``), else its range along the pixel centre's ray;
+    ``poses.txt`` holds ``Tr P Tr^-1`` with ``Tr`` = :data:`WRITTEN_TR` in ``calib.txt``
     (so :class:`KittiSequence` reads the source's poses back), ``times.txt`` the timestamps (index / 10 where
     unknown), and ``mabdi.toml`` the ``[lidar]`` geometry and the tables of ``extra``. Atomic file by file.
     """
