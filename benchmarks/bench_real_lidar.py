@@ -367,7 +367,7 @@ def main(argv=None) -> int:
     parser.add_argument("--every", type=int, default=5, help="hold out every K-th scan (default 5)")
     parser.add_argument("--frames", type=int, help="take the first N scans of the recording (default: all)")
     parser.add_argument(
-        "--surface", nargs="*", default=list(SURFACES), help="mabdi surface filter(s) (default: all three; none: no mabdi map)"
+        "--surface", nargs="*", default=list(SURFACES), help="mabdi surface filter(s) (default: all three; the option with no value: no mabdi map, the peer alone)"
     )
     parser.add_argument("--tune", action="store_true", help="run the Poisson peer at every --depths by --trims and report the best")
     parser.add_argument("--depths", type=int, nargs="+", default=list(TUNE_DEPTHS), help="--tune: Poisson octree depths (default 10 11 12)")

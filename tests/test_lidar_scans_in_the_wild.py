@@ -128,19 +128,87 @@ def test_uneven_smeared_beams_with_stray_returns_are_counted(tmp_path):
     assert rows_filled.min() > 0.9  # every row holds returns carried to its centre
 
 
-def test_a_sensor_that_the_default_geometry_mostly_holds_is_kept_but_what_it_misses_is_said(tmp_path):
+def test_a_sensor_a_little_wider_than_the_default_has_its_span_learnt(tmp_path):
     """A Velodyne VLP-32C (+15 to -25 degrees, its beams dense about the horizon): 5 of its 32 beams lie above the
-    default image's top edge. The default geometry is kept (under a quarter misses it), but the run says what it
-    misses; before, a share under a quarter went unsaid."""
+    default image's top edge. Its span is learnt, so the map does not miss them; before, the default geometry was
+    kept while under a quarter of a scan missed it, and a sixth of every scan was lost."""
     folder = _folder(tmp_path / "seq", VLP_32C, jitter=0.02)
     source, frames, said = _read_all(lambda: open_sequence(folder))
-    assert source.intrinsics == KITTI_GEOMETRY
     assert len(said) == 1
     message = str(said[0].message)
-    # 5 of 32 rings above the top edge, and the jittered -25 degree ring half below the bottom one
     share = int(re.search(r"(\d+)% of its", message).group(1))
-    assert 100 * 5 / 32 <= share <= 100 * 5.5 / 32 + 1 and "the map will miss those points" in message
-    assert "fov_up" in message and str(folder / "mabdi.toml") in message
+    assert 100 * 5 / 32 <= share <= 100 * 5.5 / 32 + 1 and "learnt" in message and "fov_up" in message
+    geometry = source.intrinsics
+    assert geometry.fov_up > 15.0 and geometry.fov_down < -25.0 and geometry.columns == KITTI_GEOMETRY.columns
+    # The beams are uneven: not counted as evenly spread, so the default's 64 rows over the learnt span.
+    assert geometry.beams == KITTI_GEOMETRY.beams
+    points = _scan(VLP_32C, jitter=0.02)[:, :3]
+    assert range_images.scan_fit(points, geometry).share < 0.01
+    # Every beam reaches the image: the top five too, which the default image missed.
+    rows = np.flatnonzero(np.isfinite(frames[0].depth).any(axis=1))
+    top_rows = geometry.pixels(points[np.degrees(np.arcsin(points[:, 2] / np.linalg.norm(points, axis=1))) > 3.0])[0][:, 1]
+    assert np.isin(np.unique(np.floor(top_rows).astype(int)), rows).all() and len(np.unique(np.floor(top_rows))) >= 5
+
+
+def test_returns_of_the_carrier_are_no_part_of_the_learnt_geometry(tmp_path):
+    """Returns nearer than the image's near range (the car or the person carrying the sensor, often a quarter of a
+    scan) neither count as missing the image nor stretch the learnt span: a 32-beam sensor of +10.67 to -30.67
+    degrees (a Velodyne HDL-32E) on a roof whose returns within 1 m reach down to -55 degrees learns its own 32
+    beams; before, the roof's returns were taken for the sensor's lowest beams (a span down to -53 degrees)."""
+    hdl_32 = np.linspace(10.67, -30.67, 32)
+    folder = tmp_path / "seq"
+    (folder / "velodyne").mkdir(parents=True)
+    rng = np.random.default_rng(7)
+    roof = np.zeros((12000, 4), dtype="<f4")
+    el, az = np.radians(rng.uniform(-55.0, -35.0, 12000)), rng.uniform(-np.pi, np.pi, 12000)
+    distance = rng.uniform(0.4, 0.95, 12000)
+    roof[:, :3] = distance[:, None] * np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], axis=1)
+    scan = np.concatenate([_scan(hdl_32, columns=1024, jitter=0.02), roof])
+    scan.tofile(folder / "velodyne" / "000000.bin")
+    (folder / "poses.txt").write_text("1 0 0 0 0 1 0 0 0 0 1 0\n")
+    source, frames, said = _read_all(lambda: KittiSequence(folder))
+    assert len(said) == 1 and "beams = 32" in str(said[0].message)
+    geometry = source.intrinsics
+    spacing = 41.34 / 31
+    assert geometry.beams == 32
+    assert geometry.fov_up == pytest.approx(10.67 + spacing / 2, abs=0.05)
+    assert geometry.fov_down == pytest.approx(-30.67 - spacing / 2, abs=0.05)
+    # The roof is no part of the fit: nothing of the scene lies outside the learnt image.
+    fit = range_images.scan_fit(scan[:, :3], geometry)
+    assert fit.returns == 32 * 1024 and fit.share == 0.0
+    assert np.isfinite(frames[0].depth).mean() > 0.9  # one ring a row (1,024 returns a ring, 1,024 columns)
+
+
+def test_far_rings_give_the_spacing_where_near_rings_are_smeared(tmp_path):
+    """A moving 32-beam sensor's near returns smeared across the rings (deskewing, the lasers' offsets): the
+    rings are counted on the far half of the returns, where they stand apart, and their spacing spread over the
+    whole scan's span: 32 beams, not the default's 64."""
+    elevations = np.linspace(10.0, -30.0, 32)
+    far = _scan(elevations, columns=1024, half=(40.0, 30.0, 30.0), jitter=0.02, seed=1)
+    rng = np.random.default_rng(2)
+    near = np.zeros((40000, 4), dtype="<f4")
+    el, az = np.radians(rng.uniform(-30.0, 10.0, 40000)), rng.uniform(-np.pi, np.pi, 40000)
+    near[:, :3] = rng.uniform(2.0, 5.0, 40000)[:, None] * np.stack(
+        [np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], axis=1)
+    points = np.concatenate([far, near])[:, :3].astype(np.float64)
+    assert range_images.beam_elevations_of(range_images._returns(points, 1.0)[1]) is None  # smeared: not counted
+    learnt, _ = range_images.learn_geometry(points, KITTI_GEOMETRY)
+    assert learnt.beams == 32
+    assert learnt.fov_up == pytest.approx(10.0 + 40.0 / 62, abs=0.3) and learnt.fov_down == pytest.approx(-30.0 - 40.0 / 62, abs=0.3)
+
+
+def test_rings_smeared_in_the_first_scan_are_counted_in_a_later_one(tmp_path):
+    """The first scan's rings smeared (the sensor moving as it starts), the next scans' sharp: the beams are
+    counted in those, so the image has the sensor's 32 rows, not the default's 64."""
+    folder = tmp_path / "seq"
+    (folder / "velodyne").mkdir(parents=True)
+    _scan(WIDE_32, columns=1024, jitter=1.0, seed=0).tofile(folder / "velodyne" / "000000.bin")
+    for i in (1, 2):
+        _scan(WIDE_32, columns=1024, jitter=0.02, seed=i).tofile(folder / "velodyne" / f"{i:06d}.bin")
+    (folder / "poses.txt").write_text("1 0 0 0 0 1 0 0 0 0 1 0\n" * 3)
+    assert range_images.learn_geometry(read_scan(folder / "velodyne" / "000000.bin")[:, :3], KITTI_GEOMETRY)[0].beams == 64
+    source, _, said = _read_all(lambda: KittiSequence(folder))
+    assert source.intrinsics.beams == 32 and "learnt from 000000.bin..000002.bin" in source.description
 
 
 def test_wrong_lidar_table_is_said_once_and_kept(tmp_path):

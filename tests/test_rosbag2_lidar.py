@@ -10,6 +10,7 @@ from mabdi.camera import look_at
 from mabdi.depth import DepthFrame
 from mabdi.simulate.path import CAMERA_FROM_LIDAR
 from mabdi.sources.frames import FrameList
+from mabdi.sources.range_images import LidarGeometryWarning
 from mabdi.sources.rosbag2 import _TYPESTORE, Rosbag2Sequence, write_lidar_rosbag2, write_rosbag2
 from mabdi.sources.sequences import SequenceError, open_sequence, read_sequence_metadata
 from mabdi.spherical import SphericalGeometry
@@ -102,7 +103,19 @@ def test_unorganised_cloud_without_rings_is_binned_by_elevation(bags, source, tm
         return message
 
     path = _rewrite_clouds(bags["velodyne", "sqlite3"], tmp_path / "no_ring", drop_ring)
-    with pytest.raises(SequenceError, match=r"without a ring field is binned by elevation: give the LiDAR's beams, fov_up, fov_down"):
+    # No [lidar] table: the geometry learnt from the first scans (before, an error), said once: the 16 rings.
+    with pytest.warns(LidarGeometryWarning, match=r"learnt fov_up = \S+, fov_down = \S+, beams = 16 from the first 3 scans"):
+        learnt = Rosbag2Sequence(path)
+    geometry = learnt.intrinsics
+    spacing = 30.0 / 16
+    assert geometry.beams == 16 and "LiDAR geometry learnt from the first 3 scans" in learnt.description
+    assert geometry.fov_up == pytest.approx(10.0, abs=0.1 * spacing) and geometry.fov_down == pytest.approx(-20.0, abs=0.1 * spacing)
+    # Each ring on its row: the learnt image holds the returns where the sensor's own does (columns: the default).
+    rows_hit = np.isfinite(learnt.read(2).depth).any(axis=1)
+    assert rows_hit.sum() == np.isfinite(source.read(2).depth).any(axis=1).sum()
+    # A table that states part of the vertical field is the user's word: the rest must be given too.
+    (path / "mabdi.toml").write_text("[lidar]\nbeams = 16\n")
+    with pytest.raises(SequenceError, match=r"without a ring field is binned by elevation: give the LiDAR's fov_up, fov_down"):
         Rosbag2Sequence(path)
     (path / "mabdi.toml").write_text("[lidar]\nbeams = 16\ncolumns = 64\nfov_up = 10.0\nfov_down = -20.0\nrange_max = 50.0\n")
     sequence = Rosbag2Sequence(path)

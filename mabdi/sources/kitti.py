@@ -19,9 +19,9 @@ poses file copied in as ``poses.txt``):
   geometry (:mod:`mabdi.sources.range_images`: beams, columns, fov_up,
   fov_down, range_min, range_max, beam_elevations); without it
   :data:`~mabdi.sources.range_images.KITTI_GEOMETRY` (the HDL-64E), unless
-  the first scan mostly misses it: then the geometry learnt from that scan
-  (:func:`~mabdi.sources.range_images.learn_geometry`; more than a quarter
-  of its points outside). A scan with more than 5% of its points outside the
+  the first scan misses it: then the geometry learnt from the first
+  :data:`LEARN_SCANS` scans (:func:`~mabdi.sources.range_images.learn_geometry`;
+  more than 5% of the first scan's points above or below it). A scan with more than 5% of its points outside the
   image (above, below, beyond range_max) is said once, as a
   :class:`~mabdi.sources.range_images.LidarGeometryWarning` with the numbers
   and the ``[lidar]`` keys to set.
@@ -68,6 +68,9 @@ SCAN_FOLDER = "velodyne"
 POSES_FILE = "poses.txt"
 CALIB_FILE = "calib.txt"
 TIMES_FILE = "times.txt"
+#: The scans a recording without a ``[lidar]`` table has its geometry learnt from (their rings counted in turn,
+#: :func:`~mabdi.sources.range_images.learn_geometry`): a moving sensor smears its rings in some scans.
+LEARN_SCANS = 10
 #: float32 values per point in a scan file: x, y, z, intensity.
 POINT_FIELDS = 4
 #: Bytes per point in a scan file.
@@ -185,18 +188,21 @@ class KittiSequence(FrameSource):
         self.geometry = geometry
 
     def _learn_geometry(self) -> SphericalGeometry:
-        """The default geometry (the HDL-64E), or, when the first scan mostly misses it, the one learnt from that
-        scan, said once (:class:`LidarGeometryWarning`)."""
+        """The default geometry (the HDL-64E), or, when the first scan misses it, the one learnt from the first
+        :data:`LEARN_SCANS` scans, said once (:class:`LidarGeometryWarning`)."""
         self._geometry_from = "the default geometry (KITTI's Velodyne HDL-64E; the recording has no [lidar] table)"
-        points = read_scan(self._scans[0])
-        learnt, fit = learn_geometry(points, KITTI_GEOMETRY)
+        first = read_scan(self._scans[0])
+        learnt, fit = learn_geometry(first, KITTI_GEOMETRY)
         if learnt is None:
             if fit.share > OUTSIDE_SHARE_WARNING:
                 self._warn(0, fit)
             return KITTI_GEOMETRY
+        read = self._scans[:LEARN_SCANS]
+        learnt, fit = learn_geometry([first] + [read_scan(scan) for scan in read[1:]], KITTI_GEOMETRY)
+        names = read[0].name if len(read) == 1 else f"{read[0].name}..{read[-1].name}"
         settings = f"fov_up = {learnt.fov_up:g}, fov_down = {learnt.fov_down:g}, beams = {learnt.beams}"
-        self.description += f" (LiDAR geometry learnt from {self._scans[0].name}: {settings})"
-        self._warn(0, fit, f"mabdi learnt {settings} from that scan (columns, range_min, range_max kept) and uses them")
+        self.description += f" (LiDAR geometry learnt from {names}: {settings})"
+        self._warn(0, fit, f"mabdi learnt {settings} from {names} (columns, range_min, range_max kept) and uses them")
         return learnt
 
     def _warn(self, index: int, fit, done: str = "") -> None:

@@ -51,11 +51,16 @@ LIDAR_KEYS = tuple(f.name for f in dataclasses.fields(SphericalGeometry))
 #: A scan with more than this share of its points outside the range image is warned of (:class:`LidarGeometryWarning`):
 #: a sensor of +15 to -25 degrees (a VLP-32C's, a Pandar64's) leaves an eighth of its points above the default image.
 OUTSIDE_SHARE_WARNING = 0.05
-#: A first scan with more than this share outside the default geometry has its geometry learnt (:func:`learn_geometry`);
-#: below it the default is kept (a sensor it mostly holds keeps the image's resolution) and the rest warned of.
-OUTSIDE_SHARE_LEARN = 0.25
+#: A first scan with more than this share outside the default geometry has its geometry learnt (:func:`learn_geometry`):
+#: the warning's share, so a map does not miss what a sensor of a wider field than the default's saw.
+OUTSIDE_SHARE_LEARN = OUTSIDE_SHARE_WARNING
 #: The percentiles of a scan's elevations :func:`learn_geometry` takes as its outer beams when it cannot count them.
 LEARNT_PERCENTILES = (0.5, 99.5)
+#: Counted rings are evenly spread (:func:`uniform_spacing_of`) when each lies within this share of a spacing of
+#: the straight line through them (a deskewed sweep smears a ring by a tenth of a spacing or two), and there are
+#: at least :data:`MIN_RINGS_FOR_SPACING` of them (an uneven sensor's, a VLP-32C's, lie several spacings off).
+UNIFORM_TOLERANCE_ROWS = 0.75
+MIN_RINGS_FOR_SPACING = 4
 
 #: Two returns of a column on either side of a pixel centre's elevation are one surface when their ranges differ
 #: by at most this (m) plus what a surface at :data:`SURFACE_INCIDENCE` from the rays changes over their gap ...
@@ -112,17 +117,19 @@ def image_edges(geometry: SphericalGeometry) -> tuple[float, float]:
     return float(top), float(bottom)
 
 
-def _returns(points) -> tuple[np.ndarray, np.ndarray]:
+def _returns(points, range_min: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """The finite returns of ``points`` (N, 3) m farther than ``range_min`` m, and their elevations (degrees)."""
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     with np.errstate(invalid="ignore"):
-        keep = np.isfinite(points).all(axis=1) & (np.abs(points).sum(axis=1) > 0)
+        keep = np.isfinite(points).all(axis=1) & (np.linalg.norm(points, axis=1) > max(range_min, 0.0))
     points = points[keep]
     return points, np.degrees(np.arctan2(points[:, 2], np.hypot(points[:, 0], points[:, 1])))
 
 
 def scan_fit(points, geometry: SphericalGeometry) -> ScanFit:
-    """How sensor-frame ``points`` (N, 3) m fit the range image of ``geometry`` (:class:`ScanFit`)."""
-    points, elevation = _returns(points)
+    """How sensor-frame ``points`` (N, 3) m fit the range image of ``geometry`` (:class:`ScanFit`); returns at or
+    within its ``range_min`` (the vehicle or person carrying the sensor) are no returns of the scene, left out."""
+    points, elevation = _returns(points, geometry.range_min)
     uv, distance = geometry.pixels(points)
     above, below = uv[:, 1] < 0, uv[:, 1] >= geometry.beams
     beyond = ~above & ~below & (distance >= geometry.range_max)
@@ -169,27 +176,59 @@ def beam_elevations_of(elevation, step: float = 0.05) -> np.ndarray | None:
     return (sums / held)[::-1]
 
 
-def learn_geometry(points, default: SphericalGeometry) -> tuple[SphericalGeometry | None, ScanFit]:
-    """The geometry of a scan that does not fit ``default`` (more than :data:`OUTSIDE_SHARE_LEARN` of its points
-    above or below the image), and how it fit ``default``; None when it fits, or misses by range only.
+def uniform_spacing_of(centres, tolerance: float = UNIFORM_TOLERANCE_ROWS) -> float | None:
+    """The spacing (degrees) of beams at ``centres`` (degrees, top first) when they are evenly spread: each within
+    ``tolerance`` of a spacing of the straight line through them; else None (an uneven sensor, or rings merged)."""
+    if centres is None or len(centres) < MIN_RINGS_FOR_SPACING:
+        return None
+    index = np.arange(len(centres))
+    slope, offset = np.polyfit(index, centres, 1)
+    if slope >= 0 or np.abs(offset + slope * index - centres).max() > tolerance * abs(slope):
+        return None
+    return float(-slope)
 
-    Uniform beams: the counted rings (:func:`beam_elevations_of`) when they stand apart, else ``default``'s count
-    between the :data:`LEARNT_PERCENTILES` of the elevations; the edges half a beam spacing beyond the outer beams
-    (so each beam lies on a row's centre). Columns and range are ``default``'s.
+
+def learn_geometry(scans, default: SphericalGeometry) -> tuple[SphericalGeometry | None, ScanFit]:
+    """The geometry of a recording whose first scan does not fit ``default`` (more than :data:`OUTSIDE_SHARE_LEARN`
+    of its points above or below the image), and how that scan fit ``default``; None when it fits, or misses by
+    range only. ``scans``: the first scan's sensor-frame points (N, 3) m, or a list of the first few scans' (a
+    moving sensor smears its rings in some scans). Returns within ``default.range_min`` (the carrier) are left out.
+
+    Uniform beams, the edges half a beam spacing beyond the outer beams (so each beam lies on a row's centre):
+
+    1. the rings of the first scan whose rings stand apart and are evenly spread (:func:`beam_elevations_of`,
+       :func:`uniform_spacing_of`);
+    2. else, the spacing of the first evenly spread rings of returns beyond a scan's median range (far away, a
+       ring keeps its elevation: near ones are smeared by deskewing and the lasers' offsets from the sensor's
+       origin), over the span between the :data:`LEARNT_PERCENTILES` of the first scan's elevations;
+    3. else (rings uneven, or smeared in every scan), ``default``'s beam count over that span.
+
+    Columns and range are ``default``'s.
     """
-    fit = scan_fit(points, default)
+    scans = [scans] if isinstance(scans, np.ndarray) else list(scans)
+    fit = scan_fit(scans[0], default)
     if not fit.returns or fit.above + fit.below <= OUTSIDE_SHARE_LEARN * fit.returns:
         return None, fit
-    centres = beam_elevations_of(_returns(points)[1])
-    if centres is not None:
-        beams, top, bottom = len(centres), float(centres[0]), float(centres[-1])
-    else:
-        beams, top, bottom = default.beams, fit.elevation_high, fit.elevation_low
+    top, bottom = fit.elevation_high, fit.elevation_low
     if not top > bottom:
         return None, fit
+    returns = [_returns(points, default.range_min) for points in scans]
+    for _, elevation in returns:
+        centres = beam_elevations_of(elevation)
+        if uniform_spacing_of(centres) is not None:
+            return _uniform(default, len(centres), float(centres[0]), float(centres[-1])), fit
+    for points, elevation in returns:
+        distance = np.linalg.norm(points, axis=1)
+        if len(distance) and (spacing := uniform_spacing_of(beam_elevations_of(elevation[distance > np.median(distance)]))):
+            return _uniform(default, int(round((top - bottom) / spacing)) + 1, top, bottom), fit
+    return _uniform(default, default.beams, top, bottom), fit
+
+
+def _uniform(default: SphericalGeometry, beams: int, top: float, bottom: float) -> SphericalGeometry:
+    """``default`` with ``beams`` uniform beams from ``top`` to ``bottom`` (degrees), the edges half a spacing beyond."""
     half = (top - bottom) / (2 * (beams - 1)) if beams > 1 else 0.5
     fov_up, fov_down = min(90.0, round(top + half, 3)), max(-90.0, round(bottom - half, 3))
-    return dataclasses.replace(default, beams=beams, fov_up=fov_up, fov_down=fov_down, beam_elevations=()), fit
+    return dataclasses.replace(default, beams=beams, fov_up=fov_up, fov_down=fov_down, beam_elevations=())
 
 
 def range_image(points, geometry: SphericalGeometry, rows=None, centred: bool = True) -> np.ndarray:
@@ -457,6 +496,7 @@ __all__ = [
     "geometry_from_table",
     "image_edges",
     "learn_geometry",
+    "uniform_spacing_of",
     "lidar_table",
     "range_image",
     "range_image_and_returns",

@@ -14,7 +14,7 @@ frame names with a leading ``/`` as tf2 names them, without).
   turned into a range image by :func:`mabdi.sources.range_images.range_image`
   (fields ``x``, ``y``, ``z`` in metres, ``ring`` when present; the
   geometry from the ``[lidar]`` table of a ``mabdi.toml`` beside the bag,
-  else the first scan).
+  else the first scan, or the first scans where a cloud has no rings).
 * **Colour** (optional): an ``rgb8`` or ``bgr8`` Image topic registered to
   the depth, matched by nearest header stamp.
 * **Intrinsics**: the first ``CameraInfo``: fx = K[0], fy = K[4],
@@ -39,6 +39,7 @@ import functools
 import os
 import shutil
 import tempfile
+import warnings
 from types import SimpleNamespace
 from pathlib import Path
 
@@ -52,7 +53,17 @@ from mabdi.io.toml_writer import toml_lines
 from mabdi.spherical import SphericalGeometry
 from mabdi.sources.compressed_depth import decode_compressed_depth, depth_encoding
 from mabdi.sources.frames import FrameSource
-from mabdi.sources.range_images import geometry_from_table, lidar_table, range_image_and_returns, range_image_points, rows_from_rings
+from mabdi.sources.range_images import (
+    KITTI_GEOMETRY,
+    OUTSIDE_SHARE_WARNING,
+    LidarGeometryWarning,
+    geometry_from_table,
+    learn_geometry,
+    lidar_table,
+    range_image_and_returns,
+    range_image_points,
+    rows_from_rings,
+)
 from mabdi.sources.sequence_files import (
     SequenceError,
     bad_quaternions,
@@ -97,6 +108,8 @@ LIDAR_POSE_TOPIC = "/lidar/pose"
 LIDAR_FRAME = "lidar"
 #: Columns of the range image of an unorganised cloud whose ``mabdi.toml`` does not say.
 DEFAULT_COLUMNS = 1024
+#: The scans an unorganised cloud without rings and without a stated vertical field has its geometry learnt from.
+LEARN_SCANS = 10
 #: PointField datatypes (sensor_msgs/msg/PointField constants) as numpy types.
 POINT_FIELD_TYPES = {1: np.int8, 2: np.uint8, 3: np.int16, 4: np.uint16, 5: np.int32, 6: np.uint32, 7: np.float32, 8: np.float64}
 
@@ -267,6 +280,7 @@ class Rosbag2Sequence(FrameSource):
             "tolerance": tolerance, "colour_topic": colour_topic, "cloud_topic": cloud_topic,
         }  # fmt: skip
         self._reader = None  # a rosbags Reader once open
+        self.geometry_note = ""  # how the LiDAR geometry was learnt, where it was (:meth:`_learnt_geometry`)
         reader = self._open()
         self.topics = {c.topic: c.msgtype for c in reader.connections}
         self.metadata = read_sequence_metadata(self.path)
@@ -304,6 +318,8 @@ class Rosbag2Sequence(FrameSource):
             self.description += f", colour from {self.colour_topic}"
             if far_colour:
                 self.description += f" ({far_colour} more than {self.tolerance * 1000:g} ms from their colour image)"
+        if self.geometry_note:
+            self.description += f", {self.geometry_note}"
         self.description += (
             f", {self.skipped} without a pose within {self.tolerance * 1000:g} ms skipped)" if self.skipped else ")"
         )
@@ -391,7 +407,7 @@ class Rosbag2Sequence(FrameSource):
 
         def check(message) -> None:
             frame_ids.add(message.header.frame_id)
-            if not first:
+            if len(first) < LEARN_SCANS:
                 first.append(message)
 
         self._all_stamps, self._all_log_times, self._all_occurrence = self._index_images(self.cloud_topic, check)
@@ -399,24 +415,30 @@ class Rosbag2Sequence(FrameSource):
             raise SequenceError(f"{self.kind} {self.path}: topic {self.cloud_topic}: clouds in several frames ({_list(frame_ids)})")
         self.camera_frame = frame_ids.pop()
         self._time_origin = int(self._all_stamps.min())
-        return first[0]
+        return first
 
-    def _cloud_geometry(self, message) -> SphericalGeometry:
-        """The range images' geometry: the ``[lidar]`` table of ``mabdi.toml``, the rest from the first scan (module docs)."""
+    def _cloud_geometry(self, messages) -> SphericalGeometry:
+        """The range images' geometry: the ``[lidar]`` table of ``mabdi.toml``, the rest from the first scan, or for
+        an unorganised cloud without rings, learnt from the first scans (module docs)."""
         file = metadata_path(self.path)
         table = self.metadata.get("lidar", {})
         if not isinstance(table, dict):
             raise SequenceError(f"{file}: 'lidar' must be a table")
         where = f"{self.kind} {self.path}: topic {self.cloud_topic}"
+        message = messages[0]
         points, rings, organised = cloud_points(message, f"{where}: first message")
         index = rings if rings is not None else organised
         derived: dict = {"columns": int(message.width) if organised is not None else DEFAULT_COLUMNS}
         if index is None:
+            vertical = ("beams", "fov_up", "fov_down", "beam_elevations")
+            if not any(k in table for k in vertical):
+                return self._learnt_geometry(messages, table, where)
             missing = [k for k in ("beams", "fov_up", "fov_down") if k not in table]
             if missing:
                 raise SequenceError(
                     f"{where}: an unorganised cloud without a ring field is binned by elevation: give the LiDAR's "
-                    f"{', '.join(missing)} in a [lidar] table of {file}"
+                    f"{', '.join(missing)} in the [lidar] table of {file} (or none of beams, fov_up, fov_down to "
+                    "have them learnt from the first scans)"
                 )
         else:
             beams = table.get("beams", int(index.max()) + 1 if len(index) else 1)
@@ -424,6 +446,30 @@ class Rosbag2Sequence(FrameSource):
             if "beam_elevations" not in table and not ("fov_up" in table or "fov_down" in table) and isinstance(beams, int):
                 derived.update(_beam_table(points, self._rows(index, points, beams, f"{where}: first message"), beams))
         return geometry_from_table({**derived, **table}, file)
+
+    def _learnt_geometry(self, messages, table: dict, where: str) -> SphericalGeometry:
+        """The geometry of clouds without rings whose ``[lidar]`` table (``table``, perhaps empty) states no vertical
+        field: the default one (:data:`~mabdi.sources.range_images.KITTI_GEOMETRY`, ``table``'s keys over it), or
+        where the first scan misses it, the one learnt from the first :data:`LEARN_SCANS` scans
+        (:func:`~mabdi.sources.range_images.learn_geometry`), said once as for a KITTI folder."""
+        file = metadata_path(self.path)
+        default = geometry_from_table({**lidar_table(KITTI_GEOMETRY), "columns": DEFAULT_COLUMNS, **table}, file)
+        scans = [cloud_points(message, f"{where}: scan {i}")[0] for i, message in enumerate(messages)]
+        learnt, fit = learn_geometry(scans, default)
+        fix = (f"put the sensor's own geometry in the [lidar] table of {file}: fov_up, fov_down (degrees, the image's "
+               "top and bottom edges), beams, and as needed columns, range_min, range_max (m), beam_elevations")
+        if learnt is None:
+            if fit.share > OUTSIDE_SHARE_WARNING:
+                warnings.warn(f"{where}: the first scan does not fit the default geometry (KITTI's Velodyne HDL-64E; the "
+                              f"clouds have no ring field): {fit.describe(default)}; the map will miss those points; {fix}",
+                              LidarGeometryWarning, stacklevel=4)
+            return default
+        settings = f"fov_up = {learnt.fov_up:g}, fov_down = {learnt.fov_down:g}, beams = {learnt.beams}"
+        self.geometry_note = f"LiDAR geometry learnt from the first {len(scans)} scans: {settings}"
+        warnings.warn(f"{where}: the first scan does not fit the default geometry (KITTI's Velodyne HDL-64E; the clouds "
+                      f"have no ring field): {fit.describe(default)}; mabdi learnt {settings} from the first {len(scans)} "
+                      f"scans (columns, range_min, range_max kept) and uses them; {fix}", LidarGeometryWarning, stacklevel=4)
+        return learnt
 
     def _rows(self, index: np.ndarray, points: np.ndarray, beams: int, where: str) -> np.ndarray:
         try:
