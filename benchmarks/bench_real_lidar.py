@@ -26,7 +26,7 @@ Maps, all from the same integrated scans and the same given poses:
   recording with no config (default settings; the noise model a LiDAR
   recording that states none gets, ``range`` at 0.02 m; the geometry as the
   reader has it: the folder's ``[lidar]`` table, else learnt from the first
-  scan; ``--set KEY=VALUE`` changes any setting, as ``mabdi run --set``), on
+  scans; ``--set KEY=VALUE`` changes any setting, as ``mabdi run --set``), on
   the integrated scans only (:class:`~mabdi.sources.frames.FrameSubset`),
   at the given poses (a LiDAR's registration is off);
 * ``poisson``: Open3D's screened Poisson reconstruction of the integrated
