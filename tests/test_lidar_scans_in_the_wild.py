@@ -39,14 +39,18 @@ def _folder(path, elevations, scans=3, jitter=0.0, lidar=None):
     return path
 
 
-def _read_all(source):
-    """Every frame of ``source`` and the LidarGeometryWarnings raised while opening and reading it."""
+EMPTY_ROWS = "rows between its top and bottom beams hold no returns"
+
+
+def _read_all(source, rows: bool = False):
+    """Every frame of ``source`` and the LidarGeometryWarnings raised while opening and reading it: those of points
+    outside the image, or with ``rows`` those of rows without returns."""
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         source = source()
         frames = [source.read(i) for i in range(len(source))]
     ours = [w for w in caught if issubclass(w.category, range_images.LidarGeometryWarning)]
-    return source, frames, ours
+    return source, frames, [w for w in ours if (EMPTY_ROWS in str(w.message)) == rows]
 
 
 WIDE_32 = np.linspace(45.0, -45.0, 32)  # a +-45 degree sensor of 32 evenly spread beams
@@ -262,3 +266,21 @@ def test_a_lidar_recordings_run_names_its_default_noise_not_a_learnt_one(tmp_pat
     printed = capsys.readouterr().out
     assert "noise: range, 0.02 m (a LiDAR's default: no config and no --noise name the sensor's model)" in printed
     assert "learnt from the run" not in printed
+
+
+def test_an_image_of_more_rows_than_the_sensor_has_beams_is_said(tmp_path):
+    """A 32-beam sensor read with a table of 64 rows over its span: every other row holds no return, and nothing
+    is meshed across such a row (a real HDL-32E so read made a map of 4,104 triangles instead of 443,860); the
+    run says so once, with the numbers and the keys to set. Its own 32 beams: quiet."""
+    table = "beams = 64\nfov_up = 46.5\nfov_down = -46.5\n"
+    folder = _folder(tmp_path / "seq", WIDE_32, lidar=table)
+    source, frames, said = _read_all(lambda: KittiSequence(folder), rows=True)
+    assert len(said) == 1
+    message = str(said[0].message)
+    empty, spanned = range_images.rows_without_returns(frames[0].return_points)
+    assert spanned >= 60 and 28 <= empty <= 32
+    assert f"{empty} of the range image's {spanned} rows" in message and "beams = 64" in message
+    assert "000000.bin" in message and str(folder / "mabdi.toml") in message and "beam_elevations" in message
+    right = _folder(tmp_path / "right", WIDE_32, lidar="beams = 32\nfov_up = 46.5\nfov_down = -46.5\n")
+    _, frames, said = _read_all(lambda: KittiSequence(right), rows=True)
+    assert said == [] and range_images.rows_without_returns(frames[0].return_points) == (0, 32)

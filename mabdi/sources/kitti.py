@@ -51,6 +51,7 @@ from mabdi.io.atomic import atomic_output, write_text
 from mabdi.io.toml_writer import toml_lines
 from mabdi.sources.frames import FrameSource
 from mabdi.sources.range_images import (
+    EMPTY_ROWS_WARNING,
     KITTI_GEOMETRY,
     OUTSIDE_SHARE_WARNING,
     LidarGeometryWarning,
@@ -59,6 +60,7 @@ from mabdi.sources.range_images import (
     lidar_table,
     range_image_and_returns,
     range_image_points,
+    rows_without_returns,
     scan_fit,
 )
 from mabdi.sources.sequence_files import SequenceError, metadata_path, prepare_folder, read_sequence_metadata
@@ -178,6 +180,7 @@ class KittiSequence(FrameSource):
                 raise SequenceError(f"{path / TIMES_FILE}: {len(times)} timestamps, but {SCAN_FOLDER}/ holds {len(self._scans)} scans")
             self._times = times
         self._warned = False
+        self._rows_checked = False  # the first scan read is checked for rows without returns (read_frame)
         if geometry is not None:
             self._geometry_from = "the geometry given"
         elif (table := read_sequence_metadata(path).get("lidar")) is not None:
@@ -203,6 +206,7 @@ class KittiSequence(FrameSource):
         settings = f"fov_up = {learnt.fov_up:g}, fov_down = {learnt.fov_down:g}, beams = {learnt.beams}"
         self.description += f" (LiDAR geometry learnt from {names}: {settings})"
         self._warn(0, fit, f"mabdi learnt {settings} from {names} (columns, range_min, range_max kept) and uses them")
+        self._geometry_from = f"the geometry learnt from {names}"
         return learnt
 
     def _warn(self, index: int, fit, done: str = "") -> None:
@@ -241,6 +245,19 @@ class KittiSequence(FrameSource):
         if not self._warned and (fit := scan_fit(points, self.geometry)).share > OUTSIDE_SHARE_WARNING:
             self._warn(index, fit)
         depth, return_points = range_image_and_returns(points, self.geometry)
+        if not self._rows_checked:
+            self._rows_checked = True
+            empty, spanned = rows_without_returns(return_points)
+            if empty > EMPTY_ROWS_WARNING * spanned:
+                warnings.warn(
+                    f"KITTI folder {self.path}: scan {self._scans[index].name}: {empty} of the range image's {spanned} rows "
+                    f"between its top and bottom beams hold no returns ({self._geometry_from}: beams = "
+                    f"{self.geometry.beams}): the image has more rows than the sensor has beams there, and no surface is "
+                    f"meshed across such a row; put the sensor's beams, or its beam_elevations (degrees, one a beam, top "
+                    f"first), in the [lidar] table of {metadata_path(self.path)}",
+                    LidarGeometryWarning,
+                    stacklevel=3,
+                )
         return DepthFrame(depth, self.geometry, self._poses[index], index, float(self._times[index]), None, return_points)
 
 

@@ -54,6 +54,11 @@ OUTSIDE_SHARE_WARNING = 0.05
 #: A first scan with more than this share outside the default geometry has its geometry learnt (:func:`learn_geometry`):
 #: the warning's share, so a map does not miss what a sensor of a wider field than the default's saw.
 OUTSIDE_SHARE_LEARN = OUTSIDE_SHARE_WARNING
+#: A row of a range image holds returns when at least this share of the median row's do (:func:`rows_without_returns`);
+#: a scan whose image has more than :data:`EMPTY_ROWS_WARNING` of the rows between its outer beams without is warned of.
+ROW_HELD_SHARE = 0.1
+EMPTY_ROWS_WARNING = 0.1
+ROWS_MIN_RETURNS = 1000
 #: The percentiles of a scan's elevations :func:`learn_geometry` takes as its outer beams when it cannot count them.
 LEARNT_PERCENTILES = (0.5, 99.5)
 #: Counted rings are evenly spread (:func:`uniform_spacing_of`) when each lies within this share of a spacing of
@@ -108,6 +113,21 @@ class ScanFit:
             f"the points' elevations span {self.elevation_high:+.1f} to {self.elevation_low:+.1f} degrees "
             f"(0.5-99.5 percentiles), the image's {top:+.1f} to {bottom:+.1f}"
         )
+
+
+def rows_without_returns(return_points) -> tuple[int, int]:
+    """(rows that hold no returns, rows spanned) between the top and the bottom row of a range image's returns
+    (``return_points`` (H, W, 3), NaN where no return fell: :func:`range_image_and_returns`). A row holds returns
+    when at least :data:`ROW_HELD_SHARE` of the median such row's do; a row between two that hold returns and
+    none of its own is one the image has and the sensor has no beam for: nothing is meshed across it. A scan of
+    fewer than :data:`ROWS_MIN_RETURNS` returns is too sparse to tell: (0, 0)."""
+    held = np.isfinite(np.asarray(return_points)).all(axis=-1).sum(axis=1)
+    if held.sum() < ROWS_MIN_RETURNS:
+        return 0, 0
+    holds = held >= ROW_HELD_SHARE * np.median(held[held > 0])
+    rows = np.flatnonzero(holds)
+    spanned = holds[rows[0] : rows[-1] + 1]
+    return int((~spanned).sum()), len(spanned)
 
 
 def image_edges(geometry: SphericalGeometry) -> tuple[float, float]:
@@ -496,6 +516,8 @@ __all__ = [
     "geometry_from_table",
     "image_edges",
     "learn_geometry",
+    "rows_without_returns",
+    "EMPTY_ROWS_WARNING",
     "uniform_spacing_of",
     "lidar_table",
     "range_image",
