@@ -186,6 +186,14 @@ class SphericalGeometry:
         spacing = float(np.abs(np.diff(elevations)).max()) if len(elevations) > 1 else 0.0
         return max(2.0 * math.pi / self.columns, spacing)
 
+    def pair_angles(self) -> np.ndarray:
+        """(beams - 1,) the angle (radians) between the rays of each row and the next, or across a row (the
+        azimuth step), whichever is larger: :meth:`pixel_angle` for every pair of rows of a uniform image; a beam
+        table's own spacing, row by row (an uneven sensor's dense beams are not judged by its widest gap)."""
+        if not self.beam_elevations or self.beams < 2:
+            return np.full(max(self.beams - 1, 0), self.pixel_angle())
+        return np.maximum(2.0 * math.pi / self.columns, np.abs(np.diff(self.elevations())))
+
     def jump_scale(self) -> float:
         """What a relative depth jump between neighbouring pixels scales by: :meth:`pixel_angle` over the default
         camera's (1 / ``Intrinsics.fx``): the same surface at the same incidence spreads that much more between

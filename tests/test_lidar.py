@@ -369,6 +369,54 @@ def test_the_quadtree_meshes_ground_seen_at_grazing_incidence_and_nothing_off_th
     assert off["auto"] <= off[False], off
 
 
+#: The Velodyne VLP-32C's beam elevations (degrees, top first): 0.33 degrees apart about the horizon, 3-10 beyond.
+VLP_32C = (
+    15.0, 10.333, 7.0, 4.667, 3.333, 2.333, 1.667, 1.333, 1.0, 0.667, 0.333, 0.0, -0.333, -0.667, -1.0, -1.333,
+    -1.667, -2.0, -2.333, -2.667, -3.0, -3.333, -3.667, -4.0, -4.667, -5.333, -6.148, -7.254, -8.843, -11.31, -15.639, -25.0,
+)  # fmt: skip
+
+
+@pytest.mark.parametrize("surface", ["pixel_grid", "quadtree"])
+def test_an_uneven_sensor_s_dense_beams_are_not_meshed_across_a_silhouette_by_its_widest_gap(surface):
+    """A sensor of uneven beams (its beam table, as a bag's rings give it): a box 20 m away before a wall at 30 m,
+    seen by the beams 0.33 degrees apart. The jump between neighbouring beams is judged by their own spacing,
+    not the widest (9.4 degrees, which allowed 86% of the range and joined the box to the wall: 153 faces of the
+    pixel grid and 220 of the quad-tree lay more than 25 cm off the scene): no more such faces than the same
+    sensor's beams spread evenly make."""
+    from mabdi.surfaces.quadtree import FilterQuadTree, QuadTreeParameters
+
+    centre, half = np.array([20.0, 0.0, 1.0]), np.array([1.0, 3.0, 1.0])
+    scene = merged(
+        plane((-60.0, -60.0, 0.0), (60.0, -60.0, 0.0), (-60.0, 60.0, 0.0)),
+        box(centre, 2 * half, 0.0),
+        plane((30.0, -60.0, 0.0), (30.0, 60.0, 0.0), (30.0, -60.0, 12.0)),
+    )
+
+    def off_scene(points):
+        outside = np.abs(points - centre) - half
+        to_box = np.abs(np.linalg.norm(np.maximum(outside, 0), axis=1) + np.minimum(outside.max(axis=1), 0))
+        return np.minimum(np.minimum(np.abs(points[:, 2]), np.abs(points[:, 0] - 30.0)), to_box)
+
+    pose = np.eye(4)
+    pose[2, 3] = 1.9
+    off = {}
+    for name, geometry in {
+        "table": SphericalGeometry(32, 1024, 17.5, -27.5, 1.0, 60.0, VLP_32C),
+        "even": SphericalGeometry(32, 1024, 17.5, -27.5, 1.0, 60.0),
+    }.items():
+        image = render(scene, geometry, pose)
+        mesher = FilterPixelGrid(PixelGridParameters()) if surface == "pixel_grid" else FilterQuadTree(QuadTreeParameters(reduction=1))
+        mesher.SetInputDataObject(image)
+        mesher.Update()
+        points, triangles = polydata_arrays(mesher.GetOutput())
+        assert len(triangles) > 1000
+        centroids = points[triangles].mean(axis=1)
+        box_side = (np.abs(centroids[:, 0] - 19.0) < 0.03) & (np.abs(centroids[:, 1]) < 3.0)
+        assert box_side.sum() > 50  # the box's face towards the sensor is meshed
+        off[name] = int((off_scene(centroids) > 0.25).sum())  # faces bridging the box and the wall
+    assert off["table"] <= off["even"], off
+
+
 @pytest.mark.parametrize("reduction", [1, 3])
 def test_quadtree_meshes_a_straight_wall_from_the_range_image_flat(reduction):
     # seed 002 §3.2's case: a wall in front of the sensor is curved in the range image; the quad-tree's

@@ -10,8 +10,8 @@ its three corners are valid and do not straddle a depth discontinuity:
 which is what a surface seen at about 79 degrees from its normal makes
 between neighbouring pixels at a 525 px focal length. A LiDAR's range image
 (:mod:`mabdi.spherical`) is meshed the same way along its rays, with
-``max_jump`` scaled to its pixel angle (the geometry's ``jump_scale()``) and
-the azimuth seam joined. ``grazing`` (on for range images) also keeps an
+``max_jump`` scaled to its pixel angle (the geometry's ``jump_scale()``; with a
+beam table, each pair of rows by its own spacing) and the azimuth seam joined. ``grazing`` (on for range images) also keeps an
 edge whose two samples continue one straight line with the samples beyond
 (:func:`mabdi.depth.straight_continuations`): flat ground at grazing incidence.
 
@@ -32,7 +32,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from vtkmodules.vtkCommonDataModel import vtkPolyData
 
-from mabdi.camera import at_returns, pixel_rays
+from mabdi.camera import Intrinsics, at_returns, pixel_rays
 from mabdi.depth import (
     straight_continuations,
 )
@@ -42,7 +42,7 @@ from mabdi.surfaces.frame_surface import FrameSurface
 from mabdi.surfaces.depth_smoothing import measured_around, smooth_depth_by_noise
 from mabdi.mesh_maps.mesh_map import colour_point_array
 from mabdi.polydata import triangles_polydata
-from mabdi.spherical import on_for_range_images
+from mabdi.spherical import SphericalGeometry, on_for_range_images
 
 
 @dataclass(frozen=True)
@@ -65,14 +65,16 @@ class PixelGridParameters:
             raise ConfigError(f"smooth_depth must be true or false, got {self.smooth_depth!r}")
 
 
-def pixel_grid_triangles(depth: np.ndarray, max_jump: float, straight: tuple[np.ndarray, ...] | None = None) -> np.ndarray:
+def pixel_grid_triangles(depth: np.ndarray, max_jump, straight: tuple[np.ndarray, ...] | None = None) -> np.ndarray:
     """(M, 3) int64 pixel ids (v * W + u) of the kept triangles of a (H, W) depth image: each of a triangle's
-    three edges within ``max_jump``, or (``straight``: the edge masks of
+    three edges within ``max_jump`` (a number, or (H - 1,) one for the squares between each row and the next:
+    a beam table's rows lie at their own spacings), or (``straight``: the edge masks of
     :func:`mabdi.depth.straight_continuations`, which may come from a wider image than ``depth``: an edge
     counts only between two valid corners of ``depth``) on one straight line with the samples beyond it."""
     height, width = depth.shape
     z = np.asarray(depth, dtype=np.float32)
-    ratio = np.float32(1.0 + max_jump)
+    jump = np.asarray(max_jump, dtype=np.float64)
+    ratio = (1.0 + jump).astype(np.float32)[:, None] if jump.ndim else np.float32(1.0 + jump)
 
     def within(p, q):
         # NaN compares false, so invalid corners drop out; max <= (1 + jump) * min.
@@ -80,16 +82,18 @@ def pixel_grid_triangles(depth: np.ndarray, max_jump: float, straight: tuple[np.
             return np.maximum(p, q) <= ratio * np.minimum(p, q)
 
     vertical = within(z[:-1, :], z[1:, :])  # (v, u) - (v + 1, u)
-    horizontal = within(z[:, :-1], z[:, 1:])  # (v, u) - (v, u + 1)
     diagonal = within(z[:-1, 1:], z[1:, :-1])  # (v, u + 1) - (v + 1, u)
+    # each square's top and bottom edges, judged by the square's own rows' jump
+    top, bottom = within(z[:-1, :-1], z[:-1, 1:]), within(z[1:, :-1], z[1:, 1:])
     if straight is not None:
         ok = np.isfinite(z)
         vertical = vertical | (straight[0] & ok[:-1, :] & ok[1:, :])
-        horizontal = horizontal | (straight[1] & ok[:, :-1] & ok[:, 1:])
+        across = straight[1] & ok[:, :-1] & ok[:, 1:]
+        top, bottom = top | across[:-1], bottom | across[1:]
         diagonal = diagonal | (straight[2] & ok[:-1, 1:] & ok[1:, :-1])
     # square (v, u): a, b, c, d = (v, u), (v, u + 1), (v + 1, u), (v + 1, u + 1)
-    keep_first = vertical[:, :-1] & horizontal[:-1, :] & diagonal  # (a, c, b)
-    keep_second = vertical[:, 1:] & horizontal[1:, :] & diagonal  # (b, c, d)
+    keep_first = vertical[:, :-1] & top & diagonal  # (a, c, b)
+    keep_second = vertical[:, 1:] & bottom & diagonal  # (b, c, d)
     first = np.flatnonzero(keep_first)
     second = np.flatnonzero(keep_second)
     # square index s = v * (W - 1) + u  ->  top-left pixel id p = v * W + u
@@ -103,6 +107,17 @@ def pixel_grid_triangles(depth: np.ndarray, max_jump: float, straight: tuple[np.
     triangles[len(p1) :, 1] = p2 + width
     triangles[len(p1) :, 2] = p2 + width + 1
     return triangles
+
+
+def _jump_scales(intrinsics):
+    """What ``max_jump`` scales by: 1 for a camera; a range image's (:meth:`SphericalGeometry.jump_scale`), or with a
+    beam table, each pair of rows' own (their spacing, :meth:`SphericalGeometry.pair_angles`, over a camera's
+    pixel angle): (beams - 1,)."""
+    if not isinstance(intrinsics, SphericalGeometry):
+        return intrinsics.jump_scale()
+    if not intrinsics.beam_elevations:
+        return intrinsics.jump_scale()
+    return intrinsics.pair_angles() * Intrinsics.fx
 
 
 class FilterPixelGrid(FrameSurface):
@@ -175,7 +190,7 @@ def pixel_grid_surface(
         if wrap:
             width = depth.shape[1]
             straight = (straight[0][:, 2 : width + 3], straight[1][:, 2 : width + 2], straight[2][:, 2 : width + 2])
-    jump = -1.0 if straight_only else parameters.max_jump * intrinsics.jump_scale()  # -1: no edge within the jump
+    jump = -1.0 if straight_only else parameters.max_jump * _jump_scales(intrinsics)  # -1: no edge within the jump
     if wrap:
         height, width = depth.shape
         triangles = pixel_grid_triangles(np.concatenate([depth, depth[:, :1]], axis=1), jump, straight)

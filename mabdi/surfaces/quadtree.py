@@ -182,6 +182,15 @@ class ReducedSpherical:
         """Radians per reduced pixel (the larger of the azimuth step and the beam spacing, times r)."""
         return self.geometry.pixel_angle() * self.reduction
 
+    def row_footprints(self) -> np.ndarray:
+        """(height,) radians per reduced pixel of each reduced row: :attr:`footprint` for every row of a uniform
+        image; with a beam table, the widest spacing of the beams its block holds and meets, times r (an uneven
+        sensor's dense beams are not judged by its widest gap, :meth:`SphericalGeometry.pair_angles`)."""
+        if not self.geometry.beam_elevations or self.geometry.beams < 2:
+            return np.full(self.height, self.footprint)
+        pairs, r = self.geometry.pair_angles(), self.reduction
+        return np.array([pairs[max(row * r - 1, 0) : min(row * r + r, len(pairs))].max() * r for row in range(self.height)])
+
     def rays_at(self, u, v) -> np.ndarray:
         """Unit rays at continuous reduced-grid coordinates (block corners at integers)."""
         return self.geometry.rays_at(np.asarray(u, dtype=np.float64) * self.reduction, np.asarray(v, dtype=np.float64) * self.reduction)
@@ -206,14 +215,31 @@ def _ray(u: np.ndarray, v: np.ndarray, k: Grid) -> np.ndarray:
     return k.rays_at(u, v)
 
 
-def _step_jump(p: QuadTreeParameters, k: Grid) -> float:
-    """The largest relative depth change between neighbouring pixels of one surface: ``max_jump`` for a
-    camera; for a LiDAR, whose beams lie much further apart, what a surface seen at :data:`LIDAR_INCIDENCE`
-    degrees makes between neighbouring (reduced) beams, tan(incidence) times their angle. The rules that
-    compare two estimates of one point (corners shared by leaves) keep ``max_jump`` as given."""
+def _row_jumps(p: QuadTreeParameters, k: Grid, height: int) -> np.ndarray:
+    """(height,) the largest relative depth change between neighbouring pixels of one surface, row by row:
+    ``max_jump`` for a camera; for a LiDAR, whose beams lie much further apart, what a surface seen at
+    :data:`LIDAR_INCIDENCE` degrees makes between neighbouring (reduced) beams, tan(incidence) times their angle
+    (:meth:`ReducedSpherical.row_footprints`). The rules that compare two estimates of one point (corners shared
+    by leaves) keep ``max_jump`` as given."""
     if isinstance(k, ReducedSpherical):
-        return math.tan(math.radians(LIDAR_INCIDENCE)) * k.footprint
-    return p.max_jump
+        return math.tan(math.radians(LIDAR_INCIDENCE)) * k.row_footprints()
+    return np.full(height, p.max_jump)
+
+
+def _row_angles(k: Grid, height: int) -> np.ndarray:
+    """(height,) radians per (reduced) pixel, row by row: a camera's 1 / focal length, a range image's footprints."""
+    return k.row_footprints() if isinstance(k, ReducedSpherical) else np.full(height, 1.0 / min(k.fx, k.fy))
+
+
+def _over_leaf_rows(values: np.ndarray, leaves: Leaves) -> np.ndarray:
+    """(L,) the largest of per-row ``values`` (H,) over the rows each leaf covers."""
+    if not len(leaves.level):
+        return np.zeros(0)
+    top = leaves.row * leaves.size
+    bottom = np.minimum(top + leaves.size, len(values))
+    if np.all(values == values[0]):
+        return np.full(len(top), values[0])
+    return np.array([values[a:b].max() for a, b in zip(top, bottom)])
 
 
 def grazing_on(p: QuadTreeParameters, k: Grid | SphericalGeometry) -> bool:
@@ -221,15 +247,20 @@ def grazing_on(p: QuadTreeParameters, k: Grid | SphericalGeometry) -> bool:
     return on_for_range_images(p.grazing, k.geometry if isinstance(k, ReducedSpherical) else k)
 
 
+def _grid_height(k: Grid) -> int:
+    return k.height
+
+
 def _leaf_jump(leaves: Leaves, p: QuadTreeParameters, k: Grid) -> np.ndarray:
     """(L, 1) the relative depth change per pixel each leaf's surface may make (the silhouette and wild-corner
-    tests): :func:`_step_jump`, and with the grazing rule at least what the leaf's own plane makes at its
+    tests): :func:`_row_jumps` over its rows, and with the grazing rule at least what the leaf's own plane makes at its
     incidence, :data:`GRAZING_MARGIN` tan(incidence) times the pixel's angle (incidence capped at
     :data:`MAX_GRAZING_INCIDENCE` degrees): a plane seen steeply is still one surface."""
-    jump = np.full((len(leaves.level), 1), _step_jump(p, k))
+    height = _grid_height(k)
+    jump = _over_leaf_rows(_row_jumps(p, k, height), leaves)[:, None]
     if not grazing_on(p, k) or not len(leaves.level):
         return jump
-    angle = k.footprint if isinstance(k, ReducedSpherical) else 1.0 / min(k.fx, k.fy)
+    angle = _over_leaf_rows(_row_angles(k, height), leaves)
     distance = np.linalg.norm(leaves.point, axis=1)
     cosine = np.abs(np.einsum("ij,ij->i", leaves.normal, leaves.point)) / np.where(distance > 0, distance, 1.0)
     cosine = np.maximum(cosine, math.cos(math.radians(MAX_GRAZING_INCIDENCE)))
@@ -267,7 +298,7 @@ def merge_allowances(points: np.ndarray, k: Grid, noise: SensorNoise, smoothed: 
     sigma = np.nan_to_num(noise.sigma(depth, k.near, k.far), nan=0.0)
     if smoothed:
         sigma = sigma * smoothed_noise_share(noise)
-    angle = k.footprint if isinstance(k, ReducedSpherical) else 1.0 / min(k.fx, k.fy)
+    angle = _row_angles(k, depth.shape[0])[:, None]
     spacing = np.maximum(depth * angle, 1e-9)
     normal = MERGE_NOISE_K * sigma / (math.sqrt(2.0) * spacing)
     distance = MERGE_NOISE_K * sigma
@@ -326,6 +357,7 @@ def _silhouette_inset(
     r = p.reduction
     inset = np.full(corner_u.shape, 0.5)
     h, w = fine.depth.shape[:2]
+    angle = _over_leaf_rows(_row_angles(k, _grid_height(k)), leaves)[:, None]
     normal, point = leaves.normal[:, None, :], leaves.point[:, None, :]
     for step in reversed(range((r - 1) // 2)):  # the outermost pixel on the plane wins
         col = r * corner_u + np.where(step_u > 0, step, -1 - step)
@@ -337,7 +369,7 @@ def _silhouette_inset(
             # along the pixel's ray, where the corner would go: a plane seen at a grazing angle passes
             # close (perpendicular) to the surface behind a silhouette while its depth there is far off
             plane_depth = np.einsum("...i,...i->...", normal, point) / np.einsum("...i,...i->...", normal, ray)
-            on_plane = inside & (np.abs(value - plane_depth) <= plane_allowance(value, k, fine.noise))
+            on_plane = inside & (np.abs(value - plane_depth) <= plane_allowance(value, k, fine.noise, angle))
             on_plane &= np.abs(plane_depth - leaf_depth) <= reach
         inset = np.where(on_plane, (step + 0.5) / r, inset)
     return inset
@@ -596,7 +628,7 @@ def leaves_of_image(
         z = np.ascontiguousarray(points[:, :, 2])
         around = points if measured is None else np.ascontiguousarray(back_projected(measured))
         right, down = straight_neighbours(around, around[:, :, 2], noise, reduced, z)
-        normals = kernels.point_normals_depth_kernel(points, z, p.max_jump, right, down)
+        normals = kernels.point_normals_depth_kernel(points, z, np.full(h, p.max_jump), right, down)
     else:
         normals = kernels.point_normals_kernel(points, p.max_jump)
     level, row, col, normal, point, regions = pyramid(points, normals, reduced, p, noise)
@@ -633,7 +665,7 @@ def _range_leaves(
     points = back_projected(ranges)
     reduced = ReducedSpherical(geometry, r, points.shape[1], points.shape[0])
     depth = np.ascontiguousarray(_depth(points, reduced))
-    jump = _step_jump(p, reduced)
+    jump = _row_jumps(p, reduced, points.shape[0])
     points = np.ascontiguousarray(points)
     grazing = grazing_on(p, reduced)
     if grazing:
@@ -720,13 +752,18 @@ def fitting_leaves(leaves: Leaves, residual: np.ndarray, reduced: Grid, noise: S
     """The leaves whose plane fits their own and their neighbouring same-surface pixels: a small leaf whose
     plane misses one by more than :data:`RESIDUAL_FOOTPRINTS` pixel footprints and 3 sigma of the noise
     (``residual``, metres) sits on a crease or a corner and gets no face."""
-    return select(leaves, residual <= plane_allowance(_depth(leaves.point, reduced), reduced, noise))
+    angle = _over_leaf_rows(_row_angles(reduced, _grid_height(reduced)), leaves)
+    return select(leaves, residual <= plane_allowance(_depth(leaves.point, reduced), reduced, noise, angle))
 
 
-def plane_allowance(depth: np.ndarray, reduced: Grid, noise: SensorNoise) -> np.ndarray:
+def plane_allowance(depth: np.ndarray, reduced: Grid, noise: SensorNoise, angle=None) -> np.ndarray:
     """How far (metres) a pixel at ``depth`` may lie from a leaf's plane and still be on it: the larger of
-    :data:`RESIDUAL_FOOTPRINTS` reduced pixel footprints and 3 sigma(z) of the noise."""
-    footprint = depth * reduced.footprint if isinstance(reduced, ReducedSpherical) else depth / reduced.fx
+    :data:`RESIDUAL_FOOTPRINTS` reduced pixel footprints and 3 sigma(z) of the noise. ``angle``: a range image's
+    radians per reduced pixel where it differs by row (broadcast with ``depth``); None: its :attr:`footprint`."""
+    if isinstance(reduced, ReducedSpherical):
+        footprint = depth * (reduced.footprint if angle is None else angle)
+    else:
+        footprint = depth / reduced.fx
     return np.maximum(RESIDUAL_FOOTPRINTS * footprint, 3.0 * noise.sigma(depth, reduced.near, reduced.far))
 
 

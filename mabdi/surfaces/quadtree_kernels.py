@@ -82,10 +82,11 @@ def reduce_ranges_kernel(ranges, r, rays):
 
 @njit(cache=True)
 def point_normals_kernel(points, max_jump):
-    """(H, W, 3) unit normals facing the camera, as the numpy reference ``point_normals`` (tests/reference_kernels.py)."""
+    """(H, W, 3) unit normals facing the camera, as the numpy reference ``point_normals`` (tests/reference_kernels.py);
+    ``max_jump`` one number for every row."""
     height, width = points.shape[0], points.shape[1]
     none = np.zeros((height, width), dtype=np.bool_)
-    return point_normals_depth_kernel(points, points[:, :, 2], max_jump, none, none)
+    return point_normals_depth_kernel(points, points[:, :, 2], np.full(height, max_jump), none, none)
 
 
 @njit(cache=True)
@@ -93,7 +94,8 @@ def point_normals_depth_kernel(points, depth, max_jump, right, down):
     """:func:`point_normals_kernel` with the depth tests on ``depth`` (H, W): a camera's z (the points' own), a
     LiDAR's range; and a neighbour that fails the jump rule used all the same where ``right`` (H, W: pixel
     (i, j) with (i, j + 1)) or ``down`` ((i, j) with (i + 1, j)) says the two are on one straight line
-    (:func:`mabdi.depth.straight_continuations`; all False: the jump rule alone)."""
+    (:func:`mabdi.depth.straight_continuations`; all False: the jump rule alone). ``max_jump`` (H,): each row's
+    relative jump; two pixels of rows i and k are compared with the larger of the two rows'."""
     height, width = points.shape[0], points.shape[1]
     normals = np.full((height, width, 3), np.nan)
     du = np.empty(3)
@@ -111,8 +113,8 @@ def point_normals_depth_kernel(points, depth, max_jump, right, down):
                 backward_ok = bi >= 0 and bj >= 0
                 straight_forward = right[i, j] if axis == 0 else down[i, j]
                 straight_backward = backward_ok and (right[bi, bj] if axis == 0 else down[bi, bj])
-                has_forward = forward_ok and (abs(depth[fi, fj] - z) <= max_jump * z or straight_forward)
-                has_backward = backward_ok and (abs(depth[bi, bj] - z) <= max_jump * z or straight_backward)
+                has_forward = forward_ok and (abs(depth[fi, fj] - z) <= max(max_jump[i], max_jump[fi]) * z or straight_forward)
+                has_backward = backward_ok and (abs(depth[bi, bj] - z) <= max(max_jump[i], max_jump[bi]) * z or straight_backward)
                 for c in range(3):
                     forward = points[fi, fj, c] if forward_ok else np.nan
                     backward = points[bi, bj, c] if backward_ok else np.nan
@@ -291,13 +293,14 @@ def pyramid_kernel(points, normals, n_t, d_t, normal_noise, distance_noise, nois
 def plane_residual_kernel(points, level, row, col, normal, point, max_jump, largest):
     """As the numpy reference ``plane_residual`` (tests/reference_kernels.py): for leaves up to ``largest`` pixels a side, the
     largest distance of a same-surface pixel of the leaf or its ring from the leaf's plane."""
-    return plane_residual_depth_kernel(points, points[:, :, 2], level, row, col, normal, point, point[:, 2], max_jump, largest)
+    jumps = np.full(points.shape[0], max_jump)
+    return plane_residual_depth_kernel(points, points[:, :, 2], level, row, col, normal, point, point[:, 2], jumps, largest)
 
 
 @njit(cache=True)
 def plane_residual_depth_kernel(points, depth, level, row, col, normal, point, point_depth, max_jump, largest):
     """:func:`plane_residual_kernel` with the same-surface test on ``depth`` (H, W) and the leaves' ``point_depth``
-    (a camera's z, a LiDAR's range)."""
+    (a camera's z, a LiDAR's range), each pixel's by its row's ``max_jump`` (H,)."""
     height, width = points.shape[0], points.shape[1]
     residual = np.zeros(level.shape[0])
     for k in range(level.shape[0]):
@@ -313,7 +316,7 @@ def plane_residual_depth_kernel(points, depth, level, row, col, normal, point, p
                 if r < 0 or r >= height or c < 0 or c >= width:
                     continue
                 z = depth[r, c]
-                if not (abs(z - z0) <= max_jump * z0):
+                if not (abs(z - z0) <= max_jump[r] * z0):
                     continue
                 distance = abs(
                     (points[r, c, 0] - point[k, 0]) * normal[k, 0]
