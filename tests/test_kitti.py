@@ -105,12 +105,23 @@ def test_kitti_points_default_geometry(tmp_path):
     assert np.isnan(frame.timestamp)
 
 
+def test_poses_written_as_4x4_matrices_read_as_3x4_ones(tmp_path):
+    """A poses.txt of 16 numbers a line (4x4 row-major, last row 0 0 0 1, as some odometry tools write it) reads
+    the same poses as the KITTI 3x4 lines."""
+    folder = write_kitti(_source(frames=2), tmp_path / "seq")
+    expected = KittiSequence(folder).poses
+    rows = [line.split() for line in (folder / "poses.txt").read_text().splitlines() if line.strip()]
+    (folder / "poses.txt").write_text("".join(" ".join(row + ["0", "0", "0", "1"]) + "\n" for row in rows))
+    np.testing.assert_array_equal(KittiSequence(folder).poses, expected)
+
+
 @pytest.mark.parametrize(
     ("damage", "message"),
     [
         (lambda f: (f / "poses.txt").write_text("1 0 0 0 0 1 0 0 0 0 1 0\n"), r"poses.txt: 1 poses, but velodyne/ holds 2 scans"),
         (lambda f: (f / "poses.txt").write_text("1 0 0 0 0 1 0 0 0 0 1\n" * 2), r"poses.txt:1: pose: expected 12 finite numbers"),
         (lambda f: (f / "poses.txt").write_text("2 0 0 0 0 1 0 0 0 0 1 0\n" * 2), r"poses.txt:1: not a rigid transform"),
+        (lambda f: (f / "poses.txt").write_text("1 0 0 0 0 1 0 0 0 0 1 0 0 0 1 1\n" * 2), r"poses.txt:1: pose: a 4x4 matrix's last row must be 0 0 0 1"),
         (lambda f: (f / "calib.txt").write_text("P0: 1 2 3\n"), r"calib.txt: no 'Tr:' line"),
         (lambda f: (f / "times.txt").write_text("0.0\n"), r"times.txt: 1 timestamps, but velodyne/ holds 2 scans"),
         (lambda f: (f / "velodyne" / "000001.bin").write_bytes(b"\0" * 20), r"000001.bin: 20 bytes is not a whole number of points"),

@@ -7,7 +7,8 @@ poses file copied in as ``poses.txt``):
   point (sensor frame: x forward, y left, z up; metres); frames are the
   files in name order (a file's size is a whole number of 16-byte points,
   else an error). The intensity is not used.
-* ``poses.txt``: one line a scan, the 12 numbers of a 3x4 matrix row-major:
+* ``poses.txt``: one line a scan, the 12 numbers of a 3x4 matrix row-major
+  (or 16, a 4x4 whose last row is 0 0 0 1):
   the pose of KITTI's camera 0 (x right, y down, z forward) in the frame of
   the first camera 0 (KITTI's ground truth, ``poses/NN.txt``).
 * ``calib.txt`` (optional): lines ``KEY: numbers``; ``Tr:`` is the 3x4
@@ -88,8 +89,9 @@ def is_kitti(path) -> bool:
 
 
 def read_matrix_rows(path: Path, what: str) -> np.ndarray:
-    """(N, 4, 4) poses of a file of 3x4 row-major matrices, one a line (blank lines skipped), or a SequenceError
-    naming the file and line."""
+    """(N, 4, 4) poses of a file of 3x4 row-major matrices, one a line (blank lines skipped; a line of 16 numbers,
+    a 4x4 whose last row is 0 0 0 1, as some tools write them, is read too), or a SequenceError naming the file
+    and line."""
     matrices = []
     repairs = PoseRepairs()
     with open(path, encoding="utf-8", errors="replace") as stream:
@@ -101,8 +103,14 @@ def read_matrix_rows(path: Path, what: str) -> np.ndarray:
                 values = [float(f) for f in fields]
             except ValueError:
                 raise SequenceError(f"{path}:{number}: {what}: a field is not a number: {line.strip()!r}") from None
+            if len(values) == 16 and np.isfinite(values).all():
+                if not np.allclose(values[12:], [0.0, 0.0, 0.0, 1.0], atol=1e-6):
+                    raise SequenceError(f"{path}:{number}: {what}: a 4x4 matrix's last row must be 0 0 0 1, got {fields[12:]}")
+                values = values[:12]
             if len(values) != 12 or not np.isfinite(values).all():
-                raise SequenceError(f"{path}:{number}: {what}: expected 12 finite numbers (a 3x4 matrix row-major), got {len(values)}")
+                raise SequenceError(
+                    f"{path}:{number}: {what}: expected 12 finite numbers (a 3x4 matrix row-major; or 16, a 4x4), got {len(values)}"
+                )
             matrices.append(_homogeneous(values, f"{path}:{number}", repairs))
     if (note := repairs.note(str(path))) is not None:
         warnings.warn(note, PoseFileWarning, stacklevel=2)
