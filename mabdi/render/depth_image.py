@@ -261,7 +261,17 @@ class DepthRenderer:
         """The render window (None before the first render)."""
         return self._window
 
-    def render_zbuffer(self, data, intrinsics: Intrinsics, world_from_camera) -> np.ndarray:
+    def draw(self, data, intrinsics: Intrinsics, world_from_camera) -> None:
+        """Draw ``data`` from ``world_from_camera`` and read nothing back: for a caller that reads only the
+        identities (:meth:`render_identity`), not the z-buffer (a LiDAR's sector renders, which cast their rays
+        against the faces drawn). Always draws; a later :meth:`render_zbuffer` draws again."""
+        self._prepare(data, intrinsics, world_from_camera)
+        self._draw(intrinsics, world_from_camera)
+        self._last_scene = None
+
+    def _prepare(self, data, intrinsics: Intrinsics, world_from_camera):
+        """The window at the intrinsics' size and the actors of the blocks of ``data`` in view from
+        ``world_from_camera``; the scene's key (for :meth:`render_zbuffer`'s reuse)."""
         size = (intrinsics.width, intrinsics.height)
         if self._window is None or self._size != size:
             if self._window is not None:
@@ -271,16 +281,9 @@ class DepthRenderer:
             self._size = size
         leaves = named_leaves(data, frustum_planes(intrinsics, world_from_camera))
         self._sync_actors(leaves)
-        # the same leaves, unchanged, from the same pose as the last render (E at a registered pose that is the
-        # given one), or one within reuse_within_px of it: its buffers are still in the window, nothing is drawn again
-        scene = (intrinsics, tuple((id(leaf), leaf.GetMTime()) for _, leaf in leaves))
-        pose = np.asarray(world_from_camera, dtype=np.float64)
-        width, height = size
-        if self._last_scene is not None and scene == self._last_scene[0]:
-            last = self._last_scene[1]
-            if np.array_equal(last, pose) or (self.reuse_within_px > 0 and pose_shift_px(last, pose, intrinsics) <= self.reuse_within_px):
-                return vtk_to_numpy(self._zbuffer).reshape(height, width)[::-1]
-        self._last_scene = None
+        return (intrinsics, tuple((id(leaf), leaf.GetMTime()) for _, leaf in leaves))
+
+    def _draw(self, intrinsics: Intrinsics, world_from_camera) -> None:
         configure_vtk_camera(self._renderer.GetActiveCamera(), intrinsics, world_from_camera)
         # Polygon offsets would bias depth; the setting is global in VTK, so restore it after.
         coincident = vtkMapper.GetResolveCoincidentTopology()
@@ -289,6 +292,20 @@ class DepthRenderer:
             self._window.Render()
         finally:
             vtkMapper.SetResolveCoincidentTopology(coincident)
+
+    def render_zbuffer(self, data, intrinsics: Intrinsics, world_from_camera) -> np.ndarray:
+        """Draw ``data`` from ``world_from_camera`` and read its (H, W) z-buffer back (the class docs)."""
+        scene = self._prepare(data, intrinsics, world_from_camera)
+        # the same leaves, unchanged, from the same pose as the last render (E at a registered pose that is the
+        # given one), or one within reuse_within_px of it: its buffers are still in the window, nothing is drawn again
+        pose = np.asarray(world_from_camera, dtype=np.float64)
+        width, height = intrinsics.width, intrinsics.height
+        if self._last_scene is not None and scene == self._last_scene[0]:
+            last = self._last_scene[1]
+            if np.array_equal(last, pose) or (self.reuse_within_px > 0 and pose_shift_px(last, pose, intrinsics) <= self.reuse_within_px):
+                return vtk_to_numpy(self._zbuffer).reshape(height, width)[::-1]
+        self._last_scene = None
+        self._draw(intrinsics, world_from_camera)
         self._window.GetZbufferData(0, 0, width - 1, height - 1, self._zbuffer)
         self._last_scene = (scene, pose.copy())
         return vtk_to_numpy(self._zbuffer).reshape(height, width)[::-1]
@@ -297,7 +314,7 @@ class DepthRenderer:
         """(H, W) int64 identity of the last render (top row first): the 24-bit RGB of the face seen, 0 = none;
         written into ``out`` instead ((H, W), uint32 or wider) when given, and ``out`` returned.
 
-        Call right after :meth:`render_zbuffer` (same frame); needs ``identity_array``.
+        Call right after :meth:`render_zbuffer` or :meth:`draw` (same frame); needs ``identity_array``.
         """
         width, height = self._size
         # RGBA read as one little-endian 32-bit word per pixel: red is the low byte, alpha (the high byte) masked off

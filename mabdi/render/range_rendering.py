@@ -297,7 +297,7 @@ class RangeRenderer:
             blocks = vtkMultiBlockDataSet()
             for index, visible in enumerate(np.flatnonzero(~boxes_outside(bounds, frustum_planes(k, camera)))):
                 blocks.SetBlock(index, copies[visible])
-            self.depth_renderer.render_zbuffer(blocks, k, camera)
+            self.depth_renderer.draw(blocks, k, camera)  # the identities alone are read: the rays are cast on them
             self.depth_renderer.render_identity(out=self._ids[sector])
         self._drawn = (geometry, pose)
         self._along = None
