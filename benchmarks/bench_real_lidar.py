@@ -93,7 +93,7 @@ from mabdi.io.atomic import write_text
 from mabdi.loop.mapping_run import RECORDING_LIDAR_NOISE, MappingRun
 from mabdi.polydata import triangles_polydata
 from mabdi.sources.frames import FrameSubset
-from mabdi.sources.kitti import SCAN_FOLDER, is_kitti, read_scan
+from mabdi.sources.kitti import SCAN_FOLDER, is_kitti, read_scan, scan_files
 from mabdi.sources.sequences import open_sequence
 from mabdi.spherical import SphericalGeometry
 
@@ -132,11 +132,6 @@ def git_state() -> dict:
     if head.returncode or status.returncode:
         return {}
     return {"head": head.stdout.strip(), "uncommitted": [line[3:] for line in status.stdout.splitlines() if line.strip()]}
-
-
-def scan_files(path: Path) -> list[Path]:
-    """The folder's scan files in the reader's order (:class:`~mabdi.sources.kitti.KittiSequence`)."""
-    return sorted(p for p in (path / SCAN_FOLDER).iterdir() if p.suffix == ".bin")
 
 
 def scored(mesh, held: HeldOutScans) -> tuple[dict, float]:
@@ -384,7 +379,7 @@ def main(argv=None) -> int:
         parser.error(str(exc))
 
     if not is_kitti(args.sequence):
-        parser.error(f"{args.sequence}: not a KITTI-layout folder ({SCAN_FOLDER}/ of .bin scans and poses.txt)")
+        parser.error(f"{args.sequence}: not a KITTI-layout folder ({SCAN_FOLDER}/ of .bin or .pcd scans and poses.txt)")
     usable, reason = open3d_status()
     if not usable:
         parser.error(f"the scoring needs Open3D: {reason}")

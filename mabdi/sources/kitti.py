@@ -6,7 +6,8 @@ poses file copied in as ``poses.txt``):
 * ``velodyne/NNNNNN.bin``: one scan a file, float32 ``x y z intensity`` per
   point (sensor frame: x forward, y left, z up; metres); frames are the
   files in name order (a file's size is a whole number of 16-byte points,
-  else an error). The intensity is not used.
+  else an error). The intensity is not used. Or ``velodyne/NNNNNN.pcd``,
+  PCL's files (:mod:`mabdi.sources.pcd`), as many datasets ship their scans.
 * ``poses.txt``: one line a scan, the 12 numbers of a 3x4 matrix row-major
   (or 16, a 4x4 whose last row is 0 0 0 1):
   the pose of KITTI's camera 0 (x right, y down, z forward) in the frame of
@@ -51,6 +52,7 @@ from mabdi.errors import PoseError, PoseFileWarning
 from mabdi.io.atomic import atomic_output, write_text
 from mabdi.io.toml_writer import toml_lines
 from mabdi.sources.frames import FrameSource
+from mabdi.sources.pcd import read_pcd
 from mabdi.sources.range_images import (
     EMPTY_ROWS_WARNING,
     KITTI_GEOMETRY,
@@ -68,6 +70,8 @@ from mabdi.sources.sequence_files import SequenceError, metadata_path, prepare_f
 from mabdi.spherical import SphericalGeometry
 
 SCAN_FOLDER = "velodyne"
+#: A scan file's suffixes: KITTI's float32 x y z intensity, or a PCD file (:mod:`mabdi.sources.pcd`).
+SCAN_SUFFIXES = (".bin", ".pcd")
 POSES_FILE = "poses.txt"
 CALIB_FILE = "calib.txt"
 TIMES_FILE = "times.txt"
@@ -144,9 +148,28 @@ def _homogeneous(values, where: str, repairs: PoseRepairs | None = None) -> np.n
         raise SequenceError(f"{where}: not a rigid transform: {exc}") from None
 
 
+def scan_files(folder: Path) -> list[Path]:
+    """A KITTI folder's scan files in frame order: ``velodyne/NNNNNN.bin``, or ``.pcd`` (not both); a name that
+    is not a number, or both kinds, is a SequenceError naming the file."""
+    scans = sorted(p for p in (folder / SCAN_FOLDER).iterdir() if p.suffix in SCAN_SUFFIXES)
+    if not scans:
+        raise SequenceError(f"KITTI folder {folder}: no .bin or .pcd scan in {SCAN_FOLDER}/")
+    kinds = sorted({p.suffix for p in scans})
+    if len(kinds) > 1:
+        raise SequenceError(f"KITTI folder {folder}: {SCAN_FOLDER}/ holds both .bin and .pcd scans; keep one kind")
+    odd = [p for p in scans if not re.fullmatch(r"\d+", p.stem)]
+    if odd:
+        raise SequenceError(f"{odd[0]}: a scan's name must be its number (NNNNNN{kinds[0]})")
+    return scans
+
+
 def read_scan(path: Path) -> np.ndarray:
     """(N, 3) float32 sensor-frame points of a KITTI ``.bin`` scan (float32 x y z intensity), or a SequenceError
-    naming the file when it cannot be read or its size is not a whole number of 16-byte points."""
+    naming the file when it cannot be read or its size is not a whole number of 16-byte points; a ``.pcd`` scan's
+    by :func:`~mabdi.sources.pcd.read_pcd`."""
+    path = Path(path)
+    if path.suffix == ".pcd":
+        return read_pcd(path)
     try:
         size = os.stat(path).st_size
         raw = np.fromfile(path, dtype="<f4")
@@ -166,16 +189,10 @@ class KittiSequence(FrameSource):
     def __init__(self, path, geometry: SphericalGeometry | None = None) -> None:
         path = Path(path)
         if not is_kitti(path):
-            raise SequenceError(f"KITTI folder {path}: needs a {SCAN_FOLDER}/ folder of .bin scans and {POSES_FILE}")
+            raise SequenceError(f"KITTI folder {path}: needs a {SCAN_FOLDER}/ folder of .bin (or .pcd) scans and {POSES_FILE}")
         self.path = path
         self.description = f"KITTI folder {path}"
-        self._scans = sorted(p for p in (path / SCAN_FOLDER).iterdir() if p.suffix == ".bin")
-        if not self._scans:
-            raise SequenceError(f"KITTI folder {path}: no .bin scan in {SCAN_FOLDER}/")
-        names = [p.stem for p in self._scans]
-        odd = [n for n in names if not re.fullmatch(r"\d+", n)]
-        if odd:
-            raise SequenceError(f"{path / SCAN_FOLDER / (odd[0] + '.bin')}: a scan's name must be its number (NNNNNN.bin)")
+        self._scans = scan_files(path)
         poses = read_matrix_rows(path / POSES_FILE, "pose")
         if len(poses) != len(self._scans):
             raise SequenceError(f"{path / POSES_FILE}: {len(poses)} poses, but {SCAN_FOLDER}/ holds {len(self._scans)} scans")
