@@ -66,6 +66,10 @@ LEARNT_PERCENTILES = (0.5, 99.5)
 #: at least :data:`MIN_RINGS_FOR_SPACING` of them (an uneven sensor's, a VLP-32C's, lie several spacings off).
 UNIFORM_TOLERANCE_ROWS = 0.75
 MIN_RINGS_FOR_SPACING = 4
+#: A learnt image of a sensor that fires fewer times a turn than the default's columns has this share of its
+#: firings as columns (:func:`learnt_columns`), from the rings of at least :data:`MIN_RING_RETURNS` returns.
+COLUMNS_PER_FIRING = 0.9
+MIN_RING_RETURNS = 50
 
 #: Two returns of a column on either side of a pixel centre's elevation are one surface when their ranges differ
 #: by at most this (m) plus what a surface at :data:`SURFACE_INCIDENCE` from the rays changes over their gap ...
@@ -223,7 +227,8 @@ def learn_geometry(scans, default: SphericalGeometry) -> tuple[SphericalGeometry
        origin), over the span between the :data:`LEARNT_PERCENTILES` of the first scan's elevations;
     3. else (rings uneven, or smeared in every scan), ``default``'s beam count over that span.
 
-    Columns and range are ``default``'s.
+    Columns: ``default``'s, fewer where the sensor fires fewer times a turn (:func:`learnt_columns`); range:
+    ``default``'s.
     """
     scans = [scans] if isinstance(scans, np.ndarray) else list(scans)
     fit = scan_fit(scans[0], default)
@@ -233,15 +238,39 @@ def learn_geometry(scans, default: SphericalGeometry) -> tuple[SphericalGeometry
     if not top > bottom:
         return None, fit
     returns = [_returns(points, default.range_min) for points in scans]
+    learnt = _uniform(default, default.beams, top, bottom)
     for _, elevation in returns:
         centres = beam_elevations_of(elevation)
         if uniform_spacing_of(centres) is not None:
-            return _uniform(default, len(centres), float(centres[0]), float(centres[-1])), fit
-    for points, elevation in returns:
-        distance = np.linalg.norm(points, axis=1)
-        if len(distance) and (spacing := uniform_spacing_of(beam_elevations_of(elevation[distance > np.median(distance)]))):
-            return _uniform(default, int(round((top - bottom) / spacing)) + 1, top, bottom), fit
-    return _uniform(default, default.beams, top, bottom), fit
+            learnt = _uniform(default, len(centres), float(centres[0]), float(centres[-1]))
+            break
+    else:
+        for points, elevation in returns:
+            distance = np.linalg.norm(points, axis=1)
+            if len(distance) and (spacing := uniform_spacing_of(beam_elevations_of(elevation[distance > np.median(distance)]))):
+                learnt = _uniform(default, int(round((top - bottom) / spacing)) + 1, top, bottom)
+                break
+    return dataclasses.replace(learnt, columns=learnt_columns(returns[0][0], learnt)), fit
+
+
+def learnt_columns(points, geometry: SphericalGeometry) -> int:
+    """The columns of an image of ``geometry`` for a scan's returns ``points`` (N, 3): ``geometry.columns``, or
+    where the sensor fires fewer times a turn than that (the median azimuth step between a ring's neighbouring
+    returns), :data:`COLUMNS_PER_FIRING` of its firings a turn: a column for every firing leaves columns empty
+    where the firings drift across column edges, and nothing meshes across an empty column."""
+    uv, _ = geometry.pixels(points)
+    row = np.floor(uv[:, 1]).astype(np.int64)
+    inside = (row >= 0) & (row < geometry.beams)
+    azimuth = np.arctan2(points[inside, 1], points[inside, 0])
+    steps = []
+    for beam in np.unique(row[inside]):
+        ring = np.sort(azimuth[row[inside] == beam])
+        if len(ring) >= MIN_RING_RETURNS:
+            steps.append(np.median(np.diff(ring)))
+    if not steps or not np.median(steps) > 0:
+        return geometry.columns
+    per_turn = 2.0 * np.pi / float(np.median(steps))
+    return geometry.columns if per_turn >= geometry.columns else max(int(COLUMNS_PER_FIRING * per_turn), 1)
 
 
 def _uniform(default: SphericalGeometry, beams: int, top: float, bottom: float) -> SphericalGeometry:
@@ -516,6 +545,7 @@ __all__ = [
     "geometry_from_table",
     "image_edges",
     "learn_geometry",
+    "learnt_columns",
     "rows_without_returns",
     "EMPTY_ROWS_WARNING",
     "uniform_spacing_of",
