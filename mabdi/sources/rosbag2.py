@@ -35,6 +35,7 @@ The rules in full: docs/architecture.md (``mabdi.sources.rosbag2``).
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import functools
 import os
 import shutil
@@ -59,6 +60,7 @@ from mabdi.sources.range_images import (
     LidarGeometryWarning,
     geometry_from_table,
     learn_geometry,
+    learnt_columns,
     lidar_table,
     range_image_and_returns,
     range_image_points,
@@ -445,7 +447,10 @@ class Rosbag2Sequence(FrameSource):
             derived["beams"] = beams
             if "beam_elevations" not in table and not ("fov_up" in table or "fov_down" in table) and isinstance(beams, int):
                 derived.update(_beam_table(points, self._rows(index, points, beams, f"{where}: first message"), beams))
-        return geometry_from_table({**derived, **table}, file)
+        geometry = geometry_from_table({**derived, **table}, file)
+        if organised is None and "columns" not in table:  # an unorganised cloud: as many columns as its firings allow
+            geometry = dataclasses.replace(geometry, columns=learnt_columns(points, geometry))
+        return geometry
 
     def _learnt_geometry(self, messages, table: dict, where: str) -> SphericalGeometry:
         """The geometry of clouds without rings whose ``[lidar]`` table (``table``, perhaps empty) states no vertical
