@@ -121,3 +121,17 @@ def test_a_kitti_folder_of_pcd_scans_reads_as_its_bin_scans(tmp_path):
     (pcd / "velodyne" / "000003.bin").write_bytes(b"")
     with pytest.raises(SequenceError, match=r"holds both .bin and .pcd scans"):
         KittiSequence(pcd)
+
+
+def test_scans_are_taken_in_the_order_of_their_numbers(tmp_path):
+    """Scan files named by unpadded numbers (9.pcd, 10.pcd, as some datasets name them) are frames 9 then 10,
+    not in the order of their names' characters; two files of one number are refused."""
+    from mabdi.sources.kitti import scan_files
+
+    (tmp_path / "velodyne").mkdir()
+    for number in (10, 9, 100, 0):
+        write_pcd(tmp_path / "velodyne" / f"{number}.pcd", _cloud(10, seed=number), "binary")
+    assert [p.stem for p in scan_files(tmp_path)] == ["0", "9", "10", "100"]
+    write_pcd(tmp_path / "velodyne" / "009.pcd", _cloud(10), "binary")
+    with pytest.raises(SequenceError, match=r"two scans are number 9 \(009.pcd, 9.pcd\)"):
+        scan_files(tmp_path)

@@ -23,8 +23,9 @@ poses file copied in as ``poses.txt``):
   :data:`~mabdi.sources.range_images.KITTI_GEOMETRY` (the HDL-64E), unless
   the first scan misses it: then the geometry learnt from the first
   :data:`LEARN_SCANS` scans (:func:`~mabdi.sources.range_images.learn_geometry`;
-  more than 5% of the first scan's points above or below it). A scan with more than 5% of its points outside the
-  image (above, below, beyond range_max) is said once, as a
+  more than 5% of the first scan's points above or below it). A scan with
+  more than 5% of its points outside the image (above, below, beyond
+  range_max) is said once, as a
   :class:`~mabdi.sources.range_images.LidarGeometryWarning` with the numbers
   and the ``[lidar]`` keys to set.
 
@@ -149,7 +150,8 @@ def _homogeneous(values, where: str, repairs: PoseRepairs | None = None) -> np.n
 
 
 def scan_files(folder: Path) -> list[Path]:
-    """A KITTI folder's scan files in frame order: ``velodyne/NNNNNN.bin``, or ``.pcd`` (not both); a name that
+    """A KITTI folder's scan files in frame order, by their numbers (``000009`` before ``000010``, and ``9``
+    before ``10`` where the names are not padded): ``velodyne/NNNNNN.bin``, or ``.pcd`` (not both); a name that
     is not a number, or both kinds, is a SequenceError naming the file."""
     scans = sorted(p for p in (folder / SCAN_FOLDER).iterdir() if p.suffix in SCAN_SUFFIXES)
     if not scans:
@@ -160,7 +162,11 @@ def scan_files(folder: Path) -> list[Path]:
     odd = [p for p in scans if not re.fullmatch(r"\d+", p.stem)]
     if odd:
         raise SequenceError(f"{odd[0]}: a scan's name must be its number (NNNNNN{kinds[0]})")
-    return scans
+    numbers = [int(p.stem) for p in scans]
+    if len(set(numbers)) < len(numbers):
+        twice = next(n for n in numbers if numbers.count(n) > 1)
+        raise SequenceError(f"KITTI folder {folder}: two scans are number {twice} ({', '.join(p.name for p in scans if int(p.stem) == twice)})")
+    return sorted(scans, key=lambda p: int(p.stem))
 
 
 def read_scan(path: Path) -> np.ndarray:

@@ -247,7 +247,8 @@ def learn_geometry(scans, default: SphericalGeometry) -> tuple[SphericalGeometry
     else:
         for points, elevation in returns:
             distance = np.linalg.norm(points, axis=1)
-            if len(distance) and (spacing := uniform_spacing_of(beam_elevations_of(elevation[distance > np.median(distance)]))):
+            far = elevation[distance > np.median(distance)] if len(distance) else elevation
+            if len(far) and (spacing := uniform_spacing_of(beam_elevations_of(far))):
                 learnt = _uniform(default, int(round((top - bottom) / spacing)) + 1, top, bottom)
                 break
     return dataclasses.replace(learnt, columns=learnt_columns(returns[0][0], learnt)), fit
@@ -274,7 +275,8 @@ def learnt_columns(points, geometry: SphericalGeometry) -> int:
 
 
 def _uniform(default: SphericalGeometry, beams: int, top: float, bottom: float) -> SphericalGeometry:
-    """``default`` with ``beams`` uniform beams from ``top`` to ``bottom`` (degrees), the edges half a spacing beyond."""
+    """``default`` with ``beams`` uniform beams from ``top`` to ``bottom`` (degrees), the edges half a spacing
+    beyond."""
     half = (top - bottom) / (2 * (beams - 1)) if beams > 1 else 0.5
     fov_up, fov_down = min(90.0, round(top + half, 3)), max(-90.0, round(bottom - half, 3))
     return dataclasses.replace(default, beams=beams, fov_up=fov_up, fov_down=fov_down, beam_elevations=())

@@ -189,7 +189,9 @@ class ReducedSpherical:
         if not self.geometry.beam_elevations or self.geometry.beams < 2:
             return np.full(self.height, self.footprint)
         pairs, r = self.geometry.pair_angles(), self.reduction
-        return np.array([pairs[max(row * r - 1, 0) : min(row * r + r, len(pairs))].max() * r for row in range(self.height)])
+        # the pairs that touch rows r row .. r row + r - 1: from the one above the block to the one below it
+        spans = [(max(row * r - 1, 0), min(row * r + r, len(pairs))) for row in range(self.height)]
+        return np.array([pairs[start:stop].max() * r for start, stop in spans])
 
     def rays_at(self, u, v) -> np.ndarray:
         """Unit rays at continuous reduced-grid coordinates (block corners at integers)."""

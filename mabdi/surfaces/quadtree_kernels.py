@@ -113,8 +113,10 @@ def point_normals_depth_kernel(points, depth, max_jump, right, down):
                 backward_ok = bi >= 0 and bj >= 0
                 straight_forward = right[i, j] if axis == 0 else down[i, j]
                 straight_backward = backward_ok and (right[bi, bj] if axis == 0 else down[bi, bj])
-                has_forward = forward_ok and (abs(depth[fi, fj] - z) <= max(max_jump[i], max_jump[fi]) * z or straight_forward)
-                has_backward = backward_ok and (abs(depth[bi, bj] - z) <= max(max_jump[i], max_jump[bi]) * z or straight_backward)
+                jump_forward = max(max_jump[i], max_jump[fi]) if forward_ok else 0.0
+                jump_backward = max(max_jump[i], max_jump[bi]) if backward_ok else 0.0
+                has_forward = forward_ok and (abs(depth[fi, fj] - z) <= jump_forward * z or straight_forward)
+                has_backward = backward_ok and (abs(depth[bi, bj] - z) <= jump_backward * z or straight_backward)
                 for c in range(3):
                     forward = points[fi, fj, c] if forward_ok else np.nan
                     backward = points[bi, bj, c] if backward_ok else np.nan
@@ -294,7 +296,8 @@ def plane_residual_kernel(points, level, row, col, normal, point, max_jump, larg
     """As the numpy reference ``plane_residual`` (tests/reference_kernels.py): for leaves up to ``largest`` pixels a side, the
     largest distance of a same-surface pixel of the leaf or its ring from the leaf's plane."""
     jumps = np.full(points.shape[0], max_jump)
-    return plane_residual_depth_kernel(points, points[:, :, 2], level, row, col, normal, point, point[:, 2], jumps, largest)
+    depth = points[:, :, 2]
+    return plane_residual_depth_kernel(points, depth, level, row, col, normal, point, point[:, 2], jumps, largest)
 
 
 @njit(cache=True)
