@@ -447,7 +447,7 @@ def removal_line(removed: int, kept: int, recording: bool) -> str:
     if recording and share >= REMOVED_SHARE_NOTE:
         line += (
             "; if nothing in the scene moved, that much says the poses disagree with the depth (a pose source's "
-            "clock or jumps, drift) or the noise is not the camera's; --no-removal keeps every face"
+            "clock or jumps, drift) or the noise is not the sensor's; --no-removal keeps every face"
         )
     return line
 
