@@ -105,7 +105,7 @@ def test_unorganised_cloud_without_rings_is_binned_by_elevation(bags, source, tm
 
     path = _rewrite_clouds(bags["velodyne", "sqlite3"], tmp_path / "no_ring", drop_ring)
     # No [lidar] table: the geometry learnt from the first scans (before, an error), said once: the 16 rings.
-    with pytest.warns(LidarGeometryWarning, match=r"learnt fov_up = \S+, fov_down = \S+, beams = 16 from the first 3 scans"):
+    with pytest.warns(LidarGeometryWarning, match=r"learnt fov_up = \S+, fov_down = \S+, beams = 16, columns = 57 from the first 3 scans"):
         learnt = Rosbag2Sequence(path)
     geometry = learnt.intrinsics
     spacing = 30.0 / 16

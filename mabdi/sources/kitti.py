@@ -234,9 +234,9 @@ class KittiSequence(FrameSource):
         read = self._scans[:LEARN_SCANS]
         learnt, fit = learn_geometry([first] + [read_scan(scan) for scan in read[1:]], KITTI_GEOMETRY)
         names = read[0].name if len(read) == 1 else f"{read[0].name}..{read[-1].name}"
-        settings = f"fov_up = {learnt.fov_up:g}, fov_down = {learnt.fov_down:g}, beams = {learnt.beams}"
+        settings = f"fov_up = {learnt.fov_up:g}, fov_down = {learnt.fov_down:g}, beams = {learnt.beams}, columns = {learnt.columns}"
         self.description += f" (LiDAR geometry learnt from {names}: {settings})"
-        self._warn(0, fit, f"mabdi learnt {settings} from {names} (columns, range_min, range_max kept) and uses them")
+        self._warn(0, fit, f"mabdi learnt {settings} from {names} (range_min, range_max kept) and uses them")
         self._geometry_from = f"the geometry learnt from {names}"
         return learnt
 

@@ -469,11 +469,11 @@ class Rosbag2Sequence(FrameSource):
                               f"clouds have no ring field): {fit.describe(default)}; the map will miss those points; {fix}",
                               LidarGeometryWarning, stacklevel=4)
             return default
-        settings = f"fov_up = {learnt.fov_up:g}, fov_down = {learnt.fov_down:g}, beams = {learnt.beams}"
+        settings = f"fov_up = {learnt.fov_up:g}, fov_down = {learnt.fov_down:g}, beams = {learnt.beams}, columns = {learnt.columns}"
         self.geometry_note = f"LiDAR geometry learnt from the first {len(scans)} scans: {settings}"
         warnings.warn(f"{where}: the first scan does not fit the default geometry (KITTI's Velodyne HDL-64E; the clouds "
                       f"have no ring field): {fit.describe(default)}; mabdi learnt {settings} from the first {len(scans)} "
-                      f"scans (columns, range_min, range_max kept) and uses them; {fix}", LidarGeometryWarning, stacklevel=4)
+                      f"scans (range_min, range_max kept) and uses them; {fix}", LidarGeometryWarning, stacklevel=4)
         return learnt
 
     def _rows(self, index: np.ndarray, points: np.ndarray, beams: int, where: str) -> np.ndarray:
