@@ -61,11 +61,13 @@ from mabdi.sources.range_images import (
     LidarGeometryWarning,
     geometry_from_table,
     learn_geometry,
+    learnt_settings,
     lidar_table,
     range_image_and_returns,
     range_image_points,
     rows_without_returns,
     scan_fit,
+    table_advice,
 )
 from mabdi.sources.sequence_files import SequenceError, metadata_path, prepare_folder, read_sequence_metadata
 from mabdi.spherical import SphericalGeometry
@@ -234,7 +236,7 @@ class KittiSequence(FrameSource):
         read = self._scans[:LEARN_SCANS]
         learnt, fit = learn_geometry([first] + [read_scan(scan) for scan in read[1:]], KITTI_GEOMETRY)
         names = read[0].name if len(read) == 1 else f"{read[0].name}..{read[-1].name}"
-        settings = f"fov_up = {learnt.fov_up:g}, fov_down = {learnt.fov_down:g}, beams = {learnt.beams}, columns = {learnt.columns}"
+        settings = learnt_settings(learnt)
         self.description += f" (LiDAR geometry learnt from {names}: {settings})"
         self._warn(0, fit, f"mabdi learnt {settings} from {names} (range_min, range_max kept) and uses them")
         self._geometry_from = f"the geometry learnt from {names}"
@@ -243,11 +245,7 @@ class KittiSequence(FrameSource):
     def _warn(self, index: int, fit, done: str = "") -> None:
         """Say once that scan ``index`` mostly misses the geometry (``fit`` against :attr:`geometry`, or the default)."""
         geometry = getattr(self, "geometry", KITTI_GEOMETRY)
-        fix = (
-            f"put the sensor's own geometry in the [lidar] table of {metadata_path(self.path)}: fov_up, fov_down "
-            "(degrees, the image's top and bottom edges), beams, and as needed columns, range_min, range_max (m), "
-            "beam_elevations (degrees, one a beam, top first)"
-        )
+        fix = table_advice(metadata_path(self.path))
         warnings.warn(
             f"KITTI folder {self.path}: scan {self._scans[index].name} does not fit {self._geometry_from}: "
             f"{fit.describe(geometry)}; " + (f"{done}; " if done else "the map will miss those points; ") + fix,

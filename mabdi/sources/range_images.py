@@ -119,6 +119,20 @@ class ScanFit:
         )
 
 
+def learnt_settings(geometry: SphericalGeometry) -> str:
+    """The ``[lidar]`` keys a learnt ``geometry`` sets, as a run says them."""
+    return f"fov_up = {geometry.fov_up:g}, fov_down = {geometry.fov_down:g}, beams = {geometry.beams}, columns = {geometry.columns}"
+
+
+def table_advice(file) -> str:
+    """What to put in the ``[lidar]`` table of ``file`` (a recording's ``mabdi.toml``) where the geometry misses."""
+    return (
+        f"put the sensor's own geometry in the [lidar] table of {file}: fov_up, fov_down (degrees, the image's top "
+        "and bottom edges), beams, and as needed columns, range_min, range_max (m), beam_elevations (degrees, one a "
+        "beam, top first)"
+    )
+
+
 def rows_without_returns(return_points) -> tuple[int, int]:
     """(rows that hold no returns, rows spanned) between the top and the bottom row of a range image's returns
     (``return_points`` (H, W, 3), NaN where no return fell: :func:`range_image_and_returns`). A row holds returns
@@ -548,6 +562,8 @@ __all__ = [
     "image_edges",
     "learn_geometry",
     "learnt_columns",
+    "learnt_settings",
+    "table_advice",
     "rows_without_returns",
     "EMPTY_ROWS_WARNING",
     "uniform_spacing_of",

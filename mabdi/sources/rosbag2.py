@@ -61,10 +61,12 @@ from mabdi.sources.range_images import (
     geometry_from_table,
     learn_geometry,
     learnt_columns,
+    learnt_settings,
     lidar_table,
     range_image_and_returns,
     range_image_points,
     rows_from_rings,
+    table_advice,
 )
 from mabdi.sources.sequence_files import (
     SequenceError,
@@ -461,15 +463,14 @@ class Rosbag2Sequence(FrameSource):
         default = geometry_from_table({**lidar_table(KITTI_GEOMETRY), "columns": DEFAULT_COLUMNS, **table}, file)
         scans = [cloud_points(message, f"{where}: scan {i}")[0] for i, message in enumerate(messages)]
         learnt, fit = learn_geometry(scans, default)
-        fix = (f"put the sensor's own geometry in the [lidar] table of {file}: fov_up, fov_down (degrees, the image's "
-               "top and bottom edges), beams, and as needed columns, range_min, range_max (m), beam_elevations")
+        fix = table_advice(file)
         if learnt is None:
             if fit.share > OUTSIDE_SHARE_WARNING:
                 warnings.warn(f"{where}: the first scan does not fit the default geometry (KITTI's Velodyne HDL-64E; the "
                               f"clouds have no ring field): {fit.describe(default)}; the map will miss those points; {fix}",
                               LidarGeometryWarning, stacklevel=4)
             return default
-        settings = f"fov_up = {learnt.fov_up:g}, fov_down = {learnt.fov_down:g}, beams = {learnt.beams}, columns = {learnt.columns}"
+        settings = learnt_settings(learnt)
         self.geometry_note = f"LiDAR geometry learnt from the first {len(scans)} scans: {settings}"
         warnings.warn(f"{where}: the first scan does not fit the default geometry (KITTI's Velodyne HDL-64E; the clouds "
                       f"have no ring field): {fit.describe(default)}; mabdi learnt {settings} from the first {len(scans)} "

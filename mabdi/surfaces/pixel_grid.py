@@ -11,8 +11,9 @@ which is what a surface seen at about 79 degrees from its normal makes
 between neighbouring pixels at a 525 px focal length. A LiDAR's range image
 (:mod:`mabdi.spherical`) is meshed the same way along its rays, with
 ``max_jump`` scaled to its pixel angle (the geometry's ``jump_scale()``; with a
-beam table, each pair of rows by its own spacing) and the azimuth seam joined. ``grazing`` (on for range images) also keeps an
-edge whose two samples continue one straight line with the samples beyond
+beam table, each pair of rows by its own spacing) and the azimuth seam joined.
+``grazing`` (on for range images) also keeps an edge whose two samples
+continue one straight line with the samples beyond
 (:func:`mabdi.depth.straight_continuations`): flat ground at grazing incidence.
 
 Triangles face the sensor; vertices are the pixel-centre rays scaled by the
@@ -83,8 +84,12 @@ def pixel_grid_triangles(depth: np.ndarray, max_jump, straight: tuple[np.ndarray
 
     vertical = within(z[:-1, :], z[1:, :])  # (v, u) - (v + 1, u)
     diagonal = within(z[:-1, 1:], z[1:, :-1])  # (v, u + 1) - (v + 1, u)
-    # each square's top and bottom edges, judged by the square's own rows' jump
-    top, bottom = within(z[:-1, :-1], z[:-1, 1:]), within(z[1:, :-1], z[1:, 1:])
+    # each square's top and bottom edges, judged by the square's own rows' jump (one jump: each edge once)
+    if jump.ndim:
+        top, bottom = within(z[:-1, :-1], z[:-1, 1:]), within(z[1:, :-1], z[1:, 1:])
+    else:
+        horizontal = within(z[:, :-1], z[:, 1:])  # (v, u) - (v, u + 1)
+        top, bottom = horizontal[:-1], horizontal[1:]
     if straight is not None:
         ok = np.isfinite(z)
         vertical = vertical | (straight[0] & ok[:-1, :] & ok[1:, :])
@@ -113,11 +118,9 @@ def _jump_scales(intrinsics):
     """What ``max_jump`` scales by: 1 for a camera; a range image's (:meth:`SphericalGeometry.jump_scale`), or with a
     beam table, each pair of rows' own (their spacing, :meth:`SphericalGeometry.pair_angles`, over a camera's
     pixel angle): (beams - 1,)."""
-    if not isinstance(intrinsics, SphericalGeometry):
-        return intrinsics.jump_scale()
-    if not intrinsics.beam_elevations:
-        return intrinsics.jump_scale()
-    return intrinsics.pair_angles() * Intrinsics.fx
+    if isinstance(intrinsics, SphericalGeometry) and intrinsics.beam_elevations:
+        return intrinsics.pair_angles() * Intrinsics.fx
+    return intrinsics.jump_scale()
 
 
 class FilterPixelGrid(FrameSurface):
