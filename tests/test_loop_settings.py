@@ -37,9 +37,10 @@ def test_independent_noise_does_not_refine_and_the_switches_decide_outright():
     assert not black_box.removing and not black_box.refining
 
 
-def test_a_lidar_recording_takes_its_poses_as_given_and_its_misses_are_no_free_space():
+def test_a_lidar_recording_is_registered_not_refined_and_its_misses_are_no_free_space():
     settings = _settings(SphericalGeometry(), "range", loses_returns=True, refinement=RefinementParameters(enabled=True))
-    assert not settings.refining and not settings.registration.enabled  # camera-only stages: off for a LiDAR
+    assert not settings.refining  # a camera-only stage: off for a LiDAR
+    assert settings.registration.enabled  # scans are fitted to the map (mabdi.stages.scan_registration)
     assert settings.removing and settings.removal.no_return_is_free is False
 
 

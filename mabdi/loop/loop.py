@@ -17,7 +17,9 @@ E is the map as it stood after frame i - 1; refinement and removal change
 the map after this frame's E was used. The loop alone changes the map. With
 ``noise = "auto"`` D - E feeds the noise calibration. With the classifier
 off (the "black box") the surface meshes every valid pixel of D. A LiDAR's
-range images run through the same loop; registration and refinement are
+range images run through the same loop, registered by
+:class:`~mabdi.stages.scan_registration.ScanRegistration` (which hands the loop
+the E it drew where the scan keeps its start pose); refinement is
 camera-only for now (:func:`lidar_rules`).
 
 ``loop.step(i)`` runs frame i and returns its :class:`FrameRecord`;
@@ -45,8 +47,9 @@ from mabdi.stages.front_confirmation import FrontConfirmation
 from mabdi.stages.refinement import MapRefinement, RefinementParameters, RefinementResult
 from mabdi.surfaces.quadtree import QuadTreeParameters, resolved as resolved_quadtree
 from mabdi.stages.registration import STATUSES, FilterRegistration, RegistrationParameters, write_placement
+from mabdi.stages.scan_registration import ScanRegistration
 from mabdi.stages.registration_check import (
-    PosesDisagreeWarning, PoseJumpWarning, jumps_that_removed, pose_excursion, poses_disagree,
+    CAUSES, LIDAR_CAUSES, PosesDisagreeWarning, PoseJumpWarning, jumps_that_removed, pose_excursion, poses_disagree,
 )
 from mabdi.surfaces.registry import make_surface_filter, mesh_frame, seam_pixels, surface_filter
 from mabdi.surfaces.seam_trim import trimmed_patch, without_faces_on_map
@@ -106,10 +109,10 @@ class FrameRecord:
 
 def lidar_rules(geometry, refining: bool, registration: RegistrationParameters) -> tuple[bool, RegistrationParameters]:
     """(refining, registration) for a sensor of ``geometry``: unchanged for a camera; for a LiDAR's range
-    images (:class:`~mabdi.spherical.SphericalGeometry`) refinement off and registration off (their kernels
-    are the pinhole camera's): the loop takes a LiDAR's poses as given."""
+    images (:class:`~mabdi.spherical.SphericalGeometry`) refinement off (its kernels are the pinhole camera's);
+    their registration is :class:`~mabdi.stages.scan_registration.ScanRegistration`."""
     if geometry.range_image:
-        return False, replace(registration, enabled=False)
+        return False, registration
     return refining, registration
 
 
@@ -306,11 +309,14 @@ class MabdiLoop:
         self.world = FilterWorldMesh(chunk_size=chunk_size_for(source.intrinsics), compact_on_append=False)
         self.expected = FilterExpectedImage(backend=backend, identity=self.removal or self.refining)
         #: D registered to the map (the renderer of E is shared: one upload of the map); None: poses as given
-        self.registration: FilterRegistration | None = None
+        self.registration: FilterRegistration | ScanRegistration | None = None
         if self.classifier_parameters.enabled and self.registration_parameters.enabled:
-            self.registration = FilterRegistration(
-                self.registration_parameters, renderer=self.expected.renderer, pose_accuracy=source.pose_accuracy
-            )
+            if source.intrinsics.range_image:  # a LiDAR's scans: fitted along their returns, E drawn once
+                self.registration = ScanRegistration(self.registration_parameters, self.expected, source.pose_accuracy)
+            else:
+                self.registration = FilterRegistration(
+                    self.registration_parameters, renderer=self.expected.renderer, pose_accuracy=source.pose_accuracy
+                )
         self.classifier = FilterClassifier(self.classifier_parameters)
         #: The frames each part of the map was seen covered by a surface in front of it (None: such a surface is
         #: meshed at once)
@@ -504,7 +510,8 @@ class MabdiLoop:
         registrations = self._registrations[: self._frames]
         done = registrations[np.isfinite(registrations[:, 0])]
         statuses = [STATUSES[int(code)] for code in done[:, 0]]
-        message = poses_disagree(statuses, done[:, 1], done[:, 2], done[:, 3])
+        causes = LIDAR_CAUSES if self.intrinsics.range_image else CAUSES
+        message = poses_disagree(statuses, done[:, 1], done[:, 2], done[:, 3], causes)
         if message is None:  # a stretch of frames moved far, which the medians hide
             message = pose_excursion(np.flatnonzero(np.isfinite(registrations[:, 0])), statuses, done[:, 1], done[:, 2])
         if message is not None:
@@ -517,13 +524,17 @@ class MabdiLoop:
         t_register = t_expected = t_classify = t_depth
         cells_removed = 0
         placement = Placement.unregistered(measured.pose)
-        if self.registration is not None:
+        drawn = None  # E, where registration drew it at the pose the scan is meshed with
+        if isinstance(self.registration, ScanRegistration):
+            measured, placement, drawn = self.registration.place(measured, self.world.map)
+            t_register = t_expected = t_classify = time.perf_counter()
+        elif self.registration is not None:
             measured, placement = self.registration.place(measured, self.world.map)
             t_register = t_expected = t_classify = time.perf_counter()
         expected = classified = voted_on = None
         surface_input, whole = measured, None  # the black box meshes all of D
         if self.classifier_enabled:
-            expected = self.expected.render(self.world.map, measured)
+            expected = drawn if drawn is not None else self.expected.render(self.world.map, measured)
             # removal votes along a LiDAR's own returns' rays: cast now, while the drawing is of this map
             voted_on = self.expected.along_returns(measured, expected) if self.removal else expected
             t_expected = time.perf_counter()
@@ -639,8 +650,10 @@ class MabdiLoop:
     def world_from_map(self) -> np.ndarray:
         """Where the map's frame lies in the world (4x4): the loop builds the map in its own frame, started at
         the first frame's given pose and tied to the given poses as a whole (:mod:`mabdi.stages.map_anchor`);
-        identity without registration."""
-        return np.eye(4) if self.registration is None else self.registration.anchor.world_from_map
+        identity without registration, and for a LiDAR's scans (mapped in the world's frame)."""
+        if not isinstance(self.registration, FilterRegistration):
+            return np.eye(4)
+        return self.registration.anchor.world_from_map
 
     def trajectory(self) -> np.ndarray:
         """(N, 4, 4) world_from_camera each frame was meshed with (registered, else as given), in the world

@@ -72,6 +72,12 @@ CAUSES = (
     "likely causes: poses given as camera_from_world (mabdi reads world_from_camera: invert them), "
     "or a wrong depth scale (--depth-scale, depth units per metre)"
 )
+#: ... and for a LiDAR's scans, which have no depth scale to get wrong and whose poses often come from odometry.
+LIDAR_CAUSES = (
+    "likely causes: poses given as sensor_from_world (mabdi reads world_from_sensor: invert them), "
+    "or odometry whose heading lags or drifts (registration corrected it: the meshed poses fit the map, the given "
+    "ones do not)"
+)
 
 
 #: A given pose jumps when its step from the frame before is over this many times the larger of the steps
@@ -192,12 +198,14 @@ def poses_disagree(
     corrections_m: Sequence[float],
     corrections_deg: Sequence[float],
     seen_through_shares: Sequence[float] | None = None,
+    causes: str = CAUSES,
 ) -> str | None:
     """Why the frames' poses disagree with their depth, in one line, or None when they agree (the rule: the
     module docs). One entry per frame: its registration status, correction (m) and correction (degrees), and
     the share of its valid pixels that saw through the map (contradicted; None: not known, not asked);
     frames not to be judged carry
-    ``"off"`` or ``"no_map"``."""
+    ``"off"`` or ``"no_map"``. ``causes``: what the warning names as likely (:data:`CAUSES`, a LiDAR's:
+    :data:`LIDAR_CAUSES`)."""
     judged = [i for i, status in enumerate(statuses) if status not in NOT_JUDGED]
     if len(judged) < MIN_JUDGED:
         return None
@@ -208,7 +216,7 @@ def poses_disagree(
     if few or (len(registered) < MIN_REGISTERED_SHARE_SEEN_THROUGH * len(judged) and seen_through > MANY_SEEN_THROUGH_SHARE):
         return (
             f"the poses disagree with the depth: only {len(registered)} of {len(judged)} frames registered to the map "
-            f"near their given poses; {CAUSES}"
+            f"near their given poses; {causes}"
         )
     if len(registered) >= MIN_REGISTERED:
         metres = float(np.median([corrections_m[i] for i in registered]))
@@ -217,7 +225,7 @@ def poses_disagree(
             return (
                 f"the poses disagree with the depth: registration moved the frames {1000 * metres:.0f} mm and "
                 f"{degrees:.1f} deg from their given poses (median of {len(registered)} registered frames; poses "
-                f"that fit are off by millimetres); {CAUSES}; or, where the given poses are known to be good "
+                f"that fit are off by millimetres); {causes}; or, where the given poses are known to be good "
                 f"(a dataset's own), registration drifting away from them (--no-registration keeps them)"
             )
     return None
