@@ -6,27 +6,33 @@ and removal takes them. LiDAR poses in the wild come from odometry (LiDAR-inerti
 heading lags or drifts by a degree or more when the sensor turns: at 10 m a degree is 17 cm, more than
 a return's noise. This stage corrects such poses against the E the loop draws anyway:
 
-1. E is drawn at the start pose, the given pose with the last frame's correction carried over
-   (odometry drifts slowly, so the correction of the last scan predicts the next one's); the map's
-   points and normals come from E's ranges (:func:`map_points_and_normals`);
-2. projective point-to-plane ICP over every return of D along its own ray (:func:`register_scan`):
-   each return, moved by the estimate, falls in one pixel of E and is paired with the plane E holds
-   there; gates of :data:`GATES` metres, coarse to fine, Huber weights beyond :data:`HUBER`;
-3. checks: at least ``min_points`` pairs, ``min_inliers`` of the returns that see the map within the
-   last gate, the step from the start within the coarsest gate (m; what the ICP can pair across) and
-   ``max_rotation`` (per scan, the carried correction not counted), and convergence; a scan that fails
-   them is meshed at its start pose and casts no removal votes;
-4. the rule that keeps good poses: each pose is scored by how well it fits the returns to the map, the
-   mean of min(r, :data:`JUDGE_GATE`)^2 over the returns whose pixel shows the map (:func:`truncated_cost`).
-   The start is the given pose, or the carried correction where that fits at least :data:`CARRY_FROM`
-   times better; the ICP's pose replaces the start only where it fits at least :data:`FOLLOW_FROM` times
-   better than the start (all of its step from :data:`FOLLOW_FULLY` times, part of it between). Good poses
-   (a SLAM system's, a dataset's ground truth) fit the map about as well as the ICP's pose does: the map's
-   own errors (its chords, the returns' noise) make up most of the cost, and the scan stays where it was
-   given; a pose that is off by more than the map's errors costs several times more, and is corrected.
+1. E is drawn at the given pose with the last scan's correction carried over (odometry drifts slowly,
+   so the correction of the last scan predicts the next one's); the map's points and normals come from
+   E's ranges (:func:`map_points_and_normals`);
+2. each pose is scored by how well it fits the returns to the map: the mean of
+   min(r, :data:`JUDGE_GATE`)^2 over the returns whose pixel shows the map (:func:`truncated_cost`). The
+   reference is the carried pose where it fits at least :data:`CARRY_FROM` times better than the given
+   pose, else the given pose;
+3. projective point-to-plane ICP from the reference over the scan's returns along their own rays
+   (:func:`register_scan`): each return, moved by the estimate, falls in one pixel of E and is paired
+   with the plane E holds there; gates of :data:`GATES` metres, coarse to fine, Huber weights beyond
+   :data:`HUBER`;
+4. checks: at least ``min_points`` pairs, ``min_inliers`` of the returns that see the map within the
+   last gate, convergence, and the step from the reference within the coarsest gate (m; what the ICP
+   can pair across) and ``max_rotation``; a scan that fails them is meshed at the reference and casts
+   no removal votes;
+5. the rule that keeps good poses: the ICP's pose replaces the reference only where it fits more than
+   :data:`FOLLOW_FROM` times better (all of its step from :data:`FOLLOW_FULLY` times, linearly between).
+   Good poses (a SLAM system's, a dataset's ground truth) fit the map about as well as the ICP's pose
+   does: the map's own errors (its chords, the returns' noise, a sweep's motion) make up most of the
+   cost, and the scan stays where it was given; a pose that is off by more than the map's errors costs
+   several times more, and is corrected (docs/benchmarks.md has the ratios real recordings show).
+
+A source that states its poses exact (the simulator without pose noise) keeps them and runs no fit. Where
+the scan keeps the pose E was drawn at, the loop uses that drawing: a kept pose costs the fit alone.
 
 Frames: the pose is ``world_from_sensor``; the map is in the world frame (the map's frame is the world's:
-:attr:`world_from_map` is the identity). Units: metres and degrees in parameters and checks, radians inside.
+:meth:`~mabdi.loop.loop.MabdiLoop.world_from_map` is the identity). Units: metres and degrees in parameters and checks, radians inside.
 Parameters: :class:`~mabdi.stages.registration.RegistrationParameters` (``[registration]``: ``enabled``,
 ``min_points``, ``min_inliers``, ``max_rotation``; the rest are the camera's: a camera's frames come 30 a
 second, a LiDAR's scans 2-20, metres apart, so a scan's step is bounded by the coarsest gate instead of
@@ -73,11 +79,11 @@ CONVERGED_ROTATION = 0.1
 #: Poses are judged by the returns' fit to the map within this many metres (:func:`truncated_cost`).
 JUDGE_GATE = 0.25
 #: The carried correction is the start where it fits this many times better than the given pose.
-CARRY_FROM = 1.5
+CARRY_FROM = 1.2
 #: The ICP's pose replaces the start where it fits this many times better (part of the way from FOLLOW_FROM to
 #: FOLLOW_FULLY).
-FOLLOW_FROM = 1.5
-FOLLOW_FULLY = 2.0
+FOLLOW_FROM = 1.2
+FOLLOW_FULLY = 1.5
 #: E's normals: a neighbour further than this share of the pixel's range from it is another surface.
 NORMAL_MAX_JUMP = 0.2
 #: The ICP fits at most this many of a scan's returns (every k-th, in the image's order): a scan's 20-130
