@@ -157,3 +157,24 @@ def test_a_source_that_states_its_poses_exact_keeps_them_without_a_fit():
     placed, placement, drawn = registration.place(measured, mesh)
     assert placement.status == "exact" and placement.given_exact
     assert placed.pose is given and drawn is not None
+
+
+def test_the_carried_correction_goes_through_a_checkpoint():
+    mesh = room()
+    expected = FilterExpectedImage(identity=True)
+    registration = ScanRegistration(RegistrationParameters(), expected)
+    fresh = ScanRegistration(RegistrationParameters(), expected)
+    fresh.set_state(registration.state())  # none carried: the given pose itself
+    assert fresh.state()["last_frame"] == -1 and np.isnan(fresh.state()["correction"]).all()
+    truth = pose(1.0, -0.5, 25.0)
+    measured = Measured(scan(mesh, truth), GEOMETRY, pose(1.06, -0.53, 27.0), SensorNoise.of("none"), index=3)
+    registration.place(measured, mesh)
+    state = registration.state()
+    assert state["last_frame"] == 3 and np.isfinite(state["correction"]).all()
+    fresh.set_state(state)
+    np.testing.assert_array_equal(fresh.state()["correction"], state["correction"])
+    # the next scan, given with the same lag, starts where the carried correction puts it
+    following = Measured(scan(mesh, truth), GEOMETRY, pose(1.06, -0.53, 27.0), SensorNoise.of("none"), index=4)
+    placed, placement, _ = fresh.place(following, mesh)
+    assert fresh.last_costs[1] * 100 < fresh.last_costs[0]  # the carried pose fits, the given one does not
+    assert heading_error(placed.pose, truth) < 0.02
