@@ -78,10 +78,11 @@ CONVERGED_TRANSLATION = 5e-3
 CONVERGED_ROTATION = 0.1
 #: Poses are judged by the returns' fit to the map within this many metres (:func:`truncated_cost`).
 JUDGE_GATE = 0.25
-#: The carried correction is the start where it fits this many times better than the given pose.
+#: The carried correction is the reference (the ICP's start) where it fits this many times better than the given
+#: pose.
 CARRY_FROM = 1.2
-#: The ICP's pose replaces the start where it fits this many times better (part of the way from FOLLOW_FROM to
-#: FOLLOW_FULLY).
+#: The ICP's pose replaces the reference where it fits more than FOLLOW_FROM times better (part of the way,
+#: linearly, up to FOLLOW_FULLY; all of it from there).
 FOLLOW_FROM = 1.2
 FOLLOW_FULLY = 1.5
 #: E's normals: a neighbour further than this share of the pixel's range from it is another surface.
@@ -213,8 +214,9 @@ def register_scan(scene: _Scene, p: RegistrationParameters, start: np.ndarray | 
 
 
 def scan_follow_gain(improvement: float) -> float:
-    """The share (0-1) of the ICP's step from the start a scan takes, from how many times better the ICP's pose
-    fits (:func:`truncated_cost`): none up to :data:`FOLLOW_FROM`, all from :data:`FOLLOW_FULLY`."""
+    """The share (0-1) of the ICP's step from the reference a scan takes, from how many times better the ICP's
+    pose fits than the reference (:func:`truncated_cost`): none up to :data:`FOLLOW_FROM`, all from
+    :data:`FOLLOW_FULLY`."""
     if not np.isfinite(improvement):
         return 0.0
     return float(np.clip((improvement - FOLLOW_FROM) / (FOLLOW_FULLY - FOLLOW_FROM), 0.0, 1.0))
@@ -222,8 +224,8 @@ def scan_follow_gain(improvement: float) -> float:
 
 class ScanRegistration:
     """Fit each scan to the map near its given pose (see the module docs). ``expected``: the loop's
-    :class:`~mabdi.stages.expected_image.FilterExpectedImage`, which draws E at the start pose (the loop reuses
-    that drawing when the scan keeps its start pose). Carries the last scan's correction to the next;
+    :class:`~mabdi.stages.expected_image.FilterExpectedImage`, which draws E at the carried pose (the loop reuses
+    that drawing when the scan keeps that pose). Carries the last scan's correction to the next;
     :meth:`state` and :meth:`set_state` carry it over a checkpoint."""
 
     def __init__(self, parameters: RegistrationParameters, expected, pose_accuracy: PoseNoise | None = None) -> None:
