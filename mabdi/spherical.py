@@ -150,6 +150,20 @@ class SphericalGeometry:
             elevation = np.radians(self.fov_up - v * (self.fov_up - self.fov_down) / self.beams)
         return np.stack([np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth), np.sin(elevation)], axis=-1)
 
+    def row_edges(self) -> np.ndarray:
+        """(beams + 1,) elevations (radians) of the rows' edges, decreasing from the image's top edge: uniform rows
+        span fov_up to fov_down; a beam table's rows meet halfway between beam centres and the outer rows reach
+        half their spacing beyond, as :meth:`pixels` reads them (a point lies in row r where
+        ``edges[r] >= elevation > edges[r + 1]``)."""
+        if not self.beam_elevations or self.beams < 2:
+            return np.radians(np.linspace(self.fov_up, self.fov_down, self.beams + 1))
+        centres = np.asarray(self.beam_elevations, dtype=np.float64)
+        edges = np.empty(self.beams + 1)
+        edges[1:-1] = 0.5 * (centres[:-1] + centres[1:])
+        edges[0] = centres[0] + 0.5 * (centres[0] - centres[1])
+        edges[-1] = centres[-1] - 0.5 * (centres[-2] - centres[-1])
+        return np.radians(edges)
+
     def pixels(self, sensor_points) -> tuple[np.ndarray, np.ndarray]:
         """Continuous pixel coordinates of sensor-frame points (N, 3), and (N,) their range (m).
 

@@ -24,7 +24,7 @@ from mabdi.spherical import SphericalGeometry
 from mabdi.stages.expected_image import FilterExpectedImage
 from mabdi.stages.registration import RegistrationParameters
 from mabdi.stages.registration_check import PosesDisagreeWarning
-from mabdi.stages.scan_registration import ScanRegistration, map_points_and_normals, row_edges
+from mabdi.stages.scan_registration import ScanRegistration, map_points_and_normals
 from mabdi.stages.scan_registration_kernels import image_pixel
 from tests.test_lidar import box, merged, plane, render
 
@@ -70,7 +70,7 @@ def test_a_return_falls_in_the_pixel_the_geometry_puts_it_in(table):
     rng = np.random.default_rng(1)
     points = rng.normal(size=(2000, 3)) * [10.0, 10.0, 2.0]
     uv, _ = geometry.pixels(points)
-    edges = row_edges(geometry)
+    edges = geometry.row_edges()
     inside = (uv[:, 1] >= 0) & (uv[:, 1] < geometry.beams)
     found = np.array([image_pixel(*p, edges, geometry.columns) for p in points])
     assert (found[~inside, 0] == -1).all()

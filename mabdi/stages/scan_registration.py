@@ -41,11 +41,11 @@ second, a LiDAR's scans 2-20, metres apart, so a scan's step is bounded by the c
 
 from __future__ import annotations
 
-import functools
 from dataclasses import dataclass
 
 import numpy as np
 
+from mabdi.camera import pixel_rays
 from mabdi.frame_values import Expected, Measured, Placement
 from mabdi.pose_noise import PoseNoise
 from mabdi.spherical import SphericalGeometry
@@ -94,35 +94,13 @@ MAX_RETURNS = 25_000
 LEVER_ARM = 10.0
 
 
-def row_edges(geometry: SphericalGeometry) -> np.ndarray:
-    """(beams + 1,) elevations (radians) of the range image's row edges, decreasing from the top edge: uniform
-    rows span fov_up to fov_down; a beam table's rows meet halfway between beam centres, the outer rows reach
-    half their spacing beyond (as :meth:`~mabdi.spherical.SphericalGeometry.pixels` reads them)."""
-    if not geometry.beam_elevations or geometry.beams < 2:
-        return np.radians(np.linspace(geometry.fov_up, geometry.fov_down, geometry.beams + 1))
-    centres = np.asarray(geometry.beam_elevations, dtype=np.float64)
-    edges = np.empty(geometry.beams + 1)
-    edges[1:-1] = 0.5 * (centres[:-1] + centres[1:])
-    edges[0] = centres[0] + 0.5 * (centres[0] - centres[1])
-    edges[-1] = centres[-1] - 0.5 * (centres[-2] - centres[-1])
-    return np.radians(edges)
-
-
 def map_points_and_normals(expected_range: np.ndarray, geometry: SphericalGeometry) -> tuple[np.ndarray, np.ndarray]:
     """E's points and unit normals, (H, W, 3) float64 each in the sensor frame (NaN where E shows no map or the
     normal is not known). Each normal crosses the differences to the nearer-ranged of the two neighbours across
     and along the beams (columns wrap around), left out where that neighbour lies beyond
     :data:`NORMAL_MAX_JUMP` of the range; it faces the sensor (:func:`points_and_normals`)."""
     ranges = np.ascontiguousarray(expected_range, dtype=np.float64)
-    return points_and_normals(ranges, _rays(geometry), NORMAL_MAX_JUMP)
-
-
-@functools.lru_cache(maxsize=4)
-def _rays(geometry: SphericalGeometry) -> np.ndarray:
-    """The geometry's (H, W, 3) unit rays, made once per geometry (read only)."""
-    rays = np.ascontiguousarray(geometry.rays())
-    rays.flags.writeable = False
-    return rays
+    return points_and_normals(ranges, pixel_rays(geometry), NORMAL_MAX_JUMP)
 
 
 def scan_points(measured: Measured, most: int = MAX_RETURNS) -> np.ndarray:
@@ -131,7 +109,7 @@ def scan_points(measured: Measured, most: int = MAX_RETURNS) -> np.ndarray:
     if measured.return_points is not None:
         points = np.asarray(measured.return_points, dtype=np.float64).reshape(-1, 3)
     else:
-        points = (np.asarray(measured.depth, dtype=np.float64)[..., None] * measured.geometry.rays()).reshape(-1, 3)
+        points = (np.asarray(measured.depth, dtype=np.float64)[..., None] * pixel_rays(measured.geometry)).reshape(-1, 3)
     points = points[np.isfinite(points).all(axis=1)]
     step = -(-len(points) // most) if most > 0 else 1
     return np.ascontiguousarray(points[::step])
@@ -149,6 +127,8 @@ class ScanFit:
     residual: float = float("nan")
     inlier_share: float = 0.0
     iterations: int = 0
+    #: The fitted pose's cost (m^2, :func:`truncated_cost`); NaN where the fit ended early.
+    cost: float = float("nan")
 
 
 class _Scene:
@@ -157,7 +137,7 @@ class _Scene:
     def __init__(self, points: np.ndarray, expected_range: np.ndarray, geometry: SphericalGeometry) -> None:
         self.points = points
         self.e_points, self.e_normals = map_points_and_normals(expected_range, geometry)
-        self.edges = row_edges(geometry)
+        self.edges = geometry.row_edges()
         self.columns = geometry.columns
         self.angle_reach = PAIR_PIXELS * geometry.pixel_angle()
 
@@ -194,7 +174,7 @@ def register_scan(scene: _Scene, p: RegistrationParameters, start: np.ndarray | 
             steps += 1
             if translation < STEP_TRANSLATION and angle < STEP_ROTATION:
                 break
-    _, seen = scene.cost(transform)
+    cost, seen = scene.cost(transform)
     _, _, residuals = scene.system(transform, GATES[-1])
     pairs = len(residuals)
     share = pairs / seen if seen else 0.0
@@ -210,7 +190,7 @@ def register_scan(scene: _Scene, p: RegistrationParameters, start: np.ndarray | 
         status = "beyond_bound"
     else:
         status = "registered"
-    return ScanFit(transform, status, pairs, residual, share, steps)
+    return ScanFit(transform, status, pairs, residual, share, steps, cost)
 
 
 def scan_follow_gain(improvement: float) -> float:
@@ -271,12 +251,12 @@ class ScanRegistration:
         # (transforms from the sensor at the carried pose, where E was drawn)
         given_transform = np.linalg.inv(carried) @ given
         carried_cost, _ = scene.cost(np.eye(4))
-        given_cost, _ = scene.cost(given_transform)
+        given_cost = carried_cost if carried is given else scene.cost(given_transform)[0]
         reference, reference_cost, start = carried, carried_cost, np.eye(4)
         if not carried_cost * CARRY_FROM <= given_cost:
             reference, reference_cost, start = given, given_cost, given_transform
         fit = register_scan(scene, self.parameters, start)
-        fit_cost = scene.cost(fit.transform)[0] if fit.status == "registered" else float("nan")
+        fit_cost = fit.cost if fit.status == "registered" else float("nan")
         self.last_costs = (given_cost, carried_cost, fit_cost)
         pose = reference
         gain = scan_follow_gain(reference_cost / max(fit_cost, 1e-12)) if fit.status == "registered" else 0.0

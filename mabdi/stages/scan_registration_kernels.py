@@ -18,7 +18,7 @@ from mabdi.stages.registration_kernels import point_plane_jacobian
 @njit(cache=True, inline="always")
 def image_pixel(x, y, z, row_edges, columns):
     """(row, column) of the range-image pixel a sensor-frame point falls in, row -1 outside the image.
-    ``row_edges``: (beams + 1,) elevations (radians) of the rows' edges, decreasing from the top edge;
+    ``row_edges``: :meth:`~mabdi.spherical.SphericalGeometry.row_edges` (radians, decreasing from the top edge);
     columns as :mod:`mabdi.spherical` lays them out (column 0 looks backwards over the left)."""
     horizontal = np.sqrt(x * x + y * y)
     elevation = np.arctan2(z, horizontal)
@@ -107,7 +107,7 @@ def truncated_cost(points, rotation, translation, e_points, e_normals, row_edges
 
 
 @njit(cache=True, inline="always")
-def _nearer(ranges, rays, row, column, other_row, other_column, best_jump):
+def _nearer(ranges, row, column, other_row, other_column, best_jump):
     """The jump (m) to neighbour (other_row, other_column) when it has a range and is nearer in range than
     ``best_jump``, else ``best_jump``."""
     value = ranges[other_row, other_column]
@@ -138,8 +138,8 @@ def points_and_normals(ranges, rays, max_jump):
             reach = max_jump * value
             # across the beams (columns wrap around): the neighbour nearer in range, as a difference
             left, right = (column - 1) % w, (column + 1) % w
-            jump_left = _nearer(ranges, rays, row, column, row, left, np.inf)
-            jump_right = _nearer(ranges, rays, row, column, row, right, np.inf)
+            jump_left = _nearer(ranges, row, column, row, left, np.inf)
+            jump_right = _nearer(ranges, row, column, row, right, np.inf)
             if min(jump_left, jump_right) > reach:
                 continue
             other = right if jump_right < jump_left else left
@@ -148,8 +148,8 @@ def points_and_normals(ranges, rays, max_jump):
             ay = sign * (points[row, other, 1] - points[row, column, 1])
             az = sign * (points[row, other, 2] - points[row, column, 2])
             # along the beams (rows do not wrap)
-            jump_up = _nearer(ranges, rays, row, column, row - 1, column, np.inf) if row > 0 else np.inf
-            jump_down = _nearer(ranges, rays, row, column, row + 1, column, np.inf) if row < h - 1 else np.inf
+            jump_up = _nearer(ranges, row, column, row - 1, column, np.inf) if row > 0 else np.inf
+            jump_down = _nearer(ranges, row, column, row + 1, column, np.inf) if row < h - 1 else np.inf
             if min(jump_up, jump_down) > reach:
                 continue
             other_row = row + 1 if jump_down < jump_up else row - 1
