@@ -205,3 +205,26 @@ def test_a_bag_learns_the_offset_of_its_pose_stream(recordings, tmp_path, pose_t
     turned = Rotation.from_matrix(np.linalg.inv(truth[1:-1, :3, :3]) @ retimed.poses[1:-1, :3, :3]).magnitude()
     before = Rotation.from_matrix(np.linalg.inv(truth[1:-1, :3, :3]) @ sequence.poses[1:-1, :3, :3]).magnitude()
     assert np.degrees(turned).max() < 0.3 < np.degrees(before).max()
+
+
+def test_key_frames_with_a_pose_each_are_run_as_paired(recordings, tmp_path):
+    """A folder of key frames a few hundred milliseconds apart, each with the pose of its own timestamp (as
+    trajectories of key frames are published): no pose between the frames to move the pairing to, so no offset
+    is learnt or applied, the run says why, and every frame keeps its pose."""
+    agreeing, _ = recordings
+    folder = tmp_path / "key_frames"
+    folder.mkdir()
+    lines = [line for line in (agreeing / "depth.txt").read_text().splitlines() if line.strip() and not line.startswith("#")]
+    kept = lines[::4]
+    (folder / "depth.txt").write_text("# depth maps\n" + "\n".join(kept) + "\n")
+    times = np.array([float(line.split()[0]) for line in kept])
+    write_tum_trajectory(folder / "groundtruth.txt", times, _swinging_camera(times))
+    for item in agreeing.iterdir():
+        if item.name not in ("depth.txt", "groundtruth.txt", "rgb.txt"):
+            (folder / item.name).symlink_to(item)
+    found = learn_recording_time_offset(TumSequence(folder))
+    assert found is not None and not found.applied
+    assert found.note().startswith("poses taken at the depth timestamps (a pose every 133 ms (median)")
+    summary, printed = _run(folder, tmp_path / "run")
+    assert summary["frames"] == len(kept)
+    assert "a pose every 133 ms" in printed

@@ -39,6 +39,9 @@ MIN_SENSITIVITY = 2.0
 #: The offsets tried: +-MAX_OFFSET seconds in steps of GRID_STEP.
 MAX_OFFSET = 0.1
 GRID_STEP = 0.001
+#: An offset is learnt only from a pose stream sampled at least this often (its median gap, s): sparser samples (a
+#: pose per key frame, taken at the frame's own time) put no pose between the frames to move the pairing to.
+MAX_POSE_GAP = MAX_OFFSET / 2
 #: Pairs whose error at the best offset exceeds TRIM times the median are dropped (a registration that failed).
 TRIM = 3.0
 #: Applied only where the offset is at least SIGNIFICANT standard errors and MIN_OFFSET seconds, and the summed
@@ -65,6 +68,8 @@ class TimeOffset:
 
     def note(self) -> str:
         """One line for the run's messages."""
+        if not self.pairs:
+            return f"poses taken at the depth timestamps ({self.reason})"
         found = (
             f"{1000 * self.seconds:+.1f} ms (+-{1000 * self.standard_error:.1f}) from {self.pairs} pairs of frames, "
             f"their median disagreement {self.error_before:.2f} -> {self.error_after:.2f} deg"
@@ -152,6 +157,13 @@ def learn_time_offset(
     timestamps = np.asarray(timestamps, dtype=np.float64)
     pose_times = np.asarray(pose_times, dtype=np.float64)
     poses = np.asarray(poses, dtype=np.float64)
+    gap = float(np.median(np.diff(pose_times))) if len(pose_times) > 1 else np.inf
+    if gap > MAX_POSE_GAP:
+        reason = (
+            f"a pose every {1000 * gap:.0f} ms (median): too sparse to tell an offset of up to "
+            f"+-{1000 * MAX_OFFSET:g} ms from"
+        )
+        return TimeOffset(0.0, float("nan"), 0, float("nan"), float("nan"), False, reason)
     first, second = choose_pairs(timestamps, pose_times, poses)
     if len(first) < MIN_PAIRS:
         return None
