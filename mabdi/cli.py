@@ -431,6 +431,13 @@ def registration_line(registration: dict) -> str:
     if others:
         listed = ", ".join(f"{v} {k.replace('_', ' ')}" for k, v in sorted(others.items()))
         line += f"; {registration['not_registered'] - statuses.get('no_map', 0)} not ({listed}): meshed unregistered, no removal votes"
+    if registration.get("poor_fit"):
+        from mabdi.stages.fit_check import POOR_FIT
+
+        line += (
+            f"; {registration['poor_fit']} fit the map over {POOR_FIT:g} times worse than the run's frames: "
+            "meshed, no removal votes"
+        )
     return line
 
 

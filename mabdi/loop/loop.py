@@ -53,6 +53,7 @@ from mabdi.stages.registration_check import (
 )
 from mabdi.surfaces.registry import make_surface_filter, mesh_frame, seam_pixels, surface_filter
 from mabdi.surfaces.seam_trim import trimmed_patch, without_faces_on_map
+from mabdi.stages.fit_check import fits_poorly
 from mabdi.stages.object_removal import ObjectRemoval, RemovalResult, RemovalVotes
 from mabdi.stages.removal import RemovalParameters, depth_edges
 from mabdi.frame_values import Classified, Expected, Measured, Placement
@@ -100,6 +101,9 @@ class FrameRecord:
     t_register_ms: float = 0.0
     #: One-pixel holes of D filled before the frame was used (:mod:`mabdi.depth_holes`).
     filled_pixels: int = 0
+    #: 1 where the frame registered but its depth fits the map several times worse than the run's frames do
+    #: (:mod:`mabdi.stages.fit_check`): meshed, no removal votes; else 0.
+    poor_fit: int = 0
 
     @property
     def registered(self) -> bool:
@@ -150,7 +154,7 @@ def apply_removal(
 
 
 #: Columns of the loop's per-frame registration record (see ``MabdiLoop._registrations``).
-REGISTRATION_COLUMNS = 5
+REGISTRATION_COLUMNS = 6
 
 
 @dataclass(frozen=True)
@@ -337,8 +341,8 @@ class MabdiLoop:
         self._poses = np.full((self._frames, 4, 4), np.nan)
         #: (N, REGISTRATION_COLUMNS) per frame, for the checks of the run's poses: its registration status (its
         #: index in STATUSES; "off" where the source states its poses exact), correction (m, degrees), the share
-        #: of its valid pixels that saw through the map (contradicted), and the faces it removed; NaN for frames
-        #: not run
+        #: of its valid pixels that saw through the map (contradicted), the faces it removed, and its
+        #: registration's residual (m; NaN where not registered); NaN for frames not run
         self._registrations = np.full((self._frames, REGISTRATION_COLUMNS), np.nan)
         self._poses_checked = False
         self._jumps_checked = False
@@ -445,8 +449,10 @@ class MabdiLoop:
             record = self._step(index)
         judged = "off" if self._given_exact else record.registration
         seen_through = record.contradicted_pixels / record.valid_pixels if record.valid_pixels else np.nan
+        residual = record.residual_mm / 1000.0 if record.registered else np.nan
         self._registrations[index] = (
-            STATUSES.index(judged), record.correction_mm / 1000.0, record.correction_deg, seen_through, record.cells_removed
+            STATUSES.index(judged), record.correction_mm / 1000.0, record.correction_deg, seen_through, record.cells_removed,
+            residual,
         )  # fmt: skip
         return record
 
@@ -558,8 +564,10 @@ class MabdiLoop:
         self._poses[index] = measured.pose
         # Removal votes only from frames whose pose is known to fit the map: registered, or given without
         # registration, or stated exact by the source (the ICP's checks fail where what held the pose has
-        # left the scene: that is when the votes matter).
-        votes = placement.status in ("registered", "off") or placement.given_exact
+        # left the scene: that is when the votes matter); and not from a registered frame that no pose fits
+        # as well as the run's frames fit (:mod:`mabdi.stages.fit_check`).
+        poor_fit = placement.status == "registered" and fits_poorly(placement.residual_m, self._earlier_residuals(index))
+        votes = (placement.status in ("registered", "off") or placement.given_exact) and not poor_fit
         self._given_exact = placement.given_exact
         if self.noise.calibration is not None and self.classifier_enabled and votes:
             self._calibrate_noise(measured, expected)
@@ -625,7 +633,13 @@ class MabdiLoop:
             constraint_support=placement.support,
             t_register_ms=ms * (t_register - t_depth),
             filled_pixels=self.depth_frames.filled_pixels,
+            poor_fit=int(poor_fit),
         )
+
+    def _earlier_residuals(self, index: int) -> np.ndarray:
+        """The registration residuals (m) of the registered frames before ``index``, in order."""
+        earlier = self._registrations[:index]
+        return earlier[earlier[:, 0] == STATUSES.index("registered"), 5]
 
     def _calibrate_noise(self, measured: Measured, expected: Expected) -> None:
         """``noise = "auto"``: this frame's D - E where the map explains D, away from E's silhouettes

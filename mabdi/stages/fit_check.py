@@ -1,0 +1,45 @@
+"""Whether a frame's depth fits the map as well as the run's frames do.
+
+Registration (:mod:`mabdi.stages.registration`, and for a LiDAR's scans
+:mod:`mabdi.stages.scan_registration`) fits each frame's depth to the map;
+the residual it leaves (the RMS of a camera frame's ICP pairs, the median
+|residual| of a scan's) is the sensor's noise plus the map's own error, a
+few millimetres to centimetres, and steady over a run. A frame that no
+rigid pose fits as well leaves several times that: a camera turning fast
+enough for its rolling read-out to bend the image, a blurred frame, a scan
+whose pose jumped. What such a frame sees through the map is doubtful: the
+same misfit that leaves its residual puts its depth behind the map's faces.
+
+The rule (:func:`fits_poorly`): a registered frame fits poorly where its
+residual exceeds :data:`POOR_FIT` times the median residual of the run's
+last :data:`WINDOW` registered frames, once :data:`MIN_FRAMES` of them are
+known. Every registered frame enters the median, poorly fitting or not, so a
+run whose residual rises for good (a far room, a growing LiDAR map) takes it
+as its new level within half a window. Such a frame is still meshed where
+registration placed it; it casts no removal votes and does not teach the
+noise model (:mod:`mabdi.loop.loop`), and the run counts it
+(``registration.poor_fit`` in summary.json). The numbers: docs/architecture.md
+(``mabdi.stages.fit_check``); measured: docs/benchmarks.md.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+#: A frame fits poorly where its residual exceeds this many times the run's median.
+POOR_FIT = 3.0
+#: The median is over the last this many registered frames' residuals ...
+WINDOW = 100
+#: ... once at least this many are known (before that no frame is judged).
+MIN_FRAMES = 5
+
+
+def fits_poorly(residual: float, earlier: np.ndarray) -> bool:
+    """Whether a registered frame's ``residual`` (m) is more than :data:`POOR_FIT` times the median of
+    ``earlier``: the residuals (m) of the run's registered frames before it, oldest first (NaN entries are
+    skipped). False where fewer than :data:`MIN_FRAMES` are known or the residual is not a number."""
+    earlier = np.asarray(earlier, dtype=np.float64)
+    recent = earlier[np.isfinite(earlier)][-WINDOW:]
+    if len(recent) < MIN_FRAMES or not np.isfinite(residual):
+        return False
+    return bool(residual > POOR_FIT * float(np.median(recent)))
