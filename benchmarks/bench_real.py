@@ -192,6 +192,7 @@ def run_mabdi(source, subset, integrated, held, surface: str, registration: bool
         "meshed_poses_vs_given": pose_differences(subset.poses, meshed),
         "meshed_poses_vs_recording": pose_differences(source.poses[integrated], meshed),
         "registration": statuses,
+        "poor_fit": sum(r.poor_fit for r in records),
         "noise": config.sensor.noise,
         "noise_calibration": result.noise_calibration,
         "held_out": scored(mesh, held_out_frames(source, held)),
@@ -257,7 +258,7 @@ def markdown(bench: dict) -> str:
                 f"held-out poses corrected by median {c['translation_mm_median']:.0f} mm / {c['rotation_deg_median']:.2f} deg; "
                 f"faces removed {row['faces_removed']:,} ({percent(row['faces_removed_share'])} of the faces made); "
                 f"area within 1 cm of another frame's face {percent(row.get('second_layer_1cm'))}; "
-                f"registration {row['registration']}",
+                f"registration {row['registration']}, {row.get('poor_fit', 0)} fitting the map poorly (no removal votes)",
             ]
             r = row.get("meshed_poses_vs_recording")
             if r is not None and r != d:  # the given poses were jittered: the meshed ones against the recording's

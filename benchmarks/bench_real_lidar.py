@@ -191,6 +191,7 @@ def run_mabdi(subset, held: HeldOutScans, surface: str, overrides: dict | None =
         "area_removed_m2": float(sum(r.area_removed for r in records)),
         "meshed_poses_vs_given": pose_differences(subset.poses, meshed),
         "registration": statuses,
+        "poor_fit": sum(r.poor_fit for r in records),
         "noise": config.sensor.noise,
         "score": score,
         "score_corrected_pose": corrected,
@@ -348,7 +349,7 @@ def markdown(bench: dict) -> str:
             line += (
                 f"; meshed poses against the given ones: translation median {d['translation_mm_median']:.0f} mm (max "
                 f"{d['translation_mm_max']:.0f}), rotation median {d['rotation_deg_median']:.2f} deg (max {d['rotation_deg_max']:.2f}); "
-                f"registration {row['registration']}"
+                f"registration {row['registration']}, {row.get('poor_fit', 0)} fitting the map poorly (no removal votes)"
             )
         lines.append(line)
     if bench.get("poisson_grid") and len(bench["poisson_grid"]) > 1:
