@@ -6,8 +6,8 @@ the residual it leaves (the RMS of a camera frame's ICP pairs, the median
 |residual| of a scan's) is the sensor's noise plus the map's own error, a
 few millimetres to centimetres, and steady over a run. A frame that no
 rigid pose fits as well leaves several times that: a camera turning fast
-enough for its rolling read-out to bend the image, a blurred frame, a scan
-whose pose jumped. What such a frame sees through the map is doubtful: the
+enough for its rolling read-out to bend the image, a blurred frame, a pose
+further off than registration follows. What such a frame sees through the map is doubtful: the
 same misfit that leaves its residual puts its depth behind the map's faces.
 
 The rule (:func:`fits_poorly`): a registered frame fits poorly where its
@@ -18,8 +18,8 @@ run whose residual rises for good (a far room, a growing LiDAR map) takes it
 as its new level within half a window. Such a frame is still meshed where
 registration placed it; it casts no removal votes and does not teach the
 noise model (:mod:`mabdi.loop.loop`), and the run counts it
-(``registration.poor_fit`` in summary.json). The numbers: docs/architecture.md
-(``mabdi.stages.fit_check``); measured: docs/benchmarks.md.
+(``registration.poor_fit`` in summary.json). The reasoning: docs/architecture.md
+(``mabdi.stages.removal``, "Frames that fit the map poorly"); measured: docs/benchmarks.md.
 """
 
 from __future__ import annotations
