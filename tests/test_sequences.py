@@ -130,6 +130,32 @@ def test_a_benchmark_folder_names_its_camera(tmp_path, frames):
     assert sequence.intrinsics == PRESETS["fr3"] and "(named by the folder)" in sequence.description
 
 
+def test_a_calibration_file_gives_the_camera(tmp_path, frames):
+    """The layout's ETH3D variant: calibration.txt's one line 'fx fy cx cy' (pixel centres at integers) is the
+    camera, at the depth images' size; a mabdi.toml [camera] table and camera= win over it; a file that is not
+    one line of four numbers is refused naming it."""
+    folder = write_tum(FrameList(frames), tmp_path / "seq")
+    (folder / "mabdi.toml").unlink()
+    (folder / "calibration.txt").write_text("60.5 58.25 31.25 24\n")  # INTRINSICS with OpenCV's pixel centres
+    sequence = TumSequence(folder)
+    assert sequence.intrinsics == dataclasses.replace(INTRINSICS, near=Intrinsics().near, far=Intrinsics().far)
+    assert "camera: calibration.txt" in sequence.description
+    np.testing.assert_allclose(sequence.read(1).world_from_camera, frames[1].world_from_camera, atol=1e-6)
+    assert TumSequence(folder, camera="fr1").intrinsics == PRESETS["fr1"], "a camera given wins"
+    (folder / "mabdi.toml").write_text("[camera]\nfx = 61\nfy = 59\ncx = 32\ncy = 24\nwidth = 64\nheight = 48\n")
+    assert TumSequence(folder).intrinsics.fx == 61.0, "the folder's mabdi.toml wins"
+    (folder / "mabdi.toml").unlink()
+    for text, message in [
+        ("60.5 58.25 31.25 24 0.1 -0.02\n", r"calibration\.txt:1: expected one line 'fx fy cx cy'"),
+        ("# fx fy cx cy\n60.5 58.25 31.25\n", r"calibration\.txt:2: expected one line 'fx fy cx cy'"),
+        ("60.5 58.25 abc 24\n", r"calibration\.txt:1: 'fx fy cx cy' must be numbers"),
+        ("", r"calibration\.txt: expected one line 'fx fy cx cy'.*got nothing"),
+    ]:
+        (folder / "calibration.txt").write_text(text)
+        with pytest.raises(SequenceError, match=message):
+            TumSequence(folder)
+
+
 def test_tum_pose_30_ms_away_is_skipped_and_counted(tmp_path, frames):
     folder = write_tum(FrameList(frames), tmp_path / "seq")
     lines = (folder / "groundtruth.txt").read_text().splitlines()

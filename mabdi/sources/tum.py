@@ -19,7 +19,10 @@ carries the colour image nearest in time.
 
 Intrinsics: the ``camera=`` argument (an :class:`Intrinsics`, a preset name
 or ``"fx,fy,cx,cy,width,height"``), else the ``[camera]`` table of a
-``mabdi.toml`` in the folder, else the preset of the Kinect a benchmark
+``mabdi.toml`` in the folder, else the folder's ``calibration.txt`` (one
+line ``fx fy cx cy``, integer pixel centres, the depth images' size: the
+variant of the layout ETH3D's SLAM benchmark ships and its tools write;
+:func:`read_calibration`), else the preset of the Kinect a benchmark
 folder's name gives (:func:`benchmark_camera`); values in mabdi's pixel convention (pixel
 (u, v) centred on (u + 0.5, v + 0.5)); lens distortion is ignored.
 
@@ -49,6 +52,7 @@ from mabdi.sources.sequence_files import (
     camera_origin,
     camera_table,
     check_depth_size,
+    depth_png_size,
     frame_timestamps,
     intrinsics_with,
     metadata_path,
@@ -64,6 +68,8 @@ from mabdi.sources.sequence_files import (
 
 #: Depth units per metre in TUM PNGs.
 DEPTH_SCALE = 5000.0
+#: The camera file of the layout's ETH3D variant: one line ``fx fy cx cy`` (:func:`read_calibration`).
+CALIBRATION_FILE = "calibration.txt"
 
 _DEFAULTS = Intrinsics()
 
@@ -99,6 +105,34 @@ def benchmark_camera(folder: Path) -> tuple[str, str] | None:
         if found:
             return f"fr{found.group(1)}", where
     return None
+
+
+def read_calibration(file: Path, depth_file: Path) -> Intrinsics:
+    """The camera of a ``calibration.txt``: its one line ``fx fy cx cy`` (pixels; pixel centres at integers, as
+    TUM's documentation, OpenCV and ETH3D's SLAM benchmark put them: mabdi's cx, cy are 0.5 more), for images of
+    ``depth_file``'s size; near and far the defaults. A :class:`SequenceError` names the file and line otherwise."""
+    try:
+        text = file.read_text(encoding="utf-8", errors="replace")
+    except OSError as exc:
+        raise SequenceError(f"{file}: cannot read the camera: {exc}") from None
+    lines = [(number, line.split()) for number, line in enumerate(text.splitlines(), 1) if line.strip() and not line.lstrip().startswith("#")]
+    if len(lines) != 1 or len(lines[0][1]) != 4:
+        where = f"{file}:{lines[0][0]}" if lines else str(file)
+        raise SequenceError(
+            f"{where}: expected one line 'fx fy cx cy' (pixels, pixel centres at integers), got "
+            f"{'nothing' if not lines else repr(' / '.join(' '.join(fields) for _, fields in lines))}: a camera with "
+            f"lens distortion is not read; give the camera of undistorted images with --camera fx,fy,cx,cy,width,height"
+        )
+    number, fields = lines[0]
+    try:
+        fx, fy, cx, cy = (float(field) for field in fields)
+    except ValueError:
+        raise SequenceError(f"{file}:{number}: 'fx fy cx cy' must be numbers, got {' '.join(fields)!r}") from None
+    width, height = depth_png_size(depth_file)
+    try:
+        return dataclasses.replace(_DEFAULTS, fx=fx, fy=fy, cx=cx + 0.5, cy=cy + 0.5, width=width, height=height)
+    except (ValueError, TypeError) as exc:
+        raise SequenceError(f"{file}:{number}: {exc}") from None
 
 
 def tum_preset(name: str, where: str = "camera") -> Intrinsics:
@@ -365,6 +399,13 @@ class TumSequence(FrameSource):
             return tum_preset(camera, f"TUM folder {self.folder}: camera=")
         file = metadata_path(self.folder)
         table = camera_table(self.metadata, file, allowed=("preset", *dataclasses.asdict(_DEFAULTS)))
+        calibration = self.folder / CALIBRATION_FILE
+        if not table and calibration.is_file():
+            times, rows = read_depth_list(self.folder / "depth.txt")
+            if not len(times):
+                raise SequenceError(f"{self.folder / 'depth.txt'}: no depth image listed")
+            self.camera_note = f"camera: {CALIBRATION_FILE}"
+            return read_calibration(calibration, self.folder / rows[int(np.argmin(times))][0])
         if not table:
             named = benchmark_camera(self.folder)
             if named is not None:
@@ -373,7 +414,7 @@ class TumSequence(FrameSource):
             raise SequenceError(
                 f"TUM folder {self.folder}: no intrinsics: give --camera (camera=: one of {', '.join(PRESETS)}, "
                 f"or fx,fy,cx,cy,width,height) or put a [camera] table (fx, fy, cx, cy, width, height; optional near, "
-                f"far, preset) in {file}"
+                f"far, preset) in {file}, or a {CALIBRATION_FILE} (one line: fx fy cx cy, pixel centres at integers)"
             )
         base = tum_preset(table["preset"], f"{file}: camera.preset") if "preset" in table else None
         if base is None:
