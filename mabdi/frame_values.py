@@ -99,7 +99,9 @@ class Placement:
     world_from_camera as the source gave it; ``world_from_map``: where the map's frame lies in the world;
     ``covariance``: 6x6 of the meshed pose (rotation vector in rad, translation in m), None when not registered;
     ``fitted_pose``: 4x4 camera-to-map, the pose the ICP fitted D to the map at (the meshed pose may keep the given
-    one instead), None when not registered.
+    one instead), None when not registered; ``poor_fit``: registered, but no rigid pose fits D to the map as the
+    run's frames fit (:mod:`mabdi.stages.fit_check`): the frame keeps the pose the fit started from and casts no
+    removal votes.
     """
 
     status: str
@@ -114,6 +116,7 @@ class Placement:
     given_exact: bool = False
     covariance: np.ndarray | None = None
     fitted_pose: np.ndarray | None = None
+    poor_fit: bool = False
 
     @classmethod
     def unregistered(cls, given_pose: np.ndarray) -> Placement:

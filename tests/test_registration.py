@@ -3,6 +3,8 @@ depth uncertainty, and the loop that meshes and votes with the registered pose."
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -844,3 +846,35 @@ def test_the_icp_samples_sparsely_first_and_densely_where_few_pixels_hold_a_dire
     np.testing.assert_array_equal(single.transform, dense.transform)
     with pytest.raises(ConfigError, match="sparse_stride"):
         RegistrationParameters(sparse_stride=0)
+
+
+
+def test_a_frame_no_pose_fits_keeps_the_pose_the_fit_started_from():
+    """A frame 5 cm and two degrees off its true pose is fitted and followed; told that the run's frames fit ten times
+    better than it does (:mod:`mabdi.stages.fit_check`: a smeared or bent image, whose ICP pose is no evidence against
+    the given one), it keeps the pose the fit started from (the given pose), carries no correction on, and says so."""
+    true = room_poses(9)
+    given = true.copy()
+    given[7] = perturbed(true[7], [0.05, 0.0, 0.0], [0.0, 2.0, 0.0])
+    frames = [DepthFrame(d, Intrinsics(), g, i, i / 30) for i, (d, g) in enumerate(zip(room_frames(true, noise="kinect"), given, strict=True))]
+    loop = mabdi.MabdiLoop(FrameList(frames), surface="quadtree", noise="kinect")
+    for i in range(7):
+        loop.step(i)
+    measured = loop.depth_frames.measured(7)
+    before = copy.deepcopy(loop.registration.state())
+    carried = before["correction"]
+
+    placed, placement = loop.registration.place(measured, loop.world.map)  # not judged: the ICP's pose is followed
+    assert placement.status == "registered" and not placement.poor_fit and placement.correction_m > 0.04
+    residual = placement.residual_m
+    loop.registration.set_state(copy.deepcopy(before))  # as if that fit had not been made
+
+    earlier = np.full(20, residual / 10.0)  # the run's frames fit ten times better
+    kept, placement = loop.registration.place(measured, loop.world.map, earlier)
+    assert placement.status == "registered" and placement.poor_fit
+    assert placement.correction_m < 1e-6 and placement.correction_deg < 1e-6, placement  # at its given pose
+    world_from_map = placement.world_from_map
+    np.testing.assert_allclose(world_from_map @ kept.pose, given[7], atol=1e-9)
+    np.testing.assert_array_equal(loop.registration.state()["correction"], carried)  # nothing carried on
+    _, placement = loop.registration.place(loop.depth_frames.measured(8), loop.world.map, np.full(20, residual))
+    assert not placement.poor_fit and placement.correction_m < 0.005

@@ -53,7 +53,6 @@ from mabdi.stages.registration_check import (
 )
 from mabdi.surfaces.registry import make_surface_filter, mesh_frame, seam_pixels, surface_filter
 from mabdi.surfaces.seam_trim import trimmed_patch, without_faces_on_map
-from mabdi.stages.fit_check import fits_poorly
 from mabdi.stages.object_removal import ObjectRemoval, RemovalResult, RemovalVotes
 from mabdi.stages.removal import RemovalParameters, depth_edges
 from mabdi.frame_values import Classified, Expected, Measured, Placement
@@ -532,10 +531,10 @@ class MabdiLoop:
         placement = Placement.unregistered(measured.pose)
         drawn = None  # E, where registration drew it at the pose the scan is meshed with
         if isinstance(self.registration, ScanRegistration):
-            measured, placement, drawn = self.registration.place(measured, self.world.map)
+            measured, placement, drawn = self.registration.place(measured, self.world.map, self._earlier_residuals(index))
             t_register = t_expected = t_classify = time.perf_counter()
         elif self.registration is not None:
-            measured, placement = self.registration.place(measured, self.world.map)
+            measured, placement = self.registration.place(measured, self.world.map, self._earlier_residuals(index))
             t_register = t_expected = t_classify = time.perf_counter()
         expected = classified = voted_on = None
         surface_input, whole = measured, None  # the black box meshes all of D
@@ -565,8 +564,8 @@ class MabdiLoop:
         # Removal votes only from frames whose pose is known to fit the map: registered, or given without
         # registration, or stated exact by the source (the ICP's checks fail where what held the pose has
         # left the scene: that is when the votes matter); and not from a registered frame that no pose fits
-        # as well as the run's frames fit (:mod:`mabdi.stages.fit_check`).
-        poor_fit = placement.status == "registered" and fits_poorly(placement.residual_m, self._earlier_residuals(index))
+        # as well as the run's frames fit (:mod:`mabdi.stages.fit_check`; registration judged it).
+        poor_fit = placement.poor_fit
         votes = (placement.status in ("registered", "off") or placement.given_exact) and not poor_fit
         self._given_exact = placement.given_exact
         if self.noise.calibration is not None and self.classifier_enabled and votes:

@@ -23,7 +23,10 @@ loop renders anyway:
    frame's slow correction unless the ICP's pose fits D to the map several
    times better than the given pose with its jitter taken off
    (:func:`follow_gain`, :meth:`FilterRegistration._jitter_free`), and its
-   jitter about that is learnt from the run (:class:`PoseJitter`).
+   jitter about that is learnt from the run (:class:`PoseJitter`);
+7. a registered frame that fits the map several times worse than the run's
+   frames (:mod:`mabdi.stages.fit_check`, judged when the loop passes the
+   run's residuals) keeps its start's pose instead and carries nothing on.
 
 Units: metres and degrees in parameters; poses are 4x4 ``world_from_camera``
 in the map's frame. Output: D with the registered pose, and in field data
@@ -58,6 +61,7 @@ from mabdi.errors import ConfigError
 from mabdi.render.depth_image import BACKENDS, DepthRenderer
 from mabdi.sensor_noise import SensorNoise
 from mabdi.stages.expected_image import MEASURED_PORT, MapAndImageAlgorithm, map_input, render_expected
+from mabdi.stages.fit_check import fits_poorly
 from mabdi.stages.map_anchor import MapAnchor
 from mabdi.frame_values import Measured, Placement
 from mabdi.noise_calibration import MAD_TO_SIGMA
@@ -1002,11 +1006,13 @@ class FilterRegistration(MapAndImageAlgorithm):
         pose, _ = self._about_slow(given, np.zeros(6), found, covariance, self._jitter.variance())
         return np.linalg.inv(given) @ pose
 
-    def place(self, measured: Measured, world) -> tuple[Measured, Placement]:
+    def place(self, measured: Measured, world, earlier_residuals: np.ndarray | None = None) -> tuple[Measured, Placement]:
         """Register D (``measured``, at its given world_from_camera) to the map ``world`` (a vtkPolyData or the
         world mesh's blocks, in the map's frame): D at the pose it is meshed with (map frame), and the
         :class:`~mabdi.frame_values.Placement` that says how it was found. A frame placed again (the same
-        index) does not count twice in what the filter carries between frames."""
+        index) does not count twice in what the filter carries between frames. ``earlier_residuals``: the
+        residuals (m) of the run's registered frames before this one, oldest first, against which a frame that
+        fits poorly is told (:mod:`mabdi.stages.fit_check`; None: not judged)."""
         intrinsics, given, frame, noise, depth = measured.geometry, measured.pose, measured.index, measured.noise, measured.depth
         new_frame = frame != self._last_frame or frame < 0  # a re-executed frame is not counted twice
         if new_frame and self._last_position is not None:
@@ -1035,13 +1041,19 @@ class FilterRegistration(MapAndImageAlgorithm):
         fitted = pose.copy() if result.registered else None  # where D fits the map, whatever pose it is meshed at
         covariance = result.covariance
         learnt = self.anchor.stated is None
-        if result.registered or result.status == "exact":
+        poor_fit = result.registered and earlier_residuals is not None and fits_poorly(result.residual, earlier_residuals)
+        if poor_fit:
+            # no rigid pose fits D as the run's frames fit (a smeared or bent image): the ICP's pose is no evidence
+            # against the pose the fit started from, which the frame keeps (the given pose, or the carried
+            # correction where that fitted better); it teaches nothing and carries nothing on
+            pose = apply_correction((np.eye(4), self._correction)[result.reference], given_in_map)
+        elif result.registered or result.status == "exact":
             if learnt:  # how good the given poses are is not stated: learnt from the run (see the module docs)
                 pose, covariance = self._learnt_pose(given_in_map, pose, result, new_frame)
             else:
                 variance = self.anchor.given_variance(self._travelled)
                 pose, covariance = fuse_with_given(given_in_map, pose, result.covariance, variance)
-        if p.enabled and new_frame:
+        if p.enabled and new_frame and not poor_fit:
             if result.registered:
                 self._correction = self._slow if learnt else correction_between(given_in_map, pose)
                 median_depth = _median_depth(depth)
@@ -1062,7 +1074,7 @@ class FilterRegistration(MapAndImageAlgorithm):
         placement = Placement(
             result.status, given.copy(), world_from_map.copy(), translation, angle, result.residual, result.inlier_share,
             result.support, result.iterations, bool(given_exact), None if covariance is None else np.asarray(covariance, dtype=np.float64),
-            fitted,
+            fitted, bool(poor_fit),
         )  # fmt: skip
         return measured.placed(pose), placement
 

@@ -49,6 +49,7 @@ from mabdi.camera import pixel_rays
 from mabdi.frame_values import Expected, Measured, Placement
 from mabdi.pose_noise import PoseNoise
 from mabdi.spherical import SphericalGeometry
+from mabdi.stages.fit_check import fits_poorly
 from mabdi.stages.registration import (
     RegistrationParameters,
     apply_correction,
@@ -234,9 +235,13 @@ class ScanRegistration:
         self._correction = None if np.isnan(correction).any() else correction.copy()
         self._last_frame = int(state["last_frame"])
 
-    def place(self, measured: Measured, world) -> tuple[Measured, Placement, Expected | None]:
+    def place(
+        self, measured: Measured, world, earlier_residuals: np.ndarray | None = None
+    ) -> tuple[Measured, Placement, Expected | None]:
         """The scan ``measured`` at the pose it is meshed with, its :class:`~mabdi.frame_values.Placement`, and E
-        drawn at that pose when it is the one E was drawn at for the fit (else None: the loop draws E again)."""
+        drawn at that pose when it is the one E was drawn at for the fit (else None: the loop draws E again).
+        ``earlier_residuals``: the residuals (m) of the run's registered scans before this one, against which a
+        scan that fits poorly is told (:mod:`mabdi.stages.fit_check`: it keeps its reference pose; None: not judged)."""
         given = measured.pose
         new_frame = measured.index != self._last_frame or measured.index < 0
         carried = given if self._correction is None else apply_correction(self._correction, given)
@@ -259,23 +264,27 @@ class ScanRegistration:
         fit_cost = fit.cost if fit.status == "registered" else float("nan")
         self.last_costs = (given_cost, carried_cost, fit_cost)
         pose = reference
-        gain = scan_follow_gain(reference_cost / max(fit_cost, 1e-12)) if fit.status == "registered" else 0.0
+        poor_fit = fit.status == "registered" and earlier_residuals is not None and fits_poorly(fit.residual, earlier_residuals)
+        gain = scan_follow_gain(reference_cost / max(fit_cost, 1e-12)) if fit.status == "registered" and not poor_fit else 0.0
         if gain > 0.0:
             fitted = carried @ fit.transform
             start_vector = correction_vector(correction_between(given, reference))
             end_vector = correction_vector(correction_between(given, fitted))
             pose = apply_correction(correction_matrix(start_vector + gain * (end_vector - start_vector)), given)
-        if new_frame and fit.status == "registered":
+        if new_frame and fit.status == "registered" and not poor_fit:
             # none where the scan keeps its given pose: the next scan starts at its given pose, bit for bit
             self._correction = None if pose is given else correction_between(given, pose)
         if new_frame:
             self._last_frame = measured.index
         drawn = expected if pose is carried else None
-        return measured.placed(pose), self._placement(fit.status, given, pose, fit), drawn
+        return measured.placed(pose), self._placement(fit.status, given, pose, fit, poor_fit=poor_fit), drawn
 
     @staticmethod
-    def _placement(status: str, given: np.ndarray, pose: np.ndarray, fit: ScanFit, exact: bool = False) -> Placement:
+    def _placement(
+        status: str, given: np.ndarray, pose: np.ndarray, fit: ScanFit, exact: bool = False, poor_fit: bool = False
+    ) -> Placement:
         translation, angle = transform_size(np.linalg.inv(given) @ pose)
         return Placement(
-            status, given.copy(), np.eye(4), translation, angle, fit.residual, fit.inlier_share, float("nan"), fit.iterations, exact
+            status, given.copy(), np.eye(4), translation, angle, fit.residual, fit.inlier_share, float("nan"), fit.iterations, exact,
+            poor_fit=bool(poor_fit),
         )  # fmt: skip
