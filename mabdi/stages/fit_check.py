@@ -17,11 +17,11 @@ known. Every registered frame enters the median, poorly fitting or not, so a
 run whose residual rises for good (a far room, a growing LiDAR map) takes it
 as its new level within half a window. Registration judges each frame by
 it (``earlier_residuals`` of :meth:`mabdi.stages.registration.FilterRegistration.place`
-and :meth:`mabdi.stages.scan_registration.ScanRegistration.place`): such a
+and :meth:`mabdi.stages.scan_registration.ScanRegistration.place`): a camera's
 frame keeps the pose the fit started from (the given pose, or the carried
 correction where that fitted better), since the ICP's pose of an image no rigid
 motion explains is no evidence against it, and carries nothing on to the next
-frame. It is still meshed; it casts no removal votes and does not teach the
+frame; a LiDAR's scan keeps the fit's pose (the module docs there say why). It is still meshed; it casts no removal votes and does not teach the
 noise model (:mod:`mabdi.loop.loop`), and the run counts it
 (``registration.poor_fit`` in summary.json). The reasoning: docs/architecture.md
 (``mabdi.stages.removal``, "Frames that fit the map poorly"); measured: docs/benchmarks.md.

@@ -241,7 +241,10 @@ class ScanRegistration:
         """The scan ``measured`` at the pose it is meshed with, its :class:`~mabdi.frame_values.Placement`, and E
         drawn at that pose when it is the one E was drawn at for the fit (else None: the loop draws E again).
         ``earlier_residuals``: the residuals (m) of the run's registered scans before this one, against which a
-        scan that fits poorly is told (:mod:`mabdi.stages.fit_check`: it keeps its reference pose; None: not judged)."""
+        scan that fits poorly is told (:mod:`mabdi.stages.fit_check`; None: not judged). Unlike a camera's frame
+        (:meth:`mabdi.stages.registration.FilterRegistration.place`) such a scan still takes the fit's pose: the
+        scans a real LiDAR's run flagged were its first after standing still, whose fit corrects a lagging pose
+        (docs/benchmarks.md, "A frame no rigid pose fits keeps its start's pose")."""
         given = measured.pose
         new_frame = measured.index != self._last_frame or measured.index < 0
         carried = given if self._correction is None else apply_correction(self._correction, given)
@@ -265,13 +268,13 @@ class ScanRegistration:
         self.last_costs = (given_cost, carried_cost, fit_cost)
         pose = reference
         poor_fit = fit.status == "registered" and earlier_residuals is not None and fits_poorly(fit.residual, earlier_residuals)
-        gain = scan_follow_gain(reference_cost / max(fit_cost, 1e-12)) if fit.status == "registered" and not poor_fit else 0.0
+        gain = scan_follow_gain(reference_cost / max(fit_cost, 1e-12)) if fit.status == "registered" else 0.0
         if gain > 0.0:
             fitted = carried @ fit.transform
             start_vector = correction_vector(correction_between(given, reference))
             end_vector = correction_vector(correction_between(given, fitted))
             pose = apply_correction(correction_matrix(start_vector + gain * (end_vector - start_vector)), given)
-        if new_frame and fit.status == "registered" and not poor_fit:
+        if new_frame and fit.status == "registered":
             # none where the scan keeps its given pose: the next scan starts at its given pose, bit for bit
             self._correction = None if pose is given else correction_between(given, pose)
         if new_frame:
