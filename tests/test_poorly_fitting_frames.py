@@ -104,3 +104,40 @@ def test_bent_frames_fit_poorly_and_remove_nothing_of_the_static_table(recording
     removed = metrics["cells_removed"].astype(int)
     assert removed[BENT.start : BENT.stop + 2].sum() == 0, removed[BENT.start : BENT.stop + 2]
     assert clean["registration"]["poor_fit"] == 0 and clean["cells_removed"] == 0
+
+
+def test_frames_that_stood_still_do_not_set_the_runs_level():
+    """A sensor standing still fits the map at its noise alone (a handheld LiDAR: 3 mm for nine scans, 9-11 mm once
+    it moved): frames within a millimetre and a tenth of a degree of the frame before them are not counted, so the
+    first frames that move are judged against frames that moved."""
+    from scipy.spatial.transform import Rotation
+
+    from mabdi.stages.fit_check import STILL_DEGREES, STILL_METRES, moved
+
+    poses = np.repeat(np.eye(4)[None], 7, axis=0)
+    poses[1, 0, 3] = 0.2 * STILL_METRES  # jitter of a still pose
+    poses[2, :3, :3] = Rotation.from_rotvec([0.0, 0.0, np.radians(0.5 * STILL_DEGREES)]).as_matrix()
+    poses[3, 0, 3] = 5.0 * STILL_METRES  # moved 5 mm
+    poses[4, :3, :3] = Rotation.from_rotvec([0.0, np.radians(2.0 * STILL_DEGREES), 0.0]).as_matrix()  # and turned back
+    poses[5] = np.nan  # not run
+    assert moved(poses).tolist() == [False, False, False, True, True, False, False]
+    assert moved(poses[:1]).tolist() == [False] and moved(np.zeros((0, 4, 4))).tolist() == []
+
+    # the loop's run so far: nine registered frames standing still at 3 mm, then six moving at 10 mm; the level it
+    # judges the next frame by holds the moving ones alone
+    import mabdi
+    from mabdi.camera import Intrinsics, look_at
+    from mabdi.depth import DepthFrame
+    from mabdi.sources.frames import FrameList
+    from mabdi.stages.registration import STATUSES
+
+    camera = Intrinsics(fx=30.0, fy=30.0, cx=8.0, cy=6.0, width=16, height=12)
+    frames = [DepthFrame(np.full((12, 16), 2.0, np.float32), camera, np.eye(4), i, i / 30) for i in range(16)]
+    loop = mabdi.MabdiLoop(FrameList(frames), surface="quadtree")
+    track = [look_at([0.0, 0.0, 0.0], [1.0, 0.0, 0.0])] * 10 + [look_at([0.05 * k, 0.0, 0.0], [1.0, 0.0, 0.0]) for k in range(1, 7)]
+    loop._poses[:16] = np.array(track)
+    loop._registrations[:16, 0] = STATUSES.index("registered")
+    loop._registrations[:16, 5] = [0.003] * 10 + [0.010] * 6
+    counted = loop._earlier_residuals(16)
+    np.testing.assert_array_equal(counted, np.full(6, 0.010))
+    assert fits_poorly(0.010, loop._registrations[:16, 5]) and not fits_poorly(0.010, counted)

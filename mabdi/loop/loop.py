@@ -43,6 +43,7 @@ from mabdi.stages.classifier import ClassifierParameters, FilterClassifier, dila
 from mabdi.render.depth_image import BACKENDS
 from mabdi.sensor_noise import SensorNoise
 from mabdi.stages.expected_image import FilterExpectedImage, write_expected
+from mabdi.stages.fit_check import moved
 from mabdi.stages.front_confirmation import FrontConfirmation
 from mabdi.stages.refinement import MapRefinement, RefinementParameters, RefinementResult
 from mabdi.surfaces.quadtree import QuadTreeParameters, resolved as resolved_quadtree
@@ -636,9 +637,11 @@ class MabdiLoop:
         )
 
     def _earlier_residuals(self, index: int) -> np.ndarray:
-        """The registration residuals (m) of the registered frames before ``index``, in order."""
+        """The registration residuals (m) of the registered frames before ``index`` that moved from the frame before
+        them (:func:`mabdi.stages.fit_check.moved`), in order."""
         earlier = self._registrations[:index]
-        return earlier[earlier[:, 0] == STATUSES.index("registered"), 5]
+        counted = (earlier[:, 0] == STATUSES.index("registered")) & moved(self._poses[:index])
+        return earlier[counted, 5]
 
     def _calibrate_noise(self, measured: Measured, expected: Expected) -> None:
         """``noise = "auto"``: this frame's D - E where the map explains D, away from E's silhouettes

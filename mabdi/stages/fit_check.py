@@ -13,9 +13,14 @@ same misfit that leaves its residual puts its depth behind the map's faces.
 The rule (:func:`fits_poorly`): a registered frame fits poorly where its
 residual exceeds :data:`POOR_FIT` times the median residual of the run's
 last :data:`WINDOW` registered frames, once :data:`MIN_FRAMES` of them are
-known. Every registered frame enters the median, poorly fitting or not, so a
-run whose residual rises for good (a far room, a growing LiDAR map) takes it
-as its new level within half a window. Registration judges each frame by
+known. Every registered frame that moved enters the median, poorly fitting or
+not, so a run whose residual rises for good (a far room, a growing LiDAR map)
+takes it as its new level within half a window. A frame whose pose lies within
+:data:`STILL_METRES` and :data:`STILL_DEGREES` of the frame before it does not
+(:func:`moved`): a sensor standing still sees the map from where it was made and
+fits it at its noise alone, a level the first frames that move exceed several
+times (a handheld LiDAR standing still for nine scans fitted at 3 mm, its first
+moving scans at 9-11 mm). Registration judges each frame by
 it (``earlier_residuals`` of :meth:`mabdi.stages.registration.FilterRegistration.place`
 and :meth:`mabdi.stages.scan_registration.ScanRegistration.place`): a camera's
 frame keeps the pose the fit started from (the given pose, or the carried
@@ -37,6 +42,26 @@ POOR_FIT = 3.0
 WINDOW = 100
 #: ... once at least this many are known (before that no frame is judged).
 MIN_FRAMES = 5
+#: A frame within both of these of the frame before it (m, degrees) stood still: its residual is not counted.
+STILL_METRES = 0.001
+STILL_DEGREES = 0.1
+
+
+def moved(poses: np.ndarray) -> np.ndarray:
+    """(N,) bool: whether each of the (N, 4, 4) ``poses`` lies :data:`STILL_METRES` or :data:`STILL_DEGREES` or more
+    from the pose before it (the first, and a pose or its predecessor NaN: False)."""
+    poses = np.asarray(poses, dtype=np.float64)
+    out = np.zeros(len(poses), dtype=bool)
+    if len(poses) < 2:
+        return out
+    before, after = poses[:-1], poses[1:]
+    with np.errstate(invalid="ignore"):
+        shift = np.linalg.norm(after[:, :3, 3] - before[:, :3, 3], axis=1)
+        relative = np.einsum("nji,njk->nik", before[:, :3, :3], after[:, :3, :3])
+        cosine = np.clip((np.trace(relative, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)
+        turn = np.degrees(np.arccos(cosine))
+        out[1:] = (shift >= STILL_METRES) | (turn >= STILL_DEGREES)
+    return out
 
 
 def fits_poorly(residual: float, earlier: np.ndarray) -> bool:

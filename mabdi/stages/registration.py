@@ -14,19 +14,16 @@ loop renders anyway:
    residuals' robust spread, Huber weights, and no step along directions
    the scene does not constrain; every ``sparse_stride``-th pixel first, every ``stride``-th where
    that leaves a direction loosely held or the frame unregistered (:func:`register_depth`);
-5. checks (``min_points``, ``min_inliers``, ``min_support``, the last step,
-   ``max_translation``, ``max_rotation``): a frame that fails them is
-   meshed at its start and casts no removal votes;
+5. checks (``min_points``, ``min_inliers``, ``min_support``, the last step, ``max_translation``,
+   ``max_rotation``): a frame that fails them, or fits the map several times worse than the run's
+   frames (:mod:`mabdi.stages.fit_check`), is meshed at its start and casts no removal votes;
 6. where the source states its poses' accuracy, the ICP's pose is weighed
    against the given one by their covariances (:func:`fuse_with_given`);
    where not (a recording), a frame keeps the given pose or the last
    frame's slow correction unless the ICP's pose fits D to the map several
    times better than the given pose with its jitter taken off
    (:func:`follow_gain`, :meth:`FilterRegistration._jitter_free`), and its
-   jitter about that is learnt from the run (:class:`PoseJitter`);
-7. a registered frame that fits the map several times worse than the run's
-   frames (:mod:`mabdi.stages.fit_check`, judged when the loop passes the
-   run's residuals) keeps its start's pose instead and carries nothing on.
+   jitter about that is learnt from the run (:class:`PoseJitter`).
 
 Units: metres and degrees in parameters; poses are 4x4 ``world_from_camera``
 in the map's frame. Output: D with the registered pose, and in field data

@@ -243,8 +243,9 @@ class ScanRegistration:
         ``earlier_residuals``: the residuals (m) of the run's registered scans before this one, against which a
         scan that fits poorly is told (:mod:`mabdi.stages.fit_check`; None: not judged). Unlike a camera's frame
         (:meth:`mabdi.stages.registration.FilterRegistration.place`) such a scan still takes the fit's pose: the
-        scans a real LiDAR's run flagged were its first after standing still, whose fit corrects a lagging pose
-        (docs/benchmarks.md, "A frame no rigid pose fits keeps its start's pose")."""
+        only real scans ever flagged (the first after a handheld sensor stood still, before still frames were left
+        out of the run's level) were ones whose fit corrects a lagging pose (docs/benchmarks.md, "A frame no rigid
+        pose fits keeps its start's pose")."""
         given = measured.pose
         new_frame = measured.index != self._last_frame or measured.index < 0
         carried = given if self._correction is None else apply_correction(self._correction, given)
