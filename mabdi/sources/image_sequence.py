@@ -49,10 +49,11 @@ from mabdi.camera import Intrinsics, PoseRepairs
 from mabdi.depth import DepthFrame
 from mabdi.errors import PoseError, PoseFileWarning
 from mabdi.sources.frames import FrameSource
-from mabdi.sources.sequence_files import (  # noqa: F401 (read_colour_image, write_colour_png: the readers' and writers' own)
+from mabdi.sources.sequence_files import (  # noqa: F401 (read_colour_image, write_colour_png, intrinsics_from_matrix: the readers' and writers' own)
     SequenceError,
     camera_from_text,
     camera_table,
+    intrinsics_from_matrix,
     intrinsics_with,
     metadata_path,
     read_colour_image,
@@ -112,19 +113,6 @@ def png_size(path: Path) -> tuple[int, int]:
         raise SequenceError(f"{path}: image missing") from None
     except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as exc:
         raise SequenceError(f"{path}: cannot read image: {exc}") from None
-
-
-def intrinsics_from_matrix(matrix: np.ndarray, width: int, height: int, where) -> Intrinsics:
-    """:class:`Intrinsics` from a 3x3 camera matrix K whose pixel centres are at integers (OpenCV, ROS, Open3D
-    and the datasets' files): mabdi's cx = K[0, 2] + 0.5, cy = K[1, 2] + 0.5; near and far the defaults."""
-    k = np.asarray(matrix, dtype=np.float64)
-    try:
-        return Intrinsics(
-            fx=float(k[0, 0]), fy=float(k[1, 1]), cx=float(k[0, 2]) + 0.5, cy=float(k[1, 2]) + 0.5,
-            width=int(width), height=int(height),
-        )
-    except (ValueError, TypeError) as exc:
-        raise SequenceError(f"{where}: {exc}") from None
 
 
 def camera_matrix_text(intrinsics: Intrinsics, rows: int = 3) -> str:

@@ -108,6 +108,19 @@ def camera_from_text(text: str, where) -> Intrinsics:
         raise SequenceError(f"{where}: camera {text!r} is not fx,fy,cx,cy,width,height{detail}") from None
 
 
+def intrinsics_from_matrix(matrix: np.ndarray, width: int, height: int, where) -> Intrinsics:
+    """:class:`Intrinsics` from a 3x3 camera matrix K whose pixel centres are at integers (OpenCV, ROS, Open3D
+    and the datasets' files): mabdi's cx = K[0, 2] + 0.5, cy = K[1, 2] + 0.5; near and far the defaults."""
+    k = np.asarray(matrix, dtype=np.float64)
+    try:
+        return Intrinsics(
+            fx=float(k[0, 0]), fy=float(k[1, 1]), cx=float(k[0, 2]) + 0.5, cy=float(k[1, 2]) + 0.5,
+            width=int(width), height=int(height),
+        )
+    except (ValueError, TypeError) as exc:
+        raise SequenceError(f"{where}: {exc}") from None
+
+
 # ---------------------------------------------------------------------------
 # The depth images' size against the camera's
 

@@ -53,6 +53,7 @@ from mabdi.sources.sequence_files import (
     camera_table,
     check_depth_size,
     depth_png_size,
+    intrinsics_from_matrix,
     frame_timestamps,
     intrinsics_with,
     metadata_path,
@@ -128,11 +129,8 @@ def read_calibration(file: Path, depth_file: Path) -> Intrinsics:
         fx, fy, cx, cy = (float(field) for field in fields)
     except ValueError:
         raise SequenceError(f"{file}:{number}: 'fx fy cx cy' must be numbers, got {' '.join(fields)!r}") from None
-    width, height = depth_png_size(depth_file)
-    try:
-        return dataclasses.replace(_DEFAULTS, fx=fx, fy=fy, cx=cx + 0.5, cy=cy + 0.5, width=width, height=height)
-    except (ValueError, TypeError) as exc:
-        raise SequenceError(f"{file}:{number}: {exc}") from None
+    matrix = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+    return intrinsics_from_matrix(matrix, *depth_png_size(depth_file), f"{file}:{number}")
 
 
 def tum_preset(name: str, where: str = "camera") -> Intrinsics:
