@@ -115,7 +115,7 @@ def _parser() -> argparse.ArgumentParser:
     sequence.add_argument(
         "--sequence", type=Path,
         help="run on a recorded sequence (a TUM RGB-D folder, a ROS 2 or ROS 1 bag, or a 3DMatch / 7-Scenes, Redwood / Open3D, "
-        "ScanNet, Replica (NICE-SLAM) or KITTI-style LiDAR folder, told apart by their files) instead of the simulated sensor; "
+        "ScanNet, Replica (NICE-SLAM), Stray Scanner or KITTI-style LiDAR folder, told apart by their files) instead of the simulated sensor; "
         "CONFIG then gives the classifier, surface and output settings (its [sensor] noise sets the thresholds; "
         "when neither CONFIG's [sensor] nor --noise names a noise model, a depth camera's is learnt from the run, noise = auto)",
     )
@@ -127,7 +127,7 @@ def _parser() -> argparse.ArgumentParser:
     )
     sequence.add_argument(
         "--depth-scale", type=float,
-        help="depth PNG units per metre, replacing the layout's own (TUM 5000, 3DMatch / Redwood / ScanNet 1000, Replica 6553.5)",
+        help="depth PNG units per metre, replacing the layout's own (TUM 5000, 3DMatch / Redwood / ScanNet / Stray Scanner 1000, Replica 6553.5)",
     )
     sequence.add_argument("--depth-topic", help="ROS bag: the depth image topic (when there are several)")
     sequence.add_argument("--info-topic", help="ROS bag: the CameraInfo topic (when there are several)")

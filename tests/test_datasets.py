@@ -1,4 +1,4 @@
-"""The common RGB-D dataset layouts (3DMatch / 7-Scenes, Redwood / Open3D, ScanNet, Replica): simulated frames
+"""The common RGB-D dataset layouts (3DMatch / 7-Scenes, Redwood / Open3D, ScanNet, Replica, Stray Scanner): simulated frames
 written in each, read back, and run through `mabdi run --sequence` against the same frames as a TUM folder."""
 
 from __future__ import annotations
@@ -20,6 +20,8 @@ from mabdi.sources import replica
 from mabdi.sources.redwood import write_redwood
 from mabdi.sources.replica import write_replica
 from mabdi.sources.scannet import ScanNetSequence, write_scannet
+from mabdi.sources import stray
+from mabdi.sources.stray import StraySequence, write_stray
 from mabdi.sources.sequences import FORMATS, SequenceError, open_sequence, sequence_format
 from mabdi.sources.threedmatch import ThreeDMatchSequence, write_3dmatch
 from mabdi.sources.tum import write_tum
@@ -72,9 +74,9 @@ height = 0.2
 position = [-0.2, 0.1, 1.0]
 """
 
-WRITERS = {"3dmatch": write_3dmatch, "redwood": write_redwood, "scannet": write_scannet, "replica": write_replica}
+WRITERS = {"3dmatch": write_3dmatch, "redwood": write_redwood, "scannet": write_scannet, "replica": write_replica, "stray": write_stray}
 #: Each layout's depth step (m): TUM 1/5000, millimetres, Replica 1/6553.5.
-STEPS = {"tum": 1 / 5000, "3dmatch": 1e-3, "redwood": 1e-3, "scannet": 1e-3, "replica": 1 / 6553.5}
+STEPS = {"tum": 1 / 5000, "3dmatch": 1e-3, "redwood": 1e-3, "scannet": 1e-3, "replica": 1 / 6553.5, "stray": 1e-3}
 
 
 @pytest.fixture(scope="module")
@@ -228,6 +230,12 @@ def _damage(folder, layout):
         file = folder / "intrinsic" / "intrinsic_depth.txt"
         file.write_text("131 0 79.5 0\n0 131\n0 0 1 0\n0 0 0 1\n")
         return f"{file}:2", "expected 3 numbers"
+    if layout == "stray":
+        file = folder / "odometry.csv"
+        lines = file.read_text().splitlines()
+        lines[2] = lines[2].replace(",", ", one,", 1)
+        file.write_text("\n".join(lines) + "\n")
+        return f"{file}:3", "expected numbers"
     file = folder / "traj.txt"
     lines = file.read_text().splitlines()
     lines[3] = " ".join(lines[3].split()[:15])
@@ -308,3 +316,68 @@ def test_scannet_colour_of_another_size_is_registered_to_the_depth(recorded, tmp
     colour = ScanNetSequence(folder).read(1).colour  # a 960x720 JPEG, decoded at a quarter (240x180 >= 160x120)
     error = np.abs(colour.astype(int) - smooth.astype(int))
     assert np.median(error) <= 3 and np.percentile(error, 99) <= 40, (np.median(error), np.percentile(error, 99))
+
+
+def _mp4_with_a_video_track(path, width, height):
+    """The boxes an MP4's header holds, down to a track header (``tkhd``) of ``width`` x ``height`` (16.16 fixed point)."""
+    import struct
+
+    def box(kind, body):
+        return struct.pack(">I4s", 8 + len(body), kind) + body
+
+    tkhd = box(b"tkhd", bytes(76) + struct.pack(">II", width << 16, height << 16))
+    path.write_bytes(box(b"ftyp", b"isom" + bytes(4)) + box(b"moov", box(b"trak", tkhd)))
+
+
+def test_stray_camera_is_the_colour_cameras_scaled_to_the_depth(recorded, tmp_path):
+    """camera_matrix.csv is the colour camera's (ARKit's 1920 x 1440 capture: 12 times the 160 x 120 depth
+    here); the depth camera is it scaled by the widths' ratio, the colour width read from rgb.mp4's header, or
+    without one the capture width whose centre K's principal point is."""
+    frames, _, _ = recorded
+    folder = write_stray(frames, tmp_path / "stray")
+    camera = frames.intrinsics
+    k = np.array([[camera.fx * 12, 0, camera.cx * 12 - 0.5], [0, camera.fy * 12, camera.cy * 12 - 0.5], [0, 0, 1]])
+    (folder / "camera_matrix.csv").write_text("\n".join(", ".join(f"{v:.10g}" for v in row) for row in k) + "\n")
+    got = open_sequence(folder).intrinsics
+    assert (got.width, got.height) == (160, 120)
+    np.testing.assert_allclose([got.fx, got.fy, got.cx, got.cy], [camera.fx, camera.fy, camera.cx, camera.cy], atol=1e-9)
+    _mp4_with_a_video_track(folder / "rgb.mp4", 1440, 1080)  # the video says 1440 wide: K is for that size
+    got = open_sequence(folder).intrinsics
+    np.testing.assert_allclose([got.fx, got.cx], [camera.fx * 12 * 160 / 1440, camera.cx * 12 * 160 / 1440], atol=1e-9)
+    (folder / "rgb.mp4").unlink()
+    k[0, 2] = 800.0  # twice cx is near no capture width: refused, naming the file
+    (folder / "camera_matrix.csv").write_text("\n".join(", ".join(f"{v:.10g}" for v in row) for row in k) + "\n")
+    with pytest.raises(SequenceError, match=r"camera_matrix\.csv: no rgb\.mp4 .* --camera"):
+        open_sequence(folder)
+    assert open_sequence(folder, camera="100,100,80,60,160,120").intrinsics.fx == 100.0
+
+
+def test_stray_depth_below_the_confidence_asked_is_no_return(recorded, tmp_path):
+    frames, _, _ = recorded
+    levels = np.indices(frames.intrinsics.shape).sum(axis=0) % 3  # 0, 1, 2 in diagonal stripes
+    folder = write_stray(frames, tmp_path / "stray", confidence=lambda index: levels)
+    valid = np.isfinite(frames.read(2).depth)
+    for least in (0, 1, 2):
+        source = StraySequence(folder, min_confidence=least)
+        got = np.isfinite(source.read(2).depth)
+        np.testing.assert_array_equal(got, valid & (levels >= least))
+    assert open_sequence(folder).min_confidence == stray.MIN_CONFIDENCE == 1
+    with pytest.raises(SequenceError, match="min_confidence must be 0, 1 or 2"):
+        StraySequence(folder, min_confidence=3)
+
+
+def test_stray_odometry_as_newer_apps_write_it_and_a_frame_without_a_pose(recorded, tmp_path):
+    """Newer exports add the colour camera's fx, fy, cx, cy and two empty distortion columns to each row; a
+    depth image whose frame number no row has is named."""
+    frames, _, _ = recorded
+    folder = write_stray(frames, tmp_path / "stray")
+    lines = (folder / "odometry.csv").read_text().splitlines()
+    wide = [lines[0] + ", fx, fy, cx, cy, distortion_center_x, distortion_center_y"]
+    wide += [line + ", 1597.9, 1597.9, 955.4, 717.7, , " for line in lines[1:]]
+    (folder / "odometry.csv").write_text("\n".join(wide) + "\n")
+    source = open_sequence(folder)
+    np.testing.assert_allclose(source.poses, frames.poses, atol=1e-12)
+    assert np.all(np.diff(source.timestamps) > 0)
+    (folder / "odometry.csv").write_text("\n".join(wide[:4] + wide[5:]) + "\n")  # frame 3's row gone
+    with pytest.raises(SequenceError, match=r"depth/000003\.png: no row of .*odometry\.csv has its frame number 3"):
+        open_sequence(folder)

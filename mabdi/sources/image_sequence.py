@@ -2,7 +2,7 @@
 
 The readers of the common layouts (:mod:`~mabdi.sources.threedmatch`,
 :mod:`~mabdi.sources.redwood`, :mod:`~mabdi.sources.scannet`,
-:mod:`~mabdi.sources.replica`) each find their files and parse their own
+:mod:`~mabdi.sources.replica`, :mod:`~mabdi.sources.stray`) each find their files and parse their own
 pose and intrinsics files; :class:`ImageSequence` then reads the frames, so
 the rules below are written once:
 

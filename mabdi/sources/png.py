@@ -1,4 +1,4 @@
-"""PNG decoding for the sequence readers: 16-bit greyscale (depth) and 8-bit RGB (colour), by hand.
+"""PNG decoding for the sequence readers: 16-bit greyscale (depth), 8-bit greyscale and RGB (colour), by hand.
 
 Depth and colour PNGs are read on every frame of a recorded sequence. For the
 two kinds the datasets use (non-interlaced 16-bit grey, 8-bit RGB) the chunks
@@ -106,6 +106,11 @@ def decode_gray16_png(data: bytes) -> np.ndarray | None:
     """uint16 (H, W) of a non-interlaced 16-bit greyscale PNG's bytes; None for any other PNG (Pillow reads those)."""
     rows = _decode_png(data, 16, 0, 1)
     return None if rows is None else rows.view(">u2")
+
+
+def decode_gray8_png(data: bytes) -> np.ndarray | None:
+    """uint8 (H, W) of a non-interlaced 8-bit greyscale PNG's bytes; None for any other PNG (Pillow reads those)."""
+    return _decode_png(data, 8, 0, 1)
 
 
 def decode_rgb8_png(data: bytes) -> np.ndarray | None:

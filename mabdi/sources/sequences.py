@@ -9,15 +9,16 @@ Formats read and written (each a :class:`~mabdi.sources.frames.FrameSource`):
 * the common RGB-D dataset layouts (:mod:`mabdi.sources.image_sequence` has
   what they share): 3DMatch / 7-Scenes (:mod:`mabdi.sources.threedmatch`),
   Redwood / Open3D (:mod:`mabdi.sources.redwood`), ScanNet's exporter
-  (:mod:`mabdi.sources.scannet`) and Replica as NICE-SLAM ships it
-  (:mod:`mabdi.sources.replica`);
+  (:mod:`mabdi.sources.scannet`), Replica as NICE-SLAM ships it
+  (:mod:`mabdi.sources.replica`) and the Stray Scanner app's iPhone / iPad
+  LiDAR exports (:mod:`mabdi.sources.stray`);
 * a KITTI-style LiDAR folder (``velodyne/*.bin``, ``poses.txt``, ``calib.txt``):
   :mod:`mabdi.sources.kitti`, its scans turned into range images.
 
 :func:`open_sequence` tells them apart, in the order of
 :func:`sequence_format`: ``depth.txt`` is TUM; ``metadata.yaml`` or a
 ``.db3`` / ``.mcap`` (or a ``.bag`` file) is a bag; ``velodyne/`` with ``poses.txt`` is KITTI; ``traj.txt`` with ``results/`` is Replica;
-``depth/`` with ``pose/`` is ScanNet; ``depth/`` with a ``.log`` is Redwood;
+``depth/`` with ``pose/`` is ScanNet; ``depth/`` with ``odometry.csv`` is Stray Scanner; ``depth/`` with a ``.log`` is Redwood;
 ``frame-*.depth.png`` (here or in ``seq-*`` folders) is 3DMatch. A folder
 that holds the files of two formats is read as the first, with a warning
 naming the other; a ``[sequence]`` table in its ``mabdi.toml`` with
@@ -40,6 +41,7 @@ from mabdi.sources.kitti import is_kitti
 from mabdi.sources.redwood import is_redwood
 from mabdi.sources.replica import is_replica
 from mabdi.sources.scannet import is_scannet
+from mabdi.sources.stray import is_stray
 from mabdi.sources.sequence_files import (  # re-exported: the helpers every format shares live there
     CAMERA_KEYS,
     METADATA_FILE,
@@ -99,6 +101,7 @@ FORMATS = {
     "redwood": ("Redwood / Open3D folder", "mabdi.sources.redwood", "RedwoodSequence"),
     "scannet": ("ScanNet folder", "mabdi.sources.scannet", "ScanNetSequence"),
     "replica": ("Replica (NICE-SLAM) folder", "mabdi.sources.replica", "ReplicaSequence"),
+    "stray": ("Stray Scanner folder", "mabdi.sources.stray", "StraySequence"),
     "kitti": ("KITTI-style LiDAR folder", "mabdi.sources.kitti", "KittiSequence"),
 }
 
@@ -111,13 +114,15 @@ READER_OPTIONS = {
     "redwood": ("camera", "depth_scale"),
     "scannet": ("camera", "depth_scale"),
     "replica": ("camera", "depth_scale"),
+    "stray": ("camera", "depth_scale", "min_confidence"),
     "kitti": (),
 }
 
 _WHAT_IS_READ = (
     "a TUM RGB-D folder (depth.txt), a ROS 2 bag (metadata.yaml, .db3 or .mcap), a ROS 1 bag (.bag), a 3DMatch / 7-Scenes folder "
     "(frame-*.depth.png, or seq-* folders of them), a Redwood / Open3D folder (depth/ and trajectory.log), "
-    "a ScanNet folder (depth/ and pose/), a Replica NICE-SLAM folder (results/ and traj.txt) "
+    "a ScanNet folder (depth/ and pose/), a Replica NICE-SLAM folder (results/ and traj.txt), "
+    "a Stray Scanner folder (depth/ and odometry.csv) "
     "or a KITTI-style LiDAR folder (velodyne/ and poses.txt)"
 )
 
@@ -130,6 +135,7 @@ _CLUES = {
     "kitti": "velodyne/ and poses.txt",
     "replica": "results/ and traj.txt",
     "scannet": "depth/ and pose/",
+    "stray": "depth/ and odometry.csv",
     "redwood": "depth/ and a .log",
     "3dmatch": "frame-*.depth.png",
 }
@@ -142,7 +148,7 @@ def _formats_in(folder: Path) -> list[str]:
         found.append("tum")
     if (folder / "metadata.yaml").is_file() or any(folder.glob("*.db3")) or any(folder.glob("*.mcap")):
         found.append("rosbag2")
-    for name, test in (("kitti", is_kitti), ("replica", is_replica), ("scannet", is_scannet), ("redwood", is_redwood), ("3dmatch", is_3dmatch)):
+    for name, test in (("kitti", is_kitti), ("replica", is_replica), ("scannet", is_scannet), ("stray", is_stray), ("redwood", is_redwood), ("3dmatch", is_3dmatch)):
         if test(folder):
             found.append(name)
     return found
