@@ -38,6 +38,7 @@ import numpy as np
 from vtkmodules.vtkCommonDataModel import vtkImageData, vtkPolyData
 
 from mabdi.camera import Intrinsics
+from mabdi.loop.blas_threads import one_blas_thread
 from mabdi.interrupts import interrupts_unwrapped
 from mabdi.stages.classifier import ClassifierParameters, FilterClassifier, dilate, write_classified
 from mabdi.render.depth_image import BACKENDS
@@ -445,7 +446,7 @@ class MabdiLoop:
         KeyboardInterrupt. Frames come in order from any source, one of known length or a stream; the run's
         poses are checked when it ends (:meth:`finish`)."""
         self._cover(index)
-        with interrupts_unwrapped():
+        with interrupts_unwrapped(), one_blas_thread():
             record = self._step(index)
         judged = "off" if self._given_exact else record.registration
         seen_through = record.contradicted_pixels / record.valid_pixels if record.valid_pixels else np.nan
