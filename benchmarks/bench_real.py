@@ -39,7 +39,7 @@ frame, ``t_total_ms - t_depth_ms`` of the records; TSDF: the integration,
 its depth smoothing included where asked; reading a frame is not counted for either).
 
     .venv/bin/python benchmarks/bench_real.py PATH [--every 10] [--frames N] [--surface quadtree ...]
-        [--no-registration] [--jitter M DEG] [--voxels 0.01 0.02] [--camera ...] [--depth-scale ...] [--out results.json]
+        [--no-registration] [--jitter M DEG] [--voxels 0.01 0.02] [--camera ...] [--depth-scale ...] [--min-confidence 0|1|2] [--out results.json]
 
 ``--jitter M DEG`` gives every map the integrated frames' poses jittered (N(0, M) metres and N(0, DEG)
 degrees per axis, seeded; :class:`JitteredFrames`), as a poorer tracker would; the held-out frames are still
@@ -291,6 +291,7 @@ def main(argv=None) -> int:
         help="TUM: seconds from a depth timestamp to its pose, or auto (learnt, as mabdi run does; the default)",
     )
     parser.add_argument("--depth-scale", type=float, help="depth units per metre (as mabdi run --depth-scale)")
+    parser.add_argument("--min-confidence", type=int, choices=(0, 1, 2), help="Stray Scanner: as mabdi run --min-confidence")
     parser.add_argument(
         "--jitter", type=float, nargs=2, metavar=("M", "DEG"),
         help="jitter the integrated frames' poses by N(0, M) metres and N(0, DEG) degrees per axis (seeded) for every map",
@@ -307,7 +308,7 @@ def main(argv=None) -> int:
     parser.add_argument("--out", type=Path, help="write every number here as JSON")
     args = parser.parse_args(argv)
 
-    options = {k: v for k, v in (("camera", args.camera), ("depth_scale", args.depth_scale)) if v is not None}
+    options = {k: v for k, v in (("camera", args.camera), ("depth_scale", args.depth_scale), ("min_confidence", args.min_confidence)) if v is not None}
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         source = open_sequence(args.sequence, **options)

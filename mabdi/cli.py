@@ -138,6 +138,10 @@ def _parser() -> argparse.ArgumentParser:
         "--tolerance", type=float, help="TUM, ROS bag: largest time between a depth frame and its pose, seconds (default 0.02)"
     )
     sequence.add_argument(
+        "--min-confidence", type=int, choices=(0, 1, 2),
+        help="Stray Scanner: the least ARKit confidence a depth pixel needs, 0 low, 1 medium (the default), 2 high",
+    )
+    sequence.add_argument(
         "--time-offset", type=_time_offset,
         help="TUM, ROS bag: seconds from a depth frame's timestamp to the time its pose is taken at, or auto (the default: "
         "learnt from the depth where the pose clock and the depth clock disagree; 0 keeps the recording's pairing)",
@@ -311,6 +315,7 @@ def cmd_run(args) -> int:
             "cloud_topic": args.cloud_topic,
             "tolerance": args.tolerance,
             "time_offset": args.time_offset,
+            "min_confidence": args.min_confidence,
         }
         noise_stated = "sensor.noise" in config.stated  # by the config file, --noise or --set
         frames = config.run.frames if "run.frames" in config.stated else None  # --frames, [run] frames or --set
@@ -342,7 +347,7 @@ def cmd_run(args) -> int:
                 sigma = sensor.noise_parameters.range_sigma
                 print(f"noise: {sensor.noise}, {sigma:g} m (a LiDAR's default: {unstated} and no --noise name the sensor's model)")
     else:
-        for option in ("camera", "depth_scale", "depth_topic", "info_topic", "pose_topic", "colour_topic", "cloud_topic", "tolerance", "time_offset"):
+        for option in ("camera", "depth_scale", "depth_topic", "info_topic", "pose_topic", "colour_topic", "cloud_topic", "tolerance", "time_offset", "min_confidence"):
             if getattr(args, option) is not None:
                 raise ConfigError(f"run: --{option.replace('_', '-')} is for recorded sequences; use it with --sequence")
         if not config.scene.objects:

@@ -352,7 +352,7 @@ def test_stray_camera_is_the_colour_cameras_scaled_to_the_depth(recorded, tmp_pa
     assert open_sequence(folder, camera="100,100,80,60,160,120").intrinsics.fx == 100.0
 
 
-def test_stray_depth_below_the_confidence_asked_is_no_return(recorded, tmp_path):
+def test_stray_depth_below_the_confidence_asked_is_no_return(recorded, tmp_path, capsys):
     frames, _, _ = recorded
     levels = np.indices(frames.intrinsics.shape).sum(axis=0) % 3  # 0, 1, 2 in diagonal stripes
     folder = write_stray(frames, tmp_path / "stray", confidence=lambda index: levels)
@@ -364,6 +364,20 @@ def test_stray_depth_below_the_confidence_asked_is_no_return(recorded, tmp_path)
     assert open_sequence(folder).min_confidence == stray.MIN_CONFIDENCE == 1
     with pytest.raises(SequenceError, match="min_confidence must be 0, 1 or 2"):
         StraySequence(folder, min_confidence=3)
+    # the run's option: the image's right half of low confidence is meshed only with 0 asked; a layout without
+    # confidence refuses it
+    halves = np.where(np.arange(frames.intrinsics.width) < frames.intrinsics.width // 2, 2, 0)
+    folder = write_stray(frames, tmp_path / "halves", confidence=lambda index: np.broadcast_to(halves, frames.intrinsics.shape))
+    common = ["--no-registration", "--no-eval", "--quiet", "--frames", "2"]
+    sizes = {}
+    for least in (0, 2):
+        out = tmp_path / f"run{least}"
+        assert main(["run", "--sequence", str(folder), "--min-confidence", str(least), *common, "--out", str(out)]) == 0
+        sizes[least] = read_mesh_file(out / "world_mesh.vtp").GetNumberOfCells()
+    assert 0 < sizes[2] < sizes[0]
+    other = write_scannet(FrameList([frames.read(0)]), tmp_path / "scannet")
+    assert main(["run", "--sequence", str(other), "--min-confidence", "2", "--out", str(tmp_path / "s")]) == 2
+    assert "ScanNet folder: --min-confidence does not apply" in capsys.readouterr().err
 
 
 def test_stray_odometry_as_newer_apps_write_it_and_a_frame_without_a_pose(recorded, tmp_path):
