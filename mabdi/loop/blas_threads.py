@@ -4,9 +4,9 @@ A frame's linear algebra is small: 6 x 6 normal equations, 3 x 3 eigen-solves by
 the thousand, the map anchor's covariance across at most 128 frames. OpenBLAS
 (numpy's and scipy's wheels each bring one) runs such a solve on every core by
 default, and its threads spin waiting for each other while the loop's other
-threads (llvmpipe drawing E, numba's kernels) hold the cores: a 128 x 128 solve
-took 11 ms with two OpenBLAS threads on a busy 2-core machine and 0.18 ms with one
-(docs/benchmarks.md, "One BLAS thread a frame"). :func:`one_blas_thread` holds
+threads (llvmpipe drawing E, numba's kernels) or another process hold the cores:
+such a solve then takes many times as long as on one thread (docs/benchmarks.md,
+"One BLAS thread a frame"). :func:`one_blas_thread` holds
 every BLAS library the process has loaded (threadpoolctl finds them) to one thread
 for the ``with`` block and gives each its own count back after it, so a user's
 script around the loop keeps its own setting.
