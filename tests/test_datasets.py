@@ -326,7 +326,8 @@ def _mp4_with_a_video_track(path, width, height):
         return struct.pack(">I4s", 8 + len(body), kind) + body
 
     tkhd = box(b"tkhd", bytes(76) + struct.pack(">II", width << 16, height << 16))
-    path.write_bytes(box(b"ftyp", b"isom" + bytes(4)) + box(b"moov", box(b"trak", tkhd)))
+    # the video's data first and the header box last, as a recorder that writes it at the end leaves them
+    path.write_bytes(box(b"ftyp", b"isom" + bytes(4)) + box(b"mdat", bytes(5000)) + box(b"moov", box(b"trak", tkhd)))
 
 
 def test_stray_camera_is_the_colour_cameras_scaled_to_the_depth(recorded, tmp_path):

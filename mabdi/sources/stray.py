@@ -76,40 +76,58 @@ def _numbered(folder: Path, suffix: str) -> dict[int, Path]:
     return {int(p.stem): p for p in folder.glob(f"*{suffix}") if p.stem.isdigit()}
 
 
+def _boxes(data: bytes, start: int, end: int):
+    """(kind, body start, body end) of the MP4 boxes in ``data[start:end]``."""
+    position = start
+    while position + 8 <= end:
+        size, kind = struct.unpack(">I4s", data[position : position + 8])
+        header = 8
+        if size == 1 and position + 16 <= end:
+            (size,) = struct.unpack(">Q", data[position + 8 : position + 16])
+            header = 16
+        elif size == 0:
+            size = end - position
+        if size < header or position + size > end:
+            return
+        yield kind, position + header, position + size
+        position += size
+
+
 def mp4_video_size(path: Path) -> tuple[int, int] | None:
     """(width, height) of the first video track of an MP4 file (its ``tkhd`` box), or None where the file is
-    missing or holds none."""
+    missing or holds none. Only the top-level boxes' headers and the ``moov`` box are read, not the video."""
     try:
-        data = Path(path).read_bytes()
-    except OSError:
+        with open(path, "rb") as stream:
+            total = stream.seek(0, 2)
+            position, moov = 0, None
+            while position + 8 <= total and moov is None:
+                stream.seek(position)
+                head = stream.read(16)
+                size, kind = struct.unpack(">I4s", head[:8])
+                header = 8
+                if size == 1 and len(head) == 16:
+                    (size,) = struct.unpack(">Q", head[8:16])
+                    header = 16
+                elif size == 0:
+                    size = total - position
+                if size < header:
+                    return None
+                if kind == b"moov":
+                    stream.seek(position + header)
+                    moov = stream.read(size - header)
+                position += size
+    except (OSError, struct.error):
         return None
-
-    def boxes(start: int, end: int):
-        position = start
-        while position + 8 <= end:
-            size, kind = struct.unpack(">I4s", data[position : position + 8])
-            header = 8
-            if size == 1 and position + 16 <= end:
-                (size,) = struct.unpack(">Q", data[position + 8 : position + 16])
-                header = 16
-            elif size == 0:
-                size = end - position
-            if size < header or position + size > end:
-                return
-            yield kind, position + header, position + size
-            position += size
-
-    for kind, start, end in boxes(0, len(data)):
-        if kind != b"moov":
+    if moov is None:
+        return None
+    for track, t_start, t_end in _boxes(moov, 0, len(moov)):
+        if track != b"trak":
             continue
-        for track, t_start, t_end in boxes(start, end):
-            if track != b"trak":
-                continue
-            for part, p_start, p_end in boxes(t_start, t_end):
-                if part == b"tkhd" and p_end - p_start >= 8:
-                    width, height = struct.unpack(">II", data[p_end - 8 : p_end])
-                    if width and height:
-                        return width >> 16, height >> 16
+        for part, p_start, p_end in _boxes(moov, t_start, t_end):
+            if part == b"tkhd" and p_end - p_start >= 8:
+                width, height = struct.unpack(">II", moov[p_end - 8 : p_end])
+                if width and height:
+                    return width >> 16, height >> 16
     return None
 
 
