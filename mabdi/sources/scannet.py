@@ -47,6 +47,7 @@ from mabdi.sources.sequence_files import (
     check_depth_size,
     matrix_image_size,
     matrix_origin,
+    numbered_files,
     prepare_folder,
 )
 from mabdi.sources.tum import write_depth_png
@@ -64,10 +65,6 @@ def is_scannet(path: Path) -> bool:
     return path.is_dir() and (path / "depth").is_dir() and (path / "pose").is_dir()
 
 
-def _numbered(folder: Path, suffix: str) -> dict[int, Path]:
-    return {int(p.stem): p for p in folder.glob(f"*{suffix}") if p.stem.isdigit()}
-
-
 class ScanNetSequence(ImageSequence):
     """A ScanNet exporter folder (see the module docs); ``camera`` and ``depth_scale`` as for every layout."""
 
@@ -77,7 +74,7 @@ class ScanNetSequence(ImageSequence):
         path = Path(path)
         if not is_scannet(path):
             raise SequenceError(f"{self.layout} {path}: needs depth/ and pose/ folders")
-        depth = _numbered(path / "depth", ".png")
+        depth = numbered_files(path / "depth", ".png")
         if not depth:
             raise SequenceError(f"{self.layout} {path}: no N.png in depth/")
         numbers = sorted(depth)
@@ -94,7 +91,7 @@ class ScanNetSequence(ImageSequence):
             check_depth_size(intrinsics, depth_files[0], camera_origin(path, origin), path)
         colour_files = colour_camera = None
         for suffix in COLOUR_SUFFIXES:
-            colour = _numbered(path / "color", suffix)
+            colour = numbered_files(path / "color", suffix)
             if colour:
                 missing = [n for n in numbers if n not in colour]
                 if missing:

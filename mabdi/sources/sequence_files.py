@@ -242,6 +242,12 @@ def natural_key(name) -> tuple:
     return tuple(int(part) if i % 2 else part for i, part in enumerate(parts)), text
 
 
+def numbered_files(folder: Path, suffix: str) -> dict[int, Path]:
+    """{N: path} of the files ``N<suffix>`` in ``folder`` whose stem is a whole number (ScanNet's ``depth/N.png``,
+    Stray Scanner's ``depth/NNNNNN.png``)."""
+    return {int(p.stem): p for p in Path(folder).glob(f"*{suffix}") if p.stem.isdigit()}
+
+
 def natural_sorted(names) -> list:
     """``names`` (strings or paths) in natural order (:func:`natural_key`), as dataset tools list frames
     numbered without zero padding (``frame-1``, ``frame-2``, ..., ``frame-10``)."""

@@ -48,10 +48,11 @@ from mabdi.sources.sequence_files import (
     camera_origin,
     check_depth_size,
     depth_png_size,
+    numbered_files,
     poses_from_translations_quaternions,
     prepare_folder,
 )
-from mabdi.sources.tum import depth_from_units, read_depth_units, write_depth_png
+from mabdi.sources.tum import write_depth_png
 
 #: Depth units per metre: millimetres.
 DEPTH_SCALE = 1000.0
@@ -70,10 +71,6 @@ COLOUR_VIDEO = "rgb.mp4"
 def is_stray(path: Path) -> bool:
     path = Path(path)
     return path.is_dir() and (path / ODOMETRY).is_file() and (path / "depth").is_dir()
-
-
-def _numbered(folder: Path, suffix: str) -> dict[int, Path]:
-    return {int(p.stem): p for p in folder.glob(f"*{suffix}") if p.stem.isdigit()}
 
 
 def _boxes(data: bytes, start: int, end: int):
@@ -204,7 +201,7 @@ class StraySequence(ImageSequence):
             raise SequenceError(f"{self.layout} {path}: needs a depth/ folder and {ODOMETRY}")
         if min_confidence not in (0, 1, 2):
             raise SequenceError(f"{self.layout} {path}: min_confidence must be 0, 1 or 2 (ARKit's levels), got {min_confidence!r}")
-        depth = _numbered(path / "depth", ".png")
+        depth = numbered_files(path / "depth", ".png")
         if not depth:
             raise SequenceError(f"{self.layout} {path}: no NNNNNN.png in depth/")
         numbers = sorted(depth)
@@ -231,7 +228,7 @@ class StraySequence(ImageSequence):
         if camera is None:
             check_depth_size(intrinsics, depth_files[0], camera_origin(path, origin), path)
         self.min_confidence = int(min_confidence)
-        self._confidence = _numbered(path / "confidence", ".png") if (path / "confidence").is_dir() else {}
+        self._confidence = numbered_files(path / "confidence", ".png") if (path / "confidence").is_dir() else {}
         self._numbers = numbers
         self._setup(
             path, depth_files, poses[rows], [f"{path / ODOMETRY}: frame {n}" for n in numbers], intrinsics,
@@ -254,9 +251,7 @@ def read_confidence(path: Path, shape: tuple[int, int]) -> np.ndarray:
     damaged or differently shaped image is a :class:`SequenceError` naming it."""
     try:
         levels = decode_gray8_png(Path(path).read_bytes())
-    except OSError as exc:
-        raise SequenceError(f"{path}: cannot read confidence PNG: {exc}") from None
-    except (ValueError, struct.error) as exc:
+    except (OSError, ValueError, struct.error) as exc:
         raise SequenceError(f"{path}: cannot read confidence PNG: {exc}") from None
     if levels is None:
         from PIL import Image, UnidentifiedImageError  # a PNG of another kind: Pillow (a start-up memory choice)
