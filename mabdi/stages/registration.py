@@ -1,23 +1,23 @@
 """FilterRegistration: align the measured image D to the map before it is classified (frame-to-map tracking).
 
-MABDI compares D and E pixel by pixel, so it is only as right as the pose
-it is given. This filter corrects the given pose G as KinectFusion's
-frame-to-model tracking does (Newcombe et al. 2011), against the E the
-loop renders anyway:
+MABDI compares D and E pixel by pixel, so it is only as right as the pose it is given. This filter
+corrects the given pose G as KinectFusion's frame-to-model tracking does (Newcombe et al. 2011),
+against the E the loop renders anyway:
 
-1. G is moved into the map's own frame (:mod:`mabdi.stages.map_anchor`);
-2. E is rendered at G; its points and normals come from its depth;
-3. two starts (G, and G with the last frame's correction carried over);
+1. G is moved into the map's own frame (:mod:`mabdi.stages.map_anchor`); E is rendered
+   at G, its points and normals taken from its depth;
+2. two starts (G, and G with the last frame's correction carried over);
    the one that puts more of D's coarse samples on E is taken;
-4. projective point-to-plane ICP, coarse to fine, over samples of D
+3. projective point-to-plane ICP, coarse to fine, over samples of D
    (:func:`sample_points`), with a gate of ``gate_k`` noise units or the
-   residuals' robust spread, Huber weights, and no step along directions
-   the scene does not constrain; every ``sparse_stride``-th pixel first, every ``stride``-th where
-   that leaves a direction loosely held or the frame unregistered (:func:`register_depth`);
-5. checks (``min_points``, ``min_inliers``, ``min_support``, the last step, ``max_translation``,
+   residuals' robust spread, Huber weights, and no step along directions the scene does not
+   constrain or only the tilts of the map's faces hold (:func:`noise_held_directions`); every
+   ``sparse_stride``-th pixel first, every ``stride``-th where that leaves a direction loosely held or
+   the frame unregistered (:func:`register_depth`);
+4. checks (``min_points``, ``min_inliers``, ``min_support``, the last step, ``max_translation``,
    ``max_rotation``): a frame that fails them, or fits the map several times worse than the run's
    frames (:mod:`mabdi.stages.fit_check`), is meshed at its start and casts no removal votes;
-6. where the source states its poses' accuracy, the ICP's pose is weighed
+5. where the source states its poses' accuracy, the ICP's pose is weighed
    against the given one by their covariances (:func:`fuse_with_given`);
    where not (a recording), a frame keeps the given pose or the last
    frame's slow correction unless the ICP's pose fits D to the map several
@@ -64,6 +64,7 @@ from mabdi.frame_values import Measured, Placement
 from mabdi.noise_calibration import MAD_TO_SIGMA
 from mabdi.stages.registration_kernels import (
     NORMAL_UNKNOWN,
+    UNCONSTRAINED,
     gauss_newton_update,
     median_every,
     point_to_plane_residuals,
@@ -73,6 +74,7 @@ from mabdi.stages.registration_kernels import (
     rigid_size,
     sample_depth_points,
     solve_normal_equations,
+    structure_information,
 )
 from mabdi.pose_noise import PoseNoise
 
@@ -113,6 +115,12 @@ VARIANCE_FLOOR = 1e-14
 #: The support check (:func:`constraint_support`) asks the pairs to hold the directions with at least this share
 #: of the strongest direction's information.
 SUPPORTED = 1e-3
+#: A direction of the pose is held by the scene's structure only where normals lie more than this (degrees) out of
+#: the plane it moves points in; what normals within it hold, a map's faces tilted by their own error make
+#: (:func:`noise_held_directions`).
+STRUCTURE_MIN_ANGLE = 15.0
+#: No direction is held by noise alone: the solver's (6, 0) "none".
+NONE_HELD = np.zeros((6, 0))
 #: Normals of E: central differences over this many pixels; none across a relative depth jump above this.
 NORMAL_STEP = 2
 NORMAL_MAX_JUMP = 0.05
@@ -392,6 +400,17 @@ class _MapImage:
             np.concatenate((residuals, residuals2)), support + support2, tile_gradients + tile_gradients2,
         )  # fmt: skip
 
+    def structure(self, points, scale, gate, transform, directions) -> np.ndarray:
+        """The information the pairs at ``transform`` give along each column of ``directions`` from normals
+        across the motion only: :func:`~mabdi.stages.registration_kernels.structure_information`."""
+        k = self.intrinsics
+        normals, known = self.caches[0]
+        return structure_information(
+            points, scale, gate, transform[:3, :3], np.ascontiguousarray(transform[:3, 3]), self.depth, normals, known,
+            k.fx, k.fy, k.cx, k.cy, NORMAL_STEP, NORMAL_MAX_JUMP, np.ascontiguousarray(directions),
+            float(np.sin(np.radians(STRUCTURE_MIN_ANGLE))),
+        )  # fmt: skip
+
     def residuals(self, points, transform) -> np.ndarray:
         """The absolute point-to-plane residuals (m) of every candidate at ``transform``, in the order of
         :meth:`system`'s (:func:`~mabdi.stages.registration_kernels.point_to_plane_residuals`): how well a
@@ -466,6 +485,7 @@ def register_depth(
     contraction = None  # how much a step shrank the one before, at the last coarser level that took two
     remaining = (np.inf, np.inf)  # the step that would follow the last one (its size, or a prediction of it)
     average = noise.noisy  # D's samples average their neighbours where D is noisy
+    held_by_noise = NONE_HELD
     for level in range(p.levels):
         points, z, tiles, n_tiles, counts = sample_points(measured, intrinsics, p.stride * 2 ** (p.levels - 1 - level), average)
         # rotations taken as lengths at the samples' median depth: once per level (the two-cycle test keeps the coarsest's)
@@ -478,7 +498,7 @@ def register_depth(
         step_translation, step_rotation = STEP_TRANSLATION * loose, STEP_ROTATION * loose
         step_size = previous = (np.inf, np.inf)
         finest = level == p.levels - 1
-        for _ in range(p.iterations):
+        for iteration in range(p.iterations):
             gate = np.maximum(reach, p.gate_k * scale)
             if iterations == 0:
                 # how far off the prediction is, before the first step: pairs beyond that are other surfaces
@@ -499,8 +519,10 @@ def register_depth(
             iterations += 1
             if pairs < max(6, p.min_points // 4 ** (p.levels - 1 - level)):
                 return RegistrationResult(start, "few_points", iterations=iterations)
+            if iteration == 0:  # which directions only the normals' noise holds: once a level, at its start
+                held_by_noise = noise_held_directions(map_image, points, scale, gate, transform, a, length)
             previous = step_size
-            transform, *step_size, last_step = gauss_newton_update(a, b, transform, last_step, length)
+            transform, *step_size, last_step = gauss_newton_update(a, b, transform, last_step, length, held_by_noise)
             remaining = step_size
             done = step_size[0] < step_translation and step_size[1] < step_rotation
             if done and not finest and np.isfinite(previous[0]):
@@ -529,7 +551,7 @@ def register_depth(
             points, tiles, n_tiles, scale, gate, transform, p.huber, True
         )
     support, tile_gradients = summaries
-    _, inverse = solve_normal_equations(a, b, length)
+    _, inverse = solve_normal_equations(a, b, length, held_by_noise)
     covariance = pose_covariance(inverse, chi2, pairs, tile_gradients)
     residual = float(np.sqrt(chi2 / max(pairs, 1)))  # in units of the noise; metres below
     share = pairs / max(candidates, 1)
@@ -568,6 +590,20 @@ def register_depth(
         improvement=improvement,
         reference=reference_index,
     )
+
+
+def noise_held_directions(map_image: _MapImage, points, scale, gate, transform: np.ndarray, a: np.ndarray, length: float) -> np.ndarray:
+    """The directions of the pose that only the noise of E's normals holds: (6, m) unit columns, rotations taken
+    as lengths at ``length`` metres, as :func:`~mabdi.stages.registration_kernels.solve_normal_equations` takes
+    them (m = 0: none). Each eigenvector of the step's normal equations ``a`` is a candidate; it is held by noise
+    where the information that normals more than :data:`STRUCTURE_MIN_ANGLE` out of its motion give along it is
+    under :data:`~mabdi.stages.registration_kernels.UNCONSTRAINED` of the best direction's. A camera facing a wall
+    whose map is several faces a degree or two apart: the slide along the wall and the turn about its normal."""
+    scaling = np.array([1.0 / length] * 3 + [1.0] * 3)
+    _, vectors = np.linalg.eigh(a * np.outer(scaling, scaling))
+    structure = map_image.structure(points, scale, gate, transform, vectors * scaling[:, None])
+    held = structure < UNCONSTRAINED * max(float(structure.max()), 0.0)
+    return np.ascontiguousarray(vectors[:, held]) if held.any() else NONE_HELD
 
 
 def _median(values: np.ndarray) -> float:

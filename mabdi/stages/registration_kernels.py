@@ -271,6 +271,43 @@ def point_to_plane_residuals(points, rotation, translation, e_depth, e_normals, 
     return residuals[:candidates]
 
 
+@njit(cache=True, nogil=True)
+def structure_information(
+    points, scale, gate, rotation, translation, e_depth, e_normals, e_known, fx, fy, cx, cy, step, max_jump, directions, min_sine,
+):
+    """The information the pairs of :func:`point_to_plane_system` give along each of ``directions`` ((6, K)
+    columns: rotation vector, translation), counting of each pair's normal only what lies beyond ``min_sine``
+    of the plane the direction moves its point in: the part of J^T J that no tilt of the normals by up to
+    asin(``min_sine``) can make. A wall's normals, tilted a degree or two by the map's own faces, hold a
+    slide along it or a turn about its normal at a few thousandths of what they hold across it; this counts
+    none of that, and the whole of what an edge, a leg or a step holds (their normals lie across the motion)."""
+    n = points.shape[0]
+    count = directions.shape[1]
+    information = np.zeros(count)
+    for i in range(n):
+        ok, x, y, z, nx, ny, nz, qz, r = paired_residual(
+            points, i, rotation, translation, e_depth, e_normals, e_known, fx, fy, cx, cy, step, max_jump
+        )
+        g = gate[i]
+        if not ok or abs(r) > g or abs(z - qz) > 2.0 * g:
+            continue
+        inverse_variance = 1.0 / (scale[i] * scale[i])
+        for j in range(count):
+            wx, wy, wz = directions[0, j], directions[1, j], directions[2, j]
+            # the point's displacement under the motion: omega x p + t
+            dx = wy * z - wz * y + directions[3, j]
+            dy = wz * x - wx * z + directions[4, j]
+            dz = wx * y - wy * x + directions[5, j]
+            squared = dx * dx + dy * dy + dz * dz
+            if squared <= 0.0:
+                continue
+            along = abs(nx * dx + ny * dy + nz * dz) / np.sqrt(squared)  # the normal's share along the motion
+            if along > min_sine:
+                beyond = (along - min_sine) / (1.0 - min_sine)
+                information[j] += inverse_variance * squared * beyond * beyond
+    return information
+
+
 @njit(cache=True, parallel=True)
 def pose_sigma_image(e_depth, fx, fy, cx, cy, step, max_jump, covariance, min_cosine):
     """(H, W) float32 depth standard deviation (m) that the pose covariance causes at each pixel of E.
@@ -408,15 +445,19 @@ def rigid_size(transform):
 
 
 @njit(cache=True)
-def solve_normal_equations(a, b, length):
+def solve_normal_equations(a, b, length, held_by_noise):
     """The step x of A x = -b and A's inverse, with rotations (the first three) taken as lengths at
     ``length`` metres. Along directions the scene does not constrain (information under
-    :data:`UNCONSTRAINED` of the best constrained one's) there is no step, and the inverse holds the
-    variance that share of information would give, the least that direction may have: the pose stays
-    where it started there, and says that direction is known far less than the held ones."""
+    :data:`UNCONSTRAINED` of the best constrained one's), and along ``held_by_noise`` ((6, m) unit
+    columns in those scaled units, m = 0 for none: :func:`noise_held_directions`), there is no step, and
+    the inverse holds the variance that share of information would give, the least that direction may
+    have: the pose stays where it started there, and says that direction is known far less than the held ones."""
     scaling = np.ones(6)
     scaling[:3] = 1.0 / length
     scaled = a * np.outer(scaling, scaling)
+    if held_by_noise.shape[1]:
+        keep = np.eye(6) - held_by_noise @ held_by_noise.T
+        scaled = keep @ scaled @ keep
     values, vectors = np.linalg.eigh(scaled)
     largest = max(values[-1], 0.0)
     inverse_values = np.zeros_like(values)
@@ -434,15 +475,15 @@ def solve_normal_equations(a, b, length):
 
 
 @njit(cache=True)
-def gauss_newton_update(a, b, transform, previous, length):
+def gauss_newton_update(a, b, transform, previous, length, held_by_noise):
     """One Gauss-Newton step of the ICP: the new estimate (the step's rigid motion, left of ``transform``),
     the step's size (m, degrees) and the step (rotation vector, translation).
 
     ``previous``: the step before (6,), zeros for none. A step that undoes it (their directions, rotations
     taken as lengths at ``length`` metres, within ``REVERSAL_COSINE``, and about as long) is a two-cycle:
     pairs at the edge of the gate flip in and out, and the two poses swap for ever. Half of it is taken,
-    which lands between them."""
-    step, _ = solve_normal_equations(a, b, length)
+    which lands between them. ``held_by_noise``: directions that take no step (:func:`solve_normal_equations`)."""
+    step, _ = solve_normal_equations(a, b, length, held_by_noise)
     dot = 0.0
     norm_step = 0.0
     norm_previous = 0.0

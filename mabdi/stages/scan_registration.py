@@ -61,6 +61,9 @@ from mabdi.stages.registration import (
 from mabdi.stages.registration_kernels import gauss_newton_update, rigid_size
 from mabdi.stages.scan_registration_kernels import points_and_normals, scan_to_plane_system, truncated_cost
 
+#: No direction of a scan's pose is taken as held by noise alone (the camera's rule: :mod:`mabdi.stages.registration`).
+NO_DIRECTION_HELD = np.zeros((6, 0))
+
 #: The ICP's gates (m), coarse to fine: a pair whose return lies farther than this from E's plane is left out.
 GATES = (0.5, 0.25, 0.1)
 #: Gauss-Newton steps at most per gate.
@@ -171,7 +174,7 @@ def register_scan(scene: _Scene, p: RegistrationParameters, start: np.ndarray | 
             pairs = len(residuals)
             if pairs < p.min_points:
                 return ScanFit(transform, "few_points", pairs)
-            transform, translation, angle, previous = gauss_newton_update(a, b, transform, previous, LEVER_ARM)
+            transform, translation, angle, previous = gauss_newton_update(a, b, transform, previous, LEVER_ARM, NO_DIRECTION_HELD)
             steps += 1
             if translation < STEP_TRANSLATION and angle < STEP_ROTATION:
                 break
