@@ -519,7 +519,7 @@ def register_depth(
             iterations += 1
             if pairs < max(6, p.min_points // 4 ** (p.levels - 1 - level)):
                 return RegistrationResult(start, "few_points", iterations=iterations)
-            if iteration == 0:  # which directions only the normals' noise holds: once a level, at its start
+            if iteration == 0 and noise.noisy:  # which directions only the tilts a noisy map's faces carry hold: once a level
                 held_by_noise = noise_held_directions(map_image, points, scale, gate, transform, a, length)
             previous = step_size
             transform, *step_size, last_step = gauss_newton_update(a, b, transform, last_step, length, held_by_noise)
