@@ -654,14 +654,14 @@ def test_the_compiled_steps_agree_with_their_array_formulations():
 
     a = np.diag([4.0, 2.0, 1.0, 1e-12, 3.0, 5.0])  # the fourth direction unconstrained
     b = np.array([4.0, 2.0, 1.0, 7.0, 6.0, 5.0])
-    step, inverse = kernels.solve_normal_equations(a, b, 1.0, np.zeros((6, 0)))
+    step, inverse = kernels.solve_normal_equations(a, b, 1.0, kernels.NO_DIRECTION_HELD)
     np.testing.assert_allclose(step, [-1.0, -1.0, -1.0, 0.0, -2.0, -1.0])
     assert inverse[3, 3] == pytest.approx(1.0 / (kernels.UNCONSTRAINED * 5.0))  # not known: the floor's variance
     np.testing.assert_allclose(np.diag(inverse)[[0, 1, 2, 4, 5]], [0.25, 0.5, 1.0, 1 / 3, 0.2])
     # a weakly held direction (a translation along a wall, held by noise in the normals) takes no step either;
     # rotations count as lengths at ``length`` metres: 0.4 rad^-2 is 0.1 m^-2 at 2 m
     a = np.diag([0.4, 1.0, 1.0, 1.0, 1.0, 1e-5])
-    step, inverse = kernels.solve_normal_equations(a, np.array([0.4, 1.0, 1.0, 1.0, 1.0, 1e-4]), 2.0, np.zeros((6, 0)))
+    step, inverse = kernels.solve_normal_equations(a, np.array([0.4, 1.0, 1.0, 1.0, 1.0, 1e-4]), 2.0, kernels.NO_DIRECTION_HELD)
     np.testing.assert_allclose(step, [-1.0, -1.0, -1.0, -1.0, -1.0, 0.0])
     np.testing.assert_allclose(inverse[0, 0], 2.5)
     assert inverse[5, 5] == pytest.approx(1.0 / (kernels.UNCONSTRAINED * 1.0))
@@ -734,12 +734,12 @@ def test_a_level_ends_where_the_next_step_is_predicted_below_the_tolerance(bunni
 def test_a_step_that_undoes_the_one_before_is_halved():
     """Pairs flipping in and out of the gate make two poses swap for ever; a step back along the one before
     (about as long) is halved, one in another direction is taken whole."""
-    from mabdi.stages.registration_kernels import gauss_newton_update
+    from mabdi.stages.registration_kernels import NO_DIRECTION_HELD, gauss_newton_update
 
     a = np.eye(6)
     b = -np.array([0.001, 0.0, 0.0, 0.004, -0.002, 0.0])  # the step is -b: a rotation and a translation
     for previous, fraction in ((b.copy(), 0.5), (-b, 1.0), (np.zeros(6), 1.0), (np.array([0, 0, 0, 0, 0, 0.01]), 1.0), (4 * b, 1.0)):
-        _, translation, _, step = gauss_newton_update(a, b, np.eye(4), previous, 2.0, np.zeros((6, 0)))
+        _, translation, _, step = gauss_newton_update(a, b, np.eye(4), previous, 2.0, NO_DIRECTION_HELD)
         np.testing.assert_allclose(step, -b * fraction)
         assert translation == pytest.approx(np.linalg.norm(b[3:]) * fraction, rel=1e-3)
 

@@ -63,6 +63,7 @@ from mabdi.stages.map_anchor import MapAnchor
 from mabdi.frame_values import Measured, Placement
 from mabdi.noise_calibration import MAD_TO_SIGMA
 from mabdi.stages.registration_kernels import (
+    NO_DIRECTION_HELD,
     NORMAL_UNKNOWN,
     UNCONSTRAINED,
     gauss_newton_update,
@@ -119,8 +120,6 @@ SUPPORTED = 1e-3
 #: the plane it moves points in; what normals within it hold, a map's faces tilted by their own error make
 #: (:func:`noise_held_directions`).
 STRUCTURE_MIN_ANGLE = 15.0
-#: No direction is held by noise alone: the solver's (6, 0) "none".
-NONE_HELD = np.zeros((6, 0))
 #: Normals of E: central differences over this many pixels; none across a relative depth jump above this.
 NORMAL_STEP = 2
 NORMAL_MAX_JUMP = 0.05
@@ -485,7 +484,7 @@ def register_depth(
     contraction = None  # how much a step shrank the one before, at the last coarser level that took two
     remaining = (np.inf, np.inf)  # the step that would follow the last one (its size, or a prediction of it)
     average = noise.noisy  # D's samples average their neighbours where D is noisy
-    held_by_noise = NONE_HELD
+    held_by_noise = NO_DIRECTION_HELD
     for level in range(p.levels):
         points, z, tiles, n_tiles, counts = sample_points(measured, intrinsics, p.stride * 2 ** (p.levels - 1 - level), average)
         # rotations taken as lengths at the samples' median depth: once per level (the two-cycle test keeps the coarsest's)
@@ -603,7 +602,7 @@ def noise_held_directions(map_image: _MapImage, points, scale, gate, transform: 
     _, vectors = np.linalg.eigh(a * np.outer(scaling, scaling))
     structure = map_image.structure(points, scale, gate, transform, vectors * scaling[:, None])
     held = structure < UNCONSTRAINED * max(float(structure.max()), 0.0)
-    return np.ascontiguousarray(vectors[:, held]) if held.any() else NONE_HELD
+    return np.ascontiguousarray(vectors[:, held]) if held.any() else NO_DIRECTION_HELD
 
 
 def _median(values: np.ndarray) -> float:

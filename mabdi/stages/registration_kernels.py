@@ -77,6 +77,8 @@ REVERSAL_COSINE = -0.9
 #: says nothing of where the camera is along it, and the few normals that noise tilts would slide the pose
 #: that way (docs/benchmarks.md, "No ICP step where the scene holds nothing", has the shares measured).
 UNCONSTRAINED = 1e-4
+#: The solver's "no direction held by noise alone": (6, 0) columns (:func:`solve_normal_equations`).
+NO_DIRECTION_HELD = np.zeros((6, 0))
 #: States of a pixel in the normal cache of :func:`cached_point_and_normal`.
 NORMAL_UNKNOWN = 0
 NORMAL_FOUND = 1
@@ -449,7 +451,8 @@ def solve_normal_equations(a, b, length, held_by_noise):
     """The step x of A x = -b and A's inverse, with rotations (the first three) taken as lengths at
     ``length`` metres. Along directions the scene does not constrain (information under
     :data:`UNCONSTRAINED` of the best constrained one's), and along ``held_by_noise`` ((6, m) unit
-    columns in those scaled units, m = 0 for none: :func:`noise_held_directions`), there is no step, and
+    columns in those scaled units, :data:`NO_DIRECTION_HELD` for none:
+    :func:`mabdi.stages.registration.noise_held_directions`), there is no step, and
     the inverse holds the variance that share of information would give, the least that direction may
     have: the pose stays where it started there, and says that direction is known far less than the held ones."""
     scaling = np.ones(6)

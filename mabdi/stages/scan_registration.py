@@ -58,11 +58,8 @@ from mabdi.stages.registration import (
     correction_vector,
     transform_size,
 )
-from mabdi.stages.registration_kernels import gauss_newton_update, rigid_size
+from mabdi.stages.registration_kernels import NO_DIRECTION_HELD, gauss_newton_update, rigid_size
 from mabdi.stages.scan_registration_kernels import points_and_normals, scan_to_plane_system, truncated_cost
-
-#: No direction of a scan's pose is taken as held by noise alone (the camera's rule: :mod:`mabdi.stages.registration`).
-NO_DIRECTION_HELD = np.zeros((6, 0))
 
 #: The ICP's gates (m), coarse to fine: a pair whose return lies farther than this from E's plane is left out.
 GATES = (0.5, 0.25, 0.1)
