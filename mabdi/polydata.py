@@ -16,6 +16,7 @@ from vtkmodules.vtkCommonDataModel import (
 from vtkmodules.vtkFiltersCore import vtkTriangleFilter
 
 from mabdi.camera import boxes_outside
+from mabdi.polydata_kernels import triangle_normals_kernel
 
 #: Cell data the expected-image renderer draws each map face in: its 24-bit code as uint8 RGB (red = low byte), on
 #: the renderer's own copy of a block (:mod:`mabdi.face_identity`), never on the map.
@@ -251,6 +252,9 @@ def triangle_normals(points: np.ndarray, triangles: np.ndarray) -> tuple[np.ndar
     Computed in the points' dtype (float32 points give float32 normals); a degenerate triangle has normal 0 and
     area 0.
     """
+    points = np.asarray(points)
+    if points.dtype in (np.float32, np.float64) and points.ndim == 2 and len(triangles):
+        return triangle_normals_kernel(points, np.asarray(triangles))
     a = points[triangles[:, 0]]
     cross = np.cross(points[triangles[:, 1]] - a, points[triangles[:, 2]] - a)
     length = np.linalg.norm(cross, axis=1)

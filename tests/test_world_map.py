@@ -389,6 +389,28 @@ def test_triangle_centres_and_radii_by_the_compiled_pass_equal_the_corner_formul
         assert np.allclose(radii, np.linalg.norm(corners - corners.mean(axis=1, keepdims=True), axis=2).max(axis=1), atol=1e-12)
 
 
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_triangle_normals_by_the_compiled_pass_equal_numpys_cross_product_and_norm(dtype):
+    """triangle_normals (compiled for float points) against numpy's cross product and norm, to the bit, in the
+    points' dtype; a degenerate triangle has normal 0 and area 0, and a mesh without triangles gives empty arrays."""
+    from mabdi.polydata import triangle_normals
+
+    rng = np.random.default_rng(3)
+    points = (5.0 * rng.standard_normal((500, 3))).astype(dtype)
+    triangles = rng.integers(0, 500, (2000, 3)).astype(np.int32)
+    triangles[0] = [7, 7, 9]
+    corner = points[triangles[:, 0]]
+    cross = np.cross(points[triangles[:, 1]] - corner, points[triangles[:, 2]] - corner)
+    length = np.linalg.norm(cross, axis=1)
+    normals, areas = triangle_normals(points, triangles)
+    assert normals.dtype == dtype and areas.dtype == dtype
+    assert np.array_equal(normals, cross / np.where(length > 0, length, dtype(1.0))[:, None])
+    assert np.array_equal(areas, 0.5 * length)
+    assert not normals[0].any() and areas[0] == 0
+    empty_normals, empty_areas = triangle_normals(points, np.zeros((0, 3), dtype=np.int64))
+    assert empty_normals.shape == (0, 3) and empty_areas.shape == (0,)
+
+
 def test_a_real_sensors_contradicted_faces_follow_a_removed_neighbour_only_after_two_frames_against_them():
     """With a real sensor's four frames (``min_frames = 4``: ``follow_frames`` 2) a removed face takes along the
     neighbours two frames have contradicted since they were last confirmed, not those one frame contradicted (a

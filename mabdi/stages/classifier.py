@@ -59,7 +59,7 @@ from mabdi.sensor_noise import SensorNoise, incidence_cosine
 from mabdi.stages.expected_image import expected_of_image
 from mabdi.frame_values import Classified, Expected, Measured
 from mabdi.stages.front_confirmation import FrontConfirmation
-from mabdi.stages.image_kernels import border_steps_kernel, dilate_kernel
+from mabdi.stages.image_kernels import border_steps_kernel, dilate_kernel, explained_by_fit_kernel
 from mabdi.stages.registration import image_fitted_pose, image_pose_covariance, pose_depth_sigma
 from mabdi.surfaces.seam_trim import NOVEL_PIXELS_ARRAY, trims
 
@@ -385,8 +385,19 @@ def explained_by_fit(
     pose registration fitted D to the map at, lies within tau of E (see the module docs). ``meshed_from_fitted``:
     4x4, the fitted sensor frame in the frame of the pose D is meshed at; ``geometry``: D's (a camera's or a
     LiDAR's); E is read where the moved return falls (:func:`image_at`, in inverse depth)."""
-    explained = np.zeros(labels.shape, dtype=bool)
     suspect = ((labels == NOVEL) & np.isfinite(expected)) | (labels == CONTRADICTED)
+    if isinstance(geometry, Intrinsics):  # a camera: one compiled pass
+        k, fitted = geometry, np.ascontiguousarray(meshed_from_fitted, dtype=np.float64)
+        return explained_by_fit_kernel(suspect, measured, expected, tau, k.fx, k.fy, k.cx, k.cy, fitted)
+    return explained_at(suspect, measured, expected, tau, geometry, meshed_from_fitted)
+
+
+def explained_at(
+    suspect: np.ndarray, measured: np.ndarray, expected: np.ndarray, tau: np.ndarray, geometry, meshed_from_fitted: np.ndarray
+) -> np.ndarray:
+    """:func:`explained_by_fit` of the ``suspect`` pixels (bool (H, W)) in array passes, for any sensor geometry
+    (a LiDAR's; a camera's takes the compiled :func:`~mabdi.stages.image_kernels.explained_by_fit_kernel`)."""
+    explained = np.zeros(suspect.shape, dtype=bool)
     rows, cols = np.nonzero(suspect)
     if not len(rows):
         return explained

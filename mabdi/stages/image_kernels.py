@@ -7,7 +7,10 @@
   the image False (:func:`mabdi.stages.classifier.dilate`);
 * :func:`border_steps_kernel`: each region's pixel pairs with known pixels
   across its border, and how many of them step
-  (:func:`mabdi.stages.classifier.gradual_regions`).
+  (:func:`mabdi.stages.classifier.gradual_regions`);
+* :func:`explained_by_fit_kernel`: a camera's suspect pixels whose return,
+  moved to the pose registration fitted, lands on E within tau
+  (:func:`mabdi.stages.classifier.explained_by_fit`).
 
 The tests compare each with its array-slice formulation.
 """
@@ -124,3 +127,51 @@ def border_steps_kernel(regions, count, known, measured, expected, tau, cosine, 
                 if abs(here - (np.float64(measured[r, c]) - np.float64(expected[r, c]))) > limit:
                     steps[region] += 1
     return pairs, steps, outline, size, far
+
+
+@njit(cache=True)
+def _inverse_depth_at(expected, u, v):
+    """1 / E read at the continuous pixel coordinates (u column, v row; centres at + 0.5): bilinear in inverse
+    depth between the four pixel centres around the point where all four hold a value, else the pixel's own; NaN
+    outside the image (:func:`mabdi.stages.classifier.image_at` of 1 / E)."""
+    height, width = expected.shape
+    if not (u >= 0.0 and u < width and v >= 0.0 and v < height):
+        return np.nan
+    nearest = 1.0 / np.float64(expected[int(v), int(u)])
+    x, y = u - 0.5, v - 0.5
+    c0, r0 = int(np.floor(x)), int(np.floor(y))
+    tx, ty = x - c0, y - r0
+    c1, r1 = min(max(c0 + 1, 0), width - 1), min(max(r0 + 1, 0), height - 1)
+    c0, r0 = min(max(c0, 0), width - 1), min(max(r0, 0), height - 1)
+    e00 = 1.0 / np.float64(expected[r0, c0])
+    e01 = 1.0 / np.float64(expected[r0, c1])
+    e10 = 1.0 / np.float64(expected[r1, c0])
+    e11 = 1.0 / np.float64(expected[r1, c1])
+    blended = (1 - ty) * ((1 - tx) * e00 + tx * e01) + ty * ((1 - tx) * e10 + tx * e11)
+    return blended if np.isfinite(blended) else nearest
+
+
+@njit(cache=True)
+def explained_by_fit_kernel(suspect, measured, expected, tau, fx, fy, cx, cy, meshed_from_fitted):
+    """(H, W) bool: the ``suspect`` pixels of a camera's D (metres, z-depth) whose point, carried by
+    ``meshed_from_fitted`` (4x4) and projected with the intrinsics (fx, fy, cx, cy), lies in front of the camera
+    within ``tau`` (H, W, metres) of E read there (:func:`_inverse_depth_at`, then inverted)."""
+    height, width = suspect.shape
+    explained = np.zeros((height, width), dtype=np.bool_)
+    m = meshed_from_fitted
+    for row in range(height):
+        for col in range(width):
+            if not suspect[row, col]:
+                continue
+            depth = np.float64(measured[row, col])
+            x = (col + 0.5 - cx) / fx * depth
+            y = (row + 0.5 - cy) / fy * depth
+            z = depth
+            px = m[0, 0] * x + m[0, 1] * y + m[0, 2] * z + m[0, 3]
+            py = m[1, 0] * x + m[1, 1] * y + m[1, 2] * z + m[1, 3]
+            pz = m[2, 0] * x + m[2, 1] * y + m[2, 2] * z + m[2, 3]
+            if not pz > 0.0:
+                continue
+            there = 1.0 / _inverse_depth_at(expected, fx * px / pz + cx, fy * py / pz + cy)
+            explained[row, col] = abs(pz - there) <= tau[row, col]
+    return explained
