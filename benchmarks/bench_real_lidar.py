@@ -2,9 +2,10 @@
 
 A LiDAR recording has no ground-truth mesh, but each scan is a measurement.
 Every K-th scan (``--every``, default 5) of a KITTI-layout folder
-(:mod:`mabdi.sources.kitti`) is held out and never integrated; each map is
+(:mod:`mabdi.sources.kitti`) or a folder of PCD scans with their poses
+(:mod:`mabdi.sources.pcd_folder`) is held out and never integrated; each map is
 built from the other scans, then compared with the held-out scans' points
-(:mod:`mabdi.evaluate.held_out_scans`): the points of the ``.bin`` files as
+(:mod:`mabdi.evaluate.held_out_scans`): the points of the scan files as
 they are (not the range images), moved to the world by the file's given
 poses, keeping the returns within the range limits of the geometry the run
 used (``range_min < r < range_max``):
@@ -98,8 +99,8 @@ from mabdi.io.atomic import write_text
 from mabdi.loop.mapping_run import RECORDING_LIDAR_NOISE, MappingRun
 from mabdi.polydata import triangles_polydata
 from mabdi.sources.frames import FrameSubset
-from mabdi.sources.kitti import SCAN_FOLDER, is_kitti, read_scan, scan_files
-from mabdi.sources.sequences import open_sequence
+from mabdi.sources.kitti import KittiSequence, read_scan
+from mabdi.sources.sequences import SequenceError, open_sequence
 from mabdi.spherical import SphericalGeometry
 
 SURFACES = ("pixel_grid", "quadtree", "voxel_planes")
@@ -374,7 +375,7 @@ def markdown(bench: dict) -> str:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("sequence", type=Path, help="a KITTI-layout LiDAR folder (velodyne/NNNNNN.bin, poses.txt)")
+    parser.add_argument("sequence", type=Path, help="a LiDAR recording: a KITTI-layout folder (velodyne/NNNNNN.bin, poses.txt) or a folder of PCD scans and their poses")
     parser.add_argument("--every", type=int, default=5, help="hold out every K-th scan (default 5)")
     parser.add_argument("--frames", type=int, help="take the first N scans of the recording (default: all)")
     parser.add_argument(
@@ -394,14 +395,15 @@ def main(argv=None) -> int:
     except ConfigError as exc:
         parser.error(str(exc))
 
-    if not is_kitti(args.sequence):
-        parser.error(f"{args.sequence}: not a KITTI-layout folder ({SCAN_FOLDER}/ of .bin or .pcd scans and poses.txt)")
     usable, reason = open3d_status()
     if not usable:
         parser.error(f"the scoring needs Open3D: {reason}")
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        source = open_sequence(args.sequence)
+        try:
+            source = open_sequence(args.sequence)
+        except SequenceError as exc:
+            parser.error(str(exc))
     where = str(args.sequence)
     notes = [str(w.message).replace(where, args.sequence.name) for w in caught]
     for note in notes:
@@ -409,10 +411,12 @@ def main(argv=None) -> int:
     geometry = source.intrinsics
     if not isinstance(geometry, SphericalGeometry):
         parser.error(f"{args.sequence}: read as depth images, not LiDAR scans")
+    if not isinstance(source, KittiSequence):
+        parser.error(f"{args.sequence}: read as a {type(source).__name__}; the scoring reads scan files: a KITTI-layout folder or a folder of PCD scans")
     frames = len(source) if args.frames is None else min(args.frames, len(source))
     integrated, held_index = held_out_split(frames, args.every)
     subset = FrameSubset(source, integrated)
-    files = scan_files(args.sequence)
+    files = source.scan_paths
     poses = source.poses
     log(f"{source.description}: {frames} scans, {len(integrated)} integrated, {len(held_index)} held out")
 

@@ -194,24 +194,14 @@ def read_scan(path: Path) -> np.ndarray:
 class KittiSequence(FrameSource):
     """A KITTI-style folder (module docs) as range-image frames; ``geometry`` replaces the ``[lidar]`` table's."""
 
+    #: How messages name a folder of this layout.
+    label = "KITTI folder"
+
     def __init__(self, path, geometry: SphericalGeometry | None = None) -> None:
         path = Path(path)
-        if not is_kitti(path):
-            raise SequenceError(f"KITTI folder {path}: needs a {SCAN_FOLDER}/ folder of .bin (or .pcd) scans and {POSES_FILE}")
         self.path = path
-        self.description = f"KITTI folder {path}"
-        self._scans = scan_files(path)
-        poses = read_matrix_rows(path / POSES_FILE, "pose")
-        if len(poses) != len(self._scans):
-            raise SequenceError(f"{path / POSES_FILE}: {len(poses)} poses, but {SCAN_FOLDER}/ holds {len(self._scans)} scans")
-        tr = read_calibration(path / CALIB_FILE) if (path / CALIB_FILE).is_file() else np.eye(4)
-        self._poses = np.linalg.inv(tr) @ poses @ tr
-        self._times = np.full(len(self._scans), np.nan)
-        if (path / TIMES_FILE).is_file():
-            times = _read_times(path / TIMES_FILE)
-            if len(times) != len(self._scans):
-                raise SequenceError(f"{path / TIMES_FILE}: {len(times)} timestamps, but {SCAN_FOLDER}/ holds {len(self._scans)} scans")
-            self._times = times
+        self.description = f"{self.label} {path}"
+        self._scans, self._poses, self._times = self._read_layout(path)
         self._warned = False
         self._rows_checked = False  # the first scan read is checked for rows without returns (read_frame)
         if geometry is not None:
@@ -222,6 +212,32 @@ class KittiSequence(FrameSource):
         else:
             geometry = self._learn_geometry()
         self.geometry = geometry
+
+    def _read_layout(self, path: Path) -> tuple[list[Path], np.ndarray, np.ndarray]:
+        """The folder's scan files in frame order, their (N, 4, 4) world-from-LiDAR poses and timestamps (s, NaN
+        where unknown), or a SequenceError naming the file (module docs)."""
+        if not is_kitti(path):
+            raise SequenceError(f"KITTI folder {path}: needs a {SCAN_FOLDER}/ folder of .bin (or .pcd) scans and {POSES_FILE}")
+        scans = scan_files(path)
+        poses = read_matrix_rows(path / POSES_FILE, "pose")
+        if len(poses) != len(scans):
+            raise SequenceError(f"{path / POSES_FILE}: {len(poses)} poses, but {SCAN_FOLDER}/ holds {len(scans)} scans")
+        tr = read_calibration(path / CALIB_FILE) if (path / CALIB_FILE).is_file() else np.eye(4)
+        times = np.full(len(scans), np.nan)
+        if (path / TIMES_FILE).is_file():
+            times = read_times(path / TIMES_FILE)
+            if len(times) != len(scans):
+                raise SequenceError(f"{path / TIMES_FILE}: {len(times)} timestamps, but {SCAN_FOLDER}/ holds {len(scans)} scans")
+        return scans, np.linalg.inv(tr) @ poses @ tr, times
+
+    @property
+    def scan_paths(self) -> list[Path]:
+        """The scan files in frame order."""
+        return list(self._scans)
+
+    def scan_points(self, index: int) -> np.ndarray:
+        """(N, 3) float32 points of scan ``index`` as its file holds them (the LiDAR's frame, metres)."""
+        return read_scan(self._scans[index])
 
     def _learn_geometry(self) -> SphericalGeometry:
         """The default geometry (the HDL-64E), or, when the first scan misses it, the one learnt from the first
@@ -247,7 +263,7 @@ class KittiSequence(FrameSource):
         geometry = getattr(self, "geometry", KITTI_GEOMETRY)
         fix = table_advice(metadata_path(self.path))
         warnings.warn(
-            f"KITTI folder {self.path}: scan {self._scans[index].name} does not fit {self._geometry_from}: "
+            f"{self.label} {self.path}: scan {self._scans[index].name} does not fit {self._geometry_from}: "
             f"{fit.describe(geometry)}; " + (f"{done}; " if done else "the map will miss those points; ") + fix,
             LidarGeometryWarning,
             stacklevel=4,
@@ -270,7 +286,7 @@ class KittiSequence(FrameSource):
         return self._times.copy()
 
     def read_frame(self, index: int) -> DepthFrame:
-        points = read_scan(self._scans[index])
+        points = self.scan_points(index)
         if not self._warned and (fit := scan_fit(points, self.geometry)).share > OUTSIDE_SHARE_WARNING:
             self._warn(index, fit)
         depth, return_points = range_image_and_returns(points, self.geometry)
@@ -279,7 +295,7 @@ class KittiSequence(FrameSource):
             empty, spanned = rows_without_returns(return_points)
             if empty > EMPTY_ROWS_WARNING * spanned:
                 warnings.warn(
-                    f"KITTI folder {self.path}: scan {self._scans[index].name}: {empty} of the range image's {spanned} rows "
+                    f"{self.label} {self.path}: scan {self._scans[index].name}: {empty} of the range image's {spanned} rows "
                     f"between its top and bottom beams hold no returns ({self._geometry_from}: beams = "
                     f"{self.geometry.beams}): the image has more rows than the sensor has beams there, and no surface is "
                     f"meshed across such a row; put the sensor's beams, or its beam_elevations (degrees, one a beam, top "
@@ -290,7 +306,8 @@ class KittiSequence(FrameSource):
         return DepthFrame(depth, self.geometry, self._poses[index], index, float(self._times[index]), None, return_points)
 
 
-def _read_times(path: Path) -> np.ndarray:
+def read_times(path: Path) -> np.ndarray:
+    """The timestamps (s) of a file of one number a line (blank lines skipped), or a SequenceError naming the line."""
     times = []
     with open(path, encoding="utf-8", errors="replace") as stream:
         for number, line in enumerate(stream, start=1):
@@ -345,4 +362,4 @@ def write_kitti(source: FrameSource, folder, *, overwrite: bool = False, extra: 
     return folder
 
 
-__all__ = ["KittiSequence", "is_kitti", "read_calibration", "read_scan", "write_kitti"]
+__all__ = ["KittiSequence", "is_kitti", "read_calibration", "read_matrix_rows", "read_scan", "read_times", "scan_files", "write_kitti"]
