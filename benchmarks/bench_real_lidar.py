@@ -2,8 +2,8 @@
 
 A LiDAR recording has no ground-truth mesh, but each scan is a measurement.
 Every K-th scan (``--every``, default 5) of a KITTI-layout folder
-(:mod:`mabdi.sources.kitti`) or a folder of PCD scans with their poses
-(:mod:`mabdi.sources.pcd_folder`) is held out and never integrated; each map is
+(:mod:`mabdi.sources.kitti`) or a folder of LiDAR scans beside their poses
+(:mod:`mabdi.sources.scan_folder`) is held out and never integrated; each map is
 built from the other scans, then compared with the held-out scans' points
 (:mod:`mabdi.evaluate.held_out_scans`): the points of the scan files as
 they are (not the range images), moved to the world by the file's given
@@ -375,7 +375,7 @@ def markdown(bench: dict) -> str:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("sequence", type=Path, help="a LiDAR recording: a KITTI-layout folder (velodyne/NNNNNN.bin, poses.txt) or a folder of PCD scans and their poses")
+    parser.add_argument("sequence", type=Path, help="a LiDAR recording: a KITTI-layout folder (velodyne/NNNNNN.bin, poses.txt) or a folder of LiDAR scans (.pcd, .bin) beside their poses")
     parser.add_argument("--every", type=int, default=5, help="hold out every K-th scan (default 5)")
     parser.add_argument("--frames", type=int, help="take the first N scans of the recording (default: all)")
     parser.add_argument(
@@ -412,7 +412,7 @@ def main(argv=None) -> int:
     if not isinstance(geometry, SphericalGeometry):
         parser.error(f"{args.sequence}: read as depth images, not LiDAR scans")
     if not isinstance(source, KittiSequence):
-        parser.error(f"{args.sequence}: read as a {type(source).__name__}; the scoring reads scan files: a KITTI-layout folder or a folder of PCD scans")
+        parser.error(f"{args.sequence}: read as a {type(source).__name__}; the scoring reads scan files: a KITTI-layout folder or a folder of LiDAR scans")
     frames = len(source) if args.frames is None else min(args.frames, len(source))
     integrated, held_index = held_out_split(frames, args.every)
     subset = FrameSubset(source, integrated)

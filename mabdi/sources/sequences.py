@@ -14,14 +14,14 @@ Formats read and written (each a :class:`~mabdi.sources.frames.FrameSource`):
   LiDAR exports (:mod:`mabdi.sources.stray`);
 * a KITTI-style LiDAR folder (``velodyne/*.bin``, ``poses.txt``, ``calib.txt``):
   :mod:`mabdi.sources.kitti`, its scans turned into range images; a folder of
-  PCD scans with their poses as LiDAR tools ship them: :mod:`mabdi.sources.pcd_folder`.
+  LiDAR scans beside their poses as other tools ship them: :mod:`mabdi.sources.scan_folder`.
 
 :func:`open_sequence` tells them apart, in the order of
 :func:`sequence_format`: ``depth.txt`` is TUM; ``metadata.yaml`` or a
 ``.db3`` / ``.mcap`` (or a ``.bag`` file) is a bag; ``velodyne/`` with ``poses.txt`` is KITTI; ``traj.txt`` with ``results/`` is Replica;
 ``depth/`` with ``pose/`` is ScanNet; ``depth/`` with ``odometry.csv`` is Stray Scanner; ``depth/`` with a ``.log`` is Redwood;
-``frame-*.depth.png`` (here or in ``seq-*`` folders) is 3DMatch; ``.pcd`` scans (here or in ``clouds/``, ...) with
-``poses/`` or a pose file is a PCD scan folder. A folder
+``frame-*.depth.png`` (here or in ``seq-*`` folders) is 3DMatch; ``.pcd`` or ``.bin`` scans (here or in a folder below) with
+``poses/`` or a pose file is a LiDAR scan folder. A folder
 that holds the files of two formats is read as the first, with a warning
 naming the other; a ``[sequence]`` table in its ``mabdi.toml`` with
 ``format = "3dmatch"`` (a name in :data:`FORMATS`) chooses.
@@ -40,7 +40,7 @@ from pathlib import Path
 
 from mabdi.camera import quaternions_from_rotations  # re-exported (it was defined here)
 from mabdi.sources.kitti import is_kitti
-from mabdi.sources.pcd_folder import is_pcd_folder
+from mabdi.sources.scan_folder import is_scan_folder
 from mabdi.sources.redwood import is_redwood
 from mabdi.sources.replica import is_replica
 from mabdi.sources.scannet import is_scannet
@@ -106,7 +106,7 @@ FORMATS = {
     "replica": ("Replica (NICE-SLAM) folder", "mabdi.sources.replica", "ReplicaSequence"),
     "stray": ("Stray Scanner folder", "mabdi.sources.stray", "StraySequence"),
     "kitti": ("KITTI-style LiDAR folder", "mabdi.sources.kitti", "KittiSequence"),
-    "pcd": ("PCD scan folder", "mabdi.sources.pcd_folder", "PcdFolderSequence"),
+    "scans": ("LiDAR scan folder", "mabdi.sources.scan_folder", "ScanFolderSequence"),
 }
 
 #: The keyword options each format's reader takes (``open_sequence(path, **options)``; the CLI refuses the others).
@@ -120,7 +120,7 @@ READER_OPTIONS = {
     "replica": ("camera", "depth_scale"),
     "stray": ("camera", "depth_scale", "min_confidence"),
     "kitti": (),
-    "pcd": (),
+    "scans": (),
 }
 
 _WHAT_IS_READ = (
@@ -129,7 +129,7 @@ _WHAT_IS_READ = (
     "a ScanNet folder (depth/ and pose/), a Replica NICE-SLAM folder (results/ and traj.txt), "
     "a Stray Scanner folder (depth/ and odometry.csv), "
     "a KITTI-style LiDAR folder (velodyne/ and poses.txt) "
-    "or a folder of PCD scans (.pcd, here or in clouds/) with their poses (poses/, or a file named *pose*.txt or .csv)"
+    "or a folder of LiDAR scans (.pcd or .bin, here or in a folder below) with their poses (poses/, or a file named *pose*.txt or .csv)"
 )
 
 
@@ -144,7 +144,7 @@ _CLUES = {
     "stray": "depth/ and odometry.csv",
     "redwood": "depth/ and a .log",
     "3dmatch": "frame-*.depth.png",
-    "pcd": ".pcd scans and their poses",
+    "scans": ".pcd or .bin scans and their poses",
 }
 
 
@@ -155,7 +155,7 @@ def _formats_in(folder: Path) -> list[str]:
         found.append("tum")
     if (folder / "metadata.yaml").is_file() or any(folder.glob("*.db3")) or any(folder.glob("*.mcap")):
         found.append("rosbag2")
-    for name, test in (("kitti", is_kitti), ("replica", is_replica), ("scannet", is_scannet), ("stray", is_stray), ("redwood", is_redwood), ("3dmatch", is_3dmatch), ("pcd", is_pcd_folder)):
+    for name, test in (("kitti", is_kitti), ("replica", is_replica), ("scannet", is_scannet), ("stray", is_stray), ("redwood", is_redwood), ("3dmatch", is_3dmatch), ("scans", is_scan_folder)):
         if test(folder):
             found.append(name)
     return found

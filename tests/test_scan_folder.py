@@ -1,4 +1,4 @@
-"""Folders of PCD scans with their poses, in the layouts LiDAR tools ship: read as the KITTI folder of the same
+"""Folders of LiDAR scans beside their poses, in the layouts tools ship: read as the KITTI folder of the same
 scans and poses reads."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ import pytest
 
 from mabdi.errors import PoseFileWarning
 from mabdi.sources.kitti import read_scan, write_kitti
-from mabdi.sources.pcd_folder import PcdFolderSequence
+from mabdi.sources.scan_folder import ScanFolderSequence, in_seconds, scan_name_times
 from mabdi.sources.sequences import SequenceError, open_sequence, sequence_format
 from tests.test_kitti import _source
 
@@ -65,11 +65,11 @@ def _balm_folder(path, kitti, scan_names=lambda i: f"full{i}.pcd"):
 def test_balm_s_folder_reads_as_the_kitti_folder_of_its_scans(tmp_path, kitti):
     # Ten scans and more order by number, not by name: full10 after full9.
     folder = _balm_folder(tmp_path / "balm", kitti, lambda i: f"full{[9, 10, 11][i]}.pcd")
-    assert sequence_format(folder) == "pcd"
+    assert sequence_format(folder) == "scans"
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         read = open_sequence(folder)
-    assert isinstance(read, PcdFolderSequence)
+    assert isinstance(read, ScanFolderSequence)
     assert [p.name for p in read.scan_paths] == ["full9.pcd", "full10.pcd", "full11.pcd"]
     _assert_same_recording(read, kitti, 1630577758.569490 + 0.5 * np.arange(3))
     repaired = [str(w.message) for w in caught if issubclass(w.category, PoseFileWarning)]
@@ -92,7 +92,7 @@ def test_a_clouds_and_poses_folder_reads_as_the_kitti_folder_of_its_scans(tmp_pa
         open_sequence(folder)
 
 
-@pytest.mark.parametrize("form", ["kitti_lines", "4x4_lines", "tum", "3x4_blocks"])
+@pytest.mark.parametrize("form", ["kitti_lines", "4x4_lines", "timed_3x4_lines", "tum", "sec_nsec", "3x4_blocks"])
 def test_a_pose_file_in_each_form_reads_the_same_poses(tmp_path, kitti, form):
     folder = tmp_path / "scans"
     (folder / "pcd").mkdir(parents=True)
@@ -104,25 +104,30 @@ def test_a_pose_file_in_each_form_reads_the_same_poses(tmp_path, kitti, form):
             lines.append(" ".join(values[:12]))
         elif form == "4x4_lines":
             lines.append(",".join(values))
+        elif form == "timed_3x4_lines":  # a time in ns since the epoch, then the matrix
+            lines.append(",".join([str(1566535940795328163 + 100_000_000 * i), *values[:12]]))
         elif form == "3x4_blocks":
             lines += [" ".join(values[r * 4 : r * 4 + 4]) for r in range(3)]
         else:
             from mabdi.sources.sequences import quaternions_from_rotations
 
             q = quaternions_from_rotations(pose[None, :3, :3])[0]
-            lines.append(" ".join(f"{v:.9f}" for v in [0.1 * i, *pose[:3, 3], *q]))
-    if form == "tum":
+            stamp = [0.1 * i] if form == "tum" else [1583836591, 100_000_000 * i]
+            lines.append(" ".join(f"{v:.9f}" for v in [*stamp, *pose[:3, 3], *q]))
+    if form in ("tum", "sec_nsec"):
         lines.insert(1, "timestamp tx ty tz qx qy qz qw")
     (folder / "trajectory.txt").write_text("\n".join(lines) + "\n")
     (folder / "mabdi.toml").write_text((kitti.path / "mabdi.toml").read_text())
-    _assert_same_recording(open_sequence(folder), kitti, [0.0, 0.1, 0.2] if form == "tum" else [np.nan] * 3)
+    times = {"tum": [0.0, 0.1, 0.2], "sec_nsec": 1583836591 + np.array([0.0, 0.1, 0.2]),
+             "timed_3x4_lines": 1566535940.795328163 + np.array([0.0, 0.1, 0.2])}.get(form, [np.nan] * 3)
+    _assert_same_recording(open_sequence(folder), kitti, times)
 
 
 @pytest.mark.parametrize(
     ("damage", "message"),
     [
         (lambda text: text.replace("1.0 0.0 0.0 0.0", "1.0 0.0 0.0", 1), r"trajectory.txt:2: pose: 11 numbers"),
-        (lambda text: text + "1 0 0 0 0 1 0 0 0 0 1 0\n", r"trajectory.txt: 4 poses, but .* holds 3 .pcd scans"),
+        (lambda text: text + "1 0 0 0 0 1 0 0 0 0 1 0\n", r"trajectory.txt: 4 poses for 3 scans, and the poses hold no times to pair them by"),
         (lambda text: text.replace("1.0 0.0 0.0 0.0", "2.0 0.0 0.0 0.0", 1), r"trajectory.txt:2: not a rigid transform"),
         (lambda text: text.replace("1.0 0.0 0.0 0.0", "1.0 zero 0.0 0.0", 1), r"trajectory.txt:2: pose: a field is not a number"),
     ],
@@ -146,7 +151,7 @@ def test_scans_of_one_number_or_of_none_are_named(tmp_path):
     for name in ("scan_1.pcd", "full1.pcd"):
         _write_pcd(folder / name, points)
     (folder / "poses.txt").write_text("1 0 0 0 0 1 0 0 0 0 1 0\n" * 2)
-    with pytest.raises(SequenceError, match=r"two scans are number 1 \(full1.pcd, scan_1.pcd\)"):
+    with pytest.raises(SequenceError, match=r"two scans have the same number \(full1.pcd, scan_1.pcd\)"):
         open_sequence(folder)
     (folder / "full1.pcd").rename(folder / "last.pcd")
     with pytest.raises(SequenceError, match=r"last.pcd: a scan's name must hold its number"):
@@ -157,5 +162,69 @@ def test_a_folder_of_scans_without_poses_is_not_read_as_a_recording(tmp_path):
     folder = tmp_path / "scans"
     folder.mkdir()
     _write_pcd(folder / "0.pcd", np.random.default_rng(0).uniform(-5, 5, (200, 3)))
-    with pytest.raises(SequenceError, match=r"not a recorded sequence: .*a folder of PCD scans"):
+    with pytest.raises(SequenceError, match=r"not a recorded sequence: .*a folder of LiDAR scans"):
         open_sequence(folder)
+
+
+def test_poses_at_their_own_clock_are_interpolated_at_the_scans_times(tmp_path, kitti):
+    # Five scans named by their times (seconds and nanoseconds), poses at 10 Hz on another clock covering the
+    # middle three: those three are read at the poses interpolated to their times, the other two skipped and said.
+    folder = tmp_path / "sensor"
+    (folder / "lidar" / "ouster").mkdir(parents=True)
+    start = 1583836591
+    scan_times = start + np.array([0.0, 0.25, 0.45, 0.65, 0.9])
+    points = [read_scan(kitti.scan_paths[i % 3]) for i in range(5)]
+    for t, p in zip(scan_times, points):
+        seconds = int(t)
+        _write_pcd(folder / "lidar" / "ouster" / f"cloud_{seconds}_{round((t - seconds) * 1e9):09d}.pcd", p)
+    pose_times = start + np.arange(0.2, 0.75, 0.1)  # 0.2 .. 0.7 s
+    lines = ["#sec,nsec,x,y,z,qx,qy,qz,qw"]
+    for t in pose_times:
+        seconds = int(round(t, 6))
+        lines.append(f"{seconds},{round((t - seconds) * 1e9)},{t - start},{2 * (t - start)},1.5,0,0,0,1")
+    (folder / "registered_poses.csv").write_text("\n".join(lines) + "\n")
+    (folder / "mabdi.toml").write_text((kitti.path / "mabdi.toml").read_text())
+    read = open_sequence(folder)
+    assert len(read) == 3 and "2 scans without a pose skipped" in read.description
+    np.testing.assert_allclose(read.timestamps, scan_times[1:4], atol=1e-6)
+    np.testing.assert_allclose(read.poses[:, 0, 3], scan_times[1:4] - start, atol=1e-6)  # x moves 1 m/s
+    np.testing.assert_allclose(read.poses[:, 1, 3], 2 * (scan_times[1:4] - start), atol=1e-6)
+    np.testing.assert_array_equal(read.read(0).depth, kitti.read(1).depth)
+
+
+def test_times_are_read_as_seconds_whatever_their_unit():
+    np.testing.assert_allclose(in_seconds(np.array([1.566e18, 1.566e15, 1.566e12, 1.566e9, 12.5]))[:1], [1.566e9])
+    for stamp in (1.566e18, 1.566e15, 1.566e12, 1.566e9):
+        np.testing.assert_allclose(in_seconds(np.array([stamp])), [1.566e9])
+    np.testing.assert_allclose(in_seconds(np.array([0.0, 12.5])), [0.0, 12.5])
+    from pathlib import Path
+
+    names = [Path("1566535940795328163.bin"), Path("cloud_1583836591_182590976.pcd"), Path("1630577758.569490.pcd")]
+    np.testing.assert_allclose(scan_name_times(names[:1]), [1566535940.795328163])
+    np.testing.assert_allclose(scan_name_times(names[1:2]), [1583836591.182590976])
+    np.testing.assert_allclose(scan_name_times(names[2:]), [1630577758.569490])
+
+
+def test_a_scan_folder_of_bin_scans_in_a_folder_below(tmp_path, kitti):
+    # KITTI's .bin scans one folder down (a dataset's sensor_data/<sensor>/), a pose file with a time a line.
+    folder = tmp_path / "seq"
+    (folder / "sensor_data" / "lidar").mkdir(parents=True)
+    lines = []
+    for i, pose in enumerate(kitti.poses):
+        (folder / "sensor_data" / "lidar" / f"{1000 + i}.bin").write_bytes(kitti.scan_paths[i].read_bytes())
+        lines.append(",".join(str(v) for v in [1000 + i, *pose[:3].ravel()]))
+    (folder / "global_pose.csv").write_text("\n".join(lines) + "\n")
+    (folder / "mabdi.toml").write_text((kitti.path / "mabdi.toml").read_text())
+    _assert_same_recording(open_sequence(folder), kitti, [1000.0, 1001.0, 1002.0])
+    (folder / "other").mkdir()
+    (folder / "other" / "0.bin").write_bytes(kitti.scan_paths[0].read_bytes())
+    with pytest.raises(SequenceError, match=r"scans in 2 folders \(other, sensor_data/lidar\)"):
+        open_sequence(folder)
+
+
+def test_a_kitti_folder_is_read_as_kitti_alone(kitti):
+    # velodyne/ holds .bin scans beside poses.txt: a KITTI folder, not also a scan folder to warn of
+    assert sequence_format(kitti.path) == "kitti"
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert not isinstance(open_sequence(kitti.path), ScanFolderSequence)
