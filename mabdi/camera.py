@@ -216,7 +216,7 @@ def pose_from_file(pose, name: str = "pose", tolerance: float = POSE_FILE_TOLERA
 class PoseRepairs:
     """What reading a pose file made rigid: how many rotation blocks were not orthonormal to
     :data:`RIGID_TOLERANCE`, the largest max |R^T R - I| among them, and how far the largest replacement moved a
-    point 1 m from the camera (metres)."""
+    point 1 m from the sensor (metres)."""
 
     poses: int = 0
     repaired: int = 0
@@ -241,7 +241,7 @@ class PoseRepairs:
         return (
             f"{where}: {self.repaired} of {self.poses} poses have rotation blocks up to {self.worst_error:.2g} "
             f"from orthonormal (max |R^T R - I|, as poses written to a few digits do); each was replaced by its "
-            f"nearest rotation, moving a point 1 m from the camera by at most {self.worst_shift * 1000:.2g} mm"
+            f"nearest rotation, moving a point 1 m from the sensor by at most {self.worst_shift * 1000:.2g} mm"
         )
 
 
