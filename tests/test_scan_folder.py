@@ -10,7 +10,8 @@ import pytest
 
 from mabdi.errors import PoseFileWarning
 from mabdi.sources.kitti import read_scan, write_kitti
-from mabdi.sources.scan_folder import ScanFolderSequence, in_seconds, scan_name_times
+from mabdi.sources.pose_files import in_seconds, name_times
+from mabdi.sources.scan_folder import ScanFolderSequence
 from mabdi.sources.sequences import SequenceError, open_sequence, sequence_format
 from tests.test_kitti import _source
 
@@ -151,10 +152,10 @@ def test_scans_of_one_number_or_of_none_are_named(tmp_path):
     for name in ("scan_1.pcd", "full1.pcd"):
         _write_pcd(folder / name, points)
     (folder / "poses.txt").write_text("1 0 0 0 0 1 0 0 0 0 1 0\n" * 2)
-    with pytest.raises(SequenceError, match=r"two scans have the same number \(full1.pcd, scan_1.pcd\)"):
+    with pytest.raises(SequenceError, match=r"two files have the same number \(full1.pcd, scan_1.pcd\)"):
         open_sequence(folder)
     (folder / "full1.pcd").rename(folder / "last.pcd")
-    with pytest.raises(SequenceError, match=r"last.pcd: a scan's name must hold its number"):
+    with pytest.raises(SequenceError, match=r"last.pcd: a frame file's name must hold its number"):
         open_sequence(folder)
 
 
@@ -174,7 +175,7 @@ def test_poses_at_their_own_clock_are_interpolated_at_the_scans_times(tmp_path, 
     start = 1583836591
     scan_times = start + np.array([0.0, 0.25, 0.45, 0.65, 0.9])
     points = [read_scan(kitti.scan_paths[i % 3]) for i in range(5)]
-    for t, p in zip(scan_times, points):
+    for t, p in zip(scan_times, points, strict=True):
         seconds = int(t)
         _write_pcd(folder / "lidar" / "ouster" / f"cloud_{seconds}_{round((t - seconds) * 1e9):09d}.pcd", p)
     pose_times = start + np.arange(0.2, 0.75, 0.1)  # 0.2 .. 0.7 s
@@ -200,9 +201,9 @@ def test_times_are_read_as_seconds_whatever_their_unit():
     from pathlib import Path
 
     names = [Path("1566535940795328163.bin"), Path("cloud_1583836591_182590976.pcd"), Path("1630577758.569490.pcd")]
-    np.testing.assert_allclose(scan_name_times(names[:1]), [1566535940.795328163])
-    np.testing.assert_allclose(scan_name_times(names[1:2]), [1583836591.182590976])
-    np.testing.assert_allclose(scan_name_times(names[2:]), [1630577758.569490])
+    np.testing.assert_allclose(name_times(names[:1]), [1566535940.795328163])
+    np.testing.assert_allclose(name_times(names[1:2]), [1583836591.182590976])
+    np.testing.assert_allclose(name_times(names[2:]), [1630577758.569490])
 
 
 def test_a_scan_folder_of_bin_scans_in_a_folder_below(tmp_path, kitti):
