@@ -14,14 +14,16 @@ Formats read and written (each a :class:`~mabdi.sources.frames.FrameSource`):
   LiDAR exports (:mod:`mabdi.sources.stray`);
 * a KITTI-style LiDAR folder (``velodyne/*.bin``, ``poses.txt``, ``calib.txt``):
   :mod:`mabdi.sources.kitti`, its scans turned into range images; a folder of
-  LiDAR scans beside their poses as other tools ship them: :mod:`mabdi.sources.scan_folder`.
+  LiDAR scans beside their poses as other tools ship them: :mod:`mabdi.sources.scan_folder`;
+* a folder of depth images beside one pose file (capture apps' and SLAM tools' exports):
+  :mod:`mabdi.sources.depth_folder`.
 
 :func:`open_sequence` tells them apart, in the order of
 :func:`sequence_format`: ``depth.txt`` is TUM; ``metadata.yaml`` or a
 ``.db3`` / ``.mcap`` (or a ``.bag`` file) is a bag; ``velodyne/`` with ``poses.txt`` is KITTI; ``traj.txt`` with ``results/`` is Replica;
 ``depth/`` with ``pose/`` is ScanNet; ``depth/`` with ``odometry.csv`` is Stray Scanner; ``depth/`` with a ``.log`` is Redwood;
-``frame-*.depth.png`` (here or in ``seq-*`` folders) is 3DMatch; ``.pcd`` or ``.bin`` scans (here or in a folder below) with
-``poses/`` or a pose file is a LiDAR scan folder. A folder
+``frame-*.depth.png`` (here or in ``seq-*`` folders) is 3DMatch; ``depth/`` with a pose file is a depth image
+folder; ``.pcd`` or ``.bin`` scans (here or in a folder below) with ``poses/`` or a pose file is a LiDAR scan folder. A folder
 that holds the files of two formats is read as the first, with a warning
 naming the other; a ``[sequence]`` table in its ``mabdi.toml`` with
 ``format = "3dmatch"`` (a name in :data:`FORMATS`) chooses.
@@ -39,6 +41,7 @@ import warnings
 from pathlib import Path
 
 from mabdi.camera import quaternions_from_rotations  # re-exported (it was defined here)
+from mabdi.sources.depth_folder import is_depth_folder
 from mabdi.sources.kitti import is_kitti
 from mabdi.sources.scan_folder import is_scan_folder
 from mabdi.sources.redwood import is_redwood
@@ -106,6 +109,7 @@ FORMATS = {
     "replica": ("Replica (NICE-SLAM) folder", "mabdi.sources.replica", "ReplicaSequence"),
     "stray": ("Stray Scanner folder", "mabdi.sources.stray", "StraySequence"),
     "kitti": ("KITTI-style LiDAR folder", "mabdi.sources.kitti", "KittiSequence"),
+    "depth_folder": ("depth image folder", "mabdi.sources.depth_folder", "DepthFolderSequence"),
     "scans": ("LiDAR scan folder", "mabdi.sources.scan_folder", "ScanFolderSequence"),
 }
 
@@ -121,6 +125,7 @@ READER_OPTIONS = {
     "stray": ("camera", "depth_scale", "min_confidence"),
     "kitti": (),
     "scans": (),
+    "depth_folder": ("camera", "depth_scale"),
 }
 
 _WHAT_IS_READ = (
@@ -128,8 +133,9 @@ _WHAT_IS_READ = (
     "(frame-*.depth.png, or seq-* folders of them), a Redwood / Open3D folder (depth/ and trajectory.log), "
     "a ScanNet folder (depth/ and pose/), a Replica NICE-SLAM folder (results/ and traj.txt), "
     "a Stray Scanner folder (depth/ and odometry.csv), "
-    "a KITTI-style LiDAR folder (velodyne/ and poses.txt) "
-    "or a folder of LiDAR scans (.pcd or .bin, here or in a folder below) with their poses (poses/, or a file named *pose*.txt or .csv)"
+    "a KITTI-style LiDAR folder (velodyne/ and poses.txt), "
+    "a folder of LiDAR scans (.pcd or .bin, here or in a folder below) with their poses (poses/, or a file named *pose*.txt or .csv) "
+    "or a folder of depth images (depth/) beside one pose file (*pose* or *traj*, .txt or .csv)"
 )
 
 
@@ -145,6 +151,7 @@ _CLUES = {
     "redwood": "depth/ and a .log",
     "3dmatch": "frame-*.depth.png",
     "scans": ".pcd or .bin scans and their poses",
+    "depth_folder": "depth/ and a pose file",
 }
 
 
@@ -155,7 +162,7 @@ def _formats_in(folder: Path) -> list[str]:
         found.append("tum")
     if (folder / "metadata.yaml").is_file() or any(folder.glob("*.db3")) or any(folder.glob("*.mcap")):
         found.append("rosbag2")
-    for name, test in (("kitti", is_kitti), ("replica", is_replica), ("scannet", is_scannet), ("stray", is_stray), ("redwood", is_redwood), ("3dmatch", is_3dmatch), ("scans", is_scan_folder)):
+    for name, test in (("kitti", is_kitti), ("replica", is_replica), ("scannet", is_scannet), ("stray", is_stray), ("redwood", is_redwood), ("3dmatch", is_3dmatch), ("depth_folder", is_depth_folder), ("scans", is_scan_folder)):
         if test(folder):
             found.append(name)
     return found

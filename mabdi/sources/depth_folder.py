@@ -1,0 +1,142 @@
+"""Folders of depth images beside one pose file, as capture apps and SLAM tools export them: a frame source.
+
+The layout no dataset names, and many recordings have:
+
+* ``depth/`` (or ``depths/``): a 16-bit PNG a frame, :data:`DEPTH_SCALE` units per metre (millimetres, the
+  common choice; ``depth_scale=`` / ``--depth-scale`` otherwise), 0 = no return; ordered by the numbers in
+  their names (:func:`~mabdi.sources.pose_files.file_numbers`).
+* one pose file in the folder, a name holding ``pose`` or ``traj`` (``.txt``, ``.csv``), camera to world
+  (x right, y down, z forward, OpenCV's), in any of the forms :mod:`mabdi.sources.pose_files` reads. As many
+  poses as images pair in order; otherwise timed poses are interpolated at the images' times (their names)
+  and images outside the poses' span are skipped and counted.
+* the camera: ``camera=`` (``--camera``), else a ``[camera]`` table in a ``mabdi.toml``, else a camera file
+  in the folder (a name holding ``intrinsic``, or ``K.txt``, ``.txt``): a 3x3 (or 4x4) camera matrix with
+  integer pixel centres; width and height from the depth images.
+* colour (optional): ``rgb/``, ``color/``, ``colour/`` or ``images/``, an image a frame with the same
+  numbers in its name as its depth image's.
+
+Everything else (skipped non-finite poses, colour of another size, the rules for bad input) is
+:mod:`mabdi.sources.image_sequence`'s. A folder another layout reads (TUM's ``depth.txt``, ScanNet's
+``pose/``, ...) is read as that layout.
+"""
+
+from __future__ import annotations
+
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from mabdi.camera import PoseRepairs
+from mabdi.errors import PoseFileWarning
+from mabdi.sources.image_sequence import ImageSequence, png_size, read_matrix_file, resolve_intrinsics
+from mabdi.sources.pose_files import (
+    file_numbers,
+    name_times,
+    ordered_by_numbers,
+    pose_file,
+    poses_at_times,
+    poses_of_lines,
+    read_pose_lines,
+)
+from mabdi.sources.sequence_files import (
+    SequenceError,
+    camera_origin,
+    check_depth_size,
+    intrinsics_from_matrix,
+    matrix_image_size,
+    matrix_origin,
+)
+
+#: Depth units per metre unless told otherwise (millimetres).
+DEPTH_SCALE = 1000.0
+NO_RETURN = (0,)
+DEPTH_FOLDERS = ("depth", "depths")
+COLOUR_FOLDERS = ("rgb", "color", "colour", "images")
+COLOUR_SUFFIXES = (".png", ".jpg", ".jpeg")
+
+
+def _depth_folder(path: Path) -> Path | None:
+    return next((path / name for name in DEPTH_FOLDERS if (path / name).is_dir() and any((path / name).glob("*.png"))), None)
+
+
+def is_depth_folder(path) -> bool:
+    """Whether ``path`` holds depth images beside one pose file (module docs)."""
+    path = Path(path)
+    if not path.is_dir() or _depth_folder(path) is None:
+        return False
+    try:
+        return pose_file(path) is not None
+    except SequenceError:
+        return True  # ours to read, and to say what is wrong with
+
+
+def camera_file(path: Path) -> Path | None:
+    """The folder's camera matrix file (module docs), or None."""
+    found = sorted(p for p in path.glob("*.txt") if "intrinsic" in p.stem.lower() or p.stem in ("K", "k"))
+    return found[0] if found else None
+
+
+class DepthFolderSequence(ImageSequence):
+    """A folder of depth images and one pose file (module docs); ``camera`` and ``depth_scale`` as for every
+    layout."""
+
+    layout = "depth image folder"
+
+    def __init__(self, path, camera=None, depth_scale: float | None = None) -> None:
+        path = Path(path)
+        folder = _depth_folder(path) if path.is_dir() else None
+        file = pose_file(path) if folder is not None else None
+        if folder is None or file is None:
+            raise SequenceError(f"{self.layout} {path}: needs a depth/ folder of PNG images and a pose file (a name holding 'pose' or 'traj')")
+        depth_files = ordered_by_numbers(sorted(folder.glob("*.png")), f"{self.layout} {path}")
+        repairs = PoseRepairs()
+        rows = read_pose_lines(file)
+        poses, times = poses_of_lines(rows, file, repairs)
+        if (note := repairs.note(str(file))) is not None:
+            warnings.warn(note, PoseFileWarning, stacklevel=2)
+        frame_times, outside = times, 0
+        if len(poses) != len(depth_files):
+            if not np.isfinite(times).all():
+                raise SequenceError(f"{file}: {len(poses)} poses for {len(depth_files)} depth images, and the poses hold no times to pair them by")
+            frame_times = name_times(depth_files)
+            poses, keep = poses_at_times(frame_times, times, poses)
+            if not keep.any():
+                raise SequenceError(
+                    f"{file}: no depth image's time ({frame_times.min():.3f}-{frame_times.max():.3f} s, from the names) "
+                    f"falls within the poses' ({times.min():.3f}-{times.max():.3f} s)"
+                )
+            outside = int((~keep).sum())
+            depth_files, poses, frame_times = [d for d, k in zip(depth_files, keep, strict=True) if k], poses[keep], frame_times[keep]
+        found = origin = None
+        if (matrix_file := camera_file(path)) is not None:
+            matrix = read_matrix_file(matrix_file, 3, 3, "camera matrix")
+            found = intrinsics_from_matrix(matrix, *matrix_image_size(matrix, png_size(depth_files[0])), matrix_file)
+            origin = matrix_origin(matrix_file, found)
+        intrinsics = resolve_intrinsics(path, found, camera, {}, self.layout)
+        if camera is None:  # a camera given is checked against each image as it is read
+            check_depth_size(intrinsics, depth_files[0], camera_origin(path, origin), path)
+        self._setup(
+            path, depth_files, poses, [str(file)] * len(depth_files), intrinsics, DEPTH_SCALE if depth_scale is None else depth_scale, NO_RETURN,
+            self._colour_files(path, depth_files), None, frame_times,
+        )
+        if outside:
+            self.description = self.description[:-1] + f", {outside} outside the poses' times skipped)"
+
+    @staticmethod
+    def _colour_files(path: Path, depth_files: list[Path]) -> list[Path] | None:
+        """The colour image of each depth image, by the numbers in their names, or None (module docs)."""
+        for name in COLOUR_FOLDERS:
+            images = [p for p in (path / name).glob("*") if p.suffix.lower() in COLOUR_SUFFIXES] if (path / name).is_dir() else []
+            if not images:
+                continue
+            by_numbers = {file_numbers(p): p for p in images}
+            files = [by_numbers.get(file_numbers(d)) for d in depth_files]
+            missing = [d for d, c in zip(depth_files, files, strict=True) if c is None]
+            if missing:
+                raise SequenceError(f"{path / name}: no colour image for depth image {missing[0].name} (other frames have one)")
+            return files
+        return None
+
+
+__all__ = ["DepthFolderSequence", "camera_file", "is_depth_folder"]

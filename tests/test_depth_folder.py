@@ -1,0 +1,103 @@
+"""Folders of depth images beside one pose file, as capture apps and SLAM tools export them: read back the frames
+they were written from."""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+
+from mabdi.camera import quaternions_from_rotations
+from mabdi.errors import PoseFileWarning
+from mabdi.sources.depth_folder import DepthFolderSequence
+from mabdi.sources.sequence_files import write_colour_png
+from mabdi.sources.sequences import SequenceError, open_sequence, sequence_format
+from mabdi.sources.tum import write_depth_png
+from tests.test_sequences import INTRINSICS, _frames
+
+
+def _camera_matrix(path):
+    """The test camera as a 3x3 K with integer pixel centres (OpenCV's), as the exports write it."""
+    k = np.array([[INTRINSICS.fx, 0, INTRINSICS.cx - 0.5], [0, INTRINSICS.fy, INTRINSICS.cy - 0.5], [0, 0, 1]])
+    path.write_text("\n".join(" ".join(f"{v:.6f}" for v in row) for row in k) + "\n")
+
+
+def _folder(path, frames, names, pose_lines, colour=False):
+    (path / "depth").mkdir(parents=True)
+    for frame, name in zip(frames, names, strict=True):
+        write_depth_png(path / "depth" / f"{name}.png", frame.depth, 1000.0)
+        if colour:
+            (path / "rgb").mkdir(exist_ok=True)
+            write_colour_png(path / "rgb" / f"{name}.png", np.full((48, 64, 3), frame.frame * 40, dtype=np.uint8))
+    (path / "poses.txt").write_text("\n".join(pose_lines) + "\n")
+    _camera_matrix(path / "intrinsics.txt")
+    return path
+
+
+def _check(read, frames):
+    assert read.intrinsics.fx == pytest.approx(INTRINSICS.fx) and read.intrinsics.cy == pytest.approx(INTRINSICS.cy)
+    assert (read.intrinsics.width, read.intrinsics.height) == (64, 48)
+    for index, frame in enumerate(frames):
+        got = read.read(index)
+        np.testing.assert_allclose(got.world_from_camera, frame.world_from_camera, atol=2e-6)
+        both = np.isfinite(got.depth) & np.isfinite(frame.depth)
+        assert both.sum() > 0.95 * np.isfinite(frame.depth).sum()
+        assert np.isnan(got.depth[5:9, 10:20]).all()  # no return stays no return
+        np.testing.assert_allclose(got.depth[both], frame.depth[both], atol=0.0005 + 1e-6)  # millimetres
+
+
+def test_depth_images_beside_a_kitti_style_pose_file(tmp_path):
+    frames = _frames()
+    lines = [" ".join(f"{v:.6f}" for v in f.world_from_camera[:3].ravel()) for f in frames]  # 6 digits
+    folder = _folder(tmp_path / "export", frames, [f"frame_{i}" for i in (8, 9, 10, 11, 12)], lines, colour=True)
+    assert sequence_format(folder) == "depth_folder"
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        read = open_sequence(folder)
+    assert isinstance(read, DepthFolderSequence) and len(read) == 5
+    assert [f.name for f in read.files] == [f"frame_{i}.png" for i in (8, 9, 10, 11, 12)]  # 10 after 9
+    _check(read, frames)
+    assert any(issubclass(w.category, PoseFileWarning) for w in caught)  # 6-digit rotations made rigid, said
+    assert read.read(2).colour[0, 0, 0] == 80  # frame_10's colour, matched by its number
+
+
+def test_a_trajectory_on_its_own_clock_is_interpolated_at_the_images_times(tmp_path):
+    # The images are named by their times; the poses, 100 Hz TUM lines, cover all but the first image.
+    frames = _frames()
+    times = np.array([0.0, 0.05, 0.1, 0.15, 0.2]) + 1_700_000_000.0
+    start = times[1] - 0.004
+    pose_times = np.arange(start, times[-1] + 0.01, 0.01)
+    positions = [f.world_from_camera[:3, 3] for f in frames]
+    lines = ["# timestamp tx ty tz qx qy qz qw"]
+    rotation = quaternions_from_rotations(frames[0].world_from_camera[None, :3, :3])[0]
+    velocity = (positions[1] - positions[0]) / 0.05  # the frames' positions lie on a line, 0.05 s apart
+    for t in pose_times:  # the position moves at that velocity; one rotation
+        x = positions[0] + velocity * (t - times[0])
+        lines.append(" ".join(f"{v:.9f}" for v in [t, *x, *rotation]))
+    folder = _folder(tmp_path / "export", frames, [f"{t:.3f}" for t in times], lines)
+    read = open_sequence(folder)
+    assert len(read) == 4 and "1 outside the poses' times skipped" in read.description
+    np.testing.assert_allclose(read.timestamps, times[1:])
+    for index in range(4):
+        np.testing.assert_allclose(read.poses[index, :3, 3], positions[index + 1], atol=1e-6)
+
+
+def test_a_folder_without_a_camera_says_how_to_give_one(tmp_path):
+    frames = _frames()
+    lines = [" ".join(f"{v:.9f}" for v in f.world_from_camera[:3].ravel()) for f in frames]
+    folder = _folder(tmp_path / "export", frames, [str(i) for i in range(5)], lines)
+    (folder / "intrinsics.txt").unlink()
+    with pytest.raises(SequenceError, match=r"no intrinsics: pass camera= \(--camera"):
+        open_sequence(folder)
+    read = open_sequence(folder, camera="60.5,58.25,31.75,24.5,64,48")
+    _check(read, frames)
+
+
+def test_a_missing_colour_image_is_named(tmp_path):
+    frames = _frames()
+    lines = [" ".join(f"{v:.9f}" for v in f.world_from_camera[:3].ravel()) for f in frames]
+    folder = _folder(tmp_path / "export", frames, [str(i) for i in range(5)], lines, colour=True)
+    (folder / "rgb" / "3.png").unlink()
+    with pytest.raises(SequenceError, match=r"rgb: no colour image for depth image 3.png"):
+        open_sequence(folder)
