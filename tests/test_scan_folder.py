@@ -11,7 +11,7 @@ import pytest
 from mabdi.errors import PoseFileWarning
 from mabdi.sources.kitti import read_scan, write_kitti
 from mabdi.sources.pose_files import in_seconds, name_times
-from mabdi.sources.scan_folder import ScanFolderSequence
+from mabdi.sources.scan_folder import ScanFolderSequence, is_scan_folder
 from mabdi.sources.sequences import SequenceError, open_sequence, sequence_format
 from tests.test_kitti import _source
 
@@ -218,7 +218,8 @@ def test_a_scan_folder_of_bin_scans_in_a_folder_below(tmp_path, kitti):
     (folder / "mabdi.toml").write_text((kitti.path / "mabdi.toml").read_text())
     _assert_same_recording(open_sequence(folder), kitti, [1000.0, 1001.0, 1002.0])
     (folder / "other").mkdir()
-    (folder / "other" / "0.bin").write_bytes(kitti.scan_paths[0].read_bytes())
+    for name in ("0.bin", "1.bin"):
+        (folder / "other" / name).write_bytes(kitti.scan_paths[0].read_bytes())
     with pytest.raises(SequenceError, match=r"scans in 2 folders \(other, sensor_data/lidar\)"):
         open_sequence(folder)
 
@@ -229,3 +230,15 @@ def test_a_kitti_folder_is_read_as_kitti_alone(kitti):
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         assert not isinstance(open_sequence(kitti.path), ScanFolderSequence)
+
+
+def test_another_tool_s_bin_files_below_a_folder_are_no_scans(tmp_path):
+    # A photogrammetry folder (cameras.bin, images.bin, points3D.bin below it) beside a poses file: no recording
+    folder = tmp_path / "photos"
+    (folder / "sparse" / "0").mkdir(parents=True)
+    for name in ("cameras.bin", "images.bin", "points3D.bin"):
+        (folder / "sparse" / "0" / name).write_bytes(b"\0" * 64)
+    (folder / "poses.txt").write_text("1 0 0 0 0 1 0 0 0 0 1 0\n")
+    assert not is_scan_folder(folder)
+    with pytest.raises(SequenceError, match="not a recorded sequence"):
+        open_sequence(folder)

@@ -5,8 +5,9 @@ or KITTI's float32 ``x y z intensity`` ``.bin``) beside the scans' poses (world 
 
 * **Scans**: the ``.pcd`` (or ``.bin``, not both) files of the folder, else of its ``clouds/``, ``pcd/``,
   ``pcds/``, ``scans/`` or ``points/``, else of the one folder below it (two levels at most) that holds
-  any; ordered by the numbers in their names (``full9`` before ``full10``, ``cloud_1583836591_182590976``
-  by both). A name without a number, or two scans of the same numbers, is an error naming them.
+  two or more, each named with a number; ordered by the numbers in their names (``full9`` before
+  ``full10``, ``cloud_1583836591_182590976`` by both). A name without a number, or two scans of the same
+  numbers, is an error naming them.
 * **Poses**: a ``poses/`` folder of a file a scan (``poses/<scan name>.txt``, a 4x4 or 3x4 matrix), or one
   file of the folder whose name holds ``pose`` or ``traj`` (``.txt``, ``.csv``; ``poses.txt``,
   ``alidarPose.csv``, ``trajectory.txt``) in any of the forms :mod:`mabdi.sources.pose_files` reads
@@ -60,13 +61,19 @@ def _scan_files(folder: Path) -> list[Path]:
     return [p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in SCAN_SUFFIXES]
 
 
+def _numbered_scans(folder: Path) -> bool:
+    """Whether ``folder`` holds two scans or more, each named with a number (not another tool's ``.bin`` files)."""
+    scans = _scan_files(folder)
+    return len(scans) >= 2 and all(any(c.isdigit() for c in p.stem) for p in scans)
+
+
 def scan_folder(path: Path) -> Path | None:
     """The folder holding ``path``'s scans (module docs), or None; scans in two folders below it and none in
     the named ones are a SequenceError naming them."""
     for folder in (path, *(path / name for name in SCAN_FOLDERS)):
         if folder.is_dir() and _scan_files(folder):
             return folder
-    below = [f for f in sorted(path.glob("*/")) + sorted(path.glob("*/*/")) if f.is_dir() and _scan_files(f)]
+    below = [f for f in sorted(path.glob("*/")) + sorted(path.glob("*/*/")) if f.is_dir() and _numbered_scans(f)]
     if len(below) > 1:
         raise SequenceError(
             f"LiDAR scan folder {path}: scans in {len(below)} folders ({', '.join(str(f.relative_to(path)) for f in below[:4])}); "
