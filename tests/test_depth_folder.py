@@ -101,3 +101,29 @@ def test_a_missing_colour_image_is_named(tmp_path):
     (folder / "rgb" / "3.png").unlink()
     with pytest.raises(SequenceError, match=r"rgb: no colour image for depth image 3.png"):
         open_sequence(folder)
+
+
+@pytest.mark.parametrize("kind", ["metres", "millimetres"])
+def test_depth_arrays_read_as_metres_or_units(tmp_path, kind):
+    # NumPy arrays a frame: float metres (0, NaN, inf no return), or integer millimetres as a PNG's
+    frames = _frames()
+    folder = tmp_path / "export"
+    (folder / "depth").mkdir(parents=True)
+    for frame in frames:
+        depth = frame.depth.astype(np.float64)
+        if kind == "metres":
+            depth[0, 2], depth[0, 3] = 0.0, np.inf
+            np.save(folder / "depth" / f"{frame.frame:04d}.npy", depth)
+        else:
+            np.save(folder / "depth" / f"{frame.frame:04d}.npy", np.nan_to_num(np.rint(depth * 1000)).astype(np.uint16))
+    (folder / "traj.txt").write_text("\n".join(" ".join(f"{v:.9f}" for v in f.world_from_camera.ravel()) for f in frames) + "\n")
+    _camera_matrix(folder / "K.txt")
+    read = open_sequence(folder)
+    assert sequence_format(folder) == "depth_folder" and len(read) == 5
+    _check(read, frames)
+    if kind == "metres":
+        got = read.read(1).depth
+        assert np.isnan(got[0, 2]) and np.isnan(got[0, 3])
+        np.testing.assert_array_equal(got[10:, 20:], frames[1].depth[10:, 20:])  # float metres as written
+    with pytest.raises(SequenceError, match=r"0000.npy: depth array is 64x48, the camera 32x48"):
+        open_sequence(folder, camera="60.5,58.25,31.75,24.5,32,48").read(0)

@@ -3,8 +3,9 @@
 The layout no dataset names, and many recordings have:
 
 * ``depth/`` (or ``depths/``): a 16-bit PNG a frame, :data:`DEPTH_SCALE` units per metre (millimetres, the
-  common choice; ``depth_scale=`` / ``--depth-scale`` otherwise), 0 = no return; ordered by the numbers in
-  their names (:func:`~mabdi.sources.pose_files.file_numbers`).
+  common choice; ``depth_scale=`` / ``--depth-scale`` otherwise), 0 = no return; or a NumPy ``.npy`` (H, W)
+  array a frame: floats in metres (0, NaN and infinities no return), integers in units as a PNG's. Ordered
+  by the numbers in their names (:func:`~mabdi.sources.pose_files.file_numbers`).
 * one pose file in the folder, a name holding ``pose`` or ``traj`` (``.txt``, ``.csv``), camera to world
   (x right, y down, z forward, OpenCV's), in any of the forms :mod:`mabdi.sources.pose_files` reads. As many
   poses as images pair in order; otherwise timed poses are interpolated at the images' times (their names)
@@ -28,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from mabdi.camera import PoseRepairs
+from mabdi.depth import DepthFrame
 from mabdi.errors import PoseFileWarning
 from mabdi.sources.image_sequence import ImageSequence, png_size, read_matrix_file, resolve_intrinsics
 from mabdi.sources.pose_files import (
@@ -56,8 +58,39 @@ COLOUR_FOLDERS = ("rgb", "color", "colour", "images")
 COLOUR_SUFFIXES = (".png", ".jpg", ".jpeg")
 
 
+def _depth_files(folder: Path) -> list[Path]:
+    """The depth images of ``folder``: its PNGs, else its ``.npy`` arrays."""
+    return sorted(folder.glob("*.png")) or sorted(folder.glob("*.npy"))
+
+
 def _depth_folder(path: Path) -> Path | None:
-    return next((path / name for name in DEPTH_FOLDERS if (path / name).is_dir() and any((path / name).glob("*.png"))), None)
+    return next((path / name for name in DEPTH_FOLDERS if (path / name).is_dir() and _depth_files(path / name)), None)
+
+
+def read_depth_array(path: Path, scale: float, shape: tuple[int, int] | None = None) -> np.ndarray:
+    """(H, W) float32 metres of a ``.npy`` depth image (module docs), or a SequenceError naming it."""
+    try:
+        raw = np.load(path, allow_pickle=False)
+    except (OSError, ValueError) as exc:
+        raise SequenceError(f"{path}: cannot read the depth array: {exc}") from None
+    if raw.ndim == 3 and raw.shape[2] == 1:
+        raw = raw[:, :, 0]
+    if raw.ndim != 2 or not (np.issubdtype(raw.dtype, np.floating) or np.issubdtype(raw.dtype, np.integer)):
+        raise SequenceError(f"{path}: a depth array is (H, W) numbers, got shape {raw.shape} of {raw.dtype}")
+    if shape is not None and raw.shape != tuple(shape):
+        raise SequenceError(f"{path}: depth array is {raw.shape[1]}x{raw.shape[0]}, the camera {shape[1]}x{shape[0]}")
+    depth = raw.astype(np.float32) if np.issubdtype(raw.dtype, np.floating) else raw.astype(np.float32) / np.float32(scale)
+    with np.errstate(invalid="ignore"):
+        depth[~(np.isfinite(depth) & (depth > 0))] = np.nan
+    return depth
+
+
+def _image_size(file: Path) -> tuple[int, int]:
+    """(width, height) of a depth image file."""
+    if file.suffix == ".npy":
+        shape = np.load(file, mmap_mode="r", allow_pickle=False).shape
+        return int(shape[1]), int(shape[0])
+    return png_size(file)
 
 
 def is_depth_folder(path) -> bool:
@@ -88,8 +121,8 @@ class DepthFolderSequence(ImageSequence):
         folder = _depth_folder(path) if path.is_dir() else None
         file = pose_file(path) if folder is not None else None
         if folder is None or file is None:
-            raise SequenceError(f"{self.layout} {path}: needs a depth/ folder of PNG images and a pose file (a name holding 'pose' or 'traj')")
-        depth_files = ordered_by_numbers(sorted(folder.glob("*.png")), f"{self.layout} {path}")
+            raise SequenceError(f"{self.layout} {path}: needs a depth/ folder of PNG (or .npy) images and a pose file (a name holding 'pose' or 'traj')")
+        depth_files = ordered_by_numbers(_depth_files(folder), f"{self.layout} {path}")
         repairs = PoseRepairs()
         rows = read_pose_lines(file)
         poses, times = poses_of_lines(rows, file, repairs)
@@ -111,10 +144,10 @@ class DepthFolderSequence(ImageSequence):
         found = origin = None
         if (matrix_file := camera_file(path)) is not None:
             matrix = read_matrix_file(matrix_file, 3, 3, "camera matrix")
-            found = intrinsics_from_matrix(matrix, *matrix_image_size(matrix, png_size(depth_files[0])), matrix_file)
+            found = intrinsics_from_matrix(matrix, *matrix_image_size(matrix, _image_size(depth_files[0])), matrix_file)
             origin = matrix_origin(matrix_file, found)
         intrinsics = resolve_intrinsics(path, found, camera, {}, self.layout)
-        if camera is None:  # a camera given is checked against each image as it is read
+        if camera is None and depth_files[0].suffix == ".png":  # a camera given is checked as each image is read
             check_depth_size(intrinsics, depth_files[0], camera_origin(path, origin), path)
         self._setup(
             path, depth_files, poses, [str(file)] * len(depth_files), intrinsics, DEPTH_SCALE if depth_scale is None else depth_scale, NO_RETURN,
@@ -122,6 +155,14 @@ class DepthFolderSequence(ImageSequence):
         )
         if outside:
             self.description = self.description[:-1] + f", {outside} outside the poses' times skipped)"
+
+    def read_frame(self, index: int) -> DepthFrame:
+        file = self._files[index]
+        if file.suffix != ".npy":
+            return super().read_frame(index)
+        depth = read_depth_array(file, self.depth_scale, self._intrinsics.shape)
+        colour = None if self._colour_files is None else self.read_colour(index)
+        return DepthFrame(depth, self._intrinsics, self._poses[index], index, float(self._timestamps[index]), colour)
 
     @staticmethod
     def _colour_files(path: Path, depth_files: list[Path]) -> list[Path] | None:
@@ -139,4 +180,4 @@ class DepthFolderSequence(ImageSequence):
         return None
 
 
-__all__ = ["DepthFolderSequence", "camera_file", "is_depth_folder"]
+__all__ = ["DepthFolderSequence", "camera_file", "is_depth_folder", "read_depth_array"]
