@@ -3,6 +3,7 @@ scans and poses reads."""
 
 from __future__ import annotations
 
+import shutil
 import warnings
 
 import numpy as np
@@ -242,3 +243,64 @@ def test_another_tool_s_bin_files_below_a_folder_are_no_scans(tmp_path):
     assert not is_scan_folder(folder)
     with pytest.raises(SequenceError, match="not a recorded sequence"):
         open_sequence(folder)
+
+
+def _room_scans(poses, half=(6.0, 4.0, 1.5), centre=(0.0, 0.0, 1.5)):
+    """Scans of one box room (metres, z up) from each LiDAR pose (world from sensor): every ray of a 64-beam,
+    720-column sensor to the first wall it meets, in the sensor's axes."""
+    from mabdi.spherical import SphericalGeometry
+
+    geometry = SphericalGeometry(beams=64, columns=720, fov_up=15.0, fov_down=-25.0, range_min=0.5, range_max=50.0)
+    rays = geometry.rays().reshape(-1, 3)
+    scans = []
+    for pose in poses:
+        direction = rays @ pose[:3, :3].T
+        origin = pose[:3, 3] - np.asarray(centre)
+        with np.errstate(divide="ignore"):
+            t = np.min(np.where(direction != 0, (np.sign(direction) * np.asarray(half) - origin) / direction, np.inf), axis=1)
+        scans.append((rays * t[:, None]).astype(np.float32))
+    return scans
+
+
+def _lidar_poses(count=4):
+    """A LiDAR moving 0.4 m and turning 8 degrees a scan (world from sensor, z up)."""
+    poses = []
+    for i in range(count):
+        a = np.radians(8.0 * i)
+        pose = np.eye(4)
+        pose[:3, :3] = [[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]]
+        pose[:3, 3] = (-2.0 + 0.4 * i, 0.3 * i, 1.2)
+        poses.append(pose)
+    return np.array(poses)
+
+
+@pytest.mark.parametrize("layout", ["scan_folder", "kitti_without_calib"])
+def test_poses_in_a_camera_s_axes_are_told_by_the_scans_and_turned(tmp_path, layout):
+    # KITTI's ground truth is a camera's pose (x right, y down, z forward); without the calibration that relates
+    # it to the LiDAR, the scans show it: read as the LiDAR's, the scans do not lie on each other.
+    from mabdi.sources.lidar_pose_axes import CAMERA_FROM_LIDAR_AXES
+
+    lidar = _lidar_poses()
+    turn = np.eye(4)
+    turn[:3, :3] = CAMERA_FROM_LIDAR_AXES
+    camera = turn @ lidar @ np.linalg.inv(turn)  # the same motion written in a camera's axes
+    folder = tmp_path / "seq"
+    scans = folder / ("scans" if layout == "scan_folder" else "velodyne")
+    scans.mkdir(parents=True)
+    for i, points in enumerate(_room_scans(lidar)):
+        np.column_stack([points, np.zeros(len(points), np.float32)]).astype("<f4").tofile(scans / f"{i:06d}.bin")
+    (folder / "poses.txt").write_text("".join(" ".join(f"{v:.9f}" for v in p[:3].ravel()) + "\n" for p in camera))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        read = open_sequence(folder)
+    said = [str(w.message) for w in caught if issubclass(w.category, PoseFileWarning)]
+    assert len(said) == 1 and "read as a camera's" in said[0] and "turns them into the LiDAR's axes" in said[0]
+    assert "poses in a camera's axes" in read.description
+    np.testing.assert_allclose(read.poses, lidar, atol=1e-8)
+    # the same scans beside the LiDAR's own poses are read as written
+    (folder / "poses.txt").write_text("".join(" ".join(f"{v:.9f}" for v in p[:3].ravel()) + "\n" for p in lidar))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        read = open_sequence(folder)
+    assert not [w for w in caught if "camera's" in str(w.message)]
+    np.testing.assert_allclose(read.poses, lidar, atol=1e-8)

@@ -14,7 +14,8 @@ poses file copied in as ``poses.txt``):
   the first camera 0 (KITTI's ground truth, ``poses/NN.txt``).
 * ``calib.txt`` (optional): lines ``KEY: numbers``; ``Tr:`` is the 3x4
   matrix from the Velodyne frame to camera 0 (``camera0_from_velodyne``).
-  Without ``calib.txt`` the poses are the LiDAR's own (Tr = identity).
+  Without ``calib.txt`` the poses are the LiDAR's own (Tr = identity), unless the scans
+  say they are a camera's (:mod:`mabdi.sources.lidar_pose_axes`: then turned, and said).
 * ``times.txt`` (optional): one timestamp (s) a scan; without it the
   timestamps are unknown (NaN).
 * ``mabdi.toml`` (optional): a ``[lidar]`` table, the range image's
@@ -53,6 +54,7 @@ from mabdi.errors import PoseError, PoseFileWarning
 from mabdi.io.atomic import atomic_output, write_text
 from mabdi.io.toml_writer import toml_lines
 from mabdi.sources.frames import FrameSource
+from mabdi.sources.lidar_pose_axes import in_lidar_axes, pose_axes
 from mabdi.sources.pcd import read_pcd
 from mabdi.sources.range_images import (
     EMPTY_ROWS_WARNING,
@@ -201,7 +203,10 @@ class KittiSequence(FrameSource):
         path = Path(path)
         self.path = path
         self.description = f"{self.label} {path}"
+        self._axes_stated = False  # a calib.txt relates the poses' axes to the LiDAR's (_read_layout)
         self._scans, self._poses, self._times = self._read_layout(path)
+        if not self._axes_stated:
+            self._poses = self._poses_in_lidar_axes(self._poses)
         self._warned = False
         self._rows_checked = False  # the first scan read is checked for rows without returns (read_frame)
         if geometry is not None:
@@ -222,13 +227,29 @@ class KittiSequence(FrameSource):
         poses = read_matrix_rows(path / POSES_FILE, "pose")
         if len(poses) != len(scans):
             raise SequenceError(f"{path / POSES_FILE}: {len(poses)} poses, but {SCAN_FOLDER}/ holds {len(scans)} scans")
-        tr = read_calibration(path / CALIB_FILE) if (path / CALIB_FILE).is_file() else np.eye(4)
+        self._axes_stated = (path / CALIB_FILE).is_file()
+        tr = read_calibration(path / CALIB_FILE) if self._axes_stated else np.eye(4)
         times = np.full(len(scans), np.nan)
         if (path / TIMES_FILE).is_file():
             times = read_times(path / TIMES_FILE)
             if len(times) != len(scans):
                 raise SequenceError(f"{path / TIMES_FILE}: {len(times)} timestamps, but {SCAN_FOLDER}/ holds {len(scans)} scans")
         return scans, np.linalg.inv(tr) @ poses @ tr, times
+
+    def _poses_in_lidar_axes(self, poses: np.ndarray) -> np.ndarray:
+        """``poses`` as written, or turned into the LiDAR's axes where the scans say they are a camera's
+        (:mod:`mabdi.sources.lidar_pose_axes`), said once."""
+        found = pose_axes(poses, self.scan_points)
+        if found.axes != "camera":
+            return poses
+        warnings.warn(
+            f"{self.label} {self.path}: {found.describe()}: mabdi reads the poses as a camera's and turns them into "
+            f"the LiDAR's axes (a KITTI folder's {CALIB_FILE} states how they relate, and is then used instead)",
+            PoseFileWarning,
+            stacklevel=4,
+        )
+        self.description += " (poses in a camera's axes, turned into the LiDAR's)"
+        return in_lidar_axes(poses)
 
     @property
     def scan_paths(self) -> list[Path]:
