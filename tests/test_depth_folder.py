@@ -127,3 +127,40 @@ def test_depth_arrays_read_as_metres_or_units(tmp_path, kind):
         np.testing.assert_array_equal(got[10:, 20:], frames[1].depth[10:, 20:])  # float metres as written
     with pytest.raises(SequenceError, match=r"0000.npy: depth array is 64x48, the camera 32x48"):
         open_sequence(folder, camera="60.5,58.25,31.75,24.5,32,48").read(0)
+
+
+def _room_depths(poses, intrinsics=INTRINSICS, half=(3.0, 2.5, 1.5), centre=(0.0, 0.0, 1.5)):
+    """z-depth images (m) of one box room seen from each camera pose (world from camera, OpenCV axes)."""
+    from mabdi.camera import pixel_rays
+
+    rays = pixel_rays(intrinsics).reshape(-1, 3)  # z = 1: a ray's parameter is the z-depth
+    depths = []
+    for pose in poses:
+        direction = rays @ pose[:3, :3].T
+        origin = pose[:3, 3] - np.asarray(centre)
+        with np.errstate(divide="ignore"):
+            t = np.min(np.where(direction != 0, (np.sign(direction) * np.asarray(half) - origin) / direction, np.inf), axis=1)
+        depths.append(t.reshape(intrinsics.height, intrinsics.width).astype(np.float32))
+    return depths
+
+
+def test_poses_in_opengl_axes_are_told_by_the_frames_and_turned(tmp_path):
+    # Capture apps write a camera's pose in OpenGL's axes (x right, y up, z backward); the frames of a room lie
+    # on each other only with the poses read so, and mabdi turns them into its camera's (OpenCV's) axes.
+    from mabdi.camera import look_at
+
+    poses = np.array([look_at([0.4 * i - 1.0, -1.0 + 0.2 * i, 1.4], [1.5, 1.0 - 0.3 * i, 1.0]) for i in range(4)])
+    opengl = poses @ np.diag([1.0, -1.0, -1.0, 1.0])
+    folder = tmp_path / "export"
+    (folder / "depth").mkdir(parents=True)
+    for i, depth in enumerate(_room_depths(poses)):
+        write_depth_png(folder / "depth" / f"{i}.png", depth, 1000.0)
+    _camera_matrix(folder / "intrinsics.txt")
+    for written, turned in ((opengl, True), (poses, False)):
+        (folder / "poses.txt").write_text("".join(" ".join(f"{v:.9f}" for v in p.ravel()) + "\n" for p in written))
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            read = open_sequence(folder)
+        said = [str(w.message) for w in caught if "OpenGL" in str(w.message)]
+        assert len(said) == int(turned) and ("poses in OpenGL's axes" in read.description) == turned
+        np.testing.assert_allclose(read.poses, poses, atol=1e-8)

@@ -278,7 +278,7 @@ def _lidar_poses(count=4):
 def test_poses_in_a_camera_s_axes_are_told_by_the_scans_and_turned(tmp_path, layout):
     # KITTI's ground truth is a camera's pose (x right, y down, z forward); without the calibration that relates
     # it to the LiDAR, the scans show it: read as the LiDAR's, the scans do not lie on each other.
-    from mabdi.sources.lidar_pose_axes import CAMERA_FROM_LIDAR_AXES
+    from mabdi.sources.pose_axes import CAMERA_FROM_LIDAR_AXES
 
     lidar = _lidar_poses()
     turn = np.eye(4)
@@ -294,7 +294,7 @@ def test_poses_in_a_camera_s_axes_are_told_by_the_scans_and_turned(tmp_path, lay
         warnings.simplefilter("always")
         read = open_sequence(folder)
     said = [str(w.message) for w in caught if issubclass(w.category, PoseFileWarning)]
-    assert len(said) == 1 and "read as a camera's" in said[0] and "turns them into the LiDAR's axes" in said[0]
+    assert len(said) == 1 and "read in a camera's" in said[0] and "turns them into the LiDAR's axes" in said[0]
     assert "poses in a camera's axes" in read.description
     np.testing.assert_allclose(read.poses, lidar, atol=1e-8)
     # the same scans beside the LiDAR's own poses are read as written

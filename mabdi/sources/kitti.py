@@ -15,7 +15,7 @@ poses file copied in as ``poses.txt``):
 * ``calib.txt`` (optional): lines ``KEY: numbers``; ``Tr:`` is the 3x4
   matrix from the Velodyne frame to camera 0 (``camera0_from_velodyne``).
   Without ``calib.txt`` the poses are the LiDAR's own (Tr = identity), unless the scans
-  say they are a camera's (:mod:`mabdi.sources.lidar_pose_axes`: then turned, and said).
+  say they are a camera's (:mod:`mabdi.sources.pose_axes`: then turned, and said).
 * ``times.txt`` (optional): one timestamp (s) a scan; without it the
   timestamps are unknown (NaN).
 * ``mabdi.toml`` (optional): a ``[lidar]`` table, the range image's
@@ -54,7 +54,7 @@ from mabdi.errors import PoseError, PoseFileWarning
 from mabdi.io.atomic import atomic_output, write_text
 from mabdi.io.toml_writer import toml_lines
 from mabdi.sources.frames import FrameSource
-from mabdi.sources.lidar_pose_axes import in_lidar_axes, pose_axes
+from mabdi.sources.pose_axes import pose_axes, turned
 from mabdi.sources.pcd import read_pcd
 from mabdi.sources.range_images import (
     EMPTY_ROWS_WARNING,
@@ -238,8 +238,8 @@ class KittiSequence(FrameSource):
 
     def _poses_in_lidar_axes(self, poses: np.ndarray) -> np.ndarray:
         """``poses`` as written, or turned into the LiDAR's axes where the scans say they are a camera's
-        (:mod:`mabdi.sources.lidar_pose_axes`), said once."""
-        found = pose_axes(poses, self.scan_points)
+        (:mod:`mabdi.sources.pose_axes`), said once."""
+        found = pose_axes(poses, self.scan_points, "lidar")
         if found.axes != "camera":
             return poses
         warnings.warn(
@@ -249,7 +249,7 @@ class KittiSequence(FrameSource):
             stacklevel=4,
         )
         self.description += " (poses in a camera's axes, turned into the LiDAR's)"
-        return in_lidar_axes(poses)
+        return turned(poses, "camera")
 
     @property
     def scan_paths(self) -> list[Path]:
