@@ -3,7 +3,6 @@ scans and poses reads."""
 
 from __future__ import annotations
 
-import shutil
 import warnings
 
 import numpy as np
