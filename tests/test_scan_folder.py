@@ -303,3 +303,18 @@ def test_poses_in_a_camera_s_axes_are_told_by_the_scans_and_turned(tmp_path, lay
         read = open_sequence(folder)
     assert not [w for w in caught if "camera's" in str(w.message)]
     np.testing.assert_allclose(read.poses, lidar, atol=1e-8)
+
+
+def test_a_scan_folder_s_calibration_relates_camera_poses_to_the_lidar(tmp_path, kitti):
+    # A KITTI sequence's files without the velodyne/ folder: calib.txt's Tr is read as a KITTI folder reads it
+    folder = tmp_path / "flat"
+    folder.mkdir()
+    for i, scan in enumerate(kitti.scan_paths):
+        (folder / f"{i:06d}.bin").write_bytes(scan.read_bytes())
+    for name in ("poses.txt", "calib.txt", "times.txt", "mabdi.toml"):
+        (folder / name).write_text((kitti.path / name).read_text())
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        read = open_sequence(folder)
+    assert isinstance(read, ScanFolderSequence) and not [w for w in caught if "camera's" in str(w.message)]
+    _assert_same_recording(read, kitti, [0.0, 0.1, 0.2])

@@ -17,6 +17,9 @@ or KITTI's float32 ``x y z intensity`` ``.bin``) beside the scans' poses (world 
   scans' times (``times.txt``, one a line, else the scans' names: a number, or seconds and nanoseconds;
   :func:`~mabdi.sources.pose_files.poses_at_times`); a scan outside the poses' span is skipped, and the
   source's description counts those.
+* ``calib.txt`` (optional): KITTI's ``Tr:`` line; the poses are then camera 0's and read as a KITTI
+  folder reads them (``Tr^-1 P Tr``); without it, poses in a camera's axes are told by the scans
+  (:mod:`mabdi.sources.pose_axes`).
 * ``mabdi.toml`` (optional): a ``[lidar]`` table as for a KITTI folder; without it the geometry is learnt
   from the first scans (:class:`~mabdi.sources.kitti.KittiSequence`, whose reading this shares).
 
@@ -32,7 +35,7 @@ import numpy as np
 
 from mabdi.camera import PoseRepairs
 from mabdi.errors import PoseFileWarning
-from mabdi.sources.kitti import KittiSequence, is_kitti, read_times
+from mabdi.sources.kitti import CALIB_FILE, KittiSequence, is_kitti, read_calibration, read_times
 from mabdi.sources.pose_files import (
     POSE_FILE_SUFFIXES,
     POSE_FILE_WORDS,
@@ -152,6 +155,10 @@ class ScanFolderSequence(KittiSequence):
             scan_times = in_seconds(read_times(path / TIMES_FILE))
             if len(scan_times) != len(scans):
                 raise SequenceError(f"{path / TIMES_FILE}: {len(scan_times)} timestamps, but {folder} holds {len(scans)} scans")
+        if (path / CALIB_FILE).is_file():  # KITTI's Tr: the poses are camera 0's, as in a KITTI folder
+            self._axes_stated = True
+            tr = read_calibration(path / CALIB_FILE)
+            poses = np.linalg.inv(tr) @ poses @ tr
         if len(poses) == len(scans):
             return scans, poses, times if scan_times is None or np.isfinite(times).all() else scan_times
         scan_times = scan_times if scan_times is not None else self._name_times(scans)
