@@ -144,23 +144,27 @@ def _room_depths(poses, intrinsics=INTRINSICS, half=(3.0, 2.5, 1.5), centre=(0.0
     return depths
 
 
-def test_poses_in_opengl_axes_are_told_by_the_frames_and_turned(tmp_path):
-    # Capture apps write a camera's pose in OpenGL's axes (x right, y up, z backward); the frames of a room lie
-    # on each other only with the poses read so, and mabdi turns them into its camera's (OpenCV's) axes.
+@pytest.mark.parametrize("written", ["opencv", "opengl", "inverted", "inverted opengl"])
+def test_poses_written_another_way_are_told_by_the_frames_and_turned(tmp_path, written):
+    # Capture apps write a camera's pose in OpenGL's axes (x right, y up, z backward), graphics tools a view
+    # matrix (world to camera); the frames of a room lie on each other only with the poses read so, and mabdi
+    # turns them into its camera's (OpenCV's) world-from-camera poses.
     from mabdi.camera import look_at
 
     poses = np.array([look_at([0.4 * i - 1.0, -1.0 + 0.2 * i, 1.4], [1.5, 1.0 - 0.3 * i, 1.0]) for i in range(4)])
-    opengl = poses @ np.diag([1.0, -1.0, -1.0, 1.0])
+    flip = np.diag([1.0, -1.0, -1.0, 1.0])
+    written_poses = {
+        "opencv": poses, "opengl": poses @ flip, "inverted": np.linalg.inv(poses), "inverted opengl": np.linalg.inv(poses @ flip),
+    }[written]
     folder = tmp_path / "export"
     (folder / "depth").mkdir(parents=True)
     for i, depth in enumerate(_room_depths(poses)):
         write_depth_png(folder / "depth" / f"{i}.png", depth, 1000.0)
     _camera_matrix(folder / "intrinsics.txt")
-    for written, turned in ((opengl, True), (poses, False)):
-        (folder / "poses.txt").write_text("".join(" ".join(f"{v:.9f}" for v in p.ravel()) + "\n" for p in written))
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always")
-            read = open_sequence(folder)
-        said = [str(w.message) for w in caught if "OpenGL" in str(w.message)]
-        assert len(said) == int(turned) and ("poses in OpenGL's axes" in read.description) == turned
-        np.testing.assert_allclose(read.poses, poses, atol=1e-8)
+    (folder / "poses.txt").write_text("".join(" ".join(f"{v:.9f}" for v in p.ravel()) + "\n" for p in written_poses))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        read = open_sequence(folder)
+    said = [str(w.message) for w in caught if "turns them into the camera's" in str(w.message)]
+    assert len(said) == int(written != "opencv") and ("poses read as" in read.description) == (written != "opencv")
+    np.testing.assert_allclose(read.poses, poses, atol=1e-8)

@@ -293,8 +293,15 @@ def test_poses_in_a_camera_s_axes_are_told_by_the_scans_and_turned(tmp_path, lay
         warnings.simplefilter("always")
         read = open_sequence(folder)
     said = [str(w.message) for w in caught if issubclass(w.category, PoseFileWarning)]
-    assert len(said) == 1 and "read in a camera's" in said[0] and "turns them into the LiDAR's axes" in said[0]
-    assert "poses in a camera's axes" in read.description
+    assert len(said) == 1 and "read as a camera's axes" in said[0] and "turns them into the LiDAR's" in said[0]
+    assert "poses read as a camera's axes" in read.description
+    np.testing.assert_allclose(read.poses, lidar, atol=1e-8)
+    # written inverted (sensor from world), the same
+    (folder / "poses.txt").write_text("".join(" ".join(f"{v:.9f}" for v in p[:3].ravel()) + "\n" for p in np.linalg.inv(lidar)))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        read = open_sequence(folder)
+    assert "poses read as sensor from world (inverted)" in read.description
     np.testing.assert_allclose(read.poses, lidar, atol=1e-8)
     # the same scans beside the LiDAR's own poses are read as written
     (folder / "poses.txt").write_text("".join(" ".join(f"{v:.9f}" for v in p[:3].ravel()) + "\n" for p in lidar))

@@ -10,8 +10,8 @@ The layout no dataset names, and many recordings have:
   (x right, y down, z forward, OpenCV's), in any of the forms :mod:`mabdi.sources.pose_files` reads. As many
   poses as images pair in order; otherwise timed poses are interpolated at the images' times (their names)
   and images outside the poses' span are skipped and counted. Poses in OpenGL's camera axes (x right, y up,
-  z backward), as many capture apps write them, are told by the frames and turned
-  (:mod:`mabdi.sources.pose_axes`).
+  z backward), as many capture apps write them, or inverted (view matrices), are told by the frames and
+  turned (:mod:`mabdi.sources.pose_axes`).
 * the camera: ``camera=`` (``--camera``), else a ``[camera]`` table in a ``mabdi.toml``, else a camera file
   in the folder (a name holding ``intrinsic``, or ``K.txt``, ``.txt``): a 3x3 (or 4x4) camera matrix with
   integer pixel centres; width and height from the depth images.
@@ -34,7 +34,7 @@ from mabdi.camera import PoseRepairs, pixel_rays
 from mabdi.depth import DepthFrame
 from mabdi.errors import PoseFileWarning
 from mabdi.sources.image_sequence import ImageSequence, png_size, read_matrix_file, resolve_intrinsics
-from mabdi.sources.pose_axes import pose_axes, turned
+from mabdi.sources.pose_axes import AXES_WORDS, pose_axes, turned
 from mabdi.sources.pose_files import (
     file_numbers,
     name_times,
@@ -166,19 +166,19 @@ class DepthFolderSequence(ImageSequence):
         return (pixel_rays(self._intrinsics) * depth[..., None]).reshape(-1, 3)
 
     def _poses_in_opencv_axes(self, poses: np.ndarray) -> np.ndarray:
-        """``poses`` as written, or turned into OpenCV's axes where the frames say they are OpenGL's
-        (:mod:`mabdi.sources.pose_axes`), said once."""
+        """``poses`` as written, or turned into the camera's world-from-sensor poses where the frames say they are
+        written another way (OpenGL's axes, inverted; :mod:`mabdi.sources.pose_axes`), said once."""
         found = pose_axes(poses, self._camera_points, "camera")
-        if found.axes != "opengl":
+        if not found.turned:
             return poses
         warnings.warn(
-            f"{self.layout} {self.path}: {found.describe()}: mabdi reads the poses as OpenGL's and turns them into "
-            "the camera's axes",
+            f"{self.layout} {self.path}: {found.describe()}: mabdi reads the poses so and turns them into the "
+            "camera's world-from-sensor poses",
             PoseFileWarning,
             stacklevel=3,
         )
-        self.description = self.description[:-1] + ", poses in OpenGL's axes, turned into the camera's)"
-        return turned(poses, "opengl")
+        self.description = self.description[:-1] + f", poses read as {AXES_WORDS[found.axes]})"
+        return turned(poses, found.axes)
 
     def read_frame(self, index: int) -> DepthFrame:
         file = self._files[index]

@@ -54,7 +54,7 @@ from mabdi.errors import PoseError, PoseFileWarning
 from mabdi.io.atomic import atomic_output, write_text
 from mabdi.io.toml_writer import toml_lines
 from mabdi.sources.frames import FrameSource
-from mabdi.sources.pose_axes import pose_axes, turned
+from mabdi.sources.pose_axes import AXES_WORDS, pose_axes, turned
 from mabdi.sources.pcd import read_pcd
 from mabdi.sources.range_images import (
     EMPTY_ROWS_WARNING,
@@ -237,19 +237,20 @@ class KittiSequence(FrameSource):
         return scans, np.linalg.inv(tr) @ poses @ tr, times
 
     def _poses_in_lidar_axes(self, poses: np.ndarray) -> np.ndarray:
-        """``poses`` as written, or turned into the LiDAR's axes where the scans say they are a camera's
-        (:mod:`mabdi.sources.pose_axes`), said once."""
+        """``poses`` as written, or turned into the LiDAR's world-from-sensor poses where the scans say they are
+        written another way (a camera's axes, inverted; :mod:`mabdi.sources.pose_axes`), said once."""
         found = pose_axes(poses, self.scan_points, "lidar")
-        if found.axes != "camera":
+        if not found.turned:
             return poses
         warnings.warn(
-            f"{self.label} {self.path}: {found.describe()}: mabdi reads the poses as a camera's and turns them into "
-            f"the LiDAR's axes (a KITTI folder's {CALIB_FILE} states how they relate, and is then used instead)",
+            f"{self.label} {self.path}: {found.describe()}: mabdi reads the poses so and turns them into the LiDAR's "
+            f"world-from-sensor poses (a KITTI folder's {CALIB_FILE} states how a camera's poses relate, and is then "
+            "used instead)",
             PoseFileWarning,
             stacklevel=4,
         )
-        self.description += " (poses in a camera's axes, turned into the LiDAR's)"
-        return turned(poses, "camera")
+        self.description += f" (poses read as {AXES_WORDS[found.axes]})"
+        return turned(poses, found.axes)
 
     @property
     def scan_paths(self) -> list[Path]:

@@ -4,15 +4,18 @@ Poses are often written in other axes than the sensor's frames: KITTI's ground t
 (x right, y down, z forward) for a LiDAR's scans (x forward, y left, z up), and many capture apps and
 graphics tools give a camera's pose in OpenGL's axes (x right, y up, z backward) where mabdi's camera is
 OpenCV's (x right, y down, z forward). Read in the wrong axes, every frame is turned about two axes and
-nothing registers. The frames tell: two frames the poses place apart (at least :data:`MIN_MOTION_M` or
-:data:`MIN_TURN_DEG`, per sensor) lie on each other only when the poses are read in the right axes. :func:`pose_axes`
-measures the poses as written and the other reading (the median distance from the later frame's points to
-the earlier frame's, :data:`MATCH_CAP_M` at most each) and takes the other only where it fits at least
-:data:`OTHER_FIT_RATIO` times better. The poses are then turned (:func:`turned`):
+nothing registers; and poses are sometimes written the other way round, sensor from world (a view
+matrix). The frames tell: two frames the poses place apart (at least :data:`MIN_MOTION_M` or
+:data:`MIN_TURN_DEG`, per sensor) lie on each other only when the poses are read the right way.
+:func:`pose_axes` measures each reading of :data:`READINGS` (the median distance from the later frame's
+points to the earlier frame's, :data:`MATCH_CAP_M` at most each) and takes the best only where it fits at
+least :data:`OTHER_FIT_RATIO` times better than the poses as written. The poses are then turned
+(:func:`turned`):
 
 * ``"camera"`` (a LiDAR's poses in a camera's axes): ``R^T P R``, R the camera-from-LiDAR rotation, as
   SemanticKITTI reads KITTI's (the world turned with them; the lever arm unknown and left out);
-* ``"opengl"`` (a camera's poses in OpenGL's axes): ``P F``, F = diag(1, -1, -1) (the world kept).
+* ``"opengl"`` (a camera's poses in OpenGL's axes): ``P F``, F = diag(1, -1, -1) (the world kept);
+* ``"inverted"``: ``P^-1``; ``"inverted camera"``, ``"inverted opengl"``: ``P^-1`` so turned.
 """
 
 from __future__ import annotations
@@ -27,14 +30,20 @@ from scipy.spatial import cKDTree
 CAMERA_FROM_LIDAR_AXES = np.array([[0.0, -1.0, 0.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0]])
 #: OpenGL's camera axes (x right, y up, z backward) from OpenCV's (x right, y down, z forward), and back.
 OPENGL_FROM_OPENCV_AXES = np.diag([1.0, -1.0, -1.0])
-#: The other reading of each sensor's poses: (its name, its axes from the sensor's; module docs).
-OTHER_READING = {"lidar": ("camera", CAMERA_FROM_LIDAR_AXES), "camera": ("opengl", OPENGL_FROM_OPENCV_AXES)}
-#: What each reading's axes are, for messages.
+#: The readings of each sensor's poses, the first as written (module docs).
+READINGS = {
+    "lidar": ("lidar", "camera", "inverted", "inverted camera"),
+    "camera": ("opencv", "opengl", "inverted", "inverted opengl"),
+}
+#: What each reading is, for messages.
 AXES_WORDS = {
     "lidar": "the LiDAR's axes (x forward, y left, z up)",
-    "camera": "a camera's (x right, y down, z forward, as KITTI's ground truth)",
+    "camera": "a camera's axes (x right, y down, z forward, as KITTI's ground truth)",
     "opencv": "the camera's axes (OpenCV's: x right, y down, z forward)",
-    "opengl": "OpenGL's (x right, y up, z backward, as many capture apps write them)",
+    "opengl": "OpenGL's axes (x right, y up, z backward, as many capture apps write them)",
+    "inverted": "sensor from world (inverted)",
+    "inverted camera": "a camera's sensor from world (KITTI's axes, inverted)",
+    "inverted opengl": "OpenGL's sensor from world (a view matrix)",
 }
 #: The least motion between the two frames compared, per sensor (m, degrees: less, and both readings place
 #: them alike), and the frames looked at for it from the first (a LiDAR's scenes are metres to tens of metres
@@ -44,7 +53,7 @@ MIN_TURN_DEG = {"lidar": 5.0, "camera": 3.0}
 LOOK_AHEAD = {"lidar": 30, "camera": 150}
 #: A point's distance to the other frame counts at most this much (m): what the other frame does not see.
 MATCH_CAP_M = 5.0
-#: How many times better the other reading must fit than the poses as written to be taken.
+#: How many times better another reading must fit than the poses as written to be taken.
 OTHER_FIT_RATIO = 3.0
 #: Points nearer than this (m) are left out (a LiDAR's carrier; a camera's near speckle), and every n-th is used.
 NEAR_M = {"lidar": 1.0, "camera": 0.1}
@@ -53,22 +62,26 @@ STRIDE = 5
 
 @dataclass(frozen=True)
 class PoseAxes:
-    """What :func:`pose_axes` found: ``axes`` the reading taken (as written: ``"lidar"`` / ``"opencv"``; the
-    other: ``"camera"`` / ``"opengl"``), or None (no two frames far enough apart to tell); the frames compared
-    and each reading's median distance (m)."""
+    """What :func:`pose_axes` found: ``axes`` the reading taken (:data:`READINGS`; the first is the poses as
+    written), or None (no two frames far enough apart to tell); the frames compared and each reading's median
+    distance (m)."""
 
     axes: str | None
     written: str = ""
-    other: str = ""
     frames: tuple[int, int] | None = None
-    as_written_m: float = float("nan")
-    other_m: float = float("nan")
+    distances: dict | None = None
+
+    @property
+    def turned(self) -> bool:
+        """Whether the poses are read another way than as written."""
+        return self.axes is not None and self.axes != self.written
 
     def describe(self) -> str:
         i, j = self.frames
         return (
-            f"frames {i} and {j} lie {self.as_written_m * 100:.1f} cm apart (median) with the poses read in "
-            f"{AXES_WORDS[self.written]} and {self.other_m * 100:.1f} cm with them read in {AXES_WORDS[self.other]}"
+            f"frames {i} and {j} lie {self.distances[self.written] * 100:.1f} cm apart (median) with the poses read "
+            f"as written (world from sensor, in {AXES_WORDS[self.written]}) and {self.distances[self.axes] * 100:.1f} "
+            f"cm with them read as {AXES_WORDS[self.axes]}"
         )
 
 
@@ -78,15 +91,20 @@ def _homogeneous(rotation: np.ndarray) -> np.ndarray:
     return turn
 
 
-def turned(poses: np.ndarray, other: str) -> np.ndarray:
-    """(N, 4, 4) poses written in the ``other`` reading's axes, in the sensor's (module docs)."""
+def turned(poses: np.ndarray, reading: str) -> np.ndarray:
+    """(N, 4, 4) world-from-sensor poses in the sensor's axes of ``poses`` written as ``reading`` (module docs)."""
     poses = np.asarray(poses, dtype=np.float64)
-    if other == "camera":
+    if reading.startswith("inverted"):
+        poses = np.linalg.inv(poses)
+        reading = reading[len("inverted"):].strip()
+    if reading == "camera":
         turn = _homogeneous(CAMERA_FROM_LIDAR_AXES)
         return np.linalg.inv(turn) @ poses @ turn
-    if other == "opengl":
+    if reading == "opengl":
         return poses @ _homogeneous(OPENGL_FROM_OPENCV_AXES)
-    raise ValueError(f"unknown pose axes {other!r}")
+    if reading in ("", "lidar", "opencv"):
+        return poses
+    raise ValueError(f"unknown pose reading {reading!r}")
 
 
 def _moved(poses: np.ndarray, sensor: str) -> int | None:
@@ -112,24 +130,24 @@ def _median_distance(tree: cKDTree, points: np.ndarray, relative: np.ndarray) ->
 
 
 def pose_axes(poses: np.ndarray, read_points, sensor: str = "lidar") -> PoseAxes:
-    """The axes ``poses`` (world from sensor, as written) are in, told by two frames (``read_points(i)``: frame
+    """The reading of ``poses`` (world from sensor, as written) that two frames fit (``read_points(i)``: frame
     i's (N, 3) points in the sensor's axes, metres); ``sensor`` ``"lidar"`` or ``"camera"`` (module docs)."""
-    other, axes = OTHER_READING[sensor]
-    written = "lidar" if sensor == "lidar" else "opencv"
+    readings = READINGS[sensor]
     poses = np.asarray(poses, dtype=np.float64)
     j = _moved(poses, sensor) if len(poses) > 1 else None
     if j is None:
-        return PoseAxes(None, written, other)
+        return PoseAxes(None, readings[0])
     first, later = _usable(read_points(0), NEAR_M[sensor]), _usable(read_points(j), NEAR_M[sensor])
     if len(first) < 100 or len(later) < 100:
-        return PoseAxes(None, written, other)
+        return PoseAxes(None, readings[0])
     tree = cKDTree(first)
-    relative = np.linalg.inv(poses[0]) @ poses[j]
-    as_written = _median_distance(tree, later, relative)
-    turn = _homogeneous(axes)
-    other_m = _median_distance(tree, later, np.linalg.inv(turn) @ relative @ turn)
-    taken = other if other_m * OTHER_FIT_RATIO <= as_written else written
-    return PoseAxes(taken, written, other, (0, j), as_written, other_m)
+    distances = {}
+    for reading in readings:
+        pair = turned(poses[[0, j]], reading)
+        distances[reading] = _median_distance(tree, later, np.linalg.inv(pair[0]) @ pair[1])
+    best = min(readings[1:], key=distances.get)
+    taken = best if distances[best] * OTHER_FIT_RATIO <= distances[readings[0]] else readings[0]
+    return PoseAxes(taken, readings[0], (0, j), distances)
 
 
-__all__ = ["CAMERA_FROM_LIDAR_AXES", "OPENGL_FROM_OPENCV_AXES", "PoseAxes", "pose_axes", "turned"]
+__all__ = ["CAMERA_FROM_LIDAR_AXES", "OPENGL_FROM_OPENCV_AXES", "READINGS", "PoseAxes", "pose_axes", "turned"]
