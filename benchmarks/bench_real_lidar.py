@@ -6,8 +6,8 @@ Every K-th scan (``--every``, default 5) of a KITTI-layout folder
 (:mod:`mabdi.sources.scan_folder`) is held out and never integrated; each map is
 built from the other scans, then compared with the held-out scans' points
 (:mod:`mabdi.evaluate.held_out_scans`): the points of the scan files as
-they are (not the range images), moved to the world by the file's given
-poses, keeping the returns within the range limits of the geometry the run
+they are (not the range images), moved to the world by the given poses as
+the reader has them (turned where their axes were told, :mod:`mabdi.sources.pose_axes`), keeping the returns within the range limits of the geometry the run
 used (``range_min < r < range_max``):
 
 * recall at 5 cm and 10 cm: the share of the held-out points within that
