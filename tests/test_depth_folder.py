@@ -132,16 +132,10 @@ def test_depth_arrays_read_as_metres_or_units(tmp_path, kind):
 def _room_depths(poses, intrinsics=INTRINSICS, half=(3.0, 2.5, 1.5), centre=(0.0, 0.0, 1.5)):
     """z-depth images (m) of one box room seen from each camera pose (world from camera, OpenCV axes)."""
     from mabdi.camera import pixel_rays
+    from tests.test_scan_folder import first_wall
 
     rays = pixel_rays(intrinsics).reshape(-1, 3)  # z = 1: a ray's parameter is the z-depth
-    depths = []
-    for pose in poses:
-        direction = rays @ pose[:3, :3].T
-        origin = pose[:3, 3] - np.asarray(centre)
-        with np.errstate(divide="ignore"):
-            t = np.min(np.where(direction != 0, (np.sign(direction) * np.asarray(half) - origin) / direction, np.inf), axis=1)
-        depths.append(t.reshape(intrinsics.height, intrinsics.width).astype(np.float32))
-    return depths
+    return [first_wall(rays, pose, half, centre).reshape(intrinsics.height, intrinsics.width).astype(np.float32) for pose in poses]
 
 
 @pytest.mark.parametrize("written", ["opencv", "opengl", "inverted", "inverted opengl"])

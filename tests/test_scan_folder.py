@@ -251,14 +251,16 @@ def _room_scans(poses, half=(6.0, 4.0, 1.5), centre=(0.0, 0.0, 1.5)):
 
     geometry = SphericalGeometry(beams=64, columns=720, fov_up=15.0, fov_down=-25.0, range_min=0.5, range_max=50.0)
     rays = geometry.rays().reshape(-1, 3)
-    scans = []
-    for pose in poses:
-        direction = rays @ pose[:3, :3].T
-        origin = pose[:3, 3] - np.asarray(centre)
-        with np.errstate(divide="ignore"):
-            t = np.min(np.where(direction != 0, (np.sign(direction) * np.asarray(half) - origin) / direction, np.inf), axis=1)
-        scans.append((rays * t[:, None]).astype(np.float32))
-    return scans
+    return [(rays * first_wall(rays, pose, half, centre)[:, None]).astype(np.float32) for pose in poses]
+
+
+def first_wall(rays, pose, half, centre):
+    """For each sensor-frame ray (N, 3), its parameter at the first wall of a box room (``half`` sizes about
+    ``centre``, metres, world frame) it meets from inside, the sensor at ``pose`` (world from sensor)."""
+    direction = rays @ pose[:3, :3].T
+    origin = pose[:3, 3] - np.asarray(centre)
+    with np.errstate(divide="ignore"):
+        return np.min(np.where(direction != 0, (np.sign(direction) * np.asarray(half) - origin) / direction, np.inf), axis=1)
 
 
 def _lidar_poses(count=4):

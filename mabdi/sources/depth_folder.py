@@ -39,8 +39,8 @@ from mabdi.sources.pose_files import (
     file_numbers,
     name_times,
     ordered_by_numbers,
+    paired_by_time,
     pose_file,
-    poses_at_times,
     poses_of_lines,
     read_pose_lines,
 )
@@ -133,17 +133,9 @@ class DepthFolderSequence(ImageSequence):
             warnings.warn(note, PoseFileWarning, stacklevel=2)
         frame_times, outside = times, 0
         if len(poses) != len(depth_files):
-            if not np.isfinite(times).all():
-                raise SequenceError(f"{file}: {len(poses)} poses for {len(depth_files)} depth images, and the poses hold no times to pair them by")
-            frame_times = name_times(depth_files)
-            poses, keep = poses_at_times(frame_times, times, poses)
-            if not keep.any():
-                raise SequenceError(
-                    f"{file}: no depth image's time ({frame_times.min():.3f}-{frame_times.max():.3f} s, from the names) "
-                    f"falls within the poses' ({times.min():.3f}-{times.max():.3f} s)"
-                )
-            outside = int((~keep).sum())
-            depth_files, poses, frame_times = [d for d, k in zip(depth_files, keep, strict=True) if k], poses[keep], frame_times[keep]
+            depth_files, poses, frame_times, outside = paired_by_time(
+                depth_files, name_times(depth_files), times, poses, str(file), "depth images"
+            )
         found = origin = None
         if (matrix_file := camera_file(path)) is not None:
             matrix = read_matrix_file(matrix_file, 3, 3, "camera matrix")

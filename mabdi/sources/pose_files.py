@@ -190,6 +190,25 @@ def poses_at_times(frame_times: np.ndarray, times: np.ndarray, poses: np.ndarray
     return paired, np.isfinite(paired).all(axis=(1, 2))
 
 
+def paired_by_time(files: list[Path], frame_times, times: np.ndarray, poses: np.ndarray, where: str, what: str, unknown: str = ""):
+    """(the files with a pose, their poses interpolated at ``frame_times`` (:func:`poses_at_times`), their times,
+    how many were skipped outside the poses' times) where a pose file holds another count of poses than there
+    are frame ``files`` (``what``: "scans", "depth images"); a SequenceError naming ``where`` when the poses or
+    the frames (``frame_times`` None: ``unknown`` says where they would come from) have no times, or no frame
+    falls within the poses'."""
+    if not np.isfinite(times).all():
+        raise SequenceError(f"{where}: {len(poses)} poses for {len(files)} {what}, and the poses hold no times to pair them by")
+    if frame_times is None:
+        raise SequenceError(f"{where}: {len(poses)} poses for {len(files)} {what}, and the {what}' times are unknown ({unknown}) to pair them by")
+    paired, keep = poses_at_times(frame_times, times, poses)
+    if not keep.any():
+        raise SequenceError(
+            f"{where}: no {what}' time ({frame_times.min():.3f}-{frame_times.max():.3f} s) falls within the poses' "
+            f"({times.min():.3f}-{times.max():.3f} s)"
+        )
+    return [f for f, k in zip(files, keep, strict=True) if k], paired[keep], frame_times[keep], int((~keep).sum())
+
+
 def ordered_by_numbers(files: list[Path], where: str) -> list[Path]:
     """``files`` in the order of the numbers in their names, or a SequenceError naming two of the same numbers."""
     keys = {file: file_numbers(file) for file in files}
@@ -209,6 +228,7 @@ __all__ = [
     "matrix_of",
     "name_times",
     "ordered_by_numbers",
+    "paired_by_time",
     "pose_file",
     "poses_at_times",
     "poses_of_lines",

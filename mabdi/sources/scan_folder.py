@@ -43,8 +43,8 @@ from mabdi.sources.pose_files import (
     matrix_of,
     name_times,
     ordered_by_numbers,
+    paired_by_time,
     pose_file,
-    poses_at_times,
     poses_of_lines,
     read_pose_lines,
     rigid_pose,
@@ -162,20 +162,11 @@ class ScanFolderSequence(KittiSequence):
         if len(poses) == len(scans):
             return scans, poses, times if scan_times is None or np.isfinite(times).all() else scan_times
         scan_times = scan_times if scan_times is not None else self._name_times(scans)
-        if not np.isfinite(times).all() or scan_times is None:
-            unknown = "the poses hold no times" if not np.isfinite(times).all() else (
-                f"the scans' times are unknown (a {TIMES_FILE}, or names that are their times)"
-            )
-            raise SequenceError(f"{where}: {len(poses)} poses for {len(scans)} scans, and {unknown} to pair them by")
-        paired, keep = poses_at_times(scan_times, times, poses)
-        if not keep.any():
-            raise SequenceError(
-                f"{where}: no scan's time ({scan_times.min():.3f}-{scan_times.max():.3f} s) falls within the poses' "
-                f"({times.min():.3f}-{times.max():.3f} s)"
-            )
-        skipped = int((~keep).sum())
+        scans, poses, scan_times, skipped = paired_by_time(
+            scans, scan_times, times, poses, where, "scans", f"a {TIMES_FILE}, or names that are their times"
+        )
         self.description += " (poses interpolated at the scans' times" + (f"; {skipped} scans without a pose skipped)" if skipped else ")")
-        return [s for s, k in zip(scans, keep, strict=True) if k], paired[keep], scan_times[keep]
+        return scans, poses, scan_times
 
     @staticmethod
     def _name_times(scans: list[Path]) -> np.ndarray | None:
