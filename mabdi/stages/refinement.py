@@ -313,9 +313,11 @@ class MapRefinement:
         if frames is not None and triangles is not None and len(triangles):
             vertex_frame[triangles.ravel()] = np.repeat(vtk_to_numpy(frames).astype(np.int64), 3)
         z = np.full(n, np.nan)
-        for frame in np.unique(vertex_frame):
-            chosen = vertex_frame == frame
-            creator = view.pose_of(int(frame))
+        order = np.argsort(vertex_frame, kind="stable")  # each frame's vertices together, in their order
+        starts = np.flatnonzero(np.diff(vertex_frame[order], prepend=-2))  # -1 (no frame) is the lowest
+        for start, end in zip(starts, np.append(starts[1:], n)):
+            chosen = order[start:end]
+            creator = view.pose_of(int(vertex_frame[chosen[0]]))
             creator = pose if creator is None else creator
             z[chosen] = (points[chosen] - creator[:3, 3]) @ creator[:3, 2]
         z = np.where(np.isfinite(z) & (z > 0), z, np.linalg.norm(points - pose[:3, 3], axis=1))
