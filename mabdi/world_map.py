@@ -22,9 +22,7 @@ Why chunks:
   frame patches, they are merged into one (:meth:`WorldMap.compact`) (a concatenation: no vertex is
   shared between former patches, so removal's edge-connected spread and
   everything else sees the same faces as before). Keyed patches are never
-  merged: they are replaced whole. A frame patch of :data:`FULL_PATCH_FACES`
-  faces or more stays apart, so what a removal rebuilds is bounded however
-  much a chunk holds.
+  merged: they are replaced whole.
 * **Bounded bookkeeping.** Adding or replacing a patch touches its chunk's
   block only; nothing is proportional to the number of frames.
 
@@ -61,19 +59,13 @@ FRAME_CELL_ARRAY = "frame"
 PATCH_KEY_ARRAY = "patch_key"
 #: Field data of such a surface: the keys of patches it no longer holds (removed from the map on append).
 REMOVED_KEYS_ARRAY = "removed_patch_keys"
-#: Edge of a chunk for a depth camera (metres): about what one view reaches (a camera's default far is 4 m); every
-#: block in view costs each stage its own pass, so chunks smaller than the view draw little less and cost more
-#: (docs/benchmarks.md, "Chunks a view wide").
-CHUNK_SIZE = 8.0
+#: Edge of a chunk (metres): small beside what a depth camera sees at once, so culling draws little beyond the view.
+CHUNK_SIZE = 2.0
 #: Edge of a chunk for a spinning LiDAR (metres, :func:`mabdi.loop.loop.chunk_size_for`): it sees tens of metres
-#: all around at once (the street's per-stage costs with 2 and 6 m chunks, and BALM's with 6 and 16 m, are in
-#: docs/benchmarks.md).
+#: all around at once (the street's per-stage costs with 2 and 6 m chunks are in docs/benchmarks.md).
 LIDAR_CHUNK_SIZE = 6.0
 #: Frame patches a chunk holds before they are merged into one (keyed patches do not count).
 PATCHES_PER_CHUNK = 8
-#: A frame patch of at least this many faces is full: no longer merged, nor counted against ``patches_per_chunk``,
-#: so what a removal or refinement rebuilds (and re-uploads) stays this size however large the chunk.
-FULL_PATCH_FACES = 32_768
 
 #: A re-meshed patch's face whose centre lies within this (metres) of an old face's is that face, unchanged.
 UNCHANGED_FACE = 1e-5
@@ -111,11 +103,6 @@ class Patch:
     def cells(self) -> int:
         return self.polydata.GetNumberOfCells()
 
-    @property
-    def mergeable(self) -> bool:
-        """A frame patch (not keyed) with fewer than :data:`FULL_PATCH_FACES` faces: :meth:`WorldMap.compact` merges it."""
-        return not self.keyed and self.cells < FULL_PATCH_FACES
-
 
 class Chunk:
     """The patches of one chunk, in the order they came, and their VTK block (one named block per patch)."""
@@ -124,15 +111,15 @@ class Chunk:
         self.index = index
         self.patches: dict[str, Patch] = {}
         self.block = vtkMultiBlockDataSet()
-        self.frame_patches = 0  # unkeyed patches not yet full (merged beyond PATCHES_PER_CHUNK)
+        self.frame_patches = 0  # unkeyed patches (merged beyond PATCHES_PER_CHUNK)
         self._numbers: dict[str, int] = {}  # patch key -> block number
 
     def set(self, patch: Patch) -> None:
         """Add ``patch``, or replace the patch of its key in place."""
         previous = self.patches.get(patch.key)
         if previous is not None:
-            self.frame_patches -= previous.mergeable
-        self.frame_patches += patch.mergeable
+            self.frame_patches -= 0 if previous.keyed else 1
+        self.frame_patches += 0 if patch.keyed else 1
         self.patches[patch.key] = patch
         number = self._numbers.get(patch.key)
         if number is None:
@@ -147,7 +134,7 @@ class Chunk:
         """Drop the patches ``keys`` (the block is rebuilt from those left)."""
         for key in keys:
             patch = self.patches.pop(key)
-            self.frame_patches -= patch.mergeable
+            self.frame_patches -= 0 if patch.keyed else 1
         self.block.SetNumberOfBlocks(0)
         self._numbers = {}
         for number, (key, patch) in enumerate(self.patches.items()):
@@ -440,7 +427,7 @@ class WorldMap:
         """Merge a chunk's frame patches into one, size-tiered: the largest stays apart while it holds more
         faces than all the others together, so a known place that keeps receiving small patches does not copy
         (and re-upload) its whole chunk every few frames; each face is copied O(log n) times over a run."""
-        parts = [p for p in chunk.patches.values() if p.mergeable]
+        parts = [p for p in chunk.patches.values() if not p.keyed]
         largest = max(parts, key=lambda p: p.cells)
         if 2 * largest.cells > sum(p.cells for p in parts):
             parts = [p for p in parts if p is not largest]

@@ -17,7 +17,6 @@ from mabdi.face_identity import MAX_FACE_CODE, FaceIdTable, codes_in, rows_by_bl
 from mabdi.render.depth_image import DepthRenderer
 from mabdi.polydata import named_leaves, polydata_arrays
 from mabdi.stages.removal import RemovalParameters
-from mabdi import world_map
 from mabdi.world_map import WorldMap, _chunked_state
 
 SMALL = Intrinsics(fx=160, fy=160, cx=80, cy=60, width=160, height=120, near=0.3, far=4.0)
@@ -68,29 +67,6 @@ def test_frame_patches_beyond_the_limit_merge_into_one_with_their_faces_and_evid
     np.testing.assert_allclose(centres, np.sort(old_points[old_triangles].mean(axis=1), axis=0))
     # the merged patch keeps vertices apart: removing one layer's face spreads over that layer only
     assert merged.polydata.GetNumberOfPoints() == 5 * 9
-
-
-def test_a_full_frame_patch_is_not_merged_again_nor_counted_against_the_limit(monkeypatch):
-    # a chunk of a large place: once a merged patch holds FULL_PATCH_FACES faces, later frames merge apart from it,
-    # so removing a face there rebuilds a patch of bounded size, not the whole chunk
-    monkeypatch.setattr(world_map, "FULL_PATCH_FACES", 20)
-    world = WorldMap(chunk_size=4.0, patches_per_chunk=2)
-    for frame in range(3):  # 8 faces a frame: three frames merge into one of 24, full
-        world.add_patch(f"frame_{frame}", plane_mesh([0.5, 0.5, 0.1 * frame], [0, 0, 1], size=1.0, subdivisions=2), frame=frame)
-    world.compact()
-    chunk = world.chunks[(0, 0, 0)]
-    assert list(chunk.patches) == ["merged_0"] and chunk.patches["merged_0"].cells == 24
-    assert chunk.frame_patches == 0  # full: not counted
-    for frame in range(3, 6):
-        world.add_patch(f"frame_{frame}", plane_mesh([0.5, 0.5, 0.1 * frame], [0, 0, 1], size=1.0, subdivisions=2), frame=frame)
-    world.compact()
-    assert list(chunk.patches) == ["merged_0", "merged_1"]
-    assert chunk.patches["merged_0"].cells == 24 and chunk.patches["merged_1"].cells == 24
-    assert world.number_of_cells == 48
-    # a full patch that a removal brings under the size counts again, and merges with the next ones
-    table = FaceIdTable(["merged_0"], [1], [24])
-    world.remove_faces(np.arange(1, 9), table)
-    assert chunk.patches["merged_0"].cells == 16 and chunk.frame_patches == 1
 
 
 def test_state_round_trip_and_the_previous_checkpoint_layout():
