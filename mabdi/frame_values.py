@@ -99,9 +99,9 @@ class Placement:
     world_from_camera as the source gave it; ``world_from_map``: where the map's frame lies in the world;
     ``covariance``: 6x6 of the meshed pose (rotation vector in rad, translation in m), None when not registered;
     ``fitted_pose``: 4x4 camera-to-map, the pose the ICP fitted D to the map at (the meshed pose may keep the given
-    one instead), None when not registered; ``poor_fit``: registered, but no rigid pose fits D to the map as the
-    run's frames fit (:mod:`mabdi.stages.fit_check`): the frame keeps the pose the fit started from and casts no
-    removal votes.
+    one instead), None when not registered; ``poor_fit``: the fit ran (registered, or stopped unconverged or beyond its
+    bound), but no rigid pose fits D to the map as the run's frames fit (:mod:`mabdi.stages.fit_check`): the frame
+    keeps the pose the fit started from and casts no removal votes.
     """
 
     status: str

@@ -7,8 +7,8 @@ filter's keyed patch that later replaces it, ``merged_<i>`` for frame
 patches merged). A **chunk** is a cube of ``chunk_size`` metres, chunk (i, j, k)
 centred on (i, j, k) * chunk_size (:meth:`WorldMap.chunk_indices`): a frame's faces go to the chunk of their
 centre, a keyed patch whole to the chunk of its bounding box's centre. Per face, a patch keeps its normal (world), its
-removal evidence (log-odds) and the number of frames that contradicted it;
-cell data ``frame`` says which frame made each face.
+removal evidence (log-odds), the number of frames that contradicted it and its evidence pool (one frame's faces in
+a cube of ``pool_size``, fixed as they enter, so removal does not depend on the chunking); cell data ``frame``.
 
 Why chunks:
 
@@ -19,10 +19,9 @@ Why chunks:
   chunks outside the view frustum, so its cost follows the view, not the
   map (:func:`mabdi.render.depth_image.named_leaves`).
 * **Bounded draw calls.** Once a chunk holds more than ``patches_per_chunk``
-  frame patches, they are merged into one (:meth:`WorldMap.compact`) (a concatenation: no vertex is
-  shared between former patches, so removal's edge-connected spread and
-  everything else sees the same faces as before). Keyed patches are never
-  merged: they are replaced whole.
+  frame patches, they are merged into one (:meth:`WorldMap.compact`): a concatenation (no shared vertex: removal's
+  edge-connected spread sees the same faces as before). Keyed patches are replaced whole, never merged; a frame
+  patch of :data:`FULL_PATCH_FACES` faces or more stays apart, so what a removal rebuilds stays bounded.
 * **Bounded bookkeeping.** Adding or replacing a patch touches its chunk's
   block only; nothing is proportional to the number of frames.
 
@@ -32,8 +31,7 @@ image alone (:mod:`mabdi.face_identity`); the methods that take face codes
 take the image's :class:`~mabdi.face_identity.FaceIdTable` beside them. A
 block named in a table whose patch has since been replaced (the table says
 which polydata was drawn) counts as not in the map; removal casts the pixels
-that showed it against the patch now there. There is no cap on the number of faces in the
-map.
+that showed it against the patch now there. There is no cap on the number of faces.
 
 :class:`mabdi.stages.world_mesh.FilterWorldMesh` is the VTK adaptor that
 appends each frame's surface; checkpoints keep :meth:`state`.
@@ -42,7 +40,7 @@ appends each frame's surface; checkpoints keep :meth:`state`.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -59,13 +57,24 @@ FRAME_CELL_ARRAY = "frame"
 PATCH_KEY_ARRAY = "patch_key"
 #: Field data of such a surface: the keys of patches it no longer holds (removed from the map on append).
 REMOVED_KEYS_ARRAY = "removed_patch_keys"
-#: Edge of a chunk (metres): small beside what a depth camera sees at once, so culling draws little beyond the view.
-CHUNK_SIZE = 2.0
+#: Edge of a chunk for a depth camera (metres): about what one view reaches (a camera's default far is 4 m); every
+#: block in view costs each stage its own pass, so chunks smaller than the view draw little less and cost more
+#: (docs/benchmarks.md, "Chunks a view wide").
+CHUNK_SIZE = 8.0
 #: Edge of a chunk for a spinning LiDAR (metres, :func:`mabdi.loop.loop.chunk_size_for`): it sees tens of metres
-#: all around at once (the street's per-stage costs with 2 and 6 m chunks are in docs/benchmarks.md).
+#: all around at once (the street's per-stage costs with 2 and 6 m chunks, and BALM's with 6 and 16 m, are in
+#: docs/benchmarks.md).
 LIDAR_CHUNK_SIZE = 6.0
 #: Frame patches a chunk holds before they are merged into one (keyed patches do not count).
 PATCHES_PER_CHUNK = 8
+#: A frame patch of at least this many faces is full: no longer merged, nor counted against ``patches_per_chunk``,
+#: so what a removal or refinement rebuilds (and re-uploads) stays this size however large the chunk.
+FULL_PATCH_FACES = 32_768
+#: Edge of an evidence pool for a camera (metres): the faces one frame made within one cube of this edge pool
+#: their removal evidence (:meth:`WorldMap.update_evidence`), however the map is chunked or merged.
+POOL_SIZE = 2.0
+#: Edge of an evidence pool for a spinning LiDAR (metres).
+LIDAR_POOL_SIZE = 6.0
 
 #: A re-meshed patch's face whose centre lies within this (metres) of an old face's is that face, unchanged.
 UNCHANGED_FACE = 1e-5
@@ -91,9 +100,11 @@ class Patch:
     #: (M,) bool, faces that shared an edge with a face removed from the patch (they follow it once
     #: contradicted: :meth:`WorldMap.update_evidence`); None: none did
     beside_removed: np.ndarray | None = None
-    #: frames in which any face of the patch was contradicted (the evidence a patch pools across its faces:
-    #: :meth:`WorldMap.update_evidence`)
-    contradicting_frames: int = 0
+    #: (M,) int64, the evidence pool of each face (:meth:`WorldMap.update_evidence`): one frame's faces within one
+    #: pool cube, or a keyed patch whole; None until the map sets it
+    pools: np.ndarray | None = None
+    #: pool -> frames in which any face of it was contradicted (pools never contradicted are not listed)
+    pool_frames: dict[int, int] = field(default_factory=dict)
 
     def beside_removed_faces(self) -> np.ndarray:
         """(M,) bool :attr:`beside_removed`, all False where None."""
@@ -103,6 +114,11 @@ class Patch:
     def cells(self) -> int:
         return self.polydata.GetNumberOfCells()
 
+    @property
+    def mergeable(self) -> bool:
+        """A frame patch (not keyed) with fewer than :data:`FULL_PATCH_FACES` faces: :meth:`WorldMap.compact` merges it."""
+        return not self.keyed and self.cells < FULL_PATCH_FACES
+
 
 class Chunk:
     """The patches of one chunk, in the order they came, and their VTK block (one named block per patch)."""
@@ -111,15 +127,15 @@ class Chunk:
         self.index = index
         self.patches: dict[str, Patch] = {}
         self.block = vtkMultiBlockDataSet()
-        self.frame_patches = 0  # unkeyed patches (merged beyond PATCHES_PER_CHUNK)
+        self.frame_patches = 0  # unkeyed patches not yet full (merged beyond PATCHES_PER_CHUNK)
         self._numbers: dict[str, int] = {}  # patch key -> block number
 
     def set(self, patch: Patch) -> None:
         """Add ``patch``, or replace the patch of its key in place."""
         previous = self.patches.get(patch.key)
         if previous is not None:
-            self.frame_patches -= 0 if previous.keyed else 1
-        self.frame_patches += 0 if patch.keyed else 1
+            self.frame_patches -= previous.mergeable
+        self.frame_patches += patch.mergeable
         self.patches[patch.key] = patch
         number = self._numbers.get(patch.key)
         if number is None:
@@ -134,7 +150,7 @@ class Chunk:
         """Drop the patches ``keys`` (the block is rebuilt from those left)."""
         for key in keys:
             patch = self.patches.pop(key)
-            self.frame_patches -= 0 if patch.keyed else 1
+            self.frame_patches -= patch.mergeable
         self.block.SetNumberOfBlocks(0)
         self._numbers = {}
         for number, (key, patch) in enumerate(self.patches.items()):
@@ -262,14 +278,19 @@ def _append(polydatas: list[vtkPolyData]) -> vtkPolyData:
 
 
 class WorldMap:
-    """The map in chunks of ``chunk_size`` metres (see the module docs)."""
+    """The map in chunks of ``chunk_size`` metres (see the module docs); removal evidence pooled in cubes of
+    ``pool_size`` metres (None: ``chunk_size``)."""
 
-    def __init__(self, chunk_size: float = CHUNK_SIZE, patches_per_chunk: int = PATCHES_PER_CHUNK) -> None:
+    def __init__(self, chunk_size: float = CHUNK_SIZE, patches_per_chunk: int = PATCHES_PER_CHUNK, pool_size: float | None = None) -> None:
         if not (math.isfinite(chunk_size) and chunk_size > 0):
             raise ValueError(f"WorldMap: chunk_size must be a positive number of metres, got {chunk_size!r}")
+        pool_size = chunk_size if pool_size is None else pool_size
+        if not (math.isfinite(pool_size) and pool_size > 0):
+            raise ValueError(f"WorldMap: pool_size must be a positive number of metres, got {pool_size!r}")
         if isinstance(patches_per_chunk, bool) or not isinstance(patches_per_chunk, int) or patches_per_chunk < 1:
             raise ValueError(f"WorldMap: patches_per_chunk must be a positive integer, got {patches_per_chunk!r}")
         self.chunk_size = float(chunk_size)
+        self.pool_size = float(pool_size)
         self.patches_per_chunk = patches_per_chunk
         self.multiblock = vtkMultiBlockDataSet()
         self.reset()
@@ -282,6 +303,7 @@ class WorldMap:
         self._patches: dict[str, Patch] = {}
         self._cells = 0
         self._merges = 0
+        self._pools = 0  # evidence pools handed out
         #: merged patch key -> [(part key, its number of points)], in the order their points were concatenated
         self._merged_from: dict[str, list[tuple[str, int]]] = {}
         self._merged: vtkPolyData | None = None
@@ -310,7 +332,7 @@ class WorldMap:
         """Memory held by the map: its patches (VTK's actual memory size) and their per-face arrays."""
         total = 0
         for p in self._patches.values():
-            total += 1024 * p.polydata.GetActualMemorySize() + p.normals.nbytes + p.evidence.nbytes + p.contradicted.nbytes
+            total += 1024 * p.polydata.GetActualMemorySize() + p.normals.nbytes + p.evidence.nbytes + p.contradicted.nbytes + p.pools.nbytes
         return total
 
     def chunk_of(self, polydata: vtkPolyData) -> ChunkIndex:
@@ -344,6 +366,23 @@ class WorldMap:
             return self._add(key, polydata, parts[0][0], keyed=False)
         return sum(self._add("{}@{}_{}_{}".format(key, *chunk), part, chunk, keyed=False) for chunk, part in parts)
 
+    def _next_pool(self) -> int:
+        self._pools += 1
+        return self._pools - 1
+
+    def _new_pools(self, polydata: vtkPolyData) -> np.ndarray:
+        """(M,) int64 new evidence pools for one frame's faces in one chunk: one per pool cube their centres
+        reach (one for them all where pools are as large as chunks)."""
+        cells = polydata.GetNumberOfCells()
+        if self.pool_size == self.chunk_size or cells == 0:
+            inverse = np.zeros(cells, dtype=np.int64)
+        else:
+            cubes = np.floor(face_centres(polydata)[0] / self.pool_size + 0.5).astype(np.int64)
+            inverse = np.unique(cubes, axis=0, return_inverse=True)[1].reshape(-1).astype(np.int64)
+        pools = self._pools + inverse
+        self._pools += int(inverse.max()) + 1 if cells else 0
+        return pools
+
     def _split_by_chunk(self, polydata: vtkPolyData) -> list[tuple[ChunkIndex, vtkPolyData]]:
         """(chunk, the faces of ``polydata`` whose centre lies in it) for each chunk it reaches (one: itself)."""
         b = polydata.GetBounds()
@@ -365,6 +404,10 @@ class WorldMap:
         )
         if old is not None:
             self._inherit_evidence(patch, old)
+        elif keyed:  # a keyed patch is one pool, kept as it is replaced (_inherit_evidence)
+            patch.pools = np.full(patch.cells, self._next_pool(), dtype=np.int64)
+        else:
+            patch.pools = self._new_pools(polydata)
         before = self._cells
         self._put(patch, replacing=old)
         self._changed()
@@ -427,7 +470,7 @@ class WorldMap:
         """Merge a chunk's frame patches into one, size-tiered: the largest stays apart while it holds more
         faces than all the others together, so a known place that keeps receiving small patches does not copy
         (and re-upload) its whole chunk every few frames; each face is copied O(log n) times over a run."""
-        parts = [p for p in chunk.patches.values() if not p.keyed]
+        parts = [p for p in chunk.patches.values() if p.mergeable]
         largest = max(parts, key=lambda p: p.cells)
         if 2 * largest.cells > sum(p.cells for p in parts):
             parts = [p for p in parts if p is not largest]
@@ -440,10 +483,11 @@ class WorldMap:
             np.concatenate([p.normals for p in parts]),
             np.concatenate([p.evidence for p in parts]),
             np.concatenate([p.contradicted for p in parts]),
+            pools=np.concatenate([p.pools for p in parts]),
+            pool_frames={pool: frames for p in parts for pool, frames in p.pool_frames.items()},
         )
         if any(p.beside_removed is not None for p in parts):
             merged.beside_removed = np.concatenate([p.beside_removed_faces() for p in parts])
-        merged.contradicting_frames = max(p.contradicting_frames for p in parts)  # frames of one part's, at least
         self._merges += 1
         self._merged_from[merged.key] = [(p.key, p.polydata.GetNumberOfPoints()) for p in parts]
         chunk.remove([part.key for part in parts])
@@ -490,7 +534,9 @@ class WorldMap:
         """
         centres, _ = face_centres(old.polydata)
         patch.refitted = np.ones(patch.cells, dtype=bool)
-        patch.contradicting_frames = old.contradicting_frames
+        pool = int(old.pools[0]) if len(old.pools) else self._next_pool()
+        patch.pools = np.full(patch.cells, pool, dtype=np.int64)  # a replaced patch stays one pool
+        patch.pool_frames = {pool: old.pool_frames[pool]} if pool in old.pool_frames else {}
         if not len(centres) or not patch.cells:
             return
         new_centres, radii = face_centres(patch.polydata)
@@ -591,13 +637,14 @@ class WorldMap:
         neighbour (:meth:`_removed_with`), kept when the neighbour went first: a departed object's small
         faces seen by one beam in one frame after the faces around them went would otherwise stay.
 
-        A patch pools its faces' evidence when nothing in it stands: once ``min_frames`` frames have
-        contradicted some face of a patch (:attr:`Patch.contradicting_frames`) and every face of it that was
-        ever voted on has evidence above 0 (contradicted and not confirmed since), its contradicted faces go,
-        those this frame did not show too.
-        A patch is one frame's mesh of one surface; a roof seen from across a street by one beam in each of
-        several scans has each small face contradicted once, by different scans, and would otherwise stay.
-        A static patch has faces that pixels confirm, and then the rule does not apply.
+        A pool (:attr:`Patch.pools`: the faces one frame made within one cube of ``pool_size``, or a keyed patch)
+        pools its faces' evidence when nothing in it stands: once ``frames_required`` frames have contradicted
+        some face of it (:attr:`Patch.pool_frames`) and every face of it that was ever voted on has evidence
+        above 0 (contradicted and not confirmed since), its contradicted faces go, those this frame did not
+        show too. A roof seen from across a street by one beam in each of several scans has each small face
+        contradicted once, by different scans, and would otherwise stay. A static pool has faces that pixels
+        confirm, and then the rule does not apply. Pools are fixed when a frame's faces enter the map, so the
+        rule does not depend on how the map is chunked or its patches merged.
         """
         codes = np.asarray(codes, dtype=np.int64)
         groups, local = self._current_groups(codes, table)
@@ -610,17 +657,31 @@ class WorldMap:
             )
             patch.evidence[cells] = evidence
             patch.contradicted[cells] = frames
-            against = (contradicted[rows] > confirmed[rows]).any()
-            patch.contradicting_frames += int(against)
             gone |= patch.beside_removed_faces()[cells] & (evidence > 0)
             condemned.append(codes[rows[gone]])
-            if not against or patch.contradicting_frames < parameters.frames_required:
-                continue  # a frame that contradicts nothing here cannot make the patch's case
-            voted = (patch.evidence != 0) | (patch.contradicted > 0)
-            if (patch.evidence[voted] > 0).all():
-                # every contradicted face of the patch, those this frame did not show too (the block is current)
-                condemned.append(table.bases[b] + np.flatnonzero(patch.evidence > 0))
+            against = contradicted[rows] > confirmed[rows]
+            if against.any():  # a frame that contradicts nothing in a pool cannot make its case
+                condemned.append(table.bases[b] + self._pooled_removal(patch, np.unique(patch.pools[cells[against]]), parameters))
         return np.unique(np.concatenate(condemned)) if condemned else np.zeros(0, dtype=np.int64)
+
+    @staticmethod
+    def _pooled_removal(patch: Patch, against: np.ndarray, parameters) -> np.ndarray:
+        """Count one more contradicting frame for each pool of ``against`` in ``patch``; the cell ids of the
+        contradicted faces of those pools that have now been contradicted in ``parameters.frames_required``
+        frames and have no voted face standing (:meth:`update_evidence`)."""
+        ready = []
+        for pool in against.tolist():
+            frames = patch.pool_frames[pool] = patch.pool_frames.get(pool, 0) + 1
+            if frames >= parameters.frames_required:
+                ready.append(pool)
+        if not ready:
+            return np.zeros(0, dtype=np.int64)
+        faces = np.flatnonzero(np.isin(patch.pools, ready))
+        pool_of = np.searchsorted(np.sort(ready), patch.pools[faces])
+        evidence = patch.evidence[faces]
+        standing = ((evidence != 0) | (patch.contradicted[faces] > 0)) & (evidence <= 0)  # voted, and not against
+        fallen = np.bincount(pool_of, weights=standing, minlength=len(ready)) == 0
+        return faces[fallen[pool_of] & (evidence > 0)]
 
     def remove_faces(self, codes, table: FaceIdTable, follow_frames: int = 1) -> vtkPolyData:
         """Remove the faces ``codes`` from their patches (each changed patch is rebuilt, so only it is re-uploaded).
@@ -650,7 +711,7 @@ class WorldMap:
                 patch.key, extract_polys(patch.polydata, keep), patch.chunk,
                 patch.normals[keep], patch.evidence[keep], patch.contradicted[keep], patch.keyed,
                 beside_removed=near[keep] if near[keep].any() else None,
-                contradicting_frames=patch.contradicting_frames,
+                pools=patch.pools[keep], pool_frames=patch.pool_frames,
             )
             self._put(kept, replacing=patch)
         self._changed()
@@ -731,11 +792,14 @@ class WorldMap:
         byte-identical."""
         return {
             "chunk_size": self.chunk_size,
+            "pool_size": self.pool_size,
             "merges": self._merges,
+            "pools": self._pools,
             "merged_from": {key: [[part, int(points)] for part, points in parts] for key, parts in self._merged_from.items()},
             "patches": [
                 [key, polydata_to_state(p.polydata), list(p.chunk), p.evidence.copy(), p.contradicted.copy(), p.keyed,
-                 p.beside_removed_faces().copy(), p.contradicting_frames]
+                 p.beside_removed_faces().copy(), None, p.pools.copy(),
+                 np.array(sorted(p.pool_frames.items()), dtype=np.int64).reshape(-1, 2)]
                 for chunk in self.chunks.values()
                 for key, p in chunk.patches.items()
             ],
@@ -748,6 +812,7 @@ class WorldMap:
             state = _chunked_state(state, self.chunk_size)
         self.reset()
         self.chunk_size = float(state["chunk_size"])
+        self.pool_size = float(state.get("pool_size", self.chunk_size))
         self._merges = int(state["merges"])
         self._merged_from = {key: [(str(part), int(points)) for part, points in parts] for key, parts in state.get("merged_from", {}).items()}
         for key, polydata, chunk, evidence, contradicted, keyed, *later in state["patches"]:
@@ -755,9 +820,15 @@ class WorldMap:
             patch = Patch(key, polydata, tuple(int(i) for i in chunk), face_normals(polydata), evidence.copy(), contradicted.copy(), bool(keyed))
             if later and np.asarray(later[0]).any():  # checkpoints before the flag have none
                 patch.beside_removed = np.asarray(later[0], dtype=bool).copy()
-            if len(later) > 1:  # nor the patch's frame count
-                patch.contradicting_frames = int(later[1])
+            if len(later) > 2:  # the faces' pools and the pools' frame counts
+                patch.pools = np.asarray(later[2], dtype=np.int64).copy()
+                patch.pool_frames = {int(pool): int(frames) for pool, frames in np.asarray(later[3]).reshape(-1, 2)}
+            else:  # checkpoints before pools: the patch is one pool (with its frame count where kept)
+                patch.pools = np.full(patch.cells, self._next_pool(), dtype=np.int64)
+                if len(later) > 1 and int(later[1]):
+                    patch.pool_frames = {int(patch.pools[0]) if patch.cells else -1: int(later[1])}
             self._put(patch)
+        self._pools = max(self._pools, int(state.get("pools", 0)))
         self._changed()
 
 

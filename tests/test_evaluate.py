@@ -249,3 +249,26 @@ def test_bench_frames_state_what_the_simulator_states():
         FrameList([frames.read(0)], pose_accuracy=0.003)
     with pytest.raises(TypeError, match="FrameList: noise must be a SensorNoise or None, got 'kinect'"):
         FrameList([frames.read(0)], noise="kinect")
+
+
+def test_samples_of_a_surface_do_not_depend_on_its_triangles_order_or_starting_corners():
+    """A map stored in other blocks (its triangles in another order, each starting at another corner) is the same
+    surface and gets the same samples; the faces named are the mesh's own."""
+    mesh = merged(square(-1, 1, -1, 1), square(0, 2, 0, 2, z=0.3, n=7))
+    from mabdi.polydata import polydata_arrays
+
+    points, triangles = polydata_arrays(mesh)
+    rng = np.random.default_rng(3)
+    order = rng.permutation(len(triangles))
+    shift = rng.integers(0, 3, len(triangles))
+    shuffled = triangles[order][np.arange(len(triangles))[:, None], (shift[:, None] + np.arange(3)) % 3]
+    other = triangles_polydata(points, shuffled)
+    a, b = sample_surface(mesh, 5_000), sample_surface(other, 5_000)
+    np.testing.assert_array_equal(a.points, b.points)
+    np.testing.assert_array_equal(a.normals, b.normals)
+    np.testing.assert_array_equal(triangles[a.faces], triangles[order][b.faces])  # each sample's own face, by index
+    assert a.area == pytest.approx(b.area)
+    # each sample lies on the face it names
+    corners = points[triangles[a.faces]]
+    normal = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    assert np.abs(np.einsum("ij,ij->i", a.points - corners[:, 0], normal)).max() < 1e-9

@@ -9,7 +9,7 @@ from vtkmodules.util.numpy_support import numpy_to_vtk, vtk_to_numpy
 from vtkmodules.vtkCommonCore import vtkPoints
 from vtkmodules.vtkCommonDataModel import vtkCellArray, vtkDataObject, vtkPolyData
 
-from conftest import plane_mesh
+from conftest import merged as merged_meshes, plane_mesh
 from scipy.spatial import cKDTree
 
 from mabdi.camera import Intrinsics, look_at
@@ -17,6 +17,7 @@ from mabdi.face_identity import MAX_FACE_CODE, FaceIdTable, codes_in, rows_by_bl
 from mabdi.render.depth_image import DepthRenderer
 from mabdi.polydata import named_leaves, polydata_arrays
 from mabdi.stages.removal import RemovalParameters
+from mabdi import world_map
 from mabdi.world_map import WorldMap, _chunked_state
 
 SMALL = Intrinsics(fx=160, fy=160, cx=80, cy=60, width=160, height=120, near=0.3, far=4.0)
@@ -67,6 +68,29 @@ def test_frame_patches_beyond_the_limit_merge_into_one_with_their_faces_and_evid
     np.testing.assert_allclose(centres, np.sort(old_points[old_triangles].mean(axis=1), axis=0))
     # the merged patch keeps vertices apart: removing one layer's face spreads over that layer only
     assert merged.polydata.GetNumberOfPoints() == 5 * 9
+
+
+def test_a_full_frame_patch_is_not_merged_again_nor_counted_against_the_limit(monkeypatch):
+    # a chunk of a large place: once a merged patch holds FULL_PATCH_FACES faces, later frames merge apart from it,
+    # so removing a face there rebuilds a patch of bounded size, not the whole chunk
+    monkeypatch.setattr(world_map, "FULL_PATCH_FACES", 20)
+    world = WorldMap(chunk_size=4.0, patches_per_chunk=2)
+    for frame in range(3):  # 8 faces a frame: three frames merge into one of 24, full
+        world.add_patch(f"frame_{frame}", plane_mesh([0.5, 0.5, 0.1 * frame], [0, 0, 1], size=1.0, subdivisions=2), frame=frame)
+    world.compact()
+    chunk = world.chunks[(0, 0, 0)]
+    assert list(chunk.patches) == ["merged_0"] and chunk.patches["merged_0"].cells == 24
+    assert chunk.frame_patches == 0  # full: not counted
+    for frame in range(3, 6):
+        world.add_patch(f"frame_{frame}", plane_mesh([0.5, 0.5, 0.1 * frame], [0, 0, 1], size=1.0, subdivisions=2), frame=frame)
+    world.compact()
+    assert list(chunk.patches) == ["merged_0", "merged_1"]
+    assert chunk.patches["merged_0"].cells == 24 and chunk.patches["merged_1"].cells == 24
+    assert world.number_of_cells == 48
+    # a full patch that a removal brings under the size counts again, and merges with the next ones
+    table = FaceIdTable(["merged_0"], [1], [24])
+    world.remove_faces(np.arange(1, 9), table)
+    assert chunk.patches["merged_0"].cells == 16 and chunk.frame_patches == 1
 
 
 def test_state_round_trip_and_the_previous_checkpoint_layout():
@@ -344,7 +368,7 @@ def test_a_patch_pools_its_faces_evidence_when_nothing_in_it_stands():
     assert vote("roof", 0) == [] and vote("wall", 0) == []  # one frame: nothing goes
     restored = WorldMap(chunk_size=100.0)
     restored.set_state(world.state())
-    assert restored.patch("roof").contradicting_frames == 1 and restored.patch("wall").contradicting_frames == 1
+    assert list(restored.patch("roof").pool_frames.values()) == [1] and list(restored.patch("wall").pool_frames.values()) == [1]
     assert vote("roof", 1) == [1, 2]  # a second frame, another face: the roof's contradicted faces go
     assert vote("wall", 1) == []  # the wall's confirmed face stands: each face still needs two frames
     assert vote("wall", 1) == [n + 2]
@@ -496,3 +520,40 @@ def test_codes_split_into_gaps_over_a_long_run_are_given_out_afresh(monkeypatch)
     bigger = plane_mesh([0.75, 0.5, 0], [0, 0, 1], size=0.5, subdivisions=8)  # 98 + 128 faces in view: too many
     with pytest.raises(MemoryError, match="in view"):
         renderer.render_zbuffer(named_multiblock({"left": left, "right": bigger}), SMALL, pose)
+
+
+def test_evidence_pools_are_one_frames_faces_in_a_cube_however_the_map_is_chunked_or_merged():
+    """A frame's mesh of a departed car's roof (pooled) and of a wall 5 m away that pixels confirm, in one frame
+    patch of one large chunk: with 2 m pools the roof's contradicted faces go once two frames contradicted it, as
+    they would in 2 m chunks; pooled with the wall (pools as large as the chunk) they stay. The pools and their
+    frame counts survive merging and a checkpoint."""
+    both = merged_meshes(plane_mesh([0, 0, 1.5], [0, 0, 1], size=0.4, subdivisions=2), plane_mesh([5, 0, 1.5], [0, 0, 1], size=0.4, subdivisions=2))
+    n = both.GetNumberOfCells() // 2
+    params = RemovalParameters()
+
+    def run(pool_size, merge):
+        world = WorldMap(chunk_size=100.0, patches_per_chunk=1, pool_size=pool_size)
+        world.add_patch("frame_0", both, frame=0)
+        if merge:  # two more frame patches, then all merged: the codes below name the merged patch (frame 0 first)
+            for frame in (1, 2):
+                world.add_patch(f"frame_{frame}", plane_mesh([-5, 0, frame], [0, 0, 1], size=0.4, subdivisions=2), frame=frame)
+            world.compact()
+        (key,) = world.patch_keys
+        assert key.startswith("merged_" if merge else "frame_")
+        table = FaceIdTable([key], [1], [world.patch(key).cells])
+
+        def vote(face, against=True):
+            code = np.array([face + 1])
+            return world.update_evidence(code, np.array([against]), np.array([not against]), params, table).tolist()
+
+        vote(n + 3, against=False)  # a wall face confirmed
+        first = vote(0)
+        restored = WorldMap(chunk_size=100.0, patches_per_chunk=1, pool_size=pool_size)
+        restored.set_state(world.state())
+        assert sorted(restored.patch(key).pool_frames.values()) == sorted(world.patch(key).pool_frames.values())
+        np.testing.assert_array_equal(restored.patch(key).pools, world.patch(key).pools)
+        return first, vote(1)
+
+    for merge in (False, True):
+        assert run(2.0, merge) == ([], [1, 2])  # the roof's pool: both contradicted faces go
+        assert run(None, merge) == ([], [])  # one pool with the confirmed wall: nothing goes yet

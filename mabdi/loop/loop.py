@@ -59,7 +59,7 @@ from mabdi.stages.object_removal import ObjectRemoval, RemovalResult, RemovalVot
 from mabdi.stages.removal import RemovalParameters, depth_edges
 from mabdi.frame_values import Classified, Expected, Measured, Placement
 from mabdi.stages.world_mesh import FilterWorldMesh
-from mabdi.world_map import CHUNK_SIZE, LIDAR_CHUNK_SIZE
+from mabdi.world_map import CHUNK_SIZE, LIDAR_CHUNK_SIZE, LIDAR_POOL_SIZE, POOL_SIZE
 from mabdi.polydata import polydata_area, polydata_arrays, transformed_polydata
 from mabdi.sources.frames import FrameSource, SourceDepthFrames
 
@@ -231,6 +231,13 @@ def chunk_size_for(geometry) -> float:
     return LIDAR_CHUNK_SIZE if geometry.range_image else CHUNK_SIZE
 
 
+def pool_size_for(geometry) -> float:
+    """The edge (metres) of the cubes in which one frame's faces pool their removal evidence
+    (:meth:`mabdi.world_map.WorldMap.update_evidence`): :data:`~mabdi.world_map.POOL_SIZE` for a camera,
+    :data:`~mabdi.world_map.LIDAR_POOL_SIZE` for a LiDAR."""
+    return LIDAR_POOL_SIZE if geometry.range_image else POOL_SIZE
+
+
 @dataclass(eq=False)
 class FrameValues:
     """One frame's values as the loop passed them from stage to stage (:mod:`mabdi.frame_values`; None: the
@@ -311,7 +318,9 @@ class MabdiLoop:
         #: D of each frame, from the source (hole filling, the noise model as it stands)
         self.depth_frames = SourceDepthFrames(source, noise=self.noise, pixel_holes=pixel_holes)
         # compacted at the end of each frame (step)
-        self.world = FilterWorldMesh(chunk_size=chunk_size_for(source.intrinsics), compact_on_append=False)
+        self.world = FilterWorldMesh(
+            chunk_size=chunk_size_for(source.intrinsics), compact_on_append=False, pool_size=pool_size_for(source.intrinsics)
+        )
         self.expected = FilterExpectedImage(backend=backend, identity=self.removal or self.refining)
         #: D registered to the map (the renderer of E is shared: one upload of the map); None: poses as given
         self.registration: FilterRegistration | ScanRegistration | None = None

@@ -174,7 +174,7 @@ def registration_summary(records: list[FrameRecord]) -> dict:
         "median_correction_mm": float(np.median([r.correction_mm for r in registered])) if registered else None,
         "median_correction_deg": float(np.median([r.correction_deg for r in registered])) if registered else None,
         "median_residual_mm": float(np.median([r.residual_mm for r in registered])) if registered else None,
-        "poor_fit": sum(1 for r in registered if r.poor_fit),
+        "poor_fit": sum(1 for r in records if r.poor_fit),
     }
 
 

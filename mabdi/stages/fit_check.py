@@ -10,8 +10,9 @@ enough for its rolling read-out to bend the image, a blurred frame, a pose
 further off than registration follows. What such a frame sees through the map is doubtful: the
 same misfit that leaves its residual puts its depth behind the map's faces.
 
-The rule (:func:`fits_poorly`): a registered frame fits poorly where its
-residual exceeds :data:`POOR_FIT` times the median residual of the run's
+The rule (:func:`fits_poorly`): a frame the fit ran to its end on
+(:data:`JUDGED`: registered, or stopped unconverged or beyond its bound, as a
+bent image's fit can) fits poorly where its residual exceeds :data:`POOR_FIT` times the median residual of the run's
 last :data:`WINDOW` registered frames, once :data:`MIN_FRAMES` of them are
 known. Every registered frame that moved enters the median, poorly fitting or
 not, so a run whose residual rises for good (a far room, a growing LiDAR map)
@@ -36,6 +37,8 @@ from __future__ import annotations
 
 import numpy as np
 
+#: The registration statuses of frames whose residual is judged: the fit ran over enough pairs to leave one.
+JUDGED = ("registered", "not_converged", "beyond_bound")
 #: A frame fits poorly where its residual exceeds this many times the run's median.
 POOR_FIT = 3.0
 #: The median is over the last this many registered frames' residuals ...

@@ -58,7 +58,7 @@ from mabdi.errors import ConfigError
 from mabdi.render.depth_image import BACKENDS, DepthRenderer
 from mabdi.sensor_noise import SensorNoise
 from mabdi.stages.expected_image import MEASURED_PORT, MapAndImageAlgorithm, map_input, render_expected
-from mabdi.stages.fit_check import fits_poorly
+from mabdi.stages.fit_check import JUDGED, fits_poorly
 from mabdi.stages.map_anchor import MapAnchor
 from mabdi.frame_values import Measured, Placement
 from mabdi.noise_calibration import MAD_TO_SIGMA
@@ -1073,8 +1073,8 @@ class FilterRegistration(MapAndImageAlgorithm):
         fitted = pose.copy() if result.registered else None  # where D fits the map, whatever pose it is meshed at
         covariance = result.covariance
         learnt = self.anchor.stated is None
-        poor_fit = result.registered and earlier_residuals is not None and fits_poorly(result.residual, earlier_residuals)
-        if poor_fit:
+        poor_fit = result.status in JUDGED and earlier_residuals is not None and fits_poorly(result.residual, earlier_residuals)
+        if poor_fit and result.registered:
             # no rigid pose fits D as the run's frames fit (a smeared or bent image): the ICP's pose is no evidence
             # against the pose the fit started from, which the frame keeps (the given pose, or the carried
             # correction where that fitted better); it teaches nothing and carries nothing on

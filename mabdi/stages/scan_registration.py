@@ -49,7 +49,7 @@ from mabdi.camera import pixel_rays
 from mabdi.frame_values import Expected, Measured, Placement
 from mabdi.pose_noise import PoseNoise
 from mabdi.spherical import SphericalGeometry
-from mabdi.stages.fit_check import fits_poorly
+from mabdi.stages.fit_check import JUDGED, fits_poorly
 from mabdi.stages.registration import (
     RegistrationParameters,
     apply_correction,
@@ -268,7 +268,7 @@ class ScanRegistration:
         fit_cost = fit.cost if fit.status == "registered" else float("nan")
         self.last_costs = (given_cost, carried_cost, fit_cost)
         pose = reference
-        poor_fit = fit.status == "registered" and earlier_residuals is not None and fits_poorly(fit.residual, earlier_residuals)
+        poor_fit = fit.status in JUDGED and earlier_residuals is not None and fits_poorly(fit.residual, earlier_residuals)
         gain = scan_follow_gain(reference_cost / max(fit_cost, 1e-12)) if fit.status == "registered" else 0.0
         if gain > 0.0:
             fitted = carried @ fit.transform

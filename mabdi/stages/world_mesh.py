@@ -38,7 +38,7 @@ from mabdi.algorithm import MabdiAlgorithm
 from mabdi.depth import FRAME_ARRAY
 from mabdi.face_identity import FaceIdTable
 from mabdi.polydata import split_polys
-from mabdi.world_map import CHUNK_SIZE, FRAME_CELL_ARRAY, PATCH_KEY_ARRAY, PATCHES_PER_CHUNK, REMOVED_KEYS_ARRAY, WorldMap
+from mabdi.world_map import CHUNK_SIZE, FRAME_CELL_ARRAY, PATCH_KEY_ARRAY, PATCHES_PER_CHUNK, POOL_SIZE, REMOVED_KEYS_ARRAY, WorldMap
 
 __all__ = ["FRAME_CELL_ARRAY", "PATCH_KEY_ARRAY", "REMOVED_KEYS_ARRAY", "FilterWorldMesh"]
 
@@ -53,10 +53,13 @@ def _input_frame(surface: vtkPolyData) -> int | None:
 class FilterWorldMesh(MabdiAlgorithm):
     """The map: appends each frame's surface as a patch (vtkPolyData -> vtkMultiBlockDataSet of chunks)."""
 
-    def __init__(self, chunk_size: float = CHUNK_SIZE, patches_per_chunk: int = PATCHES_PER_CHUNK, compact_on_append: bool = True) -> None:
+    def __init__(
+        self, chunk_size: float = CHUNK_SIZE, patches_per_chunk: int = PATCHES_PER_CHUNK, compact_on_append: bool = True,
+        pool_size: float | None = POOL_SIZE,
+    ) -> None:
         super().__init__(nInputPorts=1, inputType="vtkPolyData", nOutputPorts=1, outputType="vtkMultiBlockDataSet")
         #: The store itself (chunks, patches, per-face evidence).
-        self.store = WorldMap(chunk_size, patches_per_chunk)
+        self.store = WorldMap(chunk_size, patches_per_chunk, pool_size)
         #: Merge each chunk's frame patches (:meth:`WorldMap.compact`) before appending a surface. A loop that
         #: uses an expected image's face codes after appending (removal votes) turns it off and calls
         #: :meth:`compact` itself once the codes are used (merged patches get new names).
