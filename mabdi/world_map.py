@@ -281,7 +281,9 @@ class WorldMap:
     """The map in chunks of ``chunk_size`` metres (see the module docs); removal evidence pooled in cubes of
     ``pool_size`` metres (None: ``chunk_size``)."""
 
-    def __init__(self, chunk_size: float = CHUNK_SIZE, patches_per_chunk: int = PATCHES_PER_CHUNK, pool_size: float | None = None) -> None:
+    def __init__(
+        self, chunk_size: float = CHUNK_SIZE, patches_per_chunk: int = PATCHES_PER_CHUNK, pool_size: float | None = POOL_SIZE
+    ) -> None:
         if not (math.isfinite(chunk_size) and chunk_size > 0):
             raise ValueError(f"WorldMap: chunk_size must be a positive number of metres, got {chunk_size!r}")
         pool_size = chunk_size if pool_size is None else pool_size
