@@ -57,10 +57,10 @@ FRAME_CELL_ARRAY = "frame"
 PATCH_KEY_ARRAY = "patch_key"
 #: Field data of such a surface: the keys of patches it no longer holds (removed from the map on append).
 REMOVED_KEYS_ARRAY = "removed_patch_keys"
-#: Edge of a chunk for a depth camera (metres): about what one view reaches (a camera's default far is 4 m); every
-#: block in view costs each stage its own pass, so chunks smaller than the view draw little less and cost more
-#: (docs/benchmarks.md, "Chunks a view wide").
-CHUNK_SIZE = 8.0
+#: Edge of a chunk for a depth camera (metres): small beside what a depth camera sees at once, so culling draws
+#: little beyond the view. Chunks a view wide (8 m) were a few percent faster, but changed real recordings' maps
+#: (docs/benchmarks.md, "A camera's map in 8 m chunks").
+CHUNK_SIZE = 2.0
 #: Edge of a chunk for a spinning LiDAR (metres, :func:`mabdi.loop.loop.chunk_size_for`): it sees tens of metres
 #: all around at once (the street's per-stage costs with 2 and 6 m chunks, and BALM's with 6 and 16 m, are in
 #: docs/benchmarks.md).
