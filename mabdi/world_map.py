@@ -383,12 +383,7 @@ class WorldMap:
             cubes -= cubes.min(axis=0)
             span = cubes.max(axis=0) + 1
             flat = (cubes[:, 0] * span[1] + cubes[:, 1]) * span[2] + cubes[:, 2]
-            if span.prod() <= 1 << 20:  # a frame's faces in a chunk reach a few cubes: rank them by a table
-                present = np.zeros(int(span.prod()), dtype=np.int64)
-                present[flat] = 1
-                inverse = (np.cumsum(present) - 1)[flat]
-            else:
-                inverse = np.unique(flat, return_inverse=True)[1].reshape(-1).astype(np.int64)
+            inverse = np.unique(flat, return_inverse=True)[1].reshape(-1).astype(np.int64)
         pools = self._pools + inverse
         self._pools += int(inverse.max()) + 1 if cells else 0
         return pools

@@ -534,7 +534,7 @@ def test_lidar_loop_maps_the_scene_and_stops_growing(tmp_path, surface):
 
     simulation, result = lidar_run(tmp_path, surface)
     assert isinstance(simulation.source.intrinsics, SphericalGeometry)
-    assert simulation.loop.world.store.chunk_size == LIDAR_CHUNK_SIZE  # a LiDAR's map in chunks of its own size
+    assert simulation.loop.world.store.chunk_size == LIDAR_CHUNK_SIZE  # a LiDAR's map in larger chunks than a camera's
     added = np.array([r.cells_added for r in result.records])
     assert added[8:].sum() <= 0.15 * added[:8].sum()  # the second circle adds little
     vertices, _ = polydata_arrays(result.mesh)
