@@ -1,6 +1,6 @@
 # mabdi: the two set-up commands of the README.
 #   make run    install mabdi into .venv (what running needs) and run the MABDI loop on the table scene (SCENE=...)
-#   make test   install the test extras too (pytest, Open3D for the TSDF peer, Ray, Rerun) and run the tests
+#   make test   install the test extras too (pytest, Open3D for the TSDF peer, Ray, Rerun, Warp) and run the tests
 PYTHON ?= python3
 VENV ?= .venv
 BIN := $(VENV)/bin
@@ -24,9 +24,10 @@ $(VENV)/.installed: pyproject.toml | $(VENV)/bin/python
 	$(BIN)/python -m pip install --quiet -e .
 	touch $@
 
-# What the tests need on top: test tools, the comparison peer (Open3D), sweeps (Ray), live viewing (Rerun).
+# What the tests need on top: test tools, the comparison peer (Open3D), sweeps (Ray), live viewing (Rerun),
+# the GPU path's kernels (Warp, run on the CPU by the tests).
 $(VENV)/.installed-test: pyproject.toml $(VENV)/.installed
-	$(BIN)/python -m pip install --quiet -e ".[test,compare,sweep,rerun]"
+	$(BIN)/python -m pip install --quiet -e ".[test,compare,sweep,rerun,gpu]"
 	touch $@
 
 install: $(VENV)/.installed

@@ -35,9 +35,9 @@ which the classifier turns into each pixel's depth uncertainty
 (map frame), where the classifier explains D's departures from E that the
 difference between the two poses makes.
 
-Parameters: :class:`RegistrationParameters` (``[registration]``; ``enabled =
-false`` or ``--no-registration`` passes D on with the given pose). The
-reasoning behind each step: docs/architecture.md (``mabdi.stages.registration``).
+Parameters: :class:`RegistrationParameters` (``[registration]``; ``enabled = false`` or ``--no-registration``
+passes D on with the given pose; ``device``: the steps' sums as GPU kernels, :mod:`mabdi.stages.registration_device`).
+The reasoning behind each step: docs/architecture.md (``mabdi.stages.registration``).
 """
 
 from __future__ import annotations
@@ -59,6 +59,7 @@ from mabdi.render.depth_image import BACKENDS, DepthRenderer
 from mabdi.sensor_noise import SensorNoise
 from mabdi.stages.expected_image import MEASURED_PORT, MapAndImageAlgorithm, map_input, render_expected
 from mabdi.stages.fit_check import JUDGED, fits_poorly
+from mabdi.stages.registration_device import DeviceImage, check_device, warp_device
 from mabdi.stages.map_anchor import MapAnchor
 from mabdi.frame_values import Measured, Placement
 from mabdi.noise_calibration import MAD_TO_SIGMA
@@ -189,8 +190,13 @@ class RegistrationParameters:
     #: ``"learnt"``: learnt from the run whatever the source states
     #: (:meth:`~mabdi.stages.map_anchor.MapAnchor.given_variance`).
     given_sigma: list[float] | str = "source"
+    #: Where the ICP's steps sum their normal equations: ``"cpu"`` (the numba kernels), ``"cuda"`` or
+    #: ``"cuda:N"`` (Warp kernels on a GPU), ``"warp-cpu"`` (the same Warp kernels on the CPU):
+    #: :mod:`mabdi.stages.registration_device`.
+    device: str = "cpu"
 
     def __post_init__(self) -> None:
+        check_device(self.device)
         for name in ("levels", "stride", "sparse_stride", "iterations", "min_points"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
@@ -303,6 +309,16 @@ class IcpWorkspace:
 
     def __init__(self) -> None:
         self._caches: list[tuple[np.ndarray, np.ndarray]] = []
+        self._devices: dict[str, object] = {}  # the Warp device of each ``device`` setting used
+
+    def map_image(self, expected: np.ndarray, intrinsics: Intrinsics, device: str = "cpu") -> _MapImage:
+        """E as one registration's ICP reads it, its steps summed on ``device``
+        (:attr:`RegistrationParameters.device`)."""
+        if device == "cpu":
+            return _MapImage(expected, intrinsics, self)
+        if device not in self._devices:
+            self._devices[device] = warp_device(device)
+        return _DeviceMapImage(expected, intrinsics, self, self._devices[device])
 
     def normal_caches(self, shape: tuple[int, int]) -> list[tuple[np.ndarray, np.ndarray]]:
         """[(normals (H, W, 3), known (H, W) int8 all unknown)] for each half of the samples, for an E of ``shape``."""
@@ -428,6 +444,22 @@ class _MapImage:
         return halves[0] if len(halves) == 1 else np.concatenate(halves)
 
 
+class _DeviceMapImage(_MapImage):
+    """:class:`_MapImage` with the steps' sums and residuals on a Warp device
+    (:class:`~mabdi.stages.registration_device.DeviceImage`); :meth:`structure`, once a frame, stays on the CPU."""
+
+    def __init__(self, expected: np.ndarray, intrinsics: Intrinsics, workspace: IcpWorkspace, device) -> None:
+        super().__init__(expected, intrinsics, workspace)
+        k = intrinsics
+        self.on_device = DeviceImage(self.depth, k.fx, k.fy, k.cx, k.cy, NORMAL_STEP, NORMAL_MAX_JUMP, device)
+
+    def system(self, points, tiles, n_tiles, scale, gate, transform, huber, summaries):
+        return self.on_device.system(points, tiles, n_tiles, scale, gate, transform, huber, summaries)
+
+    def residuals(self, points, transform) -> np.ndarray:
+        return self.on_device.residuals(points, transform)
+
+
 def register_depth(
     measured: np.ndarray,
     expected: np.ndarray,
@@ -469,7 +501,7 @@ def register_depth(
     if np.count_nonzero(np.isfinite(expected[::4, ::4])) * 16 < p.min_points:
         # nothing to fit: the last correction carried on is the best guess (drift grows; jitter stays small)
         return RegistrationResult(starts[-1].copy() if starts else np.eye(4), "no_map")
-    map_image = _MapImage(expected, intrinsics, workspace if workspace is not None else IcpWorkspace())
+    map_image = (workspace if workspace is not None else IcpWorkspace()).map_image(expected, intrinsics, p.device)
     transform = _best_start(measured, map_image, intrinsics, (np.eye(4), *starts) if from_identity or not starts else starts, noise, p)
     a = b = None
     chi2 = 0.0
