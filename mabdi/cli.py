@@ -1,7 +1,7 @@
 """The ``mabdi`` command line.
 
     mabdi run CONFIG [--frames N] [--out DIR] [--noise MODEL] [--seed N] [--surface NAME] [--set KEY=VALUE]
-                     [--no-classifier] [--no-removal] [--no-registration] [--refinement] [--depth-images] [--h5] [--movie]
+                     [--no-classifier] [--no-removal] [--no-registration] [--device D] [--refinement] [--depth-images] [--h5] [--movie]
                      [--rerun [FILE.rrd]] [--backend B] [--overwrite] [--quiet] [--no-eval]
     mabdi run --sequence PATH [CONFIG] [--frames N] [--camera PRESET|fx,fy,cx,cy,w,h[,near,far]] [--depth-scale UNITS] ...
     mabdi run --resume OUT [--quiet] [--no-eval]   finish an interrupted run from its last checkpoint (its inputs
@@ -83,6 +83,11 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument(
         "--no-registration", action="store_true",
         help="use the poses as given: no frame-to-map registration (registration.enabled = false)",
+    )
+    run.add_argument(
+        "--device", metavar="DEVICE",
+        help="where the per-pixel work that has a GPU path runs: cpu (default), cuda, cuda:N, or warp-cpu (the GPU "
+        "kernels on the CPU); registration's ICP today (registration.device; needs mabdi[gpu] for all but cpu)",
     )
     run.add_argument(
         "--refinement", action="store_true",
@@ -259,6 +264,7 @@ def _apply_overrides(config, args):
         "removal.enabled": False if getattr(args, "no_removal", False) else None,
         "refinement.enabled": True if getattr(args, "refinement", False) else None,
         "registration.enabled": False if getattr(args, "no_registration", False) else None,
+        "registration.device": getattr(args, "device", None),
         "output.dir": str(args.out) if args.command == "run" and args.out is not None else None,
         "output.depth_images": True if getattr(args, "depth_images", False) else None,
         "output.h5": True if getattr(args, "h5", False) else None,

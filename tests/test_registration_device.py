@@ -14,7 +14,7 @@ from mabdi.render.depth_image import DepthRenderer
 from mabdi.sensor_noise import SensorNoise
 from mabdi.sources.primitives import box
 from mabdi.stages import registration_device
-from mabdi.stages.registration import RegistrationParameters, register_depth, transform_size
+from mabdi.stages.registration import FilterRegistration, RegistrationParameters, register_depth, transform_size
 from mabdi.stages.registration_kernels import point_to_plane_residuals, point_to_plane_system
 from conftest import merged
 from mabdi.camera import look_at
@@ -133,6 +133,9 @@ def test_a_device_that_cannot_run_says_why(monkeypatch):
     if not wp.is_cuda_available():
         with pytest.raises(ConfigError, match="finds no CUDA device"):
             registration_device.warp_device("cuda")
+        with pytest.raises(ConfigError, match="finds no CUDA device"):  # when the filter is made, not at a frame
+            FilterRegistration(RegistrationParameters(device="cuda"))
+        FilterRegistration(RegistrationParameters(device="cuda", enabled=False))  # no ICP: no device needed
 
     def no_warp():
         raise ImportError("No module named 'warp'")

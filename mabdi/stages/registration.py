@@ -316,9 +316,14 @@ class IcpWorkspace:
         (:attr:`RegistrationParameters.device`)."""
         if device == "cpu":
             return _MapImage(expected, intrinsics, self)
+        return _DeviceMapImage(expected, intrinsics, self, self.warp_device(device))
+
+    def warp_device(self, device: str):
+        """The Warp device of a ``device`` setting other than "cpu", found once (a ConfigError where it cannot run:
+        :func:`~mabdi.stages.registration_device.warp_device`)."""
         if device not in self._devices:
             self._devices[device] = warp_device(device)
-        return _DeviceMapImage(expected, intrinsics, self, self._devices[device])
+        return self._devices[device]
 
     def normal_caches(self, shape: tuple[int, int]) -> list[tuple[np.ndarray, np.ndarray]]:
         """[(normals (H, W, 3), known (H, W) int8 all unknown)] for each half of the samples, for an E of ``shape``."""
@@ -976,7 +981,13 @@ class FilterRegistration(MapAndImageAlgorithm):
         self._pose_accuracy = pose_accuracy
         self.renderer = renderer if renderer is not None else DepthRenderer(backend)
         self._workspace = IcpWorkspace()
+        self._check_device(self._parameters)
         self.reset()
+
+    def _check_device(self, parameters: RegistrationParameters) -> None:
+        """Stop at once where the ICP's device cannot run here, not at the first frame that needs it."""
+        if parameters.enabled and parameters.device != "cpu":
+            self._workspace.warp_device(parameters.device)
 
     @property
     def parameters(self) -> RegistrationParameters:
@@ -984,6 +995,7 @@ class FilterRegistration(MapAndImageAlgorithm):
 
     @parameters.setter
     def parameters(self, value: RegistrationParameters) -> None:
+        self._check_device(value)
         self._set("_parameters", value)
         self.anchor.stated = value.given_variance(self._pose_accuracy)
 
