@@ -11,7 +11,7 @@ the settings tuned on exact poses in docs/benchmarks.md: truncation 4 voxels, we
 half-pixel centres, depth smoothed as the surfaces smooth it: over the window the noise calls for) fed the same given poses. F@1cm, triangles, faces removed,
 the registered frames and the registered poses' median error.
 
-    python benchmarks/bench_registration.py [--table] [--quick] [--out runs/bench_registration.json]
+    python benchmarks/bench_registration.py [--table] [--quick] [--devices cpu cuda] [--no-loop] [--out runs/bench_registration.json]
 """
 
 from __future__ import annotations
@@ -45,7 +45,7 @@ SCENARIOS = {
 }
 
 
-def icp_alone(frames: int = 16) -> dict:
+def icp_alone(frames: int = 16, device: str = "cpu") -> dict:
     config = load_run_config(REPO / "scenes" / "bunnies.toml")
     rig = SimulatedRig.from_config(config)
     mesh = rig.scene.mesh_at(0)
@@ -65,7 +65,8 @@ def icp_alone(frames: int = 16) -> dict:
         zbuffer = renderer.render_zbuffer(mesh, frame.intrinsics, given)
         expected = SensorNoise().depth_from_zbuffer(zbuffer, frame.intrinsics.near, frame.intrinsics.far, None)
         middle = time.perf_counter()
-        result = register_depth(frame.depth, expected, frame.intrinsics, noise, RegistrationParameters(), workspace=workspace)
+        parameters = RegistrationParameters(device=device)
+        result = register_depth(frame.depth, expected, frame.intrinsics, noise, parameters, workspace=workspace)
         end = time.perf_counter()
         render_ms.append(1000 * (middle - start))
         icp_ms.append(1000 * (end - middle))
@@ -73,6 +74,7 @@ def icp_alone(frames: int = 16) -> dict:
         after.append(transform_size(np.linalg.inv(true) @ given @ result.transform))
     before, after = np.array(before), np.array(after)
     return {
+        "device": device,
         "frames": frames,
         "before_median_mm": 1000 * float(np.median(before[:, 0])),
         "before_median_deg": float(np.median(before[:, 1])),
@@ -158,13 +160,18 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="exact poses and jitter 2 mm only")
     parser.add_argument("--scenarios", nargs="*", type=int, help="which scenarios (0-4, in the order of SCENARIOS)")
     parser.add_argument("--no-icp", action="store_true", help="skip part 1 (the ICP alone)")
+    parser.add_argument(
+        "--devices", nargs="+", default=["cpu"], metavar="DEVICE",
+        help="part 1 on each registration device (cpu, warp-cpu, cuda, cuda:N); e.g. --devices cpu cuda on a GPU machine",
+    )
+    parser.add_argument("--no-loop", action="store_true", help="skip part 2 (the loop)")
     parser.add_argument("--out", default="runs/bench_registration.json")
     args = parser.parse_args()
     report = {"machine": f"{platform.node()} {platform.processor() or platform.machine()}"}
     if not args.no_icp:
-        report["icp"] = icp_alone()
+        report["icp"] = [icp_alone(device=device) for device in args.devices]
         print(json.dumps(report["icp"], indent=1), flush=True)
-    scenes = ["bunnies"] + (["table"] if args.table else [])
+    scenes = [] if args.no_loop else ["bunnies"] + (["table"] if args.table else [])
     scenarios = dict(list(SCENARIOS.items())[:2]) if args.quick else SCENARIOS
     if args.scenarios:
         scenarios = {name: SCENARIOS[name] for index, name in enumerate(SCENARIOS) if index in args.scenarios}
