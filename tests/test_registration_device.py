@@ -113,7 +113,7 @@ def test_a_frame_registers_on_the_warp_kernels_as_on_the_numba_kernels():
 
 def test_the_kernels_compile_for_a_cuda_gpu(tmp_path):
     """Warp's NVRTC turns the kernels into PTX for a Hopper GPU (sm_90) on a machine without one: the CUDA
-    code of both kernels exists and compiles."""
+    code of the camera's and the LiDAR's kernels exists and compiles."""
     from mabdi.stages import registration_device_kernels
 
     try:
@@ -122,7 +122,8 @@ def test_the_kernels_compile_for_a_cuda_gpu(tmp_path):
         pytest.skip(f"Warp cannot compile CUDA here: {error}")
     ptx = "".join(path.read_text() for path in paths if path.suffix == ".ptx")
     assert ".target sm_90" in ptx
-    assert "system_kernel" in ptx and "residuals_kernel" in ptx
+    for kernel in ("system_kernel", "residuals_kernel", "scan_system_kernel", "scan_cost_kernel"):
+        assert kernel in ptx, kernel
 
 
 def test_a_device_that_cannot_run_says_why(monkeypatch):
@@ -143,3 +144,31 @@ def test_a_device_that_cannot_run_says_why(monkeypatch):
     monkeypatch.setattr(registration_device, "_warp", no_warp)
     with pytest.raises(ConfigError, match=r'needs NVIDIA Warp: pip install "mabdi\[gpu\]"'):
         registration_device.warp_device("warp-cpu")
+
+
+def _placed(device: str, given, truth, noise="none"):
+    from mabdi.frame_values import Measured
+    from mabdi.stages.expected_image import FilterExpectedImage
+    from mabdi.stages.scan_registration import ScanRegistration
+    from test_scan_registration import GEOMETRY, room, scan
+
+    mesh = room()
+    registration = ScanRegistration(RegistrationParameters(device=device), FilterExpectedImage(identity=True))
+    measured = Measured(scan(mesh, truth, noise), GEOMETRY, given, SensorNoise.of("none"), index=1)
+    return registration.place(measured, mesh)
+
+
+def test_a_lidar_scan_registers_on_the_warp_kernels_as_on_the_numba_kernels():
+    """A scan of a room given 2 degrees and 7 cm off (a lagging odometry), then one given right with range noise:
+    on ``"warp-cpu"`` the same status, correction (to a micrometre) and kept pose as on the numba kernels."""
+    from test_scan_registration import pose
+
+    for given, truth, noise in ((pose(1.06, -0.53, 27.0), pose(1.0, -0.5, 25.0), "none"), (pose(-1.0, 0.5, -40.0),) * 2 + ("range",)):
+        cpu = _placed("cpu", given, truth, noise)
+        warp_cpu = _placed("warp-cpu", given, truth, noise)
+        assert warp_cpu[1].status == cpu[1].status == "registered"
+        distance, angle = transform_size(np.linalg.inv(cpu[0].pose) @ warp_cpu[0].pose)
+        assert distance < 1e-6 and angle < 1e-4, (distance, angle)
+        assert warp_cpu[1].residual_m == pytest.approx(cpu[1].residual_m, abs=1e-9)
+        assert (warp_cpu[2] is None) == (cpu[2] is None)  # the drawing reused where the pose was kept
+    assert transform_size(np.linalg.inv(truth) @ warp_cpu[0].pose)[0] < 1e-9  # the good pose kept as given

@@ -6,10 +6,11 @@ With ``[registration] device = "cuda"`` (or ``"cuda:N"``) those sums and the res
 the GPU; ``"warp-cpu"`` runs the same kernels compiled for the CPU, which is how the tests check them on a
 machine without a GPU. The rest of registration (sampling D, the pyramid, the solve, the checks) stays on the
 CPU: a step moves a few hundred kilobytes (the samples once a level, their gates once a step) and brings back
-the sums and one residual a sample.
+the sums and one residual a sample. A LiDAR scan's fit (:mod:`mabdi.stages.scan_registration`) runs its steps
+and its cost there the same way (:class:`DeviceScan`; the returns and E's points and normals go once a scan).
 
 The numbers are the CPU kernels' (float64 throughout, E read as float32): each GPU thread sums a strip of
-:data:`STRIP` samples in order and adds its sums to the totals atomically, so on a GPU the totals' last bits
+:data:`~mabdi.stages.registration_device_kernels.STRIP` samples in order and adds its sums to the totals atomically, so on a GPU the totals' last bits
 depend on the order the strips finish in; on the CPU the strips run in order. E's normals are computed at each
 pair rather than cached: a GPU thread recomputing four neighbours costs less than sharing a cache across threads.
 
@@ -144,3 +145,50 @@ class DeviceImage:
         wp.launch(kernels.residuals_kernel, dim=n, inputs=[points_d, rotation, translation, self.depth, *self.camera, residuals], device=self.device)
         kept = residuals.numpy()
         return kept[kept >= 0.0]
+
+
+class DeviceScan:
+    """A LiDAR scan's returns and E's planes on a Warp device: the sums of
+    :func:`~mabdi.stages.scan_registration_kernels.scan_to_plane_system` and
+    :func:`~mabdi.stages.scan_registration_kernels.truncated_cost` there, with the same arguments and results.
+    ``points`` (N, 3) and E's ``e_points`` and ``e_normals`` (H, W, 3) in the sensor frame of the start pose (m);
+    ``row_edges`` and ``columns``: the range image's rows and columns; ``angle_reach`` (radians)."""
+
+    def __init__(self, points, e_points, e_normals, row_edges, columns: int, angle_reach: float, device) -> None:
+        _warp()
+        self.device = device
+        self.count = len(points)
+
+        def upload(values):
+            return wp.array(np.ascontiguousarray(values, dtype=np.float64), dtype=wp.float64, device=device)
+
+        self.arrays = (upload(points),)
+        self.image = (upload(e_points), upload(e_normals), upload(row_edges), int(columns), wp.float64(angle_reach))
+
+    def system(self, transform: np.ndarray, gate: float, huber: float):
+        """(A (6x6), b (6,), |residuals| of the pairs in the returns' order) of one step at ``transform``."""
+        totals = wp.zeros(kernels.TOTAL_CHI2, dtype=wp.float64, device=self.device)  # A's 21 and b's 6
+        residuals = wp.empty(max(self.count, 1), dtype=wp.float64, device=self.device)
+        if self.count:
+            rotation, translation = DeviceImage._pose(transform)
+            wp.launch(
+                kernels.scan_system_kernel, dim=-(-self.count // kernels.STRIP),
+                inputs=[*self.arrays, rotation, translation, *self.image, wp.float64(gate), wp.float64(huber), totals, residuals],
+                device=self.device,
+            )  # fmt: skip
+        sums = totals.numpy()
+        kept = residuals.numpy()[: self.count]
+        return _upper_to_full(sums[kernels.TOTAL_A : kernels.TOTAL_A + 21]), sums[kernels.TOTAL_B : kernels.TOTAL_B + 6].copy(), kept[kept >= 0.0]
+
+    def cost(self, transform: np.ndarray, gate: float) -> tuple[float, int]:
+        """(the mean of min(r, gate)^2 in m^2, NaN where no return sees the map; the returns that see it)."""
+        totals = wp.zeros(2, dtype=wp.float64, device=self.device)
+        if self.count:
+            rotation, translation = DeviceImage._pose(transform)
+            wp.launch(
+                kernels.scan_cost_kernel, dim=-(-self.count // kernels.STRIP),
+                inputs=[*self.arrays, rotation, translation, *self.image, wp.float64(gate), totals], device=self.device,
+            )  # fmt: skip
+        total, seen = totals.numpy()
+        seen = int(round(seen))
+        return (float(total) / seen if seen else float("nan")), seen

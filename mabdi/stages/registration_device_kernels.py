@@ -1,5 +1,6 @@
 """Warp kernels of the ICP's per-sample work (:mod:`mabdi.stages.registration_device`): the math of
-:mod:`mabdi.stages.registration_kernels` for a GPU, compiled by Warp for CUDA or for the CPU.
+:mod:`mabdi.stages.registration_kernels` (a camera's) and :mod:`mabdi.stages.scan_registration_kernels` (a
+LiDAR's) for a GPU, compiled by Warp for CUDA or for the CPU.
 
 Imported only when a registration runs on a Warp device (importing Warp takes a third of a second).
 """
@@ -154,3 +155,110 @@ def residuals_kernel(points: wp.array2d(dtype=wp.float64), rotation: wp.mat33d, 
         residuals[i] = wp.abs(r)
     else:
         residuals[i] = wp.float64(-1.0)
+
+
+# -- a LiDAR scan against E's range image (:mod:`mabdi.stages.scan_registration_kernels`) ----------------------
+
+
+@wp.func
+def image_pixel(q: wp.vec3d, row_edges: wp.array(dtype=wp.float64), columns: int):
+    """(row, column) of the range-image pixel a sensor-frame point falls in, row -1 outside the image:
+    :func:`~mabdi.stages.scan_registration_kernels.image_pixel`."""
+    horizontal = wp.sqrt(q[0] * q[0] + q[1] * q[1])
+    elevation = wp.atan2(q[2], horizontal)
+    rows = row_edges.shape[0] - 1
+    if elevation > row_edges[0] or elevation <= row_edges[rows]:
+        return -1, 0
+    low = int(0)
+    high = rows  # row_edges[low] >= elevation > row_edges[high]
+    while high - low > 1:
+        middle = (low + high) // 2
+        if row_edges[middle] >= elevation:
+            low = middle
+        else:
+            high = middle
+    azimuth = wp.atan2(q[1], q[0])
+    half = wp.float64(0.5)
+    column = int(wp.floor(half * (wp.float64(1.0) - azimuth / wp.float64(wp.pi)) * wp.float64(columns))) % columns
+    return low, column
+
+
+@wp.func
+def scan_pair(points: wp.array2d(dtype=wp.float64), i: int, rotation: wp.mat33d, translation: wp.vec3d,
+              e_points: wp.array3d(dtype=wp.float64), e_normals: wp.array3d(dtype=wp.float64),
+              row_edges: wp.array(dtype=wp.float64), columns: int, angle_reach: wp.float64, near_reach: wp.float64):  # fmt: skip
+    """(state, q, n, r): return i moved into E's sensor frame and paired with the plane E holds at its pixel
+    (:func:`~mabdi.stages.scan_registration_kernels._pair`: state 2 paired, 1 another surface, 0 none)."""
+    zero = wp.float64(0.0)
+    none = wp.vec3d(zero, zero, zero)
+    q = rotation * wp.vec3d(points[i, 0], points[i, 1], points[i, 2]) + translation
+    row, column = image_pixel(q, row_edges, columns)
+    if row < 0:
+        return 0, q, none, zero
+    n = wp.vec3d(e_normals[row, column, 0], e_normals[row, column, 1], e_normals[row, column, 2])
+    if wp.isnan(n[0]) or wp.isinf(n[0]):
+        return 0, q, none, zero
+    d = q - wp.vec3d(e_points[row, column, 0], e_points[row, column, 1], e_points[row, column, 2])
+    reach = near_reach + angle_reach * wp.length(q)
+    if wp.dot(d, d) > reach * reach:
+        return 1, q, none, zero
+    return 2, q, n, wp.dot(n, d)
+
+
+@wp.kernel
+def scan_system_kernel(points: wp.array2d(dtype=wp.float64), rotation: wp.mat33d, translation: wp.vec3d,
+                       e_points: wp.array3d(dtype=wp.float64), e_normals: wp.array3d(dtype=wp.float64),
+                       row_edges: wp.array(dtype=wp.float64), columns: int, angle_reach: wp.float64,
+                       gate: wp.float64, huber: wp.float64, totals: wp.array(dtype=wp.float64),
+                       residuals: wp.array(dtype=wp.float64)):  # fmt: skip
+    """One step's sums over a strip of returns (:func:`~mabdi.stages.scan_registration_kernels.scan_to_plane_system`):
+    A's 21 upper entries then b in ``totals``; ``residuals[i]``: return i's |r| where it is paired within the
+    gate, else -1."""
+    strip = wp.tid()
+    n = points.shape[0]
+    one = wp.float64(1.0)
+    a = mat66d()
+    b = vec6d()
+    for i in range(strip * STRIP, wp.min(strip * STRIP + STRIP, n)):
+        state, q, normal, r = scan_pair(points, i, rotation, translation, e_points, e_normals, row_edges, columns, angle_reach, gate)
+        if state < 2 or wp.abs(r) > gate:
+            residuals[i] = -one
+            continue
+        weight = one
+        if wp.abs(r) > huber:
+            weight = huber / wp.abs(r)
+        c = wp.cross(q, normal)
+        jac = vec6d(c[0], c[1], c[2], normal[0], normal[1], normal[2])
+        a += weight * wp.outer(jac, jac)
+        b += (weight * r) * jac
+        residuals[i] = wp.abs(r)
+    entry = int(0)
+    for j in range(6):
+        for k in range(j, 6):
+            wp.atomic_add(totals, TOTAL_A + entry, a[j, k])
+            entry += 1
+        wp.atomic_add(totals, TOTAL_B + j, b[j])
+
+
+@wp.kernel
+def scan_cost_kernel(points: wp.array2d(dtype=wp.float64), rotation: wp.mat33d, translation: wp.vec3d,
+                     e_points: wp.array3d(dtype=wp.float64), e_normals: wp.array3d(dtype=wp.float64),
+                     row_edges: wp.array(dtype=wp.float64), columns: int, angle_reach: wp.float64,
+                     gate: wp.float64, totals: wp.array(dtype=wp.float64)):  # fmt: skip
+    """The sum of min(r, gate)^2 (m^2) and the count of the returns whose pixel shows the map, over a strip
+    (:func:`~mabdi.stages.scan_registration_kernels.truncated_cost`): ``totals`` [0] and [1]."""
+    strip = wp.tid()
+    n = points.shape[0]
+    total = wp.float64(0.0)
+    seen = wp.float64(0.0)
+    for i in range(strip * STRIP, wp.min(strip * STRIP + STRIP, n)):
+        state, q, normal, r = scan_pair(points, i, rotation, translation, e_points, e_normals, row_edges, columns, angle_reach, gate)
+        if state == 0:
+            continue
+        if state == 2:
+            total += wp.min(r * r, gate * gate)
+        else:
+            total += gate * gate
+        seen += wp.float64(1.0)
+    wp.atomic_add(totals, 0, total)
+    wp.atomic_add(totals, 1, seen)

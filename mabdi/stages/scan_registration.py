@@ -34,7 +34,7 @@ the scan keeps the pose E was drawn at, the loop uses that drawing: a kept pose 
 Frames: the pose is ``world_from_sensor``; the map is in the world frame (the map's frame is the world's:
 :meth:`~mabdi.loop.loop.MabdiLoop.world_from_map` is the identity). Units: metres and degrees in parameters and checks, radians inside.
 Parameters: :class:`~mabdi.stages.registration.RegistrationParameters` (``[registration]``: ``enabled``,
-``min_points``, ``min_inliers``, ``max_rotation``; the rest are the camera's: a camera's frames come 30 a
+``min_points``, ``min_inliers``, ``max_rotation``, ``device``; the rest are the camera's: a camera's frames come 30 a
 second, a LiDAR's scans 2-20, metres apart, so a scan's step is bounded by the coarsest gate instead of
 ``max_translation``).
 """
@@ -50,6 +50,7 @@ from mabdi.frame_values import Expected, Measured, Placement
 from mabdi.pose_noise import PoseNoise
 from mabdi.spherical import SphericalGeometry
 from mabdi.stages.fit_check import JUDGED, fits_poorly
+from mabdi.stages.registration_device import DeviceScan, warp_device
 from mabdi.stages.registration import (
     RegistrationParameters,
     apply_correction,
@@ -135,14 +136,23 @@ class ScanFit:
 class _Scene:
     """The returns and E's planes one scan is fitted with (sensor frame of the start pose)."""
 
-    def __init__(self, points: np.ndarray, expected_range: np.ndarray, geometry: SphericalGeometry) -> None:
+    def __init__(self, points: np.ndarray, expected_range: np.ndarray, geometry: SphericalGeometry, device=None) -> None:
+        """``device``: a Warp device (:func:`~mabdi.stages.registration_device.warp_device`) the sums run on; None:
+        the numba kernels."""
         self.points = points
         self.e_points, self.e_normals = map_points_and_normals(expected_range, geometry)
         self.edges = geometry.row_edges()
         self.columns = geometry.columns
         self.angle_reach = PAIR_PIXELS * geometry.pixel_angle()
+        self.on_device = None
+        if device is not None:
+            self.on_device = DeviceScan(
+                points, self.e_points, self.e_normals, self.edges, self.columns, self.angle_reach, device
+            )
 
     def system(self, transform: np.ndarray, gate: float):
+        if self.on_device is not None:
+            return self.on_device.system(transform, gate, HUBER)
         return scan_to_plane_system(
             self.points, np.ascontiguousarray(transform[:3, :3]), np.ascontiguousarray(transform[:3, 3]),
             self.e_points, self.e_normals, self.edges, self.columns, self.angle_reach, gate, HUBER,
@@ -150,6 +160,8 @@ class _Scene:
 
     def cost(self, transform: np.ndarray) -> tuple[float, int]:
         """(cost m^2, returns that see the map) of a pose (:func:`truncated_cost` at :data:`JUDGE_GATE`)."""
+        if self.on_device is not None:
+            return self.on_device.cost(transform, JUDGE_GATE)
         return truncated_cost(
             self.points, np.ascontiguousarray(transform[:3, :3]), np.ascontiguousarray(transform[:3, 3]),
             self.e_points, self.e_normals, self.edges, self.columns, self.angle_reach, JUDGE_GATE,
@@ -211,6 +223,8 @@ class ScanRegistration:
 
     def __init__(self, parameters: RegistrationParameters, expected, pose_accuracy: PoseNoise | None = None) -> None:
         self.parameters = parameters
+        #: the Warp device the fit's sums run on (``parameters.device``), None for the numba kernels
+        self._device = None if parameters.device == "cpu" or not parameters.enabled else warp_device(parameters.device)
         self.expected = expected
         #: The source states its poses exact (``given_sigma``: :meth:`RegistrationParameters.given_variance`): each
         #: scan keeps its given pose and no fit is run (it could only confirm the pose).
@@ -255,7 +269,7 @@ class ScanRegistration:
             return at_carried, self._placement("exact", given, carried, ScanFit(np.eye(4), "exact"), True), expected
         if not np.isfinite(expected.depth).any():
             return at_carried, self._placement("no_map", given, carried, ScanFit(np.eye(4), "no_map")), expected
-        scene = _Scene(scan_points(measured), expected.depth, measured.geometry)
+        scene = _Scene(scan_points(measured), expected.depth, measured.geometry, self._device)
         # the start: the carried correction where it fits the map CARRY_FROM times better than the given pose
         # (transforms from the sensor at the carried pose, where E was drawn)
         given_transform = np.linalg.inv(carried) @ given
