@@ -10,9 +10,10 @@ the sums and one residual a sample. A LiDAR scan's fit (:mod:`mabdi.stages.scan_
 and its cost there the same way (:class:`DeviceScan`; the returns and E's points and normals go once a scan).
 
 The numbers are the CPU kernels' (float64 throughout, E read as float32): each GPU thread sums a strip of
-:data:`~mabdi.stages.registration_device_kernels.STRIP` samples in order and adds its sums to the totals atomically, so on a GPU the totals' last bits
-depend on the order the strips finish in; on the CPU the strips run in order. E's normals are computed at each
-pair rather than cached: a GPU thread recomputing four neighbours costs less than sharing a cache across threads.
+samples (:data:`~mabdi.stages.registration_device_kernels.STRIP`) in order and adds its sums to the totals
+atomically, so on a GPU the totals' last bits depend on the order the strips finish in; on the CPU the strips run
+in order. E's normals are computed at each pair rather than cached: a GPU thread recomputing four neighbours
+costs less than sharing a cache across threads.
 
 Needs the ``warp-lang`` package (``pip install "mabdi[gpu]"``); :func:`warp_device` says so when it is missing
 or when there is no CUDA device.
@@ -67,11 +68,22 @@ def warp_device(name: str):
     return wp.get_device(name)
 
 
+def _pose(transform: np.ndarray):
+    """A 4x4 transform's rotation and translation as Warp values (float64)."""
+    rotation = np.asarray(transform[:3, :3], dtype=np.float64)
+    return wp.mat33d(*rotation.ravel()), wp.vec3d(*np.asarray(transform[:3, 3], dtype=np.float64))
+
+
 def _upper_to_full(values: np.ndarray) -> np.ndarray:
     """The symmetric 6x6 matrix of its 21 upper entries, row by row."""
     full = np.zeros((6, 6))
     full[np.triu_indices(6)] = values
     return full + np.triu(full, 1).T
+
+
+def _normal_equations(sums: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(A (6, 6), b (6,)) of a step's totals (:data:`~mabdi.stages.registration_device_kernels.TOTAL_A` on)."""
+    return _upper_to_full(sums[kernels.TOTAL_A : kernels.TOTAL_A + 21]), sums[kernels.TOTAL_B : kernels.TOTAL_B + 6].copy()
 
 
 class DeviceImage:
@@ -99,10 +111,6 @@ class DeviceImage:
             self._samples = (points, tiles, scale, points_d, tiles_d, scale_d)
         return points_d, tiles_d, scale_d
 
-    @staticmethod
-    def _pose(transform: np.ndarray):
-        return wp.mat33d(*np.asarray(transform[:3, :3], dtype=np.float64).ravel()), wp.vec3d(*np.asarray(transform[:3, 3], dtype=np.float64))
-
     def system(self, points, tiles, n_tiles, scale, gate, transform, huber, summaries):
         """(A, b, chi2, pairs, candidates, residuals, support, tile_gradients) of one ICP step at ``transform``, as
         :func:`~mabdi.stages.registration_kernels.point_to_plane_system` returns them."""
@@ -112,7 +120,7 @@ class DeviceImage:
         totals = wp.zeros(kernels.TOTALS, dtype=wp.float64, device=self.device)
         gradients = wp.zeros((max(n_tiles, 1), 6), dtype=wp.float64, device=self.device)
         residuals = wp.empty(max(n, 1), dtype=wp.float64, device=self.device)
-        rotation, translation = self._pose(transform)
+        rotation, translation = _pose(transform)
         if n:
             wp.launch(
                 kernels.system_kernel, dim=-(-n // kernels.STRIP),
@@ -128,10 +136,9 @@ class DeviceImage:
             support[0] = _upper_to_full(sums[kernels.TOTAL_SUPPORT : kernels.TOTAL_SUPPORT + 21])
             support[1] = _upper_to_full(sums[kernels.TOTAL_SUPPORT + 21 : kernels.TOTAL_SUPPORT + 42])
             tile_gradients = gradients.numpy()[:n_tiles]
-        return (
-            _upper_to_full(sums[kernels.TOTAL_A : kernels.TOTAL_A + 21]), sums[kernels.TOTAL_B : kernels.TOTAL_B + 6].copy(), float(sums[kernels.TOTAL_CHI2]), int(round(sums[kernels.TOTAL_PAIRS])),
-            int(round(sums[kernels.TOTAL_CANDIDATES])), kept[kept >= 0.0], support, tile_gradients,
-        )  # fmt: skip
+        a, b = _normal_equations(sums)
+        pairs, candidates = int(round(sums[kernels.TOTAL_PAIRS])), int(round(sums[kernels.TOTAL_CANDIDATES]))
+        return a, b, float(sums[kernels.TOTAL_CHI2]), pairs, candidates, kept[kept >= 0.0], support, tile_gradients
 
     def residuals(self, points, transform) -> np.ndarray:
         """The absolute point-to-plane residuals (m) of every candidate at ``transform``, in the samples' order
@@ -141,7 +148,7 @@ class DeviceImage:
             return np.empty(0)
         points_d, _, _ = self._on_device(points, None, None)
         residuals = wp.empty(n, dtype=wp.float64, device=self.device)
-        rotation, translation = self._pose(transform)
+        rotation, translation = _pose(transform)
         wp.launch(kernels.residuals_kernel, dim=n, inputs=[points_d, rotation, translation, self.depth, *self.camera, residuals], device=self.device)
         kept = residuals.numpy()
         return kept[kept >= 0.0]
@@ -167,10 +174,10 @@ class DeviceScan:
 
     def system(self, transform: np.ndarray, gate: float, huber: float):
         """(A (6x6), b (6,), |residuals| of the pairs in the returns' order) of one step at ``transform``."""
-        totals = wp.zeros(kernels.TOTAL_CHI2, dtype=wp.float64, device=self.device)  # A's 21 and b's 6
+        totals = wp.zeros(kernels.SCAN_TOTALS, dtype=wp.float64, device=self.device)
         residuals = wp.empty(max(self.count, 1), dtype=wp.float64, device=self.device)
         if self.count:
-            rotation, translation = DeviceImage._pose(transform)
+            rotation, translation = _pose(transform)
             wp.launch(
                 kernels.scan_system_kernel, dim=-(-self.count // kernels.STRIP),
                 inputs=[*self.arrays, rotation, translation, *self.image, wp.float64(gate), wp.float64(huber), totals, residuals],
@@ -178,13 +185,14 @@ class DeviceScan:
             )  # fmt: skip
         sums = totals.numpy()
         kept = residuals.numpy()[: self.count]
-        return _upper_to_full(sums[kernels.TOTAL_A : kernels.TOTAL_A + 21]), sums[kernels.TOTAL_B : kernels.TOTAL_B + 6].copy(), kept[kept >= 0.0]
+        a, b = _normal_equations(sums)
+        return a, b, kept[kept >= 0.0]
 
     def cost(self, transform: np.ndarray, gate: float) -> tuple[float, int]:
         """(the mean of min(r, gate)^2 in m^2, NaN where no return sees the map; the returns that see it)."""
         totals = wp.zeros(2, dtype=wp.float64, device=self.device)
         if self.count:
-            rotation, translation = DeviceImage._pose(transform)
+            rotation, translation = _pose(transform)
             wp.launch(
                 kernels.scan_cost_kernel, dim=-(-self.count // kernels.STRIP),
                 inputs=[*self.arrays, rotation, translation, *self.image, wp.float64(gate), totals], device=self.device,

@@ -16,6 +16,8 @@ STRIP = 32
 #: Layout of a step's totals: A's 21 upper entries, b, chi2, pairs, candidates, then the two supports' 21 each.
 TOTAL_A, TOTAL_B, TOTAL_CHI2, TOTAL_PAIRS, TOTAL_CANDIDATES, TOTAL_SUPPORT = 0, 21, 27, 28, 29, 30
 TOTALS = TOTAL_SUPPORT + 42
+#: A LiDAR step's totals: A's 21 upper entries and b.
+SCAN_TOTALS = TOTAL_B + 6
 
 vec6d = wp.types.vector(length=6, dtype=wp.float64)
 mat66d = wp.types.matrix(shape=(6, 6), dtype=wp.float64)
