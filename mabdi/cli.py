@@ -436,6 +436,8 @@ def registration_line(registration: dict) -> str:
     line = f"poses: {registration['registered']} of {frames} frames registered to the map"
     if statuses.get("exact"):
         line = f"poses: {statuses['exact']} of {frames} stated exact by the source and used as given, {registration['registered']} registered to the map"
+    if registration.get("device", "cpu") != "cpu":
+        line += f" on {registration['device']}"
     if registration["median_correction_mm"] is not None:
         line += f" (median correction {registration['median_correction_mm']:.1f} mm, {registration['median_correction_deg']:.3f} deg)"
     others = {k: v for k, v in statuses.items() if k not in ("registered", "off", "no_map", "exact")}

@@ -148,7 +148,7 @@ class RunResult:
             "frames_per_second": len(records) / self.seconds if self.seconds > 0 else None,
             "mean_ms": {s: float(sum(getattr(r, s) for r in records) / n) for s in stages},
             "render": self.backend,
-            "registration": registration_summary(records),
+            "registration": {**registration_summary(records), "device": self.config.registration.device},
             "pixel_holes_filled": {
                 "frames": sum(1 for r in records if r.filled_pixels),
                 "pixels": int(sum(r.filled_pixels for r in records)),
