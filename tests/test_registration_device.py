@@ -1,6 +1,6 @@
 """Registration's GPU path (:mod:`mabdi.stages.registration_device`): the Warp kernels compiled for the CPU give
-the numba kernels' sums, an ICP on them registers a frame as the CPU path does, they compile for a CUDA GPU,
-and a device that cannot run says why."""
+the numba kernels' sums, a camera's frame, a LiDAR's scan and a recorded run register on them as on the CPU path,
+they compile for a CUDA GPU, and a device that cannot run says why."""
 
 from __future__ import annotations
 
@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from mabdi.camera import Intrinsics
+from conftest import merged
+from mabdi.camera import Intrinsics, look_at
 from mabdi.errors import ConfigError
 from mabdi.render.depth_image import DepthRenderer
 from mabdi.sensor_noise import SensorNoise
@@ -16,8 +17,6 @@ from mabdi.sources.primitives import box
 from mabdi.stages import registration_device
 from mabdi.stages.registration import FilterRegistration, RegistrationParameters, register_depth, transform_size
 from mabdi.stages.registration_kernels import point_to_plane_residuals, point_to_plane_system
-from conftest import merged
-from mabdi.camera import look_at
 from test_registration import _moved, depth_of, perturbed
 
 wp = pytest.importorskip("warp", reason="the GPU path needs warp-lang (the test extra installs it)")
