@@ -87,7 +87,7 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument(
         "--device", metavar="DEVICE",
         help="where the per-pixel work that has a GPU path runs: cpu (default), cuda, cuda:N, or warp-cpu (the GPU "
-        "kernels on the CPU); registration's ICP today (registration.device; needs mabdi[gpu] for all but cpu)",
+        "kernels on the CPU): registration's ICP (registration.device; all but cpu need mabdi[gpu])",
     )
     run.add_argument(
         "--refinement", action="store_true",
