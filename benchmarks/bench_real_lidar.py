@@ -18,7 +18,10 @@ used (``range_min < r < range_max``):
   vertical field of view of the run's geometry, and not hidden behind the
   map's own triangles (the ray from that scan's sensor meets nothing more
   than 3 cm before the sample);
-* F at 10 cm: the harmonic mean of the two.
+* F at 10 cm: the harmonic mean of the two;
+* supported: the share of the seen area that misses precision but lies
+  within 10 cm of an integrated scan's return: surface the map was given
+  returns for, where the held-out scans' rings lie too far apart to say.
 
 Maps, all from the same integrated scans and the same given poses:
 
@@ -92,6 +95,7 @@ from mabdi.evaluate.held_out_scans import (
     SAMPLE_AREA_M2,
     SEEN_TOLERANCE_M,
     HeldOutScans,
+    scan_in_world,
     score_map,
 )
 from mabdi.evaluate.tsdf import open3d_status
@@ -140,13 +144,14 @@ def git_state() -> dict:
     return {"head": head.stdout.strip(), "uncommitted": [line[3:] for line in status.stdout.splitlines() if line.strip()]}
 
 
-def scored(mesh, held: HeldOutScans) -> tuple[dict, float]:
+def scored(mesh, held: HeldOutScans, integrated=None) -> tuple[dict, float]:
+    """The map's score (``integrated``: the integrated scans' world points, for its ``supported`` share)."""
     start = time.perf_counter()
-    score = score_map(mesh, held).as_dict()
+    score = score_map(mesh, held, integrated_points=integrated).as_dict()
     return score, time.perf_counter() - start
 
 
-def run_mabdi(subset, held: HeldOutScans, surface: str, overrides: dict | None = None, replace_held=None) -> dict:
+def run_mabdi(subset, held: HeldOutScans, surface: str, overrides: dict | None = None, replace_held=None, integrated=None) -> dict:
     """One mabdi map of ``subset`` scored on ``held``; ``replace_held(meshed)``: the held-out scans at the poses
     the run's corrections give them (:func:`~mabdi.evaluate.held_out.corrected_poses`), scored too where the run
     moved any pose."""
@@ -168,7 +173,7 @@ def run_mabdi(subset, held: HeldOutScans, surface: str, overrides: dict | None =
     meshed = simulation.meshed_poses()
     simulation.loop.close()
     log(f"{name}: {triangles:,} triangles, {after_read.mean():.0f} ms a scan ({result.seconds:.0f} s); scoring")
-    score, seconds = scored(mesh, held)
+    score, seconds = scored(mesh, held, integrated)
     log(f"{name}: scored in {seconds:.0f} s: F@10cm {score['fscore']:.3f}")
     corrected = None
     if replace_held is not None and not np.allclose(meshed, subset.poses, rtol=0.0, atol=1e-9):
@@ -258,7 +263,7 @@ def poisson_name(depth: int, trim: float, voxel: float = POISSON_VOXEL) -> str:
     return f"poisson (voxel {voxel * 100:g} cm, depth {depth}, trim {trim * 100:g}%)"
 
 
-def run_poisson(files, poses, geometry: SphericalGeometry, held: HeldOutScans, depths, trims) -> tuple[dict, list[dict]]:
+def run_poisson(files, poses, geometry: SphericalGeometry, held: HeldOutScans, depths, trims, integrated=None) -> tuple[dict, list[dict]]:
     """(the peer's row, every setting's row): the best F at 10 cm of ``depths`` by ``trims``."""
     log(f"poisson: normals of {len(files)} scans")
     peer = PoissonPeer(files, poses, geometry.range_min, geometry.range_max)
@@ -277,7 +282,7 @@ def run_poisson(files, poses, geometry: SphericalGeometry, held: HeldOutScans, d
             trim_seconds = time.perf_counter() - start
             total = peer.prepare_seconds + seconds + trim_seconds
             name = poisson_name(depth, trim)
-            score, score_seconds = scored(mesh, held)
+            score, score_seconds = scored(mesh, held, integrated)
             log(f"{name}: {mesh.GetNumberOfCells():,} triangles; scored in {score_seconds:.0f} s: F@10cm {score['fscore']:.3f}")
             rows.append(
                 {
@@ -345,6 +350,15 @@ def markdown(bench: dict) -> str:
             for b in s["by_range"]
         )
         line += f"; precision by distance from the nearest held-out sensor: {bands}"
+        if not math.isnan(s.get("supported", math.nan)):
+            supported = ", ".join(
+                (f"{b['from_m']:g}-{b['to_m']:g} m" if b["to_m"] is not None else f"over {b['from_m']:g} m") + f" {percent(b['supported'])}"
+                for b in s["by_range"]
+            )
+            line += (
+                f"; of the seen area {percent(s['supported'])} has no held-out return but an integrated one within 10 cm "
+                f"(by distance: {supported})"
+            )
         if "meshed_poses_vs_given" in row:
             d = row["meshed_poses_vs_given"]
             line += (
@@ -432,6 +446,11 @@ def main(argv=None) -> int:
     outside_fov = float(np.mean((elevation < geometry.fov_down) | (elevation > geometry.fov_up))) if returns.any() else 0.0
     del pooled
 
+    # the integrated scans' returns in the world at the given poses: what the maps were built from ("supported")
+    integrated_points = np.concatenate(
+        [scan_in_world(read_scan(files[i]), poses[i], geometry.range_min, geometry.range_max) for i in integrated]
+    )
+
     def replace_held(meshed):
         # the held-out scans at their given poses corrected as the run corrected the scans around them
         at = corrected_poses(poses, integrated, meshed, held_index)
@@ -443,13 +462,13 @@ def main(argv=None) -> int:
     rows, grid = [], []
     started = time.perf_counter()
     for surface in args.surface:
-        rows.append(run_mabdi(subset, held, surface, overrides, replace_held))
+        rows.append(run_mabdi(subset, held, surface, overrides, replace_held, integrated_points))
     mabdi_seconds = time.perf_counter() - started
     poisson_seconds = 0.0
     if not args.no_poisson:
         started = time.perf_counter()
         depths, trims = (args.depths, args.trims) if args.tune else ([POISSON_DEPTH], [POISSON_TRIM])
-        best, grid = run_poisson([files[i] for i in integrated], poses[integrated], geometry, held, depths, trims)
+        best, grid = run_poisson([files[i] for i in integrated], poses[integrated], geometry, held, depths, trims, integrated_points)
         rows.append(best)
         poisson_seconds = time.perf_counter() - started
         if args.tune:

@@ -179,6 +179,32 @@ def test_a_map_a_little_off_the_scan_has_recall_by_threshold():
     assert score.as_dict()["by_range"][-1]["to_m"] is None
 
 
+def test_supported_area_is_the_imprecise_area_the_integrated_points_lie_on():
+    """A held-out scan whose rings cross a 4 x 4 m floor 0.5 m apart (5 cm along each ring) confirms only the floor
+    within 10 cm of a ring; the integrated scans' 5 cm grid lies on all of it, so the rest of the floor is
+    supported. A 1 x 4 m shelf 0.5 m up beside the floor has no point of either near it: imprecise and not
+    supported. Without integrated points the share is not measured (NaN)."""
+    sensor = np.array([0.0, 0.0, 2.0])
+    rings = np.concatenate([grid(-2, 2, y - 0.025, y + 0.025, 0.0, 0.05) for y in np.arange(-1.75, 2.0, 0.5)])
+    held = HeldOutScans.from_scans([rings - sensor], [pose(sensor)], 0.1, 100.0)
+    integrated = grid(-2, 2, -2, 2, 0.0, 0.05)
+    floor_and_shelf = rectangles((-2, 2, -2, 2, 0.0), (2.5, 3.5, -2, 2, 0.5))
+
+    score = score_map(floor_and_shelf, held, integrated_points=integrated)
+    shelf_share = 4.0 / 20.0
+    confirmed_floor = 0.2 / 0.5  # a band 10 cm either side of each ring, in every 0.5 m
+    assert score.area_seen_m2 == pytest.approx(20.0, abs=0.2)
+    assert score.precision == pytest.approx((1 - shelf_share) * confirmed_floor, abs=0.02)
+    assert score.supported == pytest.approx((1 - shelf_share) * (1 - confirmed_floor), abs=0.02)
+    assert score.precision + score.supported == pytest.approx(1 - shelf_share, abs=0.005)
+    first = score.by_range[0]  # every sample lies within 5 m of the sensor
+    assert first["supported"] == pytest.approx(score.supported)
+    assert all(math.isnan(band["supported"]) for band in score.by_range[1:])
+
+    unmeasured = score_map(floor_and_shelf, held)
+    assert math.isnan(unmeasured.supported) and unmeasured.precision == score.precision
+
+
 def test_an_empty_map_has_no_recall_and_no_precision():
     held = HeldOutScans.from_scans([np.array([[2.0, 0.0, 0.0]])], [pose()], 0.5, 50.0)
     score = score_map(vtkPolyData(), held)

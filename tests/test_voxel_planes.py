@@ -14,6 +14,7 @@ from mabdi.surfaces.voxel_planes import (
     VoxelPlanesParameters,
     cube_polygons,
     fan_triangles,
+    longest_edges,
     plane_patches,
 )
 from mabdi.mesh_maps.colours import colours_by_normal, normal_colours_float
@@ -299,6 +300,9 @@ def test_bad_parameters_and_inputs():
         VoxelPlanesParameters(epsilon=0)
     with pytest.raises(ConfigError, match="between_beams must be true, false or"):
         VoxelPlanesParameters(between_beams="yes")
+    for bad in (0.0, -1.0, "far", True):
+        with pytest.raises(ConfigError, match="max_bridge must be a length > 0"):
+            VoxelPlanesParameters(max_bridge=bad)
     with pytest.raises(ConfigError, match="whole number of voxels"):
         VoxelMap(0.05, 0.33)
     with pytest.raises(ValueError, match="shape"):
@@ -389,6 +393,40 @@ def test_voxel_planes_mesh_the_road_between_a_lidars_rings():
         off[between] = int((off_scene(centroids) > 0.03).sum())
     assert far_road["auto"] > 5.0 * max(far_road[False], 1.0), far_road
     assert off["auto"] <= off[False] + 2, off
+
+
+def test_max_bridge_leaves_gaps_wider_than_it_unsampled():
+    """The street corner of the test above: with ``max_bridge`` 0.3 m the road's rings are bridged only where they
+    lie at most 0.3 m apart, so the far road (beyond 12 m, where they lie further apart) keeps no more than the
+    beams' own polygons, and the near road (3-6 m) is meshed as with every gap bridged."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from test_lidar import street_corner
+
+    image, _ = street_corner()
+    road_area = {}
+    for bridge in ("none", 0.3):
+        surface = FilterVoxelPlanes(VoxelPlanesParameters(voxel_size=0.2, max_bridge=bridge), output="full")
+        surface.SetInputDataObject(image)
+        surface.Update()
+        points, triangles = polydata_arrays(surface.GetOutput())
+        centroids = points[triangles].mean(axis=1)
+        corners = points[triangles]
+        area = 0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1)
+        on_road = np.abs(centroids[:, 2]) < 0.05
+        distance = np.linalg.norm(centroids[:, :2], axis=1)
+        road_area[bridge] = (area[on_road & (distance > 12.0)].sum(), area[on_road & (distance > 3.0) & (distance < 6.0)].sum())
+    unlimited, limited = road_area["none"], road_area[0.3]
+    assert limited[0] < 0.2 * unlimited[0], road_area
+    assert limited[1] == pytest.approx(unlimited[1], rel=0.05), road_area
+
+
+def test_longest_edges():
+    vertices = np.array([[0.0, 0.0, 0.0], [3.0, 0.0, 0.0], [0.0, 4.0, 0.0], [1.0, 1.0, 1.0]])
+    np.testing.assert_allclose(longest_edges(vertices, np.array([[0, 1, 2], [0, 3, 1]])), [5.0, 3.0])
+    assert longest_edges(vertices, np.zeros((0, 3), dtype=np.int64)).shape == (0,)
 
 
 def crease_points(count=60_000, seed=0):

@@ -8,7 +8,11 @@
   range limits and vertical field of view, and the ray from its sensor meets
   no map triangle more than 3 cm before the sample);
 * F: their harmonic mean at 10 cm; both also by range band, since a scan
-  samples far surfaces sparsely (a 1 degree beam spacing is 17 cm at 10 m).
+  samples far surfaces sparsely (a 1 degree beam spacing is 17 cm at 10 m);
+* supported: given the integrated scans' points, the share of the seen area
+  that misses precision (no held-out point within 10 cm) but lies within
+  10 cm of an integrated point: surface the map's own returns put there
+  where the held-out rings are too sparse to say (also by band).
 
 Units: metres (areas m^2, field of view degrees). Frames: compared in the
 world frame; scan points come in the sensor frame (x forward, y left, z up),
@@ -229,6 +233,17 @@ def by_band(ranges, hits, bands=RANGE_BANDS_M) -> list[tuple[float, float, int, 
     return out
 
 
+def mean_by_band(ranges, values, bands=RANGE_BANDS_M) -> list[float]:
+    """The mean of ``values`` (NaN: not measured) whose ``ranges`` fall in each band [from, to); NaN for none."""
+    ranges = np.asarray(ranges, dtype=np.float64)
+    values = np.asarray(values, dtype=np.float64)
+    out = []
+    for low, high in zip(bands[:-1], bands[1:]):
+        inside = (ranges >= low) & (ranges < high)
+        out.append(float(values[inside].mean()) if inside.any() else math.nan)
+    return out
+
+
 def fscore(precision: float, recall_: float) -> float:
     """2 P R / (P + R) (:func:`mabdi.evaluate.metrics.fscore`); NaN when either is NaN."""
     if math.isnan(precision) or math.isnan(recall_):
@@ -252,8 +267,11 @@ class HeldOutScansScore:
     triangles: int
     per_scan_recall: list[float] = field(default_factory=list)
     #: One entry per range band (module docs): ``from_m``, ``to_m``, ``points``, ``recall`` (at the precision
-    #: threshold), ``samples_seen``, ``precision``.
+    #: threshold), ``samples_seen``, ``precision``, ``supported``.
     by_range: list[dict] = field(default_factory=list)
+    #: Share of the seen samples with no held-out point but an integrated one within the precision threshold
+    #: (module docs); NaN when no integrated points were given.
+    supported: float = math.nan
 
     def as_dict(self) -> dict:
         out = asdict(self)
@@ -271,10 +289,12 @@ def score_map(
     sample_area: float = SAMPLE_AREA_M2,
     max_samples: int = MAX_SAMPLES,
     tolerance: float = SEEN_TOLERANCE_M,
+    integrated_points=None,
 ) -> HeldOutScansScore:
     """Recall at each of ``recall_thresholds`` and at ``precision_threshold``, precision at
     ``precision_threshold`` over the seen samples, and their F-score, of ``mesh`` against ``scans``.
-    ``per_scan_recall``: each scan's recall at ``precision_threshold``."""
+    ``per_scan_recall``: each scan's recall at ``precision_threshold``. ``integrated_points`` (N, 3) world: the
+    points the map was built from, for ``supported`` (module docs); None: not measured."""
     scene = MapScene(mesh)
     thresholds = tuple(dict.fromkeys([*map(float, recall_thresholds), float(precision_threshold)]))
     shares, distances = recall(scene, scans.points, thresholds)
@@ -287,13 +307,17 @@ def score_map(
     seen = seen_from_scans(scene, samples.points, scans, tolerance)
     close = near_points(samples.points[seen], scans.points, precision_threshold)
     precision = float(close.mean()) if len(close) else math.nan
+    supported = np.full(len(close), np.nan)
+    if integrated_points is not None:
+        supported = (~close & near_points(samples.points[seen], integrated_points, precision_threshold)).astype(np.float64)
     share_seen = float(seen.mean()) if len(seen) else 0.0
     point_ranges = np.linalg.norm(scans.points - scans.poses[scans.scan, :3, 3], axis=1)
     sample_ranges = nearest_sensor_distances(samples.points[seen], scans.sensor_positions)
     bands = [
-        {"from_m": low, "to_m": high, "points": points, "recall": point_share, "samples_seen": seen_count, "precision": sample_share}
-        for (low, high, points, point_share), (_, _, seen_count, sample_share) in zip(
-            by_band(point_ranges, within), by_band(sample_ranges, close)
+        {"from_m": low, "to_m": high, "points": points, "recall": point_share, "samples_seen": seen_count, "precision": sample_share,
+         "supported": band_supported}  # fmt: skip
+        for (low, high, points, point_share), (_, _, seen_count, sample_share), band_supported in zip(
+            by_band(point_ranges, within), by_band(sample_ranges, close), mean_by_band(sample_ranges, supported)
         )
     ]
     return HeldOutScansScore(
@@ -309,6 +333,7 @@ def score_map(
         triangles=scene.triangles,
         per_scan_recall=[float(x) for x in per_scan],
         by_range=bands,
+        supported=float(supported.mean()) if len(supported) else math.nan,
     )
 
 
@@ -317,6 +342,7 @@ __all__ = [
     "HeldOutScansScore",
     "MapScene",
     "by_band",
+    "mean_by_band",
     "near_points",
     "nearest_sensor_distances",
     "precision_samples",

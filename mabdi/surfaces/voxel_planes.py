@@ -17,7 +17,8 @@ across updates:
 5. with colour input, each vertex takes the mean colour of its voxel.
 
 For range images ``between_beams`` adds samples of the pixel grid between
-a LiDAR's rings, and ``refine`` meshes creases at half the voxel size.
+a LiDAR's rings (across gaps up to ``max_bridge``), and ``refine``
+meshes creases at half the voxel size.
 
 Output cell data: ``Normals``, ``rgb`` (seed 000 eqs. 5-7) and
 ``patch_key``; point data ``rgb_colors`` with colour input; a depth
@@ -31,6 +32,7 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -78,6 +80,9 @@ class VoxelPlanesParameters:
     #: Add points on the surface between neighbouring samples more than half a voxel apart (see the module
     #: docs, "Between beams"): true, false, or "auto" (range images only).
     between_beams: bool | str = "auto"
+    #: The widest gap (m) between neighbouring samples that ``between_beams`` fills: pixel-grid triangles with
+    #: a longer edge are not sampled (docs/architecture.md, "Between beams"); "none" (the default): every gap.
+    max_bridge: float | str = "none"
     #: Fill the cubes of neighbourhoods that are not planar (a crease: a wall's foot) from windows of half-size
     #: voxels (see the module docs, "Creases"): true, false, or "auto" (where half-size windows still tell a
     #: plane from a crease by the same test, :attr:`refines`).
@@ -86,6 +91,10 @@ class VoxelPlanesParameters:
     def __post_init__(self) -> None:
         check_switch("between_beams", self.between_beams)
         check_switch("refine", self.refine)
+        if self.max_bridge != "none" and (
+            isinstance(self.max_bridge, bool) or not isinstance(self.max_bridge, (int, float)) or not self.max_bridge > 0
+        ):
+            raise ConfigError(f'max_bridge must be a length > 0 (metres) or "none" (every gap), got {self.max_bridge!r}')
         if not self.voxel_size > 0 or not self.epsilon > 0:
             raise ConfigError(
                 f"need voxel_size > 0 and epsilon > 0 (metres), got voxel_size={self.voxel_size}, epsilon={self.epsilon}"
@@ -112,6 +121,11 @@ class VoxelPlanesParameters:
         if self.refine == "auto":
             return span_variance(self.window * self.voxel_size / 2.0) >= self.epsilon**2
         return bool(self.refine)
+
+    @property
+    def bridge(self) -> float:
+        """The widest gap (m) between-beams samples fill: ``max_bridge``, infinite for "none"."""
+        return math.inf if self.max_bridge == "none" else float(self.max_bridge)
 
     def halved(self) -> VoxelPlanesParameters:
         """The same parameters at half the voxel size (the refinement's)."""
@@ -159,6 +173,12 @@ def plane_patches(voxels: VoxelMap, anchors: np.ndarray, parameters: VoxelPlanes
     centres = (anchors[keep] + 0.5 * (w % 2)) * s
     unresolved = anchors[np.flatnonzero(enough)[~planar]]
     return PlanePatches(anchors[keep], normals, centroids, centres, n[keep].astype(np.int64), unresolved)
+
+
+def longest_edges(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """(M,) the longest edge (m) of each of ``triangles`` (M, 3, indices into ``vertices`` (N, 3))."""
+    corners = vertices[triangles]
+    return np.sqrt(np.max([((corners[:, (k + 1) % 3] - corners[:, k]) ** 2).sum(axis=1) for k in range(3)], axis=0))
 
 
 def triangle_samples(vertices: np.ndarray, triangles: np.ndarray, spacing: float) -> tuple[np.ndarray, np.ndarray]:
@@ -776,6 +796,7 @@ class FilterVoxelPlanes(MabdiAlgorithm):
         points, colours = camera @ pose[:3, :3].T + pose[:3, 3], None if colour is None else colour[v, u]
         if on_for_range_images(self._parameters.between_beams, k):
             vertices, triangles, pixel_ids = pixel_grid_surface(frame, whole, PixelGridParameters(), straight_only=True)
+            triangles = triangles[longest_edges(vertices, triangles) <= self._parameters.bridge]
             extra, corner = triangle_samples(vertices, triangles, 0.5 * self._parameters.voxel_size)
             points = np.concatenate([points, extra])
             if colours is not None:
