@@ -796,7 +796,8 @@ class FilterVoxelPlanes(MabdiAlgorithm):
         points, colours = camera @ pose[:3, :3].T + pose[:3, 3], None if colour is None else colour[v, u]
         if on_for_range_images(self._parameters.between_beams, k):
             vertices, triangles, pixel_ids = pixel_grid_surface(frame, whole, PixelGridParameters(), straight_only=True)
-            triangles = triangles[longest_edges(vertices, triangles) <= self._parameters.bridge]
+            if math.isfinite(self._parameters.bridge):
+                triangles = triangles[longest_edges(vertices, triangles) <= self._parameters.bridge]
             extra, corner = triangle_samples(vertices, triangles, 0.5 * self._parameters.voxel_size)
             points = np.concatenate([points, extra])
             if colours is not None:
