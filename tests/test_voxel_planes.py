@@ -178,30 +178,31 @@ def test_only_touched_blocks_are_remeshed_and_replaced_in_the_world_mesh():
         assert world.number_of_cells == surface.mesh().GetNumberOfCells()
     assert changed[0] == changed[1]
     assert not changed[2] & changed[0]  # new points far away leave the old blocks alone
-    assert sorted(world.patch_keys) == sorted(f"patch_{k}" for k in changed[0] | changed[2])
+    patches = set(surface.patch_keys(np.array(sorted(changed[0] | changed[2]), dtype=np.int64)).tolist())
+    assert len(patches) == 2 and sorted(world.patch_keys) == sorted(f"patch_{k}" for k in patches)
 
 
-def test_small_blocks_are_grouped_into_patches_of_twenty_voxels_replaced_whole():
+def test_small_blocks_are_grouped_into_patches_of_forty_voxels_replaced_whole():
     from mabdi.stages.world_mesh import PATCH_KEY_ARRAY, FilterWorldMesh
     from mabdi.voxels.voxel_map import pack_keys, unpack_keys
 
-    assert FilterVoxelPlanes().patch_blocks == 1  # 1 m blocks of 5 cm voxels: a patch is a block
+    assert FilterVoxelPlanes().patch_blocks == 2  # 1 m blocks of 5 cm voxels: 2 x 2 x 2 blocks, 40 voxels a side
     surface = FilterVoxelPlanes(VoxelPlanesParameters(voxel_size=0.2, epsilon=0.05))  # 1 m blocks of 5 voxels
-    assert surface.patch_blocks == 4  # 4 x 4 x 4 blocks: 20 voxels on a side
+    assert surface.patch_blocks == 8  # 8 x 8 x 8 blocks: 40 voxels on a side
     world = FilterWorldMesh()
     world.SetInputConnection(surface.GetOutputPort())
-    floor, _ = plane_points([0, 0, 1], [4.0, 4.0, 0.3], 3.9, 200_000, 0.0, seed=3)  # 8 m: 2 x 2 patches
+    floor, _ = plane_points([0, 0, 1], [8.0, 8.0, 0.3], 7.9, 400_000, 0.0, seed=3)  # 16 m: 2 x 2 patches
     surface.SetInputDataObject(points_polydata(floor))
     world.Update()
     full = surface.mesh()
     keys = vtk_to_numpy(full.GetCellData().GetArray(PATCH_KEY_ARRAY))
     assert sorted(set(keys.tolist())) == sorted(pack_keys(np.array([[0, 0, 0], [0, 1, 0], [1, 0, 0], [1, 1, 0]])).tolist())
     assert sorted(world.patch_keys) == sorted(f"patch_{k}" for k in set(keys.tolist()))
-    # a few points in one 1 m block re-mesh that block; its whole patch (16 blocks of the floor) is sent again
+    # a few points in one 1 m block re-mesh that block; its whole patch (64 blocks of the floor) is sent again
     corner, _ = plane_points([0, 0, 1], [0.5, 0.5, 0.3], 0.3, 2_000, 0.0, seed=4)
     surface.SetInputDataObject(points_polydata(corner))
     world.Update()
-    assert np.unique(np.floor_divide(unpack_keys(surface.changed_blocks), 4), axis=0).tolist() == [[0, 0, 0]]
+    assert np.unique(np.floor_divide(unpack_keys(surface.changed_blocks), 8), axis=0).tolist() == [[0, 0, 0]]
     sent = surface.GetOutput()
     first = int(pack_keys(np.zeros((1, 3), int))[0])
     assert set(vtk_to_numpy(sent.GetCellData().GetArray(PATCH_KEY_ARRAY)).tolist()) == {first}

@@ -53,8 +53,8 @@ from mabdi.surfaces.pixel_grid import PixelGridParameters, pixel_grid_surface
 from mabdi.spherical import BEAM_ELEVATIONS_ARRAY, SPHERICAL_ARRAY, on_for_range_images
 
 OUTPUTS = ("changed", "full")
-#: Voxels on a side that a patch of the output spans at least (the seed's 1 m block of 5 cm voxels; module docs).
-PATCH_VOXELS = 20
+#: Voxels on a side that a patch of the output spans at least (2 m of 5 cm voxels; docs/architecture.md).
+PATCH_VOXELS = 40
 #: The least share of its window a plane's points must span along each in-plane axis (their variance at least
 #: (MIN_SPAN * window * voxel_size)^2 / 12: a uniform strip that wide); module docs, and docs/architecture.md.
 MIN_SPAN = 0.5
