@@ -222,25 +222,15 @@ def nearest_sensor_distances(points, sensors) -> np.ndarray:
 
 
 def by_band(ranges, hits, bands=RANGE_BANDS_M) -> list[tuple[float, float, int, float]]:
-    """(from, to, count, share of ``hits``) of the values whose ``ranges`` fall in each band [from, to)."""
+    """(from, to, count, share of ``hits``) of the values whose ``ranges`` fall in each band [from, to); ``hits``
+    bool, or float (the band's mean: NaN where not measured)."""
     ranges = np.asarray(ranges, dtype=np.float64)
-    hits = np.asarray(hits, dtype=bool)
+    hits = np.asarray(hits, dtype=np.float64)
     out = []
     for low, high in zip(bands[:-1], bands[1:]):
         inside = (ranges >= low) & (ranges < high)
         count = int(inside.sum())
         out.append((float(low), float(high), count, float(hits[inside].mean()) if count else math.nan))
-    return out
-
-
-def mean_by_band(ranges, values, bands=RANGE_BANDS_M) -> list[float]:
-    """The mean of ``values`` (NaN: not measured) whose ``ranges`` fall in each band [from, to); NaN for none."""
-    ranges = np.asarray(ranges, dtype=np.float64)
-    values = np.asarray(values, dtype=np.float64)
-    out = []
-    for low, high in zip(bands[:-1], bands[1:]):
-        inside = (ranges >= low) & (ranges < high)
-        out.append(float(values[inside].mean()) if inside.any() else math.nan)
     return out
 
 
@@ -316,8 +306,8 @@ def score_map(
     bands = [
         {"from_m": low, "to_m": high, "points": points, "recall": point_share, "samples_seen": seen_count, "precision": sample_share,
          "supported": band_supported}  # fmt: skip
-        for (low, high, points, point_share), (_, _, seen_count, sample_share), band_supported in zip(
-            by_band(point_ranges, within), by_band(sample_ranges, close), mean_by_band(sample_ranges, supported)
+        for (low, high, points, point_share), (_, _, seen_count, sample_share), (_, _, _, band_supported) in zip(
+            by_band(point_ranges, within), by_band(sample_ranges, close), by_band(sample_ranges, supported)
         )
     ]
     return HeldOutScansScore(
@@ -342,7 +332,6 @@ __all__ = [
     "HeldOutScansScore",
     "MapScene",
     "by_band",
-    "mean_by_band",
     "near_points",
     "nearest_sensor_distances",
     "precision_samples",
