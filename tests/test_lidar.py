@@ -819,6 +819,48 @@ def test_a_scan_is_meshed_where_its_returns_lie_not_at_its_pixel_centres():
     assert np.percentile(leaf_residuals(at_centres), 99) > 0.01
 
 
+def _one_pixel_normal_errors(points, half, geometry, noise):
+    """Degrees between each one-pixel leaf's normal (no merging: every pixel its own leaf) and the corridor
+    surface it lies on, away from the corridor's edges; and each leaf's range (m)."""
+    from mabdi.sources.range_images import range_image_and_returns
+    from mabdi.surfaces.quadtree import QuadTreeParameters, leaves_of_image
+
+    depth, returns = range_image_and_returns(points, geometry)
+    unmerged = QuadTreeParameters(n_t=0.0, d_t=1e-9, smooth_depth=False)
+    _, _, leaves, _ = leaves_of_image(depth, geometry, unmerged, noise, None, returns)
+    point, normal = leaves.point[leaves.level == 0], leaves.normal[leaves.level == 0]
+    truth = np.eye(3)[np.argmin(np.abs(np.abs(point) - half), axis=1)]
+    inner = np.sort(np.abs(np.abs(point) - half), axis=1)[:, 1] > 0.3  # 30 cm from another surface
+    error = np.degrees(np.arccos(np.clip(np.abs(np.einsum("ij,ij->i", normal, truth)), 0.0, 1.0)))
+    return error[inner], np.linalg.norm(point[inner], axis=1)
+
+
+def test_a_lidar_pixel_s_normal_comes_from_its_neighbours_returns_a_beam_s_angle_along_its_row():
+    # A deskewed scan's returns lie anywhere in their pixels. Points on the centre rays (the range carried to
+    # each centre) tilt a pixel's normal by degrees, which a leaf's corner, half a beam away at grazing
+    # incidence, turns into centimetres off the surface; the returns themselves are on it. Along a row the
+    # next column's return lies a quarter of a beam's angle away here, so the range noise tilts a normal
+    # from it four times as much as across the rows: the normal reaches a beam's angle along the row.
+    from mabdi.depth import NO_NOISE
+    from mabdi.surfaces.quadtree import normal_column_step
+
+    geometry = SphericalGeometry(64, 1024, 45.0, -45.0, 0.5, 50.0)
+    assert normal_column_step(geometry) == 4  # 1.43 degrees between beams, 0.35 between columns
+    assert normal_column_step(SphericalGeometry(64, 1024, 2.0, -24.8)) == 1  # 0.43 against 0.35
+    assert normal_column_step(SphericalGeometry(16, 4096, 15.0, -15.0)) == 8  # 2 against 0.088: at most 8
+    points, half = _corridor_scan(geometry)
+    error, distance = _one_pixel_normal_errors(points, half, geometry, NO_NOISE)
+    assert len(error) > 50_000
+    assert np.percentile(error[distance < 8.0], 99) < 0.01  # on the pixel centres' rays: 24 degrees
+
+    rng = np.random.default_rng(1)
+    ranges = np.linalg.norm(points, axis=1)
+    noisy = points * ((ranges + rng.normal(0.0, 0.02, len(ranges))) / ranges)[:, None]
+    error, distance = _one_pixel_normal_errors(noisy, half, geometry, SensorNoise("range", range_sigma=0.02))
+    # 4-8 m: the next column's return alone gives 6.2 degrees, the pixel centres' 4.5
+    assert np.median(error[(distance > 4.0) & (distance < 8.0)]) < 3.0
+
+
 def test_e_is_compared_with_a_return_along_the_return_s_own_ray():
     # The same corridor, mapped exactly: a pixel's range carried to its centre's ray is centimetres off at grazing
     # incidence, so D - E along the centre rays would read the map as seen through or in front of the scan. Cast

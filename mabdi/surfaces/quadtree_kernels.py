@@ -90,12 +90,16 @@ def point_normals_kernel(points, max_jump):
 
 
 @njit(cache=True)
-def point_normals_depth_kernel(points, depth, max_jump, right, down):
+def point_normals_depth_kernel(points, depth, max_jump, right, down, column_step=1):
     """:func:`point_normals_kernel` with the depth tests on ``depth`` (H, W): a camera's z (the points' own), a
     LiDAR's range; and a neighbour that fails the jump rule used all the same where ``right`` (H, W: pixel
     (i, j) with (i, j + 1)) or ``down`` ((i, j) with (i + 1, j)) says the two are on one straight line
     (:func:`mabdi.depth.straight_continuations`; all False: the jump rule alone). ``max_jump`` (H,): each row's
-    relative jump; two pixels of rows i and k are compared with the larger of the two rows'."""
+    relative jump; two pixels of rows i and k are compared with the larger of the two rows'.
+
+    ``column_step``: along a row, the neighbours up to this many columns away (the furthest that a run of
+    pixels on the surface reaches; 1: the next pixel), so that a LiDAR's columns, much closer than its beams,
+    span about a beam's angle as the rows do; each passes the jump rule against the pixel itself."""
     height, width = points.shape[0], points.shape[1]
     normals = np.full((height, width, 3), np.nan)
     du = np.empty(3)
@@ -117,6 +121,15 @@ def point_normals_depth_kernel(points, depth, max_jump, right, down):
                 jump_backward = max(max_jump[i], max_jump[bi]) if backward_ok else 0.0
                 has_forward = forward_ok and (abs(depth[fi, fj] - z) <= jump_forward * z or straight_forward)
                 has_backward = backward_ok and (abs(depth[bi, bj] - z) <= jump_backward * z or straight_backward)
+                if axis == 0:  # along the row: as far as the run of surface pixels reaches, up to column_step
+                    for step in range(2, column_step + 1):
+                        if not has_forward or j + step >= width or not abs(depth[i, j + step] - z) <= max_jump[i] * z:
+                            break
+                        fj = j + step
+                    for step in range(2, column_step + 1):
+                        if not has_backward or j - step < 0 or not abs(depth[i, j - step] - z) <= max_jump[i] * z:
+                            break
+                        bj = j - step
                 for c in range(3):
                     forward = points[fi, fj, c] if forward_ok else np.nan
                     backward = points[bi, bj, c] if backward_ok else np.nan
