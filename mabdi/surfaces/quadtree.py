@@ -650,9 +650,7 @@ MAX_NORMAL_COLUMN_STEP = 8
 def normal_column_step(geometry: SphericalGeometry) -> int:
     """How many columns along a row a LiDAR pixel's normal reaches each way: its beams' median spacing over
     the azimuth step (at most :data:`MAX_NORMAL_COLUMN_STEP`), so that the row's points span about the angle
-    that the rows above and below do. A spinning LiDAR's columns lie several times closer than its beams
-    (1024 columns and 64 beams over 90 degrees: 0.35 against 1.4 degrees); the next column's return alone,
-    a few centimetres away at range, tilts the normal by what the range noise is of that."""
+    that the rows above and below do (docs/architecture.md, "Meshed at the returns themselves")."""
     azimuth = 2.0 * math.pi / geometry.columns
     pairs = geometry.pair_angles() if geometry.beams > 1 else np.array([azimuth])
     return int(np.clip(round(float(np.median(pairs)) / azimuth), 1, MAX_NORMAL_COLUMN_STEP))
